@@ -1,0 +1,154 @@
+"""Reading TOML files and typed, checked values out of them (errors name the key)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
+
+from planer.errors import ConfigError
+
+_MISSING = object()
+
+
+def default_path(name: str) -> Path:
+    """Path of a configuration file shipped in the ``config`` package (e.g. ``"sim.toml"``)."""
+    return Path(str(resources.files("config").joinpath(name)))
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    """Load a TOML file; a missing or malformed file raises ``ConfigError`` naming it."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {p}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"config path is a directory, not a file: {p}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {p}: {exc.strerror}") from None
+
+
+class Section:
+    """Typed access to one table of a TOML document; every error names ``prefix.key``.
+
+    Parameters
+    ----------
+    data : mapping
+        The table's contents.
+    prefix : str
+        Dotted name of the table, used in error messages (``"camera"``).
+    """
+
+    def __init__(self, data: Mapping[str, Any] | None, prefix: str) -> None:
+        if data is not None and not isinstance(data, Mapping):
+            raise ConfigError(f"[{prefix}] must be a table, got {type(data).__name__}")
+        self._data = dict(data or {})
+        self._prefix = prefix
+        self._used: set[str] = set()
+
+    def key(self, name: str) -> str:
+        """Dotted name of ``name`` in this section."""
+        return f"{self._prefix}.{name}" if self._prefix else name
+
+    def has(self, name: str) -> bool:
+        """Whether the key is present."""
+        return name in self._data
+
+    def raw(self, name: str, default: Any = _MISSING) -> Any:
+        """The raw value; missing without default raises ``ConfigError``."""
+        self._used.add(name)
+        if name not in self._data:
+            if default is _MISSING:
+                raise ConfigError(f"missing key {self.key(name)}")
+            return default
+        return self._data[name]
+
+    def section(self, name: str, *, required: bool = True) -> Section:
+        """A sub-table as a ``Section``."""
+        val = self.raw(name, None if not required else _MISSING)
+        return Section(val, self.key(name))
+
+    def number(
+        self,
+        name: str,
+        default: Any = _MISSING,
+        *,
+        lo: float | None = None,
+        hi: float | None = None,
+        lo_open: bool = False,
+    ) -> float:
+        """A finite float within ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``)."""
+        val = self.raw(name, default)
+        if isinstance(val, bool) or not isinstance(val, (int, float)):
+            raise ConfigError(f"{self.key(name)} must be a number, got {val!r}")
+        v = float(val)
+        if not math.isfinite(v):
+            raise ConfigError(f"{self.key(name)} must be finite, got {val!r}")
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            op = ">" if lo_open else ">="
+            raise ConfigError(f"{self.key(name)} must be {op} {lo}, got {val!r}")
+        if hi is not None and v > hi:
+            raise ConfigError(f"{self.key(name)} must be <= {hi}, got {val!r}")
+        return v
+
+    def integer(
+        self, name: str, default: Any = _MISSING, *, lo: int | None = None, hi: int | None = None
+    ) -> int:
+        """An integer within ``[lo, hi]``."""
+        val = self.raw(name, default)
+        if isinstance(val, bool) or not isinstance(val, int):
+            raise ConfigError(f"{self.key(name)} must be an integer, got {val!r}")
+        if lo is not None and val < lo:
+            raise ConfigError(f"{self.key(name)} must be >= {lo}, got {val!r}")
+        if hi is not None and val > hi:
+            raise ConfigError(f"{self.key(name)} must be <= {hi}, got {val!r}")
+        return val
+
+    def boolean(self, name: str, default: Any = _MISSING) -> bool:
+        """A boolean."""
+        val = self.raw(name, default)
+        if not isinstance(val, bool):
+            raise ConfigError(f"{self.key(name)} must be true or false, got {val!r}")
+        return val
+
+    def string(self, name: str, default: Any = _MISSING, *, choices: tuple[str, ...] = ()) -> str:
+        """A string, optionally one of ``choices``."""
+        val = self.raw(name, default)
+        if not isinstance(val, str):
+            raise ConfigError(f"{self.key(name)} must be a string, got {val!r}")
+        if choices and val not in choices:
+            raise ConfigError(f"{self.key(name)} must be one of {', '.join(choices)}; got {val!r}")
+        return val
+
+    def numbers(
+        self, name: str, default: Any = _MISSING, *, length: int | None = None
+    ) -> tuple[float, ...]:
+        """A list of finite numbers, optionally of a fixed length."""
+        val = self.raw(name, default)
+        if not isinstance(val, (list, tuple)):
+            raise ConfigError(f"{self.key(name)} must be a list of numbers, got {val!r}")
+        out = []
+        for i, x in enumerate(val):
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+                raise ConfigError(f"{self.key(name)}[{i}] must be a finite number, got {x!r}")
+            out.append(float(x))
+        if length is not None and len(out) != length:
+            raise ConfigError(f"{self.key(name)} must have {length} values, got {len(out)}")
+        return tuple(out)
+
+    def reject_unknown(self) -> None:
+        """Raise ``ConfigError`` for keys that were never read (typos)."""
+        unknown = sorted(set(self._data) - self._used)
+        if unknown:
+            raise ConfigError(f"unknown key {self.key(unknown[0])}")

@@ -1,0 +1,16 @@
+"""``planer calibrate``: not built yet."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "calibrate (not built yet)"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """Add this command's arguments."""
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the command."""
+    raise NotImplementedError("planer calibrate is not built yet")

@@ -1,0 +1,16 @@
+"""``planer hil``: not built yet."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "hil (not built yet)"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """Add this command's arguments."""
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the command."""
+    raise NotImplementedError("planer hil is not built yet")
