@@ -1,0 +1,53 @@
+"""Frames handed from the camera to the service: one encoder-registered image pair.
+
+The hand-off between processes (a spool directory of atomically written pairs) is added here
+beside the dataclass; see ``docs/frames.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image pair as the camera hands it over.
+
+    Attributes
+    ----------
+    seq : int
+        Sequence number of the pair (matches the PLC's ``trigger_seq``, modulo 2**16).
+    t_s : float
+        Machine time at trigger A, seconds.
+    image_a, image_b : ndarray, shape (H, W)
+        Grayscale images lit by light A (azimuth 0 deg) and light B, B taken after A.
+    counts_a, counts_b : int
+        Feed encoder counts latched at the two triggers (wrapped counter values).
+    speed_mm_s : float
+        Feed speed at capture, mm/s (for motion deblurring).
+    index_latch_counts : int
+        Encoder counts at the spindle index pulse belonging to the imaged board patch
+        (see ``docs/architecture.md``, mark-to-knife phase).
+    board_id : int
+        Board under the camera (0 when none).
+    board_position_mm : float
+        Position of image A's centre from the board's leading end, mm.
+    truth : dict or None
+        Simulator only: the true ``pitch_mm``, ``uniformity_cv``, ``mark_widths_mm``,
+        ``depth_um``, ``shift_px`` of the imaged patch. ``None`` on a real machine.
+    """
+
+    seq: int
+    t_s: float
+    image_a: np.ndarray
+    image_b: np.ndarray
+    counts_a: int
+    counts_b: int
+    speed_mm_s: float
+    index_latch_counts: int = 0
+    board_id: int = 0
+    board_position_mm: float = 0.0
+    truth: dict[str, Any] | None = field(default=None)
