@@ -65,7 +65,7 @@ def check_image(name: str, image: np.ndarray) -> np.ndarray:
 def check_same_shape(names: Sequence[str], *arrays: np.ndarray) -> None:
     """Raise ``ValueError`` unless all arrays share one shape; the message names both."""
     shapes = [np.shape(a) for a in arrays]
-    for n, s in zip(names[1:], shapes[1:]):
+    for n, s in zip(names[1:], shapes[1:], strict=False):
         if s != shapes[0]:
             raise ValueError(f"{names[0]} and {n} differ in shape: {shapes[0]} vs {s}")
 
