@@ -1,16 +1,109 @@
-"""``planer sim``: not built yet."""
+"""``planer sim``: the simulated planer alone, as a stand-in machine.
+
+Runs the machine model behind its PLC Modbus TCP server, its piezo amplifier CAN node and its
+frame spool until stopped (Ctrl-C, SIGTERM) or for ``--duration`` seconds of machine time.
+The first lines say where it listens, one each, then ``ready``, then progress::
+
+    modbus: 127.0.0.1:5020 unit 1
+    can: virtual:planer-piezo
+    frames: spool runs/spool keep 50
+    ready
+    t=1.00 s  rtf=1.00  feed=800.0 mm/s  spindle=6000 rpm  frames=10  modbus=...  can ...
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
 
-HELP = "sim (not built yet)"
+HELP = "run the simulated planer alone (Modbus server, CAN node, frame spool) until stopped"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""
+    parser.add_argument(
+        "--config", default=None, help="simulator config (default: the shipped config/sim.toml)"
+    )
+    parser.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S seconds of machine time (default: run until stopped)",
+    )
+    parser.add_argument(
+        "--time-scale",
+        type=float,
+        default=None,
+        metavar="X",
+        help="simulated seconds per wall second (default [run] time_scale; 0: as fast as possible)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="machine model seed (default 0)")
+    parser.add_argument(
+        "--port",
+        type=int,
+        default=None,
+        help="Modbus TCP port (default [modbus] port; 0: a free one)",
+        metavar="P",
+    )
+    parser.add_argument("--spool", default=None, metavar="DIR", help="frame spool directory")
+    parser.add_argument(
+        "--no-images", action="store_true", help="do not render images (machine model only)"
+    )
+    parser.add_argument(
+        "--progress",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="machine seconds between progress lines (default 1)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    raise NotImplementedError("planer sim is not built yet")
+    import asyncio
+    import logging
+    import signal
+
+    from config.sim import load_sim
+    from planer.checks import check_int
+    from plant_sim.runner import SimRunner
+
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration >= 0):
+        raise ValueError(f"--duration must be a finite number >= 0, got {args.duration}")
+    scale = args.time_scale
+    if scale is not None:
+        if not scale >= 0:
+            raise ValueError(f"--time-scale must be >= 0, got {scale}")
+        scale = math.inf if scale == 0 else scale
+    if args.port is not None:
+        check_int("--port", args.port, lo=0, hi=65535)
+    if not args.progress > 0:
+        raise ValueError(f"--progress must be > 0, got {args.progress}")
+    cfg = load_sim(args.config)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+    async def main() -> int:
+        runner = SimRunner.from_config(
+            cfg,
+            seed=args.seed,
+            render_images=not args.no_images,
+            time_scale=scale,
+            modbus_port=args.port,
+            spool_dir=args.spool,
+            out=lambda line: print(line, flush=True),
+            progress_every_s=args.progress,
+        )
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, runner.request_stop)
+        summary = await runner.run(duration_s=args.duration)
+        print(
+            f"stopped at t={summary.sim_time_s:.3f} s: {summary.steps} steps, "
+            f"{summary.frames} frames, real-time factor {summary.real_time_factor:.2f}",
+            flush=True,
+        )
+        return 0
+
+    return asyncio.run(main())

@@ -1,0 +1,305 @@
+"""The piezo amplifier's CAN node: the machine's piezo side on a python-can bus.
+
+:class:`AmpNodeCore` is sans-I/O: it takes received frames (or decoded messages) with the machine
+time and returns the frames to send. :class:`AmpNode` pumps a python-can bus through it.
+
+Behaviour (see ``docs/piezo_can.md``):
+
+* ``PIEZO_COMMAND`` -> ``machine.piezo_command(enable=, alive_counter=)`` (resets the machine's
+  setpoint timeout; when commands stop, the machine ramps the offsets to zero by itself); a
+  command whose ``knives`` differs from the head's is refused (not forwarded, so it does not
+  keep the amplifier alive);
+* ``PIEZO_OFFSETS_0_3`` / ``_4_7`` -> the node's offset table (8 knives) is updated and
+  ``machine.set_piezo_offsets(table[:knives])`` called; offsets the machine refuses (beyond the
+  stroke) are not applied and raise the stroke-limit fault bit in the status until valid offsets
+  arrive;
+* ``PIEZO_STATUS`` every 10 ms and ``AMP_HEARTBEAT`` every 100 ms of machine time, from
+  ``machine.piezo_status()``, with the node's own alive counter;
+* frames the node sends itself (status, heartbeat) and unknown ids are ignored on receive.
+
+Faults: ``drop_rx`` drops a fraction of received frames, or all of them in a time window;
+``silence`` stops the node sending in a time window (the CAN side going silent).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import random
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from planer.protocol import piezo_can
+from planer.protocol.piezo_can import Frame, PiezoCodec
+
+log = logging.getLogger(__name__)
+
+
+class AmpMachine(Protocol):
+    """What the node needs of the machine (see ``plant_sim/machine.py``)."""
+
+    def piezo_command(self, *, enable: bool, alive_counter: int) -> None: ...  # noqa: D102
+    def set_piezo_offsets(self, offsets_um: Sequence[float]) -> None: ...  # noqa: D102
+    def piezo_status(self) -> Any: ...  # noqa: D102
+
+
+@dataclass
+class _Window:
+    start_s: float
+    end_s: float
+    fraction: float = 1.0
+
+    def active(self, now_s: float) -> bool:
+        return self.start_s <= now_s < self.end_s
+
+
+class AmpNodeCore:
+    """Sans-I/O amplifier node.
+
+    Parameters
+    ----------
+    machine : AmpMachine
+        The machine model.
+    codec : PiezoCodec, optional
+        Default: ``PiezoCodec.load()``.
+    knives : int
+        Number of knives Z whose offsets go to the machine (1..8).
+    status_period_s, heartbeat_period_s : float
+        Send periods in machine time (10 ms and 100 ms by the DBC file's comments).
+    seed : int
+        Seed of the random frame dropping.
+
+    Attributes
+    ----------
+    received, dropped, ignored, refused, sent : int
+        Counts of frames received (before dropping), dropped by the fault, ignored (own or
+        unknown ids, undecodable), offsets refused by the machine, frames sent.
+    """
+
+    def __init__(
+        self,
+        machine: AmpMachine,
+        codec: PiezoCodec | None = None,
+        *,
+        knives: int,
+        status_period_s: float = piezo_can.STATUS_PERIOD_S,
+        heartbeat_period_s: float = piezo_can.HEARTBEAT_PERIOD_S,
+        seed: int = 0,
+    ) -> None:
+        if not 1 <= int(knives) <= piezo_can.MAX_KNIVES:
+            raise ValueError(f"knives must be in 1..{piezo_can.MAX_KNIVES}, got {knives!r}")
+        if not status_period_s > 0 or not heartbeat_period_s > 0:
+            raise ValueError("status_period_s and heartbeat_period_s must be > 0")
+        self.machine = machine
+        self.codec = codec if codec is not None else PiezoCodec.load()
+        self.knives = int(knives)
+        self.status_period_s = float(status_period_s)
+        self.heartbeat_period_s = float(heartbeat_period_s)
+        self.offsets_um = [0.0] * piezo_can.MAX_KNIVES
+        self._next_status_s: float | None = None
+        self._next_heartbeat_s: float | None = None
+        self._alive = 0
+        self._stroke_fault = False
+        self._rng = random.Random(seed)
+        self._drop: list[_Window] = []
+        self._silence: list[_Window] = []
+        self.last_command: dict[str, float | int] | None = None
+        self.received = self.dropped = self.ignored = self.refused = self.sent = 0
+        self._own_ids = {self.codec.status_id, self.codec.heartbeat_id}
+
+    # ------------------------------------------------------------------ faults
+    def inject(self, fault: str, **params: float) -> None:
+        """Inject a fault.
+
+        Parameters
+        ----------
+        fault : str
+            ``"drop_rx"``: drop received frames, each with probability ``fraction`` (default 1)
+            from ``start_s`` (default now: 0) for ``duration_s`` (default forever);
+            ``"silence"``: send nothing from ``start_s`` for ``duration_s``;
+            ``"clear"``: remove every injected fault.
+        **params : float
+            ``fraction``, ``start_s``, ``duration_s``.
+        """
+        if fault == "clear":
+            self._drop.clear()
+            self._silence.clear()
+            return
+        unknown = set(params) - {"fraction", "start_s", "duration_s"}
+        if unknown:
+            raise ValueError(f"unknown parameter {sorted(unknown)[0]} for fault {fault}")
+        start = float(params.get("start_s", 0.0))
+        dur = float(params.get("duration_s", math.inf))
+        frac = float(params.get("fraction", 1.0))
+        if not 0.0 <= frac <= 1.0:
+            raise ValueError(f"fraction must be in [0, 1], got {frac!r}")
+        if not dur >= 0:
+            raise ValueError(f"duration_s must be >= 0, got {dur!r}")
+        if fault == "drop_rx":
+            self._drop.append(_Window(start, start + dur, frac))
+        elif fault == "silence":
+            self._silence.append(_Window(start, start + dur))
+        else:
+            raise ValueError(f"unknown amplifier fault {fault!r} (drop_rx, silence, clear)")
+
+    def _dropping(self, now_s: float) -> bool:
+        for w in self._drop:
+            if w.active(now_s) and (w.fraction >= 1.0 or self._rng.random() < w.fraction):
+                return True
+        return False
+
+    # ------------------------------------------------------------------ receive
+    def on_frame(self, arbitration_id: int, data: bytes, now_s: float) -> str | None:
+        """Handle one received frame; returns the message name acted on, or ``None``."""
+        self.received += 1
+        if self._dropping(now_s):
+            self.dropped += 1
+            return None
+        if arbitration_id in self._own_ids:
+            self.ignored += 1
+            return None
+        try:
+            name, signals = self.codec.decode(arbitration_id, data)
+        except ValueError:
+            self.ignored += 1
+            return None
+        return name if self.on_message(name, signals, now_s) else None
+
+    def on_message(self, name: str, signals: dict[str, float | int], now_s: float) -> bool:
+        """Act on a decoded message; returns whether it was one the amplifier takes."""
+        if name == piezo_can.COMMAND:
+            self.last_command = dict(signals)
+            if int(signals["knives"]) != self.knives:
+                self.refused += 1  # a service configured for another head: not a valid command
+                log.info(
+                    "PIEZO_COMMAND for %s knives refused (head has %d)",
+                    signals["knives"],
+                    self.knives,
+                )
+                return True
+            try:
+                self.machine.piezo_command(
+                    enable=bool(signals["enable"]), alive_counter=int(signals["alive_counter"])
+                )
+            except ValueError as exc:
+                self.refused += 1
+                log.info("PIEZO_COMMAND refused: %s", exc)
+            return True
+        if name in piezo_can.OFFSETS:
+            table = list(self.offsets_um)
+            for k, v in self.codec.offsets_from(name, signals).items():
+                table[k] = v
+            try:
+                self.machine.set_piezo_offsets(table[: self.knives])
+            except ValueError as exc:
+                self.refused += 1
+                self._stroke_fault = True
+                log.info("piezo offsets refused: %s", exc)
+                return True
+            self.offsets_um = table
+            self._stroke_fault = False
+            return True
+        self.ignored += 1
+        return False
+
+    # ------------------------------------------------------------------ send
+    def poll(self, now_s: float) -> list[Frame]:
+        """Frames due at machine time ``now_s`` (status every 10 ms, heartbeat every 100 ms).
+
+        A late call sends each frame once and re-aligns its schedule (no bursts of backlog).
+        """
+        out: list[Frame] = []
+        if self._next_status_s is None:
+            self._next_status_s = now_s
+            self._next_heartbeat_s = now_s
+        silent = any(w.active(now_s) for w in self._silence)
+        if now_s >= self._next_status_s - 1e-9:
+            self._next_status_s = _next(self._next_status_s, self.status_period_s, now_s)
+            if not silent:
+                out.append(self._status())
+        if now_s >= self._next_heartbeat_s - 1e-9:  # type: ignore[operator]
+            self._next_heartbeat_s = _next(self._next_heartbeat_s, self.heartbeat_period_s, now_s)
+            if not silent:
+                out.append(self.codec.encode_heartbeat(nmt_state=piezo_can.NMT_OPERATIONAL))
+        self.sent += len(out)
+        return out
+
+    def _status(self) -> Frame:
+        st = self.machine.piezo_status()
+        fault = int(getattr(st, "fault", 0))
+        if self._stroke_fault:
+            fault |= piezo_can.FAULT_STROKE_LIMIT
+        frame = self.codec.encode_status(
+            displacement_um=float(st.displacement_um),
+            temperature_c=float(st.temperature_c),
+            fault=fault & 0xFF,
+            state=int(st.state),
+            alive_counter=self._alive,
+        )
+        self._alive = (self._alive + 1) % 256
+        return frame
+
+
+def _next(scheduled: float | None, period: float, now_s: float) -> float:
+    nxt = (scheduled if scheduled is not None else now_s) + period
+    if nxt <= now_s:  # fell behind: next one a period from now
+        nxt = now_s + period
+    return nxt
+
+
+class AmpNode:
+    """The amplifier node on a python-can bus (thin I/O around :class:`AmpNodeCore`).
+
+    Parameters
+    ----------
+    bus : can.BusABC
+        An open bus (the node does not own it unless ``own_bus``).
+    core : AmpNodeCore
+        The sans-I/O node.
+    own_bus : bool
+        Shut the bus down in :meth:`close`.
+    """
+
+    def __init__(self, bus: Any, core: AmpNodeCore, *, own_bus: bool = False) -> None:
+        self.bus = bus
+        self.core = core
+        self.own_bus = own_bus
+        self.send_errors = 0
+
+    def receive(self, now_s: float, *, max_frames: int = 1000) -> int:
+        """Drain received frames (non-blocking) into the core; returns how many were read."""
+        n = 0
+        while n < max_frames:
+            msg = self.bus.recv(timeout=0.0)
+            if msg is None:
+                break
+            n += 1
+            if msg.is_error_frame or msg.is_remote_frame:
+                continue
+            self.core.on_frame(msg.arbitration_id, bytes(msg.data), now_s)
+        return n
+
+    def transmit(self, now_s: float) -> int:
+        """Send the frames due at ``now_s``; returns how many were sent."""
+        import can
+
+        sent = 0
+        for fid, data in self.core.poll(now_s):
+            try:
+                self.bus.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+                sent += 1
+            except (can.CanError, OSError) as exc:
+                self.send_errors += 1
+                log.warning("CAN send failed: %s", exc)
+        return sent
+
+    def pump(self, now_s: float) -> None:
+        """Receive everything pending, then send what is due."""
+        self.receive(now_s)
+        self.transmit(now_s)
+
+    def close(self) -> None:
+        """Shut the bus down if the node owns it."""
+        if self.own_bus:
+            self.bus.shutdown()

@@ -1,0 +1,346 @@
+"""The simulator's PLC Modbus server, driven by an independent Modbus implementation (pyModbusTCP).
+
+Also holds ``FakeMachine``, a small stand-in with the Machine API that the other sim tests use.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import struct
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from pyModbusTCP import constants as mbc
+from pyModbusTCP.client import ModbusClient
+from pyModbusTCP.utils import decode_ieee, encode_ieee, long_list_to_word, word_list_to_long
+
+from planer.protocol.frames import Frame
+from planer.protocol.registers import RegisterMap
+from plant_sim.plc_server import PlcServer
+
+RMAP = RegisterMap.load()
+
+
+class FakeMachine:
+    """The Machine API of docs/architecture.md, with trivial dynamics."""
+
+    def __init__(
+        self,
+        *,
+        knives: int = 4,
+        pairs_per_s: float = 10.0,
+        stroke_um: float = 20.0,
+        timeout_s: float = 0.1,
+        ramp_um_s: float = 50.0,
+    ) -> None:
+        self.t_s = 0.0
+        self.knives = knives
+        self.period_s = 1.0 / pairs_per_s
+        self.stroke_um = stroke_um
+        self.timeout_s = timeout_s
+        self.ramp_um_s = ramp_um_s
+        self.seq = 0
+        self.next_frame_s = self.period_s
+        self.heartbeat_plc = 0
+        self.heartbeat_service: int | None = None
+        self.feed_setpoint = 800.0
+        self.offsets_um = np.zeros(knives)
+        self.enable = False
+        self.last_cmd_s: float | None = None
+        self.alive_counters: list[int] = []
+        self.injected: list[tuple[str, dict]] = []
+        self.values = {r.name: 0 for r in RMAP}
+        self.values.update(
+            feed_min_mm_s=50.0,
+            feed_max_mm_s=1000.0,
+            feed_accel_max_mm_s2=2000.0,
+            spindle_rpm=6000.0,
+            knives=knives,
+            cutter_to_camera_mm=300.0,
+            counts_per_mm=20.0,
+            watchdog_ms=1000,
+            cutterhead_radius_mm=60.0,
+            encoder_counts=4_000_000_000,
+            index_latch_counts=123_456,
+        )
+
+    # the Machine API -------------------------------------------------------------------------
+    def advance(self, dt_s: float) -> list[Frame]:
+        self.t_s += dt_s
+        self.heartbeat_plc = (self.heartbeat_plc + 1) & 0xFFFF
+        if self.last_cmd_s is not None and self.t_s - self.last_cmd_s > self.timeout_s:
+            step = self.ramp_um_s * dt_s
+            self.offsets_um = np.sign(self.offsets_um) * np.maximum(
+                np.abs(self.offsets_um) - step, 0.0
+            )
+        out = []
+        while self.t_s >= self.next_frame_s - 1e-12:
+            self.seq += 1
+            img = np.full((8, 16), self.seq % 256, np.uint8)
+            out.append(
+                Frame(
+                    seq=self.seq,
+                    t_s=self.next_frame_s,
+                    image_a=img,
+                    image_b=img + 1,
+                    counts_a=self.seq * 100,
+                    counts_b=self.seq * 100 + 40,
+                    speed_mm_s=self.feed_setpoint,
+                )
+            )
+            self.next_frame_s += self.period_s
+        return out
+
+    def register_values(self) -> dict[str, float | int]:
+        v = dict(self.values)
+        v["heartbeat_plc"] = self.heartbeat_plc
+        v["feed_setpoint_mm_s"] = self.feed_setpoint
+        v["feed_actual_mm_s"] = self.feed_setpoint
+        v["heartbeat_service"] = self.heartbeat_service or 0
+        v["trigger_seq"] = self.seq & 0xFFFF
+        return v
+
+    def set_feed_setpoint(self, feed_mm_s: float) -> None:
+        if not self.values["feed_min_mm_s"] <= feed_mm_s <= self.values["feed_max_mm_s"]:
+            raise ValueError(f"feed_mm_s out of range: {feed_mm_s}")
+        self.feed_setpoint = feed_mm_s
+
+    def set_service_heartbeat(self, value: int) -> None:
+        self.heartbeat_service = value
+
+    def piezo_command(self, *, enable: bool, alive_counter: int) -> None:
+        self.enable = enable
+        self.last_cmd_s = self.t_s
+        self.alive_counters.append(alive_counter)
+
+    def set_piezo_offsets(self, offsets_um) -> None:
+        arr = np.asarray(offsets_um, float)
+        if arr.shape != (self.knives,):
+            raise ValueError(f"offsets_um must have {self.knives} values")
+        if np.any(np.abs(arr) > self.stroke_um):
+            raise ValueError("offsets_um beyond the stroke")
+        self.offsets_um = arr
+
+    def timed_out(self) -> bool:
+        return self.last_cmd_s is not None and self.t_s - self.last_cmd_s > self.timeout_s
+
+    def piezo_status(self):
+        ramping = self.timed_out() and np.any(self.offsets_um != 0)
+        return SimpleNamespace(
+            displacement_um=float(np.max(np.abs(self.offsets_um))),
+            temperature_c=25.0,
+            fault=4 if self.timed_out() else 0,
+            state=2 if ramping else (1 if self.enable else 0),
+        )
+
+    def inject(self, fault: str, **params) -> None:
+        self.injected.append((fault, params))
+
+    def take_interface_events(self) -> list[dict]:
+        """Like the real machine: interface faults that came due, handed to the runner."""
+        due = [
+            {"kind": f, "t_s": self.t_s, **{k: v for k, v in p.items() if k != "at_s"}}
+            for f, p in self.injected
+            if f in ("modbus_restart", "can_silence") and p.get("at_s", 0.0) <= self.t_s + 1e-9
+        ]
+        self.injected = [
+            (f, p)
+            for f, p in self.injected
+            if not (
+                f in ("modbus_restart", "can_silence") and p.get("at_s", 0.0) <= self.t_s + 1e-9
+            )
+        ]
+        return due
+
+
+# ------------------------------------------------------------------------------ the server
+class LoopThread:
+    """An asyncio loop in a thread, so the blocking pyModbusTCP client can talk to the server."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+
+    def call(self, coro):
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout=10)
+
+    def close(self) -> None:
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(timeout=5)
+        self.loop.close()
+
+
+@pytest.fixture
+def plc():
+    lt = LoopThread()
+    machine = FakeMachine()
+    server = PlcServer(machine, port=0)
+    host, port = lt.call(server.start())
+    client = ModbusClient(host=host, port=port, unit_id=RMAP.unit_id, auto_open=True, timeout=2.0)
+    yield SimpleNamespace(lt=lt, machine=machine, server=server, client=client, port=port)
+    client.close()
+    lt.call(server.stop())
+    lt.close()
+
+
+def _read(client: ModbusClient, name: str) -> list[int]:
+    reg = RMAP[name]
+    words = client.read_holding_registers(reg.address, reg.count)
+    assert words is not None, client.last_error_as_txt
+    return words
+
+
+def test_binds_loopback_on_an_ephemeral_port(plc):
+    assert plc.server.host == "127.0.0.1"
+    assert 0 < plc.port < 65536 and plc.server.port == plc.port
+
+
+def test_whole_map_reads_as_the_machine_says(plc):
+    first, count = RMAP.span()
+    words = plc.client.read_holding_registers(first, count)
+    assert words is not None and len(words) == count
+    assert RMAP.decode_block(words, first) == pytest.approx(
+        {k: v for k, v in plc.machine.register_values().items()}, rel=1e-7
+    )
+
+
+@pytest.mark.parametrize("name", [r.name for r in RMAP if r.type == "f32"])
+def test_float32_big_endian_words_decoded_independently(plc, name):
+    words = _read(plc.client, name)
+    expect = plc.machine.register_values()[name]
+    # pyModbusTCP's own decoders: high word first (big_endian=True), IEEE-754 single
+    got = decode_ieee(word_list_to_long(words, big_endian=True)[0])
+    assert got == pytest.approx(expect, rel=1e-7)
+    assert struct.pack(">HH", *words) == struct.pack(">f", expect)
+
+
+@pytest.mark.parametrize("name", [r.name for r in RMAP if r.type == "u32"])
+def test_uint32_words_decoded_independently(plc, name):
+    words = _read(plc.client, name)
+    assert word_list_to_long(words, big_endian=True)[0] == plc.machine.register_values()[name]
+
+
+def test_int32_register_decoded_independently():
+    # the shipped map has no i32; serve a one-register map with a negative value
+    from planer.protocol.registers import Register
+
+    rmap = RegisterMap([Register("position_counts", 0, "i32", "ro", 2)])
+    machine = SimpleNamespace(register_values=lambda: {"position_counts": -123_456_789})
+    lt = LoopThread()
+    try:
+        server = PlcServer(machine, register_map=rmap, port=0)
+        host, port = lt.call(server.start())
+        c = ModbusClient(host=host, port=port, unit_id=1, auto_open=True, timeout=2.0)
+        words = c.read_holding_registers(0, 2)
+        raw = word_list_to_long(words, big_endian=True)[0]
+        assert raw - (1 << 32) == -123_456_789
+        c.close()
+        lt.call(server.stop())
+    finally:
+        lt.close()
+
+
+@pytest.mark.parametrize("name", [r.name for r in RMAP if r.access == "ro"])
+def test_write_to_read_only_register_refused_with_exception_02(plc, name):
+    reg = RMAP[name]
+    before = plc.machine.register_values()
+    ok = plc.client.write_multiple_registers(reg.address, [1] * reg.count)
+    assert not ok
+    assert plc.client.last_except == mbc.EXP_DATA_ADDRESS
+    assert _read(plc.client, name) == RMAP.encode(name, before[name])
+
+
+@pytest.mark.parametrize("value", [49.9, 1000.5, -5.0, 1e9, math.nan])
+def test_out_of_range_setpoint_refused_with_exception_03_never_clamped(plc, value):
+    before = plc.machine.feed_setpoint
+    words = long_list_to_word([encode_ieee(value)], big_endian=True)
+    assert not plc.client.write_multiple_registers(RMAP["feed_setpoint_mm_s"].address, words)
+    assert plc.client.last_except == mbc.EXP_DATA_VALUE
+    assert plc.machine.feed_setpoint == before
+    got = decode_ieee(word_list_to_long(_read(plc.client, "feed_setpoint_mm_s"))[0])
+    assert got == before
+
+
+@pytest.mark.parametrize("value", [50.0, 333.25, 1000.0])
+def test_accepted_setpoint_reaches_the_machine_and_reads_back(plc, value):
+    words = long_list_to_word([encode_ieee(value)], big_endian=True)
+    assert plc.client.write_multiple_registers(RMAP["feed_setpoint_mm_s"].address, words)
+    assert plc.machine.feed_setpoint == value
+    assert decode_ieee(word_list_to_long(_read(plc.client, "feed_setpoint_mm_s"))[0]) == value
+
+
+def test_heartbeat_write_reaches_machine_and_half_float_write_refused(plc):
+    assert plc.client.write_single_register(RMAP["heartbeat_service"].address, 4242)
+    assert plc.machine.heartbeat_service == 4242
+    # function 6 on the first word of a float: a partial write, illegal address
+    assert not plc.client.write_single_register(RMAP["feed_setpoint_mm_s"].address, 0x4248)
+    assert plc.client.last_except == mbc.EXP_DATA_ADDRESS
+    # a read past the map
+    first, count = RMAP.span()
+    assert plc.client.read_holding_registers(first + count, 1) is None
+    assert plc.client.last_except == mbc.EXP_DATA_ADDRESS
+    # other tables than holding registers are not served
+    assert plc.client.read_input_registers(0, 1) is None
+    assert plc.client.last_except == mbc.EXP_ILLEGAL_FUNCTION
+
+
+def test_wrong_unit_id_is_not_answered_as_the_plc(plc):
+    c = ModbusClient(
+        host="127.0.0.1", port=plc.port, unit_id=RMAP.unit_id + 1, auto_open=True, timeout=2.0
+    )
+    assert c.read_holding_registers(0, 1) is None
+    assert c.last_except == mbc.EXP_GATEWAY_TARGET_DEVICE_FAILED_TO_RESPOND
+    c.close()
+
+
+def test_refresh_publishes_the_machine_cycle(plc):
+    hb0 = _read(plc.client, "heartbeat_plc")[0]
+    plc.machine.advance(0.001)
+    assert _read(plc.client, "heartbeat_plc")[0] == hb0  # not before the PLC cycle
+    plc.lt.call(_async(plc.server.refresh))
+    assert _read(plc.client, "heartbeat_plc")[0] == (hb0 + 1) & 0xFFFF
+
+
+async def _async(fn):
+    return fn()
+
+
+def test_server_restart_drops_clients_and_serves_again_on_the_same_port(plc):
+    assert _read(plc.client, "knives") == [4]
+    plc.lt.call(plc.server.stop())
+    assert not plc.server.running
+    assert plc.client.read_holding_registers(0, 1) is None  # connection refused
+    host, port = plc.lt.call(plc.server.start())
+    assert port == plc.port
+    assert _read(plc.client, "knives") == [4]  # auto_open reconnects
+    host, port = plc.lt.call(plc.server.restart())
+    assert port == plc.port
+    # the restart closed the client's connection: its next request fails, then it reconnects
+    first = plc.client.read_holding_registers(RMAP["knives"].address, 1)
+    assert first is None or first == [4]
+    assert _read(plc.client, "knives") == [4]
+
+
+def test_port_in_use_is_a_fieldbus_error(plc):
+    from planer.errors import FieldbusError
+
+    other = PlcServer(FakeMachine(), port=plc.port)
+    with pytest.raises(FieldbusError, match=str(plc.port)):
+        plc.lt.call(other.start())
+
+
+def test_real_machine_register_values_match_the_map():
+    sim = pytest.importorskip("plant_sim.machine")
+    from config.sim import default_sim
+
+    m = sim.Machine(default_sim(), seed=0, render_images=False)
+    m.advance(0.01)
+    values = m.register_values()
+    assert set(values) == set(RMAP.registers)
+    server = PlcServer(m, port=0)
+    words = RMAP.encode_block(server.values)
+    assert RMAP.decode_block(words)["knives"] == values["knives"]
