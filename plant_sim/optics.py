@@ -1,0 +1,577 @@
+"""Image formation for dynamic photometric stereo: two grazing-light images of a moving board.
+
+Geometry (docs/architecture.md)
+-------------------------------
+- Board coordinate ``b`` (mm) is fixed to the board. At trigger A the board point ``b`` is at
+  physical position ``X = b - board_x_at_centre_mm`` (mm from the optical axis along the feed);
+  the board moves toward +x, so at trigger B (``dt_ab_s`` later) it is at
+  ``X + speed_mm_s * dt_ab_s``. The trigger instant is the middle of the exposure.
+- The undistorted image uses the camera matrix K of the distorted one: undistorted column ``u`` is
+  at ``X = (u - cx) / px_per_mm``, undistorted row ``v`` at ``Y = (v - cy) / px_per_mm_y`` with
+  ``px_per_mm_y = px_per_mm * fy / fx``. Each distorted pixel shows the board at the undistorted
+  position that :func:`cv2.undistortPoints` (``P = K``) gives for it, so that
+  :func:`cv2.projectPoints` maps a board point back to the pixel that shows it.
+- Radiance by the seed's Eq. 1 (Lambert): ``I = I0 rho (-p cos(tau) sin(s) - q sin(tau) sin(s) +
+  cos(s)) / sqrt(1 + p^2 + q^2)`` with ``p = dz/dx`` (kinematic profile plus fibre roughness) and
+  ``q = dz/dy`` (roughness). The light at azimuth 0 deg stands on the +x side, so a surface
+  rising toward +x is darker in image A.
+
+Rendering is done on a regular board grid (one column per undistorted pixel along x, or finer
+with ``Optics.oversample``; one row per pixel along y), blurred along the feed by the exposure
+(exact box average of the radiance), then resampled at the precomputed positions of the distorted
+pixels with :func:`cv2.remap`; illumination (LED imbalance, fall-off) is applied per pixel, then
+shot and read noise, then quantisation with saturation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+import scipy.fft as sfft
+
+from config.rig import Rig
+from planer.checks import check_finite, check_int, check_positive, check_range
+from plant_sim.wood import Wood, texture_tiles
+
+__all__ = ["ImagePair", "Optics", "Renderer", "Truth", "wrap_counts"]
+
+HeightSource = Any  # callable height_um(b_mm), a Surface, or an object with x_mm, height_um
+
+
+@dataclass(frozen=True)
+class Optics:
+    """Camera sensor, exposure, LED and encoder parameters of the simulated rig.
+
+    Attributes
+    ----------
+    width, height : int
+        Image size in pixels (659 x 493 by default).
+    bit_depth : int
+        Bits per pixel (8 gives uint8 images, 9..16 give uint16); full scale ``2**bit_depth - 1``.
+    level : float
+        Mean brightness of a flat board of the species' mean albedo, lit by light A at the field
+        centre, as a fraction of full scale (before ``gain``).
+    gain : float
+        Analogue gain (multiplies signal and shot noise; > 1 drives towards saturation).
+    read_noise_dn : float
+        Read noise, digital numbers rms.
+    full_well_e : float
+        Full-well capacity at unit gain, electrons; sets the shot noise.
+    shot_noise : bool
+        Whether to add shot noise.
+    led_imbalance : float
+        Brightness of LED B over LED A minus one (0.07: B is 7 % brighter).
+    falloff : float
+        Fractional intensity change of each LED across the field width; each LED is brighter on
+        its own side (the light at azimuth 0 deg on +x).
+    exposure_ms : float or None
+        Exposure time, milliseconds; ``None`` takes the rig's (0 if the rig has none).
+    dt_ab_s : float
+        Time between triggers A and B, seconds.
+    counts_per_mm : float
+        Feed encoder resolution, counts per mm; the rig's ``px_per_count`` must equal
+        ``px_per_mm / counts_per_mm``.
+    quantize : bool
+        Quantise to integers (``False`` returns float32 images without clipping, for tests).
+    oversample : int
+        Board-grid columns per undistorted pixel along x (odd: 1, 3, 5, 7, so that cell edges
+        fall on pixel edges); the radiance is computed per column and averaged over each pixel's
+        footprint (finer pixel integration, slower).
+    """
+
+    width: int = 659
+    height: int = 493
+    bit_depth: int = 8
+    level: float = 0.45
+    gain: float = 1.0
+    read_noise_dn: float = 0.5
+    full_well_e: float = 10000.0
+    shot_noise: bool = True
+    led_imbalance: float = 0.0
+    falloff: float = 0.0
+    exposure_ms: float | None = None
+    dt_ab_s: float = 0.002
+    counts_per_mm: float = 20.0
+    quantize: bool = True
+    oversample: int = 1
+
+    def __post_init__(self) -> None:
+        check_int("width", self.width, lo=16, hi=16384)
+        check_int("height", self.height, lo=4, hi=16384)
+        check_int("bit_depth", self.bit_depth, lo=8, hi=16)
+        check_range("level", self.level, 0.0, 1.0)
+        check_positive("gain", self.gain)
+        check_positive("read_noise_dn", self.read_noise_dn, allow_zero=True)
+        check_positive("full_well_e", self.full_well_e)
+        check_range("led_imbalance", self.led_imbalance, -0.9, 10.0)
+        check_range("falloff", self.falloff, -1.0, 1.0)
+        if self.exposure_ms is not None:
+            check_positive("exposure_ms", self.exposure_ms, allow_zero=True)
+        check_positive("dt_ab_s", self.dt_ab_s, allow_zero=True)
+        check_positive("counts_per_mm", self.counts_per_mm)
+        if check_int("oversample", self.oversample, lo=1, hi=7) % 2 == 0:
+            raise ValueError(f"oversample must be odd (1, 3, 5, 7), got {self.oversample}")
+
+    @property
+    def max_dn(self) -> int:
+        """Full-scale value, ``2**bit_depth - 1``."""
+        return (1 << self.bit_depth) - 1
+
+    @property
+    def dtype(self) -> type:
+        """Output pixel type: uint8 up to 8 bits, uint16 above."""
+        return np.uint8 if self.bit_depth <= 8 else np.uint16
+
+
+def wrap_counts(counts: int, bits: int) -> int:
+    """Encoder counts wrapped to an unsigned ``bits``-bit counter."""
+    return int(counts) % (1 << int(bits))
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Ground truth of a rendered pair, in image A's frame.
+
+    Attributes
+    ----------
+    x_mm : ndarray, shape (W,)
+        ``u / px_per_mm`` for every undistorted column ``u`` of image A.
+    height_um : ndarray, shape (W,)
+        True (kinematic) height of the board point seen at that column on the centre row, um.
+    shift_px : float
+        True shift from A to B in undistorted pixels, ``speed * dt_ab * px_per_mm``.
+    surface : Surface or None
+        The surface rendered, when it carries marks (see :mod:`plant_sim.surface`).
+    board_offset_mm : float
+        Board coordinate minus ``x_mm``: board point ``b`` is at ``x_mm = b - board_offset_mm``.
+    slope : ndarray, shape (W,)
+        True kinematic slope dz/dx (dimensionless) at those columns (mean over each pixel).
+    blur_px : float
+        Motion blur length (speed x exposure) in pixels.
+    """
+
+    x_mm: np.ndarray
+    height_um: np.ndarray
+    shift_px: float
+    surface: Any = None
+    board_offset_mm: float = 0.0
+    slope: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    blur_px: float = 0.0
+
+    def metrics(self, x_lo_mm: float, x_hi_mm: float) -> dict[str, object]:
+        """True cuttermark metrics of the complete marks between two A-frame positions.
+
+        Returns
+        -------
+        dict
+            As :meth:`plant_sim.surface.Surface.metrics` (``pitch_mm``, ``uniformity_cv``,
+            ``depth_um``, ``mark_widths_mm``, ...) with ``cusps_mm`` in A's frame.
+
+        Raises
+        ------
+        ValueError
+            The pair was rendered from a plain height function (no marks known).
+        """
+        if self.surface is None or not hasattr(self.surface, "metrics"):
+            raise ValueError("surface: the pair was rendered without a Surface; no true marks")
+        lo = check_finite("x_lo_mm", x_lo_mm)
+        hi = check_finite("x_hi_mm", x_hi_mm)
+        out = self.surface.metrics(lo + self.board_offset_mm, hi + self.board_offset_mm)
+        out["cusps_mm"] = [c - self.board_offset_mm for c in out["cusps_mm"]]
+        return out
+
+
+@dataclass(frozen=True)
+class ImagePair:
+    """Two rendered images, the latched encoder counts and the ground truth.
+
+    Attributes
+    ----------
+    image_a, image_b : ndarray, shape (height, width)
+        uint8 / uint16 (float32 when ``Optics.quantize`` is off).
+    counts_a, counts_b : int
+        Encoder counts latched at triggers A and B (wrapped to the counter width).
+    speed_mm_s : float
+        Feed speed at capture, mm/s.
+    truth : Truth
+        Ground truth.
+    """
+
+    image_a: np.ndarray
+    image_b: np.ndarray
+    counts_a: int
+    counts_b: int
+    speed_mm_s: float
+    truth: Truth
+
+
+def _height_function(source: HeightSource) -> Callable[[np.ndarray], np.ndarray]:
+    if hasattr(source, "height_at"):
+        return source.height_at
+    if callable(source):
+        return source
+    if hasattr(source, "x_mm") and hasattr(source, "height_um"):
+        xs = np.asarray(source.x_mm, dtype=float)
+        hs = np.asarray(source.height_um, dtype=float)
+        order = np.argsort(xs)
+        xs, hs = xs[order], hs[order]
+
+        def interp(b: np.ndarray) -> np.ndarray:
+            return np.interp(b, xs, hs)
+
+        return interp
+    raise ValueError(
+        "height must be a callable height_um(b_mm) or a Surface-like object with x_mm, height_um"
+    )
+
+
+class Renderer:
+    """Renders image pairs of a board for one rig, optics and wood; set up once.
+
+    Parameters
+    ----------
+    rig : config.rig.Rig
+        Camera (K, distortion, ``px_per_mm``, exposure), lights (slant, azimuths), encoder.
+    optics : Optics
+        Sensor, LEDs, timing and encoder resolution.
+    wood : plant_sim.wood.Wood
+        Species appearance (the board's texture is drawn from ``seed``).
+    seed : int
+        Seed of the board texture and of the default noise stream.
+
+    Raises
+    ------
+    ValueError
+        The rig's ``px_per_count`` does not match ``px_per_mm / counts_per_mm``.
+    """
+
+    def __init__(self, rig: Rig, optics: Optics, wood: Wood, *, seed: int) -> None:
+        self.rig = rig
+        self.optics = optics
+        self.wood = wood
+        self.seed = check_int("seed", seed, lo=0)
+        cam = rig.camera
+        ppm = float(cam.px_per_mm)
+        expect = ppm / optics.counts_per_mm
+        if not math.isclose(rig.encoder.px_per_count, expect, rel_tol=1e-6):
+            raise ValueError(
+                f"px_per_count of the rig ({rig.encoder.px_per_count}) must equal px_per_mm / "
+                f"counts_per_mm = {expect}"
+            )
+        self.px_per_mm = ppm
+        self.px_per_mm_y = ppm * cam.fy / cam.fx
+        self.px_per_count = float(rig.encoder.px_per_count)
+        exp = optics.exposure_ms if optics.exposure_ms is not None else (cam.exposure_ms or 0.0)
+        self.exposure_s = float(exp) * 1e-3
+        w, h = optics.width, optics.height
+        self.K = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
+        self.dist = np.asarray(cam.dist, dtype=float)
+        # undistorted position of every distorted pixel
+        cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        pts = np.stack([cols.ravel(), rows.ravel()], axis=1).reshape(-1, 1, 2)
+        if np.any(self.dist != 0):
+            crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
+            und = cv2.undistortPoints(pts, self.K, self.dist, None, self.K, criteria=crit)
+            # check the inversion: projecting back must land on the pixel
+            obj = np.empty((und.shape[0], 1, 3))
+            obj[:, 0, 0] = (und[:, 0, 0] - cam.cx) / cam.fx
+            obj[:, 0, 1] = (und[:, 0, 1] - cam.cy) / cam.fy
+            obj[:, 0, 2] = 1.0
+            back, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), self.K, self.dist)
+            err = float(np.max(np.abs(back - pts)))
+            if not err < 1e-3:
+                raise ValueError(
+                    f"dist {tuple(cam.dist)} cannot be inverted over a {w}x{h} image (the lens "
+                    f"model folds over; round-trip error {err:.3g} px)"
+                )
+            und = und.reshape(h, w, 2)
+        else:
+            und = pts.reshape(h, w, 2)
+        self.x_phys_mm = ((und[..., 0] - cam.cx) / ppm).astype(np.float64)
+        self.y_phys_mm = ((und[..., 1] - cam.cy) / self.px_per_mm_y).astype(np.float64)
+        x_lo, x_hi = float(self.x_phys_mm.min()), float(self.x_phys_mm.max())
+        y_lo, y_hi = float(self.y_phys_mm.min()), float(self.y_phys_mm.max())
+        self.field_width_mm = x_hi - x_lo
+        self._x_lo, self._x_hi = x_lo, x_hi
+        # board grid
+        self.dx_mm = 1.0 / (ppm * optics.oversample)
+        self.dy_mm = 1.0 / self.px_per_mm_y
+        cy_mm = cam.cy / self.px_per_mm_y
+        # first grid row, on an undistorted pixel row
+        self._y0 = (math.floor((y_lo + cy_mm) / self.dy_mm) - 2) * self.dy_mm - cy_mm
+        n_rows = int(math.ceil((y_hi - y_lo) / self.dy_mm)) + 5
+        self._map_y = ((self.y_phys_mm - self._y0) / self.dy_mm).astype(np.float32)
+        self._cx_mm = cam.cx / ppm
+        self._pixel_kernel = _pixel_kernel(optics.oversample)
+        # grid column (relative to undistorted column 0) shown by each distorted pixel
+        self._col_index = ((self.x_phys_mm + self._cx_mm) / self.dx_mm).astype(np.float32)
+        span_cols = int(math.ceil((x_hi - x_lo) / self.dx_mm)) + 8
+        period = max(2048, sfft.next_fast_len(span_cols + 64, real=True))
+        self._period = period
+        tiles = texture_tiles(
+            wood, rows=n_rows, cols=period, dx_mm=self.dx_mm, dy_mm=self.dy_mm, seed=self.seed
+        )
+        # lights
+        lit = rig.lights
+        s = math.radians(lit.slant_deg)
+        self._sin_s, self._cos_s = math.sin(s), math.cos(s)
+        self._tau = (math.radians(lit.azimuth_a_deg), math.radians(lit.azimuth_b_deg))
+        # Lambert (seed Eq. 1) with p = p_profile + p_rough, q = q_rough, split as
+        #   rho * shade = U - p_profile * cos(tau) * rho * sin(s),
+        #   U = rho * (cos(s) - sin(s) * (p_rough cos(tau) + q_rough sin(tau)));
+        # the normalisation 1 / sqrt(1 + p^2 + q^2) takes p_profile exactly and the roughness by
+        # its mean square (the cross term is below 1e-5 relative).
+        pad = span_cols + 512
+        self._pad = pad
+        rho = tiles.albedo
+        self._tile_u = []
+        for tau in self._tau:
+            rough = np.float32(math.cos(tau)) * tiles.slope_x
+            rough += np.float32(math.sin(tau)) * tiles.slope_y
+            u = rho * (np.float32(self._cos_s) - np.float32(self._sin_s) * rough)
+            self._tile_u.append(np.ascontiguousarray(np.concatenate([u, u[:, :pad]], axis=1)))
+        rs = rho * np.float32(self._sin_s)
+        self._tile_rs = np.ascontiguousarray(np.concatenate([rs, rs[:, :pad]], axis=1))
+        self._rough_ms = float(np.mean(tiles.slope_x**2) + np.mean(tiles.slope_y**2))
+        del tiles, rho, rs, u
+        scale = optics.level * optics.max_dn / (wood.albedo * self._cos_s) * optics.gain
+        gains = []
+        for i, tau in enumerate(self._tau):
+            proj = self.x_phys_mm * math.cos(tau) + self.y_phys_mm * math.sin(tau)
+            g = scale * (1.0 + optics.falloff * proj / self.field_width_mm)
+            if i == 1:
+                g = g * (1.0 + optics.led_imbalance)
+            gains.append(g.astype(np.float32))
+        self._gain_maps = tuple(gains)
+        self._dn_per_e = optics.gain * optics.max_dn / optics.full_well_e
+        self._noise_rng = np.random.default_rng([self.seed, 0x5EED])
+        self._undistorted_cols = np.arange(w, dtype=np.float64)
+
+    # -- rendering -------------------------------------------------------------------------
+
+    def _tile_window(self, tile: np.ndarray, c0: int, n: int, frac: float) -> np.ndarray:
+        """Columns ``c0 + frac .. c0 + frac + n - 1`` of a padded periodic tile (linear in x)."""
+        c0 %= self._period
+        if c0 + n + 1 <= tile.shape[1]:
+            win = tile[:, c0 : c0 + n + 1]
+        else:  # a window longer than the padding (extreme motion blur)
+            win = tile[:, (c0 + np.arange(n + 1)) % self._period]
+        if frac < 1e-9:
+            return win[:, :n].copy()
+        f = np.float32(frac)
+        out = win[:, 1:] - win[:, :n]
+        out *= f
+        out += win[:, :n]
+        return out
+
+    def _grid_extent(self, speed_mm_s: float) -> tuple[float, int, int, int]:
+        """Blur length (grid columns), blur half-width, first grid column and column count."""
+        dx = self.dx_mm
+        blur_cols = abs(speed_mm_s) * self.exposure_s / dx
+        half = int(math.ceil(0.5 * blur_cols)) + 1 if blur_cols > 1e-3 else 0
+        half += self._pixel_kernel.size // 2
+        k = int(math.floor((self._x_lo + self._cx_mm) / dx)) - 2 - half
+        n = int(math.ceil((self._x_hi - self._x_lo) / dx)) + 5 + 2 * half
+        return blur_cols, half, k, n
+
+    def board_range_mm(
+        self, *, board_x_at_centre_mm: float, speed_mm_s: float
+    ) -> tuple[float, float]:
+        """Board coordinates at which :meth:`render_pair` evaluates the height function.
+
+        A surface passed to :meth:`render_pair` with the same arguments must cover this range
+        (e.g. passes from :func:`plant_sim.surface.passes_steady` over it).
+
+        Returns
+        -------
+        (lo_mm, hi_mm) : tuple of float
+        """
+        bc = check_finite("board_x_at_centre_mm", board_x_at_centre_mm)
+        v = check_finite("speed_mm_s", speed_mm_s)
+        _, _, k, n = self._grid_extent(v)
+        dx = self.dx_mm
+        shift = v * self.optics.dt_ab_s
+        lo_grid = (k - 0.5) * dx - self._cx_mm
+        hi_grid = (k + n - 0.5) * dx - self._cx_mm
+        lo_truth = -self._cx_mm - 0.5 / self.px_per_mm
+        hi_truth = (self.optics.width - 0.5) / self.px_per_mm - self._cx_mm
+        lo = bc + min(lo_grid, lo_truth) + min(0.0, -shift)
+        hi = bc + max(hi_grid, hi_truth) + max(0.0, -shift)
+        return lo - 1e-9, hi + 1e-9
+
+    def _radiance_grid(
+        self, height: Callable[[np.ndarray], np.ndarray], b_at_axis_mm: float,
+        speed_mm_s: float, which: int,
+    ) -> tuple[np.ndarray, int]:
+        """Blurred radiance on a board grid whose nodes fall on undistorted pixel columns.
+
+        Node ``i`` is at board coordinate ``b_u0 + (k + i) dx`` with ``b_u0`` the board point at
+        undistorted column 0; returns the grid (rows, n), float32, and ``k``.
+        """
+        dx = self.dx_mm
+        blur_cols, half, k, n = self._grid_extent(speed_mm_s)
+        b_u0 = b_at_axis_mm - self._cx_mm
+        t0 = b_u0 / dx + k  # tile column of node 0
+        c0 = math.floor(t0)
+        frac = t0 - c0
+        edges = b_u0 + (k + np.arange(n + 1) - 0.5) * dx
+        z = np.asarray(height(edges), dtype=np.float64)
+        if z.shape != edges.shape or not np.all(np.isfinite(z)):
+            raise ValueError("height returned non-finite values or a wrong shape")
+        p_prof = np.diff(z) * (1e-3 / dx)  # mean slope over each grid cell
+        tau = self._tau[which]
+        norm = (1.0 / np.sqrt(1.0 + p_prof * p_prof + self._rough_ms)).astype(np.float32)
+        rad = self._tile_window(self._tile_rs, c0, n, frac)
+        rad *= (-math.cos(tau) * p_prof).astype(np.float32)[None, :]
+        rad += self._tile_window(self._tile_u[which], c0, n, frac)
+        np.maximum(rad, 0.0, out=rad)
+        rad *= norm[None, :]
+        kernel = self._pixel_kernel
+        if blur_cols > 1e-3:
+            kernel = np.convolve(kernel, _box_kernel(blur_cols)).astype(np.float32)
+        if kernel.size > 1:
+            rad = cv2.filter2D(rad, -1, kernel[None, :], borderType=cv2.BORDER_REPLICATE)
+        return rad, k
+
+    def _render_one(
+        self, height: Callable[[np.ndarray], np.ndarray], b_at_axis_mm: float,
+        speed_mm_s: float, which: int, rng: np.random.Generator,
+    ) -> np.ndarray:
+        rad, k = self._radiance_grid(height, b_at_axis_mm, speed_mm_s, which)
+        map_x = self._col_index - np.float32(k)
+        img = cv2.remap(rad, map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        img *= self._gain_maps[which]
+        o = self.optics
+        if o.shot_noise or o.read_noise_dn > 0:
+            if o.shot_noise:
+                var = np.maximum(img, 0.0)
+                var *= np.float32(self._dn_per_e)
+                var += np.float32(o.read_noise_dn**2)
+                sd = np.sqrt(var, out=var)
+            else:
+                sd = np.float32(o.read_noise_dn)
+            img += sd * rng.standard_normal(img.shape, dtype=np.float32)
+        if not o.quantize:
+            return img
+        img += 0.5
+        np.clip(img, 0.0, o.max_dn, out=img)
+        return img.astype(o.dtype)
+
+    def render_pair(
+        self,
+        height: HeightSource,
+        *,
+        board_x_at_centre_mm: float,
+        speed_mm_s: float,
+        counts_a: int = 0,
+        encoder_error_px: float = 0.0,
+        counter_bits: int | None = None,
+        rng_seed: int | None = None,
+    ) -> ImagePair:
+        """Render the images A and B of a moving board and the encoder counts at both triggers.
+
+        Parameters
+        ----------
+        height : callable or Surface-like
+            ``height_um(b_mm)`` of the board (vectorised), or an object with ``height_at`` (a
+            :class:`plant_sim.surface.Surface`, evaluated exactly), or one with arrays ``x_mm``
+            and ``height_um`` (linearly interpolated).
+        board_x_at_centre_mm : float
+            Board coordinate on the optical axis at trigger A, millimetres.
+        speed_mm_s : float
+            Feed speed (toward +x), mm/s; sets the shift A to B and the motion blur.
+        counts_a : int
+            Encoder count latched at trigger A (wrapped to ``counter_bits``).
+        encoder_error_px : float
+            Error of the counted shift (slip, bad count), pixels; ``counts_b`` is off by
+            ``round(encoder_error_px / px_per_count)`` counts.
+        counter_bits : int, optional
+            Encoder counter width, 16 or 32; ``None`` takes the rig's ``encoder.counter_bits``.
+        rng_seed : int, optional
+            Seed of the sensor noise; ``None`` draws from the renderer's own stream.
+
+        Returns
+        -------
+        ImagePair
+            Images ``(optics.height, optics.width)``, counts, speed and the ground truth.
+        """
+        bc = check_finite("board_x_at_centre_mm", board_x_at_centre_mm)
+        v = check_finite("speed_mm_s", speed_mm_s)
+        ca = check_int("counts_a", counts_a)
+        err = check_finite("encoder_error_px", encoder_error_px)
+        if counter_bits is None:
+            counter_bits = self.rig.encoder.counter_bits
+        bits = check_int("counter_bits", counter_bits)
+        if bits not in (16, 32):
+            raise ValueError(f"counter_bits must be 16 or 32, got {bits}")
+        fn = _height_function(height)
+        rng = self._noise_rng if rng_seed is None else np.random.default_rng(rng_seed)
+        o = self.optics
+        shift_mm = v * o.dt_ab_s
+        # at trigger A board point b is at X = b - bc; at B at X + shift -> b = X + bc - shift
+        img_a = self._render_one(fn, bc, v, 0, rng)
+        img_b = self._render_one(fn, bc - shift_mm, v, 1, rng)
+        ppm = self.px_per_mm
+        cam = self.rig.camera
+        counts_a_w = wrap_counts(ca, bits)
+        counts_b = (
+            ca + int(round(shift_mm * o.counts_per_mm)) + int(round(err / self.px_per_count))
+        )
+        u = self._undistorted_cols
+        offset = bc - cam.cx / ppm
+        x_mm = u / ppm
+        b = x_mm + offset
+        h_true = np.asarray(fn(b), dtype=float)
+        half = 0.5 / ppm
+        slope = (np.asarray(fn(b + half), dtype=float) - np.asarray(fn(b - half), dtype=float)) * (
+            1e-3 * ppm
+        )
+        truth = Truth(
+            x_mm=x_mm,
+            height_um=h_true,
+            shift_px=shift_mm * ppm,
+            surface=height if hasattr(height, "metrics") else None,
+            board_offset_mm=offset,
+            slope=slope,
+            blur_px=abs(v) * self.exposure_s * ppm,
+        )
+        return ImagePair(
+            image_a=img_a,
+            image_b=img_b,
+            counts_a=counts_a_w,
+            counts_b=wrap_counts(counts_b, bits),
+            speed_mm_s=v,
+            truth=truth,
+        )
+
+
+def _pixel_kernel(m: int) -> np.ndarray:
+    """Weights averaging the ``m`` (odd) grid cells of width 1/m px that make up one pixel.
+
+    Shape (m,), float32, all ``1/m``; ``[1]`` for ``m = 1``.
+    """
+    return np.full(m, 1.0 / m, dtype=np.float32)
+
+
+def _box_kernel(width_cols: float) -> np.ndarray:
+    """Taps of the motion-blur box filter on the board grid.
+
+    ``sum_j w_j f[i + j]`` is the mean of the linear interpolant of ``f`` over
+    ``[i - width/2, i + width/2]``; shape (2J + 1,), float32, sums to one.
+    """
+    half = 0.5 * width_cols
+    j_max = int(math.ceil(half)) + 1
+    j = np.arange(-j_max, j_max + 1, dtype=np.float64)
+
+    def hat_integral(x: np.ndarray) -> np.ndarray:
+        # integral of the unit hat function (support [-1, 1]) from -inf to x
+        x = np.clip(x, -1.0, 1.0)
+        return np.where(x <= 0.0, 0.5 * (x + 1.0) ** 2, 1.0 - 0.5 * (1.0 - x) ** 2)
+
+    w = (hat_integral(half - j) - hat_integral(-half - j)) / width_cols
+    return (w / w.sum()).astype(np.float32)
