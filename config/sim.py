@@ -1,0 +1,691 @@
+"""The simulator's configuration (``config/sim.toml``) loaded into frozen dataclasses.
+
+Tables: ``[spindle]``, ``[cutterhead]``, ``[piezo]``, ``[feed]``, ``[encoder]``, ``[camera]``
+(with ``[camera.optics]``), ``[board]``, ``[plc]``, ``[faults]`` describe the machine model
+(:mod:`plant_sim.machine`); ``[modbus]``, ``[can]``, ``[frames]``, ``[run]`` its interfaces
+(the Modbus server, the CAN node, the frame spool and the ``planer sim`` runner). Every value is
+checked on load and an error names its key (``piezo.stroke_um must be > 0.0, got -1``).
+Missing keys take the defaults below; unknown keys are refused (typos).
+
+See ``docs/simulator.md`` for what each parameter means physically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from config.loading import Section, default_path, load_toml
+from config.rig import Rig, load_rig
+from planer.errors import ConfigError
+
+__all__ = [
+    "BoardConfig",
+    "CameraConfig",
+    "CanConfig",
+    "CutterheadConfig",
+    "EncoderConfig",
+    "FaultSpec",
+    "FeedConfig",
+    "FramesConfig",
+    "ModbusConfig",
+    "OpticsConfig",
+    "PiezoConfig",
+    "PlcConfig",
+    "RunConfig",
+    "SimConfig",
+    "SpindleConfig",
+    "FAULT_KINDS",
+    "default_sim",
+    "load_sim",
+    "sim_from_dict",
+]
+
+FAULT_KINDS: tuple[str, ...] = (
+    "belt_slip",
+    "encoder_wrap",
+    "encoder_fault",
+    "knot",
+    "spindle_stop",
+    "estop",
+    "feed_fault",
+    "piezo_fault",
+    "can_drop",
+    "modbus_restart",
+    "can_silence",
+    "reset",
+)
+"""Fault kinds the machine model understands (see ``docs/simulator.md``)."""
+
+
+@dataclass(frozen=True)
+class SpindleConfig:
+    """Spindle drive.
+
+    Attributes
+    ----------
+    rpm : float
+        Nominal speed, revolutions per minute.
+    ripple_frac : float
+        Amplitude of the sinusoidal load ripple of the speed, fraction of ``rpm``.
+    ripple_hz : float
+        Frequency of that ripple, Hz.
+    load_droop_frac : float
+        Speed drop while a board is in the cut, fraction of ``rpm`` (first-order, 0.1 s).
+    coast_tau_s : float
+        Time constant of the coast-down after a ``spindle_stop`` fault, seconds.
+    brake_tau_s : float
+        Time constant of the braked stop after an e-stop, seconds.
+    spinup_tau_s : float
+        Time constant of the run-up after a fault reset, seconds.
+    """
+
+    rpm: float = 6000.0
+    ripple_frac: float = 0.001
+    ripple_hz: float = 2.0
+    load_droop_frac: float = 0.002
+    coast_tau_s: float = 3.0
+    brake_tau_s: float = 0.5
+    spinup_tau_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class CutterheadConfig:
+    """Cutterhead geometry: Z knives at tip radius R with per-knife runout and eccentricity.
+
+    Attributes
+    ----------
+    knives : int
+        Number of knives Z (1..8, the CAN offset frames carry eight).
+    radius_mm : float
+        Tip radius R, millimetres.
+    runout_um : tuple of float
+        Radial runout of each knife, micrometres (positive: stands out, cuts deeper).
+    eccentricity_um : float
+        Eccentricity of the head on its spindle: knife k stands out by an extra
+        ``eccentricity_um * cos(2 pi k / Z)`` micrometres.
+    """
+
+    knives: int = 4
+    radius_mm: float = 60.0
+    runout_um: tuple[float, ...] = (0.0, 4.0, -2.0, 2.0)
+    eccentricity_um: float = 0.5
+
+
+@dataclass(frozen=True)
+class PiezoConfig:
+    """Piezo actuator (vertical cutterhead motion) and its amplifier.
+
+    Attributes
+    ----------
+    stroke_um : float
+        Offsets are limited to ``[-stroke_um, +stroke_um]``.
+    resonance_hz : float
+        First resonance of the actuator and spindle, Hz (undamped natural frequency).
+    damping : float
+        Damping ratio of that resonance.
+    hysteresis : float
+        Hysteresis loop width over the peak-to-peak excursion of a small cycle (the loop of a
+        full-stroke cycle is about 0.76 times as wide, relatively).
+    input_shaper : bool
+        The amplifier splits each setpoint step into two (zero-vibration shaper tuned to the
+        nominal resonance) so that the resonance is not excited.
+    lead_fraction : float
+        The setpoint switches to knife k's offset this fraction of a knife period before
+        knife k reaches bottom dead centre.
+    timeout_s : float
+        Setpoint timeout: with no new PIEZO_COMMAND for longer, the offsets ramp to zero.
+    ramp_um_s : float
+        Rate of that ramp, micrometres per second.
+    sensor_noise_um : float
+        Rms noise of the eddy-current sensor on the spindle's vertical displacement.
+    ambient_c, thermal_tau_s, heating_c_per_um_s, max_temperature_c : float
+        Actuator temperature: first-order towards ``ambient_c + heating_c_per_um_s * slew``
+        (slew: mean absolute setpoint rate, um/s) with ``thermal_tau_s``; over
+        ``max_temperature_c`` the amplifier faults (over-temperature).
+    """
+
+    stroke_um: float = 20.0
+    resonance_hz: float = 800.0
+    damping: float = 0.2
+    hysteresis: float = 0.03
+    input_shaper: bool = True
+    lead_fraction: float = 0.75
+    timeout_s: float = 0.1
+    ramp_um_s: float = 50.0
+    sensor_noise_um: float = 0.05
+    ambient_c: float = 25.0
+    thermal_tau_s: float = 60.0
+    heating_c_per_um_s: float = 0.005
+    max_temperature_c: float = 70.0
+
+
+@dataclass(frozen=True)
+class FeedConfig:
+    """Feed drive (lead-screw table with a velocity loop).
+
+    Attributes
+    ----------
+    min_mm_s, max_mm_s : float
+        Accepted setpoint range; a setpoint outside raises ``ValueError`` (never clamped).
+    accel_max_mm_s2 : float
+        Acceleration limit.
+    bandwidth_hz : float
+        Bandwidth of the velocity loop (first order).
+    initial_mm_s : float
+        Setpoint (and speed) at start.
+    """
+
+    min_mm_s: float = 50.0
+    max_mm_s: float = 1000.0
+    accel_max_mm_s2: float = 2000.0
+    bandwidth_hz: float = 8.0
+    initial_mm_s: float = 800.0
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """Feed encoder counter.
+
+    Attributes
+    ----------
+    counts_per_mm : float
+        Resolution, counts per millimetre of feed.
+    counter_bits : int
+        Counter width (16 or 32); the counter wraps at ``2**counter_bits``.
+    start_counts : int
+        Counter value at start (set close to ``2**counter_bits`` to exercise the wrap).
+    """
+
+    counts_per_mm: float = 20.0
+    counter_bits: int = 32
+    start_counts: int = 0
+
+
+@dataclass(frozen=True)
+class OpticsConfig:
+    """Image rendering knobs passed to :class:`plant_sim.optics.Optics`.
+
+    Attributes
+    ----------
+    imbalance : float
+        LED B brightness over LED A, minus one.
+    falloff : float
+        Fractional intensity change of each LED across the field.
+    noise : float
+        Read noise, digital numbers rms (shot noise is always on).
+    width, height : int
+        Image size, pixels.
+    """
+
+    imbalance: float = 0.05
+    falloff: float = 0.1
+    noise: float = 0.5
+    width: int = 659
+    height: int = 493
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The camera downstream of the cutter.
+
+    Attributes
+    ----------
+    rig_path : Path
+        Rig file (camera, lights, encoder scale); default the shipped ``config/rig.toml``.
+    rig : config.rig.Rig
+        The loaded rig.
+    cutter_to_camera_mm : float
+        Distance L from the cutterhead axis to the optical axis along the feed.
+    pairs_per_s : float
+        Trigger rate of image pairs while a board is under the camera.
+    dt_ab_s : float
+        Time from trigger A to trigger B.
+    species : str
+        Wood species of the boards (a key of :data:`plant_sim.wood.SPECIES`).
+    optics : OpticsConfig
+        Rendering knobs.
+    """
+
+    rig_path: Path
+    rig: Rig
+    cutter_to_camera_mm: float = 300.0
+    pairs_per_s: float = 10.0
+    dt_ab_s: float = 0.002
+    species: str = "spruce"
+    optics: OpticsConfig = field(default_factory=OpticsConfig)
+
+
+@dataclass(frozen=True)
+class BoardConfig:
+    """The stream of boards through the machine.
+
+    Attributes
+    ----------
+    length_mm : float
+        Length of every board.
+    gap_mm : float
+        Gap between consecutive boards.
+    first_at_mm : float
+        Distance of the first board's leading end before the cutter axis at time 0.
+    count : int
+        Number of boards (0: endless).
+    """
+
+    length_mm: float = 4000.0
+    gap_mm: float = 500.0
+    first_at_mm: float = 100.0
+    count: int = 0
+
+
+@dataclass(frozen=True)
+class PlcConfig:
+    """The PLC's cycle and watchdog.
+
+    Attributes
+    ----------
+    cycle_s : float
+        PLC cycle: the feed and spindle drives are updated and ``heartbeat_plc`` incremented
+        once per cycle.
+    watchdog_ms : int
+        Fault bit 3 (service heartbeat lost) when ``heartbeat_service`` does not change for
+        longer than this.
+    """
+
+    cycle_s: float = 0.002
+    watchdog_ms: int = 1000
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """A fault injected by the configuration: ``kind`` and its parameters (``at_s`` etc.)."""
+
+    kind: str
+    params: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ModbusConfig:
+    """The PLC's Modbus TCP server."""
+
+    host: str = "127.0.0.1"
+    port: int = 5020
+    unit_id: int = 1
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """The piezo amplifier's CAN bus (python-can ``interface``, ``channel``, extra options)."""
+
+    interface: str = "virtual"
+    channel: str = "planer-piezo"
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class FramesConfig:
+    """Frame hand-off: spool directory and how many pairs it keeps."""
+
+    spool_dir: str = "runs/spool"
+    keep: int = 50
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The ``planer sim`` runner: simulated seconds per wall second and its step."""
+
+    time_scale: float = 1.0
+    step_s: float = 0.001
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The whole simulator configuration."""
+
+    spindle: SpindleConfig
+    cutterhead: CutterheadConfig
+    piezo: PiezoConfig
+    feed: FeedConfig
+    encoder: EncoderConfig
+    camera: CameraConfig
+    board: BoardConfig
+    plc: PlcConfig
+    faults: tuple[FaultSpec, ...]
+    modbus: ModbusConfig
+    can: CanConfig
+    frames: FramesConfig
+    run: RunConfig
+    source: Path | None = None
+
+
+CAN_INTERFACES = ("virtual", "udp_multicast", "remote", "socketcan")
+
+
+def _spindle(s: Section) -> SpindleConfig:
+    d = SpindleConfig()
+    out = SpindleConfig(
+        rpm=s.number("rpm", d.rpm, lo=100.0, hi=30000.0),
+        ripple_frac=s.number("ripple_frac", d.ripple_frac, lo=0.0, hi=0.05),
+        ripple_hz=s.number("ripple_hz", d.ripple_hz, lo=0.0, hi=100.0),
+        load_droop_frac=s.number("load_droop_frac", d.load_droop_frac, lo=0.0, hi=0.2),
+        coast_tau_s=s.number("coast_tau_s", d.coast_tau_s, lo=0.0, lo_open=True, hi=600.0),
+        brake_tau_s=s.number("brake_tau_s", d.brake_tau_s, lo=0.0, lo_open=True, hi=60.0),
+        spinup_tau_s=s.number("spinup_tau_s", d.spinup_tau_s, lo=0.0, lo_open=True, hi=600.0),
+    )
+    s.reject_unknown()
+    return out
+
+
+def _cutterhead(s: Section) -> CutterheadConfig:
+    d = CutterheadConfig()
+    knives = s.integer("knives", d.knives, lo=1, hi=8)
+    if s.has("runout_um"):
+        runout = s.numbers("runout_um", length=knives)
+    elif knives == len(d.runout_um):
+        runout = d.runout_um
+    else:
+        runout = (0.0,) * knives
+    for i, r in enumerate(runout):
+        if abs(r) > 100.0:
+            raise ConfigError(f"{s.key('runout_um')}[{i}] must be within +-100 um, got {r!r}")
+    out = CutterheadConfig(
+        knives=knives,
+        radius_mm=s.number("radius_mm", d.radius_mm, lo=5.0, hi=500.0),
+        runout_um=runout,
+        eccentricity_um=s.number("eccentricity_um", d.eccentricity_um, lo=-100.0, hi=100.0),
+    )
+    s.reject_unknown()
+    return out
+
+
+def _piezo(s: Section) -> PiezoConfig:
+    d = PiezoConfig()
+    out = PiezoConfig(
+        stroke_um=s.number("stroke_um", d.stroke_um, lo=0.0, lo_open=True, hi=1000.0),
+        resonance_hz=s.number("resonance_hz", d.resonance_hz, lo=10.0, hi=100000.0),
+        damping=s.number("damping", d.damping, lo=0.01, hi=0.95),
+        hysteresis=s.number("hysteresis", d.hysteresis, lo=0.0, hi=0.3),
+        input_shaper=s.boolean("input_shaper", d.input_shaper),
+        lead_fraction=s.number("lead_fraction", d.lead_fraction, lo=0.05, hi=0.95),
+        timeout_s=s.number("timeout_s", d.timeout_s, lo=0.0, lo_open=True, hi=60.0),
+        ramp_um_s=s.number("ramp_um_s", d.ramp_um_s, lo=0.0, lo_open=True),
+        sensor_noise_um=s.number("sensor_noise_um", d.sensor_noise_um, lo=0.0, hi=10.0),
+        ambient_c=s.number("ambient_c", d.ambient_c, lo=-40.0, hi=80.0),
+        thermal_tau_s=s.number("thermal_tau_s", d.thermal_tau_s, lo=0.0, lo_open=True),
+        heating_c_per_um_s=s.number("heating_c_per_um_s", d.heating_c_per_um_s, lo=0.0),
+        max_temperature_c=s.number("max_temperature_c", d.max_temperature_c, lo=0.0, hi=300.0),
+    )
+    s.reject_unknown()
+    if out.max_temperature_c <= out.ambient_c:
+        raise ConfigError(f"{s.key('max_temperature_c')} must exceed ambient_c")
+    return out
+
+
+def _feed(s: Section) -> FeedConfig:
+    d = FeedConfig()
+    lo = s.number("min_mm_s", d.min_mm_s, lo=0.0, lo_open=True)
+    hi = s.number("max_mm_s", d.max_mm_s, lo=0.0, lo_open=True, hi=10000.0)
+    if hi <= lo:
+        raise ConfigError(f"{s.key('max_mm_s')} must exceed min_mm_s ({lo}), got {hi!r}")
+    out = FeedConfig(
+        min_mm_s=lo,
+        max_mm_s=hi,
+        accel_max_mm_s2=s.number("accel_max_mm_s2", d.accel_max_mm_s2, lo=0.0, lo_open=True),
+        bandwidth_hz=s.number("bandwidth_hz", d.bandwidth_hz, lo=0.1, hi=100.0),
+        initial_mm_s=s.number("initial_mm_s", d.initial_mm_s, lo=lo, hi=hi),
+    )
+    s.reject_unknown()
+    return out
+
+
+def _encoder(s: Section) -> EncoderConfig:
+    d = EncoderConfig()
+    bits = s.integer("counter_bits", d.counter_bits)
+    if bits not in (16, 32):
+        raise ConfigError(f"{s.key('counter_bits')} must be 16 or 32, got {bits}")
+    out = EncoderConfig(
+        counts_per_mm=s.number("counts_per_mm", d.counts_per_mm, lo=0.0, lo_open=True, hi=1e6),
+        counter_bits=bits,
+        start_counts=s.integer("start_counts", d.start_counts, lo=0, hi=(1 << bits) - 1),
+    )
+    s.reject_unknown()
+    return out
+
+
+def _optics(s: Section) -> OpticsConfig:
+    d = OpticsConfig()
+    out = OpticsConfig(
+        imbalance=s.number("imbalance", d.imbalance, lo=-0.9, hi=10.0),
+        falloff=s.number("falloff", d.falloff, lo=-1.0, hi=1.0),
+        noise=s.number("noise", d.noise, lo=0.0, hi=100.0),
+        width=s.integer("width", d.width, lo=16, hi=16384),
+        height=s.integer("height", d.height, lo=4, hi=16384),
+    )
+    s.reject_unknown()
+    return out
+
+
+def _camera(s: Section, base: Path | None) -> CameraConfig:
+    d = CameraConfig
+    rig_raw = s.string("rig", "")
+    if rig_raw:
+        rig_path = Path(rig_raw)
+        if not rig_path.is_absolute() and base is not None:
+            rig_path = base / rig_path
+    else:
+        rig_path = default_path("rig.toml")
+    try:
+        rig = load_rig(rig_path)
+    except ConfigError as exc:
+        raise ConfigError(f"{s.key('rig')}: {exc}") from None
+    species = s.string("species", d.species).strip().lower()
+    from plant_sim.wood import SPECIES  # the known species (a data table, no I/O)
+
+    if species not in SPECIES:
+        raise ConfigError(
+            f"{s.key('species')} must be one of {', '.join(sorted(SPECIES))}; got {species!r}"
+        )
+    out = CameraConfig(
+        rig_path=rig_path,
+        rig=rig,
+        cutter_to_camera_mm=s.number("cutter_to_camera_mm", d.cutter_to_camera_mm, lo=1.0,
+                                     hi=10000.0),
+        pairs_per_s=s.number("pairs_per_s", d.pairs_per_s, lo=0.0, lo_open=True, hi=1000.0),
+        dt_ab_s=s.number("dt_ab_s", d.dt_ab_s, lo=0.0, lo_open=True, hi=0.1),
+        species=species,
+        optics=_optics(s.section("optics", required=False)),
+    )
+    s.reject_unknown()
+    if out.dt_ab_s * out.pairs_per_s >= 1.0:
+        raise ConfigError(f"{s.key('dt_ab_s')} must be shorter than the trigger period")
+    return out
+
+
+def _board(s: Section) -> BoardConfig:
+    d = BoardConfig()
+    out = BoardConfig(
+        length_mm=s.number("length_mm", d.length_mm, lo=100.0, hi=100000.0),
+        gap_mm=s.number("gap_mm", d.gap_mm, lo=0.0, hi=100000.0),
+        first_at_mm=s.number("first_at_mm", d.first_at_mm, lo=0.0, hi=100000.0),
+        count=s.integer("count", d.count, lo=0),
+    )
+    s.reject_unknown()
+    return out
+
+
+def _plc(s: Section) -> PlcConfig:
+    d = PlcConfig()
+    out = PlcConfig(
+        cycle_s=s.number("cycle_s", d.cycle_s, lo=1e-4, hi=0.1),
+        watchdog_ms=s.integer("watchdog_ms", d.watchdog_ms, lo=1, hi=65535),
+    )
+    s.reject_unknown()
+    return out
+
+
+def _faults(raw: Any) -> tuple[FaultSpec, ...]:
+    """``[faults] inject = [{kind = ..., ...}]`` or an array of tables ``[[faults]]``."""
+    if raw is None:
+        return ()
+    if isinstance(raw, Mapping):
+        s = Section(raw, "faults")
+        items = s.raw("inject", [])
+        s.reject_unknown()
+        prefix = "faults.inject"
+    else:
+        items = raw
+        prefix = "faults"
+    if not isinstance(items, list):
+        raise ConfigError(f"{prefix} must be a list of tables, got {items!r}")
+    out = []
+    for i, item in enumerate(items):
+        key = f"{prefix}[{i}]"
+        if not isinstance(item, Mapping):
+            raise ConfigError(f"{key} must be a table with a kind, got {item!r}")
+        kind = item.get("kind")
+        if kind not in FAULT_KINDS:
+            raise ConfigError(f"{key}.kind must be one of {', '.join(FAULT_KINDS)}; got {kind!r}")
+        params = {k: v for k, v in item.items() if k != "kind"}
+        for name, val in params.items():
+            if isinstance(val, bool) or not isinstance(val, (int, float)):
+                raise ConfigError(f"{key}.{name} must be a number, got {val!r}")
+            if not math.isfinite(float(val)):
+                raise ConfigError(f"{key}.{name} must be finite, got {val!r}")
+        if "at_s" in params and float(params["at_s"]) < 0:
+            raise ConfigError(f"{key}.at_s must be >= 0, got {params['at_s']!r}")
+        out.append(FaultSpec(kind=str(kind), params=dict(params)))
+    return tuple(out)
+
+
+def _modbus(s: Section) -> ModbusConfig:
+    d = ModbusConfig()
+    out = ModbusConfig(
+        host=s.string("host", d.host),
+        port=s.integer("port", d.port, lo=0, hi=65535),
+        unit_id=s.integer("unit_id", d.unit_id, lo=0, hi=255),
+    )
+    s.reject_unknown()
+    if not out.host:
+        raise ConfigError(f"{s.key('host')} must not be empty")
+    return out
+
+
+def _can(s: Section) -> CanConfig:
+    d = CanConfig()
+    options = s.raw("options", {})
+    if not isinstance(options, Mapping):
+        raise ConfigError(f"{s.key('options')} must be a table, got {options!r}")
+    out = CanConfig(
+        interface=s.string("interface", d.interface, choices=CAN_INTERFACES),
+        channel=s.string("channel", d.channel),
+        options=dict(options),
+    )
+    s.reject_unknown()
+    if not out.channel:
+        raise ConfigError(f"{s.key('channel')} must not be empty")
+    return out
+
+
+def _frames(s: Section) -> FramesConfig:
+    d = FramesConfig()
+    out = FramesConfig(
+        spool_dir=s.string("spool_dir", d.spool_dir),
+        keep=s.integer("keep", d.keep, lo=1, hi=1_000_000),
+    )
+    s.reject_unknown()
+    if not out.spool_dir:
+        raise ConfigError(f"{s.key('spool_dir')} must not be empty")
+    return out
+
+
+def _run(s: Section) -> RunConfig:
+    d = RunConfig()
+    out = RunConfig(
+        time_scale=s.number("time_scale", d.time_scale, lo=0.0, lo_open=True, hi=1000.0),
+        step_s=s.number("step_s", d.step_s, lo=1e-5, hi=1.0),
+    )
+    s.reject_unknown()
+    return out
+
+
+def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> SimConfig:
+    """Build and check a :class:`SimConfig` from a parsed TOML document.
+
+    Parameters
+    ----------
+    data : mapping
+        The parsed document; missing tables and keys take their defaults.
+    base_dir : Path, optional
+        Directory that a relative ``camera.rig`` path is relative to.
+
+    Raises
+    ------
+    ConfigError
+        A value is missing, mistyped or out of range, or a key is unknown; the message names
+        the key.
+    """
+    root = Section(data, "")
+
+    def sec(name: str) -> Section:
+        return root.section(name, required=False)
+
+    cfg = SimConfig(
+        spindle=_spindle(sec("spindle")),
+        cutterhead=_cutterhead(sec("cutterhead")),
+        piezo=_piezo(sec("piezo")),
+        feed=_feed(sec("feed")),
+        encoder=_encoder(sec("encoder")),
+        camera=_camera(sec("camera"), base_dir),
+        board=_board(sec("board")),
+        plc=_plc(sec("plc")),
+        faults=_faults(root.raw("faults", None)),
+        modbus=_modbus(sec("modbus")),
+        can=_can(sec("can")),
+        frames=_frames(sec("frames")),
+        run=_run(sec("run")),
+    )
+    root.reject_unknown()
+    head = cfg.cutterhead
+    if max(abs(r) for r in head.runout_um) + abs(head.eccentricity_um) > 1e3 * head.radius_mm:
+        raise ConfigError("cutterhead.runout_um is larger than the radius")
+    rig = cfg.camera.rig
+    expect = rig.camera.px_per_mm / cfg.encoder.counts_per_mm
+    if not math.isclose(rig.encoder.px_per_count, expect, rel_tol=1e-6):
+        raise ConfigError(
+            f"encoder.counts_per_mm ({cfg.encoder.counts_per_mm}) disagrees with the rig: "
+            f"px_per_mm / px_per_count = {rig.camera.px_per_mm / rig.encoder.px_per_count}"
+        )
+    max_pitch = cfg.feed.max_mm_s / (cfg.spindle.rpm / 60.0 * head.knives)
+    if max_pitch > 0.25 * head.radius_mm:
+        raise ConfigError(
+            f"feed.max_mm_s gives {max_pitch:.3g} mm per knife pass at spindle.rpm; "
+            f"must stay below R/4 = {head.radius_mm / 4:g} mm"
+        )
+    return cfg
+
+
+def load_sim(path: str | Path | None = None) -> SimConfig:
+    """Load and check a simulator configuration (default: the shipped ``config/sim.toml``).
+
+    Raises
+    ------
+    ConfigError
+        The file is missing or malformed, or a value is invalid; the message names the file and
+        the key.
+    """
+    p = Path(path) if path is not None else default_path("sim.toml")
+    data = load_toml(p)
+    try:
+        cfg = sim_from_dict(data, base_dir=p.parent)
+    except ConfigError as exc:
+        raise ConfigError(f"{p}: {exc}") from None
+    return dataclasses.replace(cfg, source=p)
+
+
+def default_sim() -> SimConfig:
+    """The defaults of every table (no file read except the shipped rig)."""
+    return sim_from_dict({})

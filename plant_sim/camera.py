@@ -1,0 +1,284 @@
+"""The camera downstream of the cutter: triggers, latched counts, frame assembly and truth.
+
+Trigger A fires every ``1 / pairs_per_s`` seconds (at ``k / pairs_per_s``) while the whole field
+of view lies on a board; trigger B ``dt_ab_s`` later. The encoder counts are latched at both
+triggers, and at A the index latch (the count at the spindle index pulse nearest to the moment
+the board point now at the image centre was under the cutter). When B has fired the pair is
+assembled: the true surface under the camera is the envelope of the knife passes recorded for
+that board (:func:`plant_sim.surface.envelope`), its marks over image A's field of view are the
+truth, and the images are rendered by the optics :class:`~plant_sim.optics.Renderer` (built once).
+
+Knots (a fault) darken an elliptical patch of the board and add a rough height profile there;
+the optics renderer draws one texture per rig, so the dark patch is applied to the rendered
+images per pixel (each pixel's board coordinate is known from the renderer's distortion maps).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from planer.protocol.frames import Frame
+from plant_sim.surface import Passes, Surface, envelope
+
+__all__ = ["FrameAssembler", "Knot", "Latch", "TriggerClock"]
+
+
+class TriggerClock:
+    """Trigger-A instants ``k / pairs_per_s``.
+
+    Parameters
+    ----------
+    pairs_per_s : float
+        Pair rate, Hz.
+    """
+
+    def __init__(self, pairs_per_s: float) -> None:
+        self.period_s = 1.0 / pairs_per_s
+        self.k = 1
+
+    def next_time(self) -> float:
+        """Time of the next trigger A."""
+        return self.k * self.period_s
+
+    def consume(self) -> None:
+        """The next trigger has been handled (fired or skipped)."""
+        self.k += 1
+
+
+@dataclass
+class Latch:
+    """What is latched for one pair (A at once, B later)."""
+
+    seq: int
+    t_a: float
+    s_a: float
+    counts_a: int
+    v_a: float
+    board_id: int
+    x_centre_mm: float
+    index_latch: int
+    t_b: float
+    s_b: float = math.nan
+    counts_b: int = 0
+    slip_counts: int = 0
+
+
+@dataclass(frozen=True)
+class Knot:
+    """A knot: a dark, rough elliptical patch on one board.
+
+    Attributes
+    ----------
+    board_id : int
+        Board that carries it.
+    x_mm : float
+        Centre, board coordinate (from the trailing end), mm.
+    y_mm : float
+        Centre across the board, mm from the optical axis.
+    length_mm, width_mm : float
+        Axes of the ellipse along and across the feed.
+    darkness : float
+        Fractional darkening at the centre (0..1).
+    roughness_um : float
+        Rms of the rough height profile added inside the knot.
+    seed : int
+        Seed of the roughness.
+    """
+
+    board_id: int
+    x_mm: float
+    y_mm: float = 0.0
+    length_mm: float = 40.0
+    width_mm: float = 30.0
+    darkness: float = 0.6
+    roughness_um: float = 4.0
+    seed: int = 0
+    _profile: Any = field(default=None, compare=False, repr=False)
+
+    def weight(self, x_mm: np.ndarray) -> np.ndarray:
+        """Smooth 0..1 weight along the board (1 at the centre, 0 beyond the half-length)."""
+        r = np.abs(np.asarray(x_mm, dtype=float) - self.x_mm) / (0.5 * self.length_mm)
+        return np.where(r < 1.0, 0.5 * (1.0 + np.cos(np.pi * np.minimum(r, 1.0))), 0.0)
+
+    def overlaps(self, x_lo_mm: float, x_hi_mm: float) -> bool:
+        """Whether the knot touches ``[x_lo_mm, x_hi_mm]``."""
+        h = 0.5 * self.length_mm
+        return self.x_mm + h > x_lo_mm and self.x_mm - h < x_hi_mm
+
+    def roughness(self, x_mm: np.ndarray) -> np.ndarray:
+        """Rough height profile inside the knot, um (zero outside)."""
+        x = np.asarray(x_mm, dtype=float)
+        prof = self._profile
+        if prof is None:
+            rng = np.random.default_rng([self.seed, 0x6B6E6F74])
+            dx = 0.02
+            n = int(math.ceil(self.length_mm / dx)) + 3
+            white = rng.standard_normal(n)
+            ker = np.exp(-0.5 * (np.arange(-25, 26) * dx / 0.15) ** 2)
+            sm = np.convolve(white, ker / np.sqrt(np.sum(ker**2)), mode="same")
+            grid = self.x_mm - 0.5 * self.length_mm + dx * (np.arange(n) - 1)
+            prof = (grid, sm)
+            object.__setattr__(self, "_profile", prof)
+        grid, sm = prof
+        return self.roughness_um * self.weight(x) * np.interp(x, grid, sm)
+
+    def albedo_factor(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+        """Multiplicative darkening ``1 - darkness * w`` over an elliptical patch."""
+        u = (np.asarray(x_mm) - self.x_mm) / (0.5 * self.length_mm)
+        v = (np.asarray(y_mm) - self.y_mm) / (0.5 * self.width_mm)
+        r = np.sqrt(u * u + v * v)
+        w = np.where(r < 1.0, 0.5 * (1.0 + np.cos(np.pi * np.minimum(r, 1.0))), 0.0)
+        return 1.0 - self.darkness * w
+
+
+class _KnottedSurface:
+    """A surface's exact height plus the roughness of knots (a height source for the renderer)."""
+
+    def __init__(self, surface: Surface, knots: list[Knot]) -> None:
+        self.surface = surface
+        self.knots = knots
+
+    def height_at(self, x_mm: np.ndarray) -> np.ndarray:
+        h = self.surface.height_at(x_mm)
+        for k in self.knots:
+            h = h + k.roughness(x_mm)
+        return h
+
+    def metrics(self, x_lo_mm: float, x_hi_mm: float) -> dict[str, object]:
+        return self.surface.metrics(x_lo_mm, x_hi_mm)
+
+
+class FrameAssembler:
+    """Turns completed latches into :class:`~planer.protocol.frames.Frame` objects.
+
+    Parameters
+    ----------
+    rig : config.rig.Rig
+        Camera geometry (``cx``, ``px_per_mm``) and encoder scale.
+    width : int
+        Image width, pixels (image A's field of view is undistorted columns ``0..width-1``).
+    counter_bits : int
+        Encoder counter width.
+    renderer : plant_sim.optics.Renderer or None
+        Renders the images; ``None`` gives frames without images (truth and counts only).
+    """
+
+    MARGIN_MM = 20.0
+
+    def __init__(self, rig, *, width: int, counter_bits: int, renderer=None) -> None:
+        cam = rig.camera
+        self.px_per_mm = float(cam.px_per_mm)
+        self.cx = float(cam.cx)
+        self.px_per_count = float(rig.encoder.px_per_count)
+        self.x_lo_mm = -self.cx / self.px_per_mm  # FOV relative to the optical axis
+        self.x_hi_mm = (width - 1 - self.cx) / self.px_per_mm
+        self.counter_bits = counter_bits
+        self.renderer = renderer
+        self.cols_mm = np.arange(width) / self.px_per_mm
+
+    def field_mm(self, x_centre_mm: float) -> tuple[float, float]:
+        """Board range of image A's (undistorted) field for a centre at ``x_centre_mm``."""
+        return x_centre_mm + self.x_lo_mm, x_centre_mm + self.x_hi_mm
+
+    def surface(self, passes: Passes, x_lo_mm: float, x_hi_mm: float) -> Surface:
+        """True surface over ``[x_lo_mm, x_hi_mm]`` from the board's passes."""
+        sel = passes.slice(x_lo_mm, x_hi_mm, margin_mm=self.MARGIN_MM)
+        if len(sel) == 0:
+            raise ValueError("no knife passes recorded there")
+        xs = np.linspace(x_lo_mm, x_hi_mm, 128)
+        return envelope(xs, sel)
+
+    def truth(
+        self, surface: Surface, x_centre_mm: float, shift_px: float, passes: Passes | None = None
+    ) -> dict[str, Any]:
+        """Truth of image A's field: the surface's marks in A's frame (``x_mm = u / px_per_mm``).
+
+        Besides :meth:`plant_sim.surface.Surface.metrics` (``pitch_mm`` = mean width of the
+        complete marks, ``uniformity_cv``, ``depth_um``, ``mark_widths_mm``, ``knife``, ...):
+        ``bottoms_mm`` (each mark's BDC in A's frame), ``shift_px`` (true A-to-B shift),
+        ``board_x_mm`` (board coordinate at the optical axis), ``board_offset_mm`` (board
+        coordinate minus A-frame ``x_mm``) and ``feed_per_knife_mm`` (mean spacing of all knife
+        passes over the field: the kinematic pitch, unbiased by an incomplete revolution).
+        """
+        lo, hi = self.field_mm(x_centre_mm)
+        m = surface.metrics(lo, hi)
+        if passes is not None:
+            xs = np.sort(passes.slice(lo, hi).x_mm)
+            m["feed_per_knife_mm"] = (
+                float((xs[-1] - xs[0]) / (xs.size - 1)) if xs.size > 1 else math.nan
+            )
+        offset = x_centre_mm - self.cx / self.px_per_mm  # board x = x_mm + offset
+        sel = surface.marks_between(lo, hi)
+        m["cusps_mm"] = [c - offset for c in m["cusps_mm"]]
+        m["bottoms_mm"] = [float(b - offset) for b in surface.bottoms_mm[sel]]
+        m["shift_px"] = float(shift_px)
+        m["board_x_mm"] = float(x_centre_mm)
+        m["board_offset_mm"] = float(offset)
+        return m
+
+    def assemble(
+        self, latch: Latch, passes: Passes, knots: list[Knot], *, board_length_mm: float
+    ) -> Frame:
+        """Build the frame of a completed latch."""
+        shift_mm = latch.s_b - latch.s_a
+        shift_px = shift_mm * self.px_per_mm
+        lo, hi = self.field_mm(latch.x_centre_mm)
+        near = passes.slice(lo, hi, margin_mm=self.MARGIN_MM)
+        surf = self.surface(near, lo - 5.0, hi + 5.0)
+        truth = self.truth(surf, latch.x_centre_mm, shift_px, near)
+        counted_px = _count_diff(latch.counts_b, latch.counts_a, self.counter_bits)
+        truth["encoder_error_px"] = counted_px * self.px_per_count - shift_px
+        mine = [k for k in knots if k.board_id == latch.board_id and k.overlaps(lo - 5, hi + 5)]
+        truth["knot"] = bool(mine)
+        image_a = image_b = None
+        if self.renderer is not None:
+            dt = self.renderer.optics.dt_ab_s
+            speed = shift_mm / dt if dt > 0 else latch.v_a
+            source = _KnottedSurface(surf, mine) if mine else surf
+            pair = self.renderer.render_pair(
+                source,
+                board_x_at_centre_mm=latch.x_centre_mm,
+                speed_mm_s=speed,
+                counts_a=latch.counts_a,
+                counter_bits=self.counter_bits,
+            )
+            image_a, image_b = pair.image_a, pair.image_b
+            if mine:
+                image_a = self._darken(image_a, mine, latch.x_centre_mm)
+                image_b = self._darken(image_b, mine, latch.x_centre_mm - shift_mm)
+        return Frame(
+            seq=latch.seq,
+            t_s=latch.t_a,
+            image_a=image_a,
+            image_b=image_b,
+            counts_a=latch.counts_a,
+            counts_b=latch.counts_b,
+            speed_mm_s=latch.v_a,
+            index_latch_counts=latch.index_latch,
+            board_id=latch.board_id,
+            board_position_mm=board_length_mm - latch.x_centre_mm,
+            truth=truth,
+        )
+
+    def _darken(self, image: np.ndarray, knots: list[Knot], x_axis_mm: float) -> np.ndarray:
+        r = self.renderer
+        bx = r.x_phys_mm + x_axis_mm
+        by = r.y_phys_mm
+        f = np.ones(image.shape, dtype=np.float32)
+        for k in knots:
+            f *= k.albedo_factor(bx, by).astype(np.float32)
+        out = image.astype(np.float32) * f
+        if np.issubdtype(image.dtype, np.integer):
+            return np.clip(out + 0.5, 0, np.iinfo(image.dtype).max).astype(image.dtype)
+        return out
+
+
+def _count_diff(b: int, a: int, bits: int) -> int:
+    """``b - a`` on a wrapping ``bits``-bit counter (signed, shortest way)."""
+    m = 1 << bits
+    d = (b - a) % m
+    return d - m if d >= m // 2 else d

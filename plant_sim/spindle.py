@@ -1,0 +1,92 @@
+"""The spindle: speed with load ripple and droop, angle, knife timing, coast-down and braking.
+
+The spindle angle is kept in revolutions (``rev``). Knife ``k`` of ``Z`` is at bottom dead centre
+(BDC) when ``Z * rev`` is an integer ``n`` with ``n mod Z == k``; the index pulse is knife 0 at
+BDC. The speed is held constant over each PLC cycle (updated by :meth:`Spindle.start_cycle`), so
+the angle is linear in time within a cycle and event times are exact.
+"""
+
+from __future__ import annotations
+
+import math
+
+__all__ = ["BRAKE", "COAST", "RUN", "Spindle"]
+
+RUN, COAST, BRAKE = "run", "coast", "brake"
+
+
+class Spindle:
+    """Spindle drive and rotation.
+
+    Parameters
+    ----------
+    cfg : config.sim.SpindleConfig
+        Speed, ripple, droop and stop time constants.
+    ripple_phase_rad : float
+        Phase of the load ripple (drawn from the machine's seed).
+
+    Attributes
+    ----------
+    rev : float
+        Angle at the start of the current cycle, revolutions (unbounded).
+    rev_s : float
+        Speed over the current cycle, revolutions per second.
+    mode : str
+        ``"run"``, ``"coast"`` (drive tripped) or ``"brake"`` (e-stop).
+    """
+
+    def __init__(self, cfg, *, ripple_phase_rad: float = 0.0) -> None:
+        self.cfg = cfg
+        self.nominal_rev_s = cfg.rpm / 60.0
+        self.drive_rev_s = self.nominal_rev_s
+        self.ripple_phase = float(ripple_phase_rad)
+        self.load = 0.0
+        self.rev = 0.0
+        self.rev_s = self.nominal_rev_s
+        self.t_c = 0.0
+        self.mode = RUN
+
+    def start_cycle(self, t_s: float, dt_s: float, *, cutting: bool) -> None:
+        """Set the speed for the cycle ``[t_s, t_s + dt_s)``."""
+        cfg = self.cfg
+        self.t_c = t_s
+        if self.mode == RUN:
+            goal, tau = self.nominal_rev_s, cfg.spinup_tau_s
+        elif self.mode == COAST:
+            goal, tau = 0.0, cfg.coast_tau_s
+        else:
+            goal, tau = 0.0, cfg.brake_tau_s
+        self.drive_rev_s += (goal - self.drive_rev_s) * (1.0 - math.exp(-dt_s / tau))
+        if goal == 0.0 and self.drive_rev_s < 0.005 * self.nominal_rev_s:
+            self.drive_rev_s = 0.0
+        self.load += ((1.0 if cutting else 0.0) - self.load) * (1.0 - math.exp(-dt_s / 0.1))
+        ripple = cfg.ripple_frac * math.sin(2.0 * math.pi * cfg.ripple_hz * t_s + self.ripple_phase)
+        self.rev_s = self.drive_rev_s * (1.0 + ripple - cfg.load_droop_frac * self.load)
+
+    def end_cycle(self, dt_s: float) -> None:
+        """Advance the angle over the whole cycle."""
+        self.rev += self.rev_s * dt_s
+        self.t_c += dt_s
+
+    def rev_at(self, t_s: float) -> float:
+        """Angle at time ``t_s`` within the current cycle, revolutions."""
+        return self.rev + self.rev_s * (t_s - self.t_c)
+
+    def time_of_rev(self, rev: float) -> float:
+        """Time within the current cycle at which the angle reaches ``rev`` (speed > 0)."""
+        return self.t_c + (rev - self.rev) / self.rev_s
+
+    @property
+    def rpm(self) -> float:
+        """Speed over the current cycle, rpm."""
+        return self.rev_s * 60.0
+
+    @property
+    def running(self) -> bool:
+        """Drive on and within 10 % of the nominal speed."""
+        return self.mode == RUN and self.drive_rev_s >= 0.9 * self.nominal_rev_s
+
+    @property
+    def turning(self) -> bool:
+        """Whether the spindle turns at all."""
+        return self.rev_s > 0.0
