@@ -1,0 +1,190 @@
+"""Design checks with python-control: margins across the feed range, steps, ILC per mode."""
+
+from __future__ import annotations
+
+import math
+
+import control as ct
+import numpy as np
+import pytest
+
+from controller.design import (
+    DESIGN_FEEDS_MM_S,
+    MIN_GAIN_MARGIN_DB,
+    MIN_PHASE_MARGIN_DEG,
+    FeedPlant,
+    feed_delay_samples,
+    feed_disturbance_response,
+    feed_loop_frd,
+    feed_loop_margins,
+    feed_loop_model,
+    feed_step,
+    margins,
+    mode_eigenvalues,
+    settling_time_s,
+    uniformity_margins,
+    uniformity_mode_loop,
+)
+from controller.feed_loop import FeedLoop, FeedLoopConfig
+from controller.uniformity_loop import UniformityLoopConfig
+from tests.test_control_feed_loop import BoardPlant
+
+CFG = FeedLoopConfig()
+
+
+def closed_loop_radius(model, *, gain=1.0, extra_delay=0):
+    """Largest closed-loop pole magnitude of the feed loop (state space, exact shift registers)."""
+    p = ct.ss(model.plant * ct.tf([1.0], [1.0] + [0.0] * extra_delay, model.plant.dt))
+    c = ct.feedback(ct.ss(model.filter), ct.ss(model.model), sign=+1)
+    cl = ct.feedback(gain * c * p, 1)
+    return float(np.max(np.abs(np.linalg.eigvals(cl.A))))
+
+
+def test_delay_samples_follow_the_feed():
+    d100, m100 = feed_delay_samples(100.0, CFG)
+    d1000, m1000 = feed_delay_samples(1000.0, CFG)
+    assert d100 == 30 + 1 and m100 == 4  # 300 mm at 100 mm/s = 3 s; 40 mm window = 0.4 s
+    assert d1000 == 3 + 1 and m1000 == 1
+    with pytest.raises(ValueError, match="feed_mm_s"):
+        feed_delay_samples(0.0, CFG)
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        {},
+        {"model_delay_error_samples": -1},
+        {"model_delay_error_samples": +1},
+        {"plant": FeedPlant(drive_bandwidth_hz=10.0)},
+        {"plant": FeedPlant(drive_bandwidth_hz=2.0, drive_order=2)},
+        {"plant": FeedPlant(latency_samples=2)},
+        {"gain_scale": 1.5},
+    ],
+    ids=["nominal", "model-1", "model+1", "drive10Hz", "drive2Hz2nd", "latency2", "gain1.5"],
+)
+def test_feed_loop_margins_across_the_feed_range(case):
+    rows = feed_loop_margins(CFG, DESIGN_FEEDS_MM_S, **case)
+    assert [r.feed_mm_s for r in rows] == list(DESIGN_FEEDS_MM_S)
+    for r in rows:
+        assert r.margins.gain_margin_db >= MIN_GAIN_MARGIN_DB, r
+        assert r.margins.phase_margin_deg >= MIN_PHASE_MARGIN_DEG, r
+        assert r.margins.stability_margin >= 0.5, r
+
+
+def test_gain_schedule_keeps_the_margins_alike_across_the_feed_range():
+    rows = feed_loop_margins(CFG, DESIGN_FEEDS_MM_S)
+    gm = [r.margins.gain_margin_db for r in rows]
+    pm = [r.margins.phase_margin_deg for r in rows]
+    assert max(gm) - min(gm) < 2.0
+    assert max(pm) - min(pm) < 6.0
+    # the crossover scales with the inverse delay: the delay margin is a fixed share of it
+    ratios = [
+        r.margins.delay_margin_s
+        / ((r.delay_samples + 0.5 * (r.window_samples - 1)) * CFG.sample_time_s)
+        for r in rows
+    ]
+    assert min(ratios) > 2.0
+    assert max(ratios) / min(ratios) < 1.3
+
+
+def test_too_high_a_gain_is_fragile_to_a_delay_model_error():
+    # g = 0.64 per sample at 600 mm/s: fine with an exact internal model (the Smith-predictor
+    # structure), but one sample of delay error destroys the margins; the design gain keeps them
+    hot = FeedLoopConfig(ki=1.5)
+    (exact,) = feed_loop_margins(hot, (600.0,), gain_scale=3.0)
+    assert exact.margins.gain_margin_db >= MIN_GAIN_MARGIN_DB
+    for err in (-1, 1):
+        (row,) = feed_loop_margins(hot, (600.0,), gain_scale=3.0, model_delay_error_samples=err)
+        assert row.margins.gain_margin_db < MIN_GAIN_MARGIN_DB
+        assert row.margins.phase_margin_deg < MIN_PHASE_MARGIN_DEG
+
+
+@pytest.mark.parametrize("feed", [100.0, 300.0, 1000.0])
+def test_margins_agree_with_closed_loop_poles(feed):
+    model = feed_loop_model(CFG, feed)
+    m = margins(feed_loop_frd(model))
+    gm = 10 ** (m.gain_margin_db / 20)
+    assert closed_loop_radius(model) < 1.0
+    assert closed_loop_radius(model, gain=0.95 * gm) < 1.0
+    assert closed_loop_radius(model, gain=1.05 * gm) > 1.0
+    # phase margin as delay margin: a few samples less extra delay is fine, more is not
+    dm = m.delay_margin_s / CFG.sample_time_s
+    assert closed_loop_radius(model, extra_delay=math.floor(dm) - 1) < 1.0
+    assert closed_loop_radius(model, extra_delay=math.ceil(dm) + 1) > 1.0
+
+
+@pytest.mark.parametrize("feed", DESIGN_FEEDS_MM_S)
+def test_step_of_the_model_error_leaves_no_steady_state_error(feed):
+    model = feed_loop_model(CFG, feed)
+    assert abs(ct.dcgain(feed_disturbance_response(model))) < 1e-9  # integral action
+    t, err = feed_step(model, model_error=0.03)
+    assert abs(err[-1]) < 1e-3 * 0.03
+    assert err.min() > -0.1 * 0.03  # overshoot (past zero) bounded by 10 % of the step
+    assert err.max() <= 0.03 * (1 + 1e-9)
+    settle = settling_time_s(t, err, band=0.05 * 0.03)
+    assert settle * feed < 3500.0  # within 3.5 m of board at every feed
+
+
+def test_code_settles_like_the_design_model():
+    # the FeedLoop class against a board plant at 600 mm/s: time to 5 % of a 3 % model error
+    rpm = 6000.0
+    plant = BoardPlant(scale=1.03, feed_mm_s=600.0)
+    loop = FeedLoop(CFG)
+    loop.reset(feed_mm_s=600.0, now_s=0.0)
+    t, log = 0.0, []
+    # run at the model's feed first so the history is steady, then close the loop
+    for _ in range(15):
+        plant.step(600.0, rpm, 0.1)
+        loop.update(measured_pitch_mm=None, spindle_rpm=rpm, now_s=t)
+        t += 0.1
+    t0 = t
+    for _ in range(150):
+        feed = loop.update(measured_pitch_mm=plant.measure(), spindle_rpm=rpm, now_s=t)
+        log.append((t - t0, plant.true_pitch(rpm) / 1.5 - 1))
+        plant.step(feed, rpm, 0.1)
+        t += 0.1
+    tt, e = np.array(log).T
+    t_m, e_m = feed_step(feed_loop_model(CFG, 600.0), model_error=0.03)
+
+    def time_constant(t, err):  # log-linear fit of the decay between 1 % and 0.05 %
+        sel = (np.abs(err) < 0.01) & (np.abs(err) > 0.0005) & (t > 0)
+        slope = np.polyfit(t[sel], np.log(np.abs(err[sel])), 1)[0]
+        return -1.0 / slope
+
+    tau_code, tau_model = time_constant(tt, e), time_constant(t_m, e_m)
+    assert tau_model == pytest.approx(CFG.sample_time_s / 0.0714, rel=0.1)  # ~1 / g samples
+    assert tau_code == pytest.approx(tau_model, rel=0.15)
+
+
+# -- uniformity loop ---------------------------------------------------------------------------
+def test_mode_eigenvalues():
+    for z in (2, 3, 4, 8):
+        lam = np.sort(mode_eigenvalues(z))
+        assert np.allclose(lam, np.sort(-4 * np.sin(np.pi * np.arange(z) / z) ** 2))
+
+
+@pytest.mark.parametrize("alpha", [0.5, 1.0])
+@pytest.mark.parametrize("delay", [1, 2])
+def test_uniformity_margins(alpha, delay):
+    cfg = UniformityLoopConfig()
+    (row,) = uniformity_margins(cfg, mode_gains=(alpha,), delays=(delay,))
+    assert row.margins.gain_margin_db >= MIN_GAIN_MARGIN_DB
+    assert row.margins.phase_margin_deg >= MIN_PHASE_MARGIN_DEG
+    assert row.contraction < 1.0
+    if delay == 1:  # L = g a / (z - 1): GM = 2 / (g a), error factor |1 - g a|
+        assert row.margins.gain_margin_db == pytest.approx(20 * math.log10(2 / (cfg.gain * alpha)))
+        assert row.contraction == pytest.approx(abs(1 - cfg.gain * alpha))
+
+
+@pytest.mark.parametrize(("ga", "stable"), [(0.1, True), (1.0, True), (1.95, True), (2.05, False)])
+def test_learning_converges_iff_gain_times_mode_gain_below_two(ga, stable):
+    loop = uniformity_mode_loop(ga)
+    poles = ct.poles(ct.feedback(loop, 1))
+    assert (np.max(np.abs(poles)) < 1.0) == stable
+
+
+def test_mode_loop_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="gain"):
+        uniformity_mode_loop(0.0)
+    with pytest.raises(ValueError, match="delay_iterations"):
+        uniformity_mode_loop(0.4, delay_iterations=0)
