@@ -1,16 +1,83 @@
-"""``planer report``: not built yet."""
+"""``planer report``: summarise a quality log, draw its figures, optionally export CSV.
+
+``planer report LOG [--out DIR] [--csv FILE] [--json]``. The log may be growing (the service
+appending) while this reads it: the report shows the records committed when it started.
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import tempfile
+from pathlib import Path
 
-HELP = "report (not built yet)"
+HELP = "summarise a quality log: text or JSON summary, PNG figures, CSV export"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""
+    parser.add_argument("log", metavar="LOG",
+                        help="quality log file (SQLite) written by the service")
+    parser.add_argument("--out", metavar="DIR", default=None,
+                        help="folder for the PNG figures (default: the log's folder)")
+    parser.add_argument("--csv", metavar="FILE", default=None,
+                        help="also export every record to this CSV file")
+    parser.add_argument("--json", action="store_true",
+                        help="print the summary as one JSON object instead of text")
+
+
+def _save(fig: object, path: Path) -> None:
+    """Write a figure atomically (a viewer never sees a half-written PNG)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fig.savefig(fh, format="png")  # type: ignore[attr-defined]
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    raise NotImplementedError("planer report is not built yet")
+    from controller.quality_log import QualityLog
+    from controller.report import build_figures, format_summary, summarise
+
+    log_path = Path(args.log)
+    with QualityLog(log_path, create=False) as log:
+        records = log.records()
+        quality_class = log.quality_class()
+        csv_path, n_csv = None, 0
+        if args.csv is not None:
+            csv_path = Path(args.csv)
+            n_csv = log.export_csv(csv_path)
+
+    out_dir = Path(args.out) if args.out is not None else log_path.absolute().parent
+    if out_dir.exists() and not out_dir.is_dir():
+        raise NotADirectoryError(f"--out is not a folder: {out_dir}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    summary = summarise(records, quality_class=quality_class)
+    written: dict[str, str] = {}
+    for name, fig in build_figures(records, quality_class=quality_class).items():
+        path = out_dir / f"{log_path.stem}_{name}.png"
+        _save(fig, path)
+        written[name] = str(path)
+
+    if args.json:
+        summary = {"log": str(log_path), **summary, "figures": written,
+                   "csv": None if csv_path is None else str(csv_path)}
+        print(json.dumps(summary, allow_nan=False))
+    else:
+        print(format_summary(summary, title=f"Quality log {log_path}"))
+        if written:
+            print("\nFigures:")
+            for path in written.values():
+                print(f"  {path}")
+        if csv_path is not None:
+            print(f"CSV: {csv_path} ({n_csv} rows)")
+    return 0
