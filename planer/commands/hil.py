@@ -1,16 +1,177 @@
-"""``planer hil``: not built yet."""
+"""``planer hil``: the service closed around the simulated planer, with a summary at the end.
+
+By default the simulator runs as a separate ``planer sim`` process: ``planer hil`` re-executes
+itself inside a private network namespace (``unshare -rn``) so that CAN can go over python-can's
+``udp_multicast`` on the namespace's loopback, and Modbus over 127.0.0.1. Where that is not
+possible (no unprivileged namespaces, no ``msgpack``), or with ``--in-process``, the simulator
+and the service run in one process on simulated time with the virtual CAN bus; the reason is
+printed. Progress goes to stderr; the summary (or with ``--json`` one JSON object) to stdout.
+Exit code 0 when every check of the summary's ``done`` table passed, 1 otherwise.
+"""
 
 from __future__ import annotations
 
 import argparse
 
-HELP = "hil (not built yet)"
+HELP = "hardware-in-the-loop run: simulator + service, scenario, summary and quality log"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""
+    parser.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    parser.add_argument(
+        "--scenario",
+        default="default",
+        help="scenario name in config/hil.toml (default, modbus_restart, can_silence, faults) "
+        "or FILE.toml[:NAME]",
+    )
+    parser.add_argument(
+        "--distance-m", type=float, default=None, metavar="D", help="metres of board to run"
+    )
+    parser.add_argument(
+        "--log", default=None, metavar="PATH", help="quality log (default runs/hil-<time>.sqlite)"
+    )
+    parser.add_argument("--seed", type=int, default=None, help="simulator seed")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument(
+        "--in-process",
+        action="store_true",
+        help="run the simulator in this process on simulated time (virtual CAN)",
+    )
+    mode.add_argument(
+        "--cross-process",
+        action="store_true",
+        help="require the separate simulator process (error if not possible here)",
+    )
+    parser.add_argument(
+        "--plc",
+        choices=("tcp", "direct"),
+        default="tcp",
+        help="in-process: reach the PLC over the real Modbus server on 127.0.0.1 (tcp, default) "
+        "or directly (direct)",
+    )
+
+
+def _human(summary: dict) -> str:
+    init, fin, conv = summary["initial"], summary["final"], summary["converged"]
+    lines = [
+        f"planer hil: scenario {summary.get('scenario')} ({summary.get('mode')}), "
+        f"{summary['counts']['measurements']} measurements "
+        f"({summary['counts']['failed']} failed)",
+        f"  target pitch      {summary['target_pitch_mm']:.3f} mm",
+    ]
+
+    def f(v: object, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
+
+    lines.append(
+        f"  true uniformity   {f(init.get('uniformity_cv'), '.3f')} -> "
+        f"{f(fin.get('uniformity_cv'), '.3f')} (CV of the mark widths)"
+    )
+    p0, p1 = f(init.get("pitch_mm"), ".3f"), f(fin.get("pitch_mm"), ".3f")
+    lines.append(f"  true pitch        {p0} -> {p1} mm")
+    lines.append(
+        f"  settled after     uniformity {f(conv.get('uniformity_settled_after_mm'), '.0f')} mm, "
+        f"pitch {f(conv.get('pitch_settled_after_mm'), '.0f')} mm of board after "
+        f"{conv.get('reference', 'loop closed')}"
+    )
+    lim = summary["limits"]
+    rng = lim.get("feed_setpoint_range_mm_s") or [float("nan")] * 2
+    lines.append(
+        f"  setpoints         feed {rng[0]:.1f}..{rng[1]:.1f} mm/s within "
+        f"[{lim['feed_min_mm_s']:g}, {lim['feed_max_mm_s']:g}], offsets |max| "
+        f"{lim['max_abs_offset_um']:.2f} um within {lim['stroke_um']:g}"
+    )
+    lat = summary.get("latency_ms")
+    if lat:
+        lines.append(
+            f"  latency           median {lat['median']:.2f} ms, p99 {lat['p99']:.2f} ms "
+            "(frame to setpoints)"
+        )
+    for fault in summary.get("faults", []):
+        if "safe_after_s" in fault:
+            lines.append(
+                f"  fault {fault['kind']} at {fault['at_s']:g} s: safe after "
+                f"{f(fault['safe_after_s'], '.2f')} s, recovered "
+                f"{f(fault['recovered_after_end_s'], '.2f')} s after it ended, "
+                f"{fault['resumed_measurements']} measurements applied after -> "
+                f"{'ok' if fault['handled'] else 'NOT HANDLED'}"
+            )
+    for key, ok in summary["done"].items():
+        lines.append(f"  [{'x' if ok else ' '}] {key}")
+    lines.append(f"  quality log       {summary['quality_log']['path']} "
+                 f"({summary['quality_log']['records']} records)")
+    lines.append("PASSED" if summary["passed"] else "NOT PASSED")
+    return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    raise NotImplementedError("planer hil is not built yet")
+    import asyncio
+    import json
+    import logging
+    import math
+    import os
+    import sys
+    import time
+    from dataclasses import replace
+    from pathlib import Path
+
+    from controller import hil
+    from planer.errors import FieldbusError
+    from planer.protocol import can_transport
+
+    scenario = hil.load_scenario(args.scenario)
+    if args.distance_m is not None:
+        if not (math.isfinite(args.distance_m) and args.distance_m > 0):
+            raise ValueError(f"--distance-m must be a number > 0, got {args.distance_m}")
+        scenario = replace(scenario, distance_m=float(args.distance_m))
+    if args.seed is not None:
+        if args.seed < 0:
+            raise ValueError(f"--seed must be >= 0, got {args.seed}")
+        scenario = replace(scenario, seed=int(args.seed))
+    log_path = Path(args.log) if args.log else Path("runs") / time.strftime(
+        "hil-%Y%m%d-%H%M%S.sqlite"
+    )
+    if args.log is None and "PLANER_HIL_LOG" in os.environ:
+        log_path = Path(os.environ["PLANER_HIL_LOG"])
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+    def progress(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    cross = False
+    if not args.in_process:
+        ok, why = hil.cross_process_possible()
+        if ok:
+            if not can_transport.in_private_netns():
+                # the same command again, inside a private network namespace (never returns);
+                # the log path is fixed now so both sides agree on it
+                os.environ["PLANER_HIL_LOG"] = str(log_path)
+                progress("planer hil: entering a private network namespace (unshare -rn)")
+                can_transport.reexec_in_private_netns(
+                    [sys.executable, "-m", "planer.cli", *sys.argv[1:]]
+                )
+            cross = True
+        elif args.cross_process:
+            raise FieldbusError(f"cannot run the simulator as a separate process: {why}")
+        else:
+            progress(
+                f"planer hil: {why}; falling back to the in-process simulator "
+                "(simulated time, virtual CAN)"
+            )
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    if cross:
+        summary = asyncio.run(hil.run_cross_process(scenario, log_path=log_path,
+                                                    progress=progress))
+    else:
+        runner = hil.InProcessHil(
+            scenario, log_path=log_path, plc_transport=args.plc, progress=progress
+        )
+        summary = asyncio.run(runner.run())
+    if args.json:
+        print(json.dumps(summary), flush=True)
+    else:
+        print(_human(summary), flush=True)
+    return 0 if summary["passed"] else 1

@@ -1,0 +1,271 @@
+"""The service's CAN client of the piezo amplifier: python-can bus + the DBC codec.
+
+The service owns one :class:`PiezoClient`. Every control cycle it calls :meth:`PiezoClient.tick`
+with its heartbeat: ``PIEZO_COMMAND`` (enable, knives, alive counter) goes out every
+``command_period_s``; ``PIEZO_OFFSETS_*`` go out when the offsets change and at least every
+``offsets_period_s``. :meth:`PiezoClient.poll` drains received frames without blocking and keeps
+the last ``PIEZO_STATUS`` / ``AMP_HEARTBEAT`` and the time the amplifier was last heard; when it
+falls silent, :meth:`PiezoClient.silent_for` grows and the supervisor declares CAN gone.
+
+The bus is any ``can.BusABC``: from the configuration through
+:func:`open_bus` (``planer/protocol/can_transport.py`` when present, else ``can.Bus``), or a
+``virtual`` bus in tests. Time is passed in (``now_s``); nothing here reads a clock.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from planer.checks import check_finite, check_int, check_positive
+from planer.errors import FieldbusError
+from planer.protocol.piezo_can import (
+    FAULT_SETPOINT_TIMEOUT,
+    HEARTBEAT,
+    OFFSETS,
+    STATUS,
+    PiezoCodec,
+)
+
+
+@dataclass(frozen=True)
+class AmpStatus:
+    """The amplifier's last ``PIEZO_STATUS``.
+
+    Attributes
+    ----------
+    displacement_um, temperature_c : float
+        Actual displacement and temperature.
+    fault : int
+        Fault bits (over-temperature, stroke limit, setpoint timeout, overcurrent).
+    state : int
+        0 disabled, 1 enabled, 2 ramping to zero, 3 fault.
+    alive_counter : int
+        The amplifier's own counter.
+    t_s : float
+        Time received, seconds.
+    """
+
+    displacement_um: float
+    temperature_c: float
+    fault: int
+    state: int
+    alive_counter: int
+    t_s: float
+
+    @property
+    def setpoint_timeout(self) -> bool:
+        """Whether the amplifier reports a setpoint timeout (it ramps to zero)."""
+        return bool(self.fault & FAULT_SETPOINT_TIMEOUT)
+
+
+def open_bus(interface: str, channel: str, options: dict[str, Any] | None = None) -> Any:
+    """Open a python-can bus from configuration values.
+
+    Uses ``planer.protocol.can_transport.open_bus`` when that module provides it (it knows the
+    project's transports: udp_multicast in a private network namespace, remote, socketcan),
+    else ``can.Bus(interface=..., channel=..., **options)``.
+
+    Raises
+    ------
+    FieldbusError
+        The bus cannot be opened.
+    """
+    opts = dict(options or {})
+    try:
+        from planer.protocol import can_transport  # type: ignore[attr-defined]
+
+        opener = getattr(can_transport, "open_bus", None)
+    except ImportError:
+        opener = None
+    try:
+        if opener is not None:
+            return opener(interface=interface, channel=channel, **opts)
+        import can
+
+        return can.Bus(interface=interface, channel=channel, **opts)
+    except FieldbusError:
+        raise
+    except Exception as exc:  # python-can raises CanError, OSError, ValueError ...
+        raise FieldbusError(f"cannot open CAN bus {interface}:{channel}: {exc}") from None
+
+
+class PiezoClient:
+    """Offsets and enable to the amplifier; its status and heartbeat back.
+
+    Parameters
+    ----------
+    bus : can.BusABC
+        An open python-can bus (the client owns it; :meth:`close` shuts it down).
+    codec : PiezoCodec
+        The DBC codec (``PiezoCodec.load()``).
+    knives : int
+        Number of knives Z (1..8).
+    command_period_s : float
+        Period of ``PIEZO_COMMAND``, s.
+    offsets_period_s : float
+        Longest interval between two ``PIEZO_OFFSETS`` transmissions, s.
+    stroke_um : float
+        Offsets are clamped to ``[-stroke_um, +stroke_um]`` before they are sent.
+    """
+
+    def __init__(
+        self,
+        bus: Any,
+        codec: PiezoCodec,
+        *,
+        knives: int,
+        command_period_s: float = 0.02,
+        offsets_period_s: float = 0.2,
+        stroke_um: float = 20.0,
+    ) -> None:
+        self.bus = bus
+        self.codec = codec
+        self.knives = check_int("knives", knives, lo=1, hi=8)
+        self.command_period_s = check_positive("command_period_s", command_period_s)
+        self.offsets_period_s = check_positive("offsets_period_s", offsets_period_s)
+        lo, hi = codec.signal_range(OFFSETS[0], "offset_knife_0")
+        self.stroke_um = min(check_positive("stroke_um", stroke_um), -lo, hi)
+        self.enable = False
+        self.offsets_um: tuple[float, ...] = (0.0,) * self.knives
+        self._sent_offsets: tuple[float, ...] | None = None
+        self._last_command_s = float("-inf")
+        self._last_offsets_s = float("-inf")
+        self.last_heard_s: float | None = None
+        self.status: AmpStatus | None = None
+        self.nmt_state: int | None = None
+        self.sent = 0
+        self.received = 0
+        self.send_errors = 0
+
+    # ------------------------------------------------------------------ setpoints
+    def set_knives(self, knives: int) -> None:
+        """Change the number of knives (offsets reset to zero)."""
+        k = check_int("knives", knives, lo=1, hi=8)
+        if k != self.knives:
+            self.knives = k
+            self.offsets_um = (0.0,) * k
+            self._sent_offsets = None
+
+    def clamp(self, offsets_um: Sequence[float]) -> tuple[float, ...]:
+        """Offsets limited to the stroke, rounded to the bus resolution (0.001 um)."""
+        vals = [check_finite(f"offsets_um[{k}]", v) for k, v in enumerate(offsets_um)]
+        if len(vals) != self.knives:
+            raise ValueError(f"offsets_um must have {self.knives} values, got {len(vals)}")
+        s = self.stroke_um
+        return tuple(round(min(max(v, -s), s), 3) for v in vals)
+
+    def set_offsets(self, offsets_um: Sequence[float], *, now_s: float) -> tuple[float, ...]:
+        """Set the per-knife offsets; sent at once when they changed.
+
+        Returns
+        -------
+        tuple of float
+            The offsets as sent (clamped to the stroke, 0.001 um resolution).
+        """
+        self.offsets_um = self.clamp(offsets_um)
+        if self.offsets_um != self._sent_offsets:
+            self._send_offsets(now_s)
+        return self.offsets_um
+
+    def set_enable(self, enable: bool, *, now_s: float) -> None:
+        """Enable or disable the amplifier; a change goes out with the next :meth:`tick`."""
+        en = bool(enable)
+        if en != self.enable:
+            self.enable = en
+            self._last_command_s = float("-inf")
+
+    # ------------------------------------------------------------------ wire
+    def _send(self, frame: tuple[int, bytes]) -> None:
+        import can
+
+        arb, data = frame
+        msg = can.Message(arbitration_id=arb, data=data, is_extended_id=False)
+        try:
+            self.bus.send(msg)
+        except (can.CanError, OSError) as exc:
+            self.send_errors += 1
+            raise FieldbusError(f"CAN send of 0x{arb:X} failed: {exc}") from None
+        self.sent += 1
+
+    def _send_offsets(self, now_s: float) -> None:
+        for frame in self.codec.encode_offsets(self.offsets_um):
+            self._send(frame)
+        self._sent_offsets = self.offsets_um
+        self._last_offsets_s = now_s
+
+    def send_command(self, *, alive_counter: int, now_s: float) -> None:
+        """Send ``PIEZO_COMMAND`` now (enable, knives, alive counter mod 256)."""
+        self._send(
+            self.codec.encode_command(
+                enable=self.enable, knives=self.knives, alive_counter=int(alive_counter) & 0xFF
+            )
+        )
+        self._last_command_s = now_s
+
+    def tick(self, *, alive_counter: int, now_s: float) -> None:
+        """Cyclic transmissions due at ``now_s``: the command, and the offsets if stale.
+
+        Raises
+        ------
+        FieldbusError
+            The bus refused a frame.
+        """
+        t = check_finite("now_s", now_s)
+        if t - self._last_command_s >= self.command_period_s * 0.999:
+            self.send_command(alive_counter=alive_counter, now_s=t)
+        if (
+            self._sent_offsets != self.offsets_um
+            or t - self._last_offsets_s >= self.offsets_period_s
+        ):
+            self._send_offsets(t)
+
+    def poll(self, *, now_s: float, max_frames: int = 1000) -> int:
+        """Drain received frames without blocking; return how many were from the amplifier."""
+        heard = 0
+        for _ in range(max_frames):
+            try:
+                msg = self.bus.recv(timeout=0.0)
+            except Exception as exc:  # python-can CanError / OSError on a broken bus
+                raise FieldbusError(f"CAN receive failed: {exc}") from None
+            if msg is None:
+                break
+            heard += self.handle(msg.arbitration_id, bytes(msg.data), now_s=now_s)
+        return heard
+
+    def handle(self, arbitration_id: int, data: bytes, *, now_s: float) -> int:
+        """Process one received frame (pure); 1 if it came from the amplifier, else 0."""
+        try:
+            name, sig = self.codec.decode(arbitration_id, data)
+        except ValueError:
+            return 0  # foreign or malformed frame: ignore
+        if name == STATUS:
+            self.status = AmpStatus(
+                displacement_um=float(sig["displacement_um"]),
+                temperature_c=float(sig["temperature_c"]),
+                fault=int(sig["fault"]),
+                state=int(sig["state"]),
+                alive_counter=int(sig["alive_counter"]),
+                t_s=now_s,
+            )
+        elif name == HEARTBEAT:
+            self.nmt_state = int(sig["nmt_state"])
+        else:
+            return 0  # our own frames echoed by some transports
+        self.received += 1
+        self.last_heard_s = now_s if self.last_heard_s is None else max(self.last_heard_s, now_s)
+        return 1
+
+    def silent_for(self, now_s: float) -> float:
+        """Seconds since the amplifier was last heard (infinite if never)."""
+        if self.last_heard_s is None:
+            return float("inf")
+        return now_s - self.last_heard_s
+
+    def close(self) -> None:
+        """Shut the bus down."""
+        try:
+            self.bus.shutdown()
+        except Exception:  # noqa: BLE001 - closing a broken bus must not raise
+            pass

@@ -1,0 +1,93 @@
+"""config/machine.toml: the shipped file loads; bad values raise ConfigError naming the key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from config.loading import load_toml
+from config.machine import load_machine, machine_from_dict
+from planer.errors import ConfigError
+
+SHIPPED = Path(__file__).parents[1] / "config" / "machine.toml"
+
+
+def test_shipped_file_loads_and_is_frozen():
+    cfg = load_machine(SHIPPED)
+    assert cfg.plc.host == "127.0.0.1"
+    assert cfg.safety.safe_state in ("hold", "ramp_down")
+    assert cfg.frames.source in ("spool", "inprocess")
+    assert cfg.quality.target_pitch_mm > 0
+    with pytest.raises(AttributeError):
+        cfg.plc.port = 1  # type: ignore[misc]
+    with pytest.raises(TypeError):
+        cfg.feed_loop["x"] = 1  # type: ignore[index]
+
+
+def test_empty_document_gives_defaults():
+    cfg = machine_from_dict({})
+    assert cfg.plc.port == 5020 and cfg.can.interface == "virtual"
+    assert cfg.log.path == Path("runs/quality.sqlite")
+
+
+@pytest.mark.parametrize(
+    "doc,key",
+    [
+        ({"plc": {"port": 0}}, "plc.port"),
+        ({"plc": {"port": "502"}}, "plc.port"),
+        ({"plc": {"timeout_s": 0}}, "plc.timeout_s"),
+        ({"plc": {"hots": "x"}}, "plc.hots"),
+        ({"plc": {"backoff_initial_s": 3.0, "backoff_max_s": 1.0}}, "plc.backoff_max_s"),
+        ({"can": {"interface": "pcan"}}, "can.interface"),
+        ({"can": {"command_period_s": 0.5}}, "can.command_period_s"),
+        ({"frames": {"source": "camera"}}, "frames.source"),
+        ({"quality": {"target_pitch_mm": -1.5}}, "quality.target_pitch_mm"),
+        ({"quality": {"tolerance": 0}}, "quality.tolerance"),
+        ({"piezo": {"stroke_um": 40.0}}, "piezo.stroke_um"),
+        ({"safety": {"safe_state": "stop"}}, "safety.safe_state"),
+        ({"safety": {"plc_timeout_s": 0.01}}, "safety.plc_timeout_s"),
+        ({"safety": {"ramp_mm_s2": 0.0}}, "safety.ramp_mm_s2"),
+        ({"plausibility": {"min_marks": 1}}, "plausibility.min_marks"),
+        ({"feed_loop": {"kp": {"a": 1}}}, "feed_loop.kp"),
+        ({"log": {"print_every": 0}}, "log.print_every"),
+        ({"colour": "red"}, "colour"),
+    ],
+)
+def test_bad_values_name_the_key(doc, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        machine_from_dict(doc)
+
+
+def test_file_errors_name_the_file(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_text("[safety]\nsafe_state = 'stop'\n")
+    with pytest.raises(ConfigError, match=r"m\.toml.*safety\.safe_state"):
+        load_machine(p)
+    with pytest.raises(ConfigError, match="not found"):
+        load_machine(tmp_path / "missing.toml")
+
+
+def test_machine_variant_is_a_config_change():
+    doc = load_toml(SHIPPED)
+    doc["can"].update(interface="socketcan", channel="can0")
+    doc["plc"].update(host="192.168.0.10", port=502)
+    cfg = machine_from_dict(doc)
+    got = (cfg.can.interface, cfg.can.channel, cfg.plc.host)
+    assert got == ("socketcan", "can0", "192.168.0.10")
+
+
+@pytest.mark.parametrize(
+    "table,key",
+    [({"feed_loop": {"kii": 0.5}}, "feed_loop.kii"), ({"uniformity_loop": {"gain": 5.0}},
+                                                      "uniformity_loop.gain")],
+)
+def test_bad_loop_keys_fail_when_the_service_is_built(table, key):
+    from types import SimpleNamespace
+
+    from controller.service import Service
+
+    cfg = machine_from_dict(table)
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        Service(cfg, plc=None, piezo=None, measurer_factory=lambda s: None,
+                rig=SimpleNamespace(), log=None)
