@@ -1,1 +1,1 @@
-"""Controller: the outer loop (feed rate and per-knife piezo offsets), its I/O adapters and the service."""
+"""Controller: the outer loop (feed rate, per-knife piezo offsets), its bus adapters, the service."""

@@ -1,1 +1,1 @@
-"""plant_sim: the smart planing machine in software (kinematics, optics, PLC and piezo amplifier)."""
+"""plant_sim: the smart planer in software (kinematics, optics, PLC and piezo amplifier)."""

@@ -1,1 +1,4 @@
-"""Benchmarks behind ``planer bench``: one module per part (vision, sim, service), each with ``run(quick)``."""
+"""Benchmarks behind ``planer bench``: one module per part (vision, sim, service).
+
+Each module exposes ``run(quick)``.
+"""
