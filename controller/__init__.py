@@ -1,1 +1,1 @@
-"""Controller: the outer loop (feed rate, per-knife piezo offsets), its bus adapters, the service."""
+"""Controller: the outer loop (feed, per-knife piezo offsets), bus adapters, the service."""
