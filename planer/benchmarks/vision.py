@@ -1,0 +1,153 @@
+"""Vision throughput for ``planer bench``: whole pair measurements per second on one core.
+
+For each image size a synthetic pair is made once (a planed board of 1.5 mm marks with a fibre
+texture, lit from either side, shifted between the shots and distorted by a ``k1 = -0.12`` lens
+whose field matches the default rig's 52 mm).  The timed work is everything
+:meth:`vision.pipeline.Measurer.measure` does: undistort, register (texture and shading), average,
+slope, deblur, integrate, cuttermark metrics.  The reference rate is plainly copying the same
+two images (``ndarray.copy``), measured in the same run.
+
+One core: OpenCV is set to one thread for the run.  numpy/scipy use no BLAS threads on this path
+(every array product in it is tiny); run with ``OPENBLAS_NUM_THREADS=1`` to be certain.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+SIZES = ((659, 493), (1920, 1200))
+
+
+def synthetic_pair(
+    width: int, height: int, *, seed: int = 0, shift_px: float = 18.0
+) -> tuple[Any, np.ndarray, np.ndarray, int, int]:
+    """A rig and a synthetic 8-bit image pair of a planed board (for timing, not accuracy).
+
+    Parameters
+    ----------
+    width, height : int
+        Image size, pixels.
+    seed : int, optional
+        Texture seed.
+    shift_px : float, optional
+        Board motion between the shots, undistorted pixels (an integer number of counts).
+
+    Returns
+    -------
+    rig, image_a, image_b, counts_a, counts_b
+    """
+    from config.rig import Camera, Encoder, Lights, Rig
+
+    field_mm = 52.7
+    px_per_mm = width / field_mm
+    f = 1400.0 * width / 659.0
+    cam = Camera(fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2,
+                 dist=(-0.12, 0.0, 0.0, 0.0, 0.0), px_per_mm=px_per_mm, exposure_ms=0.05)
+    counts_per_px = 2
+    rig = Rig(camera=cam, lights=Lights(slant_deg=82.0),
+              encoder=Encoder(px_per_count=1.0 / counts_per_px))
+    rng = np.random.default_rng(seed)
+    # Board on a grid of undistorted pixels, wide enough for both shots.
+    pad = int(math.ceil(shift_px)) + 8
+    n = width + 2 * pad
+    x_mm = (np.arange(n) - pad) / px_per_mm
+    pitch, radius = 1.5, 60.0
+    local = (x_mm % pitch) - pitch / 2
+    slope = local / radius
+    fibre = rng.standard_normal((height, n)).astype(np.float32)
+    k = max(3, int(0.6 * px_per_mm)) | 1
+    import cv2
+
+    fibre = cv2.GaussianBlur(fibre, (k, 1), 0)
+    albedo = 0.55 * (1.0 + 0.05 * fibre / fibre.std())
+    s, c = math.sin(math.radians(82.0)), math.cos(math.radians(82.0))
+
+    def shot(offset_px: float, sign: float) -> np.ndarray:
+        # distorted pixel -> undistorted position (two fixed-point steps of the k1 model)
+        yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+        xd = (xx - cam.cx) / cam.fx
+        yd = (yy - cam.cy) / cam.fy
+        xu, yu = xd, yd
+        for _ in range(3):
+            r2 = xu * xu + yu * yu
+            xu = xd / (1 - 0.12 * r2)
+            yu = yd / (1 - 0.12 * r2)
+        map_x = (xu * cam.fx + cam.cx + pad - offset_px).astype(np.float32)
+        map_y = (yu * cam.fy + cam.cy).astype(np.float32)
+        shade = (c + sign * slope * s) / np.sqrt(1 + slope * slope)
+        radiance = (albedo * shade[None, :] / c * 0.45 * 255).astype(np.float32)
+        img = cv2.remap(radiance, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        img += rng.normal(0.0, 0.7, img.shape).astype(np.float32)
+        return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+    image_a = shot(0.0, -1.0)
+    image_b = shot(shift_px, +1.0)
+    counts_a = (1 << 32) - 10  # the counter wraps between the shots
+    counts_b = (counts_a + int(round(shift_px * counts_per_px))) % (1 << 32)
+    return rig, image_a, image_b, counts_a, counts_b
+
+
+def _rate(fn: Any, min_time_s: float, min_calls: int) -> float:
+    """Calls per second of ``fn`` over at least ``min_time_s`` and ``min_calls``."""
+    fn()
+    calls = 0
+    start = time.perf_counter()
+    while True:
+        fn()
+        calls += 1
+        elapsed = time.perf_counter() - start
+        if calls >= min_calls and elapsed >= min_time_s:
+            return calls / elapsed
+
+
+def run(quick: bool) -> list[dict[str, Any]]:
+    """Measure the vision throughput at 659x493 and 1920x1200.
+
+    Parameters
+    ----------
+    quick : bool
+        Short timing runs (about 0.3 s per figure instead of 2 s).
+
+    Returns
+    -------
+    list of dict
+        ``{width, height, pairs_per_s, copy_pairs_per_s}`` per image size.
+    """
+    import cv2
+
+    from vision.pipeline import Measurer
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    min_time = 0.3 if quick else 2.0
+    out = []
+    try:
+        for width, height in SIZES:
+            rig, a, b, ca, cb = synthetic_pair(width, height)
+            measurer = Measurer(rig, a.shape)
+
+            def measure(m: Measurer = measurer, a: np.ndarray = a, b: np.ndarray = b,
+                        ca: int = ca, cb: int = cb) -> None:
+                m.measure(a, b, counts_a=ca, counts_b=cb, speed_mm_s=500.0)
+
+            def copy(a: np.ndarray = a, b: np.ndarray = b) -> None:
+                a.copy()
+                b.copy()
+
+            pairs = _rate(measure, min_time, 20)
+            copies = _rate(copy, min_time, 20)
+            out.append(
+                {
+                    "width": width,
+                    "height": height,
+                    "pairs_per_s": round(pairs, 1),
+                    "copy_pairs_per_s": round(copies, 1),
+                }
+            )
+    finally:
+        cv2.setNumThreads(threads)
+    return out

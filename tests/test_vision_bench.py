@@ -1,0 +1,26 @@
+"""The vision benchmark's synthetic pair and result format (no timing assertions)."""
+
+from __future__ import annotations
+
+import pytest
+
+from planer.benchmarks import vision as bench
+from vision.pipeline import Measurer
+
+
+def test_synthetic_pair_is_measurable_and_wraps_the_counter():
+    rig, a, b, ca, cb = bench.synthetic_pair(659, 493, shift_px=18.0)
+    assert a.shape == b.shape == (493, 659) and a.dtype.name == "uint8"
+    assert cb < ca  # the 32-bit counter wrapped between the shots
+    result = Measurer(rig, a.shape).measure(a, b, counts_a=ca, counts_b=cb, speed_mm_s=500.0)
+    assert result.shift_px == pytest.approx(18.0, abs=0.3)
+    assert result.pitch_mm == pytest.approx(1.5, rel=0.01)
+    assert result.depth_um == pytest.approx(1.5**2 / (8 * 60.0) * 1000.0, rel=0.1)
+
+
+def test_run_reports_every_size(monkeypatch):
+    monkeypatch.setattr(bench, "SIZES", ((400, 300),))
+    monkeypatch.setattr(bench, "_rate", lambda fn, t, n: (fn(), 123.0)[1])
+    out = bench.run(quick=True)
+    assert out == [{"width": 400, "height": 300, "pairs_per_s": 123.0,
+                    "copy_pairs_per_s": 123.0}]

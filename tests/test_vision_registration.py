@@ -1,0 +1,189 @@
+"""Registration: encoder shift across counter wrap (seed Eq. 5-6) and refinement from the images."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from planer.errors import RegistrationError
+from vision.registration import (
+    Registrar,
+    encoder_shift_px,
+    refine_shift,
+    shading_free_texture,
+    shading_shift,
+)
+
+# -- encoder shift ---------------------------------------------------------------------------
+
+WRAP_TABLE = [
+    # counts_a, counts_b, bits, difference in counts
+    (100, 130, 32, 30),
+    (130, 100, 32, -30),
+    (2**32 - 10, 20, 32, 30),  # forward across the 32-bit wrap
+    (20, 2**32 - 10, 32, -30),  # backward across it
+    (65530, 4, 16, 10),  # forward across the 16-bit wrap
+    (4, 65530, 16, -10),
+    (65535, 0, 16, 1),
+    (-5, 25, 32, 30),  # two's-complement (signed register) reading
+    (-3, 2**32 - 1, 32, 2),
+    (0, 2**31 - 1, 32, 2**31 - 1),  # largest forward difference
+    (0, 2**31, 32, -(2**31)),  # half a turn reads as backward
+    (123, 123, 16, 0),
+]
+
+
+@pytest.mark.parametrize("a, b, bits, diff", WRAP_TABLE)
+def test_encoder_shift_is_signed_modular_difference(a, b, bits, diff):
+    assert encoder_shift_px(a, b, px_per_count=0.625, counter_bits=bits) == pytest.approx(
+        0.625 * diff
+    )
+
+
+def test_encoder_shift_scales_with_px_per_count():
+    # seed Eq. 6: d = SR x displacement; 0.2425 px/count is the seed's rig
+    assert encoder_shift_px(1000, 1100, px_per_count=0.2425) == pytest.approx(24.25)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"counts_a": 0, "counts_b": 1, "px_per_count": 0.5, "counter_bits": 24}, "counter_bits"),
+        ({"counts_a": 2**16, "counts_b": 1, "px_per_count": 0.5, "counter_bits": 16}, "counts_a"),
+        ({"counts_a": 0, "counts_b": 2**32, "px_per_count": 0.5}, "counts_b"),
+        ({"counts_a": 0, "counts_b": -(2**31) - 1, "px_per_count": 0.5}, "counts_b"),
+        ({"counts_a": 1.5, "counts_b": 1, "px_per_count": 0.5}, "counts_a"),
+        ({"counts_a": 0, "counts_b": 1, "px_per_count": 0.0}, "px_per_count"),
+        ({"counts_a": 0, "counts_b": 1, "px_per_count": float("nan")}, "px_per_count"),
+    ],
+)
+def test_encoder_shift_rejects_bad_input(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        encoder_shift_px(**kwargs)
+
+
+# -- refinement from the images ----------------------------------------------------------------
+
+SLANT = math.radians(82.0)
+
+
+def _board(seed: int, rows: int, n: int, *, texture: float = 0.05) -> tuple[np.ndarray, ...]:
+    """Periodic board fields on n columns: albedo (rows, n) and a band-limited mark slope (n,)."""
+    rng = np.random.default_rng(seed)
+    kx = np.fft.rfftfreq(n)
+    spec = rng.standard_normal((rows, kx.size)) + 1j * rng.standard_normal((rows, kx.size))
+    spec *= np.exp(-((kx * 8.0) ** 2))  # fibres elongated along x
+    spec[:, 0] = 0
+    fib = np.fft.irfft(spec, n=n, axis=1)
+    albedo = 0.5 * (1 + texture * fib / (fib.std() or 1.0))
+    period = n / 48.0  # marks of ~21 px on 1024 columns
+    k = np.arange(1, 12)
+    x = np.arange(n)
+    # band-limited sawtooth slope, amplitude 0.015
+    saw = sum(((-1) ** (j + 1)) / j * np.sin(2 * np.pi * j * x / period) for j in k)
+    slope = 0.015 * saw / np.abs(saw).max()
+    return albedo, slope
+
+
+def _fourier_shift(a: np.ndarray, d: float) -> np.ndarray:
+    """Sample a periodic signal (last axis) at x - d (band-limited interpolation)."""
+    n = a.shape[-1]
+    f = np.fft.rfftfreq(n)
+    return np.fft.irfft(np.fft.rfft(a, axis=-1) * np.exp(-2j * np.pi * f * d), n=n, axis=-1)
+
+
+def _pair(d: float, *, seed: int = 0, width: int = 640, rows: int = 32, texture: float = 0.05,
+          noise: float = 0.002, other_board: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    n = 1024
+    albedo, slope = _board(seed, rows, n, texture=texture)
+    rng = np.random.default_rng(seed + 100)
+
+    def shot(alb: np.ndarray, p: np.ndarray, sign: float) -> np.ndarray:
+        img = alb * (math.cos(SLANT) + sign * p * math.sin(SLANT))[None, :]
+        return img[:, :width] + noise * rng.standard_normal((alb.shape[0], width))
+
+    a = shot(albedo, slope, -1.0)
+    if other_board:
+        albedo, slope = _board(seed + 1, rows, n, texture=texture)
+    b = shot(_fourier_shift(albedo, d), _fourier_shift(slope, d), +1.0)
+    return a.astype(np.float32), b.astype(np.float32)
+
+
+@pytest.mark.parametrize("true_d", [6.3, 15.0, 31.7])
+@pytest.mark.parametrize("encoder_error", [-20.0, -7.5, 0.0, 11.0, 20.0])
+def test_refine_shift_recovers_true_shift_despite_encoder_error(true_d, encoder_error):
+    a, b = _pair(true_d, seed=int(true_d * 10))
+    reg = refine_shift(a, b, encoder_shift_px=true_d + encoder_error)
+    assert reg.shift_px == pytest.approx(true_d, abs=0.25)
+    assert reg.encoder_shift_px == pytest.approx(true_d + encoder_error)
+    assert 0.5 < reg.confidence <= 1.0
+    assert reg.shading_score > 0.9  # the shading of the two lights is mirrored
+
+
+def test_shading_alone_locks_onto_the_wrong_mark_but_texture_does_not():
+    # The mark period is ~21 px: a guess 17 px off refines (by shading only) onto the
+    # neighbouring mark, one period away; the texture stage lands within a pixel or two.
+    true_d = 12.0
+    a, b = _pair(true_d, seed=3)
+    pa, pb = a.mean(axis=0), b.mean(axis=0)
+    wrong, score = shading_shift(pa, pb, guess_px=true_d + 17.0, reach_px=6)
+    assert wrong - true_d == pytest.approx(1024 / 48, abs=0.5) and score > 0.9
+    reg = Registrar(a.shape[1])
+    coarse = reg.coarse(shading_free_texture(a, pa), shading_free_texture(b, pb),
+                        encoder_shift_px=true_d + 17.0)
+    assert coarse.shift_px == pytest.approx(true_d, abs=2.0)
+    # too far from any mirrored shading within the window: no shift, a low score
+    lost, _ = shading_shift(pa, pb, guess_px=true_d + 10.5, reach_px=3)
+    assert np.isnan(lost)
+
+
+def test_refine_shift_subpixel_accuracy_over_fractions():
+    errs = []
+    for frac in np.linspace(0.0, 0.9, 7):
+        d = 14.0 + frac
+        a, b = _pair(d, seed=7)
+        errs.append(refine_shift(a, b, encoder_shift_px=d + 9.0).shift_px - d)
+    assert max(abs(e) for e in errs) < 0.2
+
+
+def test_untextured_pair_is_an_error_not_a_guess():
+    a, b = _pair(15.0, texture=0.0, noise=0.0005)
+    with pytest.raises(RegistrationError):
+        refine_shift(a, b, encoder_shift_px=18.0)
+
+
+def test_images_of_different_boards_do_not_register():
+    a, b = _pair(15.0, other_board=True)
+    with pytest.raises(RegistrationError):
+        refine_shift(a, b, encoder_shift_px=15.0)
+
+
+def test_shift_larger_than_the_image_is_an_error():
+    a, b = _pair(15.0)
+    with pytest.raises(RegistrationError, match="overlap"):
+        refine_shift(a, b, encoder_shift_px=700.0)
+
+
+def test_registrar_checks_its_inputs():
+    with pytest.raises(ValueError, match="band_px"):
+        Registrar(100, band_px=(9, 5))
+    with pytest.raises(ValueError, match="width"):
+        Registrar(4)
+    reg = Registrar(64)
+    with pytest.raises(ValueError, match="shape"):
+        reg(np.zeros((4, 64)), np.zeros((4, 63)), encoder_shift_px=0.0)
+    with pytest.raises(ValueError, match="encoder_shift_px"):
+        reg(np.zeros((4, 64)), np.zeros((4, 64)), encoder_shift_px=float("nan"))
+
+
+def test_shading_free_texture_removes_column_shading_exactly():
+    rng = np.random.default_rng(0)
+    albedo = rng.uniform(0.4, 0.6, (16, 50))
+    shading = rng.uniform(0.5, 1.5, 50)
+    rows = albedo * shading[None, :]
+    tex = shading_free_texture(rows, rows.mean(axis=0))
+    expect = albedo / albedo.mean(axis=0)[None, :]
+    expect -= expect.mean(axis=1, keepdims=True)
+    np.testing.assert_allclose(tex, expect, atol=1e-5)

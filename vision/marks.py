@@ -1,0 +1,437 @@
+"""Cuttermark metrics from a height profile: cusps, widths, depths, pitch, uniformity.
+
+A rotary-planed surface is a chain of circular arcs of the tip radius R, one per knife pass,
+meeting in sharp cusps.  Along the feed the slope is therefore a sawtooth: it rises as ``1/R``
+inside every mark and falls abruptly at every cusp, by the distance between the two marks' lowest
+points over R (the feed per knife over R, whatever the knives' runout does to the widths).
+:func:`find_marks` finds the cusps as those falls, fits every mark's arc (one common curvature,
+one lowest point per mark, samples near the cusps left out because blur and pixel averaging round
+them) and places each cusp where its two arcs meet, to a small fraction of a pixel.
+
+Definitions (the issue's): a *complete* mark lies between two detected cusps; its width is cusp
+to cusp, its depth the mean of its two cusp heights minus its lowest point; pitch = mean width;
+uniformity = coefficient of variation of the widths (population standard deviation / mean).
+Also here: :func:`knife_means` (per-knife averages given the mark-to-knife phase), :func:`corr2`
+(seed Eq. 8) and the period estimates used to detrend the illumination.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+import scipy.signal
+
+from planer.checks import check_int
+from planer.errors import MeasurementError
+
+
+@dataclass(frozen=True)
+class Marks:
+    """The complete cuttermarks of a profile.
+
+    Attributes
+    ----------
+    cusps_mm : ndarray, shape (n + 1,)
+        Cusp positions bounding the ``n`` complete marks, mm.
+    bottoms_mm : ndarray, shape (n,)
+        Position of each mark's lowest point, mm.
+    widths_mm : ndarray, shape (n,)
+        Cusp-to-cusp widths, mm.
+    depths_um : ndarray, shape (n,)
+        Mean of the two cusp heights minus the lowest point, um.
+    cusp_heights_um : ndarray, shape (n + 1,)
+        Height at each cusp, um.
+    pitch_mm : float
+        Mean width, mm.
+    uniformity_cv : float
+        Population standard deviation of the widths over their mean.
+    depth_um : float
+        Mean depth, um.
+    """
+
+    cusps_mm: np.ndarray
+    bottoms_mm: np.ndarray
+    widths_mm: np.ndarray
+    depths_um: np.ndarray
+    cusp_heights_um: np.ndarray
+    pitch_mm: float
+    uniformity_cv: float
+    depth_um: float
+
+
+def corr2(a: np.ndarray, b: np.ndarray) -> float:
+    """Correlation coefficient of two equally shaped arrays (seed Eq. 8, MATLAB's corr2).
+
+    Parameters
+    ----------
+    a, b : array_like, same shape
+        Profiles (or images).
+
+    Returns
+    -------
+    float
+        ``sum((a - mean a)(b - mean b)) / sqrt(sum((a - mean a)^2) sum((b - mean b)^2))``;
+        NaN when either is constant.
+    """
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    if x.shape != y.shape:
+        raise ValueError(f"a and b differ in shape: {x.shape} vs {y.shape}")
+    if x.size < 2:
+        raise ValueError("corr2 needs at least 2 samples")
+    x = x - x.mean()
+    y = y - y.mean()
+    den = math.sqrt(float(np.sum(x * x)) * float(np.sum(y * y)))
+    return float(np.sum(x * y) / den) if den > 0 else math.nan
+
+
+def knife_means(values: np.ndarray, *, knives: int, phase: int) -> np.ndarray:
+    """Mean of a per-mark quantity for each knife.
+
+    Mark ``i`` (in order along +x) was cut by knife ``(phase + i) mod knives``.
+
+    Parameters
+    ----------
+    values : array_like, shape (n,)
+        One value per complete mark (widths, depths, ...).
+    knives : int
+        Number of knives Z.
+    phase : int
+        Knife of the first mark.
+
+    Returns
+    -------
+    ndarray, shape (knives,)
+        Mean per knife; NaN for a knife without a mark.
+    """
+    z = check_int("knives", knives, lo=1)
+    ph = check_int("phase", phase)
+    v = np.asarray(values, dtype=np.float64)
+    if v.ndim != 1:
+        raise ValueError(f"values must be 1-D, got shape {v.shape}")
+    knife = (ph + np.arange(v.size)) % z
+    sums = np.bincount(knife, weights=v, minlength=z)
+    counts = np.bincount(knife, minlength=z)
+    out = np.full(z, np.nan)
+    np.divide(sums, counts, out=out, where=counts > 0)
+    return out
+
+
+def dominant_period_px(signal: np.ndarray, *, min_period_px: float = 4.0) -> float:
+    """Strongest period of a profile (periodogram peak, refined by a parabola).
+
+    Parameters
+    ----------
+    signal : ndarray, shape (n,)
+        Slope or height profile.
+    min_period_px : float, optional
+        Shortest period considered, samples.
+
+    Returns
+    -------
+    float
+        Period, samples; NaN when the profile holds fewer than two periods of anything.
+    """
+    s = np.asarray(signal, dtype=np.float64)
+    n = s.size
+    if n < 8:
+        return math.nan
+    s = (s - s.mean()) * np.hanning(n)
+    nfft = scipy.fft.next_fast_len(4 * n, real=True)
+    power = np.abs(scipy.fft.rfft(s, n=nfft)) ** 2
+    k_lo = max(1, int(math.ceil(2.0 * nfft / n)))  # at least two periods in the profile
+    k_hi = min(power.size - 2, int(nfft / min_period_px))
+    if k_hi <= k_lo:
+        return math.nan
+    k = k_lo + int(np.argmax(power[k_lo : k_hi + 1]))
+    y0, y1, y2 = power[k - 1], power[k], power[k + 1]
+    curv = y0 - 2 * y1 + y2
+    frac = 0.5 * (y0 - y2) / curv if curv < 0 else 0.0
+    return nfft / (k + frac)
+
+
+def repeat_period_px(
+    signal: np.ndarray, *, max_multiple: int = 8, tolerance: float = 0.02
+) -> float:
+    """Period after which a mark pattern repeats exactly: a whole revolution of the cutterhead.
+
+    With knife runout the marks differ from knife to knife, so the profile repeats only after
+    ``Z`` marks.  The dominant (per-knife) period ``T`` is found first; then the smallest
+    multiple ``k T`` whose self-correlation ``corr(s[u], s[u + k T])`` is within ``tolerance``
+    of the best multiple's is taken and refined by a parabola over integer lags.
+
+    Parameters
+    ----------
+    signal : ndarray, shape (n,)
+        Slope-like profile (illumination trend already mostly removed).
+    max_multiple : int, optional
+        Largest multiple of ``T`` tried (also limited to a third of the profile).
+    tolerance : float, optional
+        How close to the best self-correlation the chosen multiple must be.
+
+    Returns
+    -------
+    float
+        Period, samples; NaN when no period is found.
+    """
+    s = np.asarray(signal, dtype=np.float64)
+    s = s - s.mean()
+    n = s.size
+    t = dominant_period_px(s)
+    if not math.isfinite(t):
+        return math.nan
+
+    # Lightly smoothed, so that the sharp cusp steps do not make the score depend on where
+    # the (fractional) period falls between samples.
+    s = np.convolve(s, np.ones(5) / 5.0, mode="same")
+
+    def self_corr(lag: int) -> float:
+        a, b = s[:-lag], s[lag:]
+        den = math.sqrt(float(np.dot(a, a)) * float(np.dot(b, b)))
+        return float(np.dot(a, b)) / den if den > 0 else 0.0
+
+    def refined(period: float) -> tuple[float, float]:
+        """Lag and value of the self-correlation peak near ``period`` (parabola)."""
+        c = int(round(period))
+        if c < 2 or c + 1 >= n - 8:
+            return period, self_corr(max(1, min(c, n - 9)))
+        y0, y1, y2 = self_corr(c - 1), self_corr(c), self_corr(c + 1)
+        curv = y0 - 2 * y1 + y2
+        if curv >= 0:
+            return float(c), y1
+        frac = float(np.clip(0.5 * (y0 - y2) / curv, -0.5, 0.5))
+        return c + frac, y1 - 0.25 * (y0 - y2) * frac
+
+    ks = [k for k in range(1, max_multiple + 1) if k * t <= n / 3.0]
+    if not ks:
+        return t
+    found = [refined(k * t) for k in ks]
+    best = max(v for _, v in found)
+    return next(lag for lag, v in found if v >= best - tolerance)
+
+
+def cusp_steps(slope: np.ndarray, *, baseline: int = 2) -> np.ndarray:
+    """Slope step between the ``baseline`` samples after and before each sample gap.
+
+    ``steps[i]`` is ``mean(slope[i+1 : i+1+baseline]) - mean(slope[i+1-baseline : i+1])``, the
+    change of slope across the gap between samples ``i`` and ``i + 1`` (0 where undefined).
+    A cusp is a large negative step: the slope falls from the end of one arc, ``+(x_c - b_l)/R``,
+    to the start of the next, ``-(b_r - x_c)/R``; the step is the distance between the two
+    marks' lowest points ``b`` over R, which is the feed per knife over R at every cusp, however
+    uneven the widths are.
+    """
+    p = np.asarray(slope, dtype=np.float64)
+    n = p.size
+    k = int(baseline)
+    out = np.zeros(n)
+    if n < 2 * k + 1:
+        return out
+    c = np.concatenate(([0.0], np.cumsum(p)))
+    i = np.arange(k - 1, n - k)
+    out[i] = ((c[i + 1 + k] - c[i + 1]) - (c[i + 1] - c[i + 1 - k])) / k
+    return out
+
+
+def find_marks(
+    x_mm: np.ndarray,
+    height_um: np.ndarray,
+    *,
+    slope: np.ndarray | None = None,
+    min_marks: int = 2,
+    min_step: float = 0.35,
+    min_snr: float = 5.0,
+    guard: int = 2,
+    refine: bool = True,
+) -> Marks:
+    """Find the cusps and complete marks of a height profile.
+
+    1. Cusps, to a sample: the large negative steps of the slope (:func:`cusp_steps`), every
+       step larger than ``min_step`` times the typical one (90th percentile of the candidates),
+       at least 3 samples apart, provided the typical step stands ``min_snr`` times above the
+       slope's noise.
+    2. Arcs: between cusps the surface is an arc of the common tip radius R, so the slope is a
+       line of one common gradient ``kappa = 1/R``: ``p = kappa (x - b_k)`` with ``b_k`` the
+       mark's lowest point.  ``kappa`` is the pooled within-mark regression of slope on x, ``b_k``
+       each mark's own offset, and the arc's height ``e_k`` at ``b_k`` comes from the height
+       samples; samples within ``guard`` of a cusp (rounded by blur and pixel averaging) are left
+       out, so marks as narrow as ``2 guard + 2`` samples are still measured.
+    3. Each cusp, to a small fraction of a sample: where its two neighbouring arcs meet.  Cusps
+       at either end whose outer arc cannot be measured are dropped (their marks are not
+       complete); inner ones keep the sample position.
+
+    Parameters
+    ----------
+    x_mm : ndarray, shape (n,)
+        Evenly spaced positions along the feed, mm (increasing).
+    height_um : ndarray, shape (n,)
+        Height, um.
+    slope : ndarray, shape (n,), optional
+        Slope ``dz/dx`` of the same profile (default: the gradient of the height).
+    min_marks : int, optional
+        Fewer complete marks raise :class:`MeasurementError`.
+    min_step : float, optional
+        Smallest cusp step as a fraction of the typical one.
+    min_snr : float, optional
+        Smallest typical cusp step in units of the slope's noise (robust standard deviation
+        of a sample): below it the profile holds no marks (noise on a flat board is not taken
+        for marks).
+    guard : int, optional
+        Samples left out on either side of a cusp when fitting the arcs.
+    refine : bool, optional
+        Refine with the arcs (``False``: sample positions, sample heights).
+
+    Returns
+    -------
+    Marks
+
+    Raises
+    ------
+    MeasurementError
+        Fewer than ``min_marks`` complete marks.
+    """
+    x = np.asarray(x_mm, dtype=np.float64)
+    h = np.asarray(height_um, dtype=np.float64)
+    if x.shape != h.shape or x.ndim != 1:
+        raise ValueError(f"x_mm and height_um must be 1-D of one length, got {x.shape}, {h.shape}")
+    n = h.size
+    if n < 8:
+        raise MeasurementError(f"profile too short for cuttermarks: {n} samples")
+    dx = (x[-1] - x[0]) / (n - 1)
+    if not dx > 0:
+        raise ValueError("x_mm must increase")
+    p = np.gradient(h, dx * 1000.0) if slope is None else np.asarray(slope, dtype=np.float64)
+    if p.shape != h.shape:
+        raise ValueError(f"slope must have the profile's length {n}, got {p.shape}")
+    steps = cusp_steps(p)
+    cand, props = scipy.signal.find_peaks(-steps, height=0.0, distance=3)
+    if cand.size:
+        size = props["peak_heights"]
+        # Noise floor of the slope from its sample-to-sample differences (robust: the cusps
+        # are few, and inside a mark the slope changes by only dx / R per sample).
+        d = np.diff(p)
+        noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2.0)
+        typical = float(np.quantile(size, 0.9))
+        if typical < min_snr * noise:  # the steps are noise: no cuttermarks to be seen
+            cand = cand[:0]
+        else:
+            cand = cand[size >= min_step * typical]
+    gaps = cand.astype(np.float64) + 0.5  # cusp between samples i and i + 1
+    if gaps.size < min_marks + 1:
+        _too_few(gaps.size - 1, x, min_marks)
+    if refine:
+        cusps_s, cusp_h, bottoms_s, bottom_h = _arc_refine(x, h, p, gaps, dx, guard)
+    else:
+        cusps_s, cusp_h, bottoms_s, bottom_h = _sample_marks(h, gaps)
+    if cusps_s.size < min_marks + 1:
+        _too_few(cusps_s.size - 1, x, min_marks)
+    cusps = x[0] + cusps_s * dx
+    bottoms = x[0] + bottoms_s * dx
+    widths = np.diff(cusps)
+    depths = 0.5 * (cusp_h[:-1] + cusp_h[1:]) - bottom_h
+    pitch = float(widths.mean())
+    return Marks(
+        cusps_mm=cusps,
+        bottoms_mm=bottoms,
+        widths_mm=widths,
+        depths_um=depths,
+        cusp_heights_um=cusp_h,
+        pitch_mm=pitch,
+        uniformity_cv=float(widths.std() / pitch),
+        depth_um=float(depths.mean()),
+    )
+
+
+def _too_few(found: int, x: np.ndarray, need: int) -> None:
+    raise MeasurementError(
+        f"too few cuttermarks: found {max(found, 0)} complete marks in "
+        f"{x[-1] - x[0]:.1f} mm of profile, need {need}"
+    )
+
+
+def _sample_marks(
+    h: np.ndarray, gaps: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Cusps at the higher sample of each step, bottoms at the lowest sample between."""
+    n = h.size
+    lo = np.floor(gaps).astype(int)
+    hi = np.minimum(lo + 1, n - 1)
+    idx = np.where(h[hi] > h[lo], hi, lo)
+    pairs = zip(idx[:-1], idx[1:], strict=True)
+    bot = np.array([a + int(np.argmin(h[a : b + 1])) for a, b in pairs])
+    return idx.astype(np.float64), h[idx], bot.astype(np.float64), h[bot]
+
+
+def _arc_refine(
+    x: np.ndarray, h: np.ndarray, p: np.ndarray, gaps: np.ndarray, dx: float, guard: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Cusps, cusp heights, bottoms (in samples) and bottom heights from the arc model."""
+    n = h.size
+    s = np.arange(n, dtype=np.float64)  # sample coordinate
+    # Segments: partial arc before the first cusp, complete marks, partial arc after the last.
+    left = np.concatenate(([-np.inf], gaps))
+    right = np.concatenate((gaps, [np.inf]))
+    lo = np.maximum(np.ceil(left + guard - 0.5), 1).astype(int)
+    hi = np.minimum(np.floor(right - guard + 0.5), n - 2).astype(int) + 1  # exclusive
+    count = np.maximum(hi - lo, 0)
+    ok = count >= 2
+    if not np.any(ok):
+        return _sample_marks(h, gaps)
+    lo_ok, hi_ok = lo[ok], hi[ok]
+
+    def seg_sum(v: np.ndarray) -> np.ndarray:
+        c = np.concatenate(([0.0], np.cumsum(v)))
+        return c[hi_ok] - c[lo_ok]
+
+    cnt = count[ok].astype(np.float64)
+    sx, sp = seg_sum(s), seg_sum(p)
+    sxx, sxp = seg_sum(s * s), seg_sum(s * p)
+    sxx_c = sxx - sx * sx / cnt
+    sxp_c = sxp - sx * sp / cnt
+    kappa = float(sxp_c.sum() / sxx_c.sum()) if sxx_c.sum() > 0 else 0.0  # slope per sample
+    if not kappa > 0:
+        return _sample_marks(h, gaps)
+    b = np.full(left.size, np.nan)
+    e = np.full(left.size, np.nan)
+    b[ok] = (sx - sp / kappa) / cnt  # p = kappa (s - b)
+    scale = 1000.0 * dx  # um per (slope x sample)
+    # h = e + scale * kappa / 2 * (s - b)^2 ; e from the mean residual
+    quad = seg_sum(s * s) - 2 * b[ok] * sx + b[ok] ** 2 * cnt
+    e[ok] = (seg_sum(h) - 0.5 * scale * kappa * quad) / cnt
+    half = 0.5 * scale * kappa
+
+    # Cusps where neighbouring arcs meet.
+    bl, br, el, er = b[:-1], b[1:], e[:-1], e[1:]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xc = 0.5 * (bl + br) + (er - el) / (2.0 * half * (br - bl))
+        good = np.isfinite(xc) & (br > bl) & (np.abs(xc - gaps) <= 1.5)
+    idx = np.flatnonzero(good)
+    if idx.size < 2:
+        return _sample_marks(h, gaps)
+    # Drop unrefined cusps at the ends; inner ones keep the sample position.
+    j0, j1 = int(idx[0]), int(idx[-1]) + 1
+    good = good[j0:j1]
+    cusp = np.where(good, xc[j0:j1], gaps[j0:j1])
+    seg_l, seg_r = np.arange(j0, j1), np.arange(j0 + 1, j1 + 1)
+    with np.errstate(invalid="ignore"):
+        hl = e[seg_l] + half * (cusp - b[seg_l]) ** 2
+        hr = e[seg_r] + half * (cusp - b[seg_r]) ** 2
+    cusp_h = np.where(np.isfinite(hl) & np.isfinite(hr), 0.5 * (hl + hr),
+                      np.where(np.isfinite(hl), hl, hr))
+    lost = ~np.isfinite(cusp_h)
+    if np.any(lost):
+        cusp_h[lost] = np.interp(cusp[lost], s, h)
+    # Bottoms: each complete mark's arc vertex, kept inside the mark.
+    q = seg_r[:-1]
+    bq = b[q]
+    bottoms = np.clip(np.where(np.isfinite(bq), bq, 0.5 * (cusp[:-1] + cusp[1:])),
+                      cusp[:-1], cusp[1:])
+    with np.errstate(invalid="ignore"):
+        bottom_h = e[q] + half * (bottoms - bq) ** 2
+    for k in np.flatnonzero(~np.isfinite(bottom_h)):
+        a, z = int(math.ceil(cusp[k])), int(math.floor(cusp[k + 1]))
+        i = a + int(np.argmin(h[a : z + 1])) if z >= a else int(round(cusp[k]))
+        bottoms[k], bottom_h[k] = float(i), float(h[i])
+    return cusp, cusp_h, bottoms, bottom_h

@@ -1,0 +1,129 @@
+"""Surface slope p = dz/dx from two intensity profiles (seed Eq. 4, general azimuths).
+
+With q = 0 the Lambertian model (seed Eq. 1) gives for a light at slant sigma and azimuth tau
+
+    I = I0 * rho * (cos(sigma) - p * cos(tau) * sin(sigma)) / sqrt(1 + p^2).
+
+For tau_A = 0 and tau_B = 180 deg this is ``I_A ~ cos(sigma) - p sin(sigma)`` and
+``I_B ~ cos(sigma) + p sin(sigma)``: the light at 180 deg gives **+p sin(sigma)** (the seed's
+Eq. 3b misprints the sign).  Eliminating ``I0 * rho / sqrt(1 + p^2)`` between the two lights gives
+seed Eq. 4 with light 1 = A and light 2 = B:
+
+    p = (I_B - I_A) / (I_B cos(tau_A) - I_A cos(tau_B)) / tan(sigma),
+
+which is ``(I_B - I_A) / (I_B + I_A) / tan(sigma)`` for opposed lights.  It needs
+``cos(tau_A) != cos(tau_B)``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from planer.checks import check_finite, check_range
+
+
+def _angles(slant_deg: float, azimuth_a_deg: float, azimuth_b_deg: float) -> tuple[float, ...]:
+    s = check_range("slant_deg", slant_deg, 0.0, 89.9)
+    if s <= 0.0:
+        raise ValueError(f"slant_deg must be > 0, got {slant_deg!r}")
+    ca = math.cos(math.radians(check_finite("azimuth_a_deg", azimuth_a_deg)))
+    cb = math.cos(math.radians(check_finite("azimuth_b_deg", azimuth_b_deg)))
+    if abs(ca - cb) < 1e-3:
+        raise ValueError(
+            f"azimuth_a_deg={azimuth_a_deg} and azimuth_b_deg={azimuth_b_deg} have the same "
+            "cosine: the two lights cannot separate the slope along x"
+        )
+    return math.tan(math.radians(s)), ca, cb
+
+
+def slope_eq4(
+    intensity_a: np.ndarray,
+    intensity_b: np.ndarray,
+    *,
+    slant_deg: float,
+    azimuth_a_deg: float = 0.0,
+    azimuth_b_deg: float = 180.0,
+) -> np.ndarray:
+    """Slope from two intensities by seed Eq. 4.
+
+    Parameters
+    ----------
+    intensity_a, intensity_b : array_like, same shape
+        Intensities of the same surface points lit by light A and light B (any units, equal
+        light strengths assumed; see :mod:`vision.illumination` otherwise).
+    slant_deg : float
+        Slant (zenith) angle of both lights from the camera axis, degrees.
+    azimuth_a_deg, azimuth_b_deg : float, optional
+        Azimuths of lights A and B from +x, degrees.
+
+    Returns
+    -------
+    ndarray, same shape
+        Slope ``p = dz/dx`` (dimensionless); NaN where the denominator vanishes.
+    """
+    tan_s, ca, cb = _angles(slant_deg, azimuth_a_deg, azimuth_b_deg)
+    ia = np.asarray(intensity_a, dtype=np.float64)
+    ib = np.asarray(intensity_b, dtype=np.float64)
+    if ia.shape != ib.shape:
+        raise ValueError(f"intensity_a and intensity_b differ in shape: {ia.shape} vs {ib.shape}")
+    den = (ib * ca - ia * cb) * tan_s
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = (ib - ia) / den
+    return np.where(den != 0, p, np.nan)
+
+
+def slope_from_ratio(
+    ratio_ba: np.ndarray,
+    *,
+    slant_deg: float,
+    azimuth_a_deg: float = 0.0,
+    azimuth_b_deg: float = 180.0,
+) -> np.ndarray:
+    """Slope from the intensity ratio ``I_B / I_A`` (seed Eq. 4 divided through by ``I_A``).
+
+    Parameters
+    ----------
+    ratio_ba : array_like
+        ``I_B / I_A`` after any illumination correction.
+    slant_deg, azimuth_a_deg, azimuth_b_deg : float
+        As in :func:`slope_eq4`.
+
+    Returns
+    -------
+    ndarray
+        Slope ``p = (r - 1) / (r cos(tau_A) - cos(tau_B)) / tan(sigma)``.
+    """
+    tan_s, ca, cb = _angles(slant_deg, azimuth_a_deg, azimuth_b_deg)
+    r = np.asarray(ratio_ba, dtype=np.float64)
+    den = (r * ca - cb) * tan_s
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = (r - 1.0) / den
+    return np.where(den != 0, p, np.nan)
+
+
+def lambert_intensity(
+    slope: np.ndarray, *, slant_deg: float, azimuth_deg: float, albedo: float | np.ndarray = 1.0
+) -> np.ndarray:
+    """Seed Eq. 2 (q = 0): intensity of a surface of slope ``p`` under one light.
+
+    Parameters
+    ----------
+    slope : array_like
+        ``p = dz/dx``.
+    slant_deg, azimuth_deg : float
+        The light's slant from the camera axis and azimuth from +x, degrees.
+    albedo : float or array_like, optional
+        ``I0 * rho``.
+
+    Returns
+    -------
+    ndarray
+        ``albedo * (cos(s) - p cos(t) sin(s)) / sqrt(1 + p^2)``, clipped at 0 (self-shadow).
+    """
+    p = np.asarray(slope, dtype=np.float64)
+    s = math.radians(check_finite("slant_deg", slant_deg))
+    t = math.radians(check_finite("azimuth_deg", azimuth_deg))
+    val = (math.cos(s) - p * math.cos(t) * math.sin(s)) / np.sqrt(1.0 + p * p)
+    return np.asarray(albedo) * np.clip(val, 0.0, None)
