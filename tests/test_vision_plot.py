@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from vision.marks import find_marks
 from vision.pipeline import Measurement
@@ -43,7 +42,15 @@ def test_figure_shows_profile_cusps_and_widths(tmp_path):
 
 
 def test_figure_needs_no_pyplot():
+    # run in a fresh interpreter: other tests in this process may have imported pyplot
+    import subprocess
     import sys
 
-    profile_figure(_measurement())
-    assert "matplotlib.pyplot" not in sys.modules or pytest.skip("pyplot imported elsewhere")
+    code = (
+        "import sys, tests.test_vision_plot as t\n"
+        "t.profile_figure(t._measurement())\n"
+        "assert 'matplotlib.pyplot' not in sys.modules, 'pyplot was imported'\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=str(__import__("pathlib").Path(__file__).parents[1]), check=False)
+    assert proc.returncode == 0, proc.stderr
