@@ -1,23 +1,53 @@
 """The ``planer`` command: one sub-command per module in :mod:`planer.commands`.
 
 Each command module defines ``HELP`` (one line), ``configure(parser)`` and ``run(args) -> int``;
-modules keep heavy imports inside ``run`` so that ``planer --help`` stays fast. Errors raised on
-purpose (``PlanerError``, ``ValueError``, ``OSError``) become one line on stderr and exit code 2.
+modules keep heavy imports inside ``run`` so that ``planer --help`` stays fast.
+
+Every error a user can cause ends in ONE line on stderr, ``planer <cmd>: error: <message>``,
+and a non-zero exit code, never in a traceback:
+
+=====================================================  =========
+what                                                   exit code
+=====================================================  =========
+bad command line (unknown option, not a number, ...)   2
+``ValueError`` / ``OSError`` (so every ``PlanerError``)  2
+Ctrl-C (``KeyboardInterrupt``)                          130
+any other exception (a bug): ``internal error``        3
+=====================================================  =========
+
+Set ``PLANER_TRACEBACK=1`` to get the full traceback of an error instead (for developers).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import logging
+import os
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 COMMANDS = ("measure", "calibrate", "bench", "sim", "serve", "hil", "report")
+
+EXIT_USAGE = 2
+EXIT_ERROR = 2
+EXIT_INTERNAL = 3
+EXIT_INTERRUPTED = 130
+TRACEBACK_ENV = "PLANER_TRACEBACK"
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line (plus where to find help)."""
+
+    def error(self, message: str) -> NoReturn:  # noqa: D102 - argparse's own contract
+        first = message.splitlines()[0] if message else "bad command line"
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {first} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every sub-command registered."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="planer",
         description="Cuttermark measurement and closed-loop control of a planing machine.",
     )
@@ -30,19 +60,133 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def error_line(exc: BaseException) -> str:
+    """The one-line message for an error raised on purpose.
+
+    ``OSError`` from the operating system (``[Errno 2] No such file or directory: 'x'``) is
+    rewritten as ``x: No such file or directory``; every other message is cut to its first line.
+    """
+    if isinstance(exc, OSError) and exc.strerror and exc.filename is not None:
+        return f"{exc.filename}: {exc.strerror}"
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def output_file(option: str, path: str | os.PathLike[str]) -> str:
+    """Check early that a file a command will write can be written; create its folder.
+
+    Parameters
+    ----------
+    option : str
+        The option that named the file (``--log``), for the error message.
+    path : str or path-like
+        The file to be written (it may exist).
+
+    Returns
+    -------
+    str
+        ``path`` as given.
+
+    Raises
+    ------
+    ValueError
+        The path is a folder, or its folder cannot be created or written; the message names
+        ``option`` and the path.
+    """
+    p = os.fspath(path)
+    if not p:
+        raise ValueError(f"{option} must not be empty")
+    if os.path.isdir(p):
+        raise ValueError(f"{option} {p}: is a folder, expected a file name")
+    folder = os.path.dirname(os.path.abspath(p))
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(
+            f"{option} {p}: cannot create its folder {folder}: {exc.strerror or exc}"
+        ) from None
+    writable_folder(option, folder, what=p)
+    if os.path.exists(p) and not os.access(p, os.W_OK):
+        raise ValueError(f"{option} {p}: file is not writable")
+    return p
+
+
+def output_folder(option: str, path: str | os.PathLike[str]) -> str:
+    """Check early that files can be written in folder ``path`` (created if missing).
+
+    Raises
+    ------
+    ValueError
+        ``path`` is a file, or cannot be created or written; the message names ``option``.
+    """
+    p = os.fspath(path)
+    if os.path.exists(p) and not os.path.isdir(p):
+        raise ValueError(f"{option} {p}: is a file, expected a folder")
+    try:
+        os.makedirs(p, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"{option} {p}: cannot create the folder: {exc.strerror or exc}") from None
+    writable_folder(option, p)
+    return p
+
+
+def writable_folder(option: str, folder: str | os.PathLike[str], *, what: str = "") -> None:
+    """Raise ``ValueError`` naming ``option`` unless a file can be created in ``folder``.
+
+    Tries it (a temporary file, removed at once): permission bits do not tell for root or for
+    read-only file systems.
+    """
+    import tempfile
+
+    label = f"{option} {what or os.fspath(folder)}"
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".planer-probe-", dir=folder)
+    except OSError as exc:
+        raise ValueError(
+            f"{label}: cannot write in folder {os.fspath(folder)}: {exc.strerror or exc}"
+        ) from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
+def _quiet_teardown() -> None:
+    """After an error was reported, keep library teardown chatter off the terminal.
+
+    python-can warns "Bus was not properly shut down" from ``__del__`` when a command stops on an
+    error before closing its bus; the error line already says what happened.
+    """
+    logging.getLogger("can").setLevel(logging.CRITICAL)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``planer`` command; returns the process exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    name = f"planer {args.command}"
+    debug = os.environ.get(TRACEBACK_ENV, "") not in ("", "0")
     try:
         return int(args._run(args) or 0)
     except KeyboardInterrupt:
-        print("planer: interrupted", file=sys.stderr)
-        return 130
+        _quiet_teardown()
+        print(f"{name}: interrupted", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
     except (ValueError, OSError) as exc:  # PlanerError subclasses are among these
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        print(f"planer {args.command}: error: {msg}", file=sys.stderr)
-        return 2
+        if debug:
+            raise
+        _quiet_teardown()
+        print(f"{name}: error: {error_line(exc)}", file=sys.stderr, flush=True)
+        return EXIT_ERROR
+    except Exception as exc:  # a bug: still one line, the traceback on request
+        if debug:
+            raise
+        _quiet_teardown()
+        print(
+            f"{name}: internal error: {type(exc).__name__}: {error_line(exc)} "
+            f"(a bug; {TRACEBACK_ENV}=1 shows the traceback)",
+            file=sys.stderr,
+            flush=True,
+        )
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -26,14 +26,48 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="shorter runs (less precise)")
 
 
+def _rtf_line(label: str, part: Any, target: Any) -> str:
+    return (
+        f"  {label}: real-time factor {part['real_time_factor']:.1f} (target >= {target:g}), "
+        f"{part['sim_s']:g} s simulated in {part['wall_s']:.2f} s, {part['pairs']} pairs, "
+        f"set-up {part['setup_s']:.2f} s"
+    )
+
+
 def _format(name: str, result: Any) -> str:
-    if name == "vision" and isinstance(result, list):
-        rows = [
-            f"  {r['width']}x{r['height']}: {r['pairs_per_s']:.0f} pairs/s "
-            f"(plain copy of the pair: {r['copy_pairs_per_s']:.0f}/s)"
-            for r in result
-        ]
-        return "vision (one core):\n" + "\n".join(rows)
+    """The readable text of one part; unknown shapes fall back to indented JSON."""
+    try:
+        if name == "vision":
+            rows = [
+                f"  {r['width']}x{r['height']}: {r['pairs_per_s']:.0f} pairs/s "
+                f"(plain copy of the pair: {r['copy_pairs_per_s']:.0f}/s)"
+                for r in result
+            ]
+            return "vision (one core):\n" + "\n".join(rows)
+        if name == "sim":
+            t = result["targets"]
+            verdict = "meets the targets" if result["meets_targets"] else "MISSES a target"
+            return "\n".join([
+                f"sim (camera at {result['pairs_per_s']:g} pairs/s): {verdict}",
+                _rtf_line("model alone ", result["model_only"], t["model_only"]),
+                _rtf_line("with images ", result["with_images"], t["with_images"]),
+            ])
+        if name == "service":
+            head = (
+                f"service ({result['width']}x{result['height']}, {result['rate_hz']:g} pairs/s, "
+                f"{result['transport']}): {result['applied']} of {result['pairs']} pairs applied, "
+                f"{result['failed']} failed"
+            )
+            if "p99_ms" not in result:
+                return head + "; no latency (no pair was applied)"
+            ok = "meets" if result["p99_ms"] <= result["target_p99_ms"] else "MISSES"
+            return head + (
+                f"\n  latency frame -> setpoints: median {result['median_ms']:.1f} ms, "
+                f"p99 {result['p99_ms']:.1f} ms, max {result['max_ms']:.1f} ms "
+                f"({ok} the target p99 <= {result['target_p99_ms']:g} ms)"
+            )
+    except (KeyError, TypeError, ValueError):
+        pass
     return f"{name}: {json.dumps(result, indent=2)}"
 
 
@@ -41,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
     """Run the benchmarks."""
     out: dict[str, Any] = {}
     for name in args.only or PARTS:
-        print(f"planer bench: measuring {name} ...", file=sys.stderr, flush=True)
+        what = "short run" if args.quick else "full run, several seconds; --quick is faster"
+        print(f"planer bench: measuring {name} ({what}) ...", file=sys.stderr, flush=True)
         mod = importlib.import_module(f"planer.benchmarks.{name}")
         out[name] = mod.run(quick=args.quick)
         if not args.json:

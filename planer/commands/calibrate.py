@@ -142,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
     from config.loading import default_path, load_toml
     from config.rig import rig_from_dict, rig_to_toml
     from planer.checks import check_positive
+    from planer.cli import writable_folder
     from planer.errors import ConfigError
     from vision.calibration import MIN_IMAGES, calibrate, find_corners, parse_pattern
 
@@ -153,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--out is a directory: {out}")
     if not (out.parent if str(out.parent) else Path(".")).is_dir():
         raise ValueError(f"--out: folder does not exist: {out.parent}")
+    writable_folder("--out", out.parent if str(out.parent) else Path("."), what=str(out))
 
     # The base rig first, so that a bad --rig fails before the slow corner search.
     base_path = Path(args.rig) if args.rig is not None else default_path("rig.toml")

@@ -12,6 +12,9 @@ Exit code 0 when every check of the summary's ``done`` table passed, 1 otherwise
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 HELP = "hardware-in-the-loop run: simulator + service, scenario, summary and quality log"
 
@@ -105,19 +108,24 @@ def _human(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def _terminate_as_interrupt(signum: int, frame: object) -> None:
+    """SIGTERM handler: stop like Ctrl-C (simulator stopped, temporary files removed)."""
+    raise KeyboardInterrupt
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    import asyncio
     import json
     import logging
     import math
     import os
+    import signal
     import sys
     import time
     from dataclasses import replace
-    from pathlib import Path
 
     from controller import hil
+    from planer.cli import output_file
     from planer.errors import FieldbusError
     from planer.protocol import can_transport
 
@@ -135,7 +143,9 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.log is None and "PLANER_HIL_LOG" in os.environ:
         log_path = Path(os.environ["PLANER_HIL_LOG"])
+    output_file("--log", log_path)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    signal.signal(signal.SIGTERM, _terminate_as_interrupt)  # clean up as on Ctrl-C
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
     def progress(line: str) -> None:
@@ -161,17 +171,35 @@ def run(args: argparse.Namespace) -> int:
                 f"planer hil: {why}; falling back to the in-process simulator "
                 "(simulated time, virtual CAN)"
             )
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    if cross:
-        summary = asyncio.run(hil.run_cross_process(scenario, log_path=log_path,
-                                                    progress=progress))
-    else:
-        runner = hil.InProcessHil(
-            scenario, log_path=log_path, plc_transport=args.plc, progress=progress
-        )
-        summary = asyncio.run(runner.run())
+    try:
+        summary = _run_scenario(hil, scenario, args, cross=cross, log_path=log_path,
+                                progress=progress)
+    except KeyboardInterrupt:
+        if log_path.exists():
+            progress(f"planer hil: stopped early; the quality log so far is {log_path}")
+        raise
     if args.json:
         print(json.dumps(summary), flush=True)
     else:
         print(_human(summary), flush=True)
     return 0 if summary["passed"] else 1
+
+
+def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: bool,
+                  log_path: Path, progress: Callable[[str], None]) -> dict:
+    """Run the scenario in the chosen mode; return the summary."""
+    import asyncio
+    import tempfile
+
+    if cross:
+        # the simulator's config and frame spool (tens of MB) live only as long as the run
+        with tempfile.TemporaryDirectory(prefix="planer-hil-") as workdir:
+            summary = asyncio.run(hil.run_cross_process(scenario, log_path=log_path,
+                                                        progress=progress,
+                                                        workdir=Path(workdir)))
+    else:
+        runner = hil.InProcessHil(
+            scenario, log_path=log_path, plc_transport=args.plc, progress=progress
+        )
+        summary = asyncio.run(runner.run())
+    return summary

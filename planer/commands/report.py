@@ -46,8 +46,17 @@ def run(args: argparse.Namespace) -> int:
     """Run the command."""
     from controller.quality_log import QualityLog
     from controller.report import build_figures, format_summary, summarise
+    from planer.cli import output_file, output_folder
 
     log_path = Path(args.log)
+    if log_path.is_dir():
+        raise ValueError(f"LOG {log_path}: is a folder, expected a quality log file")
+    out_dir = Path(args.out) if args.out is not None else log_path.absolute().parent
+    output_folder("--out" if args.out is not None else "figure folder (next to LOG; see --out)",
+                  out_dir)
+    if args.csv is not None:
+        output_file("--csv", args.csv)
+
     with QualityLog(log_path, create=False) as log:
         records = log.records()
         quality_class = log.quality_class()
@@ -55,11 +64,6 @@ def run(args: argparse.Namespace) -> int:
         if args.csv is not None:
             csv_path = Path(args.csv)
             n_csv = log.export_csv(csv_path)
-
-    out_dir = Path(args.out) if args.out is not None else log_path.absolute().parent
-    if out_dir.exists() and not out_dir.is_dir():
-        raise NotADirectoryError(f"--out is not a folder: {out_dir}")
-    out_dir.mkdir(parents=True, exist_ok=True)
 
     summary = summarise(records, quality_class=quality_class)
     written: dict[str, str] = {}
@@ -78,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
             print("\nFigures:")
             for path in written.values():
                 print(f"  {path}")
+        else:
+            print("\nNo figures: the log holds no measurements.")
         if csv_path is not None:
             print(f"CSV: {csv_path} ({n_csv} rows)")
     return 0

@@ -3,8 +3,10 @@
 Reads image pairs from the configured frame source, measures them, closes the feed and
 uniformity loops over Modbus TCP (PLC) and CAN (piezo amplifier), and appends every measurement
 to the quality log. Prints where it connects, then one line per ``[log] print_every``
-measurements and every change of the safe state. Ctrl-C or SIGTERM stops it cleanly. The same
-command runs against ``planer sim`` and against the real machine: only ``--config`` changes.
+measurements and every change of the safe state; while it waits in the safe state (PLC not
+answering, amplifier silent, no image pairs) it says so every ``--status-every`` seconds. Ctrl-C
+or SIGTERM stops it cleanly. The same command runs against ``planer sim`` and against the real
+machine: only ``--config`` changes (see ``docs/service.md``, "Running it").
 """
 
 from __future__ import annotations
@@ -27,6 +29,39 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="stop after N image pairs (default: run until stopped)",
     )
+    parser.add_argument(
+        "--status-every",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="while waiting in the safe state, say what is missing every S seconds (default 5)",
+    )
+
+
+_MISSING = {
+    "plc": "PLC {plc} not answering",
+    "can": "piezo amplifier on {can} silent",
+    "measurement": "no valid image pair from {frames}",
+    "machine": "machine not running (e-stop or spindle stopped)",
+    "plc_data": "PLC registers implausible",
+    "log": "quality log not writable",
+    "service": "service error",
+}
+
+
+def waiting_line(missing: tuple[str, ...], *, plc: str, can: str, frames: str) -> str:
+    """One line saying why the service waits in the safe state.
+
+    Parameters
+    ----------
+    missing : tuple of str
+        The supervisor's missing sources (``controller.safety.SOURCES``).
+    plc, can, frames : str
+        Where the PLC, the CAN bus and the frames are expected, for the message.
+    """
+    names = {"plc": plc, "can": can, "frames": frames}
+    parts = [_MISSING.get(m, m).format(**names) for m in missing]
+    return "waiting in the safe state: " + ("; ".join(parts) or "confirming recovery")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,14 +74,26 @@ def run(args: argparse.Namespace) -> int:
 
     from config.machine import load_machine
     from controller.frame_source import open_frame_source
+    from controller.safety import SafetyState
     from controller.service import open_service
     from planer.checks import check_int
+    from planer.cli import output_file, output_folder
 
     if args.max_frames is not None:
         check_int("--max-frames", args.max_frames, lo=1)
+    if not args.status_every > 0:
+        raise ValueError(f"--status-every must be > 0, got {args.status_every}")
     cfg = load_machine(args.config)
     if cfg.frames.source != "spool":
-        raise ValueError("planer serve needs frames.source = spool (inprocess: tests and HIL)")
+        raise ValueError(
+            f"planer serve needs frames.source = spool, got {cfg.frames.source!r} "
+            "(inprocess is for tests and planer hil)"
+        )
+    output_folder(f"{args.config or 'config/machine.toml'}: frames.spool_dir", cfg.frames.spool_dir)
+    log_path = Path(output_file(
+        "--log" if args.log else f"{args.config or 'config/machine.toml'}: log.path",
+        args.log or cfg.log.path,
+    ))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
@@ -54,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         print(line, flush=True)
 
     async def main() -> int:
-        service = open_service(cfg, log_path=Path(args.log) if args.log else None)
+        service = open_service(cfg, log_path=log_path)
         source = open_frame_source(cfg.frames)
         t0 = service.clock()
         say(f"plc: {cfg.plc.host}:{cfg.plc.port} unit {cfg.plc.unit_id}")
@@ -92,10 +139,27 @@ def run(args: argparse.Namespace) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
+        where = {
+            "plc": f"{cfg.plc.host}:{cfg.plc.port}",
+            "can": f"{cfg.can.interface}:{cfg.can.channel}",
+            "frames": f"spool {cfg.frames.spool_dir}",
+        }
+
+        async def tell_why_waiting() -> None:
+            # the service starts in SAFE and says nothing until it recovers: say what it waits for
+            while not stop.is_set():
+                await asyncio.sleep(args.status_every)
+                status = service.status
+                if status is not None and status.state is not SafetyState.RUN:
+                    say(f"t={service.clock() - t0:9.3f} s  "
+                        + waiting_line(tuple(status.missing), **where))
+
         say("ready")
+        watcher = asyncio.create_task(tell_why_waiting())
         try:
             await service.run(source, stop=stop, max_frames=args.max_frames)
         finally:
+            watcher.cancel()
             service.close()
             source.close()
         c = service.counters

@@ -59,6 +59,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _check_port_free(host: str, port: int, *, option: str) -> None:
+    """Raise ``ValueError`` naming ``option`` when ``host:port`` is taken (before any set-up)."""
+    import errno
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise ValueError(
+                    f"{option} {port}: {host}:{port} is already in use (another planer sim?); "
+                    "choose another port, or --port 0 for a free one"
+                ) from None
+            raise ValueError(
+                f"{option} {port}: cannot listen on {host}:{port}: {exc.strerror or exc}"
+            ) from None
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
     import asyncio
@@ -67,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
     from config.sim import load_sim
     from planer.checks import check_int
+    from planer.cli import output_folder
     from plant_sim.runner import SimRunner
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration >= 0):
@@ -81,6 +102,13 @@ def run(args: argparse.Namespace) -> int:
     if not args.progress > 0:
         raise ValueError(f"--progress must be > 0, got {args.progress}")
     cfg = load_sim(args.config)
+    if args.spool is not None:
+        output_folder("--spool", args.spool)
+    else:
+        output_folder(f"{args.config or 'config/sim.toml'}: frames.spool_dir", cfg.frames.spool_dir)
+    port = cfg.modbus.port if args.port is None else args.port
+    if port:
+        _check_port_free(cfg.modbus.host, port, option="--port" if args.port else "modbus.port")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
