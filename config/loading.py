@@ -152,3 +152,50 @@ class Section:
         unknown = sorted(set(self._data) - self._used)
         if unknown:
             raise ConfigError(f"unknown key {self.key(unknown[0])}")
+
+
+# ------------------------------------------------------------------ tables shared by the configs
+CAN_INTERFACES = ("virtual", "udp_multicast", "remote", "socketcan")
+"""python-can interfaces the project uses (in-process, namespace multicast, remote, the machine)."""
+
+
+def can_bus_keys(s: Section, *, interface: str, channel: str) -> tuple[str, str, dict[str, Any]]:
+    """The python-can bus of a ``[can]`` table: ``interface``, ``channel``, ``[can.options]``.
+
+    Parameters
+    ----------
+    s : Section
+        The ``[can]`` table (other keys are left to the caller).
+    interface, channel : str
+        Defaults.
+
+    Returns
+    -------
+    (interface, channel, options)
+        ``options`` are extra keyword arguments for ``can.Bus``.
+    """
+    iface = s.string("interface", interface, choices=CAN_INTERFACES)
+    chan = s.string("channel", channel)
+    if not chan:
+        raise ConfigError(f"{s.key('channel')} must not be empty")
+    options = s.raw("options", {})
+    if not isinstance(options, Mapping):
+        raise ConfigError(f"{s.key('options')} must be a table, got {options!r}")
+    return iface, chan, dict(options)
+
+
+def modbus_endpoint(
+    s: Section, *, host: str, port: int, unit_id: int, port_lo: int = 1, unit_hi: int = 255
+) -> tuple[str, int, int]:
+    """``host``, ``port`` and ``unit_id`` of a Modbus TCP table (errors name the key).
+
+    ``port_lo = 0`` lets a server pick a free port; ``unit_hi`` bounds the unit id.
+    """
+    h = s.string("host", host)
+    if not h.strip():
+        raise ConfigError(f"{s.key('host')} must not be empty")
+    return (
+        h,
+        s.integer("port", port, lo=port_lo, hi=65535),
+        s.integer("unit_id", unit_id, lo=0, hi=unit_hi),
+    )

@@ -17,10 +17,9 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from config.loading import Section, default_path, load_toml
+from config.loading import Section, can_bus_keys, default_path, load_toml, modbus_endpoint
 from planer.errors import ConfigError
 
-CAN_INTERFACES = ("virtual", "udp_multicast", "remote", "socketcan")
 FRAME_SOURCES = ("spool", "inprocess")
 SAFE_STATES = ("hold", "ramp_down")
 
@@ -223,10 +222,11 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
     root = Section(data, "")
 
     plc = root.section("plc", required=False)
+    host, port, unit_id = modbus_endpoint(plc, host="127.0.0.1", port=5020, unit_id=1, unit_hi=247)
     plc_cfg = PlcConfig(
-        host=plc.string("host", "127.0.0.1"),
-        port=plc.integer("port", 5020, lo=1, hi=65535),
-        unit_id=plc.integer("unit_id", 1, lo=0, hi=247),
+        host=host,
+        port=port,
+        unit_id=unit_id,
         timeout_s=plc.number("timeout_s", 0.25, lo=0.0, lo_open=True, hi=60.0),
         backoff_initial_s=plc.number("backoff_initial_s", 0.05, lo=0.0, lo_open=True),
         backoff_max_s=plc.number("backoff_max_s", 2.0, lo=0.0, lo_open=True),
@@ -234,16 +234,14 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
     )
     if plc_cfg.backoff_max_s < plc_cfg.backoff_initial_s:
         raise ConfigError("plc.backoff_max_s must be >= plc.backoff_initial_s")
-    if plc_cfg.host.strip() == "":
-        raise ConfigError("plc.host must not be empty")
     plc.reject_unknown()
 
     can = root.section("can", required=False)
-    opts = can.section("options", required=False)
+    interface, channel, options = can_bus_keys(can, interface="virtual", channel="planer")
     can_cfg = CanConfig(
-        interface=can.string("interface", "virtual", choices=CAN_INTERFACES),
-        channel=can.string("channel", "planer"),
-        options=_frozen(opts._data),  # noqa: SLF001
+        interface=interface,
+        channel=channel,
+        options=_frozen(options),
         command_period_s=can.number("command_period_s", 0.02, lo=0.0, lo_open=True, hi=0.05),
         offsets_period_s=can.number("offsets_period_s", 0.2, lo=0.0, lo_open=True, hi=10.0),
         dbc=_path_or_none(can, "dbc", base),

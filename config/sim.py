@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from config.loading import Section, default_path, load_toml
+from config.loading import Section, can_bus_keys, default_path, load_toml, modbus_endpoint
 from config.rig import Rig, load_rig
 from planer.errors import ConfigError
 
@@ -362,9 +362,6 @@ class SimConfig:
     source: Path | None = None
 
 
-CAN_INTERFACES = ("virtual", "udp_multicast", "remote", "socketcan")
-
-
 def _spindle(s: Section) -> SpindleConfig:
     d = SpindleConfig()
     out = SpindleConfig(
@@ -563,31 +560,18 @@ def _faults(raw: Any) -> tuple[FaultSpec, ...]:
 
 def _modbus(s: Section) -> ModbusConfig:
     d = ModbusConfig()
-    out = ModbusConfig(
-        host=s.string("host", d.host),
-        port=s.integer("port", d.port, lo=0, hi=65535),
-        unit_id=s.integer("unit_id", d.unit_id, lo=0, hi=255),
+    host, port, unit_id = modbus_endpoint(
+        s, host=d.host, port=d.port, unit_id=d.unit_id, port_lo=0
     )
     s.reject_unknown()
-    if not out.host:
-        raise ConfigError(f"{s.key('host')} must not be empty")
-    return out
+    return ModbusConfig(host=host, port=port, unit_id=unit_id)
 
 
 def _can(s: Section) -> CanConfig:
     d = CanConfig()
-    options = s.raw("options", {})
-    if not isinstance(options, Mapping):
-        raise ConfigError(f"{s.key('options')} must be a table, got {options!r}")
-    out = CanConfig(
-        interface=s.string("interface", d.interface, choices=CAN_INTERFACES),
-        channel=s.string("channel", d.channel),
-        options=dict(options),
-    )
+    interface, channel, options = can_bus_keys(s, interface=d.interface, channel=d.channel)
     s.reject_unknown()
-    if not out.channel:
-        raise ConfigError(f"{s.key('channel')} must not be empty")
-    return out
+    return CanConfig(interface=interface, channel=channel, options=options)
 
 
 def _frames(s: Section) -> FramesConfig:
@@ -658,6 +642,11 @@ def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> S
         raise ConfigError(
             f"encoder.counts_per_mm ({cfg.encoder.counts_per_mm}) disagrees with the rig: "
             f"px_per_mm / px_per_count = {rig.camera.px_per_mm / rig.encoder.px_per_count}"
+        )
+    if cfg.encoder.counter_bits != rig.encoder.counter_bits:
+        raise ConfigError(
+            f"encoder.counter_bits ({cfg.encoder.counter_bits}) disagrees with the rig's "
+            f"({rig.encoder.counter_bits}): the service unwraps the latched counts with the rig's"
         )
     max_pitch = cfg.feed.max_mm_s / (cfg.spindle.rpm / 60.0 * head.knives)
     if max_pitch > 0.25 * head.radius_mm:

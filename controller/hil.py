@@ -469,7 +469,7 @@ def _fault_report(
     safety: Any,
     offset_s: float,
 ) -> dict[str, Any]:
-    t0 = f.at_s + offset_s
+    t0 = f.at_s + _local_offset(results, f.at_s, offset_s)
     t1 = t0 + f.duration_s
     rep: dict[str, Any] = {"kind": f.kind, "at_s": f.at_s, **dict(f.params)}
     if f.kind not in INTERFACE_FAULTS:
@@ -532,6 +532,44 @@ def check_log(path: Path, n_expected: int, *, after_id: int = 0) -> dict[str, An
         "ids_consecutive": consecutive,
         "ok": len(entries) == n_expected and consecutive,
     }
+
+
+def _service_summary(
+    service: Service,
+    cfg: MachineConfig,
+    faults: Sequence[FaultEvent],
+    *,
+    counts_per_mm: float,
+    log_path: Path,
+    start_id: int,
+    time_offset_s: float = 0.0,
+    t_start_s: float = 0.0,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """:func:`summarize` a finished run of ``service`` and check its quality log."""
+    results = service.results
+    snap = service.plc.last
+    lim = (snap.feed_min_mm_s, snap.feed_max_mm_s) if snap else (math.nan, math.nan)
+    summary = summarize(
+        results,
+        target_pitch_mm=cfg.quality.target_pitch_mm,
+        counts_per_mm=counts_per_mm,
+        feed_limits_mm_s=lim,
+        stroke_um=cfg.stroke_um,
+        faults=faults,
+        events=service.events,
+        safety=cfg.safety,
+        time_offset_s=time_offset_s,
+        extra={
+            **dict(extra or {}),
+            "events": [[round(t - t_start_s, 3), e] for t, e in service.events],
+            "service": dict(service.counters),
+        },
+    )
+    summary["quality_log"] = check_log(Path(log_path), len(results), after_id=start_id)
+    summary["done"]["quality_log_intact"] = summary["quality_log"]["ok"]
+    summary["passed"] = all(summary["done"].values())
+    return summary
 
 
 # ---------------------------------------------------------------------------------- in-process
@@ -798,19 +836,14 @@ class InProcessHil:
             wall = time.perf_counter() - wall0
         finally:
             await plant.close()
-        results = service.results
         snap = plant.plc.last
-        lim = (snap.feed_min_mm_s, snap.feed_max_mm_s) if snap else (math.nan, math.nan)
-        cpm = snap.counts_per_mm if snap else self.sim_cfg.encoder.counts_per_mm
-        summary = summarize(
-            results,
-            target_pitch_mm=cfg.quality.target_pitch_mm,
-            counts_per_mm=cpm,
-            feed_limits_mm_s=lim,
-            stroke_um=cfg.stroke_um,
-            faults=sc.faults,
-            events=service.events,
-            safety=cfg.safety,
+        return _service_summary(
+            service,
+            cfg,
+            sc.faults,
+            counts_per_mm=snap.counts_per_mm if snap else self.sim_cfg.encoder.counts_per_mm,
+            log_path=self.log_path,
+            start_id=plant.start_id,
             extra={
                 "mode": "in-process",
                 "scenario": sc.name,
@@ -818,14 +851,8 @@ class InProcessHil:
                 "sim_time_s": round(plant.clock(), 3),
                 "wall_time_s": round(wall, 3),
                 "board_travel_m": round(plant.travelled_mm / 1000, 3),
-                "events": [[round(t, 3), e] for t, e in service.events],
-                "service": dict(service.counters),
             },
         )
-        summary["quality_log"] = check_log(self.log_path, len(results), after_id=plant.start_id)
-        summary["done"]["quality_log_intact"] = summary["quality_log"]["ok"]
-        summary["passed"] = all(summary["done"].values())
-        return summary
 
 
 def _progress_line(service: Service, travelled_mm: float) -> str:
@@ -970,15 +997,9 @@ async def run_cross_process(
     :func:`cross_process_possible`). CAN: ``udp_multicast`` on the namespace's ``lo``; Modbus:
     127.0.0.1 on a free port; frames: a spool directory.
     """
-    from config.machine import CanConfig, FramesConfig, PlcConfig, registers_path, rig_path
-    from config.rig import load_rig
+    from config.machine import CanConfig
     from controller.frame_source import open_frame_source
-    from controller.piezo_client import PiezoClient, open_bus
-    from controller.plc_client import Backoff, PlcClient
-    from controller.quality_log import QualityLog
-    from planer.protocol.piezo_can import PiezoCodec
-    from planer.protocol.registers import RegisterMap
-    from vision.pipeline import Measurer
+    from controller.service import open_service
 
     say = progress or (lambda _line: None)
     tmp = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="planer-hil-"))
@@ -1012,33 +1033,19 @@ async def run_cross_process(
         host, _, port = banner["modbus"].rpartition(":")
         say(f"sim ready: modbus {banner['modbus']}, can {banner.get('can')}, "
             f"frames {banner.get('frames')}")
+        optics = sim_cfg.camera.optics
         cfg = cfg.with_changes(
             plc=replace(cfg.plc, host=host, port=int(port)),
             can=CanConfig(interface="udp_multicast", channel=group,
                           options={"port": can_port},
                           command_period_s=cfg.can.command_period_s,
-                          offsets_period_s=cfg.can.offsets_period_s),
-            frames=FramesConfig(source="spool", spool_dir=spool, poll_s=cfg.frames.poll_s),
+                          offsets_period_s=cfg.can.offsets_period_s, dbc=cfg.can.dbc),
+            frames=replace(cfg.frames, source="spool", spool_dir=spool,
+                           pairs_per_s=sim_cfg.camera.pairs_per_s,
+                           image_width=optics.width, image_height=optics.height),
         )
-        assert isinstance(cfg.plc, PlcConfig)
-        regmap = RegisterMap.load(registers_path(cfg))
-        plc = PlcClient.tcp(
-            cfg.plc.host, cfg.plc.port, unit_id=cfg.plc.unit_id, timeout_s=cfg.plc.timeout_s,
-            regmap=regmap, backoff=Backoff(cfg.plc.backoff_initial_s, cfg.plc.backoff_max_s),
-        )
-        bus = open_bus(cfg.can.interface, cfg.can.channel, dict(cfg.can.options))
-        knives = sim_cfg.cutterhead.knives
-        piezo = PiezoClient(bus, PiezoCodec.load(), knives=knives,
-                            command_period_s=cfg.can.command_period_s,
-                            offsets_period_s=cfg.can.offsets_period_s, stroke_um=cfg.stroke_um)
-        rig = load_rig(rig_path(cfg))
-        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
-        log = QualityLog(log_path)
-        start_id = log.last_id
-        service = Service(cfg, plc=plc, piezo=piezo, rig=rig, log=log, threaded=True,
-                          measurer_factory=lambda shape: Measurer(rig, shape),
-                          pairs_per_s=sim_cfg.camera.pairs_per_s)
-        log.set_quality_class(service.quality_class)
+        service = open_service(cfg, threaded=True, log_path=Path(log_path))
+        start_id = service.log.last_id
         service.keep_results = True
         t_start = service.clock()
         service.on_event = lambda t, e: say(f"t={t - t_start:7.3f} s  {e}")
@@ -1067,37 +1074,27 @@ async def run_cross_process(
         await service.run(source, stop=stop)
         limiter.cancel()
         wall = time.perf_counter() - wall0
-        results = service.results
-        offset = _estimate_offset(results)
-        snap = plc.last
-        lim = (snap.feed_min_mm_s, snap.feed_max_mm_s) if snap else (math.nan, math.nan)
-        summary = summarize(
-            results,
-            target_pitch_mm=cfg.quality.target_pitch_mm,
-            counts_per_mm=cpm,
-            feed_limits_mm_s=lim,
-            stroke_um=cfg.stroke_um,
-            faults=scenario.faults,
-            events=service.events,
-            safety=cfg.safety,
-            time_offset_s=offset,
-            extra={
-                "mode": "cross-process",
-                "scenario": scenario.name,
-                "wall_time_s": round(wall, 3),
-                "events": [[round(t - t_start, 3), e] for t, e in service.events],
-                "service": dict(service.counters),
-                "sim_banner": banner,
-            },
-        )
     finally:
         if service is not None:
             service.close()
         code = sim.stop()
+    summary = _service_summary(
+        service,
+        cfg,
+        scenario.faults,
+        counts_per_mm=cpm,
+        log_path=Path(log_path),
+        start_id=start_id,
+        time_offset_s=_estimate_offset(service.results),
+        t_start_s=t_start,
+        extra={
+            "mode": "cross-process",
+            "scenario": scenario.name,
+            "wall_time_s": round(wall, 3),
+            "sim_banner": banner,
+        },
+    )
     summary["sim_exit_code"] = code
-    summary["quality_log"] = check_log(Path(log_path), len(results), after_id=start_id)
-    summary["done"]["quality_log_intact"] = summary["quality_log"]["ok"]
-    summary["passed"] = all(summary["done"].values())
     return summary
 
 
@@ -1105,3 +1102,19 @@ def _estimate_offset(results: Sequence[FrameResult]) -> float:
     """Service time minus machine time (lowest arrival delay of the frames)."""
     offs = [r.t_s - r.frame_t_s for r in results]
     return min(offs) if offs else 0.0
+
+
+LOCAL_OFFSET_WINDOW_S = 2.0
+"""Machine seconds before a fault whose frames map its time onto the service clock."""
+
+
+def _local_offset(results: Sequence[FrameResult], at_s: float, default: float) -> float:
+    """Service time minus machine time just before machine time ``at_s``.
+
+    The lowest arrival delay of the pairs taken in the ``LOCAL_OFFSET_WINDOW_S`` before it: a
+    simulator that fell behind real time for a while (a loaded machine) shifts the mapping, and
+    a fault's timing is judged against the mapping in force when it happened.
+    """
+    offs = [r.t_s - r.frame_t_s for r in results
+            if at_s - LOCAL_OFFSET_WINDOW_S <= r.frame_t_s <= at_s]
+    return max(min(offs), default) if offs else default

@@ -142,6 +142,32 @@ def knife_of_marks(
         pitch_mm=pitch_mm,
         counter_bits=counter_bits,
     )
+    return knives_from_passes(n, z, align_phase=align_phase)
+
+
+def knives_from_passes(
+    passes: np.ndarray, knives: int, *, align_phase: bool = False
+) -> np.ndarray:
+    """Knife index of each mark from its pass number: ``round(pass) mod Z``.
+
+    Parameters
+    ----------
+    passes : ndarray, shape (n,)
+        Pass numbers (:func:`pass_numbers`).
+    knives : int
+        Number of knives ``Z``.
+    align_phase : bool
+        Remove the common fractional part first (see :func:`knife_of_marks`).
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+        Knife index in ``[0, Z)`` of each mark.
+    """
+    z = check_int("knives", knives, lo=1)
+    n = np.asarray(passes, dtype=float)
+    if n.ndim != 1 or not np.all(np.isfinite(n)):
+        raise ValueError("passes must be a finite 1-D array")
     if align_phase and n.size:
         n = n - phase_offset(n)
     return np.mod(np.rint(n).astype(np.int64), z)

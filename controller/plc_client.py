@@ -21,6 +21,7 @@ One owner per bus: the service creates one ``PlcClient`` and nothing else talks 
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -141,6 +142,56 @@ class PlcSnapshot:
     def spindle_running(self) -> bool:
         """Whether the spindle runs."""
         return bool(self.machine_state & STATE_SPINDLE_RUNNING)
+
+    def problem(self) -> str | None:
+        """Why these registers cannot be trusted for control, or ``None`` when they can.
+
+        A PLC that answers nonsense (NaN or infinite floats, no knives, a zero encoder scale,
+        inverted feed limits...) must not drive the loops: the service
+        treats such an answer like a machine that is not fit to run (safe state, no feed write).
+
+        Returns
+        -------
+        str or None
+            The first problem found, naming the register(s).
+        """
+        v = self.values
+        try:
+            knives = int(v["knives"])
+            if not 1 <= knives <= MAX_KNIVES:
+                return f"knives = {knives} (must be 1..{MAX_KNIVES})"
+            for name in _POSITIVE:
+                x = float(v[name])
+                if not (math.isfinite(x) and x > 0):
+                    return f"{name} = {x!r} (must be finite and > 0)"
+            for name in _NON_NEGATIVE:
+                x = float(v[name])
+                if not (math.isfinite(x) and x >= 0):
+                    return f"{name} = {x!r} (must be finite and >= 0)"
+            if not math.isfinite(self.feed_actual_mm_s):
+                return f"feed_actual_mm_s = {self.feed_actual_mm_s!r} (must be finite)"
+            lo, hi = self.feed_min_mm_s, self.feed_max_mm_s
+            if not lo < hi:
+                return f"feed_min_mm_s {lo!r} >= feed_max_mm_s {hi!r}"
+            if not math.isfinite(self.feed_setpoint_mm_s):
+                return f"feed_setpoint_mm_s = {self.feed_setpoint_mm_s!r} (must be finite)"
+        except KeyError as exc:
+            return f"register {exc} missing"
+        except (TypeError, ValueError) as exc:
+            return f"unreadable value: {exc}"
+        return None
+
+
+MAX_KNIVES = 8
+"""Most knives the piezo frames carry."""
+_POSITIVE = (
+    "feed_min_mm_s",
+    "feed_max_mm_s",
+    "counts_per_mm",
+    "cutter_to_camera_mm",
+    "cutterhead_radius_mm",
+)
+_NON_NEGATIVE = ("spindle_rpm", "feed_accel_max_mm_s2")
 
 
 class PlcProtocol:

@@ -12,9 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import sqlite3
-import tempfile
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
@@ -25,6 +23,7 @@ from typing import Any
 from config.loading import Section
 from planer.checks import check_finite, check_int, check_positive
 from planer.errors import PlanerError
+from planer.fileio import atomic_writer
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -35,6 +34,7 @@ __all__ = [
     "QualityLog",
     "judge",
     "quality_class_from_section",
+    "record_to_json",
     "utc_iso",
 ]
 
@@ -419,6 +419,17 @@ def _list_from_json(text: str) -> tuple[float, ...]:
     return tuple(math.nan if v is None else float(v) for v in json.loads(text))
 
 
+def record_to_json(record: QualityRecord) -> str:
+    """One record as a line of JSON (fields by name; NaN as ``null``), e.g. for a fallback file."""
+    out: dict[str, Any] = {}
+    for name in _FIELD_NAMES:
+        v = getattr(record, name)
+        if name in _TUPLES:
+            v = [None if math.isnan(x) else x for x in v]
+        out[name] = v
+    return json.dumps(out, default=_json_default, allow_nan=False)
+
+
 def _to_row(rec: QualityRecord) -> tuple[Any, ...]:
     row: list[Any] = []
     for name in _FIELD_NAMES:
@@ -720,23 +731,11 @@ class QualityLog:
         if not out.parent.is_dir():
             raise FileNotFoundError(f"folder of the CSV file does not exist: {out.parent}")
         entries = self.entries()
-        fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-        try:
-            with os.fdopen(fd, "w", newline="", encoding="utf-8") as fh:
-                w = csv.writer(fh)
-                w.writerow(CSV_COLUMNS)
-                for rid, rec in entries:
-                    w.writerow(csv_row(rid, rec))
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, out)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
-        _fsync_dir(out.parent)
+        with atomic_writer(out, newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(CSV_COLUMNS)
+            for rid, rec in entries:
+                w.writerow(csv_row(rid, rec))
         return len(entries)
 
     # -- lifetime -----------------------------------------------------------------------------
@@ -763,19 +762,6 @@ def _uri_path(p: Path) -> str:
     from urllib.parse import quote
 
     return quote(str(p.absolute()))
-
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 # --------------------------------------------------------------------------------------------

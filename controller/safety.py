@@ -1,16 +1,19 @@
 """Safe-state supervisor of the service: a pure state machine with timeouts (sans-I/O).
 
-The service tells the supervisor when each source was last good — the PLC answered, the piezo
-amplifier was heard on CAN, a valid measurement arrived (or none was expected because no board
-is under the camera), the machine reports no e-stop — and asks it, every cycle, which state to
+The service tells the supervisor when each source was last good — the PLC answered a read, the
+piezo amplifier was heard on CAN, a valid measurement arrived (or none was expected because no
+board is under the camera) — and whether each condition holds — the machine reports no e-stop
+and a turning spindle, the PLC's registers make sense, the quality log takes the records, the
+service's own code ran without an unexpected error — and asks it, every cycle, which state to
 be in and what to command in the safe state:
 
 * ``RUN``: the control loops own the setpoints.
-* ``SAFE``: entered as soon as any source has been gone for longer than its timeout. The feed is
-  held or ramped down to ``safe_feed_mm_s`` (rate-limited, inside the machine's limits, as
-  configured), the piezo offsets go to zero and the amplifier is disabled.
-* Recovery is automatic: once every source is back and has stayed back for ``recovery_s``
-  (confirmation time), the state returns to ``RUN``.
+* ``SAFE``: entered as soon as any source has been gone for longer than its timeout or any
+  condition fails. The feed is held or ramped down to ``safe_feed_mm_s`` (rate-limited, inside
+  the machine's limits, as configured), the piezo offsets go to zero and the amplifier is
+  disabled.
+* Recovery is automatic: once every source is back and every condition has held for
+  ``recovery_s`` (confirmation time), the state returns to ``RUN``.
 
 The supervisor starts in ``SAFE`` (nothing heard yet). Time is always passed in (``now_s``,
 seconds on any monotonic clock); the supervisor never reads a clock.
@@ -24,7 +27,12 @@ from dataclasses import dataclass
 from config.machine import SafetyConfig
 from planer.checks import check_finite, check_positive
 
-SOURCES = ("plc", "can", "measurement", "machine")
+TIMED_SOURCES = ("plc", "can", "measurement")
+"""Sources that must be heard within their timeout."""
+CONDITIONS = ("machine", "plc_data", "log", "service")
+"""Conditions that must hold: the machine fit to run, the PLC's registers sensible, the quality
+log writable, the service's own code free of unexpected errors."""
+SOURCES = TIMED_SOURCES + CONDITIONS
 """What the supervisor watches, in the order reasons are reported."""
 
 
@@ -80,7 +88,7 @@ class Supervisor:
             "measurement": cfg.measurement_timeout_s,
         }
         self._last: dict[str, float | None] = {"plc": None, "can": None, "measurement": t0}
-        self._machine_ok = True
+        self._ok = dict.fromkeys(CONDITIONS, True)
         self.state = SafetyState.SAFE
         self.since_s = t0
         self._ok_since: float | None = None
@@ -111,7 +119,13 @@ class Supervisor:
 
     def machine_ok(self, ok: bool) -> None:
         """Whether the machine reports itself fit to run (no e-stop, spindle turning)."""
-        self._machine_ok = bool(ok)
+        self.set_ok("machine", ok)
+
+    def set_ok(self, condition: str, ok: bool) -> None:
+        """Whether ``condition`` (one of :data:`CONDITIONS`) holds now."""
+        if condition not in self._ok:
+            raise ValueError(f"condition must be one of {', '.join(CONDITIONS)}; got {condition!r}")
+        self._ok[condition] = bool(ok)
 
     def last_heard(self, source: str) -> float | None:
         """Time ``source`` (``"plc"``, ``"can"``, ``"measurement"``) was last good."""
@@ -123,8 +137,8 @@ class Supervisor:
         t = check_finite("now_s", now_s)
         out = []
         for src in SOURCES:
-            if src == "machine":
-                if not self._machine_ok:
+            if src in self._ok:
+                if not self._ok[src]:
                     out.append(src)
                 continue
             last = self._last[src]

@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +36,7 @@ from config.machine import MachineConfig
 from controller.piezo_client import PiezoClient
 from controller.plc_client import PlcClient, PlcSnapshot
 from controller.safety import SafetyState, SafetyStatus, Supervisor
-from planer.errors import FieldbusError, MeasurementError, ModbusRefused
+from planer.errors import FieldbusError, ModbusRefused, RegistrationError
 from planer.protocol.frames import Frame
 
 PLC_SNAPSHOT_MAX_AGE_CYCLES = 2.0
@@ -44,6 +45,18 @@ FEED_WRITE_DEADBAND_MM_S = 0.5
 """Feed-forward changes smaller than this between measurements are not written, mm/s."""
 MAX_PHASE_SPREAD = 0.15
 """Marks whose pass numbers spread more than this (in passes) are not attributed to knives."""
+MAX_PENDING_RECORDS = 10_000
+"""Quality records held in memory while the log cannot be written (about 17 min at 10 pairs/s);
+beyond that the oldest are saved to a JSON-lines file beside the log."""
+_REASONS = {
+    "plc": "plc gone",
+    "can": "can gone",
+    "measurement": "measurement gone",
+    "machine": "machine not running",
+    "plc_data": "plc data invalid",
+    "log": "quality log failing",
+    "service": "service error",
+}
 
 
 @dataclass(frozen=True)
@@ -168,9 +181,17 @@ class Service:
         self.offsets_um: tuple[float, ...] = ()
         self._learned_offsets: np.ndarray | None = None
         self._last_tick_s: float | None = None
-        self._state = SafetyState.SAFE
         self._machine_offset_s: float | None = None  # service clock minus machine time
+        self._last_frame_t: float | None = None
+        self._last_seq: int | None = None
         self._t_loops = -math.inf
+        self._t_now: float | None = None  # last service time handed out (never decreases)
+        self._clock_shift = 0.0  # added to the clock after it went backwards
+        self._snap_t = -math.inf  # service time of the last good register read
+        self._plc_problem: str | None = None
+        self._last_error: str | None = None
+        self._pending: deque[Any] = deque()  # quality records not yet in the log, in order
+        self._log_failing = False
         self.status: SafetyStatus | None = None
         self.results: list[FrameResult] = []
         self.keep_results = False
@@ -186,6 +207,7 @@ class Service:
             "setpoint_refused": 0,
             "log_errors": 0,
             "errors": 0,
+            "missed": 0,
         }
         self.events: list[tuple[float, str]] = []
         self.on_result: Callable[[FrameResult], None] | None = None
@@ -196,6 +218,34 @@ class Service:
         self.events.append((t, text))
         if self.on_event is not None:
             self.on_event(t, text)
+
+    def _now(self, now_s: float | None = None) -> float:
+        """Service time: ``now_s`` or the clock, never decreasing.
+
+        A clock that jumps backwards (a badly set system clock, a restarted time source) would
+        blind every timeout and stop the cyclic frames; the service time then continues from
+        where it was and advances with the clock from there (the jump is reported once).
+        """
+        raw = self.clock() if now_s is None else float(now_s)
+        if not math.isfinite(raw):
+            raise ValueError(f"now_s must be finite, got {raw!r}")
+        t = raw + self._clock_shift
+        last = self._t_now
+        if last is not None and t < last:
+            self._clock_shift += last - t
+            self._event(last, f"clock went back by {last - t:.3f} s: service time continues")
+            t = last
+        self._t_now = t
+        return t
+
+    def _describe(self, missing: Sequence[str]) -> str:
+        parts = []
+        for m in missing:
+            text = _REASONS.get(m, f"{m} gone")
+            if m == "plc_data" and self._plc_problem:
+                text += f" ({self._plc_problem})"
+            parts.append(text)
+        return ", ".join(parts) or "start"
 
     def measurer(self, shape: tuple[int, int]) -> Any:
         """The measurer for images of ``shape`` (built once per shape)."""
@@ -245,7 +295,7 @@ class Service:
         self.feed_loop = FeedLoop(fcfg)
         lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
         self.feed_loop.reset(feed_mm_s=min(max(snap.feed_setpoint_mm_s, lo), hi))
-        self.uniformity_loop = _make_uniformity_loop(self.cfg, snap, self.pairs_per_s)
+        self.uniformity_loop = _make_uniformity_loop(self.cfg, snap)
         self._learned_offsets = np.zeros(snap.knives)
         if self.piezo.knives != snap.knives:
             self.piezo.set_knives(snap.knives)
@@ -255,6 +305,10 @@ class Service:
     # ------------------------------------------------------------------ the control cycle
     async def tick(self, now_s: float | None = None) -> SafetyStatus:
         """One control cycle: heartbeats, PLC and CAN status, supervisor, safe actions.
+
+        Never raises for what the world does (buses gone, garbage registers) nor for the
+        service's own unexpected errors: those are reported as events, put the machine in the
+        safe state (offsets 0, amplifier disabled) and the heartbeats go on.
 
         Parameters
         ----------
@@ -266,7 +320,15 @@ class Service:
         SafetyStatus
             The supervisor's decision of this cycle.
         """
-        t = self.clock() if now_s is None else float(now_s)
+        t = self._now(now_s)
+        try:
+            status = await self._tick(t)
+        except Exception as exc:  # noqa: BLE001 - a bug must not stop the heartbeats
+            return await self._internal_error(t, "control cycle", exc)
+        self.supervisor.set_ok("service", True)  # a whole cycle ran without an error
+        return status
+
+    async def _tick(self, t: float) -> SafetyStatus:
         dt = 0.0 if self._last_tick_s is None else max(0.0, t - self._last_tick_s)
         self._last_tick_s = t
         self.heartbeat = (self.heartbeat + 1) & 0xFFFF
@@ -277,8 +339,10 @@ class Service:
             snap = await self.plc.read()
         except FieldbusError:
             self.counters["plc_errors"] += 1
-        if self.plc.last_ok_s is not None:
-            sup.plc_answered(min(self.plc.last_ok_s, t))
+        if snap is not None:
+            sup.plc_answered(t)  # a read answered: refusals and bare writes do not count
+            self._snap_t = t
+            snap = self._check_snapshot(snap, t)
         if snap is not None:
             self._ensure_loops(snap)
             sup.machine_ok(not snap.estop and snap.spindle_running)
@@ -290,45 +354,89 @@ class Service:
             self.counters["can_errors"] += 1
         if self.piezo.last_heard_s is not None:
             sup.can_heard(self.piezo.last_heard_s)
-        status = sup.step(t)
-        self.status = status
-        if status.changed:
-            if status.state is SafetyState.SAFE:
-                self.counters["safe_entries"] += 1
-                self._event(t, f"safe state: {', '.join(status.missing) or 'start'} gone")
-            else:
-                self.counters["recoveries"] += 1
-                self._event(t, "recovered: control resumed")
-                self._resume(t)
+        status = self._step_supervisor(t)
         if status.state is SafetyState.SAFE:
             await self._safe_actions(t, dt, snap)
         else:
             self.piezo.set_enable(True, now_s=t)
             if snap is not None and self.feed_loop is not None:
                 await self._feed_forward(t, snap)
+        self._send_piezo_command(t)
+        return status
+
+    def _check_snapshot(self, snap: PlcSnapshot, t: float) -> PlcSnapshot | None:
+        """``snap`` if its registers make sense, else ``None`` (reported, supervisor told)."""
+        problem = snap.problem()
+        if problem != self._plc_problem:
+            if problem is not None:
+                self._event(t, f"PLC data invalid: {problem}")
+            elif self._plc_problem is not None:
+                self._event(t, "PLC data valid again")
+        self._plc_problem = problem
+        self.supervisor.set_ok("plc_data", problem is None)
+        return snap if problem is None else None
+
+    def _step_supervisor(self, t: float) -> SafetyStatus:
+        status = self.supervisor.step(t)
+        self.status = status
+        if status.changed:
+            if status.state is SafetyState.SAFE:
+                self.counters["safe_entries"] += 1
+                self._event(t, f"safe state: {self._describe(status.missing)}")
+            else:
+                self.counters["recoveries"] += 1
+                self._event(t, "recovered: control resumed")
+                self._resume(t)
+        return status
+
+    def _send_piezo_command(self, t: float) -> None:
         try:
             self.piezo.tick(alive_counter=self.heartbeat & 0xFF, now_s=t)
         except FieldbusError:
             self.counters["can_errors"] += 1
+
+    async def _internal_error(self, t: float, where: str, exc: BaseException) -> SafetyStatus:
+        """An unexpected error of the service's own code: report it, go safe, keep the beat."""
+        self.counters["errors"] += 1
+        self.supervisor.set_ok("service", False)
+        text = f"service error in {where}: {_exc_name(exc)}: {exc}"
+        if text != self._last_error:  # the same error every cycle is reported once
+            self._event(t, text)
+            self._last_error = text
+        try:
+            status = self._step_supervisor(t)
+        except Exception:  # noqa: BLE001 - the supervisor itself failed: safe regardless
+            status = SafetyStatus(SafetyState.SAFE, ("service",), False, t)
+        try:
+            self._zero_offsets(t)
+        except Exception as exc2:  # noqa: BLE001
+            self.counters["can_errors"] += 1
+            self._event(t, f"piezo offsets could not be zeroed: {_exc_name(exc2)}: {exc2}")
+        try:
+            self._send_piezo_command(t)
+        except Exception:  # noqa: BLE001 - the amplifier's own timeout ramps to zero
+            self.counters["can_errors"] += 1
         return status
 
+    def _zero_offsets(self, t: float) -> None:
+        """Disable the amplifier and send zero offsets (the safe piezo state)."""
+        if not self.piezo.knives:
+            return
+        self.piezo.set_enable(False, now_s=t)
+        self.offsets_um = self.piezo.set_offsets(
+            self.supervisor.safe_offsets_um(self.piezo.knives), now_s=t
+        )
+
     async def _safe_actions(self, t: float, dt: float, snap: PlcSnapshot | None) -> None:
-        sup = self.supervisor
-        if self.piezo.knives:
-            try:
-                self.piezo.set_enable(False, now_s=t)
-                self.offsets_um = self.piezo.set_offsets(
-                    sup.safe_offsets_um(self.piezo.knives), now_s=t
-                )
-            except FieldbusError:
-                self.counters["can_errors"] += 1
+        try:
+            self._zero_offsets(t)
+        except FieldbusError:
+            self.counters["can_errors"] += 1
         if snap is None:
-            return  # the PLC is gone: its own watchdog acts on the missing heartbeat
+            return  # PLC gone or talking nonsense: no feed write; its watchdog and limits act
         current = snap.feed_setpoint_mm_s
         lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
-        if not (current == current):  # NaN guard
-            return
-        target = sup.safe_feed(current, dt_s=dt, feed_min_mm_s=lo, feed_max_mm_s=hi)
+        target = self.supervisor.safe_feed(current, dt_s=dt, feed_min_mm_s=lo, feed_max_mm_s=hi)
         if abs(target - current) > 1e-3:
             await self._write_feed(target, t)
         else:
@@ -382,7 +490,7 @@ class Service:
         """Back to RUN: restart the feed loop from the feed in force, restore learnt offsets."""
         t = self._loop_time(t)
         snap = self.plc.last
-        if snap is not None and self.feed_loop is not None:
+        if snap is not None and snap.problem() is None and self.feed_loop is not None:
             lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
             feed = min(max(snap.feed_setpoint_mm_s, lo), hi)
             self.feed_loop.reset(feed_mm_s=feed, now_s=t, correction=self.feed_loop.correction)
@@ -405,6 +513,11 @@ class Service:
     async def handle_frame(self, frame: Frame, *, now_s: float | None = None) -> FrameResult:
         """Measure one pair, control, write setpoints, log it.
 
+        Every pair gets exactly one quality record, whatever happens: a pair that cannot be
+        measured (unreadable, registration failed, any exception of the vision, implausible
+        result, no valid PLC data) changes no setpoint and is logged with ``ok = false`` and
+        the reason; an unexpected error of the control code puts the machine in the safe state.
+
         Parameters
         ----------
         frame : Frame
@@ -417,57 +530,35 @@ class Service:
         FrameResult
         """
         wall0 = time.perf_counter()
-        t_arr = self.clock() if now_s is None else float(now_s)
+        t_arr = self._now(now_s)
         self.counters["frames"] += 1
-        # machine time -> service time (lowest observed latency; exact in simulated time)
-        off = t_arr - frame.t_s
-        if self._machine_offset_s is None or off < self._machine_offset_s:
-            self._machine_offset_s = off
-        snap: PlcSnapshot | None = self.plc.last
-        max_age = PLC_SNAPSHOT_MAX_AGE_CYCLES * self.cfg.safety.cycle_s
-        if snap is None or self.clock() - snap.t_s > max_age:
-            try:  # the tick's snapshot is stale (PLC slow or gone): ask now
-                snap = await self.plc.read()
-                self.supervisor.plc_answered(t_arr)
-            except FieldbusError:
-                self.counters["plc_errors"] += 1
-                snap = self.plc.last
+        measured_at = self._machine_to_service(frame, t_arr)
+        snap = await self._snapshot_for(t_arr)
         wall_plc = time.perf_counter()
         wall_meas = wall_plc
         error: str | None = None
         meas: Any = None
-        widths = ()
-        if snap is None:
+        widths: Any = ()
+        if frame.error:
+            error = f"unreadable pair: {frame.error}"
+        elif snap is None:
             error = "no PLC data: registers never read"
+        elif (problem := snap.problem()) is not None:
+            error = f"no valid PLC data: {problem}"
         else:
-            self._ensure_loops(snap)
-            try:
-                meas = await self._call(
-                    self.measurer(tuple(np.shape(frame.image_a))).measure,
-                    frame.image_a,
-                    frame.image_b,
-                    counts_a=frame.counts_a,
-                    counts_b=frame.counts_b,
-                    speed_mm_s=frame.speed_mm_s if frame.speed_mm_s > 0 else None,
-                )
-            except (MeasurementError, ValueError) as exc:
-                error = _reason(exc)
+            error, meas, widths = await self._measure(frame, snap)
             wall_meas = time.perf_counter()
-            if error is None:
-                error = self._implausible(meas, frame, snap)
-            if error is None:
-                try:
-                    widths = self._knife_widths(meas, frame, snap)
-                except ValueError as exc:
-                    error = f"knife phase failed: {exc}"
         ok = error is None
         applied = False
         if ok:
             self.counters["ok"] += 1
             self.supervisor.measurement_valid(t_arr)
             if self.supervisor.state is SafetyState.RUN and snap is not None:
-                t_ctrl = self.clock() if now_s is None else t_arr  # loops need forward time
-                applied = await self._apply(meas, widths, frame, snap, t_ctrl)
+                t_ctrl = self._now() if now_s is None else t_arr  # loops need forward time
+                try:
+                    applied = await self._apply(meas, widths, measured_at, snap, t_ctrl)
+                except Exception as exc:  # noqa: BLE001 - a bug: safe state, pair still logged
+                    await self._internal_error(t_ctrl, f"control of pair {frame.seq}", exc)
         else:
             self.counters["failed"] += 1
         wall1 = time.perf_counter()
@@ -490,11 +581,11 @@ class Service:
             t_s=t_arr,
             latency_s=latency_s,
             truth=frame.truth,
-            counts_a=int(frame.counts_a),
-            frame_t_s=float(frame.t_s),
+            counts_a=_int_or(frame.counts_a, 0),
+            frame_t_s=_opt(frame.t_s) or 0.0,
             extra={"timing_ms": timing},
         )
-        rid = await self._log(result, frame, snap)
+        rid = await self._log(result, frame, t_arr)
         if rid is not None:
             result = _with(result, record_id=rid)
         if self.keep_results:
@@ -502,6 +593,86 @@ class Service:
         if self.on_result is not None:
             self.on_result(result)
         return result
+
+    def _machine_to_service(self, frame: Frame, t_arr: float) -> float:
+        """Service time of the pair's trigger A (its machine time mapped onto the service clock).
+
+        The offset is the lowest arrival delay seen (exact in simulated time). When the camera's
+        clock goes backwards (a restarted camera or simulator) the mapping starts afresh;
+        otherwise every later pair would look ages old and the feed loop would never learn
+        again.
+        """
+        self._note_seq(frame, t_arr)
+        ft = _opt(frame.t_s)
+        if ft is None:
+            return t_arr
+        if self._last_frame_t is not None and ft < self._last_frame_t:
+            self._machine_offset_s = None
+            self._event(t_arr, f"camera clock went back by {self._last_frame_t - ft:.3f} s")
+        self._last_frame_t = ft
+        off = t_arr - ft
+        if self._machine_offset_s is None or off < self._machine_offset_s:
+            self._machine_offset_s = off
+        return min(ft + self._machine_offset_s, t_arr)
+
+    def _note_seq(self, frame: Frame, t: float) -> None:
+        """Report pairs that never reached the service (a gap in the camera's sequence)."""
+        try:
+            seq = int(frame.seq)
+        except (TypeError, ValueError):
+            return
+        last, self._last_seq = self._last_seq, seq
+        if last is not None and seq > last + 1:
+            n = seq - last - 1
+            self.counters["missed"] += n
+            self._event(t, f"{n} pair(s) never reached the service (seq {last + 1}..{seq - 1})")
+
+    async def _snapshot_for(self, t: float) -> PlcSnapshot | None:
+        """The tick's registers if at most two cycles old, else a fresh read (else the last)."""
+        snap: PlcSnapshot | None = self.plc.last
+        max_age = PLC_SNAPSHOT_MAX_AGE_CYCLES * self.cfg.safety.cycle_s
+        if snap is None or t - self._snap_t > max_age:
+            try:  # the tick's snapshot is stale (PLC slow or gone): ask now
+                snap = await self.plc.read()
+                self.supervisor.plc_answered(t)
+                self._snap_t = t
+            except FieldbusError:
+                self.counters["plc_errors"] += 1
+                snap = self.plc.last
+        return snap
+
+    async def _measure(self, frame: Frame, snap: PlcSnapshot) -> tuple[str | None, Any, Any]:
+        """Measure the pair, check it, attribute its marks: ``(error, measurement, widths)``.
+
+        Any exception of the vision (``cv2.error``, ``IndexError``, ``FloatingPointError``...)
+        is a failed measurement, not a crash of the service.
+        """
+        try:
+            self._ensure_loops(snap)
+        except Exception as exc:  # noqa: BLE001 - the loops cannot be built from these registers
+            return f"no control loops: {_exc_name(exc)}: {exc}", None, ()
+        try:
+            meas = await self._call(
+                self.measurer(tuple(np.shape(frame.image_a))).measure,
+                frame.image_a,
+                frame.image_b,
+                counts_a=frame.counts_a,
+                counts_b=frame.counts_b,
+                speed_mm_s=frame.speed_mm_s if frame.speed_mm_s > 0 else None,
+            )
+        except Exception as exc:  # noqa: BLE001 - whatever the vision raises
+            return _reason(exc), None, ()
+        try:
+            error = self._implausible(meas, frame, snap)
+        except Exception as exc:  # noqa: BLE001 - a measurement without the expected fields
+            error = f"implausible: {_exc_name(exc)}: {exc}"
+        if error is not None:
+            return error, meas, ()
+        try:
+            return None, meas, self._knife_widths(meas, frame, snap)
+        except Exception as exc:  # noqa: BLE001
+            text = str(exc) if isinstance(exc, ValueError) else f"{_exc_name(exc)}: {exc}"
+            return f"knife phase failed: {text}", meas, ()
 
     def _implausible(self, meas: Any, frame: Frame, snap: PlcSnapshot) -> str | None:
         pl = self.cfg.plausibility
@@ -552,29 +723,30 @@ class Service:
         widths = np.asarray(meas.mark_widths_mm, dtype=float)
         if bottoms.shape != widths.shape:
             raise ValueError(f"{bottoms.size} mark bottoms for {widths.size} widths")
-        spread = knife_phase.phase_spread(knife_phase.pass_numbers(bottoms, **kw))
+        passes = knife_phase.pass_numbers(bottoms, **kw)
+        spread = knife_phase.phase_spread(passes)
         if not spread <= MAX_PHASE_SPREAD:
             raise ValueError(f"marks off the knife passes (phase spread {spread:.2f})")
-        knife = knife_phase.knife_of_marks(bottoms, knives=snap.knives, align_phase=True, **kw)
+        knife = knife_phase.knives_from_passes(passes, snap.knives, align_phase=True)
         return knife_phase.knife_means(widths, knife, snap.knives)
 
     async def _apply(
-        self, meas: Any, widths: np.ndarray, frame: Frame, snap: PlcSnapshot, t: float
+        self, meas: Any, widths: np.ndarray, measured_at: float, snap: PlcSnapshot, t: float
     ) -> bool:
         lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
         pitch = float(meas.pitch_mm)
         t = self._loop_time(t)
-        measured_at = frame.t_s + (self._machine_offset_s or 0.0)
+        measured_at = min(measured_at, t)
         feed = self.feed_loop.update(
             measured_pitch_mm=pitch,
             spindle_rpm=snap.spindle_rpm,
             now_s=t,
-            measured_at_s=min(measured_at, t),
+            measured_at_s=measured_at,
         )
         feed = min(max(float(feed), lo), hi)
         new_offsets = None
         if np.any(np.isfinite(widths)):
-            interval = self.feed_loop.cut_interval_s(min(measured_at, t))
+            interval = self.feed_loop.cut_interval_s(measured_at)
             offs = self.uniformity_loop.update(
                 knife_widths_mm=widths,
                 pitch_mm=pitch,
@@ -596,19 +768,16 @@ class Service:
             self.counters["applied"] += 1
         return applied
 
-    async def _log(self, r: FrameResult, frame: Frame, snap: PlcSnapshot | None) -> int | None:
-        if self.log is None:
-            return None
+    def _record(self, r: FrameResult, frame: Frame) -> Any:
+        """The quality record of a result (never raises: odd metadata is noted, not fatal)."""
         from controller.quality_log import QualityRecord, judge, utc_iso
 
         m = r.measurement
         truth = frame.truth or {}
+        meta, odd = _frame_metadata(frame)
         fields: dict[str, Any] = {
-            "t_s": float(frame.t_s),
+            **meta,
             "wall_time": utc_iso(time.time()),
-            "seq": int(frame.seq),
-            "board_id": int(frame.board_id),
-            "board_position_mm": float(frame.board_position_mm),
             "ok": r.ok,
             "error": r.error,
             "feed_setpoint_mm_s": r.feed_setpoint_mm_s,
@@ -623,6 +792,7 @@ class Service:
                 "timing_ms": r.extra.get("timing_ms", {}),
                 "knife_widths_mm": [None if not math.isfinite(w) else w
                                     for w in r.knife_widths_mm],
+                **({"frame_metadata_invalid": odd} if odd else {}),
             },
         }
         if m is not None:
@@ -630,25 +800,86 @@ class Service:
             fields["confidence"] = _opt(getattr(m, "confidence", None))
         if r.ok:
             fields.update(
-                pitch_mm=float(m.pitch_mm),
-                mark_widths_mm=tuple(float(w) for w in r.knife_widths_mm)
-                if r.knife_widths_mm
-                else tuple(float(w) for w in m.mark_widths_mm),
+                pitch_mm=_opt(getattr(m, "pitch_mm", None)),
+                mark_widths_mm=tuple(float(w) for w in r.knife_widths_mm),
                 uniformity_cv=_opt(getattr(m, "uniformity_cv", None)),
                 depth_um=_opt(getattr(m, "depth_um", None)),
             )
-            fields["extra"]["marks_mm"] = [float(w) for w in m.mark_widths_mm]
             try:
+                fields["extra"]["marks_mm"] = [float(w) for w in m.mark_widths_mm]
                 fields["passed"] = judge(fields, self.quality_class)
-            except ValueError:
+            except (TypeError, ValueError):
                 fields["passed"] = None
-        rec = QualityRecord(**fields)
         try:
-            return int(await self._call(self.log.append, rec))
-        except OSError as exc:  # disk full, log locked: control goes on, the loss is reported
-            self.counters["log_errors"] += 1
-            self._event(self.clock(), f"quality record of pair {frame.seq} NOT logged: {exc}")
+            return QualityRecord(**fields)
+        except (TypeError, ValueError) as exc:  # keep the pair: a record that says why
+            return QualityRecord(
+                **meta,
+                wall_time=fields["wall_time"],
+                ok=False,
+                error=f"record invalid: {exc}" if r.ok else f"{r.error} (record invalid: {exc})",
+                extra={"state": r.state, "applied": r.applied},
+            )
+
+    async def _log(self, r: FrameResult, frame: Frame, t: float) -> int | None:
+        """Append the pair's record (after any held back); its id, or ``None`` if held back."""
+        if self.log is None:
             return None
+        self._pending.append(self._record(r, frame))
+        return await self._flush_log(t)
+
+    async def _flush_log(self, t: float) -> int | None:
+        """Write the held records in order; return the id of the last one if all went in.
+
+        While the log cannot be written (disk full, file locked) the records stay in memory, in
+        order, the supervisor's ``log`` condition fails (safe state: no control without a
+        record of it) and the failure is reported; they are written as soon as the log takes
+        them again. Beyond ``MAX_PENDING_RECORDS`` the oldest are saved beside the log.
+        """
+        rid: int | None = None
+        while self._pending:
+            rec = self._pending[0]
+            try:
+                rid = int(await self._call(self.log.append, rec))
+            except OSError as exc:
+                self.counters["log_errors"] += 1
+                if not self._log_failing:
+                    self._log_failing = True
+                    self.supervisor.set_ok("log", False)
+                    self._event(t, f"quality log write failed: {exc}; records held in memory")
+                if len(self._pending) > MAX_PENDING_RECORDS:
+                    n = len(self._pending) - MAX_PENDING_RECORDS // 2
+                    self._spill([self._pending.popleft() for _ in range(n)], t)
+                return None
+            except ValueError as exc:  # this record can never go in (log closed, bad record)
+                self.counters["log_errors"] += 1
+                self._event(t, f"quality record of pair {rec.seq} refused by the log: {exc}")
+                self._spill([self._pending.popleft()], t)
+                continue
+            self._pending.popleft()
+        if self._log_failing:
+            self._log_failing = False
+            self.supervisor.set_ok("log", True)
+            self._event(t, "quality log writable again: held records written")
+        return rid
+
+    def _spill(self, records: Sequence[Any], t: float) -> None:
+        """Save records the log cannot take as JSON lines beside it (never silently dropped)."""
+        from controller.quality_log import record_to_json, utc_iso
+        from planer.fileio import atomic_write_text
+
+        if not records:
+            return
+        base = Path(getattr(self.log, "path", None) or self.cfg.log.path)
+        stamp = utc_iso(time.time()).replace(":", "").replace("+0000", "Z")
+        path = base.with_name(f"{base.name}.unlogged-{stamp}-{records[0].seq}.jsonl")
+        try:
+            atomic_write_text(path, "".join(record_to_json(r) + "\n" for r in records))
+        except (OSError, ValueError) as exc:
+            self._event(t, f"{len(records)} quality records LOST (NOT in the quality log, "
+                           f"cannot be saved to {path}: {exc})")
+            return
+        self._event(t, f"{len(records)} quality records NOT in the quality log: saved to {path}")
 
     # ------------------------------------------------------------------ real time
     async def run(
@@ -682,14 +913,22 @@ class Service:
         async def frames() -> None:
             n = 0
             while not stop.is_set():
-                frame = await source.next(timeout_s=0.1)
+                try:
+                    frame = await source.next(timeout_s=0.1)
+                except Exception as exc:  # noqa: BLE001 - a broken source must not stop us
+                    self.counters["errors"] += 1
+                    text = f"frame source failed: {_exc_name(exc)}: {exc}"
+                    if text != self._last_error:
+                        self._last_error = text
+                        self._event(self._now(), text)
+                    await asyncio.sleep(0.1)
+                    continue
                 if frame is None:
                     continue
                 try:
                     await self.handle_frame(frame)
-                except (ValueError, ArithmeticError) as exc:  # one bad pair must not stop us
-                    self.counters["errors"] += 1
-                    self._event(self.clock(), f"pair {frame.seq} dropped: {exc}")
+                except Exception as exc:  # noqa: BLE001 - handle_frame logs; this is a last resort
+                    await self._internal_error(self._now(), f"pair {frame.seq}", exc)
                 n += 1
                 if max_frames is not None and n >= max_frames:
                     stop.set()
@@ -709,9 +948,30 @@ class Service:
             await asyncio.gather(*tasks, return_exceptions=True)
 
     def close(self) -> None:
-        """Close the buses and the log."""
-        self.plc.close()
-        self.piezo.close()
+        """Leave the amplifier disabled with zero offsets, write held records, close everything.
+
+        Records the quality log still cannot take are saved beside it (JSON lines) and reported.
+        """
+        t = self._t_now if self._t_now is not None else 0.0
+        if self.piezo is not None:
+            try:
+                self._zero_offsets(t)
+                self.piezo.send_command(alive_counter=(self.heartbeat + 1) & 0xFF, now_s=t)
+            except Exception as exc:  # noqa: BLE001 - closing must go on; the amplifier times out
+                self._event(t, f"amplifier not disabled at close: {_exc_name(exc)}: {exc}")
+        if self.log is not None:
+            while self._pending:  # a last attempt, then the rest beside the log
+                try:
+                    self.log.append(self._pending[0])
+                except (OSError, ValueError):
+                    break
+                self._pending.popleft()
+            self._spill(list(self._pending), t)
+            self._pending.clear()
+        if self.plc is not None:
+            self.plc.close()
+        if self.piezo is not None:
+            self.piezo.close()
         if self.log is not None:
             self.log.close()
 
@@ -727,12 +987,52 @@ def _opt(v: Any) -> float | None:
     return f if math.isfinite(f) else None
 
 
+def _int_or(v: Any, default: int) -> int:
+    try:
+        return int(v)
+    except (TypeError, ValueError, OverflowError):
+        return default
+
+
+def _exc_name(exc: BaseException) -> str:
+    """``IndexError``, ``cv2.error``: the exception's type as a reader recognises it."""
+    cls = type(exc)
+    mod = cls.__module__
+    return cls.__qualname__ if mod in ("builtins", "__main__") else f"{mod}.{cls.__qualname__}"
+
+
 def _reason(exc: BaseException) -> str:
-    name = type(exc).__name__
-    text = str(exc).splitlines()[0] if str(exc) else name
-    if name == "RegistrationError":
-        return f"registration failed: {text}"
-    return f"measurement failed: {text}"
+    """The logged reason of a measurement that raised ``exc``."""
+    first = str(exc).splitlines()[0] if str(exc) else ""
+    if isinstance(exc, RegistrationError):
+        return f"registration failed: {first or _exc_name(exc)}"
+    if isinstance(exc, ValueError) and first:  # MeasurementError and the vision's checks
+        return f"measurement failed: {first}"
+    return f"measurement failed: {_exc_name(exc)}: {first}"
+
+
+def _frame_metadata(frame: Frame) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The record's frame fields, made valid (``t_s``, ``seq``, ``board_*``), and the odd ones."""
+    out: dict[str, Any] = {}
+    odd: dict[str, Any] = {}
+    for name, kind, default in (
+        ("t_s", float, 0.0),
+        ("seq", int, 0),
+        ("board_id", int, 0),
+        ("board_position_mm", float, 0.0),
+    ):
+        raw = getattr(frame, name, None)
+        try:
+            v = kind(raw)
+            good = math.isfinite(v) if kind is float else v >= 0
+        except (TypeError, ValueError, OverflowError):
+            good = False
+        if good:
+            out[name] = v
+        else:
+            out[name] = default
+            odd[name] = repr(raw)
+    return out, odd
 
 
 def _with(r: FrameResult, **changes: Any) -> FrameResult:
@@ -763,15 +1063,16 @@ def _check_loop_tables(cfg: MachineConfig) -> None:
     UniformityLoopConfig.from_mapping(dict(cfg.uniformity_loop), stroke_um=cfg.stroke_um)
 
 
-def _make_uniformity_loop(cfg: MachineConfig, snap: PlcSnapshot, pairs_per_s: float) -> Any:
+def _make_uniformity_loop(cfg: MachineConfig, snap: PlcSnapshot) -> Any:
+    """The uniformity loop for the machine the PLC describes (knives, radius) and the stroke."""
     from controller.uniformity_loop import UniformityLoop, UniformityLoopConfig
 
-    overrides = {"knives": snap.knives, "stroke_um": cfg.stroke_um}
-    build = getattr(UniformityLoopConfig, "from_mapping", None)
-    if build is not None:
-        ucfg = build(dict(cfg.uniformity_loop), **overrides)
-    else:  # pragma: no cover
-        ucfg = UniformityLoopConfig(**{**dict(cfg.uniformity_loop), **overrides})
+    ucfg = UniformityLoopConfig.from_mapping(
+        dict(cfg.uniformity_loop),
+        knives=snap.knives,
+        radius_mm=float(snap["cutterhead_radius_mm"]),
+        stroke_um=cfg.stroke_um,
+    )
     return UniformityLoop(ucfg)
 
 

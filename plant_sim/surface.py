@@ -278,19 +278,26 @@ def _crossings(x: np.ndarray, c: np.ndarray, r: float) -> np.ndarray:
     return 0.5 * (x[1:] + x[:-1]) + h * dc / d
 
 
+_MIN_MARK_MM = 1e-9
+"""Passes owning less than this times the radius (20 pm at R = 20 mm) are dropped: such
+slivers only arise from passes a fraction of a micrometre apart with different heights (the
+feed crawling to a stop), whose crossings lie near the circles' equator, where rounding
+decides their order and the marks' depths come out meaningless."""
+
+
 def _lower_hull(x: np.ndarray, c: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
     """Indices of the passes on the lower envelope and the crossings between them.
 
-    ``x`` strictly increasing. A pass whose left crossing is not left of its right crossing owns
-    no interval and is dropped; non-adjacent such passes are dropped together (alternating
-    parity), which is exact, until every interval is non-empty.
+    ``x`` strictly increasing. A pass whose left crossing is not left of its right crossing
+    (by ``_MIN_MARK_MM * r``) owns no interval and is dropped; non-adjacent such passes are
+    dropped together (alternating parity), which is exact, until every interval is non-empty.
     """
     idx = np.arange(x.size)
     while True:
         s = _crossings(x[idx], c[idx], r)
         bad = np.zeros(idx.size, dtype=bool)
         if idx.size > 2:
-            bad[1:-1] = s[:-1] >= s[1:]
+            bad[1:-1] = s[:-1] >= s[1:] - _MIN_MARK_MM * r
         if not bad.any():
             return idx, s
         pos = np.flatnonzero(bad)

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from controller.knife_phase import (
     knife_means,
     knife_of_marks,
+    knives_from_passes,
     pass_numbers,
     phase_offset,
     phase_spread,
@@ -186,3 +187,18 @@ def test_knife_means():
         knife_means(w, [0, 1], 4)
     with pytest.raises(ValueError, match="widths_mm"):
         knife_means([1.0, math.nan], [0, 1], 4)
+
+
+@pytest.mark.parametrize("align", [False, True])
+def test_knives_from_passes_is_knife_of_marks_in_two_steps(align):
+    """The service computes the pass numbers once (spread check, then knives): same answer."""
+    rng = np.random.default_rng(4)
+    x = np.sort(rng.uniform(0.0, 60.0, 25))
+    kw = dict(counts_a=(2**32 - 500), index_latch_counts=1234, cutter_to_camera_mm=300.0,
+              counts_per_mm=100.0, px_per_mm=10.0, cx_px=329.5, pitch_mm=1.5)
+    passes = pass_numbers(x, **kw)
+    got = knives_from_passes(passes, 4, align_phase=align)
+    assert np.array_equal(got, knife_of_marks(x, knives=4, align_phase=align, **kw))
+    assert got.min() >= 0 and got.max() < 4
+    with pytest.raises(ValueError, match="passes"):
+        knives_from_passes(np.array([0.0, np.nan]), 4)

@@ -129,6 +129,23 @@ def test_summary_flags_limit_violations_and_unsettled_runs():
     assert not s["limits"]["ok"]
 
 
+def test_fault_timing_uses_the_clock_mapping_in_force_at_the_fault():
+    """A simulator that fell behind real time before the fault must not fail the timing check."""
+    from config.machine import SafetyConfig
+
+    lag = [0.01 if i < 15 else 0.3 for i in range(80)]  # the sim lags 0.3 s from 1.5 s on
+    res = [_result(i, cv=0.02, pitch=1.5, t=i * 0.1 + lag[i]) for i in range(80)]
+    fault = FaultEvent("modbus_restart", 4.0, {"down_s": 1.0})
+    events = [(4.0 + 0.3 + 0.5, "safe state: plc gone"), (5.0 + 0.3 + 0.4, "recovered")]
+    s = summarize(res, target_pitch_mm=1.5, counts_per_mm=20.0, feed_limits_mm_s=(50.0, 1e3),
+                  stroke_um=20.0, faults=[fault], events=events, safety=SafetyConfig(),
+                  time_offset_s=0.01)
+    (rep,) = s["faults"]
+    assert rep["safe_after_s"] == pytest.approx(0.5)
+    assert rep["recovered_after_end_s"] == pytest.approx(0.4)
+    assert rep["handled"]
+
+
 @pytest.mark.parametrize(
     "values,expected",
     [

@@ -252,11 +252,13 @@ def test_against_real_modbus_server_with_restart():
                 await c.read()
                 await c.read()
             await server.start()
-            for _ in range(200):  # the back-off is short: a few attempts reconnect
+            deadline = asyncio.get_running_loop().time() + 30.0  # a backstop, not a timing
+            while True:  # the back-off is short: a few attempts reconnect
                 try:
                     await c.read()
                     break
                 except FieldbusError:
+                    assert asyncio.get_running_loop().time() < deadline, "never reconnected"
                     await asyncio.sleep(0.01)
             server.refresh()
             assert c.connected and c.reconnects >= 2

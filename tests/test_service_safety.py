@@ -143,3 +143,19 @@ def test_ramp_is_rate_limited_and_monotone():
     assert Supervisor.safe_offsets_um(4) == [0.0] * 4
     with pytest.raises(ValueError, match="dt_s"):
         sup.safe_feed(100.0, dt_s=-1.0, feed_min_mm_s=0.0, feed_max_mm_s=1.0)
+
+
+@pytest.mark.parametrize("condition", ["machine", "plc_data", "log", "service"])
+def test_each_condition_goes_safe_at_once_and_recovers_after_confirmation(condition):
+    sup = Supervisor(CFG, now_s=0.0)
+    t = run_until_run(sup)
+    sup.set_ok(condition, False)
+    feed_all(sup, t)
+    st = sup.step(t)
+    assert st.state is SafetyState.SAFE and st.changed and st.missing == (condition,)
+    sup.set_ok(condition, True)
+    t_back = t + 0.02
+    t_run = run_until_run(sup, t_back)
+    assert t_run - 0.02 - t_back >= CFG.recovery_s - 1e-9
+    with pytest.raises(ValueError, match="condition"):
+        sup.set_ok("disk", False)

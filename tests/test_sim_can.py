@@ -244,7 +244,7 @@ AMP_SCRIPT = textwrap.dedent(
     node = AmpNode(open_bus("udp_multicast"), AmpNodeCore(M(), PiezoCodec.load(), knives=4),
                    own_bus=True)
     t0 = time.monotonic()
-    while time.monotonic() - t0 < 4.0:
+    while time.monotonic() - t0 < 60.0:  # until the test kills it (a backstop, not a timing)
         node.pump(time.monotonic() - t0)
         time.sleep(0.001)
     node.close()
@@ -259,7 +259,7 @@ SERVICE_SCRIPT = textwrap.dedent(
     codec = PiezoCodec.load()
     bus = open_bus("udp_multicast")
     t0 = time.monotonic(); n_status = 0; alive = 0
-    while time.monotonic() - t0 < 3.5:
+    while time.monotonic() - t0 < 40.0:  # a loaded machine may start the amplifier late
         alive = (alive + 1) % 256
         frames = [codec.encode_command(enable=True, knives=4, alive_counter=alive)]
         frames += codec.encode_offsets([1.5, -2.25, 3.125, 0.5])
@@ -299,6 +299,6 @@ def test_udp_multicast_between_two_processes_in_a_private_netns():
         stderr=subprocess.PIPE,
         text=True,
     )
-    out, err = proc.communicate(timeout=30)
+    out, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, (out, err)
     assert out.startswith("OK")

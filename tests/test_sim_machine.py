@@ -63,7 +63,11 @@ def test_shipped_config_loads_and_matches_defaults(cfg):
         ({"feed": {"min_mm_s": 500.0, "max_mm_s": 100.0}}, "feed.max_mm_s"),
         ({"cutterhead": {"knives": 4, "runout_um": [1.0, 2.0]}}, "cutterhead.runout_um"),
         ({"encoder": {"counter_bits": 24}}, "encoder.counter_bits"),
+        # the service unwraps the latches with the rig's width: the two must agree
+        ({"encoder": {"counter_bits": 16}}, "encoder.counter_bits"),
         ({"encoder": {"counts_per_mm": 10.0}}, "encoder.counts_per_mm"),
+        ({"can": {"channel": ""}}, "can.channel"),
+        ({"modbus": {"port": 70000}}, "modbus.port"),
         ({"camera": {"species": "balsa"}}, "camera.species"),
         ({"can": {"interface": "serial"}}, "can.interface"),
         ({"spindle": {"rmp": 6000.0}}, "spindle.rmp"),

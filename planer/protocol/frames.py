@@ -7,6 +7,7 @@ beside the dataclass; see ``docs/frames.md``.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import math
@@ -18,6 +19,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from planer.fileio import atomic_write_bytes
 
 
 @dataclass(frozen=True)
@@ -46,6 +49,10 @@ class Frame:
     truth : dict or None
         Simulator only: the true ``pitch_mm``, ``uniformity_cv``, ``mark_widths_mm``,
         ``depth_um``, ``shift_px`` of the imaged patch. ``None`` on a real machine.
+    error : str or None
+        Why the pair cannot be measured although its metadata arrived (an image file that is
+        missing or unreadable); the images are then ``None``. The service logs such a pair as a
+        failed measurement instead of losing it.
     """
 
     seq: int
@@ -59,6 +66,7 @@ class Frame:
     board_id: int = 0
     board_position_mm: float = 0.0
     truth: dict[str, Any] | None = field(default=None)
+    error: str | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -130,25 +138,6 @@ def _decode_image(path: Path) -> np.ndarray:
     return img
 
 
-def _write_file(path: Path, data: bytes, *, fsync: bool) -> None:
-    with open(path, "wb") as fh:
-        fh.write(data)
-        if fsync:
-            fh.flush()
-            os.fsync(fh.fileno())
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:  # pragma: no cover - platforms without directory fds
-        return
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _slot_of(name: str) -> int | None:
     """Slot number of a committed metadata file name ``pair-000000000042.json``."""
     if not (name.startswith(_PREFIX) and name.endswith(_META_SUFFIX)):
@@ -214,17 +203,12 @@ class SpoolWriter:
                 continue
             suffix, data = _encode_image(key, img)
             final = f"{stem}.{key[-1]}{suffix}"
-            tmp = d / f"{_TMP_PREFIX}{final}"
-            _write_file(tmp, data, fsync=self.fsync)
-            os.replace(tmp, d / final)
+            atomic_write_bytes(d / final, data, durable=self.fsync, tmp_prefix=_TMP_PREFIX)
             meta[key] = final
         body = json.dumps(meta, separators=(",", ":"), allow_nan=False).encode()
-        tmp = d / f"{_TMP_PREFIX}{stem}{_META_SUFFIX}"
-        _write_file(tmp, body, fsync=self.fsync)
         final_meta = d / f"{stem}{_META_SUFFIX}"
-        os.replace(tmp, final_meta)  # the commit
-        if self.fsync:
-            _fsync_dir(d)
+        # the commit, after the images are durable
+        atomic_write_bytes(final_meta, body, durable=self.fsync, tmp_prefix=_TMP_PREFIX)
         self.next_slot = slot + 1
         self.written += 1
         self._slots.append(slot)
@@ -300,28 +284,37 @@ class SpoolReader:
             self.skipped += 1
 
     def _load(self, slot: int) -> Frame | None:
+        """The pair of ``slot``; ``None`` when its metadata is gone or unusable.
+
+        A pair whose metadata is fine but whose image cannot be read comes back with
+        ``error`` set and no images, so that the service can log it as a failed measurement.
+        """
         meta_path = self.directory / f"{_PREFIX}{slot:012d}{_META_SUFFIX}"
         try:
             meta = json.loads(meta_path.read_bytes())
-            img_a, img_b = (
-                None if meta[k] is None else _decode_image(self.directory / meta[k])
-                for k in ("image_a", "image_b")
+            frame = Frame(
+                seq=int(meta["seq"]),
+                t_s=float(meta["t_s"]),
+                image_a=None,  # type: ignore[arg-type]
+                image_b=None,  # type: ignore[arg-type]
+                counts_a=int(meta["counts_a"]),
+                counts_b=int(meta["counts_b"]),
+                speed_mm_s=float(meta["speed_mm_s"]),
+                index_latch_counts=int(meta.get("index_latch_counts", 0)),
+                board_id=int(meta.get("board_id", 0)),
+                board_position_mm=float(meta.get("board_position_mm", 0.0)),
+                truth=meta.get("truth"),
             )
-        except (FileNotFoundError, ValueError, KeyError):
-            return None
-        return Frame(
-            seq=int(meta["seq"]),
-            t_s=float(meta["t_s"]),
-            image_a=img_a,
-            image_b=img_b,
-            counts_a=int(meta["counts_a"]),
-            counts_b=int(meta["counts_b"]),
-            speed_mm_s=float(meta["speed_mm_s"]),
-            index_latch_counts=int(meta.get("index_latch_counts", 0)),
-            board_id=int(meta.get("board_id", 0)),
-            board_position_mm=float(meta.get("board_position_mm", 0.0)),
-            truth=meta.get("truth"),
-        )
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            return None  # vanished (pruned) or not a pair's metadata: counted as skipped
+        try:
+            images = [
+                None if meta.get(k) is None else _decode_image(self.directory / str(meta[k]))
+                for k in ("image_a", "image_b")
+            ]
+        except (OSError, ValueError) as exc:
+            return dataclasses.replace(frame, error=f"unreadable image: {exc}")
+        return dataclasses.replace(frame, image_a=images[0], image_b=images[1])
 
 
 class InProcessSource:
