@@ -278,8 +278,8 @@ def _crossings(x: np.ndarray, c: np.ndarray, r: float) -> np.ndarray:
     return 0.5 * (x[1:] + x[:-1]) + h * dc / d
 
 
-_MIN_MARK_MM = 1e-9
-"""Passes owning less than this times the radius (20 pm at R = 20 mm) are dropped: such
+_MIN_MARK_MM = 1e-7
+"""Passes owning less than this times the radius (2 nm at R = 20 mm) are dropped: such
 slivers only arise from passes a fraction of a micrometre apart with different heights (the
 feed crawling to a stop), whose crossings lie near the circles' equator, where rounding
 decides their order and the marks' depths come out meaningless."""

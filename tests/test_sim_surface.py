@@ -285,6 +285,8 @@ def test_passes_and_envelope_reject_bad_input():
 @example(  # passes 0.1 um apart at different heights (the feed crawling to a stop)
     gaps=[2.638106176421402e-60, 1.192092896e-07], bottoms=[-3.0, -2.0] + [0.0] * 39, radius=20.0
 )
+@example(gaps=[2.638106176421402e-60, 1.192092896e-07], bottoms=[-4.0, -2.0] + [0.0] * 39,
+         radius=20.0)
 @given(
     gaps=st.lists(st.floats(0.0, 3.0), min_size=1, max_size=40),
     bottoms=st.lists(st.floats(-30.0, 30.0), min_size=41, max_size=41),
