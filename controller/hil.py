@@ -109,12 +109,14 @@ class Scenario:
 
 
 def _fault_list(raw: Any, key: str) -> tuple[FaultEvent, ...]:
+    from config.sim import FAULT_KINDS
+
     if not isinstance(raw, list):
         raise ConfigError(f"{key} must be a list of tables")
     out = []
     for i, item in enumerate(raw):
         s = Section(item, f"{key}[{i}]")
-        kind = s.string("kind")
+        kind = s.string("kind", choices=FAULT_KINDS)
         at_s = s.number("at_s", 0.0, lo=0.0)
         params = {}
         for name in list(item):
@@ -125,8 +127,29 @@ def _fault_list(raw: Any, key: str) -> tuple[FaultEvent, ...]:
     return tuple(out)
 
 
-def scenario_from_table(name: str, table: Mapping[str, Any], base: Scenario) -> Scenario:
-    """A scenario from one TOML table, starting from ``base`` (errors name ``name.key``)."""
+def _config_file(key: str, value: str, base_dir: Path | None) -> Path:
+    """The configuration file ``value`` names (relative to ``base_dir``); it must exist."""
+    given = Path(value).expanduser()
+    folder = None if given.is_absolute() else (base_dir if base_dir is not None else Path.cwd())
+    path = given if folder is None else folder / given
+    if not path.is_file():
+        where = ("" if folder is None else
+                 f" (relative paths are resolved from the scenario file's folder {folder})"
+                 if base_dir is not None else
+                 f" (relative paths are resolved from the working folder {folder})")
+        what = "is a folder, not a file" if path.is_dir() else "no such file"
+        raise ConfigError(f"{key} = {value!r}: {what}: {path}{where}")
+    return path
+
+
+def scenario_from_table(
+    name: str, table: Mapping[str, Any], base: Scenario, *, base_dir: Path | None = None
+) -> Scenario:
+    """A scenario from one TOML table, starting from ``base`` (errors name ``name.key``).
+
+    ``sim_config`` and ``machine_config`` given relative are resolved from ``base_dir`` (the
+    scenario file's folder; default the working folder) and must exist.
+    """
     s = Section(table, name)
     s.raw("base", None)
     kw: dict[str, Any] = {"name": name}
@@ -143,7 +166,7 @@ def scenario_from_table(name: str, table: Mapping[str, Any], base: Scenario) -> 
     for key in ("sim_config", "machine_config"):
         if s.has(key):
             v = s.string(key)
-            kw[key] = Path(v) if v else None
+            kw[key] = _config_file(s.key(key), v, base_dir) if v else None
     if s.has("max_sim_s"):
         kw["max_sim_s"] = s.number("max_sim_s", lo=0.0, lo_open=True)
     if s.has("time_scale"):
@@ -167,7 +190,9 @@ def load_scenario(name_or_path: str | None = None) -> Scenario:
     Raises
     ------
     ConfigError
-        Unknown scenario or bad value; the message names the key.
+        Unknown scenario, bad value, unknown fault kind, missing ``sim_config`` /
+        ``machine_config`` file (relative to the scenario file's folder); the message names the
+        file and the key (``hil.toml: default.faults[0].kind must be one of ...``).
     """
     spec = name_or_path or "default"
     path, name = default_path("hil.toml"), spec
@@ -178,6 +203,13 @@ def load_scenario(name_or_path: str | None = None) -> Scenario:
     doc = load_toml(path)
     if not name:
         name = "default" if "default" in doc else (next(iter(doc)) if len(doc) == 1 else "")
+        if not doc:
+            raise ConfigError(f"{path}: holds no scenario (no table)")
+        if not name:
+            raise ConfigError(
+                f"{path}: holds several scenarios ({', '.join(sorted(doc))}) and none called "
+                f"default: pick one with {path}:NAME"
+            )
     if name not in doc:
         raise ConfigError(
             f"{path}: no scenario {name!r} (have: {', '.join(sorted(doc)) or 'none'})"
@@ -192,7 +224,7 @@ def load_scenario(name_or_path: str | None = None) -> Scenario:
         base_name = table.get("base")
         base = build(str(base_name), (*seen, nm)) if base_name else Scenario()
         try:
-            return scenario_from_table(nm, table, base)
+            return scenario_from_table(nm, table, base, base_dir=path.parent)
         except ConfigError as exc:
             raise ConfigError(f"{path}: {exc}") from None
 
@@ -502,6 +534,48 @@ def _fault_report(
     return rep
 
 
+def safe_periods(
+    events: Sequence[tuple[float, str]],
+    *,
+    start_s: float,
+    end_s: float,
+    offset_s: float = 0.0,
+) -> list[list[float]]:
+    """When the service was in the safe state, in machine time, from its events.
+
+    The service starts in the safe state; ``"safe state: ..."`` enters it, ``"recovered..."``
+    leaves it. Unlike the records' states this also covers safe states between boards, when no
+    pair is measured.
+
+    Parameters
+    ----------
+    events : sequence of (float, str)
+        The service's events (service time, text) in order.
+    start_s, end_s : float
+        Service time at the start and the end of the run.
+    offset_s : float
+        Service time minus machine time.
+
+    Returns
+    -------
+    list of [float, float, str]
+        ``[start, end, reason]`` of each safe period: machine times, s (rounded to 1 ms), and
+        why it was entered (``"plc gone"``; ``"starting up"`` for the first one).
+    """
+    out: list[list[Any]] = []
+    since: float | None = start_s
+    why = "starting up"
+    for t, text in events:
+        if text.startswith("safe state") and since is None:
+            since, why = t, text.partition(":")[2].strip() or "unknown"
+        elif text.startswith("recovered") and since is not None:
+            out.append([since, t, why])
+            since = None
+    if since is not None and end_s > since:
+        out.append([since, end_s, why])
+    return [[round(a - offset_s, 3), round(b - offset_s, 3), w] for a, b, w in out]
+
+
 def check_log(path: Path, n_expected: int, *, after_id: int = 0) -> dict[str, Any]:
     """Integrity of the quality log after a run: every measurement once, none torn.
 
@@ -517,7 +591,8 @@ def check_log(path: Path, n_expected: int, *, after_id: int = 0) -> dict[str, An
     Returns
     -------
     dict
-        ``records`` (count), ``expected``, ``ids_consecutive``, ``ok``.
+        ``path``, ``after_id`` (the run's records have larger ids), ``records`` (count),
+        ``expected``, ``ids_consecutive``, ``ok``.
     """
     from controller.quality_log import QualityLog
 
@@ -527,6 +602,7 @@ def check_log(path: Path, n_expected: int, *, after_id: int = 0) -> dict[str, An
     consecutive = ids == list(range(ids[0], ids[0] + len(ids))) if ids else True
     return {
         "path": str(path),
+        "after_id": int(after_id),
         "records": len(entries),
         "expected": n_expected,
         "ids_consecutive": consecutive,
@@ -566,6 +642,9 @@ def _service_summary(
             "service": dict(service.counters),
         },
     )
+    end_s = max([t_start_s] + [r.t_s for r in results] + [t for t, _ in service.events])
+    summary["safe_periods_s"] = safe_periods(service.events, start_s=t_start_s, end_s=end_s,
+                                             offset_s=time_offset_s)
     summary["quality_log"] = check_log(Path(log_path), len(results), after_id=start_id)
     summary["done"]["quality_log_intact"] = summary["quality_log"]["ok"]
     summary["passed"] = all(summary["done"].values())
@@ -648,16 +727,6 @@ class InProcessPlant:
             self.plc = None  # type: ignore[assignment]
             self._backoff = backoff
         codec = PiezoCodec.load()
-        channel = f"planer-hil-{os.getpid()}-{next(_channels)}"
-        self.svc_bus = can.Bus(interface="virtual", channel=channel)
-        amp_bus = can.Bus(interface="virtual", channel=channel)
-        knives = sim_cfg.cutterhead.knives
-        self.amp = AmpNode(amp_bus, AmpNodeCore(self.machine, codec, knives=knives, seed=seed),
-                           own_bus=True)
-        self.piezo = PiezoClient(
-            self.svc_bus, codec, knives=knives, command_period_s=cfg.can.command_period_s,
-            offsets_period_s=cfg.can.offsets_period_s, stroke_um=cfg.stroke_um,
-        )
         self.rig = load_rig(rig_path(cfg))
         if measurer_factory is None:
             from vision.pipeline import Measurer
@@ -668,17 +737,39 @@ class InProcessPlant:
                 return Measurer(rig, shape)
 
         self._measurer_factory = measurer_factory
-        if log == "config":
+        opened_log = log == "config"
+        if opened_log:  # before the buses: an unusable log path leaves nothing open
             path = Path(cfg.log.path)
             path.parent.mkdir(parents=True, exist_ok=True)
             log = QualityLog(path)
         self.log = log
-        self.start_id = log.last_id if log is not None else 0
         self.service: Service | None = None
-        self._plc_up_at: float | None = None
-        self.start_mm = self.machine.feed_position_mm
-        if self.plc is not None:
-            self._make_service()
+        buses: list[Any] = []
+        try:
+            self.start_id = log.last_id if log is not None else 0
+            channel = f"planer-hil-{os.getpid()}-{next(_channels)}"
+            self.svc_bus = can.Bus(interface="virtual", channel=channel)
+            buses.append(self.svc_bus)
+            amp_bus = can.Bus(interface="virtual", channel=channel)
+            buses.append(amp_bus)
+            knives = sim_cfg.cutterhead.knives
+            self.amp = AmpNode(amp_bus,
+                               AmpNodeCore(self.machine, codec, knives=knives, seed=seed),
+                               own_bus=True)
+            self.piezo = PiezoClient(
+                self.svc_bus, codec, knives=knives, command_period_s=cfg.can.command_period_s,
+                offsets_period_s=cfg.can.offsets_period_s, stroke_um=cfg.stroke_um,
+            )
+            self._plc_up_at: float | None = None
+            self.start_mm = self.machine.feed_position_mm
+            if self.plc is not None:
+                self._make_service()
+        except BaseException:
+            for bus in buses:
+                bus.shutdown()
+            if opened_log and log is not None:
+                log.close()
+            raise
 
     def clock(self) -> float:
         """Machine time, s (the service's injected clock)."""
@@ -802,18 +893,24 @@ class InProcessHil:
         """Run the scenario; return the summary (see :func:`summarize`)."""
         sc, cfg = self.scenario, self.cfg
         plant = InProcessPlant(cfg, self.sim_cfg, seed=sc.seed, plc_transport=self.plc_transport)
-        await plant.start()
+        try:
+            await plant.start()
+        except BaseException:  # e.g. Modbus cannot listen: close the buses and the log
+            await plant.close()
+            raise
         service = plant.service
         assert service is not None
         service.on_event = lambda t, e: self._say(f"t={t:7.3f} s  {e}")
         pending = sorted(sc.faults, key=lambda f: f.at_s)
-        n_last = 0
+        n_last = n_seen = 0
+        travel = BoardTravel(self.sim_cfg.encoder.counts_per_mm)
         wall0 = time.perf_counter()
         self._say(
             f"hil (in-process, simulated time, PLC {self.plc_transport}, CAN virtual): "
             f"scenario {sc.name}, {sc.distance_m:g} m of board, target pitch "
             f"{cfg.quality.target_pitch_mm} mm"
         )
+        self._say(PROGRESS_LEGEND)
         try:
             while plant.travelled_mm < sc.distance_m * 1000.0 and plant.clock() < sc.max_sim_s:
                 t = plant.clock()
@@ -830,9 +927,12 @@ class InProcessHil:
                     # machine faults are in the simulator's [faults] table already
                 await plant.step()
                 n = len(service.results)
+                for r in service.results[n_seen:]:
+                    travel.add(r)
+                n_seen = n
                 if n >= n_last + self.progress_every:
                     n_last = n
-                    self._say(_progress_line(service, plant.travelled_mm))
+                    self._say(_progress_line(service.results[-1], travel))
             wall = time.perf_counter() - wall0
         finally:
             await plant.close()
@@ -855,8 +955,53 @@ class InProcessHil:
         )
 
 
-def _progress_line(service: Service, travelled_mm: float) -> str:
-    r = service.results[-1]
+class BoardTravel:
+    """Board measured since the loop closed, from the results' encoder counts (progress lines).
+
+    Both HIL modes report this distance, so the same state reads the same in either: the
+    board travel (unwrapped ``counts_a``) from the first result whose setpoints were applied.
+
+    Parameters
+    ----------
+    counts_per_mm : float
+        Encoder counts per mm of board travel.
+    bits : int
+        Width of the encoder counter (wrap-around).
+    """
+
+    def __init__(self, counts_per_mm: float, *, bits: int = 32) -> None:
+        if not (counts_per_mm > 0 and math.isfinite(counts_per_mm)):
+            raise ValueError(f"counts_per_mm must be a finite number > 0, got {counts_per_mm!r}")
+        self.counts_per_mm = float(counts_per_mm)
+        self._modulus = 1 << int(bits)
+        self._prev: int | None = None
+        self.measured_mm = 0.0
+        """Board travel from the first result to the last one added, mm."""
+        self.closed_at_mm: float | None = None
+        """``measured_mm`` at the first applied result (the loop closed), mm."""
+
+    def add(self, result: FrameResult) -> None:
+        """Account for the next result (in order)."""
+        if self._prev is not None:
+            d = (result.counts_a - self._prev) % self._modulus
+            if d >= self._modulus // 2:
+                d -= self._modulus
+            self.measured_mm += d / self.counts_per_mm
+        self._prev = result.counts_a
+        if self.closed_at_mm is None and result.applied:
+            self.closed_at_mm = self.measured_mm
+
+    @property
+    def since_closed_mm(self) -> float | None:
+        """Board measured since the loop closed, mm (``None`` while it has not closed)."""
+        return None if self.closed_at_mm is None else self.measured_mm - self.closed_at_mm
+
+
+PROGRESS_LEGEND = ("progress: metres of board measured since the loop closed, state, measured "
+                   "pitch and CV (true), feed setpoint, piezo offsets")
+
+
+def _progress_line(r: FrameResult, travel: BoardTravel) -> str:
     m = r.measurement
     tp = _truth(r, "pitch_mm")
     tc = _truth(r, "uniformity_cv")
@@ -865,8 +1010,10 @@ def _progress_line(service: Service, travelled_mm: float) -> str:
     feed = f"{r.feed_setpoint_mm_s:6.1f}" if r.feed_setpoint_mm_s is not None else "   -  "
     offs = " ".join(f"{v:+5.2f}" for v in r.offsets_um)
     truth = f" (true {tp:.3f} / {tc:.3f})" if tp is not None and tc is not None else ""
+    d = travel.since_closed_mm
+    dist = "  -  " if d is None else f"{d / 1000:5.2f}"
     return (
-        f"{travelled_mm / 1000:5.2f} m  {r.state:4s}  pitch {pitch} mm  cv {cv}{truth}  "
+        f"{dist} m  {r.state:4s}  pitch {pitch} mm  cv {cv}{truth}  "
         f"feed {feed} mm/s  offsets [{offs}] um"
     )
 
@@ -996,14 +1143,46 @@ async def run_cross_process(
     Must run where both processes share a loopback-only network (a private namespace; see
     :func:`cross_process_possible`). CAN: ``udp_multicast`` on the namespace's ``lo``; Modbus:
     127.0.0.1 on a free port; frames: a spool directory.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        What to run.
+    log_path : Path
+        Quality log (created or continued).
+    progress : callable, optional
+        Receives progress lines.
+    progress_every : int
+        Measurements between progress lines.
+    workdir : Path, optional
+        Folder for the simulator's configuration and frame spool, kept afterwards. Default: a
+        temporary folder removed when the run ends (also on errors and Ctrl-C), after the
+        simulator has stopped.
     """
+    if workdir is not None:
+        folder = Path(workdir)
+        folder.mkdir(parents=True, exist_ok=True)
+        return await _run_cross_process(scenario, folder, log_path=Path(log_path),
+                                        progress=progress, progress_every=progress_every)
+    with tempfile.TemporaryDirectory(prefix="planer-hil-") as tmp:
+        return await _run_cross_process(scenario, Path(tmp), log_path=Path(log_path),
+                                        progress=progress, progress_every=progress_every)
+
+
+async def _run_cross_process(
+    scenario: Scenario,
+    tmp: Path,
+    *,
+    log_path: Path,
+    progress: Progress | None,
+    progress_every: int,
+) -> dict[str, Any]:
     from config.machine import CanConfig
     from controller.frame_source import open_frame_source
+    from controller.piezo_client import open_bus
     from controller.service import open_service
 
     say = progress or (lambda _line: None)
-    tmp = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="planer-hil-"))
-    tmp.mkdir(parents=True, exist_ok=True)
     spool = tmp / "spool"
     group = "239.74.163.2"
     can_port = 43113
@@ -1018,6 +1197,8 @@ async def run_cross_process(
     cam = doc.setdefault("camera", {})
     if not cam.get("rig"):
         cam["rig"] = str(default_path("rig.toml"))
+    elif scenario.sim_config is not None and not Path(cam["rig"]).is_absolute():
+        cam["rig"] = str(Path(scenario.sim_config).parent / cam["rig"])  # the copy lives in tmp
     sim_toml = tmp / "sim.toml"
     sim_toml.write_text(to_toml(doc))
     sim_cfg = sim_config_for(scenario, machine_faults=False)
@@ -1044,23 +1225,31 @@ async def run_cross_process(
                            pairs_per_s=sim_cfg.camera.pairs_per_s,
                            image_width=optics.width, image_height=optics.height),
         )
-        service = open_service(cfg, threaded=True, log_path=Path(log_path))
+        # the bus is opened here so that it is shut down if the service cannot start (log)
+        bus = open_bus(cfg.can.interface, cfg.can.channel, dict(cfg.can.options))
+        try:
+            service = open_service(cfg, threaded=True, log_path=log_path, can_bus=bus)
+        except BaseException:
+            bus.shutdown()
+            raise
         start_id = service.log.last_id
         service.keep_results = True
         t_start = service.clock()
         service.on_event = lambda t, e: say(f"t={t - t_start:7.3f} s  {e}")
+        say(PROGRESS_LEGEND)
         source = open_frame_source(cfg.frames)
         stop = asyncio.Event()
         cpm = sim_cfg.encoder.counts_per_mm
+        travel = BoardTravel(cpm)
         state = {"n_last": 0}
 
-        def on_result(_r: FrameResult) -> None:
-            res = service.results
-            travelled = _unwrapped_mm(res, cpm)[-1] if res else 0.0
-            if len(res) >= state["n_last"] + progress_every:
-                state["n_last"] = len(res)
-                say(_progress_line(service, travelled))
-            if travelled >= scenario.distance_m * 1000.0:
+        def on_result(r: FrameResult) -> None:
+            travel.add(r)
+            n = len(service.results)
+            if n >= state["n_last"] + progress_every:
+                state["n_last"] = n
+                say(_progress_line(r, travel))
+            if travel.measured_mm >= scenario.distance_m * 1000.0:
                 stop.set()
 
         service.on_result = on_result
@@ -1071,8 +1260,10 @@ async def run_cross_process(
 
         limiter = asyncio.create_task(time_limit())
         wall0 = time.perf_counter()
-        await service.run(source, stop=stop)
-        limiter.cancel()
+        try:
+            await service.run(source, stop=stop)
+        finally:
+            limiter.cancel()
         wall = time.perf_counter() - wall0
     finally:
         if service is not None:
@@ -1083,7 +1274,7 @@ async def run_cross_process(
         cfg,
         scenario.faults,
         counts_per_mm=cpm,
-        log_path=Path(log_path),
+        log_path=log_path,
         start_id=start_id,
         time_offset_s=_estimate_offset(service.results),
         t_start_s=t_start,

@@ -32,6 +32,7 @@ __all__ = [
     "QualityRecord",
     "QualityClass",
     "QualityLog",
+    "csv_float",
     "judge",
     "quality_class_from_section",
     "record_to_json",
@@ -716,7 +717,8 @@ class QualityLog:
     def export_csv(self, path: str | Path) -> int:
         """Write every record to a CSV file (atomically: a reader never sees a partial file).
 
-        One row per record, columns :data:`CSV_COLUMNS` (units in the names); lists as
+        One row per record, columns :data:`CSV_COLUMNS` (units in the names); numbers without
+        binary rounding noise (:func:`csv_float`: ``0.7``, not ``0.7000000000000001``); lists as
         semicolon-separated numbers, booleans as 1/0, missing values empty, ``extra`` as JSON
         without the bulky ``profile`` entry.
 
@@ -774,13 +776,38 @@ CSV_COLUMNS: tuple[str, ...] = ("record_id",) + tuple(
 )
 
 
+#: Significant digits tried when writing a float to the CSV (see :func:`csv_float`).
+CSV_SIGNIFICANT_DIGITS = 15
+#: A shorter form is used only when it lies within this many units in the last place.
+CSV_NOISE_ULPS = 4
+
+
+def csv_float(value: float) -> str:
+    """A float as CSV text without binary rounding noise (``0.7000000000000001`` -> ``0.7``).
+
+    The value rounded to :data:`CSV_SIGNIFICANT_DIGITS` significant digits is written when it
+    lies within :data:`CSV_NOISE_ULPS` units in the last place of the logged value (the noise
+    sums of binary fractions leave, e.g. ``0.1 * 7``); any other value is written exactly
+    (shortest round-trip form). So every number reads back as the logged double, or within a
+    few units in its last place when that was noise. NaN is written ``nan``.
+    """
+    v = float(value)
+    exact = repr(v)
+    if not math.isfinite(v):
+        return exact
+    short = f"{v:.{CSV_SIGNIFICANT_DIGITS}g}"
+    if len(short) < len(exact) and abs(float(short) - v) <= CSV_NOISE_ULPS * math.ulp(v):
+        return repr(float(short))
+    return exact
+
+
 def _fmt(v: Any) -> str:
     if v is None:
         return ""
     if isinstance(v, bool):
         return "1" if v else "0"
     if isinstance(v, float):
-        return repr(v)
+        return csv_float(v)
     return str(v)
 
 
@@ -790,7 +817,7 @@ def csv_row(record_id: int, record: QualityRecord) -> list[str]:
     for name in _FIELD_NAMES:
         v = getattr(record, name)
         if name in _TUPLES:
-            row.append(";".join(repr(x) for x in v))
+            row.append(";".join(csv_float(x) for x in v))
         elif name == "extra":
             slim = {k: val for k, val in v.items() if k != "profile"}
             row.append(json.dumps(slim, default=_json_default) if slim else "")

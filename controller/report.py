@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,13 +27,20 @@ __all__ = [
     "board_axis",
     "build_figures",
     "last_profile",
+    "record_state",
+    "safe_spans",
+    "save_figures",
 ]
 
 #: Tolerance band drawn around the target pitch when the log stores no quality class.
 DEFAULT_PITCH_TOLERANCE = 0.02
 
-_PASS, _FAIL, _NOTJUDGED, _TRUE, _TARGET, _FAILED = (
-    "tab:blue", "tab:orange", "tab:gray", "black", "tab:green", "tab:red")
+#: A pause between records longer than this many median intervals (e.g. between two boards)
+#: breaks the setpoint lines: nothing was recorded there.
+GAP_FACTOR = 3.0
+
+_PASS, _FAIL, _NOTJUDGED, _TRUE, _TARGET, _FAILED, _SAFE = (
+    "tab:blue", "tab:orange", "tab:gray", "black", "tab:green", "tab:red", "tab:purple")
 
 
 def failure_reason(error: str | None) -> str:
@@ -256,6 +264,88 @@ def _arr(values: Sequence[float | None]) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in values], dtype=float)
 
 
+def record_state(record: QualityRecord) -> str | None:
+    """The service's state when the record was taken (``"run"``, ``"safe"``), if it stored one.
+
+    Read from ``extra["state"]``, or ``extra["supervisor"]["state"]`` when the supervisor's
+    status is stored as a table. ``None`` for logs without it.
+    """
+    sup = record.extra.get("supervisor")
+    state = sup.get("state") if isinstance(sup, dict) else None
+    if state is None:
+        state = record.extra.get("state")
+    return str(state).lower() if isinstance(state, str) else None
+
+
+def _safe_label(records: Sequence[QualityRecord], periods: Sequence[Sequence[Any]] = ()) -> str:
+    """Legend text of the safe-state shading, with the reasons the records or periods give."""
+    texts = [r.extra.get("safe_reason") for r in records if record_state(r) == "safe"]
+    texts += [p[2] for p in periods if len(p) > 2]
+    reasons: list[str] = []
+    for why in texts:
+        if isinstance(why, str) and why:
+            for part in why.split(", "):
+                part = "starting up" if part == "start" else part
+                if part not in reasons and part != "confirming recovery":
+                    reasons.append(part)
+    label = "safe state (control paused)"
+    if reasons:
+        shown = ", ".join(reasons[:4]) + (", ..." if len(reasons) > 4 else "")
+        label += f"\nbecause: {shown}"
+    return label
+
+
+def safe_spans(
+    x: Sequence[float], safe: Sequence[bool], *, max_extend: float | None = None
+) -> list[tuple[float, float]]:
+    """Stretches of the horizontal axis the service spent in the safe state.
+
+    Each run of consecutive safe records becomes one span, widened halfway to the records
+    before and after it (the state changed somewhere between them), but by at most
+    ``max_extend`` (across a pause without records the state there is unknown).
+
+    Parameters
+    ----------
+    x : sequence of float, shape (N,)
+        Coordinate of each record in record order (increasing: time, or the board axis).
+    safe : sequence of bool, shape (N,)
+        Whether each record was taken in the safe state.
+    max_extend : float, optional
+        Largest widening on each side, in units of ``x``; default: half the median distance
+        between consecutive records.
+
+    Returns
+    -------
+    list of (float, float)
+        ``(start, end)`` of each span, in order.
+    """
+    xs = np.asarray(x, dtype=float)
+    flags = np.asarray(safe, dtype=bool)
+    if xs.shape != flags.shape:
+        raise ValueError(f"x and safe must have the same length, got {xs.size} and {flags.size}")
+    if max_extend is None:
+        steps = np.diff(xs)
+        steps = steps[steps > 0]
+        max_extend = 0.5 * float(np.median(steps)) if steps.size else 0.0
+    spans: list[tuple[float, float]] = []
+    n, i = xs.size, 0
+    while i < n:
+        if not flags[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < n and flags[j + 1]:
+            j += 1
+        lo, hi = float(np.min(xs[i:j + 1])), float(np.max(xs[i:j + 1]))
+        if i > 0 and xs[i - 1] < lo:
+            lo -= min(0.5 * (lo - float(xs[i - 1])), max_extend)
+        if j + 1 < n and xs[j + 1] > hi:
+            hi += min(0.5 * (float(xs[j + 1]) - hi), max_extend)
+        spans.append((lo, hi))
+        i = j + 1
+    return spans
+
+
 def _new_figure(rows: int, *, height_in: float) -> tuple[Figure, list[Any]]:
     fig = Figure(figsize=(11.0, height_in), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
@@ -270,30 +360,90 @@ def _legend(ax: Any) -> None:
                   frameon=False)
 
 
-def _scatter_judged(ax: Any, x: np.ndarray, y: np.ndarray, passed: list[bool | None]) -> None:
-    groups = (("pass", True, _PASS, "o"), ("fail", False, _FAIL, "x"),
-              ("not judged", None, _NOTJUDGED, "o"))
+def _scatter_verdict(
+    ax: Any, x: np.ndarray, y: np.ndarray, verdict: Sequence[bool | None],
+    labels: tuple[str, str, str],
+) -> None:
+    """Points coloured by their verdict: ``labels`` = (within, beyond, not judged)."""
+    groups = ((labels[0], True, _PASS, "o"), (labels[1], False, _FAIL, "x"),
+              (labels[2], None, _NOTJUDGED, "o"))
     for label, value, color, marker in groups:
-        m = np.array([p is value for p in passed]) & np.isfinite(y)
+        m = np.array([v is value for v in verdict], dtype=bool) & np.isfinite(y)
         if m.any():
             ax.plot(x[m], y[m], linestyle="none", marker=marker, markersize=3.5, color=color,
-                    label=f"measured, {label}")
+                    label=label)
+
+
+def _within(value: float | None, limit: float | None) -> bool | None:
+    if value is None or limit is None:
+        return None
+    return bool(value <= limit)
+
+
+def _shade_safe(axes: Sequence[Any], spans: Sequence[tuple[float, float]], label: str) -> None:
+    for k, ax in enumerate(axes):
+        for n, (lo, hi) in enumerate(spans):
+            label_k = label if k == 0 and n == 0 else None
+            if hi > lo:
+                ax.axvspan(lo, hi, color=_SAFE, alpha=0.12, linewidth=0, zorder=0,
+                           label=label_k)
+            else:
+                ax.axvline(lo, color=_SAFE, alpha=0.4, linewidth=2.0, zorder=0, label=label_k)
+
+
+def _failed_ticks(ax: Any, x: np.ndarray, failed: np.ndarray) -> None:
+    if failed.any():
+        ax.plot(x[failed], np.zeros(int(failed.sum())), linestyle="none", marker="|",
+                markersize=10, color=_FAILED, transform=ax.get_xaxis_transform(),
+                label="failed measurement", clip_on=False)
+
+
+def _board_labels(axes: Sequence[Any], boards: list[tuple[int, float, float]]) -> None:
+    """Grey lines where a board starts and its number above the top panel (outside the data).
+
+    ``boards``: ``(board_id, start, end)`` on the horizontal axis, in order.
+    """
+    if not 0 < len(boards) <= 20:
+        return
+    for ax in axes:
+        for _bid, start, _end in boards[1:]:
+            ax.axvline(start, color="0.6", linewidth=0.7, zorder=0)
+    top = axes[0].secondary_xaxis("top")
+    top.set_xticks([0.5 * (s + e) for _b, s, e in boards],
+                   labels=[f"board {b}" if b else "no board" for b, _s, _e in boards])
+    top.tick_params(length=0, labelsize="small", labelcolor="0.3")
+
+
+def _periods_on_axis(
+    periods: Sequence[Sequence[Any]], t: np.ndarray, x: np.ndarray
+) -> list[tuple[float, float]]:
+    """Machine-time periods mapped onto another axis through the records' (t, x) pairs."""
+    order = np.argsort(t, kind="stable")
+    ts, xs = t[order], x[order]
+    out = []
+    for p in periods:
+        lo, hi = np.interp([float(p[0]), float(p[1])], ts, xs)
+        if hi > lo or ts[0] <= float(p[0]) <= ts[-1]:
+            out.append((float(lo), float(hi)))
+    return out
 
 
 def _pitch_uniformity_figure(
-    recs: list[QualityRecord], qc: QualityClass | None
+    recs: list[QualityRecord], qc: QualityClass | None,
+    safe_periods_s: Sequence[Sequence[Any]] | None,
 ) -> Figure:
     x, xlabel, starts = board_axis(recs)
     order = np.argsort(x, kind="stable")
-    passed = [r.passed for r in recs]
     have_depth = any(r.depth_um is not None for r in recs)
-    fig, axes = _new_figure(3 if have_depth else 2, height_in=8.5 if have_depth else 6.5)
+    fig, axes = _new_figure(3 if have_depth else 2, height_in=9.0 if have_depth else 7.0)
     ax_p, ax_u = axes[0], axes[1]
 
-    # pitch: target and tolerance band (per record: the target may change during a run)
+    # pitch: target and tolerance band (per record: the target may change during a run); each
+    # point coloured by the pitch's own verdict
     tol = qc.pitch_tolerance if qc is not None else DEFAULT_PITCH_TOLERANCE
     target = _arr([r.target_pitch_mm if r.target_pitch_mm is not None
                    else (qc.target_pitch_mm if qc is not None else None) for r in recs])
+    pitch = _arr([r.pitch_mm for r in recs])
     if np.isfinite(target).any():
         xs, ts = x[order], target[order]
         ax_p.fill_between(xs, ts * (1 - tol), ts * (1 + tol), step="post", color=_TARGET,
@@ -306,70 +456,145 @@ def _pitch_uniformity_figure(
     if np.isfinite(true_p).any():
         ax_p.plot(x[order], true_p[order], color=_TRUE, linewidth=0.9,
                   label="true (simulator)")
-    _scatter_judged(ax_p, x, _arr([r.pitch_mm for r in recs]), passed)
-    failed = np.array([not r.ok for r in recs])
-    if failed.any():
-        ax_p.plot(x[failed], np.zeros(int(failed.sum())), linestyle="none", marker="|",
-                  markersize=10, color=_FAILED, transform=ax_p.get_xaxis_transform(),
-                  label="failed measurement", clip_on=False)
+    pitch_ok = [None if not (np.isfinite(p) and np.isfinite(t))
+                else bool(abs(p / t - 1.0) <= tol + 1e-9)
+                for p, t in zip(pitch, target, strict=True)]
+    _scatter_verdict(ax_p, x, pitch, pitch_ok,
+                     ("measured, within tolerance", "measured, outside tolerance",
+                      "measured, no target"))
+    _failed_ticks(ax_p, x, np.array([not r.ok for r in recs]))
     ax_p.set_ylabel("pitch (mm)")
-    ax_p.set_title("Mark pitch and uniformity along the boards")
+    ax_p.set_title("Mark pitch (feed per knife): the points should lie in the green band",
+                   fontsize="medium")
 
-    # uniformity
-    if qc is not None and qc.uniformity_max_cv is not None:
-        ax_u.axhline(qc.uniformity_max_cv, color=_FAILED, linestyle="--", linewidth=1.2,
-                     label=f"limit CV {qc.uniformity_max_cv:g}")
+    # uniformity, coloured by the uniformity verdict
+    cv_max = qc.uniformity_max_cv if qc is not None else None
+    if cv_max is not None:
+        ax_u.axhline(cv_max, color=_FAILED, linestyle="--", linewidth=1.2,
+                     label=f"limit CV {cv_max:g}")
     true_u = _arr([r.true_uniformity_cv for r in recs])
     if np.isfinite(true_u).any():
         ax_u.plot(x[order], true_u[order], color=_TRUE, linewidth=0.9, label="true (simulator)")
-    _scatter_judged(ax_u, x, _arr([r.uniformity_cv for r in recs]), passed)
+    _scatter_verdict(ax_u, x, _arr([r.uniformity_cv for r in recs]),
+                     [_within(r.uniformity_cv, cv_max) for r in recs],
+                     ("measured, within limit", "measured, above limit",
+                      "measured, no limit set"))
     ax_u.set_ylabel("uniformity: CV of mark widths (-)")
     ax_u.set_ylim(bottom=0.0)
+    ax_u.set_title("Uniformity of the knives' marks (0 = every knife cuts the same mark): "
+                   "the points should stay below the red line", fontsize="medium")
 
     if have_depth:
         ax_d = axes[2]
-        if qc is not None and qc.depth_max_um is not None:
-            ax_d.axhline(qc.depth_max_um, color=_FAILED, linestyle="--", linewidth=1.2,
-                         label=f"limit {qc.depth_max_um:g} µm")
-        _scatter_judged(ax_d, x, _arr([r.depth_um for r in recs]), passed)
+        depth_max = qc.depth_max_um if qc is not None else None
+        if depth_max is not None:
+            ax_d.axhline(depth_max, color=_FAILED, linestyle="--", linewidth=1.2,
+                         label=f"limit {depth_max:g} µm")
+        _scatter_verdict(ax_d, x, _arr([r.depth_um for r in recs]),
+                         [_within(r.depth_um, depth_max) for r in recs],
+                         ("measured, within limit", "measured, above limit",
+                          "measured, no limit set"))
         ax_d.set_ylabel("mark depth (µm)")
         ax_d.set_ylim(bottom=0.0)
+        ax_d.set_title("Depth of the cutter marks (waviness): the points should stay below "
+                       "the red line", fontsize="medium")
 
+    if safe_periods_s is None:
+        spans = safe_spans(x, [record_state(r) == "safe" for r in recs])
+    else:
+        spans = _periods_on_axis(safe_periods_s, np.array([r.t_s for r in recs]), x)
+    _shade_safe(axes, spans, _safe_label(recs, safe_periods_s or ()))
+    boards = [(bid, start, float(np.max(x[[r.board_id == bid for r in recs]])))
+              for bid, start in starts]
+    _board_labels(axes, boards)
     for ax in axes:
-        for i, (_, start) in enumerate(starts):
-            if i:
-                ax.axvline(start, color="0.6", linewidth=0.7, zorder=0)
         ax.grid(True, alpha=0.3)
         _legend(ax)
-    if 0 < len(starts) <= 20:
-        for bid, start in starts:
-            ax_p.annotate(f"board {bid}", xy=(start, 1.0), xycoords=("data", "axes fraction"),
-                          xytext=(3, -3), textcoords="offset points", va="top",
-                          fontsize="x-small", color="0.35")
     axes[-1].set_xlabel(xlabel)
+    fig.suptitle("Quality along the boards" + (f", class {qc.name}" if qc is not None else ""),
+                 fontweight="bold")
     return fig
 
 
-def _setpoints_figure(recs: list[QualityRecord]) -> Figure:
+def _segments(t: np.ndarray) -> list[slice]:
+    """Stretches of records without a pause (a pause: e.g. the gap between two boards).
+
+    A pause is an interval longer than ``GAP_FACTOR`` times the median interval.
+    """
+    n = t.size
+    if n < 3:
+        return [slice(0, n)]
+    dt = np.diff(t)
+    positive = dt[dt > 0]
+    if not positive.size:
+        return [slice(0, n)]
+    cuts = (np.nonzero(dt > GAP_FACTOR * float(np.median(positive)))[0] + 1).tolist()
+    bounds = [0, *cuts, n]
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
+def _plot_with_gaps(ax: Any, t: np.ndarray, y: np.ndarray, segs: list[slice], *, color: Any,
+                    label: str, gap_label: str | None) -> None:
+    """``y`` as steps inside each stretch, and what is drawn across the pauses.
+
+    Across a pause a dotted line labelled ``gap_label`` (the value there was not recorded), or
+    nothing when ``gap_label`` is ``None``.
+    """
+    for n, s in enumerate(segs):
+        ax.plot(t[s], y[s], drawstyle="steps-post", color=color, linewidth=1.3,
+                label=label if n == 0 else None)
+    if gap_label is None:
+        return
+    for n, (a, b) in enumerate(zip(segs[:-1], segs[1:], strict=True)):
+        i, j = a.stop - 1, b.start
+        ax.plot([t[i], t[j]], [y[i], y[j]], linestyle=":", color=color, linewidth=1.0,
+                label=gap_label if n == 0 else None)
+
+
+def _setpoints_figure(
+    recs: list[QualityRecord], safe_periods_s: Sequence[Sequence[Any]] | None
+) -> Figure:
     order = np.argsort([r.t_s for r in recs], kind="stable")
     rs = [recs[i] for i in order]
     t = np.array([r.t_s for r in rs])
-    fig, (ax_f, ax_z) = _new_figure(2, height_in=6.0)
+    segs = _segments(t)
+    fig, (ax_f, ax_z) = _new_figure(2, height_in=7.0)
+    gap_label = "no measurements here: setpoint not recorded" if len(segs) > 1 else None
     feed = _arr([r.feed_setpoint_mm_s for r in rs])
     if np.isfinite(feed).any():
-        ax_f.plot(t, feed, drawstyle="steps-post", color="tab:blue", label="feed setpoint")
+        _plot_with_gaps(ax_f, t, feed, segs, color="tab:blue",
+                        label="feed setpoint (mm/s) at each measurement", gap_label=gap_label)
+    _failed_ticks(ax_f, t, np.array([not r.ok for r in rs]))
     ax_f.set_ylabel("feed setpoint (mm/s)")
-    ax_f.set_title("Setpoints over time")
+    ax_f.set_title("Feed rate commanded to the PLC: it follows the target pitch; "
+                   "in the safe state it is held or ramped down", fontsize="medium")
     n_knives = max((len(r.piezo_offsets_um) for r in rs), default=0)
     for k in range(n_knives):
         y = _arr([r.piezo_offsets_um[k] if len(r.piezo_offsets_um) > k else None for r in rs])
-        ax_z.plot(t, y, drawstyle="steps-post", label=f"knife {k}")
+        _plot_with_gaps(ax_z, t, y, segs, color=f"C{k % 10}", label=f"knife {k}",
+                        gap_label=None)
     ax_z.axhline(0.0, color="0.5", linewidth=0.7, zorder=0)
     ax_z.set_ylabel("piezo offset (µm, + = knife cuts less)")
     ax_z.set_xlabel("machine time (s)")
+    ax_z.set_title("Piezo offset per knife: levels out once each knife's runout is "
+                   "compensated; 0 in the safe state; gaps: not recorded", fontsize="medium")
+    if safe_periods_s is None:
+        spans = safe_spans(t, [record_state(r) == "safe" for r in rs])
+    else:  # the service's own account: also the safe states between boards (no records)
+        spans = [(float(p[0]), float(p[1])) for p in safe_periods_s]
+    _shade_safe([ax_f, ax_z], spans, _safe_label(rs, safe_periods_s or ()))
+    boards: list[tuple[int, float, float]] = []
+    for r in rs:
+        if boards and boards[-1][0] == r.board_id:
+            boards[-1] = (r.board_id, boards[-1][1], r.t_s)
+        else:
+            boards.append((r.board_id, r.t_s, r.t_s))
+    if len(boards) > 1:
+        _board_labels([ax_f, ax_z], boards)
     for ax in (ax_f, ax_z):
         ax.grid(True, alpha=0.3)
         _legend(ax)
+    fig.suptitle("What the controller commanded, over machine time", fontweight="bold")
     return fig
 
 
@@ -395,29 +620,59 @@ def last_profile(
 
 
 def _profile_figure(rec: QualityRecord, x: np.ndarray, h: np.ndarray) -> Figure:
-    fig, (ax,) = _new_figure(1, height_in=4.0)
-    ax.plot(x, h, color="tab:blue", linewidth=1.0, label="measured height")
     true_h = rec.extra["profile"].get("true_height_um")
     try:
         th = np.asarray(true_h, dtype=float) if true_h is not None else None
     except (TypeError, ValueError):
         th = None
-    if th is not None and th.shape == x.shape:
-        ax.plot(x, th, color=_TRUE, linewidth=0.8, linestyle="--", label="true (simulator)")
-    ax.set_xlabel("position in image A along the feed (mm)")
-    ax.set_ylabel("surface height (µm)")
-    title = (f"Surface profile: board {rec.board_id} at {rec.board_position_mm:.0f} mm, "
-             f"measurement {rec.seq}, t = {rec.t_s:.1f} s")
-    if rec.pitch_mm is not None:
-        title += f" (pitch {rec.pitch_mm:.3f} mm)"
-    ax.set_title(title)
-    ax.grid(True, alpha=0.3)
-    _legend(ax)
+    if th is not None and th.shape != x.shape:
+        th = None
+    # a second panel zooms on two turns of the cutterhead when the profile holds many more
+    knives = len(rec.mark_widths_mm)
+    pitch = rec.pitch_mm
+    zoom_mm = 2.0 * knives * pitch if pitch and knives else 0.0
+    zoom = 0 < zoom_mm < 0.5 * float(np.ptp(x))
+    fig = Figure(figsize=(11.0, 6.5 if zoom else 4.5), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = list(fig.subplots(2 if zoom else 1, 1, squeeze=False)[:, 0])
+    ranges = [(float(np.min(x)), float(np.max(x)))]
+    if zoom:
+        mid = 0.5 * (ranges[0][0] + ranges[0][1])
+        ranges.append((mid - 0.5 * zoom_mm, mid + 0.5 * zoom_mm))
+    for n, (ax, (lo, hi)) in enumerate(zip(axes, ranges, strict=True)):
+        m = (x >= lo) & (x <= hi)
+        ax.plot(x[m], h[m], color="tab:blue", linewidth=1.0, label="measured height",
+                marker="." if n else None, markersize=3)
+        if th is not None:
+            ax.plot(x[m], th[m], color=_TRUE, linewidth=0.8, linestyle="--",
+                    label="true (simulator)")
+        ax.set_ylabel("surface height (µm)")
+        ax.set_xlabel("position in image A along the feed (mm)")
+        ax.grid(True, alpha=0.3)
+        _legend(ax)
+    if zoom:
+        axes[0].axvspan(*ranges[1], color="0.5", alpha=0.12, linewidth=0,
+                        label="shown enlarged below")
+        _legend(axes[0])
+        axes[1].set_title(f"Enlarged: two turns of the cutterhead ({2 * knives} marks); each "
+                          "dip is one knife's mark, equal dips = equal knives",
+                          fontsize="medium")
+    what = f"board {rec.board_id} at {rec.board_position_mm:.0f} mm" if rec.board_id else \
+        "no board id"
+    title = f"Surface profile across the marks: {what}, measurement {rec.seq}, t = {rec.t_s:.1f} s"
+    fig.suptitle(title, fontweight="bold")
+    sub = "one dip per knife pass; unequal dips = unequal knives"
+    if pitch is not None:
+        sub = f"measured pitch {pitch:.3f} mm: " + sub
+    axes[0].set_title(sub, fontsize="medium")
     return fig
 
 
 def build_figures(
-    records: Sequence[QualityRecord], *, quality_class: QualityClass | None = None
+    records: Sequence[QualityRecord],
+    *,
+    quality_class: QualityClass | None = None,
+    safe_periods_s: Sequence[Sequence[Any]] | None = None,
 ) -> dict[str, Figure]:
     """The report's figures (Agg canvas, not shown; the caller saves them).
 
@@ -428,22 +683,54 @@ def build_figures(
     quality_class : QualityClass, optional
         Draws its tolerance band and limits; without it a +-2 % band around each record's
         ``target_pitch_mm`` is drawn and marked "(default)".
+    safe_periods_s : sequence of (float, float[, str]), optional
+        ``(start, end[, reason])``: machine times the service spent in the safe state, from its
+        own events (``planer hil``). Both figures then shade these (mapped onto the board axis
+        through the records' times), including safe states between boards that no record
+        shows; default: the spans of the records' states (:func:`record_state`).
 
     Returns
     -------
     dict of str to Figure
-        ``"pitch_uniformity"`` (pitch, uniformity and, when measured, depth along the boards),
-        ``"setpoints"`` (feed and piezo offsets per knife over machine time) and, when a record
-        carries ``extra["profile"]``, ``"profile"`` (the newest one). Empty for no records.
+        ``"pitch_uniformity"`` (pitch, uniformity and, when measured, depth along the boards;
+        each point coloured by the verdict on that quantity), ``"setpoints"`` (feed and piezo
+        offsets per knife over machine time) and, when a record carries ``extra["profile"]``,
+        ``"profile"`` (the newest one). Both along-the-run figures shade the periods the
+        records were taken in the safe state (:func:`record_state`). Empty for no records.
     """
     recs = list(records)
     if not recs:
         return {}
     figs = {
-        "pitch_uniformity": _pitch_uniformity_figure(recs, quality_class),
-        "setpoints": _setpoints_figure(recs),
+        "pitch_uniformity": _pitch_uniformity_figure(recs, quality_class, safe_periods_s),
+        "setpoints": _setpoints_figure(recs, safe_periods_s),
     }
     prof = last_profile(recs)
     if prof is not None:
         figs["profile"] = _profile_figure(*prof)
     return figs
+
+
+def save_figures(
+    figures: dict[str, Figure], out_dir: str | Path, *, stem: str
+) -> dict[str, str]:
+    """Write figures as ``<out_dir>/<stem>_<name>.png``, each atomically; their paths by name.
+
+    Parameters
+    ----------
+    figures : dict of str to Figure
+        From :func:`build_figures`.
+    out_dir : str or Path
+        Existing folder.
+    stem : str
+        Start of the file names (the log's name without suffix).
+    """
+    from planer.fileio import atomic_writer
+
+    written: dict[str, str] = {}
+    for name, fig in figures.items():
+        path = Path(out_dir) / f"{stem}_{name}.png"
+        with atomic_writer(path, binary=True) as fh:
+            fig.savefig(fh, format="png")
+        written[name] = str(path)
+    return written

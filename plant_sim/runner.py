@@ -212,20 +212,26 @@ class SimRunner:
         )
         own_bus = can_bus is None
         bus = bus_from_config(cfg.can) if own_bus else can_bus
-        core = AmpNodeCore(machine, PiezoCodec.load(), knives=cfg.cutterhead.knives, seed=seed)
-        amp = AmpNode(bus, core, own_bus=own_bus)
-        if sink is None:
-            directory = Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir)
-            sink = SpoolWriter(directory, keep=cfg.frames.keep)
-        runner = cls(
-            machine,
-            plc=plc,
-            amp=amp,
-            sink=sink,
-            time_scale=cfg.run.time_scale if time_scale is None else time_scale,
-            step_s=cfg.run.step_s,
-            **kwargs,
-        )
+        try:  # a failure from here on (unusable spool folder, bad option) closes our bus
+            core = AmpNodeCore(machine, PiezoCodec.load(), knives=cfg.cutterhead.knives,
+                               seed=seed)
+            amp = AmpNode(bus, core, own_bus=own_bus)
+            if sink is None:
+                directory = Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir)
+                sink = SpoolWriter(directory, keep=cfg.frames.keep)
+            runner = cls(
+                machine,
+                plc=plc,
+                amp=amp,
+                sink=sink,
+                time_scale=cfg.run.time_scale if time_scale is None else time_scale,
+                step_s=cfg.run.step_s,
+                **kwargs,
+            )
+        except BaseException:
+            if own_bus:
+                bus.shutdown()
+            raise
         runner.description["can"] = describe_bus(cfg.can.interface, cfg.can.channel)
         return runner
 
@@ -308,16 +314,23 @@ class SimRunner:
             self.say(f"frames: {desc}")
 
     async def close(self) -> None:
-        """Finish pending frame writes, stop the server and close the bus."""
-        if self._pool is not None:
+        """Finish pending frame writes, stop the server and close the bus.
+
+        Each step runs even when an earlier one fails; that error is raised afterwards.
+        """
+        try:
+            if self._pool is not None:
+                try:
+                    self._collect_writes(wait_all=True)
+                finally:
+                    self._pool.shutdown(wait=True)
+        finally:
             try:
-                self._collect_writes(wait_all=True)
+                if self.plc is not None:
+                    await self.plc.stop()
             finally:
-                self._pool.shutdown(wait=True)
-        if self.plc is not None:
-            await self.plc.stop()
-        if self.amp is not None:
-            self.amp.close()
+                if self.amp is not None:
+                    self.amp.close()
 
     def _collect_writes(self, *, wait_all: bool = False) -> None:
         """Drop finished writes (raising a failed one's error); wait when too many are queued."""
@@ -348,7 +361,11 @@ class SimRunner:
         """
         if duration_s is not None and not duration_s >= 0:
             raise ValueError(f"duration_s must be >= 0, got {duration_s!r}")
-        await self.start()
+        try:
+            await self.start()
+        except BaseException:  # e.g. Modbus cannot listen: nothing stays open (CAN bus)
+            await self.close()
+            raise
         try:
             await self._loop(duration_s)
         finally:

@@ -280,7 +280,7 @@ def test_synthetic_calibration_recovers_camera(synthetic_views):
     assert exact.rms_px < 1e-3
 
 
-def test_cli_keeps_base_rig_values(synthetic_views, tmp_path, capsys):
+def test_cli_keeps_base_rig_values(synthetic_views, tmp_path, capsys, monkeypatch):
     paths = []
     for k, (image, _) in enumerate(synthetic_views[:5]):
         p = tmp_path / f"board{k}.png"
@@ -318,6 +318,19 @@ def test_cli_keeps_base_rig_values(synthetic_views, tmp_path, capsys):
     assert rig2.camera.exposure_ms == default.camera.exposure_ms
     assert rig2.camera.px_per_mm == 9.5
     assert rig2.camera.fx == pytest.approx(rig.camera.fx, rel=1e-9)  # square size is irrelevant
+    assert list(tmp_path.glob(".*.tmp")) == []
+
+    # the disk fails while the rig file is written: the old file stays whole, no leftovers
+    import planer.fileio
+
+    def disk_full(fd):
+        raise OSError(28, "No space left on device")
+
+    before = out2.read_bytes()
+    monkeypatch.setattr(planer.fileio.os, "fsync", disk_full)
+    code, _, err = run_cli([*paths, "--pattern", "7x7", "--out", str(out2)], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "No space left" in err
+    assert out2.read_bytes() == before
     assert list(tmp_path.glob(".*.tmp")) == []
 
 

@@ -308,3 +308,22 @@ def test_serve_against_sim_as_the_docs_say(tmp_path):
     assert "stopped: 12 pairs, 12 measured" in res["serve_err"]
     with QualityLog(tmp_path / "runs" / "quality.sqlite", create=False) as log:
         assert len(log.records()) == 12
+
+
+def test_multicast_outside_a_namespace_says_what_to_do_in_words(tmp_path, capsys, monkeypatch):
+    """The refusal names the remedy a user can follow, not Python functions."""
+    from planer.protocol import can_transport
+
+    monkeypatch.setattr(can_transport, "network_interfaces", lambda: ["lo", "eth0"])
+    monkeypatch.chdir(tmp_path)
+    rc, err, _ = _run(["serve", "--max-frames", "1", "--log", str(tmp_path / "q.sqlite")],
+                      capsys)
+    assert rc == 2 and len(err) == 1
+    line = err[0]
+    assert line.startswith("planer serve: error: udp_multicast would reach the network outside "
+                           "this host")
+    for words in ("eth0", "private network namespace", "unshare", "nsenter", "README.md",
+                  '"Simulator and service in two terminals"', "docs/service.md", "planer hil"):
+        assert words in line, words
+    for api in ("run_in_private_netns", "planer.protocol", "loopback_only", "()"):
+        assert api not in line, api

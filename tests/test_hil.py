@@ -5,8 +5,10 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -26,7 +28,7 @@ from controller.hil import (
     to_toml,
 )
 from controller.service import FrameResult
-from planer.errors import ConfigError
+from planer.errors import ConfigError, FieldbusError
 
 REPO = Path(__file__).parents[1]
 
@@ -57,6 +59,70 @@ def test_scenario_file_errors_name_the_key(tmp_path):
         load_scenario(str(p))
     with pytest.raises(ConfigError, match="no scenario"):
         load_scenario("no_such_scenario")
+    p.write_text("[a]\n[b]\n")
+    with pytest.raises(ConfigError, match=r"several scenarios \(a, b\).*s\.toml:NAME"):
+        load_scenario(str(p))
+
+
+def test_unknown_fault_kind_names_the_file_and_the_table(tmp_path):
+    from config.sim import FAULT_KINDS
+
+    p = tmp_path / "hil.toml"
+    p.write_text("[base]\nfaults = [{ kind = 'can_silence', at_s = 1 }, "
+                 "{ kind = 'gremlin', at_s = 2 }]\n[child]\nbase = 'base'\n")
+    for spec in (f"{p}:base", f"{p}:child"):  # also when the bad table is inherited
+        with pytest.raises(ConfigError) as err:
+            load_scenario(spec)
+        msg = str(err.value)
+        assert msg.startswith(f"{p}: base.faults[1].kind must be one of "), msg
+        assert "'gremlin'" in msg and all(k in msg for k in FAULT_KINDS)
+    for kind in ("can_drop", "belt_slip", "modbus_restart"):  # every known kind loads
+        p.write_text(f"[a]\nfaults = [{{ kind = '{kind}', at_s = 1 }}]\n")
+        assert [f.kind for f in load_scenario(str(p)).faults] == [kind]
+
+
+def test_config_files_resolve_from_the_scenario_folder(tmp_path, monkeypatch):
+    folder = tmp_path / "scenarios"
+    folder.mkdir()
+    (folder / "my_sim.toml").write_text("[feed]\ninitial_mm_s = 650.0\n")
+    (folder / "sub").mkdir()
+    p = folder / "s.toml"
+    p.write_text("[a]\nsim_config = 'my_sim.toml'\n[b]\nsim_config = 'gone.toml'\n"
+                 "[c]\nmachine_config = 'sub'\n")
+    monkeypatch.chdir(tmp_path)  # not the scenario's folder
+    sc = load_scenario(f"{p}:a")
+    assert sc.sim_config == folder / "my_sim.toml"
+    assert sim_config_for(sc).feed.initial_mm_s == 650.0
+    for name, key, what in (("b", "sim_config", "no such file"),
+                            ("c", "machine_config", "is a folder")):
+        with pytest.raises(ConfigError) as err:
+            load_scenario(f"{p}:{name}")
+        msg = str(err.value)
+        assert msg.startswith(f"{p}: {name}.{key} = ") and what in msg, msg
+        assert f"resolved from the scenario file's folder {folder}" in msg
+
+
+def test_cross_process_work_folder_is_removed_by_the_library(tmp_path, monkeypatch):
+    import controller.hil as hil
+
+    seen: list[Path] = []
+
+    async def fake_run(scenario, folder, **kw):
+        seen.append(folder)
+        (folder / "spool").mkdir()
+        (folder / "spool" / "pair.json").write_text("{}")
+        if len(seen) == 2:
+            raise RuntimeError("simulator failed")
+        return {"folder": str(folder)}
+
+    monkeypatch.setattr(hil, "_run_cross_process", fake_run)
+    log = tmp_path / "q.sqlite"
+    assert asyncio.run(hil.run_cross_process(Scenario(), log_path=log))["folder"]
+    with pytest.raises(RuntimeError):
+        asyncio.run(hil.run_cross_process(Scenario(), log_path=log))
+    assert len(seen) == 2 and not any(f.exists() for f in seen)  # gone, also after an error
+    asyncio.run(hil.run_cross_process(Scenario(), log_path=log, workdir=tmp_path / "keep"))
+    assert (tmp_path / "keep" / "spool" / "pair.json").is_file()  # a given folder is kept
 
 
 def test_sim_config_carries_the_scenario(tmp_path):
@@ -146,6 +212,34 @@ def test_fault_timing_uses_the_clock_mapping_in_force_at_the_fault():
     assert rep["handled"]
 
 
+def test_safe_periods_from_the_service_events():
+    from controller.hil import safe_periods
+
+    events = [(10.3, "recovered: control resumed"), (12.0, "safe state: plc gone"),
+              (12.5, "PLC data invalid: x"), (13.0, "safe state: can gone"),
+              (14.0, "recovered: control resumed"), (17.0, "safe state: can gone")]
+    assert safe_periods(events, start_s=10.0, end_s=18.0, offset_s=10.0) == [
+        [0.0, 0.3, "starting up"], [2.0, 4.0, "plc gone"],
+        [7.0, 8.0, "can gone"]]  # starts safe; still safe at the end: until the end
+    assert safe_periods([], start_s=0.0, end_s=5.0) == [[0.0, 5.0, "starting up"]]
+
+
+def test_board_travel_counts_from_the_closing_measurement():
+    from controller.hil import BoardTravel
+
+    res = [_result(i, cv=0.1, pitch=1.5, applied=i >= 3) for i in range(8)]
+    travel = BoardTravel(20.0)
+    seen = []
+    for r in res:
+        travel.add(r)
+        seen.append(travel.since_closed_mm)
+    # 100 mm per pair across the counter's wrap; nothing before the loop closed at pair 3
+    assert seen == [None, None, None, 0.0, 100.0, 200.0, 300.0, 400.0]
+    assert travel.measured_mm == 700.0
+    with pytest.raises(ValueError, match="counts_per_mm"):
+        BoardTravel(0.0)
+
+
 @pytest.mark.parametrize(
     "values,expected",
     [
@@ -162,10 +256,35 @@ def test_settled_at_table(values, expected):
 
 
 # ---------------------------------------------------------------------------------- closed loop
+_PROGRESS = re.compile(r"^\s*(?P<d>[\d.]+|-) m  \w+\s+pitch (?P<p>[\d.]+) mm  cv (?P<c>[\d.]+) "
+                       r"\(true (?P<tp>[\d.]+) / (?P<tc>[\d.]+)\)")
+
+
+def _check_progress_distances(lines, summary):
+    """Each progress line's distance is the board measured since the loop closed (both modes)."""
+    closed = summary["converged"]["loop_closed_at_mm"]
+    checked = 0
+    for line in lines:
+        m = _PROGRESS.match(line)
+        if not m or m["d"] == "-":
+            continue
+        same = [x for x in summary["measurements"] if x["pitch_mm"] is not None
+                and (f"{x['pitch_mm']:.3f}", f"{x['uniformity_cv']:.3f}",
+                     f"{x['true_pitch_mm']:.3f}", f"{x['true_uniformity_cv']:.3f}")
+                == (m["p"], m["c"], m["tp"], m["tc"])]
+        if len(same) != 1:
+            continue
+        assert float(m["d"]) == pytest.approx((same[0]["board_travel_mm"] - closed) / 1000,
+                                              abs=0.006), line
+        checked += 1
+    assert checked >= 3, lines
 def test_short_closed_loop_hil_meets_done_when(tmp_path):
     """The default scenario, in process, with the real vision pipeline on rendered images."""
     sc = load_scenario("default")
-    summary = asyncio.run(InProcessHil(sc, log_path=tmp_path / "hil.sqlite").run())
+    lines: list[str] = []
+    summary = asyncio.run(InProcessHil(sc, log_path=tmp_path / "hil.sqlite",
+                                       progress=lines.append).run())
+    _check_progress_distances(lines, summary)
     assert summary["initial"]["uniformity_cv"] >= 0.10
     assert summary["final"]["uniformity_cv"] <= 0.05
     assert abs(summary["final"]["pitch_mm"] / summary["target_pitch_mm"] - 1) <= 0.02
@@ -193,12 +312,57 @@ def test_planer_hil_in_process_json_with_modbus_fault(tmp_path):
     assert out.returncode in (0, 1), out.stderr
     summary = json.loads(out.stdout)  # exactly one JSON object
     assert summary["mode"] == "in-process" and summary["plc_transport"] == "tcp"
+    _check_figures(summary, tmp_path / "q.sqlite")
     (fault,) = summary["faults"]
     assert fault["kind"] == "modbus_restart" and fault["handled"]
     assert fault["safe_after_s"] <= fault["timeout_s"] + 0.1
     assert summary["quality_log"]["ok"]
     assert summary["done"]["setpoints_within_limits"]
     assert "fault: Modbus server down" in out.stderr
+
+
+def _check_figures(summary, log):
+    """The report's figures lie next to the log, named after it, and are PNG files."""
+    assert set(summary["figures"]) >= {"pitch_uniformity", "setpoints"}
+    for name, path in summary["figures"].items():
+        assert Path(path) == log.parent / f"{log.stem}_{name}.png"
+        assert Path(path).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_planer_hil_text_summary_prints_the_figures(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "planer.cli", "hil", "--in-process", "--plc", "direct",
+         "--distance-m", "1.5", "--log", str(tmp_path / "h.sqlite")],
+        capture_output=True, text=True, cwd=tmp_path, timeout=300,
+    )
+    assert out.returncode in (0, 1), out.stderr
+    shown = [ln.split()[-1] for ln in out.stdout.splitlines() if ln.strip().startswith("figure")]
+    names = {Path(p).name for p in shown}
+    assert {"h_pitch_uniformity.png", "h_setpoints.png"} <= names
+    assert names <= {"h_pitch_uniformity.png", "h_setpoints.png", "h_profile.png"}
+    assert all(Path(p).parent == tmp_path and Path(p).is_file() for p in shown)
+
+
+def test_in_process_start_failure_leaves_no_bus_open(tmp_path, monkeypatch, caplog):
+    """Modbus cannot listen, or the log path is unusable: every CAN bus is shut down."""
+    import gc
+
+    from plant_sim.plc_server import PlcServer
+
+    async def cannot_listen(self):
+        raise FieldbusError("cannot listen on 127.0.0.1:0: address in use")
+
+    sc = replace(load_scenario("default"), distance_m=0.1)
+    with monkeypatch.context() as mp:
+        mp.setattr(PlcServer, "start", cannot_listen)
+        with pytest.raises(FieldbusError, match="cannot listen"):
+            asyncio.run(InProcessHil(sc, log_path=tmp_path / "a.sqlite",
+                                     plc_transport="tcp").run())
+    (tmp_path / "folder.sqlite").mkdir()
+    with pytest.raises((OSError, ValueError)):
+        asyncio.run(InProcessHil(sc, log_path=tmp_path / "folder.sqlite").run())
+    gc.collect()
+    assert not [r for r in caplog.records if "not properly shut down" in r.getMessage()]
 
 
 @pytest.mark.slow
@@ -215,6 +379,8 @@ def test_planer_hil_cross_process_with_faults(tmp_path):
     assert out.returncode in (0, 1), out.stderr
     summary = json.loads(out.stdout)
     assert summary["mode"] == "cross-process"
+    _check_figures(summary, tmp_path / "q.sqlite")
+    _check_progress_distances(out.stderr.splitlines(), summary)
     assert all(f["handled"] for f in summary["faults"]), summary["faults"]
     assert summary["quality_log"]["ok"]
     assert summary["done"]["setpoints_within_limits"]

@@ -22,11 +22,14 @@ from hypothesis import strategies as st
 from config.loading import Section
 from controller.quality_log import (
     CSV_COLUMNS,
+    CSV_NOISE_ULPS,
+    CSV_SIGNIFICANT_DIGITS,
     SCHEMA_VERSION,
     QualityClass,
     QualityLog,
     QualityLogError,
     QualityRecord,
+    csv_float,
     judge,
     quality_class_from_section,
     utc_iso,
@@ -375,6 +378,15 @@ def _parse_float(s: str):
     return None if s == "" else float(s)
 
 
+def _reads_back(text: str, logged: float) -> bool:
+    """CSV text reads back as the logged double, or as its noise-free 15-digit form."""
+    v = float(text)
+    if v == logged or (math.isnan(v) and math.isnan(logged)):
+        return True
+    return (v == float(f"{logged:.{CSV_SIGNIFICANT_DIGITS}g}")
+            and abs(v - logged) <= CSV_NOISE_ULPS * math.ulp(logged))
+
+
 def test_csv_round_trip(tmp_path):
     recs = [expected_record(7, i) for i in range(30)]
     recs.append(_rec(99, mark_widths_mm=[1.0, float("nan")], passed=None, extra={}))
@@ -390,7 +402,8 @@ def test_csv_round_trip(tmp_path):
     assert len(rows) == len(recs)
     for rid, rec, row in zip(ids, recs, rows, strict=True):
         assert int(row["record_id"]) == rid
-        assert float(row["t_s"]) == rec.t_s and row["wall_time_utc"] == rec.wall_time
+        assert _reads_back(row["t_s"], rec.t_s) and row["wall_time_utc"] == rec.wall_time
+        assert row["t_s"] == repr(round(rec.t_s, 2))  # 0.15000000000000002 is written 0.15
         assert int(row["seq"]) == rec.seq and int(row["board_id"]) == rec.board_id
         assert row["ok"] == ("1" if rec.ok else "0")
         assert row["passed"] == {None: "", True: "1", False: "0"}[rec.passed]
@@ -398,12 +411,34 @@ def test_csv_round_trip(tmp_path):
         for name in ("board_position_mm", "pitch_mm", "uniformity_cv", "depth_um", "shift_px",
                      "confidence", "feed_setpoint_mm_s", "target_pitch_mm", "true_pitch_mm",
                      "true_uniformity_cv"):
-            assert _parse_float(row[name]) == getattr(rec, name), name
+            logged = getattr(rec, name)
+            assert (row[name] == "") if logged is None else _reads_back(row[name], logged), name
         for name in ("mark_widths_mm", "piezo_offsets_um"):
-            vals = tuple(float(x) for x in row[name].split(";")) if row[name] else ()
-            assert _key(_rec(**{name: vals})) == _key(_rec(**{name: getattr(rec, name)}))
+            texts = row[name].split(";") if row[name] else []
+            assert len(texts) == len(getattr(rec, name))
+            assert all(_reads_back(t, v) for t, v in zip(texts, getattr(rec, name), strict=True))
         slim = {k: v for k, v in rec.extra.items() if k != "profile"}
         assert (json.loads(row["extra_json"]) if row["extra_json"] else {}) == slim
+
+
+@pytest.mark.parametrize("value, text", [
+    (0.1 * 7, "0.7"), (0.1 + 0.2, "0.3"), (1.1 * 3, "3.3"),
+    (2.0000000000000004, "2.0"), (600.0, "600.0"), (1 / 3, repr(1 / 3)),
+    (1.2345678901234567, "1.2345678901234567"), (240.00000000000455, "240.00000000000455"),
+    (5e-324, "5e-324"), (-0.0, "-0.0"), (float("nan"), "nan"), (1e22, "1e+22"),
+])
+def test_csv_float_drops_noise_only(value, text):
+    assert csv_float(value) == text
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(allow_nan=False, allow_infinity=False))
+def test_csv_float_reads_back_as_logged(value):
+    text = csv_float(value)
+    assert _reads_back(text, value)
+    assert len(text) <= len(repr(value))
+    decimal = float(f"{value:.12g}")  # a value born as a short decimal is written exactly
+    assert float(csv_float(decimal)) == decimal
 
 
 def test_csv_bad_path(tmp_path):

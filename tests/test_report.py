@@ -8,6 +8,8 @@ import random
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from controller.quality_log import QualityClass, QualityLog, QualityRecord, judge, utc_iso
 from controller.report import (
@@ -17,6 +19,8 @@ from controller.report import (
     failure_reason,
     format_summary,
     last_profile,
+    record_state,
+    safe_spans,
     summarise,
 )
 from planer.cli import main
@@ -27,12 +31,17 @@ REASONS = ("registration failed: confidence 0.2", "unreadable pair: saturated",
 
 
 def make_run(seed: int = 0, *, boards=(11, 12, 13), per_board: int = 25, knives: int = 4,
-             profile_every: int = 7) -> list[QualityRecord]:
-    """A synthetic run: pitch settling on 1.5 mm, offsets learning, some failures, profiles."""
+             profile_every: int = 7, board_gap_s: float = 0.0,
+             safe_seqs=()) -> list[QualityRecord]:
+    """A synthetic run: pitch settling on 1.5 mm, offsets learning, some failures, profiles.
+
+    ``board_gap_s``: pause between boards; ``safe_seqs``: records taken in the safe state.
+    """
     rng = random.Random(seed)
     recs, seq, t = [], 0, 0.0
     offs = np.zeros(knives)
-    for b in boards:
+    for n, b in enumerate(boards):
+        t += board_gap_s if n else 0.0
         for j in range(per_board):
             seq += 1
             t += 0.1
@@ -42,13 +51,15 @@ def make_run(seed: int = 0, *, boards=(11, 12, 13), per_board: int = 25, knives:
                           board_position_mm=30.0 + 60.0 * j, feed_setpoint_mm_s=feed,
                           piezo_offsets_um=offs.copy(), target_pitch_mm=1.5,
                           true_pitch_mm=feed / 400, true_uniformity_cv=0.1 * np.exp(-seq / 15))
+            state = {"state": "safe" if seq in safe_seqs else "run"}
             if rng.random() < 0.12:
-                recs.append(QualityRecord(ok=False, error=rng.choice(REASONS), **common))
+                recs.append(QualityRecord(ok=False, error=rng.choice(REASONS), extra=state,
+                                          **common))
                 continue
             m = dict(pitch_mm=feed / 400 * (1 + rng.gauss(0, 0.01)),
                      uniformity_cv=abs(0.1 * np.exp(-seq / 15) + rng.gauss(0, 0.005)),
                      depth_um=4.7 + rng.gauss(0, 0.3))
-            extra = {}
+            extra = dict(state)
             if seq % profile_every == 0:
                 x = np.linspace(0, 10, 50)
                 extra["profile"] = {"x_mm": x.tolist(), "height_um": (np.sin(x) + seq).tolist()}
@@ -162,22 +173,38 @@ def _legend_outside(fig, ax) -> bool:
                                 >= ax.get_window_extent().x1 - 1)
 
 
+def _data_axes(fig):
+    """The figure's panels (the board labels' secondary axes are their children)."""
+    return list(fig.axes)
+
+
+def _series(ax, label):
+    """x, y of the line drawn with ``label`` (empty arrays when there is none)."""
+    for ln in ax.get_lines():
+        if ln.get_label() == label:
+            return np.asarray(ln.get_xdata(), float), np.asarray(ln.get_ydata(), float)
+    return np.array([]), np.array([])
+
+
 def test_figures_have_units_legends_and_the_last_profile():
     recs = make_run(4)
     figs = build_figures(recs, quality_class=QC)
     assert set(figs) == {"pitch_uniformity", "setpoints", "profile"}
-    pu = figs["pitch_uniformity"].axes
+    pu = _data_axes(figs["pitch_uniformity"])
     assert [a.get_ylabel() for a in pu] == [
         "pitch (mm)", "uniformity: CV of mark widths (-)", "mark depth (µm)"]
     assert "(m)" in pu[-1].get_xlabel()
     labels = pu[0].get_legend_handles_labels()[1]
-    assert {"target", "true (simulator)", "measured, pass", "failed measurement"} <= set(labels)
+    assert {"target", "true (simulator)", "measured, within tolerance",
+            "failed measurement"} <= set(labels)
     assert any(lab.startswith("tolerance ±2 %") for lab in labels)
-    sp = figs["setpoints"].axes
+    sp = _data_axes(figs["setpoints"])
     assert sp[0].get_ylabel() == "feed setpoint (mm/s)" and "(µm" in sp[1].get_ylabel()
     assert sp[1].get_legend_handles_labels()[1] == [f"knife {k}" for k in range(4)]
     for fig in figs.values():
-        for ax in fig.axes:
+        assert fig.get_suptitle()  # says what the figure is about
+        for ax in _data_axes(fig):
+            assert ax.get_title()  # says what to look at
             assert _legend_outside(fig, ax)  # legends never cover data
     # the profile figure draws the newest record with a profile
     newest = [r for r in recs if "profile" in r.extra][-1]
@@ -187,12 +214,167 @@ def test_figures_have_units_legends_and_the_last_profile():
     assert last_profile(recs)[0] is newest
 
 
+def test_each_panel_colours_points_by_its_own_verdict():
+    """Pitch by the tolerance band, uniformity and depth by their limits, not by ``passed``."""
+    qc = QualityClass("tight", 1.5, 0.02, uniformity_max_cv=0.03, depth_max_um=4.8)
+    recs = [QualityRecord(**{**vars(r), "passed": judge(r, qc) if r.ok else None})
+            for r in make_run(9)]
+    figs = build_figures(recs, quality_class=qc)
+    ax_p, ax_u, ax_d = _data_axes(figs["pitch_uniformity"])
+    # records whose pitch is on target but which fail the class through uniformity or depth
+    assert any(r.passed is False and abs(r.pitch_mm / 1.5 - 1) <= 0.02 for r in recs if r.ok)
+    for ax, name, ok in (
+        (ax_p, "pitch_mm", lambda r: abs(r.pitch_mm / r.target_pitch_mm - 1) <= 0.02 + 1e-9),
+        (ax_u, "uniformity_cv", lambda r: r.uniformity_cv <= qc.uniformity_max_cv),
+        (ax_d, "depth_um", lambda r: r.depth_um <= qc.depth_max_um),
+    ):
+        good = sorted(getattr(r, name) for r in recs if r.ok and ok(r))
+        bad = sorted(getattr(r, name) for r in recs if r.ok and not ok(r))
+        assert good and bad  # both verdicts occur in this run
+        labels = ("measured, within tolerance", "measured, outside tolerance") \
+            if name == "pitch_mm" else ("measured, within limit", "measured, above limit")
+        assert sorted(_series(ax, labels[0])[1]) == good, name
+        assert sorted(_series(ax, labels[1])[1]) == bad, name
+
+
+def test_safe_state_is_shaded_on_both_figures():
+    safe = set(range(1, 4)) | set(range(30, 38))
+    recs = make_run(2, safe_seqs=safe, board_gap_s=2.0)
+    assert [record_state(r) for r in recs].count("safe") == len(safe)
+    figs = build_figures(recs, quality_class=QC)
+    x, _, _ = board_axis(recs)
+    t = np.array([r.t_s for r in recs])
+    for fig, coord in ((figs["pitch_uniformity"], x), (figs["setpoints"], t)):
+        spans = safe_spans(coord, [r.seq in safe for r in recs])
+        assert len(spans) == 2
+        axes = _data_axes(fig)
+        assert "safe state (control paused)" in axes[0].get_legend_handles_labels()[1]
+        for ax in axes:
+            drawn = sorted((p.get_x(), p.get_x() + p.get_width()) for p in ax.patches)
+            assert np.allclose(drawn, spans)
+
+
+def test_setpoints_shade_the_services_own_safe_periods():
+    """Safe states between boards leave no record; the service's periods show them."""
+    recs = make_run(2, board_gap_s=3.0)
+    t_end = max(r.t_s for r in recs if r.board_id == 11)
+    periods = [(t_end + 0.5, t_end + 2.0)]  # inside the pause: no record was taken then
+    assert not any(periods[0][0] <= r.t_s <= periods[0][1] for r in recs)
+    figs = build_figures(recs, quality_class=QC, safe_periods_s=[(*periods[0], "can gone")])
+    for ax in _data_axes(figs["setpoints"]):
+        assert [(p.get_x(), p.get_x() + p.get_width()) for p in ax.patches] == periods
+    labels = _data_axes(figs["setpoints"])[0].get_legend_handles_labels()[1]
+    assert any(lab.startswith("safe state") and lab.endswith("because: can gone")
+               for lab in labels)
+    # on the board axis it lies in the gap between the two boards
+    x, _, _ = board_axis(recs)
+    end_11 = max(x[[r.board_id == 11 for r in recs]])
+    start_12 = min(x[[r.board_id == 12 for r in recs]])
+    for ax in _data_axes(figs["pitch_uniformity"]):
+        ((a, b),) = [(p.get_x(), p.get_x() + p.get_width()) for p in ax.patches]
+        assert end_11 < a < b < start_12
+
+
+def test_safe_legend_names_the_reasons():
+    recs = make_run(3, safe_seqs={5, 6, 40})
+    recs = [QualityRecord(**{**vars(r), "extra": {**r.extra, "safe_reason": "plc gone, can gone"
+                                                  if r.seq < 10 else "confirming recovery"}})
+            for r in recs]
+    labels = _data_axes(build_figures(recs)["setpoints"])[0].get_legend_handles_labels()[1]
+    (label,) = [lab for lab in labels if lab.startswith("safe state")]
+    assert label.endswith("because: plc gone, can gone")
+
+
+def test_record_state_reads_either_layout():
+    r = make_run(0)[0]
+    plain = QualityRecord(**{**vars(r), "extra": {"state": "SAFE"}})
+    nested = QualityRecord(**{**vars(r), "extra": {"supervisor": {"state": "safe"},
+                                                   "state": "run"}})
+    none = QualityRecord(**{**vars(r), "extra": {}})
+    assert [record_state(x) for x in (plain, nested, none)] == ["safe", "safe", None]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0.01, 5.0), st.booleans()), min_size=1, max_size=40))
+def test_safe_spans_cover_safe_records_only(steps):
+    x = np.cumsum([d for d, _ in steps])
+    safe = [s for _, s in steps]
+    spans = safe_spans(x, safe)
+    runs = sum(1 for i, s in enumerate(safe) if s and (i == 0 or not safe[i - 1]))
+    assert len(spans) == runs
+    assert all(a <= b for a, b in spans)
+    assert all(b1 < a2 for (_, b1), (a2, _) in zip(spans, spans[1:], strict=False))
+    half = 0.5 * float(np.median(np.diff(x))) if x.size > 1 else 0.0
+    for xi, si in zip(x, safe, strict=True):
+        inside = [a <= xi <= b for a, b in spans]
+        assert any(inside) if si else not any(a < xi < b for a, b in spans)
+    for a, b in spans:  # never widened beyond half the typical spacing into a pause
+        lo = min(v for v, s in zip(x, safe, strict=True) if s and a <= v <= b)
+        hi = max(v for v, s in zip(x, safe, strict=True) if s and a <= v <= b)
+        assert lo - a <= half + 1e-9 and b - hi <= half + 1e-9
+
+
+def test_board_labels_sit_above_the_data():
+    figs = build_figures(make_run(4), quality_class=QC)
+    fig = figs["pitch_uniformity"]
+    fig.canvas.draw()
+    top = _data_axes(fig)[0]
+    (sec,) = top.child_axes
+    texts = [lab for lab in sec.get_xticklabels() if lab.get_text()]
+    assert [lab.get_text() for lab in texts] == ["board 11", "board 12", "board 13"]
+    box = top.get_window_extent()
+    title = top.title.get_window_extent()
+    for lab in texts:
+        ext = lab.get_window_extent()
+        assert ext.y0 >= box.y1 - 1  # above the panel, not on the points
+        assert ext.y1 <= title.y0 + 1 or not ext.overlaps(title)
+
+
+def test_setpoints_show_pauses_failures_and_boards():
+    recs = make_run(5, board_gap_s=3.0)
+    fig = build_figures(recs)["setpoints"]
+    ax_f, ax_z = _data_axes(fig)
+    labels = ax_f.get_legend_handles_labels()[1]
+    assert "failed measurement" in labels
+    assert "no measurements here: setpoint not recorded" in labels
+    # the setpoint steps never bridge a pause: every stepped line stays inside one board
+    t = np.array([r.t_s for r in recs])
+    per_board = [(t[m].min(), t[m].max())
+                 for m in (np.array([r.board_id == b for r in recs]) for b in (11, 12, 13))]
+    stepped = [ln for ln in ax_f.get_lines() + ax_z.get_lines()
+               if ln.get_drawstyle() == "steps-post"]
+    assert len(stepped) == 3 * (1 + 4)  # feed and four knives, one line per board
+    for ln in stepped:
+        xs = np.asarray(ln.get_xdata(), float)
+        assert any(lo <= xs.min() and xs.max() <= hi for lo, hi in per_board)
+    failed = _series(ax_f, "failed measurement")[0]
+    assert sorted(failed) == sorted(r.t_s for r in recs if not r.ok)
+
+
+def test_long_profile_gets_an_enlarged_panel_of_two_turns():
+    r = [x for x in make_run(4) if x.ok][-1]
+    x = np.linspace(0.0, 50.0, 400)
+    h = np.cos(2 * np.pi * x / r.pitch_mm)
+    rec = QualityRecord(**{**vars(r), "extra": {"profile": {"x_mm": x.tolist(),
+                                                            "height_um": h.tolist()}}})
+    ax_all, ax_zoom = build_figures([rec])["profile"].axes
+    (_, y_all), (xz, yz) = _series(ax_all, "measured height"), _series(ax_zoom, "measured height")
+    assert np.allclose(y_all, h)  # the whole profile on top
+    width = 2 * len(r.mark_widths_mm) * r.pitch_mm  # two turns of the cutterhead
+    assert xz.max() - xz.min() == pytest.approx(width, abs=2 * (x[1] - x[0]))
+    assert np.allclose(yz, np.interp(xz, x, h))  # the same samples, enlarged
+    assert "shown enlarged below" in ax_all.get_legend_handles_labels()[1]
+
+
 def test_figures_without_quality_class_or_profile():
     recs = [QualityRecord(**{**vars(r), "extra": {}}) for r in make_run(6)]
     figs = build_figures(recs)
     assert set(figs) == {"pitch_uniformity", "setpoints"}
-    labels = figs["pitch_uniformity"].axes[0].get_legend_handles_labels()[1]
+    ax_p, ax_u, _ = _data_axes(figs["pitch_uniformity"])
+    labels = ax_p.get_legend_handles_labels()[1]
     assert f"tolerance ±{100 * DEFAULT_PITCH_TOLERANCE:g} % (default)" in labels
+    # without a class the uniformity has no limit: no point is called good or bad
+    assert ax_u.get_legend_handles_labels()[1] == ["true (simulator)", "measured, no limit set"]
     assert build_figures([]) == {}
     bad = [QualityRecord(**{**vars(recs[0]), "extra": {"profile": {"x_mm": [1, 2, 3],
                                                                    "height_um": [1]}}})]
@@ -255,3 +437,22 @@ def test_cli_missing_or_corrupt_log(tmp_path, capsys, content):
     assert err.startswith("planer report: error:") and "\n" not in err
     assert str(path) in err
     assert not list(tmp_path.glob("*.png"))
+
+
+def test_cli_figures_are_written_whole_or_not_at_all(log_file, tmp_path, capsys, monkeypatch):
+    import planer.fileio
+
+    out = tmp_path / "figs"
+    out.mkdir()
+    (out / "run_setpoints.png").write_bytes(b"old figure")
+
+    def disk_full(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(planer.fileio.os, "fsync", disk_full)
+    assert main(["report", str(log_file), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("planer report: error:") and "No space left" in err
+    assert "\n" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["run_setpoints.png"]  # no temp files
+    assert (out / "run_setpoints.png").read_bytes() == b"old figure"

@@ -409,3 +409,46 @@ def test_planer_sim_cli_prints_where_it_listens_and_stops_on_sigterm(tmp_path):
             proc.kill()
     assert proc.returncode == 0, err
     assert "stopped at t=" in out
+
+
+def _cfg_for(tmp_path, channel):
+    from config.sim import default_sim
+
+    cfg = default_sim()
+    return dataclasses.replace(
+        cfg,
+        modbus=dataclasses.replace(cfg.modbus, port=0),
+        can=dataclasses.replace(cfg.can, interface="virtual", channel=channel),
+        frames=dataclasses.replace(cfg.frames, spool_dir=str(tmp_path / "spool")),
+    )
+
+
+def _unclosed(caplog) -> list[str]:
+    import gc
+
+    gc.collect()
+    return [r.getMessage() for r in caplog.records if "not properly shut down" in r.getMessage()]
+
+
+def test_start_up_failures_close_the_can_bus(tmp_path, caplog):
+    """Modbus cannot listen, or the spool folder is unusable: no bus is left open."""
+    import socket
+
+    from planer.errors import FieldbusError
+
+    cfg = _cfg_for(tmp_path, "run-startfail")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        runner = SimRunner.from_config(cfg, machine=FakeMachine(knives=cfg.cutterhead.knives),
+                                       modbus_port=port, out=None)
+        with pytest.raises(FieldbusError):
+            asyncio.run(runner.run(duration_s=0.1))
+    assert runner.amp.bus._is_shutdown  # python-can's own flag
+    (tmp_path / "a_file").write_text("not a folder")
+    with pytest.raises(OSError):
+        SimRunner.from_config(cfg, machine=FakeMachine(knives=cfg.cutterhead.knives),
+                              spool_dir=tmp_path / "a_file" / "spool", out=None)
+    del runner
+    assert _unclosed(caplog) == []

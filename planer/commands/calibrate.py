@@ -11,9 +11,7 @@ warning on stderr naming the file. The other values of the rig (``[lights]``, ``
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -112,24 +110,6 @@ def _unknown_keys(data: dict[str, Any]) -> list[str]:
     return out
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and os.replace."""
-    folder = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
     import dataclasses
@@ -144,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from planer.checks import check_positive
     from planer.cli import writable_folder
     from planer.errors import ConfigError
+    from planer.fileio import atomic_write_text
     from vision.calibration import MIN_IMAGES, calibrate, find_corners, parse_pattern
 
     pattern = parse_pattern(args.pattern)
@@ -217,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
     )
     text = header + rig_to_toml(rig)
     rig_from_dict(tomllib.loads(text))  # what we write must load back
-    _write_atomic(out, text)
+    atomic_write_text(out, text)
 
     k = result.dist
     print(f"images: {result.n_images} used, {skipped} skipped; model {args.model}")

@@ -6,7 +6,10 @@ itself inside a private network namespace (``unshare -rn``) so that CAN can go o
 possible (no unprivileged namespaces, no ``msgpack``), or with ``--in-process``, the simulator
 and the service run in one process on simulated time with the virtual CAN bus; the reason is
 printed. Progress goes to stderr; the summary (or with ``--json`` one JSON object) to stdout.
-Exit code 0 when every check of the summary's ``done`` table passed, 1 otherwise.
+The report's figures of the run (``controller/report.py``: pitch and uniformity along the
+boards, setpoints, a profile) are written next to the quality log and their paths printed
+(``figures`` in the JSON object). Exit code 0 when every check of the summary's ``done`` table
+passed, 1 otherwise.
 """
 
 from __future__ import annotations
@@ -104,6 +107,8 @@ def _human(summary: dict) -> str:
         lines.append(f"  [{'x' if ok else ' '}] {key}")
     lines.append(f"  quality log       {summary['quality_log']['path']} "
                  f"({summary['quality_log']['records']} records)")
+    for path in (summary.get("figures") or {}).values():
+        lines.append(f"  figure            {path}")
     lines.append("PASSED" if summary["passed"] else "NOT PASSED")
     return "\n".join(lines)
 
@@ -178,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
         if log_path.exists():
             progress(f"planer hil: stopped early; the quality log so far is {log_path}")
         raise
+    summary["figures"] = _write_figures(summary, progress)
     if args.json:
         print(json.dumps(summary), flush=True)
     else:
@@ -185,18 +191,38 @@ def run(args: argparse.Namespace) -> int:
     return 0 if summary["passed"] else 1
 
 
+def _write_figures(summary: dict, progress: Callable[[str], None]) -> dict[str, str]:
+    """The report's figures of this run's records, next to the quality log: paths by name.
+
+    A figure that cannot be written is reported on stderr; the summary still goes out.
+    """
+    from controller.quality_log import QualityLog
+    from controller.report import build_figures, save_figures
+
+    qlog = summary["quality_log"]
+    path = Path(qlog["path"])
+    try:
+        with QualityLog(path, create=False) as log:
+            records = log.records(after_id=int(qlog.get("after_id", 0)))
+            quality_class = log.quality_class()
+        figures = build_figures(records, quality_class=quality_class,
+                                safe_periods_s=summary.get("safe_periods_s"))
+        return save_figures(figures, path.parent, stem=path.stem)
+    except (OSError, ValueError) as exc:
+        progress(f"planer hil: figures not written: {exc}")
+        return {}
+
+
 def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: bool,
                   log_path: Path, progress: Callable[[str], None]) -> dict:
     """Run the scenario in the chosen mode; return the summary."""
     import asyncio
-    import tempfile
 
     if cross:
-        # the simulator's config and frame spool (tens of MB) live only as long as the run
-        with tempfile.TemporaryDirectory(prefix="planer-hil-") as workdir:
-            summary = asyncio.run(hil.run_cross_process(scenario, log_path=log_path,
-                                                        progress=progress,
-                                                        workdir=Path(workdir)))
+        # the simulator's config and frame spool (tens of MB) live in a temporary folder that
+        # run_cross_process removes when the run ends
+        summary = asyncio.run(hil.run_cross_process(scenario, log_path=log_path,
+                                                    progress=progress))
     else:
         runner = hil.InProcessHil(
             scenario, log_path=log_path, plc_transport=args.plc, progress=progress

@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import tempfile
 from pathlib import Path
 
 HELP = "summarise a quality log: text or JSON summary, PNG figures, CSV export"
@@ -27,25 +25,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="print the summary as one JSON object instead of text")
 
 
-def _save(fig: object, path: Path) -> None:
-    """Write a figure atomically (a viewer never sees a half-written PNG)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png")  # type: ignore[attr-defined]
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
     from controller.quality_log import QualityLog
-    from controller.report import build_figures, format_summary, summarise
+    from controller.report import build_figures, format_summary, save_figures, summarise
     from planer.cli import output_file, output_folder
 
     log_path = Path(args.log)
@@ -66,11 +49,8 @@ def run(args: argparse.Namespace) -> int:
             n_csv = log.export_csv(csv_path)
 
     summary = summarise(records, quality_class=quality_class)
-    written: dict[str, str] = {}
-    for name, fig in build_figures(records, quality_class=quality_class).items():
-        path = out_dir / f"{log_path.stem}_{name}.png"
-        _save(fig, path)
-        written[name] = str(path)
+    written = save_figures(build_figures(records, quality_class=quality_class), out_dir,
+                           stem=log_path.stem)  # each PNG written atomically
 
     if args.json:
         summary = {"log": str(log_path), **summary, "figures": written,

@@ -55,6 +55,24 @@ def only_loopback() -> bool:
     return bool(names) and all(n == "lo" for n in names)
 
 
+def multicast_refused_message(interfaces: Sequence[str]) -> str:
+    """Why ``udp_multicast`` was refused and what to do, in words (one line).
+
+    Parameters
+    ----------
+    interfaces : sequence of str
+        The network interfaces this process sees.
+    """
+    seen = ", ".join(interfaces) or "unknown"
+    return (
+        f"udp_multicast would reach the network outside this host (this process sees the "
+        f"network interfaces {seen}): start the simulator and the service inside one private "
+        "network namespace, the simulator with unshare and the service joining it with "
+        "nsenter, as README.md shows under \"Simulator and service in two terminals\" "
+        "(details in docs/service.md), or let planer hil do all of that by itself"
+    )
+
+
 def open_bus(interface: str, channel: str | None = None, **options: Any) -> Any:
     """Open a python-can bus.
 
@@ -90,12 +108,7 @@ def open_bus(interface: str, channel: str | None = None, **options: Any) -> Any:
         channel = channel or DEFAULT_MULTICAST_GROUP
         opts.setdefault("fd", False)
         if loopback_only and not only_loopback():
-            raise FieldbusError(
-                "udp_multicast would reach the network outside this host (interfaces "
-                f"{', '.join(network_interfaces())}); run inside a private network namespace "
-                "(planer.protocol.can_transport.run_in_private_netns / `unshare -rn`) or set "
-                "loopback_only = false"
-            )
+            raise FieldbusError(multicast_refused_message(network_interfaces()))
         try:
             import msgpack  # noqa: F401
         except ImportError:
@@ -225,6 +238,7 @@ __all__ = [
     "bus_from_config",
     "describe_bus",
     "in_private_netns",
+    "multicast_refused_message",
     "netns_argv",
     "network_interfaces",
     "only_loopback",
