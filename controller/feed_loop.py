@@ -25,6 +25,9 @@ taken effect: the commanded pitch must have been steady (within ``steady_tol``) 
 ``settle_s`` before the first to the last cut instant of the measured window. Otherwise (and
 for ``None``) the correction is held and only the feed-forward follows the spindle speed.
 
+The history holds only setpoints that reached the machine: the caller takes back one it did not
+write, or that the PLC refused, with :meth:`FeedLoop.reject`.
+
 The per-measurement gain is scheduled on the loop delay so that the crossover sits at a fixed
 fraction of the delay at every feed: ``g = ki * Ts / (T_delay + Ts)``.
 """
@@ -248,6 +251,7 @@ class FeedLoop:
         self._hist_v: list[float] = []  # feed setpoints, mm/s
         self._hist_p: list[float] = []  # commanded pitch V / (n Z), mm (nan: spindle stopped)
         self._hist_d: list[float] = []  # board travelled at t_i since the first entry, mm
+        self._undo: tuple[float, tuple[float, float, float, float] | None] | None = None
         self.status = "idle"
         self.last_gain = 0.0
         self.last_model_error = math.nan
@@ -315,10 +319,45 @@ class FeedLoop:
         )
         dt = 0.0 if self._t_last is None else t - self._t_last
         feed = rate_limit(desired, self._feed, rate_max=c.rate_max_mm_s2, dt_s=dt)
+        prev_feed = self._feed
         self._feed = clamp(feed, c.feed_min_mm_s, c.feed_max_mm_s)
         self._t_last = t
         p_cmd = self._feed / (n_rev_s * c.knives) if n_rev_s > 0 else math.nan
-        self._record(t, self._feed, p_cmd)
+        replaced = self._record(t, self._feed, p_cmd)
+        self._undo = (prev_feed, replaced)
+        return self._feed
+
+    def reject(self) -> float:
+        """The setpoint the last :meth:`update` returned never reached the machine.
+
+        The caller did not write it (deadband) or the PLC refused it or the write failed: it
+        leaves the setpoint history (the board moved at the feed really in force, and the loop
+        learns its model error against that), and :attr:`feed_mm_s` goes back to the setpoint
+        in force before. What the update learnt from its measurement stays. The next update's
+        rate limit counts from the setpoint in force. Rejecting again, or before any update,
+        changes nothing.
+
+        Returns
+        -------
+        float
+            The setpoint in force, mm/s.
+        """
+        if self._undo is None:
+            return self._feed
+        prev_feed, replaced = self._undo
+        self._undo = None
+        if self._hist_t:
+            self._hist_t.pop()
+            self._hist_v.pop()
+            self._hist_p.pop()
+            self._hist_d.pop()
+        if replaced is not None:
+            t, v, p, d = replaced
+            self._hist_t.append(t)
+            self._hist_v.append(v)
+            self._hist_p.append(p)
+            self._hist_d.append(d)
+        self._feed = prev_feed
         return self._feed
 
     def cut_interval_s(self, measured_at_s: float) -> tuple[float, float] | None:
@@ -375,14 +414,21 @@ class FeedLoop:
         self.last_gain = g
         self.last_model_error = k_hat
 
-    def _record(self, t: float, feed: float, p_cmd: float) -> None:
+    def _record(
+        self, t: float, feed: float, p_cmd: float
+    ) -> tuple[float, float, float, float] | None:
+        """Append a setpoint to the history; return the entry it replaced (same instant)."""
+        replaced = None
         if self._hist_t:
             d = self._hist_d[-1] + self._hist_v[-1] * (t - self._hist_t[-1])
             if t == self._hist_t[-1]:  # same instant: the newer setpoint replaces the older
-                self._hist_t.pop()
-                self._hist_v.pop()
-                self._hist_p.pop()
-                self._hist_d.pop()
+                replaced = (
+                    self._hist_t.pop(),
+                    self._hist_v.pop(),
+                    self._hist_p.pop(),
+                    self._hist_d.pop(),
+                )
+                d = replaced[3]
         else:
             d = 0.0
         self._hist_t.append(t)
@@ -394,6 +440,7 @@ class FeedLoop:
         k = bisect.bisect_right(self._hist_t, horizon) - 1
         if k > 0:
             del self._hist_t[:k], self._hist_v[:k], self._hist_p[:k], self._hist_d[:k]
+        return replaced
 
     def _distance_at(self, t: float) -> float | None:
         """Board travelled at time ``t`` (history coordinates), mm; None before the history."""

@@ -108,6 +108,10 @@ class PiezoClient:
         Longest interval between two ``PIEZO_OFFSETS`` transmissions, s.
     stroke_um : float
         Offsets are clamped to ``[-stroke_um, +stroke_um]`` before they are sent.
+    send_timeout_s : float
+        Longest a send may wait for room in the transmit queue, s (default
+        ``min(0.005, command_period_s / 4)``): a full queue raises ``FieldbusError`` instead of
+        holding up the cycle; the amplifier's setpoint timeout acts on its own.
     """
 
     def __init__(
@@ -119,12 +123,18 @@ class PiezoClient:
         command_period_s: float = 0.02,
         offsets_period_s: float = 0.2,
         stroke_um: float = 20.0,
+        send_timeout_s: float | None = None,
     ) -> None:
         self.bus = bus
         self.codec = codec
         self.knives = check_int("knives", knives, lo=1, hi=8)
         self.command_period_s = check_positive("command_period_s", command_period_s)
         self.offsets_period_s = check_positive("offsets_period_s", offsets_period_s)
+        self.send_timeout_s = (
+            min(0.005, self.command_period_s / 4)
+            if send_timeout_s is None
+            else min(check_positive("send_timeout_s", send_timeout_s), self.command_period_s / 2)
+        )
         lo, hi = codec.signal_range(OFFSETS[0], "offset_knife_0")
         self.stroke_um = min(check_positive("stroke_um", stroke_um), -lo, hi)
         self.enable = False
@@ -183,7 +193,7 @@ class PiezoClient:
         arb, data = frame
         msg = can.Message(arbitration_id=arb, data=data, is_extended_id=False)
         try:
-            self.bus.send(msg)
+            self.bus.send(msg, timeout=self.send_timeout_s)
         except (can.CanError, OSError) as exc:
             self.send_errors += 1
             raise FieldbusError(f"CAN send of 0x{arb:X} failed: {exc}") from None
@@ -213,7 +223,7 @@ class PiezoClient:
             The bus refused a frame.
         """
         t = check_finite("now_s", now_s)
-        if t - self._last_command_s >= self.command_period_s * 0.999:
+        if t - self._last_command_s >= self.command_period_s * 0.5:  # jitter never skips one
             self.send_command(alive_counter=alive_counter, now_s=t)
         if (
             self._sent_offsets != self.offsets_um

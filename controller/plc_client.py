@@ -15,7 +15,8 @@ Layers
   the register, a lost or unanswered connection :class:`planer.errors.FieldbusError`; after a
   failure the next request reconnects, but not before the back-off delay has passed.
 
-One owner per bus: the service creates one ``PlcClient`` and nothing else talks to the PLC.
+One owner per bus: the service creates one ``PlcClient`` and nothing else talks to the PLC; the
+client lets one request at a time onto the bus.
 """
 
 from __future__ import annotations
@@ -506,6 +507,9 @@ class PlcClient:
     connection raises :class:`FieldbusError` and arms the back-off, during which requests fail
     at once without touching the network. A Modbus exception answer raises
     :class:`ModbusRefused` naming the register; it leaves the connection up.
+
+    Requests from several tasks (the service's PLC cycle and its pair task) are serialised:
+    one request (with its connect) on the bus at a time, in the order they were made.
     """
 
     def __init__(
@@ -526,6 +530,16 @@ class PlcClient:
         """Time of the last answered request (read or write)."""
         self.reconnects = 0
         self.failures = 0
+        self._lock: asyncio.Lock | None = None
+        self._lock_loop: Any = None
+
+    def _bus_lock(self) -> asyncio.Lock:
+        """The lock of the running event loop (a client may outlive one ``asyncio.run``)."""
+        loop = asyncio.get_running_loop()
+        if self._lock is None or self._lock_loop is not loop:
+            self._lock = asyncio.Lock()
+            self._lock_loop = loop
+        return self._lock
 
     @classmethod
     def tcp(
@@ -566,6 +580,12 @@ class PlcClient:
         self.reconnects += 1
 
     async def _do(self, what: str, address: int, count: int, fn: Callable[[], Any]) -> Any:
+        async with self._bus_lock():
+            return await self._do_locked(what, address, count, fn)
+
+    async def _do_locked(
+        self, what: str, address: int, count: int, fn: Callable[[], Any]
+    ) -> Any:
         await self._ensure()
         try:
             out = await fn()

@@ -17,23 +17,52 @@ be in and what to command in the safe state:
 
 The supervisor starts in ``SAFE`` (nothing heard yet). Time is always passed in (``now_s``,
 seconds on any monotonic clock); the supervisor never reads a clock.
+
+:class:`AmplifierMonitor` judges the piezo amplifier's own word (``PIEZO_STATUS``): a fault
+(state 3 or fault bits: over-temperature, stroke limit = offsets refused, setpoint timeout,
+overcurrent) or a state that is not what the service commands (not enabled and tracking while
+enable is commanded), confirmed for ``AMP_CONFIRM_S``, is the ``amplifier`` condition failing.
+It also remembers when the amplifier was last seen *not* playing the offsets, so that the
+uniformity loop never learns from board cut meanwhile.
 """
 
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
+from typing import Any
 
 from config.machine import SafetyConfig
 from planer.checks import check_finite, check_positive
+from planer.protocol.piezo_can import STATE_DISABLED, STATE_ENABLED, STATE_FAULT, STATE_RAMPING
 
 TIMED_SOURCES = ("plc", "can", "measurement")
 """Sources that must be heard within their timeout."""
-CONDITIONS = ("machine", "plc_data", "log", "service")
-"""Conditions that must hold: the machine fit to run, the PLC's registers sensible, the quality
-log writable, the service's own code free of unexpected errors."""
+CONDITIONS = ("machine", "plc_data", "amplifier", "log", "service")
+"""Conditions that must hold: the machine fit to run, the PLC's registers sensible, the piezo
+amplifier doing what it is told, the quality log writable, the service's own code free of
+unexpected errors."""
 SOURCES = TIMED_SOURCES + CONDITIONS
 """What the supervisor watches, in the order reasons are reported."""
+AMP_CONFIRM_S = 0.1
+"""How long the amplifier must report a fault or a state other than commanded before it counts
+as failed, s: a few status periods (10 ms) and command cycles (20 ms), well inside the CAN
+timeout, so the latency of an enable or disable is never mistaken for a failure."""
+AMP_FAULT_BITS = {
+    0: "over-temperature",
+    1: "stroke limit (offsets refused)",
+    2: "setpoint timeout",
+    3: "overcurrent",
+}
+"""Names of the ``PIEZO_STATUS`` fault bits (``docs/piezo_can.md``)."""
+AMP_STATES = {
+    STATE_DISABLED: "disabled",
+    STATE_ENABLED: "enabled",
+    STATE_RAMPING: "ramping to zero",
+    STATE_FAULT: "fault",
+}
+"""Names of the ``PIEZO_STATUS`` states."""
 
 
 class SafetyState(str, enum.Enum):
@@ -219,3 +248,101 @@ class Supervisor:
     def safe_offsets_um(knives: int) -> list[float]:
         """Piezo offsets in the safe state: zero for every knife."""
         return [0.0] * int(knives)
+
+
+# ---------------------------------------------------------------------------------- amplifier
+def _state_text(state: int) -> str:
+    return f"state {state} ({AMP_STATES.get(state, 'unknown')})"
+
+
+def amp_problem(*, state: int, fault: int, enable: bool) -> str | None:
+    """What is wrong with one ``PIEZO_STATUS`` given what the service commands (pure).
+
+    Parameters
+    ----------
+    state : int
+        The amplifier's state (0 disabled, 1 enabled and tracking, 2 ramping to zero, 3 fault).
+    fault : int
+        Its fault bits (:data:`AMP_FAULT_BITS`).
+    enable : bool
+        Whether the service commands enable.
+
+    Returns
+    -------
+    str or None
+        ``None`` when the status is what was commanded without any fault, else the problem
+        (``"fault overcurrent, state 3 (fault)"``, ``"state 0 (disabled) while enable is
+        commanded"``).
+    """
+    st, bits = int(state), int(fault)
+    parts = []
+    if bits:
+        names = [AMP_FAULT_BITS.get(b, f"bit {b}") for b in range(8) if bits >> b & 1]
+        parts.append("fault " + ", ".join(names))
+    if st == STATE_FAULT or st not in AMP_STATES:
+        parts.append(_state_text(st))
+    elif enable and st != STATE_ENABLED:
+        parts.append(f"{_state_text(st)} while enable is commanded")
+    elif not enable and st != STATE_DISABLED:
+        parts.append(f"{_state_text(st)} while disable is commanded")
+    return ", ".join(parts) or None
+
+
+class AmplifierMonitor:
+    """Whether the piezo amplifier plays the offsets it is sent (pure; time passed in).
+
+    The service tells it what it commands (:meth:`commanded`) and shows it every status
+    (:meth:`observe`). A status received before the last change of the command is no verdict
+    on that command and is ignored. A problem (:func:`amp_problem`) reported by every status for
+    ``confirm_s`` is confirmed (:attr:`problem`); the first healthy status clears it.
+
+    Parameters
+    ----------
+    confirm_s : float
+        Confirmation time, s (>= 0).
+    """
+
+    def __init__(self, *, confirm_s: float = AMP_CONFIRM_S) -> None:
+        self.confirm_s = check_positive("confirm_s", confirm_s, allow_zero=True)
+        self.enable = False
+        self._since = -math.inf  # when the command last changed
+        self._bad_since: float | None = None
+        self.problem: str | None = None
+        """The confirmed problem, or ``None``."""
+        self.untracked_s: float | None = None
+        """The last time the offsets were known not to be played: disable commanded, a status
+        saying not tracking, or an enable not yet confirmed by a status."""
+
+    def commanded(self, enable: bool, *, now_s: float) -> None:
+        """The service commands ``enable`` (from ``now_s``)."""
+        en = bool(enable)
+        if en != self.enable:
+            self.enable = en
+            self._since = check_finite("now_s", now_s)
+            self._bad_since = None
+
+    def observe(self, status: Any, *, now_s: float) -> str | None:
+        """Judge the last status (``state``, ``fault``, ``t_s`` received) at ``now_s``.
+
+        Returns
+        -------
+        str or None
+            The confirmed problem (also :attr:`problem`), ``None`` when healthy or unconfirmed.
+        """
+        t = check_finite("now_s", now_s)
+        fresh = status is not None and float(status.t_s) > self._since
+        if not self.enable or not fresh:
+            self.untracked_s = t
+        if not fresh:
+            return self.problem
+        found = amp_problem(state=status.state, fault=status.fault, enable=self.enable)
+        if found is None:
+            self._bad_since = None
+            self.problem = None
+            return None
+        self.untracked_s = t
+        if self._bad_since is None:
+            self._bad_since = float(status.t_s)
+        if t - self._bad_since >= self.confirm_s - 1e-9:
+            self.problem = found
+        return self.problem

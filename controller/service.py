@@ -2,21 +2,25 @@
 
 One :class:`Service` owns the two buses (a :class:`~controller.plc_client.PlcClient` and a
 :class:`~controller.piezo_client.PiezoClient`), the quality log, the control loops and the
-safe-state supervisor. Two entry points do all the work, both with the time passed in:
+safe-state supervisor. The entry points, all with the time passed in:
 
-* :meth:`Service.tick` — one control cycle (every ``safety.cycle_s``): heartbeat to the PLC
-  (Modbus register) and to the amplifier (CAN alive counter), read the PLC's registers, drain
-  the amplifier's frames, step the supervisor; in the safe state hold or ramp the feed down and
-  send zero offsets with the amplifier disabled; on recovery re-enable and resume.
-* :meth:`Service.handle_frame` — one image pair: take the PLC's registers (the tick's read of
+* :meth:`Service.plc_cycle` — the PLC's cycle (every ``safety.cycle_s``): heartbeat register,
+  one read of every register, supervisor; feed-forward in RUN, hold or ramp down in SAFE.
+* :meth:`Service.can_cycle` — the amplifier's cycle (every ``can.command_period_s``, never
+  waits): drain its frames, judge its status, supervisor, enable or zero offsets and disable,
+  ``PIEZO_COMMAND`` with a new alive counter.
+* :meth:`Service.tick` — both at one instant, in order (simulated time).
+* :meth:`Service.handle_frame` — one image pair: take the PLC's registers (the cycle's read of
   at most two cycles ago, else a fresh read), measure (in a worker thread in
   real time so the heartbeats keep going), check plausibility, find which knife cut which mark,
   update the feed loop and the uniformity loop, clamp to the limits, write the setpoints
-  (Modbus and CAN) and append the quality record — every measurement, failed ones included; a
+  (CAN and Modbus) and append the quality record — every measurement, failed ones included; a
   failed or implausible measurement changes no setpoint.
 
-:meth:`Service.run` drives both in real time from a frame source until stopped
-(``planer serve``); the in-process HIL and the tests call them step by step on simulated time.
+:meth:`Service.run` drives them in real time from a frame source until stopped (``planer
+serve``), one task per bus so a PLC that does not answer never delays the CAN heartbeat; the
+in-process HIL and the tests call :meth:`tick` and :meth:`handle_frame` step by step on
+simulated time.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ import numpy as np
 from config.machine import MachineConfig
 from controller.piezo_client import PiezoClient
 from controller.plc_client import PlcClient, PlcSnapshot
-from controller.safety import SafetyState, SafetyStatus, Supervisor
+from controller.safety import AmplifierMonitor, SafetyState, SafetyStatus, Supervisor
 from planer.errors import FieldbusError, ModbusRefused, RegistrationError
 from planer.protocol.frames import Frame
 
@@ -48,12 +52,18 @@ MAX_PHASE_SPREAD = 0.15
 MAX_PENDING_RECORDS = 10_000
 """Quality records held in memory while the log cannot be written (about 17 min at 10 pairs/s);
 beyond that the oldest are saved to a JSON-lines file beside the log."""
+PROFILE_EVERY = 10
+"""Every this many successful measurements (and the first of each board) a record carries the
+surface profile (``extra["profile"]``, drawn by ``planer report``)."""
+PROFILE_MAX_POINTS = 400
+"""Most points of a stored profile (about 6 kB of JSON)."""
 _REASONS = {
     "plc": "plc gone",
     "can": "can gone",
     "measurement": "measurement gone",
     "machine": "machine not running",
     "plc_data": "plc data invalid",
+    "amplifier": "piezo amplifier not tracking",
     "log": "quality log failing",
     "service": "service error",
 }
@@ -174,13 +184,24 @@ class Service:
         t0 = clock()
         self.supervisor = Supervisor(cfg.safety, now_s=t0)
         self.heartbeat = 0
+        """The PLC heartbeat register's value (16 bits), one step per PLC cycle."""
+        self.alive = 0
+        """The CAN alive counter (8 bits), one step per ``PIEZO_COMMAND``."""
+        self.amp_monitor = AmplifierMonitor()
+        self._amp_problem: str | None = None
+        self._faulty: set[str] = set()  # parts whose last cycle raised: "plc", "can", "pair"
+        self._feed_refused = False
+        self._feed_lock_obj: asyncio.Lock | None = None
+        self._feed_lock_loop: Any = None
+        self._ok_count = 0  # successful measurements so far (profile every PROFILE_EVERY-th)
+        self._profile_board: int | None = None
         self.feed_loop: Any = None
         self.uniformity_loop: Any = None
         self._loop_key: tuple | None = None
         self.feed_setpoint_mm_s: float | None = None
         self.offsets_um: tuple[float, ...] = ()
         self._learned_offsets: np.ndarray | None = None
-        self._last_tick_s: float | None = None
+        self._last_plc_actions_s: float | None = None
         self._machine_offset_s: float | None = None  # service clock minus machine time
         self._last_frame_t: float | None = None
         self._last_seq: int | None = None
@@ -208,6 +229,8 @@ class Service:
             "log_errors": 0,
             "errors": 0,
             "missed": 0,
+            "amp_faults": 0,
+            "uniformity_skipped": 0,
         }
         self.events: list[tuple[float, str]] = []
         self.on_result: Callable[[FrameResult], None] | None = None
@@ -244,6 +267,8 @@ class Service:
             text = _REASONS.get(m, f"{m} gone")
             if m == "plc_data" and self._plc_problem:
                 text += f" ({self._plc_problem})"
+            if m == "amplifier" and self._amp_problem:
+                text += f" ({self._amp_problem})"
             parts.append(text)
         return ", ".join(parts) or "start"
 
@@ -302,9 +327,15 @@ class Service:
         self.offsets_um = (0.0,) * snap.knives
         self._loop_key = key
 
-    # ------------------------------------------------------------------ the control cycle
+    # ------------------------------------------------------------------ the control cycles
     async def tick(self, now_s: float | None = None) -> SafetyStatus:
-        """One control cycle: heartbeats, PLC and CAN status, supervisor, safe actions.
+        """One control cycle of both buses, in order (simulated time, the in-process HIL).
+
+        The PLC's heartbeat and register read (:meth:`plc_cycle`'s I/O), then the CAN cycle
+        (:meth:`can_cycle`: the amplifier's frames, the supervisor, enable or zero offsets,
+        ``PIEZO_COMMAND``), then the PLC's actions (feed-forward in RUN, hold or ramp in SAFE).
+        :meth:`run` calls the two cycles from separate tasks instead, so a PLC that does not
+        answer never holds up the CAN heartbeat.
 
         Never raises for what the world does (buses gone, garbage registers) nor for the
         service's own unexpected errors: those are reported as events, put the machine in the
@@ -322,15 +353,60 @@ class Service:
         """
         t = self._now(now_s)
         try:
-            status = await self._tick(t)
+            snap = await self._plc_io(t)
         except Exception as exc:  # noqa: BLE001 - a bug must not stop the heartbeats
-            return await self._internal_error(t, "control cycle", exc)
-        self.supervisor.set_ok("service", True)  # a whole cycle ran without an error
+            self._internal_error(t, "PLC cycle", exc, part="plc")
+            return self._can_cycle_guarded(t)
+        status = self._can_cycle_guarded(t)
+        try:
+            await self._plc_actions(t, snap)
+        except Exception as exc:  # noqa: BLE001
+            return self._internal_error(t, "PLC cycle", exc, part="plc")
+        self._clean("plc")
         return status
 
-    async def _tick(self, t: float) -> SafetyStatus:
-        dt = 0.0 if self._last_tick_s is None else max(0.0, t - self._last_tick_s)
-        self._last_tick_s = t
+    async def plc_cycle(self, now_s: float | None = None) -> None:
+        """The PLC's cycle (its own task in :meth:`run`): heartbeat, read, supervisor, feed.
+
+        Writes the heartbeat register, reads every register (one request), checks them, steps
+        the supervisor and, in RUN, lets the feed-forward follow the spindle; in SAFE it holds
+        or ramps the feed down. Only the PLC's bus is touched here (offsets are zeroed by the
+        supervisor's state change, a non-blocking CAN send). Never raises.
+        """
+        t = self._now(now_s)
+        try:
+            snap = await self._plc_io(t)
+            self._step_supervisor(t)
+            await self._plc_actions(t, snap)
+        except Exception as exc:  # noqa: BLE001 - a bug must not stop the heartbeats
+            self._internal_error(t, "PLC cycle", exc, part="plc")
+            return
+        self._clean("plc")
+
+    def can_cycle(self, now_s: float | None = None) -> SafetyStatus:
+        """The CAN cycle (its own task in :meth:`run`): never waits for anything.
+
+        Drains the amplifier's frames (non-blocking), judges its status, steps the supervisor,
+        enables the amplifier in RUN or sends zero offsets and a disable in SAFE, and sends
+        ``PIEZO_COMMAND`` with a new alive counter. Never raises.
+
+        Returns
+        -------
+        SafetyStatus
+            The supervisor's decision of this cycle.
+        """
+        return self._can_cycle_guarded(self._now(now_s))
+
+    def _can_cycle_guarded(self, t: float) -> SafetyStatus:
+        try:
+            status = self._can_cycle(t)
+        except Exception as exc:  # noqa: BLE001 - a bug must not stop the heartbeats
+            return self._internal_error(t, "CAN cycle", exc, part="can")
+        self._clean("can")
+        return status
+
+    async def _plc_io(self, t: float) -> PlcSnapshot | None:
+        """Heartbeat and one read of every register; the snapshot if it makes sense."""
         self.heartbeat = (self.heartbeat + 1) & 0xFFFF
         sup = self.supervisor
         snap: PlcSnapshot | None = None
@@ -348,21 +424,53 @@ class Service:
             sup.machine_ok(not snap.estop and snap.spindle_running)
             if not snap.board_present:
                 sup.measurement_not_expected(t)
+        return snap
+
+    async def _plc_actions(self, t: float, snap: PlcSnapshot | None) -> None:
+        """The feed in the supervisor's state: feed-forward (RUN) or hold / ramp down (SAFE)."""
+        last = self._last_plc_actions_s
+        dt = 0.0 if last is None else max(0.0, t - last)
+        self._last_plc_actions_s = t
+        if self.supervisor.state is SafetyState.SAFE:
+            await self._safe_actions(t, dt, snap)
+        elif snap is not None and self.feed_loop is not None:
+            await self._feed_forward(t, snap)
+
+    def _can_cycle(self, t: float) -> SafetyStatus:
         try:
             self.piezo.poll(now_s=t)
         except FieldbusError:
             self.counters["can_errors"] += 1
         if self.piezo.last_heard_s is not None:
-            sup.can_heard(self.piezo.last_heard_s)
+            self.supervisor.can_heard(self.piezo.last_heard_s)
+        self._observe_amplifier(t)
         status = self._step_supervisor(t)
         if status.state is SafetyState.SAFE:
-            await self._safe_actions(t, dt, snap)
+            try:
+                self._zero_offsets(t)
+            except FieldbusError:
+                self.counters["can_errors"] += 1
         else:
             self.piezo.set_enable(True, now_s=t)
-            if snap is not None and self.feed_loop is not None:
-                await self._feed_forward(t, snap)
         self._send_piezo_command(t)
         return status
+
+    def _observe_amplifier(self, t: float) -> None:
+        """Judge the amplifier's last status; a confirmed problem fails the condition."""
+        problem = self.amp_monitor.observe(self.piezo.status, now_s=t)
+        if problem is not None and self._amp_problem is None:
+            self.counters["amp_faults"] += 1
+            self._event(t, f"piezo amplifier: {problem}")
+        elif problem is None and self._amp_problem is not None:
+            self._event(t, "piezo amplifier healthy again")
+        self._amp_problem = problem
+        self.supervisor.set_ok("amplifier", problem is None)
+
+    def _clean(self, part: str) -> None:
+        """A cycle of ``part`` ran without an unexpected error (clears it and a pair's)."""
+        self._faulty.discard(part)
+        self._faulty.discard("pair")
+        self.supervisor.set_ok("service", not self._faulty)
 
     def _check_snapshot(self, snap: PlcSnapshot, t: float) -> PlcSnapshot | None:
         """``snap`` if its registers make sense, else ``None`` (reported, supervisor told)."""
@@ -383,6 +491,10 @@ class Service:
             if status.state is SafetyState.SAFE:
                 self.counters["safe_entries"] += 1
                 self._event(t, f"safe state: {self._describe(status.missing)}")
+                try:  # at once, whichever cycle noticed (a non-blocking CAN send)
+                    self._zero_offsets(t)
+                except FieldbusError:
+                    self.counters["can_errors"] += 1
             else:
                 self.counters["recoveries"] += 1
                 self._event(t, "recovered: control resumed")
@@ -390,14 +502,24 @@ class Service:
         return status
 
     def _send_piezo_command(self, t: float) -> None:
+        """``PIEZO_COMMAND`` with a new alive counter (the amplifier's setpoint timeout)."""
+        self.amp_monitor.commanded(self.piezo.enable, now_s=t)
+        self.alive = (self.alive + 1) & 0xFF
         try:
-            self.piezo.tick(alive_counter=self.heartbeat & 0xFF, now_s=t)
+            self.piezo.tick(alive_counter=self.alive, now_s=t)
         except FieldbusError:
             self.counters["can_errors"] += 1
 
-    async def _internal_error(self, t: float, where: str, exc: BaseException) -> SafetyStatus:
-        """An unexpected error of the service's own code: report it, go safe, keep the beat."""
+    def _internal_error(
+        self, t: float, where: str, exc: BaseException, *, part: str = "pair"
+    ) -> SafetyStatus:
+        """An unexpected error of the service's own code: report it, go safe, keep the beat.
+
+        ``part`` (``"plc"``, ``"can"``, ``"pair"``) is cleared by the next clean cycle of that
+        part (a pair's error by any clean cycle); until then the ``service`` condition fails.
+        """
         self.counters["errors"] += 1
+        self._faulty.add(part)
         self.supervisor.set_ok("service", False)
         text = f"service error in {where}: {_exc_name(exc)}: {exc}"
         if text != self._last_error:  # the same error every cycle is reported once
@@ -428,10 +550,6 @@ class Service:
         )
 
     async def _safe_actions(self, t: float, dt: float, snap: PlcSnapshot | None) -> None:
-        try:
-            self._zero_offsets(t)
-        except FieldbusError:
-            self.counters["can_errors"] += 1
         if snap is None:
             return  # PLC gone or talking nonsense: no feed write; its watchdog and limits act
         current = snap.feed_setpoint_mm_s
@@ -445,8 +563,8 @@ class Service:
     def _loop_time(self, t: float) -> float:
         """Time for the control loops: never earlier than their last call.
 
-        In real time the tick and the frame task interleave at awaits, so a time read before an
-        await may be older than one the other task already used.
+        In real time the cycles and the frame task interleave at awaits, so a time read before
+        an await may be older than one another task already used.
         """
         t = max(t, self._t_loops)
         self._t_loops = t
@@ -457,34 +575,61 @@ class Service:
 
         No measurement enters here (the learnt correction is held); the setpoint is written only
         when it moved by more than ``FEED_WRITE_DEADBAND_MM_S`` (e.g. ramping back after a
-        recovery), so spindle ripple does not flood the bus.
+        recovery), so spindle ripple does not flood the bus. A setpoint not written (deadband,
+        refused, failed) is taken back from the loop's history: it learns against the feed
+        that really was in force.
         """
-        feed = self.feed_loop.update(
-            measured_pitch_mm=None, spindle_rpm=snap.spindle_rpm, now_s=self._loop_time(t)
-        )
-        feed = min(max(float(feed), snap.feed_min_mm_s), snap.feed_max_mm_s)
-        current = self.feed_setpoint_mm_s
-        if current is None:
-            current = snap.feed_setpoint_mm_s
-        if abs(feed - current) > FEED_WRITE_DEADBAND_MM_S:
-            await self._write_feed(feed, t)
+        async with self._feed_lock():
+            loop = self.feed_loop
+            feed = loop.update(
+                measured_pitch_mm=None, spindle_rpm=snap.spindle_rpm, now_s=self._loop_time(t)
+            )
+            feed = min(max(float(feed), snap.feed_min_mm_s), snap.feed_max_mm_s)
+            current = self.feed_setpoint_mm_s
+            if current is None:
+                current = snap.feed_setpoint_mm_s
+            if abs(feed - current) <= FEED_WRITE_DEADBAND_MM_S or not await self._write_feed(
+                feed, t
+            ):
+                loop.reject()
+
+    def _feed_lock(self) -> asyncio.Lock:
+        """Held from a feed loop update to the end of its write (and its reject).
+
+        In real time the PLC cycle's feed-forward and a pair's update interleave at the write's
+        await; the lock keeps each setpoint's update, write and reject together, so a reject
+        always takes back its own setpoint.
+        """
+        loop = asyncio.get_running_loop()
+        if self._feed_lock_obj is None or self._feed_lock_loop is not loop:
+            self._feed_lock_obj = asyncio.Lock()
+            self._feed_lock_loop = loop
+        return self._feed_lock_obj
 
     async def _write_feed(self, feed: float, t: float) -> bool:
+        """Write the feed setpoint; whether the PLC took it (a refusal is reported once)."""
         try:
             await self.plc.write_feed(feed)
         except ModbusRefused as exc:
-            self.counters["setpoint_refused"] += 1
-            self._event(t, f"feed setpoint refused: {exc}")
+            self._feed_not_taken(t, f"feed setpoint refused: {exc}")
             return False
         except FieldbusError:
             self.counters["plc_errors"] += 1
             return False
         except ValueError as exc:  # outside the limits the PLC reported: never sent
-            self.counters["setpoint_refused"] += 1
-            self._event(t, f"feed setpoint not sent: {exc}")
+            self._feed_not_taken(t, f"feed setpoint not sent: {exc}")
             return False
+        if self._feed_refused:
+            self._feed_refused = False
+            self._event(t, "feed setpoint accepted again")
         self.feed_setpoint_mm_s = feed
         return True
+
+    def _feed_not_taken(self, t: float, text: str) -> None:
+        self.counters["setpoint_refused"] += 1
+        if not self._feed_refused:  # once until a write goes through again
+            self._feed_refused = True
+            self._event(t, text)
 
     def _resume(self, t: float) -> None:
         """Back to RUN: restart the feed loop from the feed in force, restore learnt offsets."""
@@ -550,15 +695,17 @@ class Service:
             wall_meas = time.perf_counter()
         ok = error is None
         applied = False
+        profile = None
         if ok:
             self.counters["ok"] += 1
+            profile = self._profile_of(meas, frame)
             self.supervisor.measurement_valid(t_arr)
             if self.supervisor.state is SafetyState.RUN and snap is not None:
                 t_ctrl = self._now() if now_s is None else t_arr  # loops need forward time
                 try:
                     applied = await self._apply(meas, widths, measured_at, snap, t_ctrl)
                 except Exception as exc:  # noqa: BLE001 - a bug: safe state, pair still logged
-                    await self._internal_error(t_ctrl, f"control of pair {frame.seq}", exc)
+                    self._internal_error(t_ctrl, f"control of pair {frame.seq}", exc)
         else:
             self.counters["failed"] += 1
         wall1 = time.perf_counter()
@@ -583,7 +730,11 @@ class Service:
             truth=frame.truth,
             counts_a=_int_or(frame.counts_a, 0),
             frame_t_s=_opt(frame.t_s) or 0.0,
-            extra={"timing_ms": timing},
+            extra={
+                "timing_ms": timing,
+                "safe_reason": self._safe_reason(),
+                **({"profile": profile} if profile is not None else {}),
+            },
         )
         rid = await self._log(result, frame, t_arr)
         if rid is not None:
@@ -593,6 +744,30 @@ class Service:
         if self.on_result is not None:
             self.on_result(result)
         return result
+
+    def _profile_of(self, meas: Any, frame: Frame) -> dict[str, list[float]] | None:
+        """The decimated profile of a successful measurement if this one carries it.
+
+        The first successful measurement of each board and every ``PROFILE_EVERY``-th one
+        (counted over the run) do; ``None`` for the others or without a usable profile.
+        """
+        self._ok_count += 1
+        board = _int_or(getattr(frame, "board_id", 0), 0)
+        first_of_board = board != self._profile_board
+        self._profile_board = board
+        if not (first_of_board or (self._ok_count - 1) % PROFILE_EVERY == 0):
+            return None
+        try:
+            return decimated_profile(meas.x_mm, meas.height_um)
+        except (AttributeError, TypeError, ValueError):
+            return None
+
+    def _safe_reason(self) -> str | None:
+        """Why the service is in the safe state now (``None`` in RUN)."""
+        if self.supervisor.state is not SafetyState.SAFE:
+            return None
+        missing = self.status.missing if self.status is not None else ()
+        return self._describe(missing) if missing else "confirming recovery"
 
     def _machine_to_service(self, frame: Frame, t_arr: float) -> float:
         """Service time of the pair's trigger A (its machine time mapped onto the service clock).
@@ -733,40 +908,75 @@ class Service:
     async def _apply(
         self, meas: Any, widths: np.ndarray, measured_at: float, snap: PlcSnapshot, t: float
     ) -> bool:
+        """Both loops on one valid measurement; the offsets (CAN) go out first, then the feed.
+
+        The uniformity loop learns only from board cut while the amplifier played the offsets
+        (:meth:`_amp_tracked`); a feed setpoint the PLC did not take is taken back from the feed
+        loop's history (:meth:`FeedLoop.reject`).
+        """
         lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
         pitch = float(meas.pitch_mm)
-        t = self._loop_time(t)
-        measured_at = min(measured_at, t)
-        feed = self.feed_loop.update(
-            measured_pitch_mm=pitch,
-            spindle_rpm=snap.spindle_rpm,
-            now_s=t,
-            measured_at_s=measured_at,
-        )
-        feed = min(max(float(feed), lo), hi)
-        new_offsets = None
-        if np.any(np.isfinite(widths)):
-            interval = self.feed_loop.cut_interval_s(measured_at)
-            offs = self.uniformity_loop.update(
-                knife_widths_mm=widths,
-                pitch_mm=pitch,
+        applied = False
+        async with self._feed_lock():
+            t = self._loop_time(t)
+            measured_at = min(measured_at, t)
+            loop = self.feed_loop
+            feed = loop.update(
+                measured_pitch_mm=pitch,
+                spindle_rpm=snap.spindle_rpm,
                 now_s=t,
-                cut_at_s=None if interval is None else min(interval[0], t),
+                measured_at_s=measured_at,
             )
-            s = self.cfg.stroke_um
-            new_offsets = np.clip(np.asarray(offs, dtype=float), -s, s)
-        applied = await self._write_feed(feed, t)
-        if new_offsets is not None:
-            try:
-                self.offsets_um = self.piezo.set_offsets(new_offsets, now_s=t)
-                self._learned_offsets = np.asarray(self.offsets_um, dtype=float)
+            feed = min(max(float(feed), lo), hi)
+            if np.any(np.isfinite(widths)):
+                interval = loop.cut_interval_s(measured_at)
+                cut_at = None if interval is None else min(interval[0], t)
+                applied = self._learn_offsets(widths, pitch, cut_at, t)
+            if await self._write_feed(feed, t):
                 applied = True
-            except FieldbusError as exc:
-                self.counters["can_errors"] += 1
-                self._event(t, f"piezo offsets not sent: {exc}")
+            else:
+                loop.reject()
         if applied:
             self.counters["applied"] += 1
         return applied
+
+    def _learn_offsets(
+        self, widths: np.ndarray, pitch: float, cut_at: float | None, t: float
+    ) -> bool:
+        """One uniformity-loop update and its offsets on CAN; whether they were sent."""
+        if not self._amp_tracked(cut_at, t):
+            self.counters["uniformity_skipped"] += 1
+            return False
+        offs = self.uniformity_loop.update(
+            knife_widths_mm=widths, pitch_mm=pitch, now_s=t, cut_at_s=cut_at
+        )
+        s = self.cfg.stroke_um
+        try:
+            self.offsets_um = self.piezo.set_offsets(
+                np.clip(np.asarray(offs, dtype=float), -s, s), now_s=t
+            )
+        except FieldbusError as exc:
+            self.counters["can_errors"] += 1
+            self._event(t, f"piezo offsets not sent: {exc}")
+            return False
+        self._learned_offsets = np.asarray(self.offsets_um, dtype=float)
+        return True
+
+    def _amp_tracked(self, cut_at_s: float | None, t: float) -> bool:
+        """Whether the board a measurement shows was cut while the amplifier played the offsets.
+
+        The amplifier was last seen not tracking (disabled, ramping, faulted, refusing the
+        table, or an enable not yet confirmed) at ``untracked_s``; board cut before that plus
+        the offsets' settling time shows offsets that were not applied. Without a cut time
+        (the feed loop's history is too short) the uniformity loop's hold-off is used instead.
+        """
+        last = self.amp_monitor.untracked_s
+        if last is None:
+            return True
+        ucfg = self.uniformity_loop.cfg
+        if cut_at_s is None:
+            return t - ucfg.holdoff_s > last
+        return cut_at_s - ucfg.settle_s > last
 
     def _record(self, r: FrameResult, frame: Frame) -> Any:
         """The quality record of a result (never raises: odd metadata is noted, not fatal)."""
@@ -787,12 +997,14 @@ class Service:
             "true_uniformity_cv": _opt(truth.get("uniformity_cv")),
             "extra": {
                 "state": r.state,
+                "safe_reason": r.extra.get("safe_reason"),
                 "applied": r.applied,
                 "latency_ms": r.latency_s * 1e3,
                 "timing_ms": r.extra.get("timing_ms", {}),
                 "knife_widths_mm": [None if not math.isfinite(w) else w
                                     for w in r.knife_widths_mm],
                 **({"frame_metadata_invalid": odd} if odd else {}),
+                **({"profile": r.extra["profile"]} if "profile" in r.extra else {}),
             },
         }
         if m is not None:
@@ -818,7 +1030,8 @@ class Service:
                 wall_time=fields["wall_time"],
                 ok=False,
                 error=f"record invalid: {exc}" if r.ok else f"{r.error} (record invalid: {exc})",
-                extra={"state": r.state, "applied": r.applied},
+                extra={"state": r.state, "safe_reason": r.extra.get("safe_reason"),
+                       "applied": r.applied},
             )
 
     async def _log(self, r: FrameResult, frame: Frame, t: float) -> int | None:
@@ -891,21 +1104,28 @@ class Service:
     ) -> None:
         """Run in real time until ``stop`` is set (or ``max_frames`` pairs were handled).
 
-        A periodic task calls :meth:`tick` every ``safety.cycle_s``; the frame task awaits
-        ``source.next()`` and calls :meth:`handle_frame`. Both share the event loop; the
-        measurement runs in a worker thread so the heartbeats never wait for it.
+        One owner per bus, no coupling: a PLC task calls :meth:`plc_cycle` every
+        ``safety.cycle_s`` and a CAN task :meth:`can_cycle` every ``can.command_period_s`` (at
+        most ``safety.cycle_s``), each on its own schedule, so a Modbus connect or request
+        that takes its full timeout never delays ``PIEZO_COMMAND`` (the amplifier's setpoint
+        timeout is 100 ms). The frame task awaits ``source.next()`` and calls
+        :meth:`handle_frame`; the measurement runs in a worker thread. Requests to the PLC from
+        the PLC task and the frame task go through the one client, one at a time.
         """
         stop = stop or asyncio.Event()
-        cycle = self.cfg.safety.cycle_s
+        plc_period = self.cfg.safety.cycle_s
+        can_period = min(self.cfg.can.command_period_s, plc_period)
 
-        async def ticker() -> None:
+        async def periodic(period: float, cycle: Callable[[], Any]) -> None:
             loop = asyncio.get_running_loop()
             nxt = loop.time()
             while not stop.is_set():
-                await self.tick()
-                nxt += cycle
+                out = cycle()
+                if asyncio.iscoroutine(out):
+                    await out
+                nxt += period
                 delay = nxt - loop.time()
-                if delay < -cycle:  # fell behind: skip, do not burst
+                if delay < -period:  # fell behind: skip, do not burst
                     nxt = loop.time()
                     delay = 0.0
                 await asyncio.sleep(max(0.0, delay))
@@ -928,12 +1148,16 @@ class Service:
                 try:
                     await self.handle_frame(frame)
                 except Exception as exc:  # noqa: BLE001 - handle_frame logs; this is a last resort
-                    await self._internal_error(self._now(), f"pair {frame.seq}", exc)
+                    self._internal_error(self._now(), f"pair {frame.seq}", exc)
                 n += 1
                 if max_frames is not None and n >= max_frames:
                     stop.set()
 
-        tasks = [asyncio.create_task(ticker()), asyncio.create_task(frames())]
+        tasks = [
+            asyncio.create_task(periodic(can_period, self.can_cycle)),
+            asyncio.create_task(periodic(plc_period, self.plc_cycle)),
+            asyncio.create_task(frames()),
+        ]
         try:
             done, _ = await asyncio.wait(
                 tasks + [asyncio.create_task(stop.wait())], return_when=asyncio.FIRST_COMPLETED
@@ -956,7 +1180,8 @@ class Service:
         if self.piezo is not None:
             try:
                 self._zero_offsets(t)
-                self.piezo.send_command(alive_counter=(self.heartbeat + 1) & 0xFF, now_s=t)
+                self.alive = (self.alive + 1) & 0xFF
+                self.piezo.send_command(alive_counter=self.alive, now_s=t)
             except Exception as exc:  # noqa: BLE001 - closing must go on; the amplifier times out
                 self._event(t, f"amplifier not disabled at close: {_exc_name(exc)}: {exc}")
         if self.log is not None:
@@ -977,6 +1202,45 @@ class Service:
 
 
 # ---------------------------------------------------------------------------------- helpers
+def decimated_profile(
+    x_mm: Any, height_um: Any, *, max_points: int = PROFILE_MAX_POINTS
+) -> dict[str, list[float]] | None:
+    """A profile small enough for every tenth quality record: samples, rounded.
+
+    Parameters
+    ----------
+    x_mm, height_um : array_like, shape (n,)
+        Positions along the feed (mm) and heights (um) of the measured profile.
+    max_points : int
+        Most samples kept (evenly spaced in index, the first and last always; samples, not
+        averages, so the marks' cusps stay sharp).
+
+    Returns
+    -------
+    dict or None
+        ``{"x_mm": [...], "height_um": [...]}`` rounded to 0.001 mm and 0.1 um, or ``None``
+        when fewer than two finite samples of equal-length 1-D arrays are given.
+    """
+    try:
+        x = np.asarray(x_mm, dtype=float)
+        h = np.asarray(height_um, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if x.ndim != 1 or x.shape != h.shape:
+        return None
+    good = np.isfinite(x) & np.isfinite(h)
+    x, h = x[good], h[good]
+    if x.size < 2:
+        return None
+    if x.size > max_points:
+        idx = np.unique(np.round(np.linspace(0, x.size - 1, max_points)).astype(int))
+        x, h = x[idx], h[idx]
+    return {
+        "x_mm": [round(float(v), 3) for v in x],
+        "height_um": [round(float(v), 1) for v in h],
+    }
+
+
 def _opt(v: Any) -> float | None:
     if v is None:
         return None

@@ -322,3 +322,55 @@ def test_setpoint_stays_in_limits_and_rate(steps, fmin, span, rate):
             cfg.correction_min * (1 - 1e-12) <= loop.correction <= cfg.correction_max * (1 + 1e-12)
         )
         prev = feed
+
+
+# -- setpoints that never reached the machine ------------------------------------------------
+def _history_loop(feeds, *, reject_at=(), same_instant=False):
+    """A loop stepped through ``feeds`` (as spindle speeds giving those feeds), rejecting some."""
+    cfg = FeedLoopConfig(rate_max_mm_s2=1e6, cutter_to_camera_mm=300.0, window_mm=40.0)
+    loop = FeedLoop(cfg)
+    loop.reset(feed_mm_s=100.0, now_s=0.0)
+    for i, feed in enumerate(feeds, start=1):
+        rpm = feed / (1.5 * 4) * 60.0  # feed-forward p* n Z = feed
+        t = 0.1 * i
+        if same_instant and i in reject_at:  # an accepted setpoint at t, then a refused one
+            loop.update(measured_pitch_mm=None, spindle_rpm=rpm * 0.9, now_s=t)
+        loop.update(measured_pitch_mm=None, spindle_rpm=rpm, now_s=t)
+        if i in reject_at:
+            loop.reject()
+    return loop
+
+
+@pytest.mark.parametrize("same_instant", [False, True])
+def test_a_rejected_setpoint_leaves_no_trace_in_the_history(same_instant):
+    """A refused or failed write never happened: the history integrates what was in force."""
+    feeds = [100.0] * 10 + [400.0] * 20
+    truth = [100.0] * 10 + [100.0] * 20 if not same_instant else None
+    refused = set(range(11, 31))  # every change to 400 mm/s refused by the PLC
+    loop = _history_loop(feeds, reject_at=refused, same_instant=same_instant)
+    if truth is not None:
+        ref = _history_loop(truth)
+        assert loop.cut_interval_s(3.0) == pytest.approx(ref.cut_interval_s(3.0))
+        assert loop.feed_mm_s == pytest.approx(ref.feed_mm_s) == 100.0
+    else:  # the refused setpoint at t gives way to the accepted one at the same instant
+        assert loop.feed_mm_s == pytest.approx(0.9 * 400.0)
+        lo, hi = loop.cut_interval_s(3.0)
+        assert hi == pytest.approx(3.0 - 280.0 / 360.0)
+    # rejecting twice, or before any update, changes nothing more
+    before = (loop.feed_mm_s, loop.cut_interval_s(3.0))
+    loop.reject()
+    assert (loop.feed_mm_s, loop.cut_interval_s(3.0)) == before
+    fresh = FeedLoop(FeedLoopConfig())
+    fresh.reject()
+    assert fresh.feed_mm_s == FeedLoopConfig().feed_min_mm_s
+
+
+def test_rejected_setpoint_is_retried_from_the_feed_in_force():
+    """After a rejection the rate limit counts from the setpoint that is really in force."""
+    loop = FeedLoop(FeedLoopConfig(rate_max_mm_s2=400.0))
+    loop.reset(feed_mm_s=100.0, now_s=0.0)
+    assert loop.update(measured_pitch_mm=None, spindle_rpm=6000.0, now_s=0.25) == 200.0
+    loop.reject()
+    assert loop.feed_mm_s == 100.0
+    # 0.25 s later the next attempt moves at most 100 mm/s from 100 mm/s, not from 200
+    assert loop.update(measured_pitch_mm=None, spindle_rpm=6000.0, now_s=0.5) == 200.0

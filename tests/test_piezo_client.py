@@ -99,7 +99,7 @@ def test_status_and_heartbeat_tracked_and_silence_measured(buses):
 
 def test_send_failure_is_fieldbus_error():
     class BrokenBus:
-        def send(self, msg):
+        def send(self, msg, timeout=None):
             raise can.CanOperationError("bus off")
 
         def recv(self, timeout=None):
@@ -121,3 +121,30 @@ def test_send_failure_is_fieldbus_error():
 def test_bad_parameters(kw, buses):
     with pytest.raises(ValueError):
         PiezoClient(buses[0], CODEC, **kw)
+
+
+def test_every_send_is_bounded_in_time():
+    """A full transmit queue must not hold up the heartbeat: every send carries a short timeout."""
+
+    class RecordingBus:
+        def __init__(self):
+            self.timeouts = []
+
+        def send(self, msg, timeout=None):
+            self.timeouts.append(timeout)
+
+        def recv(self, timeout=None):
+            return None
+
+        def shutdown(self):
+            pass
+
+    bus = RecordingBus()
+    c = PiezoClient(bus, CODEC, knives=8, command_period_s=0.02)
+    c.set_enable(True, now_s=0.0)
+    c.tick(alive_counter=1, now_s=0.0)
+    c.set_offsets([1.0] * 8, now_s=0.001)
+    c.send_command(alive_counter=2, now_s=0.002)
+    assert len(bus.timeouts) == 1 + 2 + 2 + 1  # command, offsets (2 frames) twice, command
+    assert all(t is not None and 0 < t <= 0.01 for t in bus.timeouts)
+    assert c.send_timeout_s <= c.command_period_s / 2

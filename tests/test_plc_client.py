@@ -269,3 +269,55 @@ def test_against_real_modbus_server_with_restart():
             await server.stop()
 
     asyncio.run(main())
+
+
+def test_requests_from_two_tasks_never_overlap_on_the_bus():
+    """One owner per bus: the PLC task and the pair task share one client, one request at a time.
+
+    The bus yields to the event loop inside every request (as a socket would); a second request
+    started meanwhile must wait, and a reconnect is attempted once, not by both.
+    """
+
+    class SlowBus(FlakyBus):
+        def __init__(self, machine):
+            super().__init__(machine)
+            self.busy = 0
+            self.overlaps = 0
+            self.order = []
+
+        async def _enter(self, what):
+            self.busy += 1
+            self.overlaps += self.busy > 1
+            self.order.append(what)
+            for _ in range(3):
+                await asyncio.sleep(0)
+
+        async def connect(self):
+            await self._enter("connect")
+            self.busy -= 1
+            await super().connect()
+
+        async def read(self, address, count):
+            await self._enter("read")
+            try:
+                return await super().read(address, count)
+            finally:
+                self.busy -= 1
+
+        async def write(self, address, words):
+            await self._enter("write")
+            try:
+                await super().write(address, words)
+            finally:
+                self.busy -= 1
+
+    async def main():
+        m = FakeMachine()
+        bus = SlowBus(m)
+        c = PlcClient(bus, RMAP, clock=Clock())
+        await asyncio.gather(c.read(), c.write_heartbeat(5), c.read(), c.write_feed(400.0))
+        assert bus.overlaps == 0
+        assert bus.order.count("connect") == 1 and len(bus.order) == 5
+        assert m.feed == 400.0 and m.heartbeat == 5
+
+    asyncio.run(main())

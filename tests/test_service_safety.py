@@ -5,7 +5,13 @@ from __future__ import annotations
 import pytest
 
 from config.machine import SafetyConfig
-from controller.safety import SafetyState, Supervisor
+from controller.safety import (
+    AMP_CONFIRM_S,
+    AmplifierMonitor,
+    SafetyState,
+    Supervisor,
+    amp_problem,
+)
 
 CFG = SafetyConfig(
     cycle_s=0.02,
@@ -145,7 +151,7 @@ def test_ramp_is_rate_limited_and_monotone():
         sup.safe_feed(100.0, dt_s=-1.0, feed_min_mm_s=0.0, feed_max_mm_s=1.0)
 
 
-@pytest.mark.parametrize("condition", ["machine", "plc_data", "log", "service"])
+@pytest.mark.parametrize("condition", ["machine", "plc_data", "amplifier", "log", "service"])
 def test_each_condition_goes_safe_at_once_and_recovers_after_confirmation(condition):
     sup = Supervisor(CFG, now_s=0.0)
     t = run_until_run(sup)
@@ -159,3 +165,91 @@ def test_each_condition_goes_safe_at_once_and_recovers_after_confirmation(condit
     assert t_run - 0.02 - t_back >= CFG.recovery_s - 1e-9
     with pytest.raises(ValueError, match="condition"):
         sup.set_ok("disk", False)
+
+
+# ------------------------------------------------------------------ the piezo amplifier's status
+@pytest.mark.parametrize(
+    ("state", "fault", "enable", "expected"),
+    [
+        (1, 0, True, None),  # enabled and tracking, as commanded
+        (0, 0, False, None),  # disabled, as commanded
+        (3, 0b1000, True, "overcurrent"),
+        (3, 0b1000, False, "overcurrent"),  # a fault is a fault whatever is commanded
+        (3, 0, False, "state 3 (fault)"),
+        (1, 0b0010, True, "stroke limit"),  # offsets refused, the old table still played
+        (2, 0b0100, True, "setpoint timeout"),
+        (1, 0b0001, True, "over-temperature"),
+        (0, 0, True, "state 0 (disabled) while enable is commanded"),
+        (2, 0, True, "state 2 (ramping to zero) while enable is commanded"),
+        (1, 0, False, "state 1 (enabled) while disable is commanded"),
+        (7, 0, True, "state 7 (unknown)"),
+    ],
+)
+def test_amp_problem_table(state, fault, enable, expected):
+    got = amp_problem(state=state, fault=fault, enable=enable)
+    if expected is None:
+        assert got is None
+    else:
+        assert got is not None and expected in got
+
+
+class Status:
+    def __init__(self, state, fault, t_s):
+        self.state, self.fault, self.t_s = state, fault, t_s
+
+
+def _watch(mon, statuses, dt=0.01):
+    """Feed (t, state, fault) statuses; return the confirmed problem after each."""
+    return [mon.observe(Status(s, f, t), now_s=t) for t, s, f in statuses]
+
+
+def test_amp_fault_is_confirmed_after_the_confirmation_time_only():
+    mon = AmplifierMonitor(confirm_s=0.1)
+    mon.commanded(True, now_s=0.0)
+    out = _watch(mon, [(0.01 * i, 1, 0) for i in range(1, 6)])
+    assert out == [None] * 5 and mon.problem is None
+    # a fault for less than the confirmation time, then healthy again: never confirmed
+    out = _watch(mon, [(0.06 + 0.01 * i, 3, 8) for i in range(9)] + [(0.15, 1, 0)])
+    assert out == [None] * 10
+    # a fault that lasts: confirmed once the confirmation time has passed, not before
+    t0 = 0.2
+    out = _watch(mon, [(t0 + 0.01 * i, 3, 8) for i in range(15)])
+    first = next(i for i, p in enumerate(out) if p is not None)
+    assert 0.1 - 1e-9 <= 0.01 * first <= 0.1 + 0.01 + 1e-9
+    assert all(p is not None and "overcurrent" in p for p in out[first:])
+
+
+def test_amp_mismatch_counts_from_the_command_and_recovers_when_healthy():
+    mon = AmplifierMonitor(confirm_s=0.1)
+    mon.commanded(False, now_s=0.0)
+    assert _watch(mon, [(0.01, 0, 0)]) == [None]
+    mon.commanded(True, now_s=0.5)
+    # a status received before the command took effect is no judgement of it
+    assert mon.observe(Status(0, 0, 0.45), now_s=0.5) is None
+    # still disabled although enabled: only after the confirmation time from the command
+    out = _watch(mon, [(0.5 + 0.02 * i, 0, 0) for i in range(1, 8)])
+    assert out[:4] == [None] * 4 and out[-1] is not None and "disabled" in out[-1]
+    # the service goes safe and commands disable: the old verdict stands until the amplifier
+    # answers the new command, then it is healthy
+    mon.commanded(False, now_s=0.7)
+    assert mon.observe(Status(0, 0, 0.69), now_s=0.7) is not None
+    assert mon.observe(Status(0, 0, 0.72), now_s=0.72) is None and mon.problem is None
+
+
+def test_untracked_time_marks_when_the_offsets_were_not_played():
+    mon = AmplifierMonitor(confirm_s=0.1)
+    mon.commanded(False, now_s=0.0)
+    mon.observe(Status(0, 0, 0.02), now_s=0.02)
+    assert mon.untracked_s == 0.02  # disabled: offsets not played
+    mon.commanded(True, now_s=0.1)
+    mon.observe(Status(0, 0, 0.1), now_s=0.1)  # before the command: not yet tracking
+    assert mon.untracked_s == 0.1
+    mon.observe(Status(1, 0, 0.12), now_s=0.12)
+    mon.observe(Status(1, 0, 0.14), now_s=0.14)
+    assert mon.untracked_s == 0.1  # tracking since
+    mon.observe(Status(2, 4, 0.3), now_s=0.3)  # a short ramp: never confirmed, still noted
+    mon.observe(Status(1, 0, 0.32), now_s=0.32)
+    assert mon.untracked_s == 0.3 and mon.problem is None
+    assert AMP_CONFIRM_S < CFG.can_timeout_s
+    with pytest.raises(ValueError, match="confirm_s"):
+        AmplifierMonitor(confirm_s=-1.0)

@@ -3,8 +3,9 @@
 Set-up: the simulated machine renders 659x493 pairs once (before timing); its PLC Modbus
 server listens on an ephemeral 127.0.0.1 port and its piezo amplifier node answers on a virtual
 CAN bus, pumped every 10 ms. The service runs exactly as ``planer serve`` does (real time, the
-measurement in a worker thread, the 20 ms heartbeat task beside it, quality log on disk); the
-frames are handed over through an in-process queue at ``rate_hz``. The latency of a pair is
+measurement in a worker thread, the PLC and CAN cycle tasks beside it, quality log on disk); the
+frames are handed over through an in-process queue at ``rate_hz`` once the service reported RUN,
+and the run ends when the service handled the last pair (no fixed waits). The latency of a pair is
 measured by the service itself: wall time from the start of ``handle_frame`` (the pair taken
 from the source) to the return of the Modbus write of the feed setpoint and the CAN send of the
 offsets, i.e. PLC read + measurement + plausibility + knife phase + both loops + both writes.
@@ -21,8 +22,24 @@ from typing import Any
 
 import numpy as np
 
+READY_TIMEOUT_S = 60.0
+"""Deadline for the service to reach RUN before the pairs go in (a loaded machine), s."""
 
-async def _run(frames: list, machine: Any, *, rate_hz: float, workdir: Path) -> dict[str, Any]:
+
+async def _run(
+    frames: list,
+    machine: Any,
+    *,
+    rate_hz: float,
+    workdir: Path,
+    ready_timeout_s: float = READY_TIMEOUT_S,
+) -> dict[str, Any]:
+    """Serve ``frames`` at ``rate_hz`` once the service is in RUN; stop after the last one.
+
+    Nothing waits a fixed time: the pairs go in when the service reports its recovery to RUN
+    (``RuntimeError`` naming what it waits for if that takes longer than ``ready_timeout_s``),
+    and ``Service.run`` returns as soon as it handled the last pair.
+    """
     from dataclasses import replace
 
     import can
@@ -50,7 +67,9 @@ async def _run(frames: list, machine: Any, *, rate_hz: float, workdir: Path) -> 
     )
     service = open_service(cfg, can_bus=svc_bus)
     service.keep_results = True
-    source = QueueFrameSource(maxsize=4)
+    running = asyncio.Event()
+    service.on_event = lambda _t, e: running.set() if e.startswith("recovered") else None
+    source = QueueFrameSource(maxsize=len(frames))
     stop = asyncio.Event()
 
     async def pump_amp() -> None:
@@ -62,23 +81,29 @@ async def _run(frames: list, machine: Any, *, rate_hz: float, workdir: Path) -> 
             await asyncio.sleep(0.01)
 
     async def feed_frames() -> None:
-        # wait for the service to be running (PLC and CAN heard, confirmation time passed)
-        for _ in range(500):
-            if service.status is not None and service.status.state.value == "run":
-                break
-            await asyncio.sleep(0.01)
-        for f in frames:
+        # the service is running (PLC and CAN heard, confirmation time passed): pairs go in
+        try:
+            await asyncio.wait_for(running.wait(), ready_timeout_s)
+        except asyncio.TimeoutError:
+            status = service.status
+            why = service._describe(status.missing) if status is not None else "no cycle ran"
+            stop.set()
+            raise RuntimeError(
+                f"service benchmark: service not in RUN after {ready_timeout_s:g} s ({why})"
+            ) from None
+        for f in frames:  # the camera's rate, not a wait for the service
             source.put(f)
             await asyncio.sleep(1.0 / rate_hz)
-        await asyncio.sleep(0.2)
-        stop.set()
 
-    tasks = [asyncio.create_task(pump_amp()), asyncio.create_task(feed_frames())]
+    pump = asyncio.create_task(pump_amp())
+    feeder = asyncio.create_task(feed_frames())
     try:
-        await service.run(source, stop=stop)
+        await service.run(source, stop=stop, max_frames=len(frames))
+        await feeder  # re-raises the deadline
     finally:
         stop.set()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        feeder.cancel()
+        await asyncio.gather(pump, feeder, return_exceptions=True)
         service.close()
         amp.close()
         await server.stop()
