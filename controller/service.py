@@ -55,7 +55,7 @@ beyond that the oldest are saved to a JSON-lines file beside the log."""
 PROFILE_EVERY = 10
 """Every this many successful measurements (and the first of each board) a record carries the
 surface profile (``extra["profile"]``, drawn by ``planer report``)."""
-PROFILE_MAX_POINTS = 400
+PROFILE_MAX_POINTS = 800
 """Most points of a stored profile (about 6 kB of JSON)."""
 _REASONS = {
     "plc": "plc gone",

@@ -46,6 +46,7 @@ _MISSING = {
     "plc_data": "PLC registers implausible",
     "log": "quality log not writable",
     "service": "service error",
+    "amplifier": "piezo amplifier faulted or not tracking",
 }
 
 
