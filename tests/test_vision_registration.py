@@ -10,7 +10,9 @@ import pytest
 from planer.errors import RegistrationError
 from vision.registration import (
     Registrar,
+    Registration,
     encoder_shift_px,
+    mark_period_px,
     refine_shift,
     shading_free_texture,
     shading_shift,
@@ -95,9 +97,13 @@ def _fourier_shift(a: np.ndarray, d: float) -> np.ndarray:
 
 
 def _pair(d: float, *, seed: int = 0, width: int = 640, rows: int = 32, texture: float = 0.05,
-          noise: float = 0.002, other_board: bool = False) -> tuple[np.ndarray, np.ndarray]:
+          noise: float = 0.002, other_board: bool = False,
+          along_feed_only: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Images A, B of one board; ``along_feed_only``: every row has the same albedo (1-D)."""
     n = 1024
     albedo, slope = _board(seed, rows, n, texture=texture)
+    if along_feed_only:
+        albedo = np.repeat(albedo[:1], rows, axis=0)
     rng = np.random.default_rng(seed + 100)
 
     def shot(alb: np.ndarray, p: np.ndarray, sign: float) -> np.ndarray:
@@ -107,6 +113,8 @@ def _pair(d: float, *, seed: int = 0, width: int = 640, rows: int = 32, texture:
     a = shot(albedo, slope, -1.0)
     if other_board:
         albedo, slope = _board(seed + 1, rows, n, texture=texture)
+        if along_feed_only:
+            albedo = np.repeat(albedo[:1], rows, axis=0)
     b = shot(_fourier_shift(albedo, d), _fourier_shift(slope, d), +1.0)
     return a.astype(np.float32), b.astype(np.float32)
 
@@ -119,7 +127,7 @@ def test_refine_shift_recovers_true_shift_despite_encoder_error(true_d, encoder_
     assert reg.shift_px == pytest.approx(true_d, abs=0.25)
     assert reg.encoder_shift_px == pytest.approx(true_d + encoder_error)
     assert 0.5 < reg.confidence <= 1.0
-    assert reg.shading_score > 0.9  # the shading of the two lights is mirrored
+    assert reg.fine_score > 0.9  # albedo and mirrored shading agree on the delay
 
 
 def test_shading_alone_locks_onto_the_wrong_mark_but_texture_does_not():
@@ -187,3 +195,118 @@ def test_shading_free_texture_removes_column_shading_exactly():
     expect = albedo / albedo.mean(axis=0)[None, :]
     expect -= expect.mean(axis=1, keepdims=True)
     np.testing.assert_allclose(tex, expect, atol=1e-5)
+
+
+# -- albedo along the feed only: the column profiles register the pair ------------------------
+
+
+@pytest.mark.parametrize("true_d", [9.4, 23.7])
+@pytest.mark.parametrize("encoder_error", [-20.0, 0.0, 14.0])
+def test_albedo_along_the_feed_only_registers_on_the_column_profiles(true_d, encoder_error):
+    a, b = _pair(true_d, seed=int(true_d * 10), along_feed_only=True)
+    pa, pb = a.mean(axis=0), b.mean(axis=0)
+    reg = Registrar(a.shape[1])
+    tex_a, tex_b = shading_free_texture(a, pa), shading_free_texture(b, pb)
+    with pytest.raises(RegistrationError):  # no 2-D texture left after the division
+        reg.coarse(tex_a, tex_b, encoder_shift_px=true_d + encoder_error)
+    res = reg(tex_a, tex_b, encoder_shift_px=true_d + encoder_error, profile_a=pa, profile_b=pb)
+    assert res.source == "profile"
+    assert res.shift_px == pytest.approx(true_d, abs=0.25)
+    assert res.coarse_shift_px == pytest.approx(true_d, abs=1.0)
+    assert reg.min_profile_confidence <= res.confidence <= 1.0
+
+
+def test_profile_stage_alone_finds_the_shift_that_plain_correlation_misses():
+    # Correlating the log-profiles themselves pits the albedo peak against the mirrored,
+    # periodic shading; the robust correlation of their first differences does not.
+    true_d = 15.3
+    a, b = _pair(true_d, seed=11, along_feed_only=True)
+    pa, pb = a.mean(axis=0), b.mean(axis=0)
+    reg = Registrar(a.shape[1]).coarse_profile(pa, pb, encoder_shift_px=true_d - 16.0)
+    assert reg.shift_px == pytest.approx(true_d, abs=0.5)
+    la, lb = np.log(pa), np.log(pb)
+    lags = np.arange(-10, 41)
+    plain = [np.corrcoef(la[60:560], lb[60 + k : 560 + k])[0, 1] for k in lags]
+    assert abs(lags[int(np.argmax(plain))] - true_d) > 2.0
+
+
+def test_different_boards_with_albedo_along_the_feed_do_not_register():
+    a, b = _pair(15.0, other_board=True, along_feed_only=True)
+    with pytest.raises(RegistrationError, match="cannot register"):
+        refine_shift(a, b, encoder_shift_px=15.0)
+
+
+def test_fine_fit_is_blind_to_the_sign_of_each_frequency():
+    # Albedo (same sign in A and B) and mirrored shading (opposite signs) vote alike: negating
+    # one log-profile (B -> 1 / B) leaves the fit unchanged.
+    a, b = _pair(14.35, seed=5)
+    pa, pb = a.mean(axis=0).astype(np.float64), b.mean(axis=0).astype(np.float64)
+    reg = Registrar(a.shape[1])
+    shift, score = reg.fine(pa, pb, guess_px=15.0)
+    flipped, score_flipped = reg.fine(pa, 1.0 / pb, guess_px=15.0)
+    assert shift == pytest.approx(14.35, abs=0.1)
+    assert flipped == pytest.approx(shift, abs=1e-9)
+    assert score_flipped == pytest.approx(score, abs=1e-9)
+    assert 0.5 < score <= 1.0
+
+
+def test_fine_fit_needs_the_coarse_shift_within_a_quarter_mark():
+    a, b = _pair(14.0, seed=5)
+    pa, pb = a.mean(axis=0), b.mean(axis=0)
+    reg = Registrar(a.shape[1], fine_px=2)
+    shift, score = reg.fine(pa, pb, guess_px=16.0)  # the true delay on the window's edge
+    assert math.isnan(shift) and score > 0.9
+    _, score = reg.fine(pa, pb, guess_px=18.0)  # not in the window: incoherent
+    assert score < reg.min_fine_score
+    # Sign-blind, the fit aliases at half a mark (~21.3 px here): hence the coarse stages.
+    shift, score = reg.fine(pa, pb, guess_px=14.0 + 1024 / 96)
+    assert shift == pytest.approx(14.0 + 1024 / 96, abs=0.3) and score > 0.9
+
+
+def test_mark_period_from_the_profile():
+    a, _ = _pair(10.0, texture=0.0, noise=0.0005)
+    assert mark_period_px(a.mean(axis=0)) == pytest.approx(1024 / 48, rel=0.02)
+    assert math.isnan(mark_period_px(np.full(200, 0.5)))
+
+
+def test_untextured_pair_registers_on_shading_only_within_half_a_mark():
+    # No albedo at all: unambiguous only when the encoder is trusted to better than half a mark
+    # (~21 px marks here): +-6 px is, the default +-20 px is not.
+    true_d = 15.4
+    a, b = _pair(true_d, texture=0.0, noise=0.0005)
+    pa, pb = a.mean(axis=0), b.mean(axis=0)
+    tex = shading_free_texture(a, pa), shading_free_texture(b, pb)
+    narrow = Registrar(a.shape[1], search_px=6.0)
+    reg = narrow(*tex, encoder_shift_px=true_d + 4.0, profile_a=pa, profile_b=pb)
+    assert reg.source == "shading"
+    assert reg.shift_px == pytest.approx(true_d, abs=0.25)
+    period = 1024 / 48
+    assert reg.confidence <= (1 - 2 * 6.0 / period) + 1e-9
+    with pytest.raises(RegistrationError):
+        Registrar(a.shape[1])(*tex, encoder_shift_px=true_d + 4.0, profile_a=pa, profile_b=pb)
+
+
+@pytest.mark.parametrize(
+    "texture, profile, expect",
+    [
+        ((10.0, 0.3), (10.8, 0.4), 10.8),  # agree: the more confident
+        ((10.0, 0.3), (None, 0.0), 10.0),  # one only
+        ((10.0, 0.3), (17.0, 0.6), 17.0),  # disagree, but one is strong
+        ((10.0, 0.3), (17.0, 0.35), None),  # disagree, neither strong: an error
+    ],
+)
+def test_choice_between_the_coarse_stages(texture, profile, expect):
+    reg = Registrar(200)
+
+    def result(shift, conf, source):
+        if shift is None:
+            return None
+        return Registration(shift_px=shift, confidence=conf, encoder_shift_px=12.0, source=source)
+
+    tex = result(*texture, "texture")
+    prof = result(*profile, "profile")
+    if expect is None:
+        with pytest.raises(RegistrationError, match="disagree"):
+            reg._choose(tex, prof)
+    else:
+        assert reg._choose(tex, prof).shift_px == expect

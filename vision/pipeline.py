@@ -4,7 +4,8 @@ Steps (all set-up done once per rig and image shape in :class:`Measurer`):
 
 1. undistort both images straight into vertically binned rows (:mod:`vision.undistort`);
 2. column profiles (:mod:`vision.profile`) and shading-free textures;
-3. registration: encoder shift (seed Eq. 5-6), refined on the albedo texture
+3. registration: encoder shift (seed Eq. 5-6), refined from the images -- coarse on the albedo
+   (2-D texture, or the 1-D column profiles), fine on the column profiles
    (:mod:`vision.registration`);
 4. optional flat-field correction of each profile in the camera frame, then Wiener deblurring along
    the feed when the motion blur is sizeable (:mod:`vision.deblur`);

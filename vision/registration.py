@@ -2,26 +2,46 @@
 
 The encoder gives the shift ``d = px_per_count * (counts_b - counts_a)`` (counter wrap handled by a
 signed modular difference).  Belt slip or a bad count can make it wrong by tens of pixels, so it is
-refined from the images themselves, in two stages:
+refined from the images themselves: a coarse, unambiguous estimate from the wood's albedo, then a
+fine one from the column profiles.
 
-1. **Texture** (coarse, unambiguous).  Correlating the raw images or their column profiles locks
-   onto the shading of the nearly periodic cuttermarks, which moreover has opposite signs in A and
-   B.  But the shading depends on the column only (the marks run straight across, q = 0), while
-   the wood's albedo texture (fibres, pores, grain) varies along both axes and moves with the
-   board.  Dividing each undistorted image by its own column profile removes the shading exactly
-   and leaves ``I(u, v) / P(u) - 1``.  Band-passed along x (pixel noise and the fibre roughness,
-   whose shading is mirrored between the lights, out; slow grain wander and fall-off out), the
-   two textures are cross-correlated over the lags ``d_enc +- (search_px + margin_px)``, with one
-   fixed stretch of A sliding over B so that image edges never enter the sums (otherwise texture
-   that is nearly constant along x, like grain stripes, pulls the peak toward lag 0).  Normalised
-   correlation, parabolic sub-pixel peak; confidence = peak correlation x uniqueness (one minus
-   the best other local maximum over the peak).  Too low, or a peak on the window's edge, is a
-   :class:`~planer.errors.RegistrationError`, never a guess.
-2. **Shading** (fine).  The sharp intensity steps at the cusps pin the shift to a small fraction of
-   a pixel: the log column profiles, high-passed, are *anti*-correlated (the two lights see
-   mirrored shading) within ``+-fine_px`` of the texture's shift, again with a parabolic peak.  A
-   pair without marks keeps the texture's shift; strong shading that does not line up within the
-   window is an error.
+Coarse, within ``d_enc +- (search_px + margin_px)``; two estimators of the albedo, because a board
+may carry its albedo variation across the feed (2-D texture), along it (1-D), or both:
+
+1. **Texture** (2-D).  The marks run straight across (q = 0), so their shading depends on the column
+   only and dividing each undistorted image by its own column profile removes it exactly, leaving
+   ``I(u, v) / P(u) - 1``.  Band-passed along x, the two textures are cross-correlated with one
+   fixed stretch of A sliding over B (image edges never enter the sums, otherwise grain stripes,
+   nearly constant along x, pull the peak toward lag 0).  The division also removes any albedo
+   that is constant along y: a board whose albedo varies only along the feed has no texture here.
+2. **Column profiles** (1-D), run when the texture is not clearly confident.  In log space
+   ``log A(u) = L(u) - T(u)`` and ``log B(u + d) = L(u) + T(u)`` (albedo L, shading
+   ``T ~ tan(sigma) p``).  Correlating the profiles themselves pits the albedo peak against the
+   mirrored, periodic shading.  Their first differences do not: inside a mark p grows linearly
+   (slope 1/R), so ``T'`` is a constant plus sparse spikes at the cusps, while ``L'`` is
+   broadband.  Each first difference is centred on its median and scaled by its MAD (the constant
+   goes), and the two are compared at every lag by a robust correlation (Gnanadesikan-Kettenring):
+   ``rho = (S(a + b) - S(b - a)) / (S(a + b) + S(b - a))`` with ``S`` the mean of the smallest
+   75 % of the squares, so the cusp spikes (opposite signs in A and B) fall in the discarded
+   quarter instead of cancelling the albedo.
+
+Each gives a normalised correlation curve; sub-pixel parabolic peak; confidence = peak x
+uniqueness (one minus the best other local maximum over the peak).  The texture is taken as it is
+when its confidence is at least ``strong_confidence``; otherwise the profiles are tried too, and
+of the stages that pass their thresholds the more confident is used -- if both pass they must
+agree within ``fine_px`` unless the more confident is itself strong.  When neither passes, the
+pair is a :class:`~planer.errors.RegistrationError`, never a guess -- with one exception: with
+no albedo at all, the mirrored shading alone is unambiguous when the search window is narrower
+than half a mark (``search_px < period / 2``), so the best anti-correlation of the shading within
+``d_enc +- search_px`` is taken, with confidence ``score * (1 - 2 search_px / period)``.
+
+Fine, within ``+-fine_px`` of the coarse shift: a delay fitted to the cross-spectrum
+``X(f) = conj(F[a']) F[b']`` of the first differences of the log-profiles (tapered).  At the true
+delay ``X(f) e^(2 pi i f d)`` is real, positive where the albedo dominates and negative where the
+mirrored shading does; so the fit is made invariant to that sign by doubling the phase: the
+delay maximises ``Re sum_f |X| e^(2 i (arg X + 2 pi f d))`` over ``f <= max_frequency``.  Albedo and
+shading then both pin the delay -- the albedo's fine detail, the sharp steps at the cusps -- to a
+few hundredths of a pixel.  The price is an alias at half a mark, far outside the window.
 """
 
 from __future__ import annotations
@@ -46,24 +66,30 @@ class Registration:
     shift_px : float
         Shift used: a point at undistorted column ``u`` of A is at ``u + shift_px`` in B.
     confidence : float
-        In [0, 1]: the normalised texture correlation at the peak times its uniqueness,
-        ``1 - second_peak / peak`` (second peak: the best local maximum outside the main lobe).
+        In [0, 1]: the coarse stage's normalised correlation at the peak times its uniqueness,
+        ``1 - second_peak / peak`` (second peak: the best local maximum outside the main lobe);
+        for ``source == "shading"``, ``score * (1 - 2 search_px / mark_period)``.
     encoder_shift_px : float
         Shift from the encoder counts alone (seed Eq. 5-6).
     peak_ncc : float
-        Normalised cross-correlation of the two textures at their best shift.
-    shading_score : float
-        Anti-correlation of the two profiles' shading at the chosen shift (NaN: not refined).
-    texture_shift_px : float
-        Shift found by the texture alone (NaN when it is ``shift_px``).
+        Correlation of the coarse stage used, at its best shift.
+    fine_score : float
+        Sign-free coherence of the fine fit, in [-1, 1] (NaN: not refined); for
+        ``source == "shading"`` the shading's anti-correlation.
+    coarse_shift_px : float
+        Shift found by the coarse stage (NaN when it is ``shift_px``).
+    source : str
+        Coarse stage used: ``"texture"`` (2-D albedo texture), ``"profile"`` (1-D column
+        profiles) or ``"shading"`` (shading alone, narrow search window).
     """
 
     shift_px: float
     confidence: float
     encoder_shift_px: float
     peak_ncc: float = math.nan
-    shading_score: float = math.nan
-    texture_shift_px: float = math.nan
+    fine_score: float = math.nan
+    coarse_shift_px: float = math.nan
+    source: str = "texture"
 
 
 def encoder_shift_px(
@@ -217,13 +243,88 @@ def shading_shift(
     return float(lags[i]) + frac, peak
 
 
+def _log_difference(profile: np.ndarray) -> np.ndarray:
+    """First difference of the log of a positive profile, float64, shape (n - 1,)."""
+    p = np.asarray(profile, dtype=np.float64)
+    return np.diff(np.log(np.maximum(p, 1e-12)))
+
+
+def _robust_standardise(values: np.ndarray) -> np.ndarray:
+    """``(values - median) / (1.4826 MAD)``; zeros when the MAD vanishes."""
+    med = float(np.median(values))
+    dev = values - med
+    scale = 1.4826 * float(np.median(np.abs(dev)))
+    if not scale > 0:
+        return np.zeros_like(dev)
+    return dev / scale
+
+
+def _second_peak(values: np.ndarray, i: int) -> float:
+    """Best local maximum of ``values`` outside the main lobe (contiguous stretch > half peak)."""
+    half = 0.5 * float(values[i])
+    left = i
+    while left > 0 and values[left - 1] > half:
+        left -= 1
+    right = i
+    while right < len(values) - 1 and values[right + 1] > half:
+        right += 1
+    inner = values[1:-1]
+    is_max = (inner >= values[:-2]) & (inner >= values[2:])
+    is_max[max(0, left - 1) : right] = False
+    return float(inner[is_max].max()) if np.any(is_max) else 0.0
+
+
+def _confidence(peak: float, second: float) -> float:
+    """Peak correlation times its uniqueness ``1 - second / peak``, in [0, 1]."""
+    if not peak > 0:
+        return 0.0
+    uniqueness = float(np.clip(1.0 - max(second, 0.0) / peak, 0.0, 1.0))
+    return min(peak, 1.0) * uniqueness
+
+
+def mark_period_px(profile: np.ndarray) -> float:
+    """Spacing of the cuttermarks from a column profile (NaN when there is no clear one).
+
+    The first difference of the log-profile is, inside every mark, a constant (the slope grows
+    as 1/R) and, at every cusp, a spike; its self-correlation peaks at the mark spacing.
+
+    Parameters
+    ----------
+    profile : ndarray, shape (width,)
+        Positive column profile.
+
+    Returns
+    -------
+    float
+        The first local maximum (>= 0.2 of lag 0) after the first negative value of the
+        self-correlation, sub-pixel, pixels; NaN when there is none below ``width / 3``.
+    """
+    g = _log_difference(profile)
+    g = g - g.mean()
+    n = g.size
+    nf = _fast_len_5(2 * n)
+    spec = scipy.fft.rfft(g, n=nf)
+    ac = scipy.fft.irfft(spec.real**2 + spec.imag**2, n=nf)[: n // 3]
+    if ac.size < 4 or not ac[0] > 0:
+        return math.nan
+    ac = ac / ac[0]
+    neg = np.flatnonzero(ac < 0)
+    if neg.size == 0:
+        return math.nan
+    for k in range(int(neg[0]), ac.size - 1):
+        if ac[k] >= 0.2 and ac[k] >= ac[k - 1] and ac[k] >= ac[k + 1]:
+            frac, _ = _parabolic_peak(ac, k)
+            return k + frac
+    return math.nan
+
+
 class Registrar:
     """Refines the encoder shift of a pair from its images (set up once per width).
 
-    Two stages: the albedo texture (not periodic, so it cannot lock onto the wrong mark) finds
-    the shift within ``+-(search_px + margin_px)`` of the encoder's to a pixel or two; the
-    cuttermark shading of the column profiles (sharp, but periodic) then refines it within
-    ``+-fine_px`` to a small fraction of a pixel.
+    Coarse (unambiguous) from the albedo -- the 2-D texture, and the 1-D column profiles when the
+    texture is not clearly confident -- within ``+-(search_px + margin_px)`` of the encoder's
+    shift; then fine, to a few hundredths of a pixel, from the column profiles within
+    ``+-fine_px`` (see the module docstring).
 
     Parameters
     ----------
@@ -234,22 +335,34 @@ class Registrar:
     margin_px : float, optional
         Extra search range beyond ``search_px``.
     min_confidence : float, optional
-        Pairs whose texture confidence is lower raise :class:`RegistrationError`.
+        Texture registrations of lower confidence are not used.
     min_peak_ncc : float, optional
-        Pairs whose texture correlation at the peak is lower raise :class:`RegistrationError`.
+        Texture registrations of lower peak correlation are not used.
     min_overlap_px : int, optional
         Smallest overlap of the two images, pixels.
     fine_px : int, optional
-        Half-width of the shading refinement, pixels.
-    min_shading_score : float, optional
-        Below this anti-correlation of the shading the refinement is not trusted and the
-        texture shift is kept.
+        Half-width of the fine fit around the coarse shift, pixels; also how far the two coarse
+        stages may disagree.  Must stay below a quarter of the mark spacing.
+    min_fine_score : float, optional
+        Below this coherence the fine fit is not trusted and the coarse shift is kept.
     band_px : tuple of int, optional
         ``(short, long)``: the textures are band-passed along x by the difference of running
         means of these lengths.  The short one removes pixel noise and the fine fibre roughness,
         whose shading has opposite signs in A and B; the long one the slowly wandering grain
         stripes and the illumination fall-off along y that survive the column normalisation.
+    strong_confidence : float, optional
+        A coarse stage at least this confident needs no second opinion.
+    min_profile_confidence, min_profile_ncc : float, optional
+        Thresholds of the 1-D profile registration (confidence, robust correlation at the peak).
+    min_shading_score : float, optional
+        Smallest anti-correlation of the shading accepted by the shading-only rule.
+    max_frequency : float, optional
+        Highest frequency used by the fine fit, cycles per pixel (above it pixel sampling and
+        blur make the two images' fine detail differ).
     """
+
+    _TRIM = 0.75  # fraction of the smallest squares kept by the robust profile correlation
+    _FINE_STEP_PX = 0.1  # grid of the fine fit before its parabolic peak
 
     def __init__(
         self,
@@ -260,9 +373,14 @@ class Registrar:
         min_confidence: float = 0.2,
         min_peak_ncc: float = 0.25,
         min_overlap_px: int = 32,
-        fine_px: int = 4,
-        min_shading_score: float = 0.5,
+        fine_px: int = 3,
+        min_fine_score: float = 0.3,
         band_px: tuple[int, int] = (5, 61),
+        strong_confidence: float = 0.5,
+        min_profile_confidence: float = 0.25,
+        min_profile_ncc: float = 0.35,
+        min_shading_score: float = 0.5,
+        max_frequency: float = 0.35,
     ) -> None:
         self.width = check_int("width", width, lo=16)
         self.search_px = check_positive("search_px", search_px, allow_zero=True)
@@ -271,13 +389,64 @@ class Registrar:
         self.min_peak_ncc = check_range("min_peak_ncc", min_peak_ncc, -1.0, 1.0)
         self.min_overlap_px = check_int("min_overlap_px", min_overlap_px, lo=8)
         self.fine_px = check_int("fine_px", fine_px, lo=1)
+        self.min_fine_score = check_range("min_fine_score", min_fine_score, -1.0, 1.0)
+        self.strong_confidence = check_range("strong_confidence", strong_confidence, 0.0, 1.0)
+        self.min_profile_confidence = check_range(
+            "min_profile_confidence", min_profile_confidence, 0.0, 1.0
+        )
+        self.min_profile_ncc = check_range("min_profile_ncc", min_profile_ncc, -1.0, 1.0)
         self.min_shading_score = check_range("min_shading_score", min_shading_score, -1.0, 1.0)
+        self.max_frequency = check_range("max_frequency", max_frequency, 0.05, 0.5)
         short, long = (int(band_px[0]), int(band_px[1]))
         if not 1 <= short < long < self.width:
             raise ValueError(f"band_px must be (short, long) with 1 <= short < long < width, "
                              f"got {band_px}")
         self.band_px = (short, long)
         self.nfft = _fast_len_5(2 * self.width)
+        # Fine fit: frequencies used, the grid of delays, and their doubled-phase phasors.
+        self._kmax = int(self.max_frequency * self.nfft) + 1
+        freq = np.arange(self._kmax) / self.nfft
+        steps = int(round(self.fine_px / self._FINE_STEP_PX))
+        self._fine_grid = np.arange(-steps, steps + 1) * self._FINE_STEP_PX
+        self._fine_phasor = np.exp(4j * np.pi * self._fine_grid[:, None] * freq[None, :])
+        self._tapers: dict[int, np.ndarray] = {}
+
+    # -- helpers --------------------------------------------------------------------------------
+
+    def _lag_window(self, guess: float, width: int) -> tuple[int, int, int, int]:
+        """Lags ``lo..hi`` searched and the fixed stretch ``u0:u1`` of A (signals of ``width``)."""
+        reach = self.search_px + self.margin_px
+        lo = max(math.floor(guess - reach), -(width - self.min_overlap_px))
+        hi = min(math.ceil(guess + reach), width - self.min_overlap_px)
+        # One fixed stretch U of A whose partners u + lag lie inside B for every lag searched:
+        # B's edges never enter the sums, so albedo that is nearly constant along x (grain
+        # stripes) correlates alike at every lag instead of pulling the peak toward lag 0.
+        u0, u1 = max(0, -lo), min(width, width - hi)
+        if hi - lo < 2 or u1 - u0 < self.min_overlap_px:
+            raise RegistrationError(
+                f"encoder shift {guess:.1f} px leaves less than {self.min_overlap_px} px of "
+                f"overlap in images {self.width} px wide"
+            )
+        return lo, hi, u0, u1
+
+    def _profiles(self, profile_a: np.ndarray, profile_b: np.ndarray) -> tuple[np.ndarray, ...]:
+        pa = np.asarray(profile_a, dtype=np.float64)
+        pb = np.asarray(profile_b, dtype=np.float64)
+        if pa.shape != (self.width,) or pb.shape != (self.width,):
+            raise ValueError(
+                f"profiles must both have shape ({self.width},), got {pa.shape} and {pb.shape}"
+            )
+        if not (np.all(np.isfinite(pa)) and np.all(np.isfinite(pb))):
+            raise ValueError("profiles must be finite")
+        return pa, pb
+
+    def _taper(self, n: int) -> np.ndarray:
+        taper = self._tapers.get(n)
+        if taper is None:
+            if len(self._tapers) > 64:
+                self._tapers.clear()
+            taper = self._tapers[n] = np.hanning(n)
+        return taper
 
     def band_pass(self, texture: np.ndarray) -> np.ndarray:
         """Difference of running means along x (lengths ``band_px``), edges reflected."""
@@ -288,10 +457,12 @@ class Registrar:
             t = cv2.blur(t, (short, 1), borderType=cv2.BORDER_REFLECT)
         return t - smooth
 
+    # -- coarse stages --------------------------------------------------------------------------
+
     def coarse(
         self, texture_a: np.ndarray, texture_b: np.ndarray, *, encoder_shift_px: float
     ) -> Registration:
-        """Shift from the textures alone.
+        """Shift from the 2-D textures alone.
 
         Parameters
         ----------
@@ -318,18 +489,8 @@ class Registrar:
             raise ValueError(
                 f"textures must both have shape (rows, {w}), got {ta.shape} and {tb.shape}"
             )
+        lo, hi, u0, u1 = self._lag_window(guess, w)
         reach = self.search_px + self.margin_px
-        lo = max(math.floor(guess - reach), -(w - self.min_overlap_px))
-        hi = min(math.ceil(guess + reach), w - self.min_overlap_px)
-        # One fixed stretch U of A whose partners u + lag lie inside B for every lag searched:
-        # B's edges never enter the sums, so texture that is nearly constant along x (grain
-        # stripes) correlates alike at every lag instead of pulling the peak toward lag 0.
-        u0, u1 = max(0, -lo), min(w, w - hi)
-        if hi - lo < 2 or u1 - u0 < self.min_overlap_px:
-            raise RegistrationError(
-                f"encoder shift {guess:.1f} px leaves less than {self.min_overlap_px} px of "
-                f"overlap in images {w} px wide"
-            )
         ta = self.band_pass(ta)
         tb = self.band_pass(tb)
         a = np.zeros_like(ta)
@@ -355,23 +516,7 @@ class Registrar:
             )
         frac, peak_ncc = _parabolic_peak(ncc, i)
         shift = float(lags[i]) + frac
-        # Second-best peak: the highest local maximum outside the main lobe (the contiguous
-        # stretch above half the peak).
-        half = 0.5 * float(ncc[i])
-        left = i
-        while left > 0 and ncc[left - 1] > half:
-            left -= 1
-        right = i
-        while right < len(ncc) - 1 and ncc[right + 1] > half:
-            right += 1
-        inner = ncc[1:-1]
-        is_max = (inner >= ncc[:-2]) & (inner >= ncc[2:])
-        is_max[max(0, left - 1) : right] = False
-        second = float(inner[is_max].max()) if np.any(is_max) else 0.0
-        confidence = 0.0
-        if peak_ncc > 0:
-            uniqueness = float(np.clip(1.0 - max(second, 0.0) / peak_ncc, 0.0, 1.0))
-            confidence = min(peak_ncc, 1.0) * uniqueness
+        confidence = _confidence(peak_ncc, _second_peak(ncc, i))
         if peak_ncc < self.min_peak_ncc or confidence < self.min_confidence:
             raise RegistrationError(
                 f"cannot register the pair: texture correlation {peak_ncc:.3f} at {shift:.1f} px, "
@@ -380,6 +525,174 @@ class Registrar:
             )
         return Registration(
             shift_px=shift, confidence=confidence, encoder_shift_px=guess, peak_ncc=peak_ncc
+        )
+
+    def coarse_profile(
+        self, profile_a: np.ndarray, profile_b: np.ndarray, *, encoder_shift_px: float
+    ) -> Registration:
+        """Shift from the 1-D column profiles alone (albedo along the feed).
+
+        Robust correlation of the standardised first differences of the log-profiles (module
+        docstring) at every integer lag within ``+-(search_px + margin_px)`` of the encoder's
+        shift, one fixed stretch of A sliding over B; parabolic sub-pixel peak.
+
+        Parameters
+        ----------
+        profile_a, profile_b : ndarray, shape (width,)
+            Positive column profiles of A and B (camera frame).
+        encoder_shift_px : float
+            Shift from the encoder, pixels.
+
+        Returns
+        -------
+        Registration
+            With ``source == "profile"``.
+
+        Raises
+        ------
+        RegistrationError
+            The peak lies on the edge of the window, or its confidence or correlation is below
+            ``min_profile_confidence`` / ``min_profile_ncc``.
+        """
+        guess = check_finite("encoder_shift_px", encoder_shift_px)
+        pa, pb = self._profiles(profile_a, profile_b)
+        ga = _robust_standardise(_log_difference(pa)).astype(np.float32)
+        gb = _robust_standardise(_log_difference(pb)).astype(np.float32)
+        lo, hi, u0, u1 = self._lag_window(guess, ga.size)
+        reach = self.search_px + self.margin_px
+        a = ga[u0:u1]
+        n = u1 - u0
+        keep = max(1, int(self._TRIM * n))
+        lags = np.arange(lo, hi + 1)
+        windows = np.lib.stride_tricks.sliding_window_view(gb, n)[u0 + lags]
+        squares = np.empty((2, *windows.shape), dtype=np.float32)  # (a + b)^2, (b - a)^2
+        np.add(windows, a, out=squares[0])
+        np.subtract(windows, a, out=squares[1])
+        squares *= squares
+        squares.partition(keep - 1, axis=2)
+        s_both, s_diff = squares[:, :, :keep].sum(axis=2, dtype=np.float64)
+        rho = (s_both - s_diff) / np.maximum(s_both + s_diff, 1e-300)
+        i = int(np.argmax(rho))
+        if i == 0 or i == len(rho) - 1:
+            raise RegistrationError(
+                f"no column-profile correlation peak within {reach:.0f} px of the encoder shift "
+                f"{guess:.1f} px (best at the edge, lag {int(lags[i])} px)"
+            )
+        frac, peak = _parabolic_peak(rho, i)
+        shift = float(lags[i]) + frac
+        confidence = _confidence(peak, _second_peak(rho, i))
+        if peak < self.min_profile_ncc or confidence < self.min_profile_confidence:
+            raise RegistrationError(
+                f"column-profile correlation {peak:.3f} at {shift:.1f} px, confidence "
+                f"{confidence:.2f} < {self.min_profile_confidence:.2f}"
+            )
+        return Registration(
+            shift_px=shift, confidence=confidence, encoder_shift_px=guess, peak_ncc=peak,
+            source="profile",
+        )
+
+    # -- fine stage -----------------------------------------------------------------------------
+
+    def fine(
+        self, profile_a: np.ndarray, profile_b: np.ndarray, *, guess_px: float
+    ) -> tuple[float, float]:
+        """Fine shift within ``+-fine_px`` of ``round(guess_px)``: sign-free cross-spectrum fit.
+
+        Parameters
+        ----------
+        profile_a, profile_b : ndarray, shape (width,)
+            Positive column profiles of A and B (camera frame).
+        guess_px : float
+            Coarse shift, pixels.
+
+        Returns
+        -------
+        shift_px : float
+            Refined shift; NaN when the best delay lies on the edge of the window.
+        score : float
+            Coherence of the fit in [-1, 1]: ``Re sum |X| e^(2i(...))`` at the best delay over
+            ``sum |X|`` (1: every frequency agrees on the delay, up to sign).
+
+        Raises
+        ------
+        RegistrationError
+            The overlap is too small.
+        """
+        guess = check_finite("guess_px", guess_px)
+        pa, pb = self._profiles(profile_a, profile_b)
+        la = _log_difference(pa)
+        lb = _log_difference(pb)
+        w = la.size
+        i0 = int(round(guess))
+        m = self.fine_px + 2
+        u0 = max(0, -i0) + m
+        u1 = min(w, w - i0) - m
+        n = u1 - u0
+        if n < self.min_overlap_px:
+            raise RegistrationError(f"shift {guess:.1f} px leaves too little overlap to refine")
+        taper = self._taper(n)
+        a = la[u0:u1]
+        b = lb[u0 + i0 : u1 + i0]
+        a = (a - a.mean()) * taper
+        b = (b - b.mean()) * taper
+        k = self._kmax
+        cross = scipy.fft.rfft(a, n=self.nfft)[:k].conj() * scipy.fft.rfft(b, n=self.nfft)[:k]
+        mag = np.abs(cross)
+        total = float(mag.sum())
+        if not total > 0:
+            return math.nan, 0.0
+        # |X| e^(2i arg X): the phase doubled, so frequencies where the mirrored shading
+        # dominates (X < 0 at the true delay) vote with the albedo's (X > 0).
+        doubled = cross * cross / np.where(mag > 0, mag, 1.0)
+        score = (self._fine_phasor @ doubled).real
+        j = int(np.argmax(score))
+        if j == 0 or j == score.size - 1:
+            return math.nan, float(score[j]) / total
+        frac, peak = _parabolic_peak(score, j)
+        return i0 + float(self._fine_grid[j]) + frac * self._FINE_STEP_PX, peak / total
+
+    # -- the whole registration -----------------------------------------------------------------
+
+    def _choose(
+        self, texture: Registration | None, profile: Registration | None
+    ) -> Registration | None:
+        """The coarse registration to use of those that passed their thresholds."""
+        found = [r for r in (texture, profile) if r is not None]
+        if len(found) < 2:
+            return found[0] if found else None
+        assert texture is not None and profile is not None
+        best = max(found, key=lambda r: r.confidence)
+        if abs(texture.shift_px - profile.shift_px) <= self.fine_px:
+            return best
+        if best.confidence >= self.strong_confidence:
+            return best
+        raise RegistrationError(
+            f"texture ({texture.shift_px:.1f} px, confidence {texture.confidence:.2f}) and "
+            f"column profiles ({profile.shift_px:.1f} px, confidence {profile.confidence:.2f}) "
+            f"disagree"
+        )
+
+    def _shading_only(
+        self, pa: np.ndarray, pb: np.ndarray, guess: float, reasons: list[str]
+    ) -> Registration:
+        """The shading alone when the search window is narrower than half a mark, else an error."""
+        period = mark_period_px(pa)
+        reach = self.search_px
+        if math.isfinite(period) and reach < 0.5 * period:
+            shift, score = shading_shift(
+                pa, pb, guess_px=guess, reach_px=math.ceil(reach) + 1
+            )
+            confidence = score * (1.0 - 2.0 * reach / period)
+            if (math.isfinite(shift) and abs(shift - guess) <= reach
+                    and score >= self.min_shading_score and confidence >= self.min_confidence):
+                return Registration(
+                    shift_px=shift, confidence=confidence, encoder_shift_px=guess,
+                    fine_score=score, source="shading",
+                )
+            reasons.append(f"shading alone {score:.2f} within {reach:.0f} px")
+        raise RegistrationError(
+            f"cannot register the pair within {self.search_px + self.margin_px:.0f} px of the "
+            f"encoder shift {guess:.1f} px: " + "; ".join(reasons)
         )
 
     def __call__(
@@ -391,7 +704,7 @@ class Registrar:
         profile_a: np.ndarray | None = None,
         profile_b: np.ndarray | None = None,
     ) -> Registration:
-        """Register a pair: texture, then (with the profiles) shading.
+        """Register a pair: coarse from the albedo, then (with the profiles) fine.
 
         Parameters
         ----------
@@ -400,7 +713,8 @@ class Registrar:
         encoder_shift_px : float
             Shift from the encoder, pixels.
         profile_a, profile_b : ndarray, shape (width,), optional
-            Positive column profiles of A and B (camera frame) for the shading refinement.
+            Positive column profiles of A and B (camera frame).  Without them only the texture
+            registers the pair and the shift is not refined.
 
         Returns
         -------
@@ -409,23 +723,40 @@ class Registrar:
         Raises
         ------
         RegistrationError
-            As :meth:`coarse`, or the shading disagrees with the texture by more than
-            ``fine_px``.
+            The shift leaves too little overlap; no coarse stage is confident (and the
+            shading-only rule does not apply); the two coarse stages disagree; or the fine fit
+            is coherent but does not line up within ``fine_px`` of the coarse shift.
         """
-        reg = self.coarse(texture_a, texture_b, encoder_shift_px=encoder_shift_px)
+        guess = check_finite("encoder_shift_px", encoder_shift_px)
         if profile_a is None or profile_b is None:
-            return reg
-        shift, score = shading_shift(
-            profile_a, profile_b, guess_px=reg.shift_px, reach_px=self.fine_px
-        )
-        if score < self.min_shading_score:  # no usable shading (no marks): texture only
-            return replace(reg, shading_score=score)
+            return self.coarse(texture_a, texture_b, encoder_shift_px=guess)
+        pa, pb = self._profiles(profile_a, profile_b)
+        self._lag_window(guess, self.width)  # overlap check before anything else
+        reasons: list[str] = []
+        texture: Registration | None = None
+        try:
+            texture = self.coarse(texture_a, texture_b, encoder_shift_px=guess)
+        except RegistrationError as exc:
+            reasons.append(str(exc).removeprefix("cannot register the pair: "))
+        reg = texture
+        if texture is None or texture.confidence < self.strong_confidence:
+            profile: Registration | None = None
+            try:
+                profile = self.coarse_profile(pa, pb, encoder_shift_px=guess)
+            except RegistrationError as exc:
+                reasons.append(str(exc))
+            reg = self._choose(texture, profile)
+        if reg is None:
+            return self._shading_only(pa, pb, guess, reasons)
+        shift, score = self.fine(pa, pb, guess_px=reg.shift_px)
+        if score < self.min_fine_score:  # featureless profiles: keep the coarse shift
+            return replace(reg, fine_score=score)
         if not math.isfinite(shift):
             raise RegistrationError(
-                f"the cuttermark shading does not line up within {self.fine_px} px of the "
-                f"texture registration ({reg.shift_px:.1f} px)"
+                f"the column profiles do not line up within {self.fine_px} px of the "
+                f"{reg.source} registration ({reg.shift_px:.1f} px)"
             )
-        return replace(reg, shift_px=shift, shading_score=score, texture_shift_px=reg.shift_px)
+        return replace(reg, shift_px=shift, fine_score=score, coarse_shift_px=reg.shift_px)
 
 
 def refine_shift(
