@@ -20,7 +20,7 @@ def test_synthetic_pair_is_measurable_and_wraps_the_counter():
 
 def test_run_reports_every_size(monkeypatch):
     monkeypatch.setattr(bench, "SIZES", ((400, 300),))
-    monkeypatch.setattr(bench, "_rate", lambda fn, t, n: (fn(), 123.0)[1])
+    monkeypatch.setattr(bench, "_rate", lambda fn, t, n, **kw: (fn(), 123.0)[1])
     out = bench.run(quick=True)
     assert out == [{"width": 400, "height": 300, "pairs_per_s": 123.0,
                     "copy_pairs_per_s": 123.0}]
