@@ -318,6 +318,23 @@ def mark_period_px(profile: np.ndarray) -> float:
     return math.nan
 
 
+def _window_peak(
+    scores: np.ndarray, lags: np.ndarray, what: str, guess: float, reach: float
+) -> tuple[float, float, float]:
+    """Sub-pixel shift, peak score and confidence of a correlation over a window of lags.
+
+    A peak on the window's edge means the true shift lies outside the search window: an error.
+    """
+    i = int(np.argmax(scores))
+    if i == 0 or i == len(scores) - 1:
+        raise RegistrationError(
+            f"no {what} correlation peak within {reach:.0f} px of the encoder shift "
+            f"{guess:.1f} px (best at the edge, lag {int(lags[i])} px)"
+        )
+    frac, peak = _parabolic_peak(scores, i)
+    return float(lags[i]) + frac, peak, _confidence(peak, _second_peak(scores, i))
+
+
 class Registrar:
     """Refines the encoder shift of a pair from its images (set up once per width).
 
@@ -508,15 +525,7 @@ class Registrar:
         if not energy_a > 0:
             raise RegistrationError("the images have no texture to register on")
         ncc = cc[lags % n] / den
-        i = int(np.argmax(ncc))
-        if i == 0 or i == len(ncc) - 1:
-            raise RegistrationError(
-                f"no texture correlation peak within {reach:.0f} px of the encoder shift "
-                f"{guess:.1f} px (best at the edge, lag {int(lags[i])} px)"
-            )
-        frac, peak_ncc = _parabolic_peak(ncc, i)
-        shift = float(lags[i]) + frac
-        confidence = _confidence(peak_ncc, _second_peak(ncc, i))
+        shift, peak_ncc, confidence = _window_peak(ncc, lags, "texture", guess, reach)
         if peak_ncc < self.min_peak_ncc or confidence < self.min_confidence:
             raise RegistrationError(
                 f"cannot register the pair: texture correlation {peak_ncc:.3f} at {shift:.1f} px, "
@@ -572,15 +581,7 @@ class Registrar:
         squares.partition(keep - 1, axis=2)
         s_both, s_diff = squares[:, :, :keep].sum(axis=2, dtype=np.float64)
         rho = (s_both - s_diff) / np.maximum(s_both + s_diff, 1e-300)
-        i = int(np.argmax(rho))
-        if i == 0 or i == len(rho) - 1:
-            raise RegistrationError(
-                f"no column-profile correlation peak within {reach:.0f} px of the encoder shift "
-                f"{guess:.1f} px (best at the edge, lag {int(lags[i])} px)"
-            )
-        frac, peak = _parabolic_peak(rho, i)
-        shift = float(lags[i]) + frac
-        confidence = _confidence(peak, _second_peak(rho, i))
+        shift, peak, confidence = _window_peak(rho, lags, "column-profile", guess, reach)
         if peak < self.min_profile_ncc or confidence < self.min_profile_confidence:
             raise RegistrationError(
                 f"column-profile correlation {peak:.3f} at {shift:.1f} px, confidence "
