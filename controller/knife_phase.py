@@ -12,11 +12,19 @@ and was cut by pass number ``(c - index_latch_counts) / (pitch_mm * counts_per_m
 from that index pulse, so its knife is that number rounded, modulo ``Z`` (knife k+1 passes BDC
 after knife k). The counters wrap (``2**counter_bits``): count differences are taken as signed
 modular differences, so a wrap between the latches changes nothing.
+
+Strong runout (:func:`attribute_marks`): a knife cutting much shallower than its neighbours
+leaves a narrow mark whose BDC lies outside it (the vision then reports a bottom at the mark's
+cusp), or no mark at all; the mean mark width is then not the board travel per knife pass. The
+phase and the travel per pass are therefore fitted to the bottoms that lie inside their marks
+only, every mark is given a pass of its own (in order along the board), and the passes between
+the first and the last mark that got no mark are the knives that left none.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -232,3 +240,203 @@ def knife_means(
     has = counts > 0
     out[has] = sums[has] / counts[has]
     return out
+
+
+@dataclass(frozen=True)
+class PassAttribution:
+    """The marks of one field attributed to knife passes (:func:`attribute_marks`).
+
+    Attributes
+    ----------
+    passes : ndarray of int, shape (n,)
+        Pass number of each mark (from the latched index pulse, common phase removed); strictly
+        decreasing along the image (a later pass lies further upstream).
+    knife : ndarray of int, shape (n,)
+        Knife of each mark, ``passes mod Z``.
+    reliable : ndarray of bool, shape (n,)
+        Whether the mark's bottom lies inside it (these alone set the phase and ``pass_mm``).
+    pass_mm : float
+        Board travel per knife pass fitted to the reliable bottoms, mm.
+    phase : float
+        Common fractional part removed from the pass numbers, passes.
+    spread : float
+        :func:`phase_spread` of the reliable bottoms, passes.
+    passes_per_knife : ndarray of int, shape (Z,)
+        Passes of each knife from the first mark's pass to the last mark's.
+    """
+
+    passes: np.ndarray
+    knife: np.ndarray
+    reliable: np.ndarray
+    pass_mm: float
+    phase: float
+    spread: float
+    passes_per_knife: np.ndarray
+
+    @property
+    def n_passes(self) -> int:
+        """Knife passes from the first mark's to the last mark's (both included)."""
+        return int(self.passes_per_knife.sum())
+
+    @property
+    def missing(self) -> int:
+        """Passes in that span that left no mark."""
+        return self.n_passes - int(self.passes.size)
+
+    def knife_widths(self, widths_mm: Sequence[float]) -> np.ndarray:
+        """Mean mark width of each knife per pass: a pass without a mark counts as width 0.
+
+        Parameters
+        ----------
+        widths_mm : sequence of float, shape (n,)
+            Width of each mark, mm.
+
+        Returns
+        -------
+        ndarray, shape (Z,)
+            Width per knife, mm; ``nan`` for a knife that left no mark in the field (the
+            uniformity loop takes it as 0). Without missing passes this is :func:`knife_means`.
+        """
+        z = self.passes_per_knife.size
+        w = np.asarray(widths_mm, dtype=float)
+        if w.shape != self.knife.shape or not np.all(np.isfinite(w)):
+            raise ValueError(f"widths_mm must be {self.knife.size} finite values")
+        sums = np.bincount(self.knife, weights=w, minlength=z)
+        counts = np.bincount(self.knife, minlength=z)
+        out = np.full(z, np.nan)
+        has = counts > 0
+        out[has] = sums[has] / self.passes_per_knife[has]
+        return out
+
+
+def attribute_marks(
+    bottom_x_mm: Sequence[float],
+    cusps_x_mm: Sequence[float] | None,
+    *,
+    counts_a: int,
+    index_latch_counts: int,
+    cutter_to_camera_mm: float,
+    counts_per_mm: float,
+    px_per_mm: float,
+    cx_px: float,
+    pass_guide_mm: float,
+    knives: int,
+    min_inset_mm: float = 0.0,
+    counter_bits: int = 32,
+) -> PassAttribution:
+    """Give every mark its knife pass, robust to narrow and missing marks.
+
+    1. Reliable bottoms: those at least ``min_inset_mm`` inside both cusps of their mark (a
+       bottom clipped to a cusp is not where its knife passed BDC).
+    2. Travel per pass: the gaps between consecutive reliable bottoms, in whole passes of
+       ``pass_guide_mm`` (rounded; refined twice), and the least-squares slope of their
+       positions over those pass counts.
+    3. Phase: circular mean of the reliable bottoms' pass numbers; ``spread`` is their
+       :func:`phase_spread`.
+    4. Passes: a reliable mark takes its bottom's pass (rounded); every other mark the pass
+       nearest its centre that keeps the marks in order, one pass per mark.
+
+    Parameters
+    ----------
+    bottom_x_mm : sequence of float, shape (n,)
+        Lowest point of each mark, image-A frame, mm, increasing.
+    cusps_x_mm : sequence of float, shape (n + 1,), or None
+        Cusps bounding the marks, mm; ``None``: every bottom is taken as reliable and as the
+        mark's centre.
+    counts_a, index_latch_counts, cutter_to_camera_mm, counts_per_mm, px_per_mm, cx_px,
+    counter_bits
+        As in :func:`pass_numbers`.
+    pass_guide_mm : float
+        Rough board travel per knife pass (e.g. ``V / (n Z)``), good to about 15 %, mm.
+    knives : int
+        Number of knives ``Z``.
+    min_inset_mm : float
+        Smallest distance of a reliable bottom from both its cusps, mm (about one sample).
+
+    Returns
+    -------
+    PassAttribution
+
+    Raises
+    ------
+    ValueError
+        Bad inputs; fewer than two reliable bottoms; two reliable bottoms on one pass; marks
+        that cannot be given one pass each in order.
+    """
+    z = check_int("knives", knives, lo=1)
+    guide = check_positive("pass_guide_mm", pass_guide_mm)
+    inset = check_positive("min_inset_mm", min_inset_mm, allow_zero=True)
+    b = np.asarray(bottom_x_mm, dtype=float)
+    if b.ndim != 1 or not np.all(np.isfinite(b)):
+        raise ValueError("bottom_x_mm must be a finite 1-D sequence")
+    if cusps_x_mm is None:
+        centre = b
+        reliable = np.ones(b.size, dtype=bool)
+    else:
+        c = np.asarray(cusps_x_mm, dtype=float)
+        if c.shape != (b.size + 1,) or not np.all(np.isfinite(c)):
+            raise ValueError(f"cusps_x_mm must be {b.size + 1} finite values, got {c.shape}")
+        if np.any(np.diff(c) <= 0):
+            raise ValueError("cusps_x_mm must increase")
+        centre = 0.5 * (c[:-1] + c[1:])
+        reliable = np.minimum(b - c[:-1], c[1:] - b) >= inset
+    if np.any(np.diff(b) < 0):
+        raise ValueError("bottom_x_mm must not decrease")
+    if int(reliable.sum()) < 2:
+        raise ValueError(f"{int(reliable.sum())} mark bottoms inside their marks, need 2")
+    kw = {
+        "counts_a": counts_a,
+        "index_latch_counts": index_latch_counts,
+        "cutter_to_camera_mm": cutter_to_camera_mm,
+        "counts_per_mm": counts_per_mm,
+        "px_per_mm": px_per_mm,
+        "cx_px": cx_px,
+        "pitch_mm": 1.0,
+        "counter_bits": counter_bits,
+    }
+    travel = pass_numbers(b, **kw)  # board travel after the index pulse, mm (falls with x)
+    travel_c = pass_numbers(centre, **kw)
+    t_rel = travel[reliable][::-1]  # increasing
+    gaps = np.diff(t_rel)
+    pitch = guide
+    for _ in range(3):
+        steps = np.rint(gaps / pitch)
+        if np.any(steps < 1):
+            j = int(np.argmin(steps))
+            raise ValueError(
+                f"two mark bottoms {gaps[j]:.3f} mm apart on one pass of {pitch:.3f} mm"
+            )
+        count = np.concatenate(([0.0], np.cumsum(steps)))
+        dc = count - count.mean()
+        pitch = float(dc @ (t_rel - t_rel.mean()) / (dc @ dc))
+        if not pitch > 0:
+            raise ValueError("mark bottoms do not advance along the board")
+    n_rel = travel[reliable] / pitch
+    phase = phase_offset(n_rel)
+    spread = phase_spread(n_rel)
+    # order along the image: q = -(pass number) increases with x
+    q_real = -(np.where(reliable, travel, travel_c) / pitch - phase)
+    q = np.rint(q_real).astype(np.int64)
+    if np.any(np.diff(q[reliable]) < 1):
+        raise ValueError("two mark bottoms on one knife pass")
+    for i in range(1, q.size):  # forward: after the previous mark
+        if not reliable[i]:
+            q[i] = max(q[i], q[i - 1] + 1)
+    for i in range(q.size - 2, -1, -1):  # backward: before the next mark
+        if not reliable[i]:
+            q[i] = min(q[i], q[i + 1] - 1)
+    if np.any(np.diff(q) < 1):
+        raise ValueError("marks do not fit one per knife pass between the reliable bottoms")
+    passes = -q
+    knife = np.mod(passes, z)
+    span = -np.arange(int(q.min()), int(q.max()) + 1)
+    per_knife = np.bincount(np.mod(span, z), minlength=z)
+    return PassAttribution(
+        passes=passes,
+        knife=knife,
+        reliable=reliable,
+        pass_mm=pitch,
+        phase=phase,
+        spread=spread,
+        passes_per_knife=per_knife,
+    )

@@ -49,6 +49,9 @@ FEED_WRITE_DEADBAND_MM_S = 0.5
 """Feed-forward changes smaller than this between measurements are not written, mm/s."""
 MAX_PHASE_SPREAD = 0.15
 """Marks whose pass numbers spread more than this (in passes) are not attributed to knives."""
+MIN_BOTTOM_INSET_SAMPLES = 1.0
+"""A mark bottom closer than this (in profile samples, ``1 / px_per_mm``) to a cusp of its mark
+was clipped there by the vision (narrow mark, BDC outside it) and does not set the phase."""
 MAX_PENDING_RECORDS = 10_000
 """Quality records held in memory while the log cannot be written (about 17 min at 10 pairs/s);
 beyond that the oldest are saved to a JSON-lines file beside the log."""
@@ -124,6 +127,43 @@ class FrameResult:
     frame_t_s: float = 0.0
     record_id: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Attributed:
+    """The marks of one valid pair attributed to knife passes (what the loops get).
+
+    Attributes
+    ----------
+    knife_widths_mm : ndarray, shape (Z,)
+        Width per knife and pass, a pass without a mark counting 0; NaN for a knife that
+        left no mark in the field, mm.
+    pass_pitch_mm : float
+        Board travel per knife pass: the marks' width sum over the knife passes they span
+        (the measured mean mark width when no knife is missing), mm. The feed loop holds this
+        at the target; the uniformity loop scales its steps by it.
+    missing_passes : int
+        Knife passes in that span that left no mark.
+    spread : float
+        Phase spread of the reliable bottoms, passes.
+    reliable_marks : int
+        Marks whose bottoms lie inside them (these set the phase).
+    """
+
+    knife_widths_mm: np.ndarray
+    pass_pitch_mm: float
+    missing_passes: int
+    spread: float
+    reliable_marks: int
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain-JSON summary for the quality record's ``extra["passes"]``."""
+        return {
+            "pass_pitch_mm": self.pass_pitch_mm,
+            "missing_passes": self.missing_passes,
+            "phase_spread": self.spread,
+            "reliable_marks": self.reliable_marks,
+        }
 
 
 class Service:
@@ -683,7 +723,7 @@ class Service:
         wall_meas = wall_plc
         error: str | None = None
         meas: Any = None
-        widths: Any = ()
+        att: Attributed | None = None
         if frame.error:
             error = f"unreadable pair: {frame.error}"
         elif snap is None:
@@ -691,7 +731,7 @@ class Service:
         elif (problem := snap.problem()) is not None:
             error = f"no valid PLC data: {problem}"
         else:
-            error, meas, widths = await self._measure(frame, snap)
+            error, meas, att = await self._measure(frame, snap)
             wall_meas = time.perf_counter()
         ok = error is None
         applied = False
@@ -703,7 +743,7 @@ class Service:
             if self.supervisor.state is SafetyState.RUN and snap is not None:
                 t_ctrl = self._now() if now_s is None else t_arr  # loops need forward time
                 try:
-                    applied = await self._apply(meas, widths, measured_at, snap, t_ctrl)
+                    applied = await self._apply(att, measured_at, snap, t_ctrl)
                 except Exception as exc:  # noqa: BLE001 - a bug: safe state, pair still logged
                     self._internal_error(t_ctrl, f"control of pair {frame.seq}", exc)
         else:
@@ -720,7 +760,7 @@ class Service:
             ok=ok,
             error=error,
             measurement=meas,
-            knife_widths_mm=tuple(float(w) for w in widths),
+            knife_widths_mm=() if att is None else tuple(float(w) for w in att.knife_widths_mm),
             applied=applied,
             feed_setpoint_mm_s=self.feed_setpoint_mm_s,
             offsets_um=tuple(self.offsets_um),
@@ -733,6 +773,7 @@ class Service:
             extra={
                 "timing_ms": timing,
                 "safe_reason": self._safe_reason(),
+                **({"passes": att.to_json()} if att is not None else {}),
                 **({"profile": profile} if profile is not None else {}),
             },
         )
@@ -816,16 +857,20 @@ class Service:
                 snap = self.plc.last
         return snap
 
-    async def _measure(self, frame: Frame, snap: PlcSnapshot) -> tuple[str | None, Any, Any]:
-        """Measure the pair, check it, attribute its marks: ``(error, measurement, widths)``.
+    async def _measure(
+        self, frame: Frame, snap: PlcSnapshot
+    ) -> tuple[str | None, Any, Attributed | None]:
+        """Measure the pair, check it, attribute its marks: ``(error, measurement, attributed)``.
 
         Any exception of the vision (``cv2.error``, ``IndexError``, ``FloatingPointError``...)
-        is a failed measurement, not a crash of the service.
+        is a failed measurement, not a crash of the service. The order: basic plausibility
+        (marks, confidence, machine running), attribution of the marks to knife passes, then
+        the pitch per knife pass against ``V / (n Z)``.
         """
         try:
             self._ensure_loops(snap)
         except Exception as exc:  # noqa: BLE001 - the loops cannot be built from these registers
-            return f"no control loops: {_exc_name(exc)}: {exc}", None, ()
+            return f"no control loops: {_exc_name(exc)}: {exc}", None, None
         try:
             meas = await self._call(
                 self.measurer(tuple(np.shape(frame.image_a))).measure,
@@ -836,20 +881,40 @@ class Service:
                 speed_mm_s=frame.speed_mm_s if frame.speed_mm_s > 0 else None,
             )
         except Exception as exc:  # noqa: BLE001 - whatever the vision raises
-            return _reason(exc), None, ()
+            return _reason(exc), None, None
         try:
             error = self._implausible(meas, frame, snap)
         except Exception as exc:  # noqa: BLE001 - a measurement without the expected fields
             error = f"implausible: {_exc_name(exc)}: {exc}"
         if error is not None:
-            return error, meas, ()
+            return error, meas, None
         try:
-            return None, meas, self._knife_widths(meas, frame, snap)
+            att = self._attribute(meas, frame, snap)
         except Exception as exc:  # noqa: BLE001
             text = str(exc) if isinstance(exc, ValueError) else f"{_exc_name(exc)}: {exc}"
-            return f"knife phase failed: {text}", meas, ()
+            return f"knife phase failed: {text}", meas, None
+        error = self._implausible_pitch(att.pass_pitch_mm, frame, snap)
+        return error, meas, (att if error is None else None)
+
+    def _expected_pitch_mm(self, frame: Frame, snap: PlcSnapshot) -> float:
+        """Board travel per knife pass from the encoder speed and the spindle, ``V / (n Z)``."""
+        speed = frame.speed_mm_s if frame.speed_mm_s > 0 else snap.feed_actual_mm_s
+        return speed / (snap.spindle_rpm / 60.0 * snap.knives)
+
+    def _implausible_pitch(self, pitch: float, frame: Frame, snap: PlcSnapshot) -> str | None:
+        """The pitch per knife pass against ``V / (n Z)`` (``None`` if within the ratios)."""
+        pl = self.cfg.plausibility
+        expected = self._expected_pitch_mm(frame, snap)
+        ratio = pitch / expected
+        if not pl.pitch_ratio_min <= ratio <= pl.pitch_ratio_max:
+            return (
+                f"implausible: pitch {pitch:.3f} mm vs {expected:.3f} mm expected from "
+                f"V/(nZ) (ratio {ratio:.2f})"
+            )
+        return None
 
     def _implausible(self, meas: Any, frame: Frame, snap: PlcSnapshot) -> str | None:
+        """Basic plausibility: a pitch, enough marks, confidence, spindle and feed running."""
         pl = self.cfg.plausibility
         pitch = float(getattr(meas, "pitch_mm", math.nan))
         widths = np.asarray(getattr(meas, "mark_widths_mm", ()), dtype=float)
@@ -864,58 +929,79 @@ class Service:
         speed = frame.speed_mm_s if frame.speed_mm_s > 0 else snap.feed_actual_mm_s
         if n_rev_s <= 0 or speed <= 0:
             return "implausible: spindle or feed stopped"
-        expected = speed / (n_rev_s * snap.knives)
-        ratio = pitch / expected
-        if not pl.pitch_ratio_min <= ratio <= pl.pitch_ratio_max:
-            return (
-                f"implausible: pitch {pitch:.3f} mm vs {expected:.3f} mm expected from "
-                f"V/(nZ) (ratio {ratio:.2f})"
-            )
         return None
 
-    def _knife_widths(self, meas: Any, frame: Frame, snap: PlcSnapshot) -> np.ndarray:
-        """Mean mark width per knife (NaN where no mark of that knife was seen), mm.
+    def _attribute(self, meas: Any, frame: Frame, snap: PlcSnapshot) -> Attributed:
+        """Attribute the marks to knife passes: widths per knife, pitch per knife pass.
+
+        The phase and the travel per pass come from the bottoms that lie inside their marks
+        (:func:`controller.knife_phase.attribute_marks`, guided by ``V / (n Z)``); a narrow mark
+        whose bottom sits on its cusp and a knife that left no mark do not spoil them.
 
         Raises
         ------
         ValueError
-            The marks do not line up with the knife passes (phase spread too large).
+            The marks do not line up with the knife passes (phase spread too large, two marks
+            on one pass, too few bottoms inside their marks).
         """
         from controller import knife_phase
 
         cam = self.rig.camera
-        kw = {
-            "counts_a": int(frame.counts_a),
-            "index_latch_counts": int(frame.index_latch_counts),
-            "cutter_to_camera_mm": snap.cutter_to_camera_mm,
-            "counts_per_mm": snap.counts_per_mm,
-            "px_per_mm": cam.px_per_mm,
-            "cx_px": cam.cx,
-            "pitch_mm": float(meas.pitch_mm),
-            "counter_bits": self.rig.encoder.counter_bits,
-        }
         bottoms = np.asarray(meas.bottoms_mm, dtype=float)
         widths = np.asarray(meas.mark_widths_mm, dtype=float)
         if bottoms.shape != widths.shape:
             raise ValueError(f"{bottoms.size} mark bottoms for {widths.size} widths")
-        passes = knife_phase.pass_numbers(bottoms, **kw)
-        spread = knife_phase.phase_spread(passes)
-        if not spread <= MAX_PHASE_SPREAD:
-            raise ValueError(f"marks off the knife passes (phase spread {spread:.2f})")
-        knife = knife_phase.knives_from_passes(passes, snap.knives, align_phase=True)
-        return knife_phase.knife_means(widths, knife, snap.knives)
+        cusps = getattr(meas, "cusps_mm", None)
+        if cusps is not None:
+            cusps = np.asarray(cusps, dtype=float)
+            if cusps.shape != (widths.size + 1,):
+                cusps = None  # not the cusps of these marks: every bottom counts
+        pa = knife_phase.attribute_marks(
+            bottoms,
+            cusps,
+            counts_a=int(frame.counts_a),
+            index_latch_counts=int(frame.index_latch_counts),
+            cutter_to_camera_mm=snap.cutter_to_camera_mm,
+            counts_per_mm=snap.counts_per_mm,
+            px_per_mm=cam.px_per_mm,
+            cx_px=cam.cx,
+            pass_guide_mm=self._expected_pitch_mm(frame, snap),
+            knives=snap.knives,
+            min_inset_mm=MIN_BOTTOM_INSET_SAMPLES / cam.px_per_mm,
+            counter_bits=self.rig.encoder.counter_bits,
+        )
+        if not pa.spread <= MAX_PHASE_SPREAD:
+            raise ValueError(f"marks off the knife passes (phase spread {pa.spread:.2f})")
+        if pa.missing == 0:
+            pitch = float(meas.pitch_mm)  # the mean mark width, as measured
+        else:
+            pitch = float(widths.sum()) / pa.n_passes
+        return Attributed(
+            knife_widths_mm=pa.knife_widths(widths),
+            pass_pitch_mm=pitch,
+            missing_passes=pa.missing,
+            spread=float(pa.spread),
+            reliable_marks=int(pa.reliable.sum()),
+        )
 
     async def _apply(
-        self, meas: Any, widths: np.ndarray, measured_at: float, snap: PlcSnapshot, t: float
+        self, att: Attributed | None, measured_at: float, snap: PlcSnapshot, t: float
     ) -> bool:
         """Both loops on one valid measurement; the offsets (CAN) go out first, then the feed.
+
+        Both get the pitch per knife pass (:attr:`Attributed.pass_pitch_mm`), not the mean mark
+        width: with a knife that leaves no mark the latter is a multiple of the feed per knife,
+        and slowing the feed would not bring the mark back (the uniformity loop does).
 
         The uniformity loop learns only from board cut while the amplifier played the offsets
         (:meth:`_amp_tracked`); a feed setpoint the PLC did not take is taken back from the feed
         loop's history (:meth:`FeedLoop.reject`).
         """
+        if att is None:
+            return False
         lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
-        pitch = float(meas.pitch_mm)
+        pitch = float(att.pass_pitch_mm)
+        widths = att.knife_widths_mm
         applied = False
         async with self._feed_lock():
             t = self._loop_time(t)
@@ -1004,6 +1090,7 @@ class Service:
                 "knife_widths_mm": [None if not math.isfinite(w) else w
                                     for w in r.knife_widths_mm],
                 **({"frame_metadata_invalid": odd} if odd else {}),
+                **({"passes": r.extra["passes"]} if "passes" in r.extra else {}),
                 **({"profile": r.extra["profile"]} if "profile" in r.extra else {}),
             },
         }

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.knife_phase import (
+    attribute_marks,
     knife_means,
     knife_of_marks,
     knives_from_passes,
@@ -202,3 +203,134 @@ def test_knives_from_passes_is_knife_of_marks_in_two_steps(align):
     assert got.min() >= 0 and got.max() < 4
     with pytest.raises(ValueError, match="passes"):
         knives_from_passes(np.array([0.0, np.nan]), 4)
+
+
+# ------------------------------------------------------------ strong runout: narrow and no marks
+def runout_marks(
+    depth_um, *, pitch_mm=1.5, radius_mm=60.0, index=7_000, counts_per_mm=20.0,
+    px_per_mm=12.5, width_px=640, cx_px=320.0, cutter_to_camera_mm=300.0, lead_counts=9,
+    dx_mm=0.002, min_width_mm=0.0,
+):
+    """The marks a vision would report on a surface cut with per-knife depths ``depth_um``.
+
+    Every pass j (knife j mod Z) leaves the arc ``h = d_k * 1e-3 + (x - x_j)^2 / (2 R)`` around
+    its BDC ``x_j`` (the formula of :func:`synthetic_marks`); the surface is their lower
+    envelope. Marks are the runs of one arc on a fine grid (partial ones at the edges dropped,
+    runs narrower than ``min_width_mm`` merged into the wider neighbour as a vision would);
+    each mark's bottom is its arc's vertex clipped into the mark (the vision's rule).
+    """
+    d = np.asarray(depth_um, dtype=float)
+    z = d.size
+    cpm = counts_per_mm
+    counts_a = (index + round(cutter_to_camera_mm * cpm) + lead_counts) % WRAP
+    j = np.arange(-60, 61)
+    base = wrapped_difference(counts_a, index)
+    xj = (base - j * pitch_mm * cpm) / cpm - cutter_to_camera_mm + cx_px / px_per_mm
+    grid = np.arange(0.0, width_px / px_per_mm, dx_mm)
+    h = d[np.mod(j, z)][:, None] * 1e-3 + (grid[None, :] - xj[:, None]) ** 2 / (2 * radius_mm)
+    owner = np.argmin(h, axis=0)
+    edges = np.flatnonzero(np.diff(owner)) + 1
+    starts = np.concatenate(([0], edges))
+    ends = np.concatenate((edges, [grid.size]))
+    runs = [(grid[a], grid[b - 1] + dx_mm, owner[a]) for a, b in zip(starts, ends, strict=True)]
+    runs = runs[1:-1]  # partial marks at the image edges
+    cusps = [r[0] for r in runs] + [runs[-1][1]]
+    own = [r[2] for r in runs]
+    if min_width_mm > 0:
+        while True:
+            w = np.diff(cusps)
+            i = int(np.argmin(w))
+            if w[i] >= min_width_mm:
+                break
+            del own[i]
+            del cusps[i + 1 if i + 1 < len(cusps) - 1 else i]
+    cusps = np.asarray(cusps)
+    own = np.asarray(own)
+    bottoms = np.clip(xj[own], cusps[:-1], cusps[1:])
+    every = np.arange(own.min(), own.max() + 1)
+    return dict(
+        bottoms=bottoms, cusps=cusps, widths=np.diff(cusps), knife=np.mod(j[own], z),
+        missing=every.size - own.size, passes_knife=np.bincount(np.mod(j[every], z), minlength=z),
+        counts_a=counts_a,
+        kw=dict(index_latch_counts=index, cutter_to_camera_mm=cutter_to_camera_mm,
+                counts_per_mm=cpm, px_per_mm=px_per_mm, cx_px=cx_px),
+    )
+
+
+SCENARIO_E_DEPTHS = (-0.0, -15.0, 8.0, -5.0)  # runout [0, 15, -8, 5] um (deeper = negative)
+
+
+@pytest.mark.parametrize(
+    ("depth_um", "pitch_mm", "min_width_mm"),
+    [
+        (SCENARIO_E_DEPTHS, 1.5, 0.0),  # one narrow mark per revolution (bottom on its cusp)
+        (SCENARIO_E_DEPTHS, 1.5, 0.08),  # ... which the vision does not see (no mark)
+        (SCENARIO_E_DEPTHS, 1.0, 0.08),  # two knives leave no mark
+        ((0.0, 12.0, 0.0, 0.0), 1.2, 0.08),  # one shallow knife
+    ],
+)
+def test_attribute_marks_under_strong_runout(depth_um, pitch_mm, min_width_mm):
+    s = runout_marks(depth_um, pitch_mm=pitch_mm, min_width_mm=min_width_mm)
+    inset = np.minimum(s["bottoms"] - s["cusps"][:-1], s["cusps"][1:] - s["bottoms"])
+    assert np.any(inset < 1e-9) or s["missing"] > 0  # the hard case, not the easy one
+    # the old attribution (pitch = mean mark width, every bottom) fails here
+    old = pass_numbers(s["bottoms"], counts_a=s["counts_a"], pitch_mm=s["widths"].mean(),
+                       **s["kw"])
+    old_knife = knives_from_passes(old, 4, align_phase=True)
+    assert phase_spread(old) > 0.15 or not np.array_equal(old_knife, s["knife"])
+    pa = attribute_marks(s["bottoms"], s["cusps"], counts_a=s["counts_a"], knives=4,
+                         pass_guide_mm=pitch_mm * 1.1, min_inset_mm=0.08, **s["kw"])
+    assert np.array_equal(pa.knife, s["knife"])
+    assert pa.missing == s["missing"]
+    assert np.array_equal(pa.passes_per_knife, s["passes_knife"])
+    assert pa.pass_mm == pytest.approx(pitch_mm, rel=1e-3)
+    assert pa.spread < 0.02
+    assert np.all(np.diff(pa.passes) < 0)  # one pass per mark, later passes upstream
+    # widths per knife and pass: a missing pass counts 0, so their mean is the pass pitch
+    w = pa.knife_widths(s["widths"])
+    span = s["cusps"][-1] - s["cusps"][0]
+    assert np.nansum(w * pa.passes_per_knife) == pytest.approx(span)
+    if s["missing"]:
+        assert span / pa.n_passes == pytest.approx(pitch_mm, rel=0.05)
+        assert span / s["widths"].size > 1.15 * pitch_mm  # the mean mark width is not it
+
+
+def test_attribute_marks_without_missing_marks_is_the_plain_attribution():
+    s = synthetic_marks(index_latch_counts=54_321)
+    x = np.sort(s["x"])
+    kw = {k: v for k, v in s["kw"].items() if k != "pitch_mm"}
+    pa = attribute_marks(x, None, counts_a=s["counts_a"], knives=4, pass_guide_mm=1.3, **kw)
+    n = pass_numbers(x, counts_a=s["counts_a"], **s["kw"])
+    assert np.array_equal(pa.knife, knives_from_passes(n, 4, align_phase=True))
+    assert pa.missing == 0 and pa.reliable.all()
+    w = np.linspace(1.0, 2.0, x.size)
+    assert np.allclose(pa.knife_widths(w), knife_means(w, pa.knife, 4), equal_nan=True)
+
+
+def test_knife_widths_nan_for_a_knife_without_marks():
+    s = runout_marks((0.0, -3.0, 20.0, -3.0), pitch_mm=1.5, min_width_mm=0.08)
+    pa = attribute_marks(s["bottoms"], s["cusps"], counts_a=s["counts_a"], knives=4,
+                         pass_guide_mm=1.5, min_inset_mm=0.08, **s["kw"])
+    w = pa.knife_widths(s["widths"])
+    assert 2 not in set(pa.knife.tolist()) and math.isnan(w[2])
+    assert np.all(np.isfinite(np.delete(w, 2)))
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        (dict(pass_guide_mm=0.0), "pass_guide_mm"),
+        (dict(knives=0), "knives"),
+        (dict(min_inset_mm=-1.0), "min_inset_mm"),
+        (dict(cusps_x_mm=[0.0, 1.0]), "cusps_x_mm"),
+        (dict(min_inset_mm=10.0), "inside their marks"),
+        (dict(pass_guide_mm=100.0), "one pass"),
+    ],
+)
+def test_attribute_marks_rejects(change, match):
+    s = runout_marks(SCENARIO_E_DEPTHS, min_width_mm=0.08)
+    args = dict(bottom_x_mm=s["bottoms"], cusps_x_mm=s["cusps"], counts_a=s["counts_a"],
+                knives=4, pass_guide_mm=1.5, min_inset_mm=0.08, **s["kw"])
+    args.update(change)
+    with pytest.raises(ValueError, match=match):
+        attribute_marks(**args)

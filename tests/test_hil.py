@@ -301,6 +301,29 @@ def test_short_closed_loop_hil_meets_done_when(tmp_path):
     assert summary["passed"]
 
 
+def test_strong_runout_hil_corrects_narrow_and_missing_marks(tmp_path):
+    """Runout [0, 15, -8, 5] um: at first knife 2 leaves no mark and knife 0 a narrow one.
+
+    With the real vision pipeline, no pair may be thrown away for it (phase spread or pitch
+    "implausible"), the feed must stay at the target feed and the knives must be evened out
+    within 3 m of board.
+    """
+    sc = Scenario(name="strong_runout", distance_m=3.5, runout_um=(0.0, 15.0, -8.0, 5.0),
+                  initial_feed_mm_s=800.0, target_pitch_mm=1.5)
+    summary = asyncio.run(InProcessHil(sc, log_path=tmp_path / "hil.sqlite").run())
+    assert summary["initial"]["uniformity_cv"] >= 0.3
+    errors = [m["error"] for m in summary["measurements"] if not m["ok"]]
+    assert not errors, errors
+    conv = summary["converged"]
+    assert conv["uniformity_settled_after_mm"] is not None
+    assert max(conv["uniformity_settled_after_mm"], conv["pitch_settled_after_mm"]) <= 3000
+    assert summary["final"]["uniformity_cv"] <= 0.05
+    assert abs(summary["final"]["pitch_mm"] / 1.5 - 1) <= 0.02
+    feeds = [m["feed_setpoint_mm_s"] for m in summary["measurements"]]
+    assert max(feeds) / min(feeds) < 1.03  # never chased the 2 mm mean mark width
+    assert summary["limits"]["ok"]
+
+
 def test_planer_hil_in_process_json_with_modbus_fault(tmp_path):
     """``planer hil --json`` prints one object; a Modbus restart is survived (real server)."""
     env = dict(os.environ)
