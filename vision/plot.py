@@ -69,7 +69,7 @@ def profile_figure(
         for left, w in zip(cusps[:-1], widths, strict=True):
             ax.text(left + w / 2, top, f"{w:.2f}", ha="center", va="bottom", fontsize=6.5)
     ax.set_ylabel("height (um)")
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8, borderaxespad=0.0)
     summary = (
         f"pitch {m.pitch_mm:.3f} mm, uniformity CV {m.uniformity_cv:.3f}, "
         f"depth {m.depth_um:.2f} um, {widths.size} marks, shift {m.shift_px:.2f} px"
