@@ -15,7 +15,8 @@ import asyncio
 import numpy as np
 
 from controller.safety import AMP_CONFIRM_S, SafetyState
-from tests.test_service_loop import make_plant, run_for
+from tests.plant_support import run_for
+from tests.test_service_loop import make_plant
 
 
 def _amp_safe(plant) -> bool:

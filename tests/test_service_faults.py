@@ -23,7 +23,8 @@ import pytest
 from controller.quality_log import QualityLog
 from controller.safety import SafetyState
 from planer.protocol.frames import Frame, SpoolReader, SpoolWriter
-from tests.test_service_loop import SCENARIO, TruthMeasurer, make_plant, run_for
+from tests.plant_support import run_for
+from tests.test_service_loop import SCENARIO, TruthMeasurer, make_plant
 
 
 def _events(svc, since, prefix):

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from controller.hil import InProcessPlant, Scenario, machine_config_for, sim_config_for
+from tests.plant_support import record_frames, run_for
 
 SAMPLE_MM = 0.08  # one profile sample of the shipped rig (12.5 px/mm)
 RUNOUT_UM = (0.0, 15.0, -8.0, 5.0)
@@ -59,24 +60,10 @@ def make_plant(tmp_path, scenario: Scenario) -> InProcessPlant:
         cfg, sim_config_for(scenario), measurer_factory=lambda shape: VisionLikeMeasurer(frames),
         render_images=False,
     )
-    advance = plant.machine.advance
-
-    def recording_advance(dt_s):
-        out = advance(dt_s)
-        for f in out:
-            frames[(f.counts_a, f.counts_b)] = f
-        return out
-
-    plant.machine.advance = recording_advance
+    record_frames(plant, frames)
     return plant
 
 
-async def run_for(plant, seconds):
-    results = []
-    end = plant.clock() + seconds
-    while plant.clock() < end - 1e-9:
-        results += await plant.step()
-    return results
 
 
 def test_narrow_and_missing_marks_are_corrected_not_thrown_away(tmp_path):

@@ -20,6 +20,7 @@ from controller.hil import Scenario, sim_config_for
 from controller.quality_log import QualityLog
 from controller.safety import SafetyState
 from planer.errors import MeasurementError, RegistrationError
+from tests.plant_support import record_frames, run_for
 
 SCENARIO = Scenario(runout_um=(0.0, 4.0, -2.0, 2.0), initial_feed_mm_s=800.0)
 
@@ -70,24 +71,10 @@ def make_plant(tmp_path, *, plc_transport="direct", log="config", **safety):
         render_images=False,
         log=log,
     )
-    advance = plant.machine.advance
-
-    def recording_advance(dt_s):
-        out = advance(dt_s)
-        for f in out:
-            frames[(f.counts_a, f.counts_b)] = f
-        return out
-
-    plant.machine.advance = recording_advance
+    record_frames(plant, frames)
     return plant, measurer
 
 
-async def run_for(plant, seconds):
-    results = []
-    end = plant.clock() + seconds
-    while plant.clock() < end - 1e-9:
-        results += await plant.step()
-    return results
 
 
 def test_loop_closes_logs_everything_and_stays_in_limits(tmp_path):

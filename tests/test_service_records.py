@@ -23,7 +23,8 @@ from controller.quality_log import QualityLog, record_to_json
 from controller.report import last_profile
 from controller.safety import SafetyState
 from controller.service import PROFILE_EVERY, PROFILE_MAX_POINTS, decimated_profile
-from tests.test_service_loop import TruthMeasurer, make_plant, run_for
+from tests.plant_support import run_for
+from tests.test_service_loop import TruthMeasurer, make_plant
 
 N_COLUMNS = 659
 
