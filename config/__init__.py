@@ -2,7 +2,7 @@
 
 The TOML files shipped with the product live beside this module (``rig.toml``, ``sim.toml``,
 ``machine.toml``, ``registers.toml``, ``piezo.dbc``); :func:`default_path` finds them when the
-package is installed. Loaders raise :class:`planer.errors.ConfigError` naming the bad key.
+package is installed. Loaders raise :class:`core.errors.ConfigError` naming the bad key.
 """
 
 from __future__ import annotations

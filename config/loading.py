@@ -13,7 +13,7 @@ try:  # Python 3.11+
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 _MISSING = object()
 

@@ -5,7 +5,7 @@ quality class to hold and how to behave when something is gone. The same service
 the simulator and against the real machine by changing this file only (e.g. ``can.interface =
 "socketcan"``, ``can.channel = "can0"``, ``plc.host`` = the PLC's address).
 
-Every wrong or missing value raises :class:`planer.errors.ConfigError` naming the key
+Every wrong or missing value raises :class:`core.errors.ConfigError` naming the key
 (``"safety.plc_timeout_s must be > 0"``); unknown keys are rejected (typos).
 """
 
@@ -18,7 +18,7 @@ from types import MappingProxyType
 from typing import Any
 
 from config.loading import Section, can_bus_keys, default_path, load_toml, modbus_endpoint
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 FRAME_SOURCES = ("spool", "inprocess")
 SAFE_STATES = ("hold", "ramp_down")

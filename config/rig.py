@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from config.loading import Section, load_toml
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from typing import Any
 
 from config.loading import Section, can_bus_keys, default_path, load_toml, modbus_endpoint
 from config.rig import Rig, load_rig
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 __all__ = [
     "BoardConfig",
@@ -246,7 +246,7 @@ class CameraConfig:
     dt_ab_s : float
         Time from trigger A to trigger B.
     species : str
-        Wood species of the boards (a key of :data:`plant_sim.wood.SPECIES`).
+        Wood species of the boards (a key of :data:`config.wood.SPECIES`).
     optics : OpticsConfig
         Rendering knobs.
     """
@@ -480,7 +480,7 @@ def _camera(s: Section, base: Path | None) -> CameraConfig:
     except ConfigError as exc:
         raise ConfigError(f"{s.key('rig')}: {exc}") from None
     species = s.string("species", d.species).strip().lower()
-    from plant_sim.wood import SPECIES  # the known species (a data table, no I/O)
+    from config.wood import SPECIES  # the known species (a data table, no I/O)
 
     if species not in SPECIES:
         raise ConfigError(

@@ -37,7 +37,7 @@ import numpy as np
 
 from controller.feed_loop import FeedLoopConfig, integral_gain
 from controller.uniformity_loop import UniformityLoopConfig, second_difference
-from planer.checks import check_int, check_positive
+from core.checks import check_int, check_positive
 
 #: Feeds (mm/s) at which the margins are computed and documented.
 DESIGN_FEEDS_MM_S = (50.0, 100.0, 300.0, 600.0, 1000.0)

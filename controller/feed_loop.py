@@ -41,8 +41,8 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from controller.limits import check_time_forward, clamp, rate_limit
-from planer.checks import check_finite, check_int, check_positive, check_range
-from planer.errors import ConfigError
+from core.checks import check_finite, check_int, check_positive, check_range
+from core.errors import ConfigError
 
 #: Values of :attr:`FeedLoop.status` after an update.
 STATUSES = ("accepted", "no_measurement", "no_history", "transient", "implausible", "idle")
@@ -79,7 +79,7 @@ def config_from_mapping(
     """Build the frozen config ``cls`` from a TOML table plus keyword overrides.
 
     Keys are the dataclass's field names; missing keys take the defaults, unknown keys and
-    invalid values raise :class:`planer.errors.ConfigError` naming ``prefix.key``.
+    invalid values raise :class:`core.errors.ConfigError` naming ``prefix.key``.
     """
     names = {f.name for f in fields(cls)}
     data = dict(mapping or {})

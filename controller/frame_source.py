@@ -1,7 +1,7 @@
 """Where the service's image pairs come from: async wrappers over the frame hand-off.
 
 * :class:`PolledFrameSource` wraps anything with ``poll() -> Frame | None`` — the spool reader
-  of ``planer/protocol/frames.py`` (the camera or ``planer sim`` writes pairs into a spool
+  of ``protocol/frames.py`` (the camera or ``planer sim`` writes pairs into a spool
   directory from another process) or its in-process source — and turns it into an awaitable
   ``next()`` that sleeps ``poll_s`` between empty polls.
 * :class:`QueueFrameSource` is an in-process queue (the in-process HIL, tests, benchmarks).
@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from config.machine import FramesConfig
-from planer.checks import check_positive
-from planer.protocol.frames import Frame
+from core.checks import check_positive
+from protocol.frames import Frame
 
 
 class FrameSource(Protocol):
@@ -113,7 +113,7 @@ def open_frame_source(cfg: FramesConfig, *, inprocess: Any = None) -> FrameSourc
     Parameters
     ----------
     cfg : FramesConfig
-        ``source = "spool"`` reads ``spool_dir`` with ``planer.protocol.frames.SpoolReader``;
+        ``source = "spool"`` reads ``spool_dir`` with ``protocol.frames.SpoolReader``;
         ``"inprocess"`` uses ``inprocess``.
     inprocess : object, optional
         For ``"inprocess"``: a :class:`QueueFrameSource`, or anything with ``poll()``.
@@ -124,11 +124,11 @@ def open_frame_source(cfg: FramesConfig, *, inprocess: Any = None) -> FrameSourc
         ``"inprocess"`` without an in-process source.
     """
     if cfg.source == "spool":
-        from planer.protocol import frames
+        from protocol import frames
 
         reader_cls = getattr(frames, "SpoolReader", None)
         if reader_cls is None:  # pragma: no cover - until the spool lands
-            raise ValueError("frames.source = spool needs planer.protocol.frames.SpoolReader")
+            raise ValueError("frames.source = spool needs protocol.frames.SpoolReader")
         Path(cfg.spool_dir).mkdir(parents=True, exist_ok=True)
         return PolledFrameSource(reader_cls(cfg.spool_dir), poll_s=cfg.poll_s)
     if inprocess is None:

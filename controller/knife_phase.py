@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planer.checks import check_finite, check_int, check_positive
+from core.checks import check_finite, check_int, check_positive
 
 
 def wrapped_difference(a: int, b: int, *, counter_bits: int = 32) -> int:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from planer.checks import check_finite, check_positive
+from core.checks import check_finite, check_positive
 
 
 def clamp(value: float, lo: float, hi: float) -> float:

@@ -8,7 +8,7 @@ the last ``PIEZO_STATUS`` / ``AMP_HEARTBEAT`` and the time the amplifier was las
 falls silent, :meth:`PiezoClient.silent_for` grows and the supervisor declares CAN gone.
 
 The bus is any ``can.BusABC``: from the configuration through
-:func:`open_bus` (``planer/protocol/can_transport.py`` when present, else ``can.Bus``), or a
+:func:`open_bus` (``protocol/can_transport.py`` when present, else ``can.Bus``), or a
 ``virtual`` bus in tests. Time is passed in (``now_s``); nothing here reads a clock.
 """
 
@@ -18,9 +18,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from planer.checks import check_finite, check_int, check_positive
-from planer.errors import FieldbusError
-from planer.protocol.piezo_can import (
+from core.checks import check_finite, check_int, check_positive
+from core.errors import FieldbusError
+from protocol.piezo_can import (
     FAULT_SETPOINT_TIMEOUT,
     HEARTBEAT,
     OFFSETS,
@@ -63,7 +63,7 @@ class AmpStatus:
 def open_bus(interface: str, channel: str, options: dict[str, Any] | None = None) -> Any:
     """Open a python-can bus from configuration values.
 
-    Uses ``planer.protocol.can_transport.open_bus`` when that module provides it (it knows the
+    Uses ``protocol.can_transport.open_bus`` when that module provides it (it knows the
     project's transports: udp_multicast in a private network namespace, remote, socketcan),
     else ``can.Bus(interface=..., channel=..., **options)``.
 
@@ -74,7 +74,7 @@ def open_bus(interface: str, channel: str, options: dict[str, Any] | None = None
     """
     opts = dict(options or {})
     try:
-        from planer.protocol import can_transport  # type: ignore[attr-defined]
+        from protocol import can_transport  # type: ignore[attr-defined]
 
         opener = getattr(can_transport, "open_bus", None)
     except ImportError:

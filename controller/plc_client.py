@@ -11,8 +11,8 @@ Layers
   :class:`MachineRegisterBus` talks to a :class:`plant_sim.machine.Machine` in the same process
   (simulated-time tests and the in-process HIL), applying the same rules as the PLC server.
 * :class:`PlcClient` — what the service uses: ``read()``, ``write_feed()``,
-  ``write_heartbeat()``; Modbus exceptions become :class:`planer.errors.ModbusRefused` naming
-  the register, a lost or unanswered connection :class:`planer.errors.FieldbusError`; after a
+  ``write_heartbeat()``; Modbus exceptions become :class:`core.errors.ModbusRefused` naming
+  the register, a lost or unanswered connection :class:`core.errors.FieldbusError`; after a
   failure the next request reconnects, but not before the back-off delay has passed.
 
 One owner per bus: the service creates one ``PlcClient`` and nothing else talks to the PLC; the
@@ -28,9 +28,9 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from planer.checks import check_finite, check_int, check_positive
-from planer.errors import FieldbusError, ModbusRefused
-from planer.protocol.registers import RegisterMap
+from core.checks import check_finite, check_int, check_positive
+from core.errors import FieldbusError, ModbusRefused
+from protocol.registers import RegisterMap
 
 MODBUS_EXCEPTIONS = {
     1: "ILLEGAL FUNCTION",
@@ -463,7 +463,7 @@ class MachineRegisterBus:
 
     async def write(self, address: int, words: Sequence[int]) -> None:
         """Write words: checked by the register map, then applied to the machine."""
-        from planer.protocol.registers import RegisterAccessError, RegisterRangeError
+        from protocol.registers import RegisterAccessError, RegisterRangeError
 
         self._check()
         try:

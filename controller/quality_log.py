@@ -21,9 +21,9 @@ from pathlib import Path
 from typing import Any
 
 from config.loading import Section
-from planer.checks import check_finite, check_int, check_positive
-from planer.errors import PlanerError
-from planer.fileio import atomic_writer
+from core.checks import check_finite, check_int, check_positive
+from core.errors import PlanerError
+from core.fileio import atomic_writer
 
 __all__ = [
     "SCHEMA_VERSION",

@@ -725,7 +725,7 @@ def save_figures(
     stem : str
         Start of the file names (the log's name without suffix).
     """
-    from planer.fileio import atomic_writer
+    from core.fileio import atomic_writer
 
     written: dict[str, str] = {}
     for name, fig in figures.items():

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from config.machine import SafetyConfig
-from planer.checks import check_finite, check_positive
-from planer.protocol.piezo_can import STATE_DISABLED, STATE_ENABLED, STATE_FAULT, STATE_RAMPING
+from core.checks import check_finite, check_positive
+from protocol.piezo_can import STATE_DISABLED, STATE_ENABLED, STATE_FAULT, STATE_RAMPING
 
 TIMED_SOURCES = ("plc", "can", "measurement")
 """Sources that must be heard within their timeout."""

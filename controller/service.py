@@ -40,8 +40,8 @@ from config.machine import MachineConfig
 from controller.piezo_client import PiezoClient
 from controller.plc_client import PlcClient, PlcSnapshot
 from controller.safety import AmplifierMonitor, SafetyState, SafetyStatus, Supervisor
-from planer.errors import FieldbusError, ModbusRefused, RegistrationError
-from planer.protocol.frames import Frame
+from core.errors import FieldbusError, ModbusRefused, RegistrationError
+from protocol.frames import Frame
 
 PLC_SNAPSHOT_MAX_AGE_CYCLES = 2.0
 """A pair uses the registers the tick read if they are at most this many cycles old."""
@@ -1166,7 +1166,7 @@ class Service:
     def _spill(self, records: Sequence[Any], t: float) -> None:
         """Save records the log cannot take as JSON lines beside it (never silently dropped)."""
         from controller.quality_log import record_to_json, utc_iso
-        from planer.fileio import atomic_write_text
+        from core.fileio import atomic_write_text
 
         if not records:
             return
@@ -1470,8 +1470,8 @@ def open_service(
     from controller.piezo_client import open_bus
     from controller.plc_client import Backoff
     from controller.quality_log import QualityLog
-    from planer.protocol.piezo_can import PiezoCodec
-    from planer.protocol.registers import RegisterMap
+    from protocol.piezo_can import PiezoCodec
+    from protocol.registers import RegisterMap
     from vision.pipeline import Measurer
 
     rig = load_rig(rig_path(cfg))

@@ -41,7 +41,7 @@ import numpy as np
 
 from controller.feed_loop import config_from_mapping
 from controller.limits import check_time_forward, project_zero_mean_box
-from planer.checks import check_finite, check_int, check_positive, check_range
+from core.checks import check_finite, check_int, check_positive, check_range
 
 #: Values of :attr:`UniformityLoop.status` after an update.
 STATUSES = ("stepped", "waiting", "averaging", "deadband", "no_marks", "idle")

@@ -30,8 +30,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from planer.protocol import piezo_can
-from planer.protocol.piezo_can import Frame, PiezoCodec
+from protocol import piezo_can
+from protocol.piezo_can import Frame, PiezoCodec
 
 log = logging.getLogger(__name__)
 

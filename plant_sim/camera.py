@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from planer.protocol.frames import Frame
 from plant_sim.surface import Passes, Surface, envelope
+from protocol.frames import Frame
 
 __all__ = ["FrameAssembler", "Knot", "Latch", "TriggerClock"]
 
@@ -153,7 +153,7 @@ class _KnottedSurface:
 
 
 class FrameAssembler:
-    """Turns completed latches into :class:`~planer.protocol.frames.Frame` objects.
+    """Turns completed latches into :class:`~protocol.frames.Frame` objects.
 
     Parameters
     ----------

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 
-from planer.checks import check_finite, check_int
+from core.checks import check_finite, check_int
 
 __all__ = ["BoardStream", "Encoder", "FeedDrive"]
 

@@ -47,14 +47,14 @@ import numpy as np
 
 from config.loading import default_path, load_toml
 from config.sim import FAULT_KINDS, SimConfig
-from planer.checks import check_finite, check_int, check_positive
-from planer.protocol.frames import Frame
+from core.checks import check_finite, check_int, check_positive
 from plant_sim.camera import FrameAssembler, Knot, Latch, TriggerClock
 from plant_sim.feed_drive import BoardStream, Encoder, FeedDrive
 from plant_sim.piezo import FAULT as PIEZO_FAULT
 from plant_sim.piezo import PiezoAmplifier, PiezoStatus
 from plant_sim.spindle import BRAKE, COAST, RUN, Spindle
 from plant_sim.surface import Cutterhead, Passes, Surface
+from protocol.frames import Frame
 
 __all__ = ["Machine", "PiezoStatus", "register_names"]
 
@@ -146,8 +146,8 @@ class Machine:
         self.L_mm = cam.cutter_to_camera_mm
         renderer = None
         if self.render_images:
+            from config.wood import SPECIES
             from plant_sim.optics import Optics, Renderer
-            from plant_sim.wood import SPECIES
 
             o = cam.optics
             optics = Optics(

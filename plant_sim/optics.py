@@ -35,8 +35,9 @@ import numpy as np
 import scipy.fft as sfft
 
 from config.rig import Rig
-from planer.checks import check_finite, check_int, check_positive, check_range
-from plant_sim.wood import Wood, texture_tiles
+from config.wood import Wood
+from core.checks import check_finite, check_int, check_positive, check_range
+from plant_sim.wood import texture_tiles
 
 __all__ = ["ImagePair", "Optics", "Renderer", "Truth", "wrap_counts"]
 
@@ -239,7 +240,7 @@ class Renderer:
         Camera (K, distortion, ``px_per_mm``, exposure), lights (slant, azimuths), encoder.
     optics : Optics
         Sensor, LEDs, timing and encoder resolution.
-    wood : plant_sim.wood.Wood
+    wood : config.wood.Wood
         Species appearance (the board's texture is drawn from ``seed``).
     seed : int
         Seed of the board texture and of the default noise stream.

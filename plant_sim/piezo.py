@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planer.checks import check_finite, check_int, check_positive, check_range
+from core.checks import check_finite, check_int, check_positive, check_range
 
 __all__ = [
     "DISABLED",

@@ -2,7 +2,7 @@
 
 The holding registers mirror ``machine.register_values()`` as of the last :meth:`PlcServer.refresh`
 (the runner calls it every PLC cycle). Writes go through the register map
-(:mod:`planer.protocol.registers`):
+(:mod:`protocol.registers`):
 
 * a write to a read-only register, to a gap or to half of a 32-bit register is refused with
   Modbus exception 02 (ILLEGAL DATA ADDRESS);
@@ -30,7 +30,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 from pymodbus.simulator.simcore import SimCore
 
-from planer.protocol.registers import RegisterAccessError, RegisterMap, RegisterRangeError
+from protocol.registers import RegisterAccessError, RegisterMap, RegisterRangeError
 
 log = logging.getLogger(__name__)
 
@@ -177,7 +177,7 @@ class PlcServer:
         FieldbusError
             The address cannot be bound (port in use).
         """
-        from planer.errors import FieldbusError
+        from core.errors import FieldbusError
 
         if self._server is not None:
             return self.host, self.port

@@ -4,7 +4,7 @@ One asyncio task owns the :class:`~plant_sim.machine.Machine` and steps it so th
 follows ``time_scale`` x wall time (clock and sleep injected, so tests run on simulated time).
 Around it: the PLC's Modbus TCP server (:mod:`plant_sim.plc_server`), the piezo amplifier's CAN
 node (:mod:`plant_sim.amp_node`) and the frame sink (a spool directory or an in-process source,
-:mod:`planer.protocol.frames`).
+:mod:`protocol.frames`).
 
 Per loop iteration: received CAN frames go to the amplifier (at the current machine time); the
 machine advances by whole steps up to the time due (each step: frames to the sink, status and
@@ -34,11 +34,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from planer.protocol.can_transport import bus_from_config, describe_bus
-from planer.protocol.piezo_can import PiezoCodec
-from planer.protocol.registers import RegisterMap
 from plant_sim.amp_node import AmpNode, AmpNodeCore
 from plant_sim.plc_server import PlcServer
+from protocol.can_transport import bus_from_config, describe_bus
+from protocol.piezo_can import PiezoCodec
+from protocol.registers import RegisterMap
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +196,7 @@ class SimRunner:
         **kwargs
             Passed to the constructor (``clock``, ``sleep``, ``out``...).
         """
-        from planer.protocol.frames import SpoolWriter
+        from protocol.frames import SpoolWriter
 
         if machine is None:
             from plant_sim.machine import Machine

@@ -15,12 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from config import wood as wood_presets
 from config.rig import Camera, Encoder, Lights, Rig
-from planer.checks import check_finite, check_int, check_positive, check_range
-from plant_sim import wood as wood_presets
+from config.wood import SPECIES, Wood
+from core.checks import check_finite, check_int, check_positive, check_range
 from plant_sim.optics import ImagePair, Optics, Renderer
 from plant_sim.surface import Cutterhead, Surface, envelope, passes_steady
-from plant_sim.wood import SPECIES, Wood
 
 __all__ = [
     "DEFAULT_RUNOUT_UM",
@@ -136,7 +136,7 @@ def board_pair(
         Seeds the wood texture, the knife phase, the board position, ``counts_a`` (when not
         given) and the sensor noise. Same arguments, same pair.
     species : str
-        Wood preset name (see :data:`plant_sim.wood.SPECIES`).
+        Wood preset name (see :data:`config.wood.SPECIES`).
     pitch_mm : float
         Feed per knife, millimetres (the ideal mark width).
     knives : int

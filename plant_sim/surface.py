@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planer.checks import check_finite, check_int, check_positive
+from core.checks import check_finite, check_int, check_positive
 
 __all__ = [
     "Cutterhead",

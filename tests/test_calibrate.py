@@ -321,13 +321,13 @@ def test_cli_keeps_base_rig_values(synthetic_views, tmp_path, capsys, monkeypatc
     assert list(tmp_path.glob(".*.tmp")) == []
 
     # the disk fails while the rig file is written: the old file stays whole, no leftovers
-    import planer.fileio
+    import core.fileio
 
     def disk_full(fd):
         raise OSError(28, "No space left on device")
 
     before = out2.read_bytes()
-    monkeypatch.setattr(planer.fileio.os, "fsync", disk_full)
+    monkeypatch.setattr(core.fileio.os, "fsync", disk_full)
     code, _, err = run_cli([*paths, "--pattern", "7x7", "--out", str(out2)], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and "No space left" in err
     assert out2.read_bytes() == before

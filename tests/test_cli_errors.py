@@ -287,7 +287,7 @@ print(json.dumps({"serve_rc": serve.returncode, "serve_out": serve.stdout,
 
 def test_serve_against_sim_as_the_docs_say(tmp_path):
     """README / docs/service.md: sim with udp_multicast CAN and the shipped machine.toml."""
-    from planer.protocol import can_transport
+    from protocol import can_transport
 
     try:
         import msgpack  # noqa: F401
@@ -312,7 +312,7 @@ def test_serve_against_sim_as_the_docs_say(tmp_path):
 
 def test_multicast_outside_a_namespace_says_what_to_do_in_words(tmp_path, capsys, monkeypatch):
     """The refusal names the remedy a user can follow, not Python functions."""
-    from planer.protocol import can_transport
+    from protocol import can_transport
 
     monkeypatch.setattr(can_transport, "network_interfaces", lambda: ["lo", "eth0"])
     monkeypatch.chdir(tmp_path)
@@ -325,5 +325,5 @@ def test_multicast_outside_a_namespace_says_what_to_do_in_words(tmp_path, capsys
     for words in ("eth0", "private network namespace", "unshare", "nsenter", "README.md",
                   '"Simulator and service in two terminals"', "docs/service.md", "planer hil"):
         assert words in line, words
-    for api in ("run_in_private_netns", "planer.protocol", "loopback_only", "()"):
+    for api in ("run_in_private_netns", "protocol", "loopback_only", "()"):
         assert api not in line, api

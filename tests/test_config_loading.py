@@ -10,8 +10,8 @@ import tomllib
 
 from config import Section, default_path, load_toml
 from config.rig import load_rig, rig_from_dict, rig_to_toml
-from planer import checks
-from planer.errors import ConfigError
+from core import checks
+from core.errors import ConfigError
 
 GOOD = {
     "camera": {"fx": 1000.0, "fy": 1001.0, "cx": 320.0, "cy": 240.0,

@@ -15,7 +15,7 @@ from controller.feed_loop import (
     integral_gain,
     pitch_ceiling_mm,
 )
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 
 class BoardPlant:

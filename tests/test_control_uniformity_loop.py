@@ -18,7 +18,7 @@ from controller.uniformity_loop import (
     second_difference,
     width_cv,
 )
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 R_MM = 60.0
 

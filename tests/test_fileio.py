@@ -1,4 +1,4 @@
-"""Atomic file writing (planer/fileio.py): all or nothing, no temporary files left behind."""
+"""Atomic file writing (core/fileio.py): all or nothing, no temporary files left behind."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import pytest
 
 from controller.quality_log import QualityRecord, record_to_json
-from planer.fileio import atomic_write_bytes, atomic_write_text, atomic_writer
+from core.fileio import atomic_write_bytes, atomic_write_text, atomic_writer
 
 
 def test_replaces_whole_file_text_and_bytes(tmp_path):

@@ -15,7 +15,9 @@ from types import SimpleNamespace
 import pytest
 
 from config.loading import load_toml
-from controller.hil import (
+from controller.service import FrameResult
+from core.errors import ConfigError, FieldbusError
+from planer.hil import (
     FaultEvent,
     InProcessHil,
     Scenario,
@@ -27,8 +29,6 @@ from controller.hil import (
     summarize,
     to_toml,
 )
-from controller.service import FrameResult
-from planer.errors import ConfigError, FieldbusError
 
 REPO = Path(__file__).parents[1]
 
@@ -103,7 +103,7 @@ def test_config_files_resolve_from_the_scenario_folder(tmp_path, monkeypatch):
 
 
 def test_cross_process_work_folder_is_removed_by_the_library(tmp_path, monkeypatch):
-    import controller.hil as hil
+    import planer.hil as hil
 
     seen: list[Path] = []
 
@@ -213,7 +213,7 @@ def test_fault_timing_uses_the_clock_mapping_in_force_at_the_fault():
 
 
 def test_safe_periods_from_the_service_events():
-    from controller.hil import safe_periods
+    from planer.hil import safe_periods
 
     events = [(10.3, "recovered: control resumed"), (12.0, "safe state: plc gone"),
               (12.5, "PLC data invalid: x"), (13.0, "safe state: can gone"),
@@ -225,7 +225,7 @@ def test_safe_periods_from_the_service_events():
 
 
 def test_board_travel_counts_from_the_closing_measurement():
-    from controller.hil import BoardTravel
+    from planer.hil import BoardTravel
 
     res = [_result(i, cv=0.1, pitch=1.5, applied=i >= 3) for i in range(8)]
     travel = BoardTravel(20.0)

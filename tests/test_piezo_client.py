@@ -8,8 +8,8 @@ import can
 import pytest
 
 from controller.piezo_client import PiezoClient
-from planer.errors import FieldbusError
-from planer.protocol.piezo_can import COMMAND, OFFSETS, STATE_ENABLED, PiezoCodec
+from core.errors import FieldbusError
+from protocol.piezo_can import COMMAND, OFFSETS, STATE_ENABLED, PiezoCodec
 
 CODEC = PiezoCodec.load()
 _chan = itertools.count()

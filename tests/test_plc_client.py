@@ -14,8 +14,8 @@ from controller.plc_client import (
     PlcClient,
     PlcProtocol,
 )
-from planer.errors import FieldbusError, ModbusRefused
-from planer.protocol.registers import RegisterMap
+from core.errors import FieldbusError, ModbusRefused
+from protocol.registers import RegisterMap
 
 RMAP = RegisterMap.load()
 

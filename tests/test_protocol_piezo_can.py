@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from planer.errors import ConfigError
-from planer.protocol import piezo_can
-from planer.protocol.piezo_can import PiezoCodec
+from core.errors import ConfigError
+from protocol import piezo_can
+from protocol.piezo_can import PiezoCodec
 
 CODEC = PiezoCodec.load()
 LO, HI = CODEC.signal_range("PIEZO_OFFSETS_0_3", "offset_knife_0")

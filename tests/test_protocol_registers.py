@@ -11,8 +11,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from config.loading import default_path, load_toml
-from planer.errors import ConfigError
-from planer.protocol.registers import (
+from core.errors import ConfigError
+from protocol.registers import (
     RegisterAccessError,
     RegisterMap,
     RegisterRangeError,
@@ -66,7 +66,7 @@ def test_u32_high_word_first(x):
 @given(st.integers(-(2**31), 2**31 - 1))
 def test_i32_twos_complement_round_trip(x):
     # the shipped map has no i32 register: build a one-register map
-    from planer.protocol.registers import Register
+    from protocol.registers import Register
 
     m = RegisterMap([Register("pos", 10, "i32", "rw", 2)])
     words = m.encode("pos", x)
@@ -75,7 +75,7 @@ def test_i32_twos_complement_round_trip(x):
 
 
 def test_little_word_order_swaps_words():
-    from planer.protocol.registers import Register
+    from protocol.registers import Register
 
     regs = [Register("v", 0, "u32", "ro", 2)]
     big = RegisterMap(regs, word_order="big").encode("v", 0x12345678)

@@ -34,7 +34,7 @@ from controller.quality_log import (
     quality_class_from_section,
     utc_iso,
 )
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -440,7 +440,7 @@ def test_cli_missing_or_corrupt_log(tmp_path, capsys, content):
 
 
 def test_cli_figures_are_written_whole_or_not_at_all(log_file, tmp_path, capsys, monkeypatch):
-    import planer.fileio
+    import core.fileio
 
     out = tmp_path / "figs"
     out.mkdir()
@@ -449,7 +449,7 @@ def test_cli_figures_are_written_whole_or_not_at_all(log_file, tmp_path, capsys,
     def disk_full(fd):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(planer.fileio.os, "fsync", disk_full)
+    monkeypatch.setattr(core.fileio.os, "fsync", disk_full)
     assert main(["report", str(log_file), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("planer report: error:") and "No space left" in err

@@ -22,8 +22,8 @@ from controller.frame_source import QueueFrameSource
 from controller.piezo_client import PiezoClient
 from controller.plc_client import PlcClient
 from controller.service import Service
-from planer.protocol.piezo_can import COMMAND, PiezoCodec
-from planer.protocol.registers import RegisterMap
+from protocol.piezo_can import COMMAND, PiezoCodec
+from protocol.registers import RegisterMap
 
 CODEC = PiezoCodec.load()
 N_COMMANDS = 15

@@ -8,7 +8,7 @@ import pytest
 
 from config.loading import load_toml
 from config.machine import load_machine, machine_from_dict
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 SHIPPED = Path(__file__).parents[1] / "config" / "machine.toml"
 

@@ -22,7 +22,7 @@ import pytest
 
 from controller.quality_log import QualityLog
 from controller.safety import SafetyState
-from planer.protocol.frames import Frame, SpoolReader, SpoolWriter
+from protocol.frames import Frame, SpoolReader, SpoolWriter
 from tests.plant_support import run_for
 from tests.test_service_loop import SCENARIO, TruthMeasurer, make_plant
 
@@ -448,7 +448,7 @@ def test_unreadable_pair_is_logged_as_failed(tmp_path):
 def test_uniformity_loop_takes_the_radius_from_the_plc(tmp_path):
     from config.machine import load_machine
     from config.sim import sim_from_dict
-    from controller.hil import InProcessPlant, sim_document
+    from planer.hil import InProcessPlant, sim_document
 
     async def main():
         doc = sim_document(SCENARIO)

@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from controller.hil import InProcessPlant, Scenario, machine_config_for, sim_config_for
+from planer.hil import InProcessPlant, Scenario, machine_config_for, sim_config_for
 from tests.plant_support import record_frames, run_for
 
 SAMPLE_MM = 0.08  # one profile sample of the shipped rig (12.5 px/mm)

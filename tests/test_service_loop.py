@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from config.machine import load_machine
-from controller.hil import Scenario, sim_config_for
 from controller.quality_log import QualityLog
 from controller.safety import SafetyState
-from planer.errors import MeasurementError, RegistrationError
+from core.errors import MeasurementError, RegistrationError
+from planer.hil import Scenario, sim_config_for
 from tests.plant_support import record_frames, run_for
 
 SCENARIO = Scenario(runout_um=(0.0, 4.0, -2.0, 2.0), initial_feed_mm_s=800.0)
@@ -55,7 +55,7 @@ class TruthMeasurer:
 
 def make_plant(tmp_path, *, plc_transport="direct", log="config", **safety):
     """The in-process plant with a truth-reading measurer (and ``log``: "config" = q.sqlite)."""
-    from controller.hil import InProcessPlant
+    from planer.hil import InProcessPlant
 
     cfg = load_machine()
     cfg = cfg.with_changes(log=replace(cfg.log, path=tmp_path / "q.sqlite"))

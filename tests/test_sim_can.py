@@ -12,10 +12,10 @@ import can
 import numpy as np
 import pytest
 
-from planer.errors import FieldbusError
-from planer.protocol import can_transport, piezo_can
-from planer.protocol.piezo_can import PiezoCodec
+from core.errors import FieldbusError
 from plant_sim.amp_node import AmpNode, AmpNodeCore
+from protocol import can_transport, piezo_can
+from protocol.piezo_can import PiezoCodec
 from tests.test_sim_plc import FakeMachine
 
 CODEC = PiezoCodec.load()
@@ -230,8 +230,8 @@ AMP_SCRIPT = textwrap.dedent(
     """
     import time
     from types import SimpleNamespace
-    from planer.protocol.can_transport import open_bus, in_private_netns
-    from planer.protocol.piezo_can import PiezoCodec
+    from protocol.can_transport import open_bus, in_private_netns
+    from protocol.piezo_can import PiezoCodec
     from plant_sim.amp_node import AmpNode, AmpNodeCore
     assert in_private_netns()
     class M:
@@ -254,8 +254,8 @@ AMP_SCRIPT = textwrap.dedent(
 SERVICE_SCRIPT = textwrap.dedent(
     """
     import sys, time, can
-    from planer.protocol.can_transport import open_bus
-    from planer.protocol.piezo_can import PiezoCodec
+    from protocol.can_transport import open_bus
+    from protocol.piezo_can import PiezoCodec
     codec = PiezoCodec.load()
     bus = open_bus("udp_multicast")
     t0 = time.monotonic(); n_status = 0; alive = 0

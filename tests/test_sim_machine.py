@@ -11,7 +11,7 @@ from scipy.integrate import solve_ivp
 
 from config.loading import default_path, load_toml
 from config.sim import default_sim, load_sim, sim_from_dict
-from planer.errors import ConfigError
+from core.errors import ConfigError
 from plant_sim.machine import Machine
 from plant_sim.piezo import PiezoActuator
 
@@ -425,7 +425,7 @@ def test_frames_while_board_under_camera_only(cfg):
 
 
 def test_register_values_cover_the_map(cfg):
-    from planer.protocol.registers import RegisterMap
+    from protocol.registers import RegisterMap
 
     m = Machine(cfg, seed=0, render_images=False)
     m.set_service_heartbeat(5)

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
+from config.wood import SPECIES, Wood, species
 from plant_sim.optics import Optics, Renderer, wrap_counts
 from plant_sim.scenarios import board_pair, make_rig, random_board_pair, random_board_params
 from plant_sim.surface import Cutterhead, passes_steady
-from plant_sim.wood import SPECIES, Wood, species
 
 W, H = 240, 96
 PPM = 12.5

@@ -17,9 +17,9 @@ from pyModbusTCP import constants as mbc
 from pyModbusTCP.client import ModbusClient
 from pyModbusTCP.utils import decode_ieee, encode_ieee, long_list_to_word, word_list_to_long
 
-from planer.protocol.frames import Frame
-from planer.protocol.registers import RegisterMap
 from plant_sim.plc_server import PlcServer
+from protocol.frames import Frame
+from protocol.registers import RegisterMap
 
 RMAP = RegisterMap.load()
 
@@ -226,7 +226,7 @@ def test_uint32_words_decoded_independently(plc, name):
 
 def test_int32_register_decoded_independently():
     # the shipped map has no i32; serve a one-register map with a negative value
-    from planer.protocol.registers import Register
+    from protocol.registers import Register
 
     rmap = RegisterMap([Register("position_counts", 0, "i32", "ro", 2)])
     machine = SimpleNamespace(register_values=lambda: {"position_counts": -123_456_789})
@@ -326,7 +326,7 @@ def test_server_restart_drops_clients_and_serves_again_on_the_same_port(plc):
 
 
 def test_port_in_use_is_a_fieldbus_error(plc):
-    from planer.errors import FieldbusError
+    from core.errors import FieldbusError
 
     other = PlcServer(FakeMachine(), port=plc.port)
     with pytest.raises(FieldbusError, match=str(plc.port)):

@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from planer.protocol import can_transport
-from planer.protocol.frames import Frame, InProcessSource, SpoolReader, SpoolWriter
-from planer.protocol.piezo_can import PiezoCodec
-from planer.protocol.registers import RegisterMap
 from plant_sim.amp_node import AmpNode, AmpNodeCore
 from plant_sim.plc_server import PlcServer
 from plant_sim.runner import SimRunner, parse_banner
+from protocol import can_transport
+from protocol.frames import Frame, InProcessSource, SpoolReader, SpoolWriter
+from protocol.piezo_can import PiezoCodec
+from protocol.registers import RegisterMap
 from tests.test_sim_plc import FakeMachine
 
 REPO = Path(__file__).resolve().parents[1]
@@ -275,7 +275,7 @@ def test_half_written_pair_is_never_returned(tmp_path, monkeypatch, crash_after_
 WRITER_SCRIPT = textwrap.dedent(
     """
     import sys, numpy as np
-    from planer.protocol.frames import Frame, SpoolWriter
+    from protocol.frames import Frame, SpoolWriter
     w = SpoolWriter(sys.argv[1], keep=1000, fsync=True)
     rng = np.random.default_rng(0)
     seq = 0
@@ -434,7 +434,7 @@ def test_start_up_failures_close_the_can_bus(tmp_path, caplog):
     """Modbus cannot listen, or the spool folder is unusable: no bus is left open."""
     import socket
 
-    from planer.errors import FieldbusError
+    from core.errors import FieldbusError
 
     cfg = _cfg_for(tmp_path, "run-startfail")
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from config.rig import Camera, Encoder, Lights, Rig
-from planer.errors import RegistrationError
+from core.errors import RegistrationError
 from vision.marks import corr2
 from vision.pipeline import Measurer
 

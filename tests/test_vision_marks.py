@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from planer.errors import MeasurementError
+from core.errors import MeasurementError
 from vision.marks import (
     corr2,
     cusp_steps,

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from planer.errors import RegistrationError
+from core.errors import RegistrationError
 from vision.registration import (
     Registrar,
     Registration,

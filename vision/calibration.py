@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from planer.checks import check_image, check_int, check_positive
-from planer.errors import MeasurementError
+from core.checks import check_image, check_int, check_positive
+from core.errors import MeasurementError
 
 MODELS = ("k1", "full")
 """Distortion models: ``"k1"`` (seed Eq. 7, k1 only) and ``"full"`` (all five coefficients)."""

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.fft
 
-from planer.checks import check_int, check_positive
+from core.checks import check_int, check_positive
 
 
 def blur_length_px(speed_mm_s: float, *, exposure_ms: float, px_per_mm: float) -> float:

@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from planer.checks import check_1d, check_int
+from core.checks import check_1d, check_int
 
 
 def flat_field_correct(

@@ -22,7 +22,7 @@ import math
 import numpy as np
 import scipy.fft
 
-from planer.checks import check_1d, check_int, check_positive
+from core.checks import check_1d, check_int, check_positive
 
 
 class Integrator:

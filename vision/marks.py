@@ -24,8 +24,8 @@ import numpy as np
 import scipy.fft
 import scipy.signal
 
-from planer.checks import check_int
-from planer.errors import MeasurementError
+from core.checks import check_int
+from core.errors import MeasurementError
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from config.rig import Rig
-from planer.checks import check_image, check_int, check_positive
-from planer.errors import MeasurementError
+from core.checks import check_image, check_int, check_positive
+from core.errors import MeasurementError
 from vision.deblur import Deblurrer, blur_length_px
 from vision.illumination import Detrender, flat_field_correct
 from vision.integrate import Integrator

@@ -12,7 +12,7 @@ import math
 import cv2
 import numpy as np
 
-from planer.checks import check_finite, check_int
+from core.checks import check_finite, check_int
 
 
 def column_profile(rows: np.ndarray) -> np.ndarray:

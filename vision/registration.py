@@ -30,7 +30,7 @@ uniqueness (one minus the best other local maximum over the peak).  The texture 
 when its confidence is at least ``strong_confidence``; otherwise the profiles are tried too, and
 of the stages that pass their thresholds the more confident is used -- if both pass they must
 agree within ``fine_px`` unless the more confident is itself strong.  When neither passes, the
-pair is a :class:`~planer.errors.RegistrationError`, never a guess -- with one exception: with
+pair is a :class:`~core.errors.RegistrationError`, never a guess -- with one exception: with
 no albedo at all, the mirrored shading alone is unambiguous when the search window is narrower
 than half a mark (``search_px < period / 2``), so the best anti-correlation of the shading within
 ``d_enc +- search_px`` is taken, with confidence ``score * (1 - 2 search_px / period)``.
@@ -53,8 +53,8 @@ import cv2
 import numpy as np
 import scipy.fft
 
-from planer.checks import check_finite, check_int, check_positive, check_range
-from planer.errors import RegistrationError
+from core.checks import check_finite, check_int, check_positive, check_range
+from core.errors import RegistrationError
 
 
 @dataclass(frozen=True)

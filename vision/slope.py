@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from planer.checks import check_finite, check_range
+from core.checks import check_finite, check_range
 
 
 def _angles(slant_deg: float, azimuth_a_deg: float, azimuth_b_deg: float) -> tuple[float, ...]:

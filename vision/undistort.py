@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from config.rig import Camera
-from planer.checks import check_image, check_int, check_positive
+from core.checks import check_image, check_int, check_positive
 
 
 def _camera_matrix(camera: Camera) -> np.ndarray:

@@ -47,9 +47,9 @@ async def _run(
     from config.machine import load_machine
     from controller.frame_source import QueueFrameSource
     from controller.service import open_service
-    from planer.protocol.piezo_can import PiezoCodec
     from plant_sim.amp_node import AmpNode, AmpNodeCore
     from plant_sim.plc_server import PlcServer
+    from protocol.piezo_can import PiezoCodec
 
     server = PlcServer(machine, host="127.0.0.1", port=0)
     host, port = await server.start()

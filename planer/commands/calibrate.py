@@ -121,10 +121,10 @@ def run(args: argparse.Namespace) -> int:
 
     from config.loading import default_path, load_toml
     from config.rig import rig_from_dict, rig_to_toml
-    from planer.checks import check_positive
+    from core.checks import check_positive
+    from core.errors import ConfigError
+    from core.fileio import atomic_write_text
     from planer.cli import writable_folder
-    from planer.errors import ConfigError
-    from planer.fileio import atomic_write_text
     from vision.calibration import MIN_IMAGES, calibrate, find_corners, parse_pattern
 
     pattern = parse_pattern(args.pattern)

@@ -129,10 +129,10 @@ def run(args: argparse.Namespace) -> int:
     import time
     from dataclasses import replace
 
-    from controller import hil
+    from core.errors import FieldbusError
+    from planer import hil
     from planer.cli import output_file
-    from planer.errors import FieldbusError
-    from planer.protocol import can_transport
+    from protocol import can_transport
 
     scenario = hil.load_scenario(args.scenario)
     if args.distance_m is not None:

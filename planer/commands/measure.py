@@ -61,7 +61,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the command: read, measure, print JSON (and plot)."""
     from config.rig import load_rig
-    from planer.imageio import read_gray
+    from core.imageio import read_gray
     from vision.pipeline import Measurer
 
     if (args.flat_a is None) != (args.flat_b is None):

@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from controller.frame_source import open_frame_source
     from controller.safety import SafetyState
     from controller.service import open_service
-    from planer.checks import check_int
+    from core.checks import check_int
     from planer.cli import output_file, output_folder
 
     if args.max_frames is not None:

@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     import signal
 
     from config.sim import load_sim
-    from planer.checks import check_int
+    from core.checks import check_int
     from planer.cli import output_folder
     from plant_sim.runner import SimRunner
 

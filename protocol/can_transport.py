@@ -31,7 +31,7 @@ from collections.abc import Mapping, Sequence
 from functools import lru_cache
 from typing import Any
 
-from planer.errors import ConfigError, FieldbusError
+from core.errors import ConfigError, FieldbusError
 
 INTERFACES = ("virtual", "udp_multicast", "remote", "socketcan")
 DEFAULT_MULTICAST_GROUP = "239.74.163.2"

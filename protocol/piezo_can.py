@@ -26,7 +26,7 @@ from typing import Any
 import cantools
 
 from config.loading import default_path
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 COMMAND = "PIEZO_COMMAND"
 OFFSETS = ("PIEZO_OFFSETS_0_3", "PIEZO_OFFSETS_4_7")

@@ -40,7 +40,7 @@ import numpy as np
 from config.loading import Section, default_path, load_toml
 from config.machine import MachineConfig, load_machine
 from controller.service import FrameResult, Service
-from planer.errors import ConfigError, FieldbusError
+from core.errors import ConfigError, FieldbusError
 
 INTERFACE_FAULTS = ("modbus_restart", "can_silence", "can_drop")
 FINAL_MEASUREMENTS = 5
@@ -701,10 +701,10 @@ class InProcessPlant:
         from controller.piezo_client import PiezoClient
         from controller.plc_client import Backoff, MachineRegisterBus, PlcClient
         from controller.quality_log import QualityLog
-        from planer.protocol.piezo_can import PiezoCodec
-        from planer.protocol.registers import RegisterMap
         from plant_sim.amp_node import AmpNode, AmpNodeCore
         from plant_sim.machine import Machine
+        from protocol.piezo_can import PiezoCodec
+        from protocol.registers import RegisterMap
 
         if plc_transport not in ("direct", "tcp"):
             raise ValueError(f"plc_transport must be direct or tcp, got {plc_transport!r}")
@@ -1021,7 +1021,7 @@ def _progress_line(r: FrameResult, travel: BoardTravel) -> str:
 # ---------------------------------------------------------------------------------- cross-process
 def cross_process_possible() -> tuple[bool, str]:
     """Whether the cross-process HIL can run here, and if not, why."""
-    from planer.protocol import can_transport
+    from protocol import can_transport
 
     try:
         import msgpack  # noqa: F401

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from planer.fileio import atomic_write_bytes
+from core.fileio import atomic_write_bytes
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from config.loading import Section, default_path, load_toml
-from planer.errors import ConfigError
+from core.errors import ConfigError
 
 TYPES: dict[str, int] = {"u16": 1, "u32": 2, "i32": 2, "f32": 2}
 """Register types and how many 16-bit registers each takes."""

@@ -1,6 +1,6 @@
 """Reading images for the command line (the only image file I/O of the measurement path).
 
-Every failure is a :class:`~planer.errors.MeasurementError` with one line naming the file, so
+Every failure is a :class:`~core.errors.MeasurementError` with one line naming the file, so
 ``planer`` reports it without a traceback.
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from planer.errors import MeasurementError
+from core.errors import MeasurementError
 
 
 def read_gray(path: str | Path) -> np.ndarray:
