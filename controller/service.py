@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from config.machine import MachineConfig
+from controller.events import EventKind, ServiceEvent
 from controller.piezo_client import PiezoClient
 from controller.plc_client import PlcClient, PlcSnapshot
 from controller.safety import AmplifierMonitor, SafetyState, SafetyStatus, Supervisor
@@ -272,15 +273,16 @@ class Service:
             "amp_faults": 0,
             "uniformity_skipped": 0,
         }
-        self.events: list[tuple[float, str]] = []
+        self.events: list[ServiceEvent] = []
         self.on_result: Callable[[FrameResult], None] | None = None
-        self.on_event: Callable[[float, str], None] | None = None
+        self.on_event: Callable[[ServiceEvent], None] | None = None
 
     # ------------------------------------------------------------------ helpers
-    def _event(self, t: float, text: str) -> None:
-        self.events.append((t, text))
+    def _event(self, t: float, kind: EventKind, text: str) -> None:
+        event = ServiceEvent(t, kind, text)
+        self.events.append(event)
         if self.on_event is not None:
-            self.on_event(t, text)
+            self.on_event(event)
 
     def _now(self, now_s: float | None = None) -> float:
         """Service time: ``now_s`` or the clock, never decreasing.
@@ -296,7 +298,8 @@ class Service:
         last = self._t_now
         if last is not None and t < last:
             self._clock_shift += last - t
-            self._event(last, f"clock went back by {last - t:.3f} s: service time continues")
+            self._event(last, EventKind.CLOCK_WENT_BACK,
+                        f"clock went back by {last - t:.3f} s: service time continues")
             t = last
         self._t_now = t
         return t
@@ -500,9 +503,9 @@ class Service:
         problem = self.amp_monitor.observe(self.piezo.status, now_s=t)
         if problem is not None and self._amp_problem is None:
             self.counters["amp_faults"] += 1
-            self._event(t, f"piezo amplifier: {problem}")
+            self._event(t, EventKind.AMPLIFIER_PROBLEM, f"piezo amplifier: {problem}")
         elif problem is None and self._amp_problem is not None:
-            self._event(t, "piezo amplifier healthy again")
+            self._event(t, EventKind.AMPLIFIER_HEALTHY, "piezo amplifier healthy again")
         self._amp_problem = problem
         self.supervisor.set_ok("amplifier", problem is None)
 
@@ -517,9 +520,9 @@ class Service:
         problem = snap.problem()
         if problem != self._plc_problem:
             if problem is not None:
-                self._event(t, f"PLC data invalid: {problem}")
+                self._event(t, EventKind.PLC_DATA_INVALID, f"PLC data invalid: {problem}")
             elif self._plc_problem is not None:
-                self._event(t, "PLC data valid again")
+                self._event(t, EventKind.PLC_DATA_VALID, "PLC data valid again")
         self._plc_problem = problem
         self.supervisor.set_ok("plc_data", problem is None)
         return snap if problem is None else None
@@ -530,14 +533,15 @@ class Service:
         if status.changed:
             if status.state is SafetyState.SAFE:
                 self.counters["safe_entries"] += 1
-                self._event(t, f"safe state: {self._describe(status.missing)}")
+                self._event(t, EventKind.SAFE_STATE,
+                            f"safe state: {self._describe(status.missing)}")
                 try:  # at once, whichever cycle noticed (a non-blocking CAN send)
                     self._zero_offsets(t)
                 except FieldbusError:
                     self.counters["can_errors"] += 1
             else:
                 self.counters["recoveries"] += 1
-                self._event(t, "recovered: control resumed")
+                self._event(t, EventKind.RECOVERED, "recovered: control resumed")
                 self._resume(t)
         return status
 
@@ -563,7 +567,7 @@ class Service:
         self.supervisor.set_ok("service", False)
         text = f"service error in {where}: {_exc_name(exc)}: {exc}"
         if text != self._last_error:  # the same error every cycle is reported once
-            self._event(t, text)
+            self._event(t, EventKind.SERVICE_ERROR, text)
             self._last_error = text
         try:
             status = self._step_supervisor(t)
@@ -573,7 +577,8 @@ class Service:
             self._zero_offsets(t)
         except Exception as exc2:  # noqa: BLE001
             self.counters["can_errors"] += 1
-            self._event(t, f"piezo offsets could not be zeroed: {_exc_name(exc2)}: {exc2}")
+            self._event(t, EventKind.OFFSETS_NOT_ZEROED,
+                        f"piezo offsets could not be zeroed: {_exc_name(exc2)}: {exc2}")
         try:
             self._send_piezo_command(t)
         except Exception:  # noqa: BLE001 - the amplifier's own timeout ramps to zero
@@ -661,7 +666,7 @@ class Service:
             return False
         if self._feed_refused:
             self._feed_refused = False
-            self._event(t, "feed setpoint accepted again")
+            self._event(t, EventKind.FEED_ACCEPTED, "feed setpoint accepted again")
         self.feed_setpoint_mm_s = feed
         return True
 
@@ -669,7 +674,7 @@ class Service:
         self.counters["setpoint_refused"] += 1
         if not self._feed_refused:  # once until a write goes through again
             self._feed_refused = True
-            self._event(t, text)
+            self._event(t, EventKind.FEED_REFUSED, text)
 
     def _resume(self, t: float) -> None:
         """Back to RUN: restart the feed loop from the feed in force, restore learnt offsets."""
@@ -824,7 +829,8 @@ class Service:
             return t_arr
         if self._last_frame_t is not None and ft < self._last_frame_t:
             self._machine_offset_s = None
-            self._event(t_arr, f"camera clock went back by {self._last_frame_t - ft:.3f} s")
+            self._event(t_arr, EventKind.CAMERA_CLOCK_WENT_BACK,
+                        f"camera clock went back by {self._last_frame_t - ft:.3f} s")
         self._last_frame_t = ft
         off = t_arr - ft
         if self._machine_offset_s is None or off < self._machine_offset_s:
@@ -841,7 +847,8 @@ class Service:
         if last is not None and seq > last + 1:
             n = seq - last - 1
             self.counters["missed"] += n
-            self._event(t, f"{n} pair(s) never reached the service (seq {last + 1}..{seq - 1})")
+            self._event(t, EventKind.PAIRS_MISSED,
+                        f"{n} pair(s) never reached the service (seq {last + 1}..{seq - 1})")
 
     async def _snapshot_for(self, t: float) -> PlcSnapshot | None:
         """The tick's registers if at most two cycles old, else a fresh read (else the last)."""
@@ -1043,7 +1050,7 @@ class Service:
             )
         except FieldbusError as exc:
             self.counters["can_errors"] += 1
-            self._event(t, f"piezo offsets not sent: {exc}")
+            self._event(t, EventKind.OFFSETS_NOT_SENT, f"piezo offsets not sent: {exc}")
             return False
         self._learned_offsets = np.asarray(self.offsets_um, dtype=float)
         return True
@@ -1146,21 +1153,24 @@ class Service:
                 if not self._log_failing:
                     self._log_failing = True
                     self.supervisor.set_ok("log", False)
-                    self._event(t, f"quality log write failed: {exc}; records held in memory")
+                    self._event(t, EventKind.LOG_FAILED,
+                                f"quality log write failed: {exc}; records held in memory")
                 if len(self._pending) > MAX_PENDING_RECORDS:
                     n = len(self._pending) - MAX_PENDING_RECORDS // 2
                     self._spill([self._pending.popleft() for _ in range(n)], t)
                 return None
             except ValueError as exc:  # this record can never go in (log closed, bad record)
                 self.counters["log_errors"] += 1
-                self._event(t, f"quality record of pair {rec.seq} refused by the log: {exc}")
+                self._event(t, EventKind.LOG_REFUSED_RECORD,
+                            f"quality record of pair {rec.seq} refused by the log: {exc}")
                 self._spill([self._pending.popleft()], t)
                 continue
             self._pending.popleft()
         if self._log_failing:
             self._log_failing = False
             self.supervisor.set_ok("log", True)
-            self._event(t, "quality log writable again: held records written")
+            self._event(t, EventKind.LOG_RECOVERED,
+                        "quality log writable again: held records written")
         return rid
 
     def _spill(self, records: Sequence[Any], t: float) -> None:
@@ -1176,10 +1186,12 @@ class Service:
         try:
             atomic_write_text(path, "".join(record_to_json(r) + "\n" for r in records))
         except (OSError, ValueError) as exc:
-            self._event(t, f"{len(records)} quality records LOST (NOT in the quality log, "
+            self._event(t, EventKind.RECORDS_LOST,
+                        f"{len(records)} quality records LOST (NOT in the quality log, "
                            f"cannot be saved to {path}: {exc})")
             return
-        self._event(t, f"{len(records)} quality records NOT in the quality log: saved to {path}")
+        self._event(t, EventKind.RECORDS_SAVED,
+                    f"{len(records)} quality records NOT in the quality log: saved to {path}")
 
     # ------------------------------------------------------------------ real time
     async def run(
@@ -1227,7 +1239,7 @@ class Service:
                     text = f"frame source failed: {_exc_name(exc)}: {exc}"
                     if text != self._last_error:
                         self._last_error = text
-                        self._event(self._now(), text)
+                        self._event(self._now(), EventKind.FRAME_SOURCE_FAILED, text)
                     await asyncio.sleep(0.1)
                     continue
                 if frame is None:
@@ -1270,7 +1282,8 @@ class Service:
                 self.alive = (self.alive + 1) & 0xFF
                 self.piezo.send_command(alive_counter=self.alive, now_s=t)
             except Exception as exc:  # noqa: BLE001 - closing must go on; the amplifier times out
-                self._event(t, f"amplifier not disabled at close: {_exc_name(exc)}: {exc}")
+                self._event(t, EventKind.CLOSE_PROBLEM,
+                            f"amplifier not disabled at close: {_exc_name(exc)}: {exc}")
         if self.log is not None:
             while self._pending:  # a last attempt, then the rest beside the log
                 try:

@@ -39,6 +39,7 @@ import numpy as np
 
 from config.loading import Section, default_path, load_toml
 from config.machine import MachineConfig, load_machine
+from controller.events import EventKind, ServiceEvent
 from controller.service import FrameResult, Service
 from core.errors import ConfigError, FieldbusError
 
@@ -321,7 +322,7 @@ def summarize(
     feed_limits_mm_s: tuple[float, float],
     stroke_um: float,
     faults: Sequence[FaultEvent] = (),
-    events: Sequence[tuple[float, str]] = (),
+    events: Sequence[ServiceEvent] = (),
     safety: Any = None,
     time_offset_s: float = 0.0,
     extra: Mapping[str, Any] | None = None,
@@ -342,7 +343,7 @@ def summarize(
         The piezo stroke (offsets must stay within +-stroke).
     faults : sequence of FaultEvent
         Injected faults (machine time).
-    events : sequence of (float, str)
+    events : sequence of ServiceEvent
         The service's events (service time).
     safety : SafetyConfig, optional
         For the timeouts the fault checks compare against.
@@ -414,7 +415,7 @@ def summarize(
     ref, ref_name = closed, "loop closed"
     if closed is not None and faults:
         last_fault = max(f.at_s for f in faults) + time_offset_s
-        recs = [t for t, e in events if e.startswith("recovered") and t >= last_fault]
+        recs = [e.t_s for e in events if e.kind is EventKind.RECOVERED and e.t_s >= last_fault]
         if recs:
             ref = next((i for i, r in enumerate(results) if r.t_s > recs[0] and r.applied), None)
             ref_name = "recovery after the last fault"
@@ -497,7 +498,7 @@ def _num(v: Any) -> float | None:
 def _fault_report(
     f: FaultEvent,
     results: Sequence[FrameResult],
-    events: Sequence[tuple[float, str]],
+    events: Sequence[ServiceEvent],
     safety: Any,
     offset_s: float,
 ) -> dict[str, Any]:
@@ -506,9 +507,11 @@ def _fault_report(
     rep: dict[str, Any] = {"kind": f.kind, "at_s": f.at_s, **dict(f.params)}
     if f.kind not in INTERFACE_FAULTS:
         return rep
-    safe = next((t for t, e in events if e.startswith("safe state") and t >= t0 - 1e-9), None)
+    safe = next((e.t_s for e in events
+                 if e.kind is EventKind.SAFE_STATE and e.t_s >= t0 - 1e-9), None)
     rec = next(
-        (t for t, e in events if e.startswith("recovered") and safe is not None and t > safe),
+        (e.t_s for e in events
+         if e.kind is EventKind.RECOVERED and safe is not None and e.t_s > safe),
         None,
     )
     timeout = None
@@ -535,7 +538,7 @@ def _fault_report(
 
 
 def safe_periods(
-    events: Sequence[tuple[float, str]],
+    events: Sequence[ServiceEvent],
     *,
     start_s: float,
     end_s: float,
@@ -549,8 +552,8 @@ def safe_periods(
 
     Parameters
     ----------
-    events : sequence of (float, str)
-        The service's events (service time, text) in order.
+    events : sequence of ServiceEvent
+        The service's events in order.
     start_s, end_s : float
         Service time at the start and the end of the run.
     offset_s : float
@@ -565,10 +568,11 @@ def safe_periods(
     out: list[list[Any]] = []
     since: float | None = start_s
     why = "starting up"
-    for t, text in events:
-        if text.startswith("safe state") and since is None:
-            since, why = t, text.partition(":")[2].strip() or "unknown"
-        elif text.startswith("recovered") and since is not None:
+    for ev in events:
+        t = ev.t_s
+        if ev.kind is EventKind.SAFE_STATE and since is None:
+            since, why = t, ev.text.partition(":")[2].strip() or "unknown"
+        elif ev.kind is EventKind.RECOVERED and since is not None:
             out.append([since, t, why])
             since = None
     if since is not None and end_s > since:
@@ -638,11 +642,11 @@ def _service_summary(
         time_offset_s=time_offset_s,
         extra={
             **dict(extra or {}),
-            "events": [[round(t - t_start_s, 3), e] for t, e in service.events],
+            "events": [[round(e.t_s - t_start_s, 3), e.text] for e in service.events],
             "service": dict(service.counters),
         },
     )
-    end_s = max([t_start_s] + [r.t_s for r in results] + [t for t, _ in service.events])
+    end_s = max([t_start_s] + [r.t_s for r in results] + [e.t_s for e in service.events])
     summary["safe_periods_s"] = safe_periods(service.events, start_s=t_start_s, end_s=end_s,
                                              offset_s=time_offset_s)
     summary["quality_log"] = check_log(Path(log_path), len(results), after_id=start_id)
@@ -900,7 +904,7 @@ class InProcessHil:
             raise
         service = plant.service
         assert service is not None
-        service.on_event = lambda t, e: self._say(f"t={t:7.3f} s  {e}")
+        service.on_event = lambda e: self._say(f"t={e.t_s:7.3f} s  {e.text}")
         pending = sorted(sc.faults, key=lambda f: f.at_s)
         n_last = n_seen = 0
         travel = BoardTravel(self.sim_cfg.encoder.counts_per_mm)
@@ -1235,7 +1239,7 @@ async def _run_cross_process(
         start_id = service.log.last_id
         service.keep_results = True
         t_start = service.clock()
-        service.on_event = lambda t, e: say(f"t={t - t_start:7.3f} s  {e}")
+        service.on_event = lambda e: say(f"t={e.t_s - t_start:7.3f} s  {e.text}")
         say(PROGRESS_LEGEND)
         source = open_frame_source(cfg.frames)
         stop = asyncio.Event()

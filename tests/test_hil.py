@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import pytest
 
 from config.loading import load_toml
+from controller.events import EventKind, ServiceEvent
 from controller.service import FrameResult
 from core.errors import ConfigError, FieldbusError
 from planer.hil import (
@@ -202,7 +203,8 @@ def test_fault_timing_uses_the_clock_mapping_in_force_at_the_fault():
     lag = [0.01 if i < 15 else 0.3 for i in range(80)]  # the sim lags 0.3 s from 1.5 s on
     res = [_result(i, cv=0.02, pitch=1.5, t=i * 0.1 + lag[i]) for i in range(80)]
     fault = FaultEvent("modbus_restart", 4.0, {"down_s": 1.0})
-    events = [(4.0 + 0.3 + 0.5, "safe state: plc gone"), (5.0 + 0.3 + 0.4, "recovered")]
+    events = [ServiceEvent(4.0 + 0.3 + 0.5, EventKind.SAFE_STATE, "safe state: plc gone"),
+              ServiceEvent(5.0 + 0.3 + 0.4, EventKind.RECOVERED, "recovered")]
     s = summarize(res, target_pitch_mm=1.5, counts_per_mm=20.0, feed_limits_mm_s=(50.0, 1e3),
                   stroke_um=20.0, faults=[fault], events=events, safety=SafetyConfig(),
                   time_offset_s=0.01)
@@ -215,9 +217,14 @@ def test_fault_timing_uses_the_clock_mapping_in_force_at_the_fault():
 def test_safe_periods_from_the_service_events():
     from planer.hil import safe_periods
 
-    events = [(10.3, "recovered: control resumed"), (12.0, "safe state: plc gone"),
-              (12.5, "PLC data invalid: x"), (13.0, "safe state: can gone"),
-              (14.0, "recovered: control resumed"), (17.0, "safe state: can gone")]
+    k = EventKind
+    events = [ServiceEvent(t, kind, text) for t, kind, text in [
+        (10.3, k.RECOVERED, "recovered: control resumed"),
+        (12.0, k.SAFE_STATE, "safe state: plc gone"),
+        (12.5, k.PLC_DATA_INVALID, "PLC data invalid: x"),
+        (13.0, k.SAFE_STATE, "safe state: can gone"),
+        (14.0, k.RECOVERED, "recovered: control resumed"),
+        (17.0, k.SAFE_STATE, "safe state: can gone")]]
     assert safe_periods(events, start_s=10.0, end_s=18.0, offset_s=10.0) == [
         [0.0, 0.3, "starting up"], [2.0, 4.0, "plc gone"],
         [7.0, 8.0, "can gone"]]  # starts safe; still safe at the end: until the end

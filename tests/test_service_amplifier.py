@@ -14,6 +14,7 @@ import asyncio
 
 import numpy as np
 
+from controller.events import EventKind
 from controller.safety import AMP_CONFIRM_S, SafetyState
 from tests.plant_support import run_for
 from tests.test_service_loop import make_plant
@@ -24,8 +25,10 @@ def _amp_safe(plant) -> bool:
     return all(v == 0.0 for v in core.offsets_um) and core.last_command["enable"] == 0
 
 
-def _events(svc, since, prefix):
-    return [(t, e) for t, e in svc.events if t >= since and e.startswith(prefix)]
+def _events(svc, since, kind):
+    """(t, text) of the service's events of ``kind`` (None: every kind) since ``since``."""
+    return [(e.t_s, e.text) for e in svc.events
+            if e.t_s >= since and (kind is None or e.kind is kind)]
 
 
 async def _running(tmp_path, seconds=3.0):
@@ -56,15 +59,15 @@ def test_amplifier_fault_goes_safe_once_and_recovers_when_healthy(tmp_path):
         took = await _until(plant, lambda: svc.state is SafetyState.SAFE, 1.0)
         assert took <= AMP_CONFIRM_S + 3 * cfg.cycle_s + 1e-9
         assert "amplifier" in svc.status.missing and "can" not in svc.status.missing
-        (ev,) = _events(svc, t0, "piezo amplifier: ")
+        (ev,) = _events(svc, t0, EventKind.AMPLIFIER_PROBLEM)
         assert "overcurrent" in ev[1]
         await run_for(plant, 0.04)
         assert svc.offsets_um == (0.0,) * len(learnt) and _amp_safe(plant)
         # the disable clears the amplifier's fault: healthy again, RUN after the confirmation
         t_rec = await _until(plant, lambda: svc.state is SafetyState.RUN, 2.0)
         assert t_rec <= AMP_CONFIRM_S + cfg.recovery_s + 0.2
-        assert len(_events(svc, t0, "piezo amplifier: ")) == 1  # reported once
-        assert _events(svc, t0, "piezo amplifier healthy again")
+        assert len(_events(svc, t0, EventKind.AMPLIFIER_PROBLEM)) == 1  # reported once
+        assert _events(svc, t0, EventKind.AMPLIFIER_HEALTHY)
         await run_for(plant, 0.1)
         assert plant.machine.amp.state == 1
         assert np.allclose(plant.amp.core.offsets_um[: len(learnt)], learnt, atol=1e-3)
@@ -88,7 +91,7 @@ def test_refused_offsets_are_not_believed(tmp_path):
         machine.set_piezo_offsets = refuse
         await _until(plant, lambda: svc.state is SafetyState.SAFE, 1.0)
         assert "amplifier" in svc.status.missing
-        (ev,) = _events(svc, t0, "piezo amplifier: ")
+        (ev,) = _events(svc, t0, EventKind.AMPLIFIER_PROBLEM)
         assert "stroke limit" in ev[1]
         # while the amplifier refuses, the service stays safe and applies nothing
         res = await run_for(plant, 1.0)
@@ -115,7 +118,7 @@ def test_long_setpoint_timeout_with_status_flowing_is_a_can_failure(tmp_path):
         plant.can_fault("can_drop", 0.6)
         await _until(plant, lambda: svc.state is SafetyState.SAFE, 0.6)
         assert "amplifier" in svc.status.missing and "can" not in svc.status.missing
-        (ev,) = _events(svc, t0, "piezo amplifier: ")
+        (ev,) = _events(svc, t0, EventKind.AMPLIFIER_PROBLEM)
         assert "setpoint timeout" in ev[1]
         t_rec = await _until(plant, lambda: svc.state is SafetyState.RUN, 2.0)
         assert plant.clock() - t0 >= 0.6

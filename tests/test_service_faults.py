@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import pytest
 
+from controller.events import EventKind
 from controller.quality_log import QualityLog
 from controller.safety import SafetyState
 from protocol.frames import Frame, SpoolReader, SpoolWriter
@@ -27,8 +28,10 @@ from tests.plant_support import run_for
 from tests.test_service_loop import SCENARIO, TruthMeasurer, make_plant
 
 
-def _events(svc, since, prefix):
-    return [(t, e) for t, e in svc.events if t >= since and e.startswith(prefix)]
+def _events(svc, since, kind):
+    """(t, text) of the service's events of ``kind`` (None: every kind) since ``since``."""
+    return [(e.t_s, e.text) for e in svc.events
+            if e.t_s >= since and (kind is None or e.kind is kind)]
 
 
 def _amp_safe(plant) -> bool:
@@ -146,7 +149,7 @@ def test_plc_garbage_goes_safe_writes_nothing_and_recovers(tmp_path, case):
         t0 = plant.clock()
         hb0 = plant.machine.heartbeat_service
         res = await run_for(plant, 1.0)  # no exception out of tick / handle_frame
-        safe = _events(svc, t0, "safe state")
+        safe = _events(svc, t0, EventKind.SAFE_STATE)
         assert safe and safe[0][0] - t0 <= 2 * cfg.cycle_s + 1e-9
         assert "plc data" in safe[0][1]
         assert svc.state is SafetyState.SAFE and _amp_safe(plant)
@@ -158,7 +161,7 @@ def test_plc_garbage_goes_safe_writes_nothing_and_recovers(tmp_path, case):
         restore()
         t1 = plant.clock()
         await run_for(plant, 1.0)
-        rec = _events(svc, t1, "recovered")
+        rec = _events(svc, t1, EventKind.RECOVERED)
         assert rec and rec[0][0] - t1 <= cfg.recovery_s + 3 * cfg.cycle_s
         assert np.abs(plant.amp.core.offsets_um).max() > 0.5  # learnt offsets restored
         await _close_and_check_log(plant, tmp_path)
@@ -182,7 +185,7 @@ def test_plc_refusing_reads_is_a_plc_gone(tmp_path):
         plant.direct_bus.read = refuse
         t0 = plant.clock()
         await run_for(plant, 1.0)
-        safe = _events(svc, t0, "safe state")
+        safe = _events(svc, t0, EventKind.SAFE_STATE)
         assert safe and safe[0][0] - t0 <= cfg.plc_timeout_s + 2 * cfg.cycle_s
         assert "plc" in safe[0][1] and _amp_safe(plant)
         plant.direct_bus.read = orig
@@ -262,7 +265,7 @@ def test_control_exception_goes_safe_logs_the_pair_and_recovers(tmp_path):
         assert not res[0].applied
         await run_for(plant, 0.1)
         assert svc.state is SafetyState.SAFE and _amp_safe(plant)
-        assert any("IndexError" in e for _, e in _events(svc, t0, ""))
+        assert any("IndexError" in e for _, e in _events(svc, t0, None))
         loop.update = orig
         await run_for(plant, 1.5)
         assert svc.state is SafetyState.RUN
@@ -286,7 +289,7 @@ def test_tick_exception_keeps_heartbeat_goes_safe_and_recovers(tmp_path):
         await run_for(plant, 0.2)  # must not raise
         assert plant.machine.heartbeat_service != hb
         assert svc.state is SafetyState.SAFE and _amp_safe(plant)
-        assert any("FloatingPointError" in e for _, e in _events(svc, t0, ""))
+        assert any("FloatingPointError" in e for _, e in _events(svc, t0, None))
         svc._feed_forward = orig
         await run_for(plant, 1.0)
         assert svc.state is SafetyState.RUN
@@ -350,7 +353,7 @@ def test_log_failure_goes_safe_keeps_the_records_and_writes_them_later(tmp_path)
         during = await run_for(plant, 1.0)
         assert len(during) >= 5
         assert svc.state is SafetyState.SAFE and _amp_safe(plant)
-        ev = _events(svc, t0, "")
+        ev = _events(svc, t0, None)
         assert any("quality log" in e and "held" in e for _, e in ev), ev
         assert any(e.startswith("safe state") and "log" in e for _, e in ev), ev
         assert all(not r.applied for r in during[1:])
@@ -376,7 +379,7 @@ def test_records_unwritten_at_close_are_saved_beside_the_log(tmp_path):
         assert len(saved) == 1
         lines = saved[0].read_text().splitlines()
         assert [json.loads(x)["seq"] for x in lines] == [r.seq for r in during]
-        assert any("NOT in the quality log" in e for _, e in plant.service.events)
+        assert any("NOT in the quality log" in ev.text for ev in plant.service.events)
 
     asyncio.run(main())
 
@@ -481,7 +484,7 @@ def test_pairs_that_never_arrived_are_reported(tmp_path):
         while not res:
             res = await plant.step()
         assert svc.counters["missed"] == 2
-        assert any("2 pair(s) never reached" in e for _, e in _events(svc, t0, ""))
+        assert any("2 pair(s) never reached" in e for _, e in _events(svc, t0, None))
         await _close_and_check_log(plant, tmp_path)
 
     asyncio.run(main())

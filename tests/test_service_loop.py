@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from config.machine import load_machine
+from controller.events import EventKind
 from controller.quality_log import QualityLog
 from controller.safety import SafetyState
 from core.errors import MeasurementError, RegistrationError
@@ -156,8 +157,8 @@ def test_failed_measurement_changes_no_setpoint_and_is_logged(tmp_path, exc, rea
     asyncio.run(main())
 
 
-def _event_times(svc, prefix):
-    return [t for t, e in svc.events if e.startswith(prefix)]
+def _event_times(svc, kind):
+    return [e.t_s for e in svc.events if e.kind is kind]
 
 
 @pytest.mark.parametrize("transport", ["direct", "tcp"])
@@ -173,15 +174,15 @@ def test_plc_gone_safe_within_timeout_then_recovers(tmp_path, transport):
         t_down = plant.clock()
         await plant.plc_down(1.5)
         await run_for(plant, 1.5)
-        safe = [t for t in _event_times(svc, "safe state") if t >= t_down]
+        safe = [t for t in _event_times(svc, EventKind.SAFE_STATE) if t >= t_down]
         assert safe and cfg.plc_timeout_s <= safe[0] - t_down <= cfg.plc_timeout_s + 2 * cfg.cycle_s
-        assert "plc" in [e for t, e in svc.events if t == safe[0]][0]
+        assert "plc" in [e.text for e in svc.events if e.t_s == safe[0]][0]
         # offsets went to zero and the amplifier was disabled while the PLC was gone
         assert all(v == 0.0 for v in plant.amp.core.offsets_um)
         assert plant.amp.core.last_command["enable"] == 0
         t_up = plant.clock()
         await run_for(plant, 3.0)
-        rec = [t for t in _event_times(svc, "recovered") if t > t_up]
+        rec = [t for t in _event_times(svc, EventKind.RECOVERED) if t > t_up]
         bound = cfg.recovery_s + plant.cfg.plc.backoff_max_s + 2 * cfg.cycle_s
         assert rec and rec[0] - t_up <= bound
         assert svc.state is SafetyState.RUN
@@ -208,9 +209,9 @@ def test_can_silent_sends_zero_offsets_then_recovers(tmp_path):
         t0 = plant.clock()
         plant.can_fault("can_silence", 1.0)
         await run_for(plant, 0.9)
-        safe = [t for t in _event_times(svc, "safe state") if t >= t0]
+        safe = [t for t in _event_times(svc, EventKind.SAFE_STATE) if t >= t0]
         assert safe and cfg.can_timeout_s <= safe[0] - t0 <= cfg.can_timeout_s + 2 * cfg.cycle_s
-        assert "can" in [e for t, e in svc.events if t == safe[0]][0]
+        assert "can" in [e.text for e in svc.events if e.t_s == safe[0]][0]
         assert svc.offsets_um == (0.0,) * len(learnt)
         assert all(v == 0.0 for v in plant.amp.core.offsets_um)  # the amplifier got the zeros
         assert plant.amp.core.last_command["enable"] == 0
@@ -240,7 +241,7 @@ def test_measurements_gone_ramps_feed_down_then_recovers(tmp_path):
         while plant.clock() < end:
             await plant.step()
             feeds.append((plant.clock(), plant.machine.register_values()["feed_setpoint_mm_s"]))
-        safe = [t for t in _event_times(svc, "safe state") if t >= t0]
+        safe = [t for t in _event_times(svc, EventKind.SAFE_STATE) if t >= t0]
         assert safe and safe[0] - t0 <= cfg.measurement_timeout_s + 0.2
         # ramped down after entering the safe state, never faster than the configured rate
         after = [(t, f) for t, f in feeds if t > safe[0]]
@@ -287,7 +288,7 @@ def test_log_that_never_works_keeps_the_machine_safe_and_the_records(tmp_path):
         svc = plant.service
         assert res and all(r.record_id is None for r in res)
         assert svc.counters["log_errors"] == log.calls >= len(res)
-        assert [t for t, e in svc.events if e.startswith("quality log write failed")]
+        assert [e for e in svc.events if e.kind is EventKind.LOG_FAILED]
         assert svc.state is SafetyState.SAFE and not any(r.applied for r in res[1:])
         assert "log" in svc.status.missing
         await plant.close()

@@ -11,6 +11,8 @@ import asyncio
 import time
 from dataclasses import replace
 
+from controller.events import EventKind
+
 N_PAIRS = 6
 
 
@@ -40,7 +42,7 @@ async def _run(frames, machine, tmp_path):
     service = open_service(cfg, can_bus=can.Bus(interface="virtual", channel=channel))
     service.keep_results = True
     running = asyncio.Event()
-    service.on_event = lambda t, e: running.set() if e.startswith("recovered") else None
+    service.on_event = lambda e: running.set() if e.kind is EventKind.RECOVERED else None
     source = QueueFrameSource(maxsize=N_PAIRS)
     stop = asyncio.Event()
 

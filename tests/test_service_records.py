@@ -18,6 +18,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from controller.events import EventKind
 from controller.plc_client import BusRefused
 from controller.quality_log import QualityLog, record_to_json
 from controller.report import last_profile
@@ -174,7 +175,7 @@ def test_refused_feed_writes_never_enter_the_feed_loop_history(tmp_path):
             checked += sum(r.ok for r in res)
         assert checked > 5 and svc.counters["setpoint_refused"] > 10
         # reported once, not once per attempt
-        assert len([e for _, e in svc.events if e.startswith("feed setpoint refused")]) == 1
+        assert len([e for e in svc.events if e.kind is EventKind.FEED_REFUSED]) == 1
         hist_v = np.asarray(svc.feed_loop._hist_v)
         assert np.allclose(hist_v, plc_feed)
         bus.write = write  # the PLC takes setpoints again: the loop moves the feed

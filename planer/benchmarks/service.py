@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from controller.events import EventKind
+
 READY_TIMEOUT_S = 60.0
 """Deadline for the service to reach RUN before the pairs go in (a loaded machine), s."""
 
@@ -68,7 +70,7 @@ async def _run(
     service = open_service(cfg, can_bus=svc_bus)
     service.keep_results = True
     running = asyncio.Event()
-    service.on_event = lambda _t, e: running.set() if e.startswith("recovered") else None
+    service.on_event = lambda e: running.set() if e.kind is EventKind.RECOVERED else None
     source = QueueFrameSource(maxsize=len(frames))
     stop = asyncio.Event()
 

@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
             f"quality: {cfg.quality.class_name}, target pitch {cfg.quality.target_pitch_mm} mm, "
             f"safe state {cfg.safety.safe_state}"
         )
-        service.on_event = lambda t, e: say(f"t={t - t0:9.3f} s  {e}")
+        service.on_event = lambda e: say(f"t={e.t_s - t0:9.3f} s  {e.text}")
         every = cfg.log.print_every
         window: list = []
 
