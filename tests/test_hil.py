@@ -22,7 +22,6 @@ from planer.hil import (
     FaultEvent,
     InProcessHil,
     Scenario,
-    _settled_at,
     cross_process_possible,
     load_scenario,
     sim_config_for,
@@ -30,6 +29,7 @@ from planer.hil import (
     summarize,
     to_toml,
 )
+from planer.hil.summary import _settled_at
 
 REPO = Path(__file__).parents[1]
 
@@ -104,7 +104,7 @@ def test_config_files_resolve_from_the_scenario_folder(tmp_path, monkeypatch):
 
 
 def test_cross_process_work_folder_is_removed_by_the_library(tmp_path, monkeypatch):
-    import planer.hil as hil
+    import planer.hil.cross_process as hil
 
     seen: list[Path] = []
 

@@ -1,0 +1,56 @@
+"""Hardware-in-the-loop runs: the service closed around the simulated planer (``planer hil``).
+
+Two ways to run the same scenario:
+
+* **cross-process** (default when possible): ``planer hil`` re-executes itself inside a private
+  network namespace (``unshare -rn``: loopback only, multicast routed on ``lo``), starts
+  ``planer sim`` there as a separate process (Modbus TCP on 127.0.0.1, CAN over python-can's
+  ``udp_multicast``, frames through a spool directory) and runs the real-time service against
+  it (:func:`run_cross_process`).
+* **in-process** (fallback, tests): the :class:`plant_sim.machine.Machine` and the service in
+  one process on *simulated time*, stepped in lockstep every control cycle: the PLC through
+  :class:`~controller.plc_client.MachineRegisterBus` (or the real Modbus server on an ephemeral
+  loopback port), the amplifier node on python-can's ``virtual`` bus (:class:`InProcessHil`).
+
+Both end with :func:`summarize`: per measurement the measured and the simulator's true pitch and
+uniformity (``Frame.truth``) and the setpoints; ``initial`` and ``final`` true values; where the
+true values settled (board travel after the loop closed); whether every setpoint stayed inside
+the machine's limits; what each injected fault did (safe state, recovery); the quality log's
+integrity.
+
+The package, by job: :mod:`planer.hil.scenario` (what to run), :mod:`planer.hil.in_process`
+(simulated time, one process), :mod:`planer.hil.cross_process` (real time, two processes),
+:mod:`planer.hil.summary` (what the run achieved).
+"""
+
+from planer.hil.cross_process import cross_process_possible, run_cross_process, to_toml
+from planer.hil.in_process import InProcessHil, InProcessPlant
+from planer.hil.scenario import (
+    FaultEvent,
+    Scenario,
+    load_scenario,
+    machine_config_for,
+    scenario_from_table,
+    sim_config_for,
+    sim_document,
+)
+from planer.hil.summary import BoardTravel, check_log, safe_periods, summarize
+
+__all__ = [
+    "BoardTravel",
+    "FaultEvent",
+    "InProcessHil",
+    "InProcessPlant",
+    "Scenario",
+    "check_log",
+    "cross_process_possible",
+    "load_scenario",
+    "machine_config_for",
+    "run_cross_process",
+    "safe_periods",
+    "scenario_from_table",
+    "sim_config_for",
+    "sim_document",
+    "summarize",
+    "to_toml",
+]

@@ -1,0 +1,318 @@
+"""In-process HIL: the simulated machine and the service in one process, on simulated time."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from config.machine import MachineConfig
+from controller.service import FrameResult, Service
+from planer.hil.scenario import Progress, Scenario, machine_config_for, sim_config_for
+from planer.hil.summary import PROGRESS_LEGEND, BoardTravel, _progress_line, _service_summary
+
+# ---------------------------------------------------------------------------------- in-process
+_channels = itertools.count()
+
+
+class InProcessPlant:
+    """The simulated machine and the service wired together in one process (simulated time).
+
+    Every :meth:`step` advances the machine by one control cycle, lets the amplifier node read
+    and send its CAN frames, runs one :meth:`Service.tick` and hands the pairs captured in
+    that cycle to :meth:`Service.handle_frame` -- all at the machine's time, so a run is
+    deterministic and as fast as the CPU allows.
+
+    Parameters
+    ----------
+    cfg : MachineConfig
+        The service's configuration (``log.path`` is the quality log unless ``log`` is given).
+    sim_cfg : SimConfig
+        The simulator's configuration.
+    seed : int
+        Simulator seed.
+    plc_transport : {"direct", "tcp"}
+        ``direct``: :class:`MachineRegisterBus`; ``tcp``: the simulator's Modbus server on an
+        ephemeral 127.0.0.1 port (call :meth:`start` first).
+    measurer_factory : callable, optional
+        ``factory(shape)``; default the vision pipeline's ``Measurer(rig, shape)``.
+    log : QualityLog or None or "config"
+        The quality log; ``"config"`` opens ``cfg.log.path``.
+    render_images : bool
+        Render the camera images (``False``: frames carry counts and truth only; for control
+        tests with a measurer that reads the truth).
+    """
+
+    def __init__(
+        self,
+        cfg: MachineConfig,
+        sim_cfg: Any,
+        *,
+        seed: int = 0,
+        plc_transport: str = "direct",
+        measurer_factory: Callable[[tuple[int, int]], Any] | None = None,
+        log: Any = "config",
+        render_images: bool = True,
+    ) -> None:
+        import can
+
+        from config.machine import registers_path, rig_path
+        from config.rig import load_rig
+        from controller.piezo_client import PiezoClient
+        from controller.plc_client import Backoff, MachineRegisterBus, PlcClient
+        from controller.quality_log import QualityLog
+        from plant_sim.amp_node import AmpNode, AmpNodeCore
+        from plant_sim.machine import Machine
+        from protocol.piezo_can import PiezoCodec
+        from protocol.registers import RegisterMap
+
+        if plc_transport not in ("direct", "tcp"):
+            raise ValueError(f"plc_transport must be direct or tcp, got {plc_transport!r}")
+        self.cfg = cfg
+        self.sim_cfg = sim_cfg
+        self.machine = Machine(sim_cfg, seed=seed, render_images=render_images)
+        self.regmap = RegisterMap.load(registers_path(cfg))
+        self.plc_transport = plc_transport
+        self.server: Any = None
+        self.direct_bus: Any = None
+        backoff = Backoff(cfg.plc.backoff_initial_s, cfg.plc.backoff_max_s)
+        if plc_transport == "direct":
+            self.direct_bus = MachineRegisterBus(self.machine, self.regmap)
+            self.plc = PlcClient(self.direct_bus, self.regmap, backoff=backoff, clock=self.clock)
+        else:
+            from plant_sim.plc_server import PlcServer
+
+            self.server = PlcServer(self.machine, register_map=self.regmap, host="127.0.0.1",
+                                    port=0)
+            self.plc = None  # type: ignore[assignment]
+            self._backoff = backoff
+        codec = PiezoCodec.load()
+        self.rig = load_rig(rig_path(cfg))
+        if measurer_factory is None:
+            from vision.pipeline import Measurer
+
+            rig = self.rig
+
+            def measurer_factory(shape: tuple[int, int]) -> Any:
+                return Measurer(rig, shape)
+
+        self._measurer_factory = measurer_factory
+        opened_log = log == "config"
+        if opened_log:  # before the buses: an unusable log path leaves nothing open
+            path = Path(cfg.log.path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            log = QualityLog(path)
+        self.log = log
+        self.service: Service | None = None
+        buses: list[Any] = []
+        try:
+            self.start_id = log.last_id if log is not None else 0
+            channel = f"planer-hil-{os.getpid()}-{next(_channels)}"
+            self.svc_bus = can.Bus(interface="virtual", channel=channel)
+            buses.append(self.svc_bus)
+            amp_bus = can.Bus(interface="virtual", channel=channel)
+            buses.append(amp_bus)
+            knives = sim_cfg.cutterhead.knives
+            self.amp = AmpNode(amp_bus,
+                               AmpNodeCore(self.machine, codec, knives=knives, seed=seed),
+                               own_bus=True)
+            self.piezo = PiezoClient(
+                self.svc_bus, codec, knives=knives, command_period_s=cfg.can.command_period_s,
+                offsets_period_s=cfg.can.offsets_period_s, stroke_um=cfg.stroke_um,
+            )
+            self._plc_up_at: float | None = None
+            self.start_mm = self.machine.feed_position_mm
+            if self.plc is not None:
+                self._make_service()
+        except BaseException:
+            for bus in buses:
+                bus.shutdown()
+            if opened_log and log is not None:
+                log.close()
+            raise
+
+    def clock(self) -> float:
+        """Machine time, s (the service's injected clock)."""
+        return float(self.machine.t_s)
+
+    def _make_service(self) -> None:
+        self.service = Service(
+            self.cfg, plc=self.plc, piezo=self.piezo, rig=self.rig, log=self.log,
+            clock=self.clock, threaded=False, measurer_factory=self._measurer_factory,
+            pairs_per_s=self.sim_cfg.camera.pairs_per_s,
+        )
+        self.service.keep_results = True
+        if self.log is not None:
+            self.log.set_quality_class(self.service.quality_class)
+
+    async def start(self) -> None:
+        """Start the Modbus server (``tcp``) and connect the service's client to it."""
+        from controller.plc_client import PlcClient
+
+        if self.server is not None and self.service is None:
+            host, port = await self.server.start()
+            self.plc = PlcClient.tcp(
+                host, port, unit_id=self.regmap.unit_id, timeout_s=self.cfg.plc.timeout_s,
+                regmap=self.regmap, backoff=self._backoff, clock=self.clock,
+            )
+            self._make_service()
+
+    @property
+    def travelled_mm(self) -> float:
+        """Table travel since the plant was made, mm."""
+        return self.machine.feed_position_mm - self.start_mm
+
+    async def plc_down(self, duration_s: float) -> None:
+        """Kill the PLC's Modbus side for ``duration_s`` machine seconds (server stopped)."""
+        if self.server is not None:
+            await self.server.stop()
+        else:
+            self.direct_bus.down = True
+        self._plc_up_at = self.clock() + float(duration_s)
+
+    def can_fault(self, kind: str, duration_s: float, **params: float) -> None:
+        """``can_silence`` (the amplifier sends nothing) or ``can_drop`` for ``duration_s``."""
+        core_kind = {"can_silence": "silence", "can_drop": "drop_rx"}[kind]
+        p = {k: float(v) for k, v in params.items() if k == "fraction"}
+        self.amp.core.inject(core_kind, start_s=self.clock(), duration_s=float(duration_s), **p)
+
+    async def step(self) -> list[FrameResult]:
+        """One control cycle; returns the results of the pairs captured in it."""
+        assert self.service is not None, "call start() first"
+        t = self.clock()
+        if self._plc_up_at is not None and t >= self._plc_up_at - 1e-9:
+            self._plc_up_at = None
+            if self.server is not None:
+                await self.server.start()
+            else:
+                self.direct_bus.down = False
+        self.amp.receive(t)
+        frames = self.machine.advance(self.cfg.safety.cycle_s)
+        t = self.clock()
+        self.amp.transmit(t)
+        if self.server is not None and self.server.running:
+            self.server.refresh()
+        await self.service.tick(t)
+        out = []
+        for fr in frames:
+            out.append(await self.service.handle_frame(fr, now_s=t))
+        return out
+
+    async def close(self) -> None:
+        """Close the service (buses, log), the amplifier node and the server."""
+        if self.service is not None:
+            self.service.close()
+        else:
+            self.svc_bus.shutdown()
+            if self.log is not None:
+                self.log.close()
+        self.amp.close()
+        if self.server is not None:
+            await self.server.stop()
+
+
+class InProcessHil:
+    """A scenario on :class:`InProcessPlant`: simulator and service in one process.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        What to run.
+    log_path : Path
+        Quality log (created or continued).
+    plc_transport : {"direct", "tcp"}
+        How the service reaches the PLC (see :class:`InProcessPlant`).
+    progress : callable, optional
+        Receives progress lines.
+    progress_every : int
+        Measurements between progress lines.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        log_path: Path,
+        plc_transport: str = "direct",
+        progress: Progress | None = None,
+        progress_every: int = 10,
+    ) -> None:
+        self.scenario = scenario
+        self.log_path = Path(log_path)
+        self.plc_transport = plc_transport
+        self.progress = progress
+        self.progress_every = progress_every
+        self.cfg = machine_config_for(scenario, log_path=self.log_path)
+        self.sim_cfg = sim_config_for(scenario)
+
+    def _say(self, line: str) -> None:
+        if self.progress is not None:
+            self.progress(line)
+
+    async def run(self) -> dict[str, Any]:
+        """Run the scenario; return the summary (see :func:`summarize`)."""
+        sc, cfg = self.scenario, self.cfg
+        plant = InProcessPlant(cfg, self.sim_cfg, seed=sc.seed, plc_transport=self.plc_transport)
+        try:
+            await plant.start()
+        except BaseException:  # e.g. Modbus cannot listen: close the buses and the log
+            await plant.close()
+            raise
+        service = plant.service
+        assert service is not None
+        service.on_event = lambda e: self._say(f"t={e.t_s:7.3f} s  {e.text}")
+        pending = sorted(sc.faults, key=lambda f: f.at_s)
+        n_last = n_seen = 0
+        travel = BoardTravel(self.sim_cfg.encoder.counts_per_mm)
+        wall0 = time.perf_counter()
+        self._say(
+            f"hil (in-process, simulated time, PLC {self.plc_transport}, CAN virtual): "
+            f"scenario {sc.name}, {sc.distance_m:g} m of board, target pitch "
+            f"{cfg.quality.target_pitch_mm} mm"
+        )
+        self._say(PROGRESS_LEGEND)
+        try:
+            while plant.travelled_mm < sc.distance_m * 1000.0 and plant.clock() < sc.max_sim_s:
+                t = plant.clock()
+                while pending and pending[0].at_s <= t + 1e-9:
+                    f = pending.pop(0)
+                    if f.kind == "modbus_restart":
+                        self._say(f"t={t:7.3f} s  fault: Modbus server down for "
+                                  f"{f.duration_s:g} s")
+                        await plant.plc_down(f.duration_s)
+                    elif f.kind in ("can_silence", "can_drop"):
+                        self._say(f"t={t:7.3f} s  fault: {f.kind} for {f.duration_s:g} s")
+                        extra = {k: v for k, v in f.params.items() if k != "duration_s"}
+                        plant.can_fault(f.kind, f.duration_s, **extra)
+                    # machine faults are in the simulator's [faults] table already
+                await plant.step()
+                n = len(service.results)
+                for r in service.results[n_seen:]:
+                    travel.add(r)
+                n_seen = n
+                if n >= n_last + self.progress_every:
+                    n_last = n
+                    self._say(_progress_line(service.results[-1], travel))
+            wall = time.perf_counter() - wall0
+        finally:
+            await plant.close()
+        snap = plant.plc.last
+        return _service_summary(
+            service,
+            cfg,
+            sc.faults,
+            counts_per_mm=snap.counts_per_mm if snap else self.sim_cfg.encoder.counts_per_mm,
+            log_path=self.log_path,
+            start_id=plant.start_id,
+            extra={
+                "mode": "in-process",
+                "scenario": sc.name,
+                "plc_transport": self.plc_transport,
+                "sim_time_s": round(plant.clock(), 3),
+                "wall_time_s": round(wall, 3),
+                "board_travel_m": round(plant.travelled_mm / 1000, 3),
+            },
+        )

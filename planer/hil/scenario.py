@@ -1,0 +1,242 @@
+"""HIL scenarios: what to run (``config/hil.toml``) and the simulator/service configs for it."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from config.loading import Section, default_path, load_toml
+from config.machine import MachineConfig, load_machine
+from core.errors import ConfigError
+
+INTERFACE_FAULTS = ("modbus_restart", "can_silence", "can_drop")
+FINAL_MEASUREMENTS = 5
+"""The ``final`` true values average the last this-many measurements."""
+UNIFORMITY_MAX_CV = 0.05
+PITCH_TOL = 0.02
+CONVERGE_WITHIN_MM = 3000.0
+
+Progress = Callable[[str], None]
+
+
+# ---------------------------------------------------------------------------------- scenario
+@dataclass(frozen=True)
+class FaultEvent:
+    """One injected fault: ``kind`` at machine time ``at_s`` with its parameters."""
+
+    kind: str
+    at_s: float
+    params: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def duration_s(self) -> float:
+        """How long the fault lasts (``down_s`` or ``duration_s``; 0 if instantaneous)."""
+        return float(self.params.get("down_s", self.params.get("duration_s", 0.0)))
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A HIL scenario (``config/hil.toml``).
+
+    Attributes
+    ----------
+    name : str
+        Scenario name.
+    distance_m : float
+        Board travel to run, m.
+    seed : int
+        Simulator seed.
+    runout_um : tuple of float or None
+        Knife runouts (override the simulator's), um.
+    initial_feed_mm_s : float or None
+        Feed the simulated machine starts with, mm/s.
+    target_pitch_mm : float or None
+        Target pitch (overrides the quality class of ``machine.toml``), mm.
+    sim_config, machine_config : Path or None
+        Simulator and service configuration files (``None``: the shipped ones).
+    max_sim_s : float
+        Time limit, machine seconds.
+    time_scale : float
+        Cross-process runs: simulated seconds per wall second.
+    faults : tuple of FaultEvent
+        Faults to inject.
+    """
+
+    name: str = "default"
+    distance_m: float = 5.0
+    seed: int = 0
+    runout_um: tuple[float, ...] | None = None
+    initial_feed_mm_s: float | None = None
+    target_pitch_mm: float | None = None
+    sim_config: Path | None = None
+    machine_config: Path | None = None
+    max_sim_s: float = 60.0
+    time_scale: float = 1.0
+    faults: tuple[FaultEvent, ...] = ()
+
+
+def _fault_list(raw: Any, key: str) -> tuple[FaultEvent, ...]:
+    from config.sim import FAULT_KINDS
+
+    if not isinstance(raw, list):
+        raise ConfigError(f"{key} must be a list of tables")
+    out = []
+    for i, item in enumerate(raw):
+        s = Section(item, f"{key}[{i}]")
+        kind = s.string("kind", choices=FAULT_KINDS)
+        at_s = s.number("at_s", 0.0, lo=0.0)
+        params = {}
+        for name in list(item):
+            if name in ("kind", "at_s"):
+                continue
+            params[name] = s.number(name)
+        out.append(FaultEvent(kind=kind, at_s=at_s, params=params))
+    return tuple(out)
+
+
+def _config_file(key: str, value: str, base_dir: Path | None) -> Path:
+    """The configuration file ``value`` names (relative to ``base_dir``); it must exist."""
+    given = Path(value).expanduser()
+    folder = None if given.is_absolute() else (base_dir if base_dir is not None else Path.cwd())
+    path = given if folder is None else folder / given
+    if not path.is_file():
+        where = ("" if folder is None else
+                 f" (relative paths are resolved from the scenario file's folder {folder})"
+                 if base_dir is not None else
+                 f" (relative paths are resolved from the working folder {folder})")
+        what = "is a folder, not a file" if path.is_dir() else "no such file"
+        raise ConfigError(f"{key} = {value!r}: {what}: {path}{where}")
+    return path
+
+
+def scenario_from_table(
+    name: str, table: Mapping[str, Any], base: Scenario, *, base_dir: Path | None = None
+) -> Scenario:
+    """A scenario from one TOML table, starting from ``base`` (errors name ``name.key``).
+
+    ``sim_config`` and ``machine_config`` given relative are resolved from ``base_dir`` (the
+    scenario file's folder; default the working folder) and must exist.
+    """
+    s = Section(table, name)
+    s.raw("base", None)
+    kw: dict[str, Any] = {"name": name}
+    if s.has("distance_m"):
+        kw["distance_m"] = s.number("distance_m", lo=0.0, lo_open=True, hi=1000.0)
+    if s.has("seed"):
+        kw["seed"] = s.integer("seed", lo=0)
+    if s.has("runout_um"):
+        kw["runout_um"] = s.numbers("runout_um")
+    if s.has("initial_feed_mm_s"):
+        kw["initial_feed_mm_s"] = s.number("initial_feed_mm_s", lo=0.0, lo_open=True)
+    if s.has("target_pitch_mm"):
+        kw["target_pitch_mm"] = s.number("target_pitch_mm", lo=0.0, lo_open=True)
+    for key in ("sim_config", "machine_config"):
+        if s.has(key):
+            v = s.string(key)
+            kw[key] = _config_file(s.key(key), v, base_dir) if v else None
+    if s.has("max_sim_s"):
+        kw["max_sim_s"] = s.number("max_sim_s", lo=0.0, lo_open=True)
+    if s.has("time_scale"):
+        kw["time_scale"] = s.number("time_scale", lo=0.0, lo_open=True, hi=100.0)
+    if s.has("faults"):
+        kw["faults"] = _fault_list(s.raw("faults"), f"{name}.faults")
+    s.reject_unknown()
+    return replace(base, **kw)
+
+
+def load_scenario(name_or_path: str | None = None) -> Scenario:
+    """A scenario by name from ``config/hil.toml``, or the first table of another TOML file.
+
+    Parameters
+    ----------
+    name_or_path : str, optional
+        ``"default"`` (the default), another name of ``config/hil.toml``, or a path to a TOML
+        file laid out the same way (``path.toml`` runs its ``default`` table or its only one;
+        ``path.toml:name`` picks one).
+
+    Raises
+    ------
+    ConfigError
+        Unknown scenario, bad value, unknown fault kind, missing ``sim_config`` /
+        ``machine_config`` file (relative to the scenario file's folder); the message names the
+        file and the key (``hil.toml: default.faults[0].kind must be one of ...``).
+    """
+    spec = name_or_path or "default"
+    path, name = default_path("hil.toml"), spec
+    if spec.endswith(".toml") or ".toml:" in spec:
+        p, _, nm = spec.partition(".toml")
+        path = Path(p + ".toml")
+        name = nm.lstrip(":") or ""
+    doc = load_toml(path)
+    if not name:
+        name = "default" if "default" in doc else (next(iter(doc)) if len(doc) == 1 else "")
+        if not doc:
+            raise ConfigError(f"{path}: holds no scenario (no table)")
+        if not name:
+            raise ConfigError(
+                f"{path}: holds several scenarios ({', '.join(sorted(doc))}) and none called "
+                f"default: pick one with {path}:NAME"
+            )
+    if name not in doc:
+        raise ConfigError(
+            f"{path}: no scenario {name!r} (have: {', '.join(sorted(doc)) or 'none'})"
+        )
+
+    def build(nm: str, seen: tuple[str, ...]) -> Scenario:
+        if nm in seen:
+            raise ConfigError(f"{path}: scenario {nm} has a circular base")
+        table = doc.get(nm)
+        if not isinstance(table, Mapping):
+            raise ConfigError(f"{path}: scenario {nm!r} is not a table")
+        base_name = table.get("base")
+        base = build(str(base_name), (*seen, nm)) if base_name else Scenario()
+        try:
+            return scenario_from_table(nm, table, base, base_dir=path.parent)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+
+    return build(name, ())
+
+
+# ---------------------------------------------------------------------------------- configs
+def sim_document(scenario: Scenario) -> dict[str, Any]:
+    """The simulator's TOML document for a scenario (shipped ``sim.toml`` plus overrides)."""
+    doc = load_toml(scenario.sim_config or default_path("sim.toml"))
+    if scenario.runout_um is not None:
+        doc.setdefault("cutterhead", {})["runout_um"] = list(scenario.runout_um)
+        doc["cutterhead"]["knives"] = len(scenario.runout_um)
+    if scenario.initial_feed_mm_s is not None:
+        doc.setdefault("feed", {})["initial_mm_s"] = scenario.initial_feed_mm_s
+    return doc
+
+
+def sim_config_for(scenario: Scenario, *, machine_faults: bool = True) -> Any:
+    """The :class:`config.sim.SimConfig` of a scenario (machine faults in ``[faults]``)."""
+    from config.sim import sim_from_dict
+
+    doc = sim_document(scenario)
+    if machine_faults:
+        extra = [
+            {"kind": f.kind, "at_s": f.at_s, **f.params}
+            for f in scenario.faults
+            if f.kind not in INTERFACE_FAULTS
+        ]
+        if extra:
+            doc.setdefault("faults", {}).setdefault("inject", [])
+            doc["faults"]["inject"] = list(doc["faults"]["inject"]) + extra
+    base = Path(scenario.sim_config).parent if scenario.sim_config else None
+    return sim_from_dict(doc, base_dir=base)
+
+
+def machine_config_for(scenario: Scenario, *, log_path: Path | None = None) -> MachineConfig:
+    """The service's configuration for a scenario (target pitch and log path applied)."""
+    cfg = load_machine(scenario.machine_config)
+    if scenario.target_pitch_mm is not None:
+        cfg = cfg.with_changes(
+            quality=replace(cfg.quality, target_pitch_mm=scenario.target_pitch_mm)
+        )
+    if log_path is not None:
+        cfg = cfg.with_changes(log=replace(cfg.log, path=Path(log_path)))
+    return cfg

@@ -1,0 +1,484 @@
+"""The HIL run's summary: true and measured values, settling, limits, faults; progress lines."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from config.machine import MachineConfig
+from controller.events import EventKind, ServiceEvent
+from controller.service import FrameResult, Service
+from planer.hil.scenario import (
+    CONVERGE_WITHIN_MM,
+    FINAL_MEASUREMENTS,
+    INTERFACE_FAULTS,
+    PITCH_TOL,
+    UNIFORMITY_MAX_CV,
+    FaultEvent,
+)
+
+
+# ---------------------------------------------------------------------------------- summary
+def _truth(r: FrameResult, key: str) -> float | None:
+    if not r.truth:
+        return None
+    v = r.truth.get(key)
+    try:
+        f = float(v)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def _unwrapped_mm(results: Sequence[FrameResult], counts_per_mm: float, bits: int = 32) -> list:
+    out, acc, prev = [], 0.0, None
+    m = 1 << bits
+    for r in results:
+        if prev is not None:
+            d = (r.counts_a - prev) % m
+            d = d - m if d >= m // 2 else d
+            acc += d / counts_per_mm
+        prev = r.counts_a
+        out.append(acc)
+    return out
+
+
+def _settled_at(values: Sequence[float | None], ok: Callable[[float], bool], pos: Sequence[float]):
+    """Board position from which every later value is ``ok`` (None if the last is not)."""
+    last_bad = None
+    for i, v in enumerate(values):
+        if v is None:
+            continue
+        if not ok(v):
+            last_bad = i
+    valid = [i for i, v in enumerate(values) if v is not None]
+    if not valid or (last_bad is not None and last_bad >= valid[-1]):
+        return None
+    nxt = [i for i in valid if last_bad is None or i > last_bad]
+    return pos[nxt[0]] if nxt else None
+
+
+def summarize(
+    results: Sequence[FrameResult],
+    *,
+    target_pitch_mm: float,
+    counts_per_mm: float,
+    feed_limits_mm_s: tuple[float, float],
+    stroke_um: float,
+    faults: Sequence[FaultEvent] = (),
+    events: Sequence[ServiceEvent] = (),
+    safety: Any = None,
+    time_offset_s: float = 0.0,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The HIL summary (the ``--json`` object of ``planer hil``).
+
+    Parameters
+    ----------
+    results : sequence of FrameResult
+        Every measurement of the run, in order.
+    target_pitch_mm : float
+        The quality class's target, mm.
+    counts_per_mm : float
+        Encoder resolution (board travel from ``counts_a``).
+    feed_limits_mm_s : (float, float)
+        The machine's feed limits.
+    stroke_um : float
+        The piezo stroke (offsets must stay within +-stroke).
+    faults : sequence of FaultEvent
+        Injected faults (machine time).
+    events : sequence of ServiceEvent
+        The service's events (service time).
+    safety : SafetyConfig, optional
+        For the timeouts the fault checks compare against.
+    time_offset_s : float
+        Service time minus machine time.
+    extra : mapping, optional
+        Added to the summary.
+
+    Returns
+    -------
+    dict
+        Keys ``measurements``, ``initial``, ``final``, ``target_pitch_mm`` (the contract), and
+        ``converged``, ``limits``, ``faults``, ``counts``, ``latency_ms``, ``done`` ...
+    """
+    pos = _unwrapped_mm(results, counts_per_mm)
+    lo, hi = feed_limits_mm_s
+    meas = []
+    for r, d in zip(results, pos, strict=True):
+        m = r.measurement
+        meas.append(
+            {
+                "seq": r.seq,
+                "t_s": round(r.t_s, 4),
+                "board_travel_mm": round(d, 2),
+                "ok": r.ok,
+                "error": r.error,
+                "state": r.state,
+                "applied": r.applied,
+                "pitch_mm": _num(getattr(m, "pitch_mm", None)) if r.ok else None,
+                "uniformity_cv": _num(getattr(m, "uniformity_cv", None)) if r.ok else None,
+                "true_pitch_mm": _truth(r, "pitch_mm"),
+                "true_uniformity_cv": _truth(r, "uniformity_cv"),
+                "feed_setpoint_mm_s": _num(r.feed_setpoint_mm_s),
+                "piezo_offsets_um": [round(float(v), 3) for v in r.offsets_um],
+                "knife_widths_mm": [_num(w) for w in r.knife_widths_mm],
+                "latency_ms": round(r.latency_s * 1e3, 3),
+            }
+        )
+    closed = next((i for i, r in enumerate(results) if r.applied), None)
+    out: dict[str, Any] = {"target_pitch_mm": float(target_pitch_mm)}
+    with_truth = [i for i, r in enumerate(results) if _truth(r, "uniformity_cv") is not None]
+    if with_truth:
+        first = with_truth[0]
+        out["initial"] = {
+            "uniformity_cv": _truth(results[first], "uniformity_cv"),
+            "pitch_mm": _truth(results[first], "pitch_mm"),
+            "board_travel_mm": round(pos[first], 2),
+        }
+        tail = with_truth[-FINAL_MEASUREMENTS:]
+        out["final"] = {
+            "uniformity_cv": float(np.mean([_truth(results[i], "uniformity_cv") for i in tail])),
+            "pitch_mm": float(np.mean([_truth(results[i], "pitch_mm") for i in tail])),
+            "uniformity_cv_max": float(
+                np.max([_truth(results[i], "uniformity_cv") for i in tail])
+            ),
+            "pitch_error_max": float(
+                np.max([abs(_truth(results[i], "pitch_mm") / target_pitch_mm - 1) for i in tail])
+            ),
+            "measurements": len(tail),
+        }
+    else:
+        out["initial"] = {"uniformity_cv": None, "pitch_mm": None}
+        out["final"] = {"uniformity_cv": None, "pitch_mm": None}
+    out["measurements"] = meas
+
+    # convergence after the loop closed (true values, board travel from the closing measurement);
+    # with faults: after the recovery from the last one
+    conv: dict[str, Any] = {"loop_closed_at_mm": None}
+    ref, ref_name = closed, "loop closed"
+    if closed is not None and faults:
+        last_fault = max(f.at_s for f in faults) + time_offset_s
+        recs = [e.t_s for e in events if e.kind is EventKind.RECOVERED and e.t_s >= last_fault]
+        if recs:
+            ref = next((i for i, r in enumerate(results) if r.t_s > recs[0] and r.applied), None)
+            ref_name = "recovery after the last fault"
+    if closed is not None and ref is not None:
+        c0 = pos[ref]
+        after = list(range(ref, len(results)))
+        rel = [pos[i] - c0 for i in after]
+        cv_vals = [_truth(results[i], "uniformity_cv") for i in after]
+        p_vals = [_truth(results[i], "pitch_mm") for i in after]
+        cv_at = _settled_at(cv_vals, lambda v: v <= UNIFORMITY_MAX_CV, rel)
+        p_at = _settled_at(
+            p_vals, lambda v: abs(v / target_pitch_mm - 1.0) <= PITCH_TOL, rel
+        )
+        conv = {
+            "loop_closed_at_mm": round(pos[closed], 2),
+            "reference": ref_name,
+            "reference_at_mm": round(c0, 2),
+            "uniformity_settled_after_mm": None if cv_at is None else round(cv_at, 1),
+            "pitch_settled_after_mm": None if p_at is None else round(p_at, 1),
+            "run_after_reference_mm": round(rel[-1], 1) if rel else 0.0,
+        }
+    out["converged"] = conv
+
+    feeds = [r.feed_setpoint_mm_s for r in results if r.feed_setpoint_mm_s is not None]
+    offs = [abs(v) for r in results for v in r.offsets_um]
+    out["limits"] = {
+        "feed_min_mm_s": lo,
+        "feed_max_mm_s": hi,
+        "stroke_um": stroke_um,
+        "feed_setpoint_range_mm_s": [min(feeds), max(feeds)] if feeds else None,
+        "max_abs_offset_um": max(offs) if offs else 0.0,
+        "ok": all(lo - 1e-6 <= f <= hi + 1e-6 for f in feeds)
+        and all(o <= stroke_um + 1e-9 for o in offs),
+    }
+    lat = [r.latency_s * 1e3 for r in results if r.ok]
+    out["latency_ms"] = (
+        {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)), "n": len(lat)}
+        if lat
+        else None
+    )
+    out["counts"] = {
+        "measurements": len(results),
+        "ok": sum(r.ok for r in results),
+        "failed": sum(not r.ok for r in results),
+        "applied": sum(r.applied for r in results),
+    }
+    out["faults"] = [
+        _fault_report(f, results, events, safety, time_offset_s) for f in faults
+    ]
+    cv0 = out["initial"].get("uniformity_cv")
+    cv1 = out["final"].get("uniformity_cv")
+    p1 = out["final"].get("pitch_mm")
+    done = {
+        "initial_uniformity_ge_0.10": cv0 is not None and cv0 >= 0.10,
+        "final_uniformity_le_0.05": cv1 is not None and cv1 <= UNIFORMITY_MAX_CV,
+        "final_pitch_within_2pct": p1 is not None
+        and abs(p1 / target_pitch_mm - 1.0) <= PITCH_TOL,
+        "settled_within_3m": conv.get("uniformity_settled_after_mm") is not None
+        and conv.get("pitch_settled_after_mm") is not None
+        and max(conv["uniformity_settled_after_mm"], conv["pitch_settled_after_mm"])
+        <= CONVERGE_WITHIN_MM,
+        "setpoints_within_limits": out["limits"]["ok"],
+        "faults_handled": all(f.get("handled", True) for f in out["faults"]),
+    }
+    out["done"] = done
+    out["passed"] = all(done.values())
+    if extra:
+        out.update(extra)
+    return out
+
+
+def _num(v: Any) -> float | None:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return round(f, 6) if math.isfinite(f) else None
+
+
+def _fault_report(
+    f: FaultEvent,
+    results: Sequence[FrameResult],
+    events: Sequence[ServiceEvent],
+    safety: Any,
+    offset_s: float,
+) -> dict[str, Any]:
+    t0 = f.at_s + _local_offset(results, f.at_s, offset_s)
+    t1 = t0 + f.duration_s
+    rep: dict[str, Any] = {"kind": f.kind, "at_s": f.at_s, **dict(f.params)}
+    if f.kind not in INTERFACE_FAULTS:
+        return rep
+    safe = next((e.t_s for e in events
+                 if e.kind is EventKind.SAFE_STATE and e.t_s >= t0 - 1e-9), None)
+    rec = next(
+        (e.t_s for e in events
+         if e.kind is EventKind.RECOVERED and safe is not None and e.t_s > safe),
+        None,
+    )
+    timeout = None
+    if safety is not None:
+        timeout = safety.plc_timeout_s if f.kind == "modbus_restart" else safety.can_timeout_s
+    rep["safe_after_s"] = None if safe is None else round(safe - t0, 3)
+    rep["recovered_after_end_s"] = None if rec is None else round(rec - t1, 3)
+    resumed = [r for r in results if rec is not None and r.t_s > rec and r.applied]
+    rep["resumed_measurements"] = len(resumed)
+    # every pair handled while in the safe state (state and offsets are read at one instant)
+    in_safe = [r for r in results if safe is not None and r.t_s >= t0 and r.state == "safe"
+               and (rec is None or r.t_s < rec)]
+    rep["offsets_zero_in_safe"] = all(all(v == 0 for v in r.offsets_um) for r in in_safe)
+    rep["timeout_s"] = timeout
+    slack = 0.1 + (safety.cycle_s if safety is not None else 0.02)
+    rep["handled"] = (
+        safe is not None
+        and (timeout is None or safe - t0 <= timeout + slack)
+        and rec is not None
+        and len(resumed) > 0
+        and rep["offsets_zero_in_safe"]
+    )
+    return rep
+
+
+def safe_periods(
+    events: Sequence[ServiceEvent],
+    *,
+    start_s: float,
+    end_s: float,
+    offset_s: float = 0.0,
+) -> list[list[float]]:
+    """When the service was in the safe state, in machine time, from its events.
+
+    The service starts in the safe state; ``"safe state: ..."`` enters it, ``"recovered..."``
+    leaves it. Unlike the records' states this also covers safe states between boards, when no
+    pair is measured.
+
+    Parameters
+    ----------
+    events : sequence of ServiceEvent
+        The service's events in order.
+    start_s, end_s : float
+        Service time at the start and the end of the run.
+    offset_s : float
+        Service time minus machine time.
+
+    Returns
+    -------
+    list of [float, float, str]
+        ``[start, end, reason]`` of each safe period: machine times, s (rounded to 1 ms), and
+        why it was entered (``"plc gone"``; ``"starting up"`` for the first one).
+    """
+    out: list[list[Any]] = []
+    since: float | None = start_s
+    why = "starting up"
+    for ev in events:
+        t = ev.t_s
+        if ev.kind is EventKind.SAFE_STATE and since is None:
+            since, why = t, ev.text.partition(":")[2].strip() or "unknown"
+        elif ev.kind is EventKind.RECOVERED and since is not None:
+            out.append([since, t, why])
+            since = None
+    if since is not None and end_s > since:
+        out.append([since, end_s, why])
+    return [[round(a - offset_s, 3), round(b - offset_s, 3), w] for a, b, w in out]
+
+
+def check_log(path: Path, n_expected: int, *, after_id: int = 0) -> dict[str, Any]:
+    """Integrity of the quality log after a run: every measurement once, none torn.
+
+    Parameters
+    ----------
+    path : Path
+        The quality log.
+    n_expected : int
+        Measurements the run handled.
+    after_id : int
+        Id of the last record before the run (a log may be continued).
+
+    Returns
+    -------
+    dict
+        ``path``, ``after_id`` (the run's records have larger ids), ``records`` (count),
+        ``expected``, ``ids_consecutive``, ``ok``.
+    """
+    from controller.quality_log import QualityLog
+
+    with QualityLog(path, create=False) as log:
+        entries = log.entries(after_id=after_id)
+    ids = [i for i, _ in entries]
+    consecutive = ids == list(range(ids[0], ids[0] + len(ids))) if ids else True
+    return {
+        "path": str(path),
+        "after_id": int(after_id),
+        "records": len(entries),
+        "expected": n_expected,
+        "ids_consecutive": consecutive,
+        "ok": len(entries) == n_expected and consecutive,
+    }
+
+
+def _service_summary(
+    service: Service,
+    cfg: MachineConfig,
+    faults: Sequence[FaultEvent],
+    *,
+    counts_per_mm: float,
+    log_path: Path,
+    start_id: int,
+    time_offset_s: float = 0.0,
+    t_start_s: float = 0.0,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """:func:`summarize` a finished run of ``service`` and check its quality log."""
+    results = service.results
+    snap = service.plc.last
+    lim = (snap.feed_min_mm_s, snap.feed_max_mm_s) if snap else (math.nan, math.nan)
+    summary = summarize(
+        results,
+        target_pitch_mm=cfg.quality.target_pitch_mm,
+        counts_per_mm=counts_per_mm,
+        feed_limits_mm_s=lim,
+        stroke_um=cfg.stroke_um,
+        faults=faults,
+        events=service.events,
+        safety=cfg.safety,
+        time_offset_s=time_offset_s,
+        extra={
+            **dict(extra or {}),
+            "events": [[round(e.t_s - t_start_s, 3), e.text] for e in service.events],
+            "service": dict(service.counters),
+        },
+    )
+    end_s = max([t_start_s] + [r.t_s for r in results] + [e.t_s for e in service.events])
+    summary["safe_periods_s"] = safe_periods(service.events, start_s=t_start_s, end_s=end_s,
+                                             offset_s=time_offset_s)
+    summary["quality_log"] = check_log(Path(log_path), len(results), after_id=start_id)
+    summary["done"]["quality_log_intact"] = summary["quality_log"]["ok"]
+    summary["passed"] = all(summary["done"].values())
+    return summary
+
+
+
+
+class BoardTravel:
+    """Board measured since the loop closed, from the results' encoder counts (progress lines).
+
+    Both HIL modes report this distance, so the same state reads the same in either: the
+    board travel (unwrapped ``counts_a``) from the first result whose setpoints were applied.
+
+    Parameters
+    ----------
+    counts_per_mm : float
+        Encoder counts per mm of board travel.
+    bits : int
+        Width of the encoder counter (wrap-around).
+    """
+
+    def __init__(self, counts_per_mm: float, *, bits: int = 32) -> None:
+        if not (counts_per_mm > 0 and math.isfinite(counts_per_mm)):
+            raise ValueError(f"counts_per_mm must be a finite number > 0, got {counts_per_mm!r}")
+        self.counts_per_mm = float(counts_per_mm)
+        self._modulus = 1 << int(bits)
+        self._prev: int | None = None
+        self.measured_mm = 0.0
+        """Board travel from the first result to the last one added, mm."""
+        self.closed_at_mm: float | None = None
+        """``measured_mm`` at the first applied result (the loop closed), mm."""
+
+    def add(self, result: FrameResult) -> None:
+        """Account for the next result (in order)."""
+        if self._prev is not None:
+            d = (result.counts_a - self._prev) % self._modulus
+            if d >= self._modulus // 2:
+                d -= self._modulus
+            self.measured_mm += d / self.counts_per_mm
+        self._prev = result.counts_a
+        if self.closed_at_mm is None and result.applied:
+            self.closed_at_mm = self.measured_mm
+
+    @property
+    def since_closed_mm(self) -> float | None:
+        """Board measured since the loop closed, mm (``None`` while it has not closed)."""
+        return None if self.closed_at_mm is None else self.measured_mm - self.closed_at_mm
+
+
+PROGRESS_LEGEND = ("progress: metres of board measured since the loop closed, state, measured "
+                   "pitch and CV (true), feed setpoint, piezo offsets")
+
+
+def _progress_line(r: FrameResult, travel: BoardTravel) -> str:
+    m = r.measurement
+    tp = _truth(r, "pitch_mm")
+    tc = _truth(r, "uniformity_cv")
+    pitch = f"{m.pitch_mm:.3f}" if r.ok and m is not None else "  -  "
+    cv = f"{m.uniformity_cv:.3f}" if r.ok and m is not None else "  -  "
+    feed = f"{r.feed_setpoint_mm_s:6.1f}" if r.feed_setpoint_mm_s is not None else "   -  "
+    offs = " ".join(f"{v:+5.2f}" for v in r.offsets_um)
+    truth = f" (true {tp:.3f} / {tc:.3f})" if tp is not None and tc is not None else ""
+    d = travel.since_closed_mm
+    dist = "  -  " if d is None else f"{d / 1000:5.2f}"
+    return (
+        f"{dist} m  {r.state:4s}  pitch {pitch} mm  cv {cv}{truth}  "
+        f"feed {feed} mm/s  offsets [{offs}] um"
+    )
+
+
+LOCAL_OFFSET_WINDOW_S = 2.0
+"""Machine seconds before a fault whose frames map its time onto the service clock."""
+
+
+def _local_offset(results: Sequence[FrameResult], at_s: float, default: float) -> float:
+    """Service time minus machine time just before machine time ``at_s``.
+
+    The lowest arrival delay of the pairs taken in the ``LOCAL_OFFSET_WINDOW_S`` before it: a
+    simulator that fell behind real time for a while (a loaded machine) shifts the mapping, and
+    a fault's timing is judged against the mapping in force when it happened.
+    """
+    offs = [r.t_s - r.frame_t_s for r in results
+            if at_s - LOCAL_OFFSET_WINDOW_S <= r.frame_t_s <= at_s]
+    return max(min(offs), default) if offs else default
