@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
 import math
-from collections.abc import Mapping
+import re
+from collections.abc import Iterator, Mapping
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -16,6 +19,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 from core.errors import ConfigError
 
 _MISSING = object()
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 
 
 def default_path(name: str) -> Path:
@@ -35,8 +39,36 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"config path is a directory, not a file: {p}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:  # TOML is UTF-8 text
+        raise ConfigError(
+            f"{p}: not valid TOML: not UTF-8 text (byte {exc.start}: {exc.reason})"
+        ) from None
     except OSError as exc:
         raise ConfigError(f"cannot read config file {p}: {exc.strerror}") from None
+
+
+@contextlib.contextmanager
+def naming_file(path: str | Path | None) -> Iterator[None]:
+    """Prefix every ``ConfigError`` raised inside the block with the file it came from.
+
+    Parameters
+    ----------
+    path : str, Path or None
+        The configuration file; ``None`` (built in code, no file) leaves errors as they are.
+        A message that already starts with the file name is not prefixed twice.
+
+    Examples
+    --------
+    >>> with naming_file(cfg.source):  # doctest: +SKIP
+    ...     FeedLoopConfig.from_mapping(cfg.feed_loop)  # "x.toml: unknown key feed_loop.gian"
+    """
+    try:
+        yield
+    except ConfigError as exc:
+        text = str(exc)
+        if path is None or text.startswith(f"{path}:"):
+            raise
+        raise ConfigError(f"{path}: {text}") from None
 
 
 class Section:
@@ -58,8 +90,9 @@ class Section:
         self._used: set[str] = set()
 
     def key(self, name: str) -> str:
-        """Dotted name of ``name`` in this section."""
-        return f"{self._prefix}.{name}" if self._prefix else name
+        """Dotted name of ``name`` in this section (quoted as TOML does when not a bare key)."""
+        text = name if _BARE_KEY.fullmatch(str(name)) else json.dumps(str(name))
+        return f"{self._prefix}.{text}" if self._prefix else text
 
     def has(self, name: str) -> bool:
         """Whether the key is present."""
@@ -155,6 +188,13 @@ class Section:
 
 
 # ------------------------------------------------------------------ tables shared by the configs
+LOOPBACK_HOST = "127.0.0.1"
+"""Default Modbus host: the simulator's PLC listens here and the service connects here."""
+MODBUS_PORT = 5020
+"""Default Modbus TCP port of the simulator's PLC and of the service's client (502 needs root)."""
+SPOOL_DIR = "runs/spool"
+"""Default frame spool folder: the simulator's camera writes it, the service reads it."""
+
 CAN_INTERFACES = ("virtual", "udp_multicast", "remote", "socketcan")
 """python-can interfaces the project uses (in-process, namespace multicast, remote, the machine)."""
 

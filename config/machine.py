@@ -17,10 +17,20 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from config.loading import Section, can_bus_keys, default_path, load_toml, modbus_endpoint
+from config.loading import (
+    LOOPBACK_HOST,
+    MODBUS_PORT,
+    SPOOL_DIR,
+    Section,
+    can_bus_keys,
+    default_path,
+    load_toml,
+    modbus_endpoint,
+    naming_file,
+)
 from core.errors import ConfigError
 
-FRAME_SOURCES = ("spool", "inprocess")
+FRAME_SOURCES = ("spool", "inprocess", "camera")
 SAFE_STATES = ("hold", "ramp_down")
 
 
@@ -44,8 +54,8 @@ class PlcConfig:
         Register map file; ``None`` means the shipped ``config/registers.toml``.
     """
 
-    host: str = "127.0.0.1"
-    port: int = 5020
+    host: str = LOOPBACK_HOST
+    port: int = MODBUS_PORT
     unit_id: int = 1
     timeout_s: float = 0.25
     backoff_initial_s: float = 0.05
@@ -90,11 +100,17 @@ class FramesConfig:
     """
 
     source: str = "spool"
-    spool_dir: Path = Path("runs/spool")
+    spool_dir: Path = Path(SPOOL_DIR)
     poll_s: float = 0.002
     pairs_per_s: float = 10.0
     image_width: int = 0
     image_height: int = 0
+    # source = "camera" (docs/camera.md): Aravis device id and GenICam settings
+    camera_id: str = ""
+    exposure_us: float = 0.0  # 0: the rig's exposure_ms, else the camera's
+    gain_db: float = 0.0
+    trigger_source: str = "Line1"  # PLC trigger line; "Software" for tests
+    packet_size: int = 0  # GigE Vision packet size, bytes; 0: negotiated
 
 
 @dataclass(frozen=True)
@@ -151,6 +167,52 @@ class LogConfig:
 
     path: Path = Path("runs/quality.sqlite")
     print_every: int = 20
+    machine_id: str = ""
+    """``[machine] id``: names this machine's records in a shared quality log ("" = host name)."""
+
+
+@dataclass(frozen=True)
+class OpcUaConfig:
+    """``[opcua]``: the OPC UA server (``docs/opcua.md``); off while ``endpoint`` is empty.
+
+    ``certificate`` / ``private_key`` (Basic256Sha256 SignAndEncrypt) and ``users_file`` (user
+    names and password hashes) are required to bind anything but a loopback address.
+    """
+
+    endpoint: str = ""
+    certificate: Path | None = None
+    private_key: Path | None = None
+    users_file: Path | None = None
+
+
+IDENTIFICATION_KEYS = (
+    "Manufacturer", "Model", "SerialNumber", "ProductInstanceUri", "DeviceClass",
+    "YearOfConstruction", "MonthOfConstruction", "ManufacturerUri", "ProductCode",
+    "HardwareRevision", "SoftwareRevision", "AssetId", "ComponentName", "Location",
+)
+"""``[identification]`` keys (OPC UA Machinery ``Identification``; the years/months integers)."""
+
+
+def _opcua_tables(root: Section) -> tuple[OpcUaConfig, Mapping[str, Any]]:
+    op = root.section("opcua", required=False)
+    endpoint = op.string("endpoint", "")
+    if endpoint and not endpoint.startswith("opc.tcp://"):
+        raise ConfigError(f"{op.key('endpoint')} must look like opc.tcp://127.0.0.1:4840")
+    opcua = OpcUaConfig(endpoint=endpoint, certificate=_path_or_none(op, "certificate", None),
+                        private_key=_path_or_none(op, "private_key", None),
+                        users_file=_path_or_none(op, "users_file", None))
+    op.reject_unknown()
+    idn = root.section("identification", required=False)
+    ident: dict[str, Any] = {}
+    for key in IDENTIFICATION_KEYS:
+        if idn.raw(key, None) is None:
+            continue
+        if key in ("YearOfConstruction", "MonthOfConstruction"):
+            ident[key] = idn.integer(key, lo=1, hi=12 if key == "MonthOfConstruction" else 65535)
+        else:
+            ident[key] = idn.string(key)
+    idn.reject_unknown()
+    return opcua, _frozen(ident)
 
 
 @dataclass(frozen=True)
@@ -173,6 +235,12 @@ class MachineConfig:
     plausibility: PlausibilityConfig = PlausibilityConfig()
     safety: SafetyConfig = SafetyConfig()
     log: LogConfig = LogConfig()
+    opcua: OpcUaConfig = OpcUaConfig()
+    identification: Mapping[str, Any] = field(default_factory=_frozen)
+    source: Path | None = field(default=None, compare=False)
+    """The file this configuration was loaded from (``None``: built in code). Code that checks
+    the raw ``feed_loop`` / ``uniformity_loop`` tables later names it with
+    ``with config.loading.naming_file(cfg.source): ...``."""
 
     def with_changes(self, **tables: Any) -> MachineConfig:
         """A copy with whole tables replaced, e.g. ``cfg.with_changes(plc=new_plc)``."""
@@ -220,16 +288,23 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
         A value is missing, of the wrong type or out of range; the message names the key.
     """
     root = Section(data, "")
+    # every default is the dataclass field's own (written once, in the classes above)
+    d = MachineConfig()
 
     plc = root.section("plc", required=False)
-    host, port, unit_id = modbus_endpoint(plc, host="127.0.0.1", port=5020, unit_id=1, unit_hi=247)
+    dp = d.plc
+    host, port, unit_id = modbus_endpoint(
+        plc, host=dp.host, port=dp.port, unit_id=dp.unit_id, unit_hi=247
+    )
     plc_cfg = PlcConfig(
         host=host,
         port=port,
         unit_id=unit_id,
-        timeout_s=plc.number("timeout_s", 0.25, lo=0.0, lo_open=True, hi=60.0),
-        backoff_initial_s=plc.number("backoff_initial_s", 0.05, lo=0.0, lo_open=True),
-        backoff_max_s=plc.number("backoff_max_s", 2.0, lo=0.0, lo_open=True),
+        timeout_s=plc.number("timeout_s", dp.timeout_s, lo=0.0, lo_open=True, hi=60.0),
+        backoff_initial_s=plc.number(
+            "backoff_initial_s", dp.backoff_initial_s, lo=0.0, lo_open=True
+        ),
+        backoff_max_s=plc.number("backoff_max_s", dp.backoff_max_s, lo=0.0, lo_open=True),
         registers=_path_or_none(plc, "registers", base),
     )
     if plc_cfg.backoff_max_s < plc_cfg.backoff_initial_s:
@@ -237,66 +312,88 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
     plc.reject_unknown()
 
     can = root.section("can", required=False)
-    interface, channel, options = can_bus_keys(can, interface="virtual", channel="planer")
+    dc = d.can
+    interface, channel, options = can_bus_keys(can, interface=dc.interface, channel=dc.channel)
     can_cfg = CanConfig(
         interface=interface,
         channel=channel,
         options=_frozen(options),
-        command_period_s=can.number("command_period_s", 0.02, lo=0.0, lo_open=True, hi=0.05),
-        offsets_period_s=can.number("offsets_period_s", 0.2, lo=0.0, lo_open=True, hi=10.0),
+        command_period_s=can.number(
+            "command_period_s", dc.command_period_s, lo=0.0, lo_open=True, hi=0.05
+        ),
+        offsets_period_s=can.number(
+            "offsets_period_s", dc.offsets_period_s, lo=0.0, lo_open=True, hi=10.0
+        ),
         dbc=_path_or_none(can, "dbc", base),
     )
     can.reject_unknown()
 
     fr = root.section("frames", required=False)
+    df = d.frames
     frames_cfg = FramesConfig(
-        source=fr.string("source", "spool", choices=FRAME_SOURCES),
-        spool_dir=Path(fr.string("spool_dir", "runs/spool")),
-        poll_s=fr.number("poll_s", 0.002, lo=0.0, lo_open=True, hi=1.0),
-        pairs_per_s=fr.number("pairs_per_s", 10.0, lo=0.0, lo_open=True, hi=1000.0),
-        image_width=fr.integer("image_width", 0, lo=0, hi=100_000),
-        image_height=fr.integer("image_height", 0, lo=0, hi=100_000),
+        source=fr.string("source", df.source, choices=FRAME_SOURCES),
+        spool_dir=Path(fr.string("spool_dir", str(df.spool_dir))),
+        poll_s=fr.number("poll_s", df.poll_s, lo=0.0, lo_open=True, hi=1.0),
+        pairs_per_s=fr.number("pairs_per_s", df.pairs_per_s, lo=0.0, lo_open=True, hi=1000.0),
+        image_width=fr.integer("image_width", df.image_width, lo=0, hi=100_000),
+        image_height=fr.integer("image_height", df.image_height, lo=0, hi=100_000),
+        camera_id=fr.string("camera_id", df.camera_id),
+        exposure_us=fr.number("exposure_us", df.exposure_us, lo=0.0, hi=1e7),
+        gain_db=fr.number("gain_db", df.gain_db, lo=0.0, hi=100.0),
+        trigger_source=fr.string("trigger_source", df.trigger_source),
+        packet_size=fr.integer("packet_size", df.packet_size, lo=0, hi=16_384),
     )
     fr.reject_unknown()
 
     rig = None if root.string("rig", "") == "" else Path(root.string("rig"))
 
     q = root.section("quality", required=False)
+    dq = d.quality
     quality_cfg = QualityConfig(
-        class_name=q.string("class_name", "fine-1.5"),
-        target_pitch_mm=q.number("target_pitch_mm", 1.5, lo=0.0, lo_open=True, hi=20.0),
-        tolerance=q.number("tolerance", 0.02, lo=0.0, lo_open=True, hi=1.0),
-        uniformity_max_cv=q.number("uniformity_max_cv", 0.05, lo=0.0, lo_open=True),
-        depth_max_um=q.number("depth_max_um", 20.0, lo=0.0, lo_open=True),
+        class_name=q.string("class_name", dq.class_name),
+        target_pitch_mm=q.number(
+            "target_pitch_mm", dq.target_pitch_mm, lo=0.0, lo_open=True, hi=20.0
+        ),
+        tolerance=q.number("tolerance", dq.tolerance, lo=0.0, lo_open=True, hi=1.0),
+        uniformity_max_cv=q.number(
+            "uniformity_max_cv", dq.uniformity_max_cv, lo=0.0, lo_open=True
+        ),
+        depth_max_um=q.number("depth_max_um", dq.depth_max_um, lo=0.0, lo_open=True),
     )
     q.reject_unknown()
 
     pz = root.section("piezo", required=False)
-    stroke_um = pz.number("stroke_um", 20.0, lo=0.0, lo_open=True, hi=32.767)
+    stroke_um = pz.number("stroke_um", d.stroke_um, lo=0.0, lo_open=True, hi=32.767)
     pz.reject_unknown()
 
     feed_loop = _loop_table(root.section("feed_loop", required=False))
     uniformity_loop = _loop_table(root.section("uniformity_loop", required=False))
 
     pl = root.section("plausibility", required=False)
+    dl = d.plausibility
     plaus_cfg = PlausibilityConfig(
-        pitch_ratio_min=pl.number("pitch_ratio_min", 0.5, lo=0.0, lo_open=True, hi=1.0),
-        pitch_ratio_max=pl.number("pitch_ratio_max", 2.0, lo=1.0),
-        min_marks=pl.integer("min_marks", 6, lo=2),
-        min_confidence=pl.number("min_confidence", 0.3, lo=0.0, hi=1.0),
+        pitch_ratio_min=pl.number(
+            "pitch_ratio_min", dl.pitch_ratio_min, lo=0.0, lo_open=True, hi=1.0
+        ),
+        pitch_ratio_max=pl.number("pitch_ratio_max", dl.pitch_ratio_max, lo=1.0),
+        min_marks=pl.integer("min_marks", dl.min_marks, lo=2),
+        min_confidence=pl.number("min_confidence", dl.min_confidence, lo=0.0, hi=1.0),
     )
     pl.reject_unknown()
 
     sf = root.section("safety", required=False)
+    ds = d.safety
     safety_cfg = SafetyConfig(
-        cycle_s=sf.number("cycle_s", 0.02, lo=0.0, lo_open=True, hi=0.05),
-        plc_timeout_s=sf.number("plc_timeout_s", 0.5, lo=0.0, lo_open=True),
-        can_timeout_s=sf.number("can_timeout_s", 0.3, lo=0.0, lo_open=True),
-        measurement_timeout_s=sf.number("measurement_timeout_s", 2.0, lo=0.0, lo_open=True),
-        recovery_s=sf.number("recovery_s", 0.3, lo=0.0),
-        safe_state=sf.string("safe_state", "ramp_down", choices=SAFE_STATES),
-        safe_feed_mm_s=sf.number("safe_feed_mm_s", 400.0, lo=0.0),
-        ramp_mm_s2=sf.number("ramp_mm_s2", 500.0, lo=0.0, lo_open=True),
+        cycle_s=sf.number("cycle_s", ds.cycle_s, lo=0.0, lo_open=True, hi=0.05),
+        plc_timeout_s=sf.number("plc_timeout_s", ds.plc_timeout_s, lo=0.0, lo_open=True),
+        can_timeout_s=sf.number("can_timeout_s", ds.can_timeout_s, lo=0.0, lo_open=True),
+        measurement_timeout_s=sf.number(
+            "measurement_timeout_s", ds.measurement_timeout_s, lo=0.0, lo_open=True
+        ),
+        recovery_s=sf.number("recovery_s", ds.recovery_s, lo=0.0),
+        safe_state=sf.string("safe_state", ds.safe_state, choices=SAFE_STATES),
+        safe_feed_mm_s=sf.number("safe_feed_mm_s", ds.safe_feed_mm_s, lo=0.0),
+        ramp_mm_s2=sf.number("ramp_mm_s2", ds.ramp_mm_s2, lo=0.0, lo_open=True),
     )
     for name in ("plc_timeout_s", "can_timeout_s"):
         if getattr(safety_cfg, name) <= safety_cfg.cycle_s:
@@ -305,10 +402,17 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
 
     lg = root.section("log", required=False)
     log_cfg = LogConfig(
-        path=Path(lg.string("path", "runs/quality.sqlite")),
-        print_every=lg.integer("print_every", 20, lo=1),
+        path=Path(lg.string("path", str(d.log.path))),
+        print_every=lg.integer("print_every", d.log.print_every, lo=1),
     )
     lg.reject_unknown()
+    mc = root.section("machine", required=False)  # [machine] id: stamped on quality records
+    mid = mc.string("id", d.log.machine_id)
+    if mid and (len(mid) > 64 or not mid.isprintable() or mid != mid.strip()):
+        raise ConfigError(f"{mc.key('id')} must be 1..64 printable characters, got {mid!r:.80}")
+    log_cfg = replace(log_cfg, machine_id=mid)
+    mc.reject_unknown()
+    opcua_cfg, identification = _opcua_tables(root)
 
     root.reject_unknown()
     return MachineConfig(
@@ -323,6 +427,8 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
         plausibility=plaus_cfg,
         safety=safety_cfg,
         log=log_cfg,
+        opcua=opcua_cfg,
+        identification=identification,
     )
 
 
@@ -330,10 +436,8 @@ def load_machine(path: str | Path | None = None) -> MachineConfig:
     """Load and check ``machine.toml`` (default: the shipped one); errors name file and key."""
     p = default_path("machine.toml") if path is None else Path(path)
     data = load_toml(p)
-    try:
-        return machine_from_dict(data, base=p.parent)
-    except ConfigError as exc:
-        raise ConfigError(f"{p}: {exc}") from None
+    with naming_file(p):
+        return replace(machine_from_dict(data, base=p.parent), source=p)
 
 
 def registers_path(cfg: MachineConfig) -> Path:

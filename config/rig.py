@@ -7,6 +7,10 @@ Contract (other tools rely on these keys; add freely, never rename):
 - ``[lights]`` ``slant_deg``, ``azimuth_a_deg`` (light of image A, default 0),
   ``azimuth_b_deg`` (default 180)
 - ``[encoder]`` ``px_per_count``
+- optional (``planer calibrate-rig`` writes them): ``[camera]`` ``roll_deg`` (angle of the feed
+  from the image x axis, toward +v; default 0), ``width``, ``height`` (image size the camera was
+  calibrated at: images of another size are refused); ``[lights]`` ``slant_a_deg``,
+  ``slant_b_deg`` (each light's own slant; default ``slant_deg``)
 
 Conventions: image x = columns; the board moves toward +x; image B is taken after image A, so a
 point at undistorted column u in A is at u + d in B. The light at azimuth 0 deg stands on the +x
@@ -38,6 +42,10 @@ class Camera:
         Scale of the undistorted image along the feed, pixels per millimetre.
     exposure_ms : float or None
         Exposure time, milliseconds; ``None`` when unknown (no motion deblurring).
+    roll_deg : float
+        Camera roll: angle of the feed direction from the image x axis (toward +v), degrees.
+    width, height : int or None
+        Image size the intrinsics belong to, pixels (``None``: not recorded).
     """
 
     fx: float
@@ -47,15 +55,31 @@ class Camera:
     dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
     px_per_mm: float = 12.5
     exposure_ms: float | None = None
+    roll_deg: float = 0.0
+    width: int | None = None
+    height: int | None = None
 
 
 @dataclass(frozen=True)
 class Lights:
-    """Two grazing lights; slant from the camera axis, azimuth from +x (degrees)."""
+    """Two grazing lights; slant from the camera axis, azimuth from +x (degrees).
+
+    ``slant_a_deg`` / ``slant_b_deg`` are each light's own slant when calibrated (``None``:
+    ``slant_deg``); see :attr:`slants_deg`.
+    """
 
     slant_deg: float
     azimuth_a_deg: float = 0.0
     azimuth_b_deg: float = 180.0
+    slant_a_deg: float | None = None
+    slant_b_deg: float | None = None
+
+    @property
+    def slants_deg(self) -> tuple[float, float]:
+        """``(slant of light A, slant of light B)``, degrees."""
+        a = self.slant_deg if self.slant_a_deg is None else self.slant_a_deg
+        b = self.slant_deg if self.slant_b_deg is None else self.slant_b_deg
+        return a, b
 
 
 @dataclass(frozen=True)
@@ -91,6 +115,12 @@ def rig_from_dict(data: Mapping[str, Any]) -> Rig:
     if len(dist) != 5:
         raise ConfigError(f"camera.dist must have 5 values [k1, k2, p1, p2, k3], got {len(dist)}")
     exposure = cam.raw("exposure_ms", None)
+    size = {}
+    for key in ("width", "height"):
+        if cam.raw(key, None) is not None:
+            size[key] = cam.integer(key)
+            if size[key] < 8:
+                raise ConfigError(f"camera.{key} must be >= 8 pixels, got {size[key]}")
     camera = Camera(
         fx=cam.number("fx", lo=0.0, lo_open=True),
         fy=cam.number("fy", lo=0.0, lo_open=True),
@@ -99,12 +129,18 @@ def rig_from_dict(data: Mapping[str, Any]) -> Rig:
         dist=dist,  # type: ignore[arg-type]
         px_per_mm=cam.number("px_per_mm", lo=0.0, lo_open=True),
         exposure_ms=None if exposure is None else cam.number("exposure_ms", lo=0.0),
+        roll_deg=cam.number("roll_deg", 0.0, lo=-10.0, hi=10.0),
+        **size,
     )
     lit = root.section("lights")
     lights = Lights(
         slant_deg=lit.number("slant_deg", lo=0.0, hi=89.0, lo_open=True),
         azimuth_a_deg=lit.number("azimuth_a_deg", 0.0, lo=-360.0, hi=360.0),
         azimuth_b_deg=lit.number("azimuth_b_deg", 180.0, lo=-360.0, hi=360.0),
+        slant_a_deg=(None if lit.raw("slant_a_deg", None) is None
+                     else lit.number("slant_a_deg", lo=0.0, hi=89.0, lo_open=True)),
+        slant_b_deg=(None if lit.raw("slant_b_deg", None) is None
+                     else lit.number("slant_b_deg", lo=0.0, hi=89.0, lo_open=True)),
     )
     enc = root.section("encoder")
     bits = enc.integer("counter_bits", 32)
@@ -139,12 +175,20 @@ def rig_to_toml(rig: Rig) -> str:
     ]
     if c.exposure_ms is not None:
         lines.append(f"exposure_ms = {c.exposure_ms!r}")
+    if c.roll_deg:
+        lines.append(f"roll_deg = {c.roll_deg!r}")
+    if c.width is not None:
+        lines.append(f"width = {c.width!r}")
+    if c.height is not None:
+        lines.append(f"height = {c.height!r}")
     lines += [
         "",
         "[lights]",
         f"slant_deg = {li.slant_deg!r}",
         f"azimuth_a_deg = {li.azimuth_a_deg!r}",
         f"azimuth_b_deg = {li.azimuth_b_deg!r}",
+        *([f"slant_a_deg = {li.slant_a_deg!r}"] if li.slant_a_deg is not None else []),
+        *([f"slant_b_deg = {li.slant_b_deg!r}"] if li.slant_b_deg is not None else []),
         "",
         "[encoder]",
         f"px_per_count = {e.px_per_count!r}",

@@ -19,7 +19,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from config.loading import Section, can_bus_keys, default_path, load_toml, modbus_endpoint
+from config.faults import FAULT_KINDS as _FAULT_KINDS
+from config.faults import parse_fault
+from config.loading import (
+    LOOPBACK_HOST,
+    MODBUS_PORT,
+    SPOOL_DIR,
+    Section,
+    can_bus_keys,
+    default_path,
+    load_toml,
+    modbus_endpoint,
+)
 from config.rig import Rig, load_rig
 from core.errors import ConfigError
 
@@ -34,6 +45,7 @@ __all__ = [
     "FramesConfig",
     "ModbusConfig",
     "OpticsConfig",
+    "PencilLineConfig",
     "PiezoConfig",
     "PlcConfig",
     "RunConfig",
@@ -45,21 +57,8 @@ __all__ = [
     "sim_from_dict",
 ]
 
-FAULT_KINDS: tuple[str, ...] = (
-    "belt_slip",
-    "encoder_wrap",
-    "encoder_fault",
-    "knot",
-    "spindle_stop",
-    "estop",
-    "feed_fault",
-    "piezo_fault",
-    "can_drop",
-    "modbus_restart",
-    "can_silence",
-    "reset",
-)
-"""Fault kinds the machine model understands (see ``docs/simulator.md``)."""
+FAULT_KINDS: tuple[str, ...] = _FAULT_KINDS
+"""Fault kinds the machine model understands (the registry :mod:`config.faults`)."""
 
 
 @dataclass(frozen=True)
@@ -217,7 +216,8 @@ class OpticsConfig:
     falloff : float
         Fractional intensity change of each LED across the field.
     noise : float
-        Read noise, digital numbers rms (shot noise is always on).
+        Read noise, digital numbers rms (shot noise is always on); the file's key is
+        ``read_noise_dn`` (or its older name ``noise``).
     width, height : int
         Image size, pixels.
     """
@@ -227,6 +227,11 @@ class OpticsConfig:
     noise: float = 0.5
     width: int = 659
     height: int = 493
+
+    @property
+    def read_noise_dn(self) -> float:
+        """Read noise, DN rms (the same as ``noise``)."""
+        return self.noise
 
 
 @dataclass(frozen=True)
@@ -249,6 +254,12 @@ class CameraConfig:
         Wood species of the boards (a key of :data:`config.wood.SPECIES`).
     optics : OpticsConfig
         Rendering knobs.
+    roll_deg : float
+        The camera's true roll about its optical axis, degrees (the rig file knows nothing of
+        it): the marks lean by this angle in the images.
+    slant_offset_deg : tuple of float
+        True slant of lights A and B minus the rig file's ``slant_deg`` (keys
+        ``slant_offset_a_deg``, ``slant_offset_b_deg``); the renderer uses the true slants.
     """
 
     rig_path: Path
@@ -258,6 +269,17 @@ class CameraConfig:
     dt_ab_s: float = 0.002
     species: str = "spruce"
     optics: OpticsConfig = field(default_factory=OpticsConfig)
+    roll_deg: float = 0.0
+    slant_offset_deg: tuple[float, float] = (0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class PencilLineConfig:
+    """A pencil line along the feed: position across the board, width, relative darkening."""
+
+    y_mm: float = 0.0
+    width_mm: float = 0.6
+    darkness: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -274,12 +296,30 @@ class BoardConfig:
         Distance of the first board's leading end before the cutter axis at time 0.
     count : int
         Number of boards (0: endless).
+    width_mm : float
+        Width of the boards (for ``cup_mm``).
+    scattering_mm : float
+        Subsurface scattering length along the fibres, mm (0: none); the species'
+        translucency sets how much light scatters and its anisotropy the length across.
+    reflectance_roughness_deg : float
+        Oren-Nayar roughness of the wood's reflectance, degrees (0: Lambert).
+    bow_mm, cup_mm : float
+        Sagitta of every board along its length and across its width (ends / edges higher).
+    pencil_lines : tuple of PencilLineConfig
+        Pencil lines along the feed on every board (``[[board.pencil_lines]]`` with ``y_mm``,
+        ``width_mm``, ``darkness``).
     """
 
     length_mm: float = 4000.0
     gap_mm: float = 500.0
     first_at_mm: float = 100.0
     count: int = 0
+    width_mm: float = 150.0
+    scattering_mm: float = 0.0
+    reflectance_roughness_deg: float = 0.0
+    bow_mm: float = 0.0
+    cup_mm: float = 0.0
+    pencil_lines: tuple[PencilLineConfig, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -312,8 +352,8 @@ class FaultSpec:
 class ModbusConfig:
     """The PLC's Modbus TCP server."""
 
-    host: str = "127.0.0.1"
-    port: int = 5020
+    host: str = LOOPBACK_HOST
+    port: int = MODBUS_PORT
     unit_id: int = 1
 
 
@@ -330,7 +370,7 @@ class CanConfig:
 class FramesConfig:
     """Frame hand-off: spool directory and how many pairs it keeps."""
 
-    spool_dir: str = "runs/spool"
+    spool_dir: str = SPOOL_DIR
     keep: int = 50
 
 
@@ -458,12 +498,19 @@ def _optics(s: Section) -> OpticsConfig:
     out = OpticsConfig(
         imbalance=s.number("imbalance", d.imbalance, lo=-0.9, hi=10.0),
         falloff=s.number("falloff", d.falloff, lo=-1.0, hi=1.0),
-        noise=s.number("noise", d.noise, lo=0.0, hi=100.0),
+        noise=_read_noise(s, d.noise),
         width=s.integer("width", d.width, lo=16, hi=16384),
         height=s.integer("height", d.height, lo=4, hi=16384),
     )
     s.reject_unknown()
     return out
+
+
+def _read_noise(s: Section, default: float) -> float:
+    if s.has("read_noise_dn") and s.has("noise"):
+        raise ConfigError(f"{s.key('read_noise_dn')}: give read_noise_dn or noise, not both")
+    name = "noise" if s.has("noise") else "read_noise_dn"
+    return s.number(name, default, lo=0.0, hi=100.0)
 
 
 def _camera(s: Section, base: Path | None) -> CameraConfig:
@@ -495,8 +542,22 @@ def _camera(s: Section, base: Path | None) -> CameraConfig:
         dt_ab_s=s.number("dt_ab_s", d.dt_ab_s, lo=0.0, lo_open=True, hi=0.1),
         species=species,
         optics=_optics(s.section("optics", required=False)),
+        roll_deg=s.number("roll_deg", d.roll_deg, lo=-10.0, hi=10.0),
+        slant_offset_deg=(
+            s.number("slant_offset_a_deg", d.slant_offset_deg[0], lo=-10.0, hi=10.0),
+            s.number("slant_offset_b_deg", d.slant_offset_deg[1], lo=-10.0, hi=10.0),
+        ),
     )
     s.reject_unknown()
+    lit = rig.lights
+    nominal = getattr(lit, "slants_deg", (lit.slant_deg, lit.slant_deg))
+    for name, off, nom in zip(("slant_offset_a_deg", "slant_offset_b_deg"),
+                              out.slant_offset_deg, nominal, strict=True):
+        if not 0.0 < nom + off < 90.0:
+            raise ConfigError(
+                f"{s.key(name)} gives a true slant of {nom + off} deg with the rig's "
+                f"{nom}; must stay within (0, 90)"
+            )
     if out.dt_ab_s * out.pairs_per_s >= 1.0:
         raise ConfigError(f"{s.key('dt_ab_s')} must be shorter than the trigger period")
     return out
@@ -509,9 +570,34 @@ def _board(s: Section) -> BoardConfig:
         gap_mm=s.number("gap_mm", d.gap_mm, lo=0.0, hi=100000.0),
         first_at_mm=s.number("first_at_mm", d.first_at_mm, lo=0.0, hi=100000.0),
         count=s.integer("count", d.count, lo=0),
+        width_mm=s.number("width_mm", d.width_mm, lo=10.0, hi=2000.0),
+        scattering_mm=s.number("scattering_mm", d.scattering_mm, lo=0.0, hi=2.0),
+        reflectance_roughness_deg=s.number(
+            "reflectance_roughness_deg", d.reflectance_roughness_deg, lo=0.0, hi=60.0
+        ),
+        bow_mm=s.number("bow_mm", d.bow_mm, lo=-100.0, hi=100.0),
+        cup_mm=s.number("cup_mm", d.cup_mm, lo=-20.0, hi=20.0),
+        pencil_lines=_pencil_lines(s),
     )
     s.reject_unknown()
     return out
+
+
+def _pencil_lines(s: Section) -> tuple[PencilLineConfig, ...]:
+    items = s.raw("pencil_lines", [])
+    if not isinstance(items, list):
+        raise ConfigError(f"{s.key('pencil_lines')} must be a list of tables, got {items!r}")
+    d = PencilLineConfig()
+    out = []
+    for i, item in enumerate(items):
+        t = Section(item, f"{s.key('pencil_lines')}[{i}]")
+        out.append(PencilLineConfig(
+            y_mm=t.number("y_mm", d.y_mm, lo=-1000.0, hi=1000.0),
+            width_mm=t.number("width_mm", d.width_mm, lo=0.01, hi=50.0),
+            darkness=t.number("darkness", d.darkness, lo=0.0, hi=1.0),
+        ))
+        t.reject_unknown()
+    return tuple(out)
 
 
 def _plc(s: Section) -> PlcConfig:
@@ -540,21 +626,9 @@ def _faults(raw: Any) -> tuple[FaultSpec, ...]:
         raise ConfigError(f"{prefix} must be a list of tables, got {items!r}")
     out = []
     for i, item in enumerate(items):
-        key = f"{prefix}[{i}]"
-        if not isinstance(item, Mapping):
-            raise ConfigError(f"{key} must be a table with a kind, got {item!r}")
-        kind = item.get("kind")
-        if kind not in FAULT_KINDS:
-            raise ConfigError(f"{key}.kind must be one of {', '.join(FAULT_KINDS)}; got {kind!r}")
-        params = {k: v for k, v in item.items() if k != "kind"}
-        for name, val in params.items():
-            if isinstance(val, bool) or not isinstance(val, (int, float)):
-                raise ConfigError(f"{key}.{name} must be a number, got {val!r}")
-            if not math.isfinite(float(val)):
-                raise ConfigError(f"{key}.{name} must be finite, got {val!r}")
-        if "at_s" in params and float(params["at_s"]) < 0:
-            raise ConfigError(f"{key}.at_s must be >= 0, got {params['at_s']!r}")
-        out.append(FaultSpec(kind=str(kind), params=dict(params)))
+        fault = parse_fault(item, f"{prefix}[{i}]")  # the registry checks kind and parameters
+        out.append(FaultSpec(kind=fault.kind.value, params={
+            k: v for k, v in fault.table().items() if k != "kind"}))
     return tuple(out)
 
 

@@ -45,6 +45,13 @@ class Wood:
         Rms height of the fibre-scale roughness, micrometres.
     roughness_length_mm, roughness_width_mm : float
         Correlation lengths of the roughness along x and y, millimetres.
+    translucency : float
+        Fraction (0..1) of the reflected light that leaves the wood after subsurface scattering
+        (spread by the rig's scattering length, see :class:`plant_sim.optics.RigEffects`)
+        instead of at the point where it entered; softwoods (spruce, pine) are the most
+        translucent.
+    scattering_anisotropy : float
+        Ratio (>= 1) of the scattering length along the fibres (x) to the one across them (y).
     """
 
     name: str
@@ -62,6 +69,8 @@ class Wood:
     roughness_um: float
     roughness_length_mm: float
     roughness_width_mm: float
+    translucency: float = 0.0
+    scattering_anisotropy: float = 1.0
 
     def __post_init__(self) -> None:
         check_range("albedo", self.albedo, 0.01, 1.0)
@@ -78,12 +87,15 @@ class Wood:
             check_positive(name, getattr(self, name))
         for name in ("grain_wander_mm", "pore_density_per_mm2", "roughness_um"):
             check_positive(name, getattr(self, name), allow_zero=True)
+        check_range("translucency", self.translucency, 0.0, 1.0)
+        check_range("scattering_anisotropy", self.scattering_anisotropy, 1.0, 100.0)
 
 
 def _preset(name: str, albedo: float, grain: tuple[float, float, float],
             figure: tuple[float, float], fibre: tuple[float, float, float],
-            pores: tuple[float, float], rough: tuple[float, float, float]) -> Wood:
-    return Wood(name, albedo, *grain, *figure, *fibre, *pores, *rough)
+            pores: tuple[float, float], rough: tuple[float, float, float],
+            scattering: tuple[float, float]) -> Wood:
+    return Wood(name, albedo, *grain, *figure, *fibre, *pores, *rough, *scattering)
 
 
 SPECIES: dict[str, Wood] = {
@@ -91,25 +103,25 @@ SPECIES: dict[str, Wood] = {
     for w in (
         # name, albedo, grain (contrast, period, wander), figure (contrast, period),
         # fibre (contrast, length, width), pores (per mm^2, contrast),
-        # roughness (um rms, length, width)
+        # roughness (um rms, length, width), subsurface scattering (translucency, anisotropy)
         # diffuse-porous, fine and even: little grain, fine fibres
         _preset("beech", 0.55, (0.05, 1.6, 0.3), (0.04, 25.0), (0.035, 0.6, 0.04),
-                (2.0, 0.25), (0.30, 0.8, 0.05)),
+                (2.0, 0.25), (0.30, 0.8, 0.05), (0.25, 2.0)),
         # ring-porous, strong grain and large pores
         _preset("oak", 0.42, (0.12, 2.5, 0.4), (0.06, 30.0), (0.05, 1.0, 0.06),
-                (4.0, 0.45), (0.60, 1.2, 0.08)),
+                (4.0, 0.45), (0.60, 1.2, 0.08), (0.2, 2.0)),
         # softwood: strong earlywood/latewood stripes, smooth fibres, no pores
         _preset("spruce", 0.65, (0.14, 3.0, 0.5), (0.05, 40.0), (0.03, 1.5, 0.05),
-                (0.0, 0.0), (0.40, 1.5, 0.06)),
+                (0.0, 0.0), (0.40, 1.5, 0.06), (0.6, 3.0)),
         # tropical, very even and pale
         _preset("ramin", 0.62, (0.03, 1.2, 0.2), (0.03, 20.0), (0.03, 0.5, 0.04),
-                (3.0, 0.20), (0.25, 0.6, 0.05)),
+                (3.0, 0.20), (0.25, 0.6, 0.05), (0.3, 2.0)),
         # tropical, reddish, interlocked grain (ribbon stripes), open pores
         _preset("meranti", 0.40, (0.08, 4.0, 0.8), (0.08, 15.0), (0.05, 0.8, 0.06),
-                (5.0, 0.40), (0.50, 1.0, 0.07)),
+                (5.0, 0.40), (0.50, 1.0, 0.07), (0.25, 2.0)),
         # softwood with resinous latewood: high-contrast stripes
         _preset("pine", 0.60, (0.16, 4.0, 0.6), (0.06, 35.0), (0.035, 1.5, 0.05),
-                (0.0, 0.0), (0.45, 1.5, 0.06)),
+                (0.0, 0.0), (0.45, 1.5, 0.06), (0.55, 3.0)),
     )
 }
 

@@ -9,9 +9,28 @@ Consumers test ``event.kind``; ``event.text`` is the line shown to people.
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass
 
-__all__ = ["EventKind", "ServiceEvent"]
+__all__ = ["COUNTERS", "EventKind", "EventLog", "ServiceEvent", "exc_name"]
+
+COUNTERS = (
+    "frames",
+    "ok",
+    "failed",
+    "applied",
+    "safe_entries",
+    "recoveries",
+    "plc_errors",
+    "can_errors",
+    "setpoint_refused",
+    "log_errors",
+    "errors",
+    "missed",
+    "amp_faults",
+    "uniformity_skipped",
+)
+"""The service's counters (``Service.counters``), all starting at 0."""
 
 
 class EventKind(enum.Enum):
@@ -58,12 +77,51 @@ class ServiceEvent:
         What happened.
     text : str
         The line shown to people (stderr, logs).
+    reason : str or None
+        For ``SAFE_STATE``: why, without the ``"safe state: "`` prefix (``"plc gone, can
+        gone"``), so consumers need not parse ``text``; ``None`` for the other kinds.
     """
 
     t_s: float
     kind: EventKind
     text: str
+    reason: str | None = None
 
     def to_dict(self) -> dict[str, object]:
-        """JSON-ready form: ``{"t_s", "kind", "text"}``."""
-        return {"t_s": self.t_s, "kind": self.kind.value, "text": self.text}
+        """JSON-ready form: ``{"t_s", "kind", "text"}`` (and ``"reason"`` when set)."""
+        out: dict[str, object] = {"t_s": self.t_s, "kind": self.kind.value, "text": self.text}
+        if self.reason is not None:
+            out["reason"] = self.reason
+        return out
+
+
+class EventLog:
+    """Where every part of the service reports: the events in order and the counters.
+
+    One instance is shared by the parts of one service (``Service.events`` is its list,
+    ``Service.counters`` its dictionary); ``on_event`` (settable at any time) is called for
+    each event as it happens.
+    """
+
+    def __init__(self) -> None:
+        self.events: list[ServiceEvent] = []
+        self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self.on_event: Callable[[ServiceEvent], None] | None = None
+
+    def emit(self, t_s: float, kind: EventKind, text: str, *, reason: str | None = None) -> None:
+        """Record one event and hand it to ``on_event``."""
+        event = ServiceEvent(t_s, kind, text, reason)
+        self.events.append(event)
+        if self.on_event is not None:
+            self.on_event(event)
+
+    def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to the counter ``name``."""
+        self.counters[name] += n
+
+
+def exc_name(exc: BaseException) -> str:
+    """``IndexError``, ``cv2.error``: the exception's type as a reader recognises it."""
+    cls = type(exc)
+    mod = cls.__module__
+    return cls.__qualname__ if mod in ("builtins", "__main__") else f"{mod}.{cls.__qualname__}"

@@ -1,23 +1,33 @@
 """Where the service's image pairs come from: async wrappers over the frame hand-off.
 
-* :class:`PolledFrameSource` wraps anything with ``poll() -> Frame | None`` — the spool reader
-  of ``protocol/frames.py`` (the camera or ``planer sim`` writes pairs into a spool
-  directory from another process) or its in-process source — and turns it into an awaitable
-  ``next()`` that sleeps ``poll_s`` between empty polls.
+* :class:`SpoolFrameSource` reads a spool directory (the camera or ``planer sim`` writes pairs
+  into it from another process) in its own reader thread: files are opened, checked and
+  decoded there, never on the service's event loop, and a pair that takes longer than
+  ``SpoolLimits.pair_timeout_s`` is given up (delivered as failed) while the reading goes on.
+* :class:`PolledFrameSource` wraps anything with ``poll() -> Frame | None`` (the in-process
+  source of ``protocol/frames.py``) into an awaitable ``next()`` that sleeps ``poll_s``
+  between empty polls.
 * :class:`QueueFrameSource` is an in-process queue (the in-process HIL, tests, benchmarks).
 
-``open_frame_source(cfg)`` builds the one a ``[frames]`` table names.
+``open_frame_source(cfg)`` builds the one a ``[frames]`` table names. Every source has
+``take_skips() -> list[Skip]``: spool files that gave no frame, with the file and the reason.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
 from config.machine import FramesConfig
 from core.checks import check_positive
-from protocol.frames import Frame
+from protocol.frames import Frame, Skip, SpoolLimits, SpoolReader
 
 
 class FrameSource(Protocol):
@@ -28,6 +38,182 @@ class FrameSource(Protocol):
 
     def close(self) -> None:
         """Release the source."""
+
+    def take_skips(self) -> list[Skip]:
+        """Files that gave no frame since the last call (file and reason)."""
+
+
+class SpoolFrameSource:
+    """A spool directory read in a reader thread; the service awaits :meth:`next`.
+
+    Parameters
+    ----------
+    reader : SpoolReader
+        The spool reader (used by the reader thread only from now on).
+    poll_s : float, keyword-only
+        Wait between empty polls of the directory (reader thread) and of the hand-off queue
+        (event loop), seconds.
+    maxsize : int, keyword-only
+        Frames decoded ahead at most; the reader thread then waits (the spool keeps the files).
+    clock : callable, keyword-only
+        Monotonic seconds, for the per-pair time limit (``reader.limits.pair_timeout_s``),
+        timed from the first :meth:`next` call that finds the reader thread in the pair.
+
+    Attributes
+    ----------
+    received : int
+        Frames handed to the service.
+    abandoned : int
+        Pairs given up because reading them took longer than the time limit.
+    restarts : int
+        Reader threads restarted after an error (a bug; reported as a skip).
+    """
+
+    def __init__(self, reader: SpoolReader, *, poll_s: float = 0.002, maxsize: int = 4,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not isinstance(reader, SpoolReader):
+            raise ValueError(f"reader must be a SpoolReader, got {type(reader).__name__}")
+        self.poll_s = check_positive("poll_s", poll_s)
+        if isinstance(maxsize, bool) or not isinstance(maxsize, int) or maxsize < 1:
+            raise ValueError(f"maxsize must be an integer >= 1, got {maxsize!r}")
+        self.timeout_s = reader.limits.pair_timeout_s
+        self.clock = clock
+        self.received = 0
+        self.abandoned = 0
+        self.restarts = 0
+        self.maxsize = maxsize
+        self._frames: deque[Frame] = deque()
+        self._skips: list[Skip] = []
+        self._lock = threading.Lock()
+        self._space = threading.Condition(self._lock)
+        self._stop = threading.Event()
+        self._generation = 0
+        self._reader = reader
+        self._watch: tuple[int, float] | None = None  # (reader.serial, first seen busy)
+        self._failure: str | None = None
+        self._thread = self._start(reader, 0)
+
+    @property
+    def reader(self) -> SpoolReader:
+        """The spool reader now in use (a successor after a pair was abandoned)."""
+        return self._reader
+
+    def _start(self, reader: SpoolReader, generation: int) -> threading.Thread:
+        t = threading.Thread(target=self._run, args=(reader, generation),
+                             name=f"spool-reader-{generation}", daemon=True)
+        t.start()
+        return t
+
+    def _run(self, reader: SpoolReader, generation: int) -> None:
+        try:
+            while not self._stop.is_set() and generation == self._generation:
+                frame = reader.poll()
+                if frame is None:
+                    self._stop.wait(self.poll_s)
+                    continue
+                with self._space:
+                    while (not self._stop.is_set() and generation == self._generation
+                           and len(self._frames) >= self.maxsize):
+                        self._space.wait(0.05)
+                    if generation == self._generation and not self._stop.is_set():
+                        self._frames.append(frame)  # else given up meanwhile: delivered
+        finally:  # an error (a bug) ends the thread; next() reports it and starts another
+            exc = sys.exc_info()[1]
+            if exc is not None:
+                with self._lock:
+                    self._failure = f"{type(exc).__name__}: {exc}"
+
+    def _give_up(self, slot: int | None, meta_frame: Frame | None, text: str) -> None:
+        """Deliver the pair being read as failed (or a skip) and read on in a new thread."""
+        name = "<reader>" if slot is None else f"pair-{slot:012d}.json"
+        if meta_frame is not None:  # after the pairs read before it, before the next ones
+            self._frames.append(dataclasses.replace(meta_frame, error=f"{name}: {text}"))
+        else:
+            self._skips.append(Skip(name, text, slot))
+        self._watch = None
+        self._generation += 1
+        self._reader = self._reader.successor(skip_slot=slot)
+        self._thread = self._start(self._reader, self._generation)
+
+    def _check_reader(self) -> None:
+        """Restart a reader thread that ended by an error, past the pair it was reading."""
+        with self._lock:
+            if self._stop.is_set() or self._thread.is_alive():
+                return
+            current = self._reader.current
+            slot, meta_frame = current if current is not None else (None, None)
+            self.restarts += 1
+            self._give_up(slot, meta_frame,
+                          f"reader error: {self._failure or 'reader thread ended'}")
+            self._failure = None
+
+    def _check_time_limit(self) -> None:
+        """Give up the pair the reader thread has been busy with for too long."""
+        with self._lock:
+            reader = self._reader
+            current, serial = reader.current, reader.serial
+            if current is None:  # between pairs: nothing to time
+                self._watch = None
+                return
+            now = self.clock()
+            if self._watch is None or self._watch[0] != serial:
+                self._watch = (serial, now)  # first seen busy with this pair now
+                return
+            if now - self._watch[1] <= self.timeout_s:
+                return
+            slot, meta_frame = current
+            self.abandoned += 1
+            self._give_up(slot, meta_frame,
+                          f"reading took longer than {self.timeout_s:g} s (given up)")
+
+    def _take(self) -> Frame | None:
+        with self._space:
+            if not self._frames:
+                return None
+            frame = self._frames.popleft()
+            self._space.notify()
+            return frame
+
+    async def next(self, timeout_s: float | None = None) -> Frame | None:
+        """The next frame (``None`` after ``timeout_s`` seconds without one)."""
+        loop = asyncio.get_running_loop()
+        deadline = None if timeout_s is None else loop.time() + timeout_s
+        while True:
+            self._check_reader()
+            self._check_time_limit()
+            frame = self._take()
+            if frame is not None:
+                self.received += 1
+                return frame
+            if deadline is not None and loop.time() >= deadline:
+                return None
+            wait = self.poll_s
+            if deadline is not None:
+                wait = max(0.0, min(wait, deadline - loop.time()))
+            await asyncio.sleep(wait)
+
+    def take_skips(self) -> list[Skip]:
+        """Spool files that gave no frame since the last call (file and reason), oldest first.
+
+        A reader thread that ended by an error (a bug) is reported here too, as a skip of the
+        pair it was reading (``reader error: ...``), and restarted past that pair.
+        """
+        self._check_reader()
+        with self._lock:
+            out, self._skips = self._skips, []
+        return out + self._reader.take_skips()
+
+    @property
+    def missed(self) -> int:
+        """Pairs pruned or removed before the reader got to them (true count)."""
+        return self._reader.missed
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Stop the reader thread (waits at most ``timeout_s`` for it; never hangs)."""
+        self._stop.set()
+        with self._space:
+            self._space.notify_all()
+        self._thread.join(timeout_s)
 
 
 class PolledFrameSource:
@@ -68,6 +254,11 @@ class PolledFrameSource:
         if callable(close):
             close()
 
+    def take_skips(self) -> list[Skip]:
+        """The poller's skips (a :class:`SpoolReader`'s), or none."""
+        take = getattr(self.poller, "take_skips", None)
+        return list(take()) if callable(take) else []
+
 
 class QueueFrameSource:
     """In-process frame queue: producers ``put`` frames, the service awaits ``next()``.
@@ -106,31 +297,43 @@ class QueueFrameSource:
     def close(self) -> None:
         """Nothing to release."""
 
+    def take_skips(self) -> list[Skip]:
+        """Nothing is skipped in process."""
+        return []
 
-def open_frame_source(cfg: FramesConfig, *, inprocess: Any = None) -> FrameSource:
+
+def open_frame_source(cfg: FramesConfig, *, inprocess: Any = None,
+                      latch_reader: Any = None) -> FrameSource:
     """The frame source a ``[frames]`` table names.
 
     Parameters
     ----------
     cfg : FramesConfig
-        ``source = "spool"`` reads ``spool_dir`` with ``protocol.frames.SpoolReader``;
-        ``"inprocess"`` uses ``inprocess``.
+        ``source = "spool"`` reads ``spool_dir`` with a :class:`SpoolFrameSource` (images
+        must be ``image_width`` x ``image_height`` when both are set); ``"inprocess"`` uses
+        ``inprocess``.
     inprocess : object, optional
         For ``"inprocess"``: a :class:`QueueFrameSource`, or anything with ``poll()``.
+    latch_reader : callable, optional
+        For ``"camera"`` (Aravis camera, ``docs/camera.md``): the PLC's trigger latches, e.g.
+        ``controller.camera.latches.ModbusLatchReader``; ``None``: pairs carry counts 0.
 
     Raises
     ------
     ValueError
         ``"inprocess"`` without an in-process source.
     """
-    if cfg.source == "spool":
-        from protocol import frames
+    if cfg.source == "camera":  # Aravis loads only here (optional extra "camera")
+        from controller.camera.source import open_camera_source
 
-        reader_cls = getattr(frames, "SpoolReader", None)
-        if reader_cls is None:  # pragma: no cover - until the spool lands
-            raise ValueError("frames.source = spool needs protocol.frames.SpoolReader")
+        return open_camera_source(cfg, latch_reader=latch_reader)  # docs/camera.md
+    if cfg.source == "spool":
         Path(cfg.spool_dir).mkdir(parents=True, exist_ok=True)
-        return PolledFrameSource(reader_cls(cfg.spool_dir), poll_s=cfg.poll_s)
+        shape = ((cfg.image_height, cfg.image_width)
+                 if cfg.image_width > 0 and cfg.image_height > 0 else None)
+        limits = SpoolLimits(image_shape=shape, max_pixels=max(
+            SpoolLimits.max_pixels, shape[0] * shape[1] if shape else 0))
+        return SpoolFrameSource(SpoolReader(cfg.spool_dir, limits=limits), poll_s=cfg.poll_s)
     if inprocess is None:
         raise ValueError("frames.source = inprocess needs an in-process frame source")
     if hasattr(inprocess, "next"):

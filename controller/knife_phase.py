@@ -106,53 +106,6 @@ def pass_numbers(
     return (base - (length + x - cx / ppm) * cpm) / (pitch * cpm)
 
 
-def knife_of_marks(
-    bottom_x_mm: Sequence[float],
-    *,
-    counts_a: int,
-    index_latch_counts: int,
-    cutter_to_camera_mm: float,
-    counts_per_mm: float,
-    px_per_mm: float,
-    cx_px: float,
-    pitch_mm: float,
-    knives: int,
-    counter_bits: int = 32,
-    align_phase: bool = False,
-) -> np.ndarray:
-    """Knife index of each mark: ``round(pass number) mod Z`` (see :func:`pass_numbers`).
-
-    Parameters
-    ----------
-    bottom_x_mm, counts_a, index_latch_counts, cutter_to_camera_mm, counts_per_mm, px_per_mm,
-    cx_px, pitch_mm, counter_bits
-        As in :func:`pass_numbers`.
-    knives : int
-        Number of knives ``Z``.
-    align_phase : bool
-        Remove the common fractional part of the pass numbers (their circular mean) before
-        rounding: a constant latch or encoder offset below half a pitch then changes nothing.
-
-    Returns
-    -------
-    ndarray of int, shape (n,)
-        Knife index in ``[0, Z)`` of each mark.
-    """
-    z = check_int("knives", knives, lo=1)
-    n = pass_numbers(
-        bottom_x_mm,
-        counts_a=counts_a,
-        index_latch_counts=index_latch_counts,
-        cutter_to_camera_mm=cutter_to_camera_mm,
-        counts_per_mm=counts_per_mm,
-        px_per_mm=px_per_mm,
-        cx_px=cx_px,
-        pitch_mm=pitch_mm,
-        counter_bits=counter_bits,
-    )
-    return knives_from_passes(n, z, align_phase=align_phase)
-
-
 def knives_from_passes(
     passes: np.ndarray, knives: int, *, align_phase: bool = False
 ) -> np.ndarray:
@@ -165,7 +118,8 @@ def knives_from_passes(
     knives : int
         Number of knives ``Z``.
     align_phase : bool
-        Remove the common fractional part first (see :func:`knife_of_marks`).
+        Remove the common fractional part of the pass numbers (their circular mean) before
+        rounding: a constant latch or encoder offset below half a pitch then changes nothing.
 
     Returns
     -------
@@ -202,44 +156,6 @@ def phase_spread(passes: np.ndarray) -> float:
         return float("nan")
     r = float(np.abs(np.mean(np.exp(2j * np.pi * n))))
     return float(np.sqrt(-2.0 * np.log(max(r, 1e-300))) / (2.0 * np.pi))
-
-
-def knife_means(
-    widths_mm: Sequence[float], knife_of_mark: Sequence[int], knives: int
-) -> np.ndarray:
-    """Mean mark width of each knife; ``nan`` for a knife without marks.
-
-    Parameters
-    ----------
-    widths_mm : sequence of float, shape (n,)
-        Width of each mark, mm.
-    knife_of_mark : sequence of int, shape (n,)
-        Knife index of each mark, in ``[0, knives)``.
-    knives : int
-        Number of knives ``Z``.
-
-    Returns
-    -------
-    ndarray, shape (Z,)
-        Mean width per knife, mm.
-    """
-    z = check_int("knives", knives, lo=1)
-    w = np.asarray(widths_mm, dtype=float)
-    k = np.asarray(knife_of_mark)
-    if w.ndim != 1 or k.shape != w.shape:
-        raise ValueError(
-            f"widths_mm and knife_of_mark must be 1-D of one length, got {w.shape} and {k.shape}"
-        )
-    if not np.all(np.isfinite(w)):
-        raise ValueError("widths_mm contains NaN or infinite values")
-    if k.size and (not np.issubdtype(k.dtype, np.integer) or k.min() < 0 or k.max() >= z):
-        raise ValueError(f"knife_of_mark must be integers in [0, {z})")
-    sums = np.bincount(k.astype(np.int64), weights=w, minlength=z)
-    counts = np.bincount(k.astype(np.int64), minlength=z)
-    out = np.full(z, np.nan)
-    has = counts > 0
-    out[has] = sums[has] / counts[has]
-    return out
 
 
 @dataclass(frozen=True)
@@ -295,7 +211,7 @@ class PassAttribution:
         -------
         ndarray, shape (Z,)
             Width per knife, mm; ``nan`` for a knife that left no mark in the field (the
-            uniformity loop takes it as 0). Without missing passes this is :func:`knife_means`.
+            uniformity loop takes it as 0). Without missing passes: the mean width of its marks.
         """
         z = self.passes_per_knife.size
         w = np.asarray(widths_mm, dtype=float)

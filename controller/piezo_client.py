@@ -18,6 +18,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import can
+
 from core.checks import check_finite, check_int, check_positive
 from core.errors import FieldbusError
 from protocol.piezo_can import (
@@ -60,6 +62,16 @@ class AmpStatus:
         return bool(self.fault & FAULT_SETPOINT_TIMEOUT)
 
 
+_OPEN_ERRORS: tuple[type[BaseException], ...] = (
+    can.CanError,  # CanInterfaceNotImplementedError, CanInitializationError, ...
+    OSError,  # no such device, permission, address in use
+    ValueError,  # unknown interface or channel, bad option values
+    TypeError,  # an option the interface does not take
+    ImportError,  # the interface's optional package is missing
+)
+"""What opening a CAN bus may raise (each becomes a ``FieldbusError``)."""
+
+
 def open_bus(interface: str, channel: str, options: dict[str, Any] | None = None) -> Any:
     """Open a python-can bus from configuration values.
 
@@ -82,12 +94,10 @@ def open_bus(interface: str, channel: str, options: dict[str, Any] | None = None
     try:
         if opener is not None:
             return opener(interface=interface, channel=channel, **opts)
-        import can
-
         return can.Bus(interface=interface, channel=channel, **opts)
     except FieldbusError:
         raise
-    except Exception as exc:  # python-can raises CanError, OSError, ValueError ...
+    except _OPEN_ERRORS as exc:  # what python-can and the transports raise for a bad bus
         raise FieldbusError(f"cannot open CAN bus {interface}:{channel}: {exc}") from None
 
 
@@ -188,8 +198,6 @@ class PiezoClient:
 
     # ------------------------------------------------------------------ wire
     def _send(self, frame: tuple[int, bytes]) -> None:
-        import can
-
         arb, data = frame
         msg = can.Message(arbitration_id=arb, data=data, is_extended_id=False)
         try:
@@ -237,7 +245,7 @@ class PiezoClient:
         for _ in range(max_frames):
             try:
                 msg = self.bus.recv(timeout=0.0)
-            except Exception as exc:  # python-can CanError / OSError on a broken bus
+            except (can.CanError, OSError, ValueError) as exc:  # a broken bus
                 raise FieldbusError(f"CAN receive failed: {exc}") from None
             if msg is None:
                 break
@@ -277,5 +285,5 @@ class PiezoClient:
         """Shut the bus down."""
         try:
             self.bus.shutdown()
-        except Exception:  # noqa: BLE001 - closing a broken bus must not raise
+        except (can.CanError, OSError, ValueError, AttributeError):  # a broken bus: closing goes on
             pass

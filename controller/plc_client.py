@@ -28,24 +28,24 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from config.machine import PlcConfig
 from core.checks import check_finite, check_int, check_positive
 from core.errors import FieldbusError, ModbusRefused
-from protocol.registers import RegisterMap
+from protocol.registers import (
+    MachineState,
+    ModbusException,
+    PlcFault,
+    RegisterAccessError,
+    RegisterMap,
+    RegisterRangeError,
+    apply_writes,
+)
 
-MODBUS_EXCEPTIONS = {
-    1: "ILLEGAL FUNCTION",
-    2: "ILLEGAL DATA ADDRESS",
-    3: "ILLEGAL DATA VALUE",
-    4: "SERVER DEVICE FAILURE",
-    6: "SERVER DEVICE BUSY",
-}
+_DEFAULTS = PlcConfig()
+"""Time-outs, back-off and unit id when none are given: ``[plc]`` of ``config/machine.toml``."""
 
-STATE_RUNNING = 1 << 0
-STATE_BOARD_PRESENT = 1 << 1
-STATE_ESTOP = 1 << 2
-STATE_SPINDLE_RUNNING = 1 << 3
-STATE_FEED_ENABLED = 1 << 4
-
+MODBUS_EXCEPTIONS = {int(code): code.text for code in ModbusException}
+"""Exception code to the spec's name, for messages (``protocol.registers.ModbusException``)."""
 
 class BusRefused(Exception):
     """Raised by a :class:`RegisterBus` when the server answers with a Modbus exception code."""
@@ -125,24 +125,29 @@ class PlcSnapshot:
         return int(self.values["trigger_seq"])
 
     @property
-    def machine_state(self) -> int:
+    def machine_state(self) -> MachineState:
         """Machine state bits (running, board present, e-stop, spindle running, feed enabled)."""
-        return int(self.values["machine_state"])
+        return MachineState(int(self.values["machine_state"]))
+
+    @property
+    def faults(self) -> PlcFault:
+        """Fault bits (feed drive, spindle stopped, encoder, heartbeat lost, piezo amplifier)."""
+        return PlcFault(int(self.values["faults"]))
 
     @property
     def board_present(self) -> bool:
         """Whether a board is under the camera."""
-        return bool(self.machine_state & STATE_BOARD_PRESENT)
+        return MachineState.BOARD_PRESENT in self.machine_state
 
     @property
     def estop(self) -> bool:
         """Whether the e-stop is active."""
-        return bool(self.machine_state & STATE_ESTOP)
+        return MachineState.ESTOP in self.machine_state
 
     @property
     def spindle_running(self) -> bool:
         """Whether the spindle runs."""
-        return bool(self.machine_state & STATE_SPINDLE_RUNNING)
+        return MachineState.SPINDLE_RUNNING in self.machine_state
 
     def problem(self) -> str | None:
         """Why these registers cannot be trusted for control, or ``None`` when they can.
@@ -324,7 +329,14 @@ class ModbusTcpBus:
         Connect and request time limit, seconds.
     """
 
-    def __init__(self, host: str, port: int, *, unit_id: int = 1, timeout_s: float = 0.25) -> None:
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        unit_id: int = _DEFAULTS.unit_id,
+        timeout_s: float = _DEFAULTS.timeout_s,
+    ) -> None:
         self.host = host
         self.port = check_int("port", port, lo=1, hi=65535)
         self.unit_id = check_int("unit_id", unit_id, lo=0, hi=255)
@@ -416,7 +428,7 @@ class MachineRegisterBus:
 
     Reads encode ``machine.register_values()`` with the register map; writes are checked by the
     map exactly as the PLC server checks them (read-only -> exception 2, out of range ->
-    exception 3) and applied with ``set_feed_setpoint`` / ``set_service_heartbeat``. Set
+    exception 3) and applied by :func:`protocol.registers.apply_writes`, as the server does. Set
     :attr:`down` to make it behave like an unreachable PLC (fault injection in tests and HIL).
 
     Parameters
@@ -463,23 +475,12 @@ class MachineRegisterBus:
 
     async def write(self, address: int, words: Sequence[int]) -> None:
         """Write words: checked by the register map, then applied to the machine."""
-        from protocol.registers import RegisterAccessError, RegisterRangeError
-
         self._check()
         try:
             accepted = self.regmap.parse_write(address, words, self.machine.register_values())
+            apply_writes(self.machine, accepted)
         except (RegisterAccessError, RegisterRangeError) as exc:
             raise BusRefused(exc.exception_code, str(exc)) from None
-        for name, value in accepted.items():
-            try:
-                if name == "feed_setpoint_mm_s":
-                    self.machine.set_feed_setpoint(float(value))
-                elif name == "heartbeat_service":
-                    self.machine.set_service_heartbeat(int(value))
-                else:  # pragma: no cover - the map has no other rw registers
-                    raise BusRefused(2, f"register {name} not writable here")
-            except ValueError as exc:
-                raise BusRefused(3, str(exc)) from None
 
     def close(self) -> None:
         """Close (idempotent)."""
@@ -497,7 +498,8 @@ class PlcClient:
     regmap : RegisterMap
         The register map (``RegisterMap.load()``).
     backoff : Backoff, optional
-        Reconnect policy; default 0.05 s doubling up to 2 s.
+        Reconnect policy; default ``[plc] backoff_initial_s`` doubling up to ``backoff_max_s``
+        as :class:`config.machine.PlcConfig` defines them (0.05 s, 2 s).
     clock : callable, optional
         Returns seconds (monotonic); default ``time.monotonic``. Tests pass simulated time.
 
@@ -522,7 +524,7 @@ class PlcClient:
     ) -> None:
         self.bus = bus
         self.protocol = PlcProtocol(regmap)
-        self.backoff = backoff or Backoff(0.05, 2.0)
+        self.backoff = backoff or Backoff(_DEFAULTS.backoff_initial_s, _DEFAULTS.backoff_max_s)
         self.clock = clock
         self.last: PlcSnapshot | None = None
         """The last successful read."""
@@ -547,8 +549,8 @@ class PlcClient:
         host: str,
         port: int,
         *,
-        unit_id: int = 1,
-        timeout_s: float = 0.25,
+        unit_id: int = _DEFAULTS.unit_id,
+        timeout_s: float = _DEFAULTS.timeout_s,
         regmap: RegisterMap | None = None,
         backoff: Backoff | None = None,
         clock: Callable[[], float] = time.monotonic,

@@ -10,15 +10,17 @@ readers never block). Field meanings and units: ``docs/quality_log.md``.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
-import sqlite3
+import re
+import socket
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from config.loading import Section
 from core.checks import check_finite, check_int, check_positive
@@ -29,24 +31,59 @@ __all__ = [
     "SCHEMA_VERSION",
     "CSV_COLUMNS",
     "QualityLogError",
+    "RecordRefusedError",
+    "SQLITE_INT_MAX",
+    "check_storable",
+    "storable_record",
     "QualityRecord",
     "QualityClass",
     "QualityLog",
     "csv_float",
     "judge",
     "quality_class_from_section",
+    "record_from_dict",
+    "record_to_dict",
     "record_to_json",
     "utc_iso",
+    "MACHINE_ID_MAX",
+    "QualityStore",
+    "Selection",
+    "column_names",
+    "create_statements",
+    "database_url",
+    "default_machine_id",
+    "is_database_url",
+    "log_target",
+    "open_quality_log",
 ]
 
 #: Version of the table layout this code writes; logs with a higher version are refused.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 3
 #: SQLite ``application_id`` marking a file as a planer quality log ("PLQL").
 APPLICATION_ID = 0x504C514C
+#: Longest machine id (``[machine] id``), characters.
+MACHINE_ID_MAX = 64
 
 
 class QualityLogError(PlanerError, ValueError):
     """The file is not a readable quality log (corrupt, foreign or from a newer version)."""
+
+
+class RecordRefusedError(PlanerError, ValueError):
+    """A record holds a value the log's schema cannot store; ``field`` names it.
+
+    Raised by :meth:`QualityLog.append` before anything is written (e.g. a ``board_id`` beyond
+    SQLite's 64-bit integers). :func:`storable_record` turns such a record into a failed one
+    that the log takes.
+    """
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+#: Largest integer an SQLite INTEGER column holds (``seq``, ``board_id``).
+SQLITE_INT_MAX = 2**63 - 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -174,6 +211,9 @@ class QualityRecord:
     extra : dict
         Free JSON-serialisable data, e.g. ``extra["profile"] = {"x_mm": [...],
         "height_um": [...]}``.
+    machine_id : str or None
+        The machine that measured (``[machine] id``); ``None`` = the log's own machine id is
+        stamped on append (records read back from logs before schema version 3 hold ``None``).
     """
 
     t_s: float
@@ -196,6 +236,7 @@ class QualityRecord:
     true_pitch_mm: float | None = None
     true_uniformity_cv: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    machine_id: str | None = None
 
     def __post_init__(self) -> None:
         def put(name: str, value: Any) -> None:
@@ -215,6 +256,7 @@ class QualityRecord:
         for name in _TUPLES:
             put(name, _float_tuple(name, getattr(self, name)))
         put("passed", _opt_bool("passed", self.passed))
+        put("machine_id", _check_machine_id("machine_id", self.machine_id))
         if self.error is not None and not isinstance(self.error, str):
             raise ValueError(f"error must be a string or None, got {self.error!r}")
         if not isinstance(self.extra, Mapping) or not all(isinstance(k, str) for k in self.extra):
@@ -241,6 +283,88 @@ _OPT_FLOATS = (
 )
 _TUPLES = ("mark_widths_mm", "piezo_offsets_um")
 _FIELD_NAMES = tuple(f.name for f in fields(QualityRecord))
+_INT_FIELDS = ("seq", "board_id")
+_TEXT_FIELDS = ("wall_time", "error")
+
+
+def check_storable(record: QualityRecord) -> None:
+    """Raise :class:`RecordRefusedError` naming the first field the log cannot store.
+
+    A valid :class:`QualityRecord` may still hold values the SQLite schema refuses: integers
+    beyond 64 bits (``seq``, ``board_id``), text that is not valid Unicode (lone surrogates) or
+    an ``extra`` that is not JSON serialisable.
+    """
+    for name in _INT_FIELDS:
+        v = getattr(record, name)
+        if not 0 <= v <= SQLITE_INT_MAX:
+            raise RecordRefusedError(
+                name, f"{name} {v} is out of the log's range 0..{SQLITE_INT_MAX}")
+    for name in _TEXT_FIELDS:
+        v = getattr(record, name)
+        if v is not None:
+            try:
+                v.encode("utf-8")
+            except UnicodeEncodeError:
+                raise RecordRefusedError(
+                    name, f"{name} is not valid Unicode text: {v!r:.80}") from None
+    try:
+        json.dumps(record.extra, default=_json_default)
+    except (TypeError, ValueError, RecursionError) as exc:
+        raise RecordRefusedError("extra", f"extra is not JSON serialisable: {exc}") from None
+
+
+def storable_record(record: QualityRecord) -> QualityRecord:
+    """``record`` itself when the log can store it, else a failed record naming the fields.
+
+    Each refused value is replaced (an integer by 0, text by its escaped form, ``extra`` by
+    its ``repr`` texts) and kept as text in ``extra["refused"]``; ``error`` reads
+    ``record refused: <field> ...`` (after the original error of a failed measurement). The
+    setpoints, registration diagnostics and truth are kept; the metrics of a successful
+    measurement go (a failed record carries none).
+
+    Returns
+    -------
+    QualityRecord
+        A record :meth:`QualityLog.append` accepts.
+    """
+    reasons: list[str] = []
+    refused: dict[str, str] = {}
+    changes: dict[str, Any] = {}
+    current = record
+    for _ in range(len(_INT_FIELDS) + len(_TEXT_FIELDS) + 1):
+        try:
+            check_storable(current)
+            break
+        except RecordRefusedError as exc:
+            name = exc.field
+            reasons.append(str(exc))
+            value = getattr(current, name)
+            if name in _INT_FIELDS:
+                refused[name] = str(value)
+                changes[name] = 0
+            elif name in _TEXT_FIELDS:
+                refused[name] = value.encode("utf-8", "backslashreplace").decode("utf-8")
+                changes[name] = (refused[name] if name == "error"
+                                 else utc_iso(0.0))
+            else:
+                refused[name] = repr(value)[:2000]
+                changes[name] = {}
+            current = dataclasses.replace(current, **changes)
+    if not reasons:
+        return record
+    base = current
+    error = "record refused: " + "; ".join(reasons)
+    if not base.ok and base.error:
+        error = f"{base.error} ({error})"
+    extra = dict(base.extra) if "extra" not in refused else {}
+    extra["refused"] = refused
+    kept = {n: getattr(base, n) for n in (
+        "t_s", "wall_time", "seq", "board_id", "board_position_mm", "shift_px", "confidence",
+        "feed_setpoint_mm_s", "piezo_offsets_um", "target_pitch_mm", "true_pitch_mm",
+        "true_uniformity_cv")}
+    out = QualityRecord(**kept, ok=False, error=error, extra=extra)
+    check_storable(out)
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -366,44 +490,97 @@ def _required(metrics: Any, name: str) -> Any:
 
 
 # --------------------------------------------------------------------------------------------
-# the store
+# the table layout (shared by the stores: the same columns in SQLite and PostgreSQL)
 
-_COLUMNS: tuple[tuple[str, str], ...] = (
-    ("t_s", "REAL NOT NULL"),
-    ("wall_time", "TEXT NOT NULL"),
-    ("seq", "INTEGER NOT NULL"),
-    ("board_id", "INTEGER NOT NULL"),
-    ("board_position_mm", "REAL NOT NULL"),
-    ("ok", "INTEGER NOT NULL CHECK (ok IN (0, 1))"),
-    ("error", "TEXT"),
-    ("pitch_mm", "REAL"),
-    ("mark_widths_mm", "TEXT NOT NULL"),
-    ("uniformity_cv", "REAL"),
-    ("depth_um", "REAL"),
-    ("shift_px", "REAL"),
-    ("confidence", "REAL"),
-    ("feed_setpoint_mm_s", "REAL"),
-    ("piezo_offsets_um", "TEXT NOT NULL"),
-    ("target_pitch_mm", "REAL"),
-    ("passed", "INTEGER CHECK (passed IN (0, 1))"),
-    ("true_pitch_mm", "REAL"),
-    ("true_uniformity_cv", "REAL"),
-    ("extra", "TEXT NOT NULL"),
+#: Columns in record-field order: (field, SQLite type, PostgreSQL type).
+_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("t_s", "REAL NOT NULL", "DOUBLE PRECISION NOT NULL"),
+    ("wall_time", "TEXT NOT NULL", "TEXT NOT NULL"),
+    ("seq", "INTEGER NOT NULL", "BIGINT NOT NULL"),
+    ("board_id", "INTEGER NOT NULL", "BIGINT NOT NULL"),
+    ("board_position_mm", "REAL NOT NULL", "DOUBLE PRECISION NOT NULL"),
+    ("ok", "INTEGER NOT NULL CHECK (ok IN (0, 1))", "BOOLEAN NOT NULL"),
+    ("error", "TEXT", "TEXT"),
+    ("pitch_mm", "REAL", "DOUBLE PRECISION"),
+    ("mark_widths_mm", "TEXT NOT NULL", "TEXT NOT NULL"),
+    ("uniformity_cv", "REAL", "DOUBLE PRECISION"),
+    ("depth_um", "REAL", "DOUBLE PRECISION"),
+    ("shift_px", "REAL", "DOUBLE PRECISION"),
+    ("confidence", "REAL", "DOUBLE PRECISION"),
+    ("feed_setpoint_mm_s", "REAL", "DOUBLE PRECISION"),
+    ("piezo_offsets_um", "TEXT NOT NULL", "TEXT NOT NULL"),
+    ("target_pitch_mm", "REAL", "DOUBLE PRECISION"),
+    ("passed", "INTEGER CHECK (passed IN (0, 1))", "BOOLEAN"),
+    ("true_pitch_mm", "REAL", "DOUBLE PRECISION"),
+    ("true_uniformity_cv", "REAL", "DOUBLE PRECISION"),
+    ("extra", "TEXT NOT NULL", "TEXT NOT NULL"),
+    ("machine_id", "TEXT", "TEXT"),
 )
-assert tuple(c for c, _ in _COLUMNS) == _FIELD_NAMES, "schema and record differ"
+assert tuple(c for c, _, _ in _COLUMNS) == _FIELD_NAMES, "schema and record differ"
 
-_SCHEMA = (
-    "CREATE TABLE schema_version (version INTEGER NOT NULL)",
-    "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
-    "CREATE TABLE records (id INTEGER PRIMARY KEY AUTOINCREMENT, "
-    + ", ".join(f"{c} {t}" for c, t in _COLUMNS) + ")",
-    "CREATE INDEX records_board ON records (board_id)",
-    "CREATE INDEX records_seq ON records (seq)",
-)
+#: The table's column of each record field: the CSV header's names (one set, with units).
+_COLUMN_OF = {"wall_time": "wall_time_utc", "extra": "extra_json"}
+_V1 = tuple(n for n in _FIELD_NAMES if n != "machine_id")
+#: Column names by schema version: (id column, record columns in field order). Version 1
+#: used the field names; version 2 the CSV header's (``record_id``, ``wall_time_utc``,
+#: ``extra_json``); version 3 added ``machine_id``.
+_NAMES = {
+    1: ("id", _V1),
+    2: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V1)),
+    3: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
+}
+assert SCHEMA_VERSION == max(_NAMES)
 
-_INSERT = (f"INSERT INTO records ({', '.join(_FIELD_NAMES)}) "
-           f"VALUES ({', '.join('?' * len(_FIELD_NAMES))})")
-_SELECT = f"SELECT id, {', '.join(_FIELD_NAMES)} FROM records"
+
+def column_names(version: int) -> tuple[str, tuple[str, ...]]:
+    """``(id column, record columns in field order)`` of a schema version's ``records`` table."""
+    return _NAMES[version]
+
+
+def create_statements(dialect: str) -> tuple[str, ...]:
+    """The statements creating an empty log's tables (``dialect``: "sqlite" or "postgresql").
+
+    Both create ``schema_version``, ``meta``, ``records`` (columns :data:`CSV_COLUMNS`),
+    ``record_uids`` (the journal's record identities, unique) and the same indexes.
+    """
+    if dialect not in ("sqlite", "postgresql"):
+        raise ValueError(f"dialect must be 'sqlite' or 'postgresql', got {dialect!r}")
+    pg = dialect == "postgresql"
+    rid = ("record_id BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY" if pg
+           else "record_id INTEGER PRIMARY KEY AUTOINCREMENT")
+    cols = ", ".join(f"{_COLUMN_OF.get(c, c)} {p if pg else s}" for c, s, p in _COLUMNS)
+    return (
+        "CREATE TABLE schema_version (version INTEGER NOT NULL)",
+        "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
+        f"CREATE TABLE records ({rid}, {cols})",
+        "CREATE INDEX records_board ON records (board_id)",
+        "CREATE INDEX records_seq ON records (seq)",
+        "CREATE INDEX records_machine_time ON records (machine_id, wall_time_utc)",
+        "CREATE TABLE record_uids (uid TEXT PRIMARY KEY, record_id "
+        + ("BIGINT NOT NULL REFERENCES records (record_id))" if pg else "INTEGER NOT NULL)"),
+    )
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which records to read (all filters optional, combined with AND); see ``records``."""
+
+    board_id: int | None = None
+    since_seq: int | None = None
+    after_id: int | None = None
+    machine_id: str | None = None
+
+    def where(self, id_column: str, mark: str) -> tuple[list[str], list[Any]]:
+        """SQL conditions (placeholder ``mark``: ``?`` or ``%s``) and their parameters."""
+        where: list[str] = []
+        params: list[Any] = []
+        for column, value in (("board_id", self.board_id), ("seq", self.since_seq),
+                              (id_column, self.after_id), ("machine_id", self.machine_id)):
+            if value is not None:
+                op = ">=" if column == "seq" else ">" if column == id_column else "="
+                where.append(f"{column} {op} {mark}")
+                params.append(value)
+        return where, params
 
 
 def _json_default(obj: Any) -> Any:
@@ -420,15 +597,61 @@ def _list_from_json(text: str) -> tuple[float, ...]:
     return tuple(math.nan if v is None else float(v) for v in json.loads(text))
 
 
-def record_to_json(record: QualityRecord) -> str:
-    """One record as a line of JSON (fields by name; NaN as ``null``), e.g. for a fallback file."""
+def _finite_json(value: Any) -> Any:
+    """``value`` with non-finite floats as ``None`` and numpy values as Python ones."""
+    if isinstance(value, Mapping):
+        return {str(k): _finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_json(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        return _finite_json(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def record_to_dict(record: QualityRecord) -> dict[str, Any]:
+    """One record as a JSON-ready dict (fields by name; NaN as ``None``, also inside ``extra``)."""
     out: dict[str, Any] = {}
     for name in _FIELD_NAMES:
         v = getattr(record, name)
         if name in _TUPLES:
             v = [None if math.isnan(x) else x for x in v]
+        elif name == "extra":
+            v = _finite_json(v)
         out[name] = v
-    return json.dumps(out, default=_json_default, allow_nan=False)
+    return out
+
+
+def record_to_json(record: QualityRecord) -> str:
+    """One record as a line of JSON (fields by name; NaN as ``null``), e.g. for a fallback file."""
+    return json.dumps(record_to_dict(record), default=_json_default, allow_nan=False)
+
+
+def record_from_dict(data: Mapping[str, Any]) -> QualityRecord:
+    """Inverse of :func:`record_to_dict` (``null`` in a list reads back as NaN).
+
+    Raises
+    ------
+    ValueError
+        Not a record: unknown or missing fields, or invalid values (the message names them).
+    """
+    if not isinstance(data, Mapping):
+        raise ValueError(f"a record must be a JSON object, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(_FIELD_NAMES))
+    if unknown:
+        raise ValueError(f"unknown record field {unknown[0]!r}")
+    kw = dict(data)
+    for name in _TUPLES:
+        if name in kw:
+            vals = kw[name]
+            if not isinstance(vals, list):
+                raise ValueError(f"{name} must be a list, got {vals!r:.80}")
+            kw[name] = tuple(math.nan if v is None else v for v in vals)
+    try:
+        return QualityRecord(**kw)
+    except TypeError as exc:
+        raise ValueError(f"not a quality record: {exc}") from None
 
 
 def _to_row(rec: QualityRecord) -> tuple[Any, ...]:
@@ -462,151 +685,189 @@ def _from_row(row: Sequence[Any]) -> QualityRecord:
         raise QualityLogError(f"record {rid} of the quality log is unreadable: {exc}") from None
 
 
+class QualityStore(Protocol):
+    """What a backend of :class:`QualityLog` does: keep rows (the log validates and converts).
+
+    Rows are tuples in record-field order (``_to_row``); ``select`` returns ``(id, *fields)``.
+    Methods raise ``OSError`` when the database cannot be reached or written,
+    :class:`QualityLogError` when what it holds is unreadable, ``ValueError`` when closed.
+    """
+
+    path: Any
+    name: str
+    schema_version: int
+
+    def insert(self, row: Sequence[Any], *, uid: str | None) -> int:
+        """Commit one row; its id (the stored one when ``uid`` is known)."""
+
+    def has_uid(self, uid: str) -> bool:
+        """Whether a row appended with ``uid`` is stored."""
+
+    def set_meta(self, key: str, text: str) -> None:
+        """Store ``text`` under ``key``."""
+
+    def get_meta(self, key: str) -> str | None:
+        """The text under ``key`` or ``None``."""
+
+    def select(self, selection: Selection) -> list[tuple[Any, ...]]:
+        """Rows ``(id, *fields)`` in id order."""
+
+    def last_id(self) -> int:
+        """Newest id (0 when empty)."""
+
+    def count(self) -> int:
+        """Number of rows."""
+
+    def close(self) -> None:
+        """Release the file or connection (idempotent)."""
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+
+
+_URL = re.compile(r"^(postgres(?:ql)?):/+", re.IGNORECASE)
+
+
+def is_database_url(target: str | Path) -> bool:
+    """Whether ``target`` names a PostgreSQL database (``postgresql://USER@HOST:PORT/DB``).
+
+    A URL that went through ``pathlib.Path`` (``postgresql:/USER@HOST...``, one slash) counts.
+    """
+    return isinstance(target, (str, Path)) and _URL.match(str(target)) is not None
+
+
+def database_url(target: str | Path) -> str:
+    """The URL of a database target, with ``//`` restored after ``pathlib.Path`` folded it."""
+    return _URL.sub(lambda m: m.group(1).lower() + "://", str(target), count=1)
+
+
+def default_machine_id() -> str:
+    """The machine id when none is configured: the host name (``"planer-1"`` without one)."""
+    name = socket.gethostname().strip()
+    return name if name and name.isprintable() and len(name) <= MACHINE_ID_MAX else "planer-1"
+
+
+def _check_machine_id(name: str, value: Any) -> str | None:
+    if value is None:
+        return None
+    if (not isinstance(value, str) or not value or not value.isprintable()
+            or len(value) > MACHINE_ID_MAX or value != value.strip()):
+        raise ValueError(f"{name} must be a printable string of 1..{MACHINE_ID_MAX} characters "
+                         f"without surrounding spaces, got {value!r:.80}")
+    return value
+
+
 class QualityLog:
-    """An append-only quality log in an SQLite file (WAL, ``synchronous=FULL``).
+    """An append-only quality log: an SQLite file (default) or a PostgreSQL database.
 
     Parameters
     ----------
-    path : str or Path
-        The log file. Opening an existing log continues it.
+    target : str or Path
+        The log file (SQLite; opening an existing log continues it), or a PostgreSQL URL
+        ``postgresql://USER[:PASSWORD]@HOST:PORT/DB`` (the tables are created on first use;
+        several machines and processes may write into one database).
     create : bool, keyword-only
-        Create the file when it does not exist (default). With ``False`` a missing file
-        raises ``FileNotFoundError`` (readers such as ``planer report``).
+        Create the log when it does not exist (default). With ``False`` a missing log raises
+        ``FileNotFoundError`` / :class:`QualityLogError` (readers such as ``planer report``).
     timeout_s : float, keyword-only
-        How long to wait for another process's write lock, seconds.
+        SQLite: how long to wait for another process's write lock. PostgreSQL: the connect
+        time-out. Seconds.
+    machine_id : str, keyword-only, optional
+        Stamped on every appended record that names no machine (``[machine] id`` of
+        machine.toml); default :func:`default_machine_id`.
 
     Raises
     ------
     OSError
-        The file cannot be opened or created (missing folder, a directory, no permission).
+        The file cannot be opened or created, or the database cannot be reached (one line
+        naming ``host:port/db``).
     QualityLogError
-        The file is not a quality log, is corrupt, or was written by a newer version.
+        Not a quality log, corrupt, or written by a newer version.
 
     Notes
     -----
     One instance may be shared by threads (calls are serialised by a lock); separate
-    processes open their own instances on the same file.
+    processes open their own instances. Backends: :mod:`controller.quality_store_sqlite`,
+    :mod:`controller.quality_store_postgres`.
     """
 
-    def __init__(self, path: str | Path, *, create: bool = True, timeout_s: float = 10.0) -> None:
-        self.path = Path(path)
-        timeout_s = check_positive("timeout_s", timeout_s)
+    def __init__(self, target: str | Path, *, create: bool = True, timeout_s: float = 10.0,
+                 machine_id: str | None = None) -> None:
+        if not isinstance(target, (str, Path)) or str(target) == "":
+            raise ValueError(f"quality log must be a file path or a postgresql:// URL, got "
+                             f"{target!r:.80}")
+        mid = _check_machine_id("machine_id", machine_id)
+        self.machine_id = default_machine_id() if mid is None else mid
         self._lock = threading.RLock()
-        self._conn: sqlite3.Connection | None = None
-        p = self.path
-        if p.is_dir():
-            raise IsADirectoryError(f"quality log path is a directory: {p}")
-        if not p.exists():
-            if not create:
-                raise FileNotFoundError(f"quality log not found: {p}")
-            if not p.parent.is_dir():
-                raise FileNotFoundError(f"folder of the quality log does not exist: {p.parent}")
-        try:
-            conn = sqlite3.connect(
-                f"file:{_uri_path(p)}?mode={'rwc' if create else 'rw'}", uri=True,
-                timeout=timeout_s, isolation_level=None, check_same_thread=False,
-            )
-        except sqlite3.Error as exc:
-            raise OSError(f"cannot open quality log {p}: {exc}") from None
-        try:
-            self._conn = conn
-            self._open(timeout_s, create=create)
-        except BaseException:
-            self._conn = None
-            conn.close()
-            raise
+        self._store: QualityStore
+        if is_database_url(target):
+            from controller.quality_store_postgres import PostgresStore
 
-    # -- opening ------------------------------------------------------------------------------
+            self._store = PostgresStore(database_url(target), create=create,
+                                        connect_timeout_s=timeout_s)
+        else:
+            from controller.quality_store_sqlite import SqliteStore
 
-    def _open(self, timeout_s: float, *, create: bool) -> None:
-        conn = self._conn
-        assert conn is not None
-        p = self.path
-        try:
-            conn.execute(f"PRAGMA busy_timeout = {int(timeout_s * 1000)}")
-            app_id = conn.execute("PRAGMA application_id").fetchone()[0]
-            tables = {r[0] for r in conn.execute(
-                "SELECT name FROM sqlite_master WHERE type = 'table'")}
-            if tables and (app_id != APPLICATION_ID or "records" not in tables):
-                raise QualityLogError(f"{p} is an SQLite file but not a quality log")
-            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-            if str(mode).lower() != "wal":
-                raise OSError(f"cannot use write-ahead logging for {p} (journal mode {mode})")
-            conn.execute("PRAGMA synchronous = FULL")
-            if not tables:
-                if not create:
-                    raise QualityLogError(f"{p} is empty, not a quality log")
-                self._create_schema()
-            rows = conn.execute("SELECT version FROM schema_version").fetchall()
-        except sqlite3.DatabaseError as exc:
-            msg = str(exc)
-            if isinstance(exc, sqlite3.OperationalError) and "unable to open" in msg:
-                raise OSError(f"cannot open quality log {p}: {msg}") from None
-            raise QualityLogError(f"{p} is not a readable quality log: {msg}") from None
-        if len(rows) != 1:
-            raise QualityLogError(f"{p}: quality log has no valid schema version")
-        version = rows[0][0]
-        if not isinstance(version, int) or version > SCHEMA_VERSION or version < 1:
-            raise QualityLogError(
-                f"{p}: quality log schema version {version} is not supported "
-                f"(this planer reads versions 1..{SCHEMA_VERSION}; update planer)")
-        self.schema_version = version
+            self._store = SqliteStore(target, create=create, timeout_s=timeout_s)
 
-    def _create_schema(self) -> None:
-        conn = self._conn
-        assert conn is not None
-        conn.execute("BEGIN IMMEDIATE")
-        try:
-            exists = conn.execute(
-                "SELECT 1 FROM sqlite_master WHERE name = 'records'").fetchone()
-            if not exists:  # another process may have created it while we waited
-                for stmt in _SCHEMA:
-                    conn.execute(stmt)
-                conn.execute("INSERT INTO schema_version (version) VALUES (?)",
-                             (SCHEMA_VERSION,))
-                conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-            conn.execute("COMMIT")
-        except BaseException:
-            conn.execute("ROLLBACK")
-            raise
+    @property
+    def path(self) -> Any:
+        """The SQLite file (``Path``) or the database URL without password (``str``)."""
+        return self._store.path
+
+    @property
+    def schema_version(self) -> int:
+        """Layout version of the log as opened (older ones are read as they are)."""
+        return self._store.schema_version
+
+    def _call(self, method: str, *args: Any, **kw: Any) -> Any:
+        with self._lock:
+            if self._store.closed:
+                raise ValueError(f"quality log {self._store.name} is closed")
+            return getattr(self._store, method)(*args, **kw)
 
     # -- writing ------------------------------------------------------------------------------
 
-    def _connection(self) -> sqlite3.Connection:
-        if self._conn is None:
-            raise ValueError(f"quality log {self.path} is closed")
-        return self._conn
-
-    def append(self, record: QualityRecord) -> int:
-        """Append one record; returns its id once it is committed to disk.
+    def append(self, record: QualityRecord, *, uid: str | None = None) -> int:
+        """Append one record; returns its id once it is committed.
 
         Parameters
         ----------
         record : QualityRecord
-            The measurement.
+            The measurement; one naming no machine gets this log's :attr:`machine_id`.
+        uid : str, keyword-only, optional
+            A unique identity of the record (e.g. a UUID the journal gave it). A record whose
+            ``uid`` the log already holds is not appended again: the id of the stored one is
+            returned (exactly once when a journal is replayed after a crash).
 
         Returns
         -------
         int
-            The record's id (increasing in append order, never reused).
+            The record's id (increasing in append order for one writer, never reused).
+
+        Raises
+        ------
+        RecordRefusedError
+            A value the schema cannot store (the error names the field; nothing written).
+        ValueError
+            ``record`` is not a record, or the log is closed.
+        OSError
+            The database cannot be written (disk full, locked beyond ``timeout_s``, I/O
+            error, connection lost).
         """
         if not isinstance(record, QualityRecord):
             raise ValueError(f"record must be a QualityRecord, got {type(record).__name__}")
-        row = _to_row(record)
-        with self._lock:
-            conn = self._connection()
-            try:
-                conn.execute("BEGIN IMMEDIATE")
-                try:
-                    cur = conn.execute(_INSERT, row)
-                    conn.execute("COMMIT")
-                except BaseException:
-                    if conn.in_transaction:
-                        conn.execute("ROLLBACK")
-                    raise
-            except sqlite3.Error as exc:
-                raise OSError(f"cannot append to quality log {self.path}: {exc}") from None
-            return int(cur.lastrowid)
+        if uid is not None and (not isinstance(uid, str) or not uid or not uid.isprintable()):
+            raise ValueError(f"uid must be a non-empty printable string, got {uid!r}")
+        if record.machine_id is None:
+            record = dataclasses.replace(record, machine_id=self.machine_id)
+        check_storable(record)
+        return int(self._call("insert", _to_row(record), uid=uid))
+
+    def has_uid(self, uid: str) -> bool:
+        """Whether a record appended with this ``uid`` is in the log."""
+        return bool(self._call("has_uid", uid))
 
     def set_meta(self, key: str, value: Any) -> None:
         """Store a JSON-serialisable value under ``key`` (e.g. ``"quality_class"``)."""
@@ -616,16 +877,7 @@ class QualityLog:
             text = json.dumps(value, default=_json_default)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"value of meta key {key!r} is not JSON serialisable: {exc}") from None
-        with self._lock:
-            conn = self._connection()
-            try:
-                conn.execute("BEGIN IMMEDIATE")
-                conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, text))
-                conn.execute("COMMIT")
-            except sqlite3.Error as exc:
-                if conn.in_transaction:
-                    conn.execute("ROLLBACK")
-                raise OSError(f"cannot write to quality log {self.path}: {exc}") from None
+        self._call("set_meta", key, text)
 
     def set_quality_class(self, quality_class: QualityClass) -> None:
         """Store the quality class the records are judged against (read by ``planer report``)."""
@@ -635,23 +887,16 @@ class QualityLog:
 
     # -- reading ------------------------------------------------------------------------------
 
-    def _query(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
-        with self._lock:
-            conn = self._connection()
-            try:
-                return conn.execute(sql, tuple(params)).fetchall()
-            except sqlite3.DatabaseError as exc:
-                raise QualityLogError(f"cannot read quality log {self.path}: {exc}") from None
-
     def get_meta(self, key: str, default: Any = None) -> Any:
         """The value stored under ``key``, or ``default``."""
-        rows = self._query("SELECT value FROM meta WHERE key = ?", (key,))
-        if not rows:
+        text = self._call("get_meta", key)
+        if text is None:
             return default
         try:
-            return json.loads(rows[0][0])
+            return json.loads(text)
         except ValueError as exc:
-            raise QualityLogError(f"meta key {key!r} of {self.path} is unreadable: {exc}") from None
+            raise QualityLogError(
+                f"meta key {key!r} of {self._store.name} is unreadable: {exc}") from None
 
     def quality_class(self) -> QualityClass | None:
         """The stored quality class, or ``None`` when the writer stored none."""
@@ -662,7 +907,7 @@ class QualityLog:
             return QualityClass.from_dict(data)
         except (TypeError, ValueError) as exc:
             raise QualityLogError(
-                f"stored quality class of {self.path} is invalid: {exc}") from None
+                f"stored quality class of {self._store.name} is invalid: {exc}") from None
 
     def entries(
         self,
@@ -670,20 +915,16 @@ class QualityLog:
         board_id: int | None = None,
         since_seq: int | None = None,
         after_id: int | None = None,
+        machine_id: str | None = None,
     ) -> list[tuple[int, QualityRecord]]:
-        """``(id, record)`` pairs in append order; filters as :meth:`records`."""
-        where, params = [], []
-        if board_id is not None:
-            where.append("board_id = ?")
-            params.append(check_int("board_id", board_id))
-        if since_seq is not None:
-            where.append("seq >= ?")
-            params.append(check_int("since_seq", since_seq))
-        if after_id is not None:
-            where.append("id > ?")
-            params.append(check_int("after_id", after_id))
-        sql = _SELECT + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY id"
-        return [(int(r[0]), _from_row(r)) for r in self._query(sql, params)]
+        """``(id, record)`` pairs in id order; filters as :meth:`records`."""
+        sel = Selection(
+            board_id=None if board_id is None else check_int("board_id", board_id),
+            since_seq=None if since_seq is None else check_int("since_seq", since_seq),
+            after_id=None if after_id is None else check_int("after_id", after_id),
+            machine_id=_check_machine_id("machine_id", machine_id),
+        )
+        return [(int(r[0]), _from_row(r)) for r in self._call("select", sel)]
 
     def records(
         self,
@@ -691,8 +932,9 @@ class QualityLog:
         since_seq: int | None = None,
         *,
         after_id: int | None = None,
+        machine_id: str | None = None,
     ) -> list[QualityRecord]:
-        """The records in append order.
+        """The records in id order.
 
         Parameters
         ----------
@@ -702,25 +944,28 @@ class QualityLog:
             Only records with ``seq >= since_seq``.
         after_id : int, keyword-only, optional
             Only records appended after the one with this id (for following a growing log).
+        machine_id : str, keyword-only, optional
+            Only this machine's records (a log shared by several machines).
         """
         return [r for _, r in self.entries(board_id=board_id, since_seq=since_seq,
-                                           after_id=after_id)]
+                                           after_id=after_id, machine_id=machine_id)]
 
     @property
     def last_id(self) -> int:
         """Id of the newest record (0 when empty)."""
-        return int(self._query("SELECT COALESCE(MAX(id), 0) FROM records")[0][0])
+        return int(self._call("last_id"))
 
     def __len__(self) -> int:
-        return int(self._query("SELECT COUNT(*) FROM records")[0][0])
+        return int(self._call("count"))
 
-    def export_csv(self, path: str | Path) -> int:
-        """Write every record to a CSV file (atomically: a reader never sees a partial file).
+    def export_csv(self, path: str | Path, *, machine_id: str | None = None) -> int:
+        """Write the records to a CSV file (atomically: a reader never sees a partial file).
 
         One row per record, columns :data:`CSV_COLUMNS` (units in the names); numbers without
         binary rounding noise (:func:`csv_float`: ``0.7``, not ``0.7000000000000001``); lists as
         semicolon-separated numbers, booleans as 1/0, missing values empty, ``extra`` as JSON
-        without the bulky ``profile`` entry.
+        without the bulky ``profile`` entry. The same records give the same file from either
+        backend. ``machine_id``: only that machine's records.
 
         Returns
         -------
@@ -732,7 +977,7 @@ class QualityLog:
             raise IsADirectoryError(f"CSV path is a directory: {out}")
         if not out.parent.is_dir():
             raise FileNotFoundError(f"folder of the CSV file does not exist: {out.parent}")
-        entries = self.entries()
+        entries = self.entries(machine_id=machine_id)
         with atomic_writer(out, newline="") as fh:
             w = csv.writer(fh)
             w.writerow(CSV_COLUMNS)
@@ -743,11 +988,9 @@ class QualityLog:
     # -- lifetime -----------------------------------------------------------------------------
 
     def close(self) -> None:
-        """Close the file (idempotent)."""
+        """Close the file or connection (idempotent)."""
         with self._lock:
-            if self._conn is not None:
-                self._conn.close()
-                self._conn = None
+            self._store.close()
 
     def __enter__(self) -> QualityLog:
         return self
@@ -756,24 +999,41 @@ class QualityLog:
         self.close()
 
     def __repr__(self) -> str:
-        state = "closed" if self._conn is None else "open"
-        return f"QualityLog({str(self.path)!r}, {state})"
+        state = "closed" if self._store.closed else "open"
+        return f"QualityLog({self._store.name!r}, {state})"
 
 
-def _uri_path(p: Path) -> str:
-    from urllib.parse import quote
+def open_quality_log(target: str | Path, *, create: bool = True,
+                     machine_id: str | None = None, timeout_s: float = 10.0) -> QualityLog:
+    """Open the quality log a ``--log`` option or ``[log] path`` names: file or URL.
 
-    return quote(str(p.absolute()))
+    The one place commands turn ``--log`` into a log (see :class:`QualityLog` for the
+    parameters); ``postgresql://USER@HOST:PORT/DB`` (also after ``pathlib.Path`` folded its
+    ``//``) opens PostgreSQL, anything else an SQLite file.
+    """
+    return QualityLog(target, create=create, machine_id=machine_id, timeout_s=timeout_s)
+
+
+def log_target(text: str | Path, *, check_file: Callable[[Any], Any] | None = None
+               ) -> str | Path:
+    """A ``--log`` value as the commands keep it: the URL as text, a file as ``Path``.
+
+    ``check_file`` (e.g. ``planer.cli.output_file``) is called with a file path only; a
+    database URL is checked when the log is opened.
+    """
+    if is_database_url(text):
+        return database_url(text)
+    if check_file is not None:
+        check_file(text)
+    return Path(text)
 
 
 # --------------------------------------------------------------------------------------------
 # CSV layout
 
-#: CSV header: the record id, then the record's fields (``wall_time`` as ``wall_time_utc``,
-#: ``extra`` as ``extra_json``).
-CSV_COLUMNS: tuple[str, ...] = ("record_id",) + tuple(
-    {"wall_time": "wall_time_utc", "extra": "extra_json"}.get(n, n) for n in _FIELD_NAMES
-)
+#: CSV header = the table's column names (schema version 3): the record id, then the
+#: record's fields (``wall_time`` as ``wall_time_utc``, ``extra`` as ``extra_json``).
+CSV_COLUMNS: tuple[str, ...] = (_NAMES[SCHEMA_VERSION][0],) + _NAMES[SCHEMA_VERSION][1]
 
 
 #: Significant digits tried when writing a float to the CSV (see :func:`csv_float`).

@@ -5,6 +5,10 @@ The data goes to a temporary file in the destination's folder, is flushed (and w
 ``durable=True`` the folder is fsync'ed after the rename too, so the new file survives a power
 cut once the call returns. On any error the temporary file is removed and the destination is
 left as it was.
+
+Permissions: a new file gets ``0o666 & ~umask`` (what ``open()`` would give it, e.g. 0644 with
+the usual umask 022) -- not the 0600 of :func:`tempfile.mkstemp`; a file that is replaced keeps
+its permission bits.
 """
 
 from __future__ import annotations
@@ -16,7 +20,43 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_writer", "atomic_write_bytes", "atomic_write_text", "fsync_dir"]
+__all__ = ["atomic_writer", "atomic_write_bytes", "atomic_write_text", "fsync_dir", "new_file_mode"]
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where the system allows."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):  # not Linux, or a kernel without the field
+        pass
+    old = os.umask(0o022)  # the portable way sets it; put it back at once
+    os.umask(old)
+    return old
+
+
+def new_file_mode(path: str | Path | None = None) -> int:
+    """Permission bits an atomic write gives ``path``.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        The destination; when it exists, its own permission bits are kept.
+
+    Returns
+    -------
+    int
+        ``0o666 & ~umask`` for a new file (what ``open(path, "w")`` gives), else the existing
+        file's mode bits.
+    """
+    if path is not None:
+        try:
+            return os.stat(path).st_mode & 0o7777
+        except OSError:
+            pass
+    return 0o666 & ~_umask()
 
 
 def fsync_dir(folder: str | Path) -> None:
@@ -66,6 +106,7 @@ def atomic_writer(
     """
     dest = Path(path)
     folder = dest.parent if str(dest.parent) else Path(".")
+    mode = new_file_mode(dest)
     fd, tmp = tempfile.mkstemp(prefix=f"{tmp_prefix}{dest.name}.", suffix=".tmp", dir=folder)
     try:
         if binary:
@@ -73,6 +114,7 @@ def atomic_writer(
         else:
             fh = os.fdopen(fd, "w", encoding=encoding, newline=newline)
         with fh:
+            os.fchmod(fh.fileno(), mode)  # mkstemp makes it 0600; follow the umask as open() does
             yield fh
             fh.flush()
             if durable:

@@ -12,6 +12,7 @@ what                                                   exit code
 bad command line (unknown option, not a number, ...)   2
 ``ValueError`` / ``OSError`` (so every ``PlanerError``)  2
 Ctrl-C (``KeyboardInterrupt``)                          130
+stdout closed by its reader (``planer X | head``)      0, quietly
 any other exception (a bug): ``internal error``        3
 =====================================================  =========
 
@@ -24,11 +25,13 @@ import argparse
 import importlib
 import logging
 import os
+import select
 import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
-COMMANDS = ("measure", "calibrate", "bench", "sim", "serve", "hil", "report")
+COMMANDS = ("measure", "calibrate", "calibrate-rig", "bench", "sim", "serve", "hil", "report",
+            "acquire", "sweep")
 
 EXIT_USAGE = 2
 EXIT_ERROR = 2
@@ -53,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
-        mod = importlib.import_module(f"planer.commands.{name}")
+        mod = importlib.import_module(f"planer.commands.{name.replace('-', '_')}")
         p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
         mod.configure(p)
         p.set_defaults(_run=mod.run)
@@ -158,8 +161,66 @@ def _quiet_teardown() -> None:
     logging.getLogger("can").setLevel(logging.CRITICAL)
 
 
+def _reader_gone(stream: object) -> bool:
+    """Whether ``stream`` is a pipe (or socket) whose reader has closed it.
+
+    ``poll`` reports ``POLLERR`` on the write end of a pipe without readers (Linux, BSD); a
+    stream without a file descriptor (replaced by a test, closed) counts as not gone.
+    """
+    try:
+        fd = stream.fileno()  # type: ignore[attr-defined]
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        events = poller.poll(0)
+    except (AttributeError, ValueError, OSError):
+        return False
+    return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in events)
+
+
+def _broken_pipe(exc: BaseException) -> bool:
+    """Whether ``exc`` (or an exception it came from) is a write to a closed stdout/stderr."""
+    seen = 0
+    e: BaseException | None = exc
+    while e is not None and seen < 20:
+        if isinstance(e, BrokenPipeError):
+            return _reader_gone(sys.stdout) or _reader_gone(sys.stderr)
+        e = e.__cause__ or e.__context__
+        seen += 1
+    return False
+
+
+def _silence_closed_streams() -> None:
+    """Point a closed stdout/stderr at /dev/null so the exit flush does not fail again.
+
+    Python flushes ``sys.stdout`` at exit; with its reader gone that flush would print
+    "Exception ignored ... BrokenPipeError" and turn the exit code into 120.
+    """
+    for stream in (sys.stdout, sys.stderr):
+        if _reader_gone(stream):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            try:
+                os.dup2(devnull, stream.fileno())
+            finally:
+                os.close(devnull)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``planer`` command; returns the process exit code."""
+    """Entry point of the ``planer`` command; returns the process exit code.
+
+    A command whose stdout is closed by its reader (``planer report ... | head``) stops
+    quietly with exit code 0, like other command-line tools in a pipe.
+    """
+    try:
+        code = _main(argv)
+        sys.stdout.flush()  # now, not at interpreter exit where a closed pipe cannot be handled
+        return code
+    except BrokenPipeError as exc:  # --help, a usage message or the last flush into a closed pipe
+        if not _broken_pipe(exc):
+            raise
+        return _closed_pipe_exit()
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     name = f"planer {args.command}"
@@ -171,12 +232,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{name}: interrupted", file=sys.stderr, flush=True)
         return EXIT_INTERRUPTED
     except (ValueError, OSError) as exc:  # PlanerError subclasses are among these
+        if _broken_pipe(exc):
+            return _closed_pipe_exit()
         if debug:
             raise
         _quiet_teardown()
         print(f"{name}: error: {error_line(exc)}", file=sys.stderr, flush=True)
         return EXIT_ERROR
-    except Exception as exc:  # a bug: still one line, the traceback on request
+    # One of the project's three bare ``except Exception`` handlers (issue 8): the process's
+    # outermost boundary. Whatever a command let escape is a bug; the user still gets one line
+    # and exit code 3 instead of a traceback, and PLANER_TRACEBACK=1 gives the traceback.
+    # Nothing runs after it, so swallowing cannot leave a half-working process behind.
+    except Exception as exc:
+        if _broken_pipe(exc):
+            return _closed_pipe_exit()
         if debug:
             raise
         _quiet_teardown()
@@ -187,6 +256,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             flush=True,
         )
         return EXIT_INTERNAL
+
+
+def _closed_pipe_exit() -> int:
+    """The reader of stdout has what it wanted: no message, success."""
+    _quiet_teardown()
+    _silence_closed_streams()
+    return 0
 
 
 if __name__ == "__main__":  # pragma: no cover

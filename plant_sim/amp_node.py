@@ -17,6 +17,9 @@ Behaviour (see ``docs/piezo_can.md``):
   ``machine.piezo_status()``, with the node's own alive counter;
 * frames the node sends itself (status, heartbeat) and unknown ids are ignored on receive.
 
+:meth:`AmpNode.start_receiving` reads the bus on a thread of its own (``planer sim``), so frames
+leave the bus at once whatever the stepping thread does.
+
 Faults: ``drop_rx`` drops a fraction of received frames, or all of them in a time window;
 ``silence`` stops the node sending in a time window (the CAN side going silent).
 """
@@ -25,7 +28,9 @@ from __future__ import annotations
 
 import logging
 import math
+import queue
 import random
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -34,6 +39,9 @@ from protocol import piezo_can
 from protocol.piezo_can import Frame, PiezoCodec
 
 log = logging.getLogger(__name__)
+
+RX_POLL_S = 0.05
+"""How long the receiving thread waits on the bus before it checks whether to stop, s."""
 
 
 class AmpMachine(Protocol):
@@ -266,14 +274,50 @@ class AmpNode:
         self.core = core
         self.own_bus = own_bus
         self.send_errors = 0
+        self._rx: queue.SimpleQueue[Any] | None = None
+        self._rx_stop = threading.Event()
+        self._rx_thread: threading.Thread | None = None
+
+    def start_receiving(self) -> None:
+        """Read the bus on a thread of its own (frames are queued for :meth:`receive`).
+
+        So frames are taken off the bus at once, however busy the stepping thread is; the
+        machine still sees them at its own time, in the order received.
+        """
+        if self._rx_thread is not None:
+            return
+        self._rx = queue.SimpleQueue()
+        self._rx_thread = threading.Thread(target=self._read_bus, name="amp-node-rx",
+                                           daemon=True)
+        self._rx_thread.start()
+
+    def _read_bus(self) -> None:
+        import can
+
+        assert self._rx is not None
+        while not self._rx_stop.is_set():
+            try:
+                msg = self.bus.recv(timeout=RX_POLL_S)
+            except (can.CanError, OSError, ValueError) as exc:  # bus shut down under us
+                if not self._rx_stop.is_set():
+                    log.warning("CAN receive failed: %s", exc)
+                return
+            if msg is not None:
+                self._rx.put(msg)
 
     def receive(self, now_s: float, *, max_frames: int = 1000) -> int:
-        """Drain received frames (non-blocking) into the core; returns how many were read."""
+        """Hand received frames to the core (non-blocking); returns how many were read."""
         n = 0
         while n < max_frames:
-            msg = self.bus.recv(timeout=0.0)
-            if msg is None:
-                break
+            if self._rx is not None:
+                try:
+                    msg = self._rx.get_nowait()
+                except queue.Empty:
+                    break
+            else:
+                msg = self.bus.recv(timeout=0.0)
+                if msg is None:
+                    break
             n += 1
             if msg.is_error_frame or msg.is_remote_frame:
                 continue
@@ -300,6 +344,9 @@ class AmpNode:
         self.transmit(now_s)
 
     def close(self) -> None:
-        """Shut the bus down if the node owns it."""
+        """Stop the receiving thread; shut the bus down if the node owns it."""
+        self._rx_stop.set()
+        if self._rx_thread is not None:
+            self._rx_thread.join(timeout=5)
         if self.own_bus:
             self.bus.shutdown()

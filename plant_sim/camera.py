@@ -16,6 +16,7 @@ images per pixel (each pixel's board coordinate is known from the renderer's dis
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,7 +25,7 @@ import numpy as np
 from plant_sim.surface import Passes, Surface, envelope
 from protocol.frames import Frame
 
-__all__ = ["FrameAssembler", "Knot", "Latch", "TriggerClock"]
+__all__ = ["FrameAssembler", "Knot", "Latch", "RenderJob", "TriggerClock", "render_images"]
 
 
 class TriggerClock:
@@ -152,6 +153,83 @@ class _KnottedSurface:
         return self.surface.metrics(x_lo_mm, x_hi_mm)
 
 
+@dataclass(frozen=True)
+class RenderJob:
+    """Everything needed to render one pair's images (picklable, for worker processes).
+
+    Attributes
+    ----------
+    seq : int
+        The frame's sequence number.
+    source : Surface or height source
+        The true surface near the field of view (with the knots' roughness, if any).
+    knots : tuple of Knot
+        Knots darkening the images.
+    x_centre_mm : float
+        Board coordinate on the optical axis at trigger A, mm.
+    shift_mm : float
+        Board travel from trigger A to B, mm.
+    v_a_mm_s : float
+        Feed speed at trigger A, mm/s (used when the optics have no A-to-B delay).
+    counts_a : int
+        Encoder count latched at A.
+    counter_bits : int
+        Encoder counter width.
+    """
+
+    seq: int
+    source: Any
+    knots: tuple[Knot, ...]
+    x_centre_mm: float
+    shift_mm: float
+    v_a_mm_s: float
+    counts_a: int
+    counter_bits: int
+
+
+def render_images(renderer: Any, job: RenderJob, *,
+                  rng_seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Render a job's images A and B, shape ``(height, width)``, with its knots darkened.
+
+    Parameters
+    ----------
+    renderer : plant_sim.optics.Renderer
+        The renderer (built once per rig and optics).
+    job : RenderJob
+        What to render.
+    rng_seed : int, optional
+        Seed of this pair's sensor noise; ``None`` draws from the renderer's own stream.
+    """
+    dt = renderer.optics.dt_ab_s
+    speed = job.shift_mm / dt if dt > 0 else job.v_a_mm_s
+    pair = renderer.render_pair(
+        job.source,
+        board_x_at_centre_mm=job.x_centre_mm,
+        speed_mm_s=speed,
+        counts_a=job.counts_a,
+        counter_bits=job.counter_bits,
+        rng_seed=rng_seed,
+    )
+    image_a, image_b = pair.image_a, pair.image_b
+    if job.knots:
+        image_a = _darken(renderer, image_a, job.knots, job.x_centre_mm)
+        image_b = _darken(renderer, image_b, job.knots, job.x_centre_mm - job.shift_mm)
+    return image_a, image_b
+
+
+def _darken(renderer: Any, image: np.ndarray, knots: Sequence[Knot],
+            x_axis_mm: float) -> np.ndarray:
+    bx = renderer.x_phys_mm + x_axis_mm
+    by = renderer.y_phys_mm
+    f = np.ones(image.shape, dtype=np.float32)
+    for k in knots:
+        f *= k.albedo_factor(bx, by).astype(np.float32)
+    out = image.astype(np.float32) * f
+    if np.issubdtype(image.dtype, np.integer):
+        return np.clip(out + 0.5, 0, np.iinfo(image.dtype).max).astype(image.dtype)
+    return out
+
+
 class FrameAssembler:
     """Turns completed latches into :class:`~protocol.frames.Frame` objects.
 
@@ -179,6 +257,20 @@ class FrameAssembler:
         self.counter_bits = counter_bits
         self.renderer = renderer
         self.cols_mm = np.arange(width) / self.px_per_mm
+        self.jobs: dict[int, RenderJob] | None = None
+
+    def defer_rendering(self) -> None:
+        """Keep a :class:`RenderJob` per frame (see :meth:`take_job`) instead of rendering.
+
+        For a machine built without a renderer whose images are rendered elsewhere (worker
+        processes, :mod:`plant_sim.render_worker`).
+        """
+        if self.jobs is None:
+            self.jobs = {}
+
+    def take_job(self, seq: int) -> RenderJob | None:
+        """The render job of frame ``seq`` (removed), or ``None``."""
+        return self.jobs.pop(seq, None) if self.jobs is not None else None
 
     def field_mm(self, x_centre_mm: float) -> tuple[float, float]:
         """Board range of image A's (undistorted) field for a centre at ``x_centre_mm``."""
@@ -235,21 +327,21 @@ class FrameAssembler:
         mine = [k for k in knots if k.board_id == latch.board_id and k.overlaps(lo - 5, hi + 5)]
         truth["knot"] = bool(mine)
         image_a = image_b = None
-        if self.renderer is not None:
-            dt = self.renderer.optics.dt_ab_s
-            speed = shift_mm / dt if dt > 0 else latch.v_a
-            source = _KnottedSurface(surf, mine) if mine else surf
-            pair = self.renderer.render_pair(
-                source,
-                board_x_at_centre_mm=latch.x_centre_mm,
-                speed_mm_s=speed,
+        if self.renderer is not None or self.jobs is not None:
+            job = RenderJob(
+                seq=latch.seq,
+                source=_KnottedSurface(surf, mine) if mine else surf,
+                knots=tuple(mine),
+                x_centre_mm=latch.x_centre_mm,
+                shift_mm=shift_mm,
+                v_a_mm_s=latch.v_a,
                 counts_a=latch.counts_a,
                 counter_bits=self.counter_bits,
             )
-            image_a, image_b = pair.image_a, pair.image_b
-            if mine:
-                image_a = self._darken(image_a, mine, latch.x_centre_mm)
-                image_b = self._darken(image_b, mine, latch.x_centre_mm - shift_mm)
+            if self.renderer is not None:
+                image_a, image_b = render_images(self.renderer, job)
+            else:
+                self.jobs[latch.seq] = job  # type: ignore[index]
         return Frame(
             seq=latch.seq,
             t_s=latch.t_a,
@@ -263,18 +355,6 @@ class FrameAssembler:
             board_position_mm=board_length_mm - latch.x_centre_mm,
             truth=truth,
         )
-
-    def _darken(self, image: np.ndarray, knots: list[Knot], x_axis_mm: float) -> np.ndarray:
-        r = self.renderer
-        bx = r.x_phys_mm + x_axis_mm
-        by = r.y_phys_mm
-        f = np.ones(image.shape, dtype=np.float32)
-        for k in knots:
-            f *= k.albedo_factor(bx, by).astype(np.float32)
-        out = image.astype(np.float32) * f
-        if np.issubdtype(image.dtype, np.integer):
-            return np.clip(out + 0.5, 0, np.iinfo(image.dtype).max).astype(image.dtype)
-        return out
 
 
 def _count_diff(b: int, a: int, bits: int) -> int:

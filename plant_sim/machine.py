@@ -9,32 +9,23 @@ dead centre (BDC), the amplifier's switch to the next knife's offset, a camera t
 handled at its exact instant. The result does not depend on how a caller chops time into
 ``advance`` calls (up to the sensor noise drawn when a status is read).
 
-The cut: at every knife's BDC the pass is recorded for the board under the cutter: board
-coordinate of the cutter axis and ``bottom_um = -(runout_k + eccentricity term) +`` the actual
-piezo displacement at that instant. The surface under the camera is the envelope of those
-passes (:mod:`plant_sim.surface`), so compensation genuinely changes the surface.
+The machine composes parts with one job each:
 
-Faults (:meth:`Machine.inject`, or ``[faults] inject`` in ``config/sim.toml``), each with an
-optional ``at_s`` (absolute simulated time; default now):
+- the drives: :mod:`plant_sim.spindle`, :mod:`plant_sim.feed_drive` (feed, encoder, boards),
+  :mod:`plant_sim.piezo` (actuator and amplifier);
+- :class:`plant_sim.cut_record.CutRecord`: the cut. At every knife's BDC the pass is recorded for
+  the board under the cutter: board coordinate of the cutter axis and ``bottom_um =
+  -(runout_k + eccentricity term) +`` the actual piezo displacement at that instant. The surface
+  under the camera is the envelope of those passes (:mod:`plant_sim.surface`), so compensation
+  genuinely changes the surface;
+- :class:`plant_sim.frame_capture.FrameCapture`: the camera's triggers, latches and frames;
+- :class:`plant_sim.plc_registers.PlcRegisters`: the PLC's flags, heartbeats, watchdog,
+  interlock and register values;
+- :class:`plant_sim.fault_injection.FaultInjector`: the faults (kinds and parameters listed
+  there), their schedule and timers.
 
-- ``belt_slip`` (``px`` or ``counts``): between triggers A and B of the next pair the encoder
-  gains ``counts = round(px / px_per_count)`` counts that the board did not travel; the
-  counter stays off by that much afterwards (the vision registration sees the lie).
-- ``encoder_wrap`` (``counts_before_wrap``, default 2000): the counter is preset so that it wraps
-  that many counts from now (index latches already recorded are shifted alike).
-- ``encoder_fault``: the counter stops (faults bit 2) until :meth:`reset_faults`.
-- ``knot`` (``board_id``, ``at_mm`` from the leading end, ``length_mm``, ``width_mm``, ``y_mm``,
-  ``darkness``, ``roughness_um``): a dark, rough patch on a board.
-- ``spindle_stop``: the spindle drive trips and coasts down (faults bit 1, state bit 3 off); the
-  PLC's interlock stops the feed.
-- ``estop``: e-stop (state bit 2): spindle braked, feed stopped, piezo amplifier powered off.
-- ``feed_fault``: the feed drive trips (faults bit 0) and stops.
-- ``piezo_fault`` (``bit``, default 3 overcurrent): amplifier fault, state 3 (faults bit 4).
-- ``can_drop`` (``duration_s``, ``fraction`` default 1): that fraction of the piezo commands
-  and offset tables is lost on the bus for a while (drawn from the seed).
-- ``modbus_restart``, ``can_silence`` (``duration_s``): interface faults; the machine only queues
-  them for the runner (:meth:`Machine.take_interface_events`).
-- ``reset``: same as :meth:`reset_faults`.
+This class steps time through them and keeps the API the PLC server, the CAN node, the runner
+and the tests use.
 """
 
 from __future__ import annotations
@@ -45,59 +36,25 @@ from typing import Any
 
 import numpy as np
 
-from config.loading import default_path, load_toml
-from config.sim import FAULT_KINDS, SimConfig
+from config.sim import SimConfig
 from core.checks import check_finite, check_int, check_positive
-from plant_sim.camera import FrameAssembler, Knot, Latch, TriggerClock
+from plant_sim.camera import Knot
+from plant_sim.cut_record import CutRecord
+from plant_sim.fault_injection import FaultInjector
 from plant_sim.feed_drive import BoardStream, Encoder, FeedDrive
+from plant_sim.frame_capture import FrameCapture, build_renderer
 from plant_sim.piezo import FAULT as PIEZO_FAULT
 from plant_sim.piezo import PiezoAmplifier, PiezoStatus
-from plant_sim.spindle import BRAKE, COAST, RUN, Spindle
+from plant_sim.plc_registers import PlcRegisters, register_names
+from plant_sim.spindle import Spindle
 from plant_sim.surface import Cutterhead, Passes, Surface
 from protocol.frames import Frame
+from protocol.registers import MachineState, PlcFault
 
 __all__ = ["Machine", "PiezoStatus", "register_names"]
 
-# machine_state bits
-ST_RUNNING, ST_BOARD, ST_ESTOP, ST_SPINDLE, ST_FEED = 1, 2, 4, 8, 16
-# faults bits
-F_FEED, F_SPINDLE, F_ENCODER, F_HEARTBEAT, F_PIEZO = 1, 2, 4, 8, 16
 
 _EPS_S = 1e-9
-_INDEX_RING = 4096
-
-
-def register_names(path: Any = None) -> list[str]:
-    """Names of every register in the register map (``config/registers.toml`` by default)."""
-    data = load_toml(path if path is not None else default_path("registers.toml"))
-    return [str(r["name"]) for r in data.get("register", [])]
-
-
-class _PassLog:
-    """Growing arrays of the knife passes over one board."""
-
-    def __init__(self, radius_mm: float) -> None:
-        self.radius_mm = radius_mm
-        self.n = 0
-        self.x = np.empty(1024)
-        self.bottom = np.empty(1024)
-        self.knife = np.empty(1024, dtype=np.int64)
-
-    def append(self, x_mm: float, bottom_um: float, knife: int) -> None:
-        if self.n == self.x.size:
-            self.x = np.concatenate([self.x, np.empty(self.n)])
-            self.bottom = np.concatenate([self.bottom, np.empty(self.n)])
-            self.knife = np.concatenate([self.knife, np.empty(self.n, dtype=np.int64)])
-        i = self.n
-        self.x[i] = x_mm
-        self.bottom[i] = bottom_um
-        self.knife[i] = knife
-        self.n = i + 1
-
-    def passes(self) -> Passes:
-        n = self.n
-        return Passes(self.x[:n].copy(), self.bottom[:n].copy(), self.knife[:n].copy(),
-                      self.radius_mm)
 
 
 class Machine:
@@ -119,8 +76,14 @@ class Machine:
         The configuration.
     head : plant_sim.surface.Cutterhead
         Knives, radius, runout and eccentricity.
-    frames_dropped : int
-        Pairs that could not be assembled (no passes under the field of view).
+    cut : plant_sim.cut_record.CutRecord
+        The knife passes per board and the index pulses.
+    capture : plant_sim.frame_capture.FrameCapture
+        The camera station (``assembler``, ``knots``, ``frames_dropped``).
+    plc : plant_sim.plc_registers.PlcRegisters
+        The PLC's flags, heartbeats and register values.
+    faults : plant_sim.fault_injection.FaultInjector
+        Injected faults, their schedule and timers.
     """
 
     def __init__(self, cfg: SimConfig, *, seed: int = 0, render_images: bool = True) -> None:
@@ -139,63 +102,27 @@ class Machine:
         self.encoder = Encoder(cfg.encoder)
         self.boards = BoardStream(cfg.board)
         self.amp = PiezoAmplifier(cfg.piezo, ch.knives, r_sensor)
-        self._knot_rng = r_knot
-        self._drop_rng = r_drop
         self._lead = cfg.piezo.lead_fraction
-        cam = cfg.camera
-        self.L_mm = cam.cutter_to_camera_mm
-        renderer = None
-        if self.render_images:
-            from config.wood import SPECIES
-            from plant_sim.optics import Optics, Renderer
-
-            o = cam.optics
-            optics = Optics(
-                width=o.width,
-                height=o.height,
-                led_imbalance=o.imbalance,
-                falloff=o.falloff,
-                read_noise_dn=o.noise,
-                dt_ab_s=cam.dt_ab_s,
-                counts_per_mm=cfg.encoder.counts_per_mm,
-            )
-            renderer = Renderer(cam.rig, optics, SPECIES[cam.species], seed=self.seed)
-        self.renderer = renderer
-        self.assembler = FrameAssembler(
-            cam.rig, width=cam.optics.width, counter_bits=cfg.encoder.counter_bits,
-            renderer=renderer,
-        )
-        self._fov_lo, self._fov_hi = self.assembler.x_lo_mm, self.assembler.x_hi_mm
-        self.triggers = TriggerClock(cam.pairs_per_s)
-        self._register_names = register_names()
-        # time and cycle
+        self.L_mm = cfg.camera.cutter_to_camera_mm
+        self.renderer = build_renderer(cfg, seed=self.seed) if self.render_images else None
+        self.cut = CutRecord(self._standout, self.head.radius_mm, boards=self.boards,
+                             encoder=self.encoder)
+        self.capture = FrameCapture(cfg, feed=self.feed, encoder=self.encoder,
+                                    boards=self.boards, cut=self.cut, renderer=self.renderer)
+        self.assembler = self.capture.assembler
+        self.triggers = self.capture.triggers
+        self.plc = PlcRegisters(cfg, spindle=self.spindle, feed=self.feed, encoder=self.encoder,
+                                boards=self.boards, capture=self.capture,
+                                radius_mm=self.head.radius_mm)
+        self.faults = FaultInjector(cfg, spindle=self.spindle, feed=self.feed,
+                                    encoder=self.encoder, boards=self.boards, amp=self.amp,
+                                    plc=self.plc, capture=self.capture, knot_rng=r_knot,
+                                    drop_rng=r_drop)
+        # time, cycle and the next spindle events (knife count of the next BDC / next switch)
         self._t = 0.0
         self._cycle = 0
-        self.heartbeat_plc = 0
-        # cut and camera state
-        self._logs: dict[int, _PassLog] = {}
         self._next_bdc = math.floor(self.knives * self.spindle.rev) + 1
         self._next_sw = math.floor(self.knives * self.spindle.rev + self._lead) + 1
-        self._idx_s = np.full(_INDEX_RING, np.nan)
-        self._idx_raw = np.zeros(_INDEX_RING, dtype=np.int64)
-        self._idx_n = 0
-        self._latch: Latch | None = None
-        self._seq = 0
-        self._last_pair: Latch | None = None
-        self.knots: list[Knot] = []
-        self.frames_dropped = 0
-        # PLC state
-        self.estop = False
-        self.fault_bits = 0
-        self.heartbeat_service = 0
-        self._hb_changed_s = 0.0
-        self._scheduled: list[tuple[float, int, str, dict[str, Any]]] = []
-        self._n_sched = 0
-        self._pending_slip: int | None = None
-        self._can_drop_until = -math.inf
-        self._can_drop_fraction = 1.0
-        self._interface_events: list[dict[str, Any]] = []
-        self._amp_cmd_knives: int | None = None
         for spec in cfg.faults:
             self.inject(spec.kind, **dict(spec.params))
         self._start_cycle()
@@ -236,25 +163,14 @@ class Machine:
     def _start_cycle(self) -> None:
         t = self._cycle * self.cycle_s
         cs = self.cycle_s
-        self._apply_scheduled(t)
-        s = self.feed.s_mm
-        # watchdog on the service heartbeat
-        if t - self._hb_changed_s > self.cfg.plc.watchdog_ms * 1e-3:
-            self.fault_bits |= F_HEARTBEAT
-        else:
-            self.fault_bits &= ~F_HEARTBEAT
-        cutting = self.boards.at(s, 0.0)[0] != 0
+        self.faults.apply_due(t)
+        self.plc.start_cycle(t)
+        cutting = self.boards.at(self.feed.s_mm, 0.0)[0] != 0
         self.spindle.start_cycle(t, cs, cutting=cutting)
-        self.feed.enabled = (
-            not self.estop and self.spindle.running and not (self.fault_bits & F_FEED)
-        )
+        self.feed.enabled = self.plc.feed_permitted()
         self.feed.start_cycle(t, cs)
         self.amp.cycle(t, cs, spindle_turning=self.spindle.turning)
-        if self.amp.state == PIEZO_FAULT:
-            self.fault_bits |= F_PIEZO
-        else:
-            self.fault_bits &= ~F_PIEZO
-        self.heartbeat_plc = (self.heartbeat_plc + 1) & 0xFFFF
+        self.plc.set_flag(PlcFault.PIEZO_AMPLIFIER, self.amp.state == PIEZO_FAULT)
 
     def _end_cycle(self) -> None:
         self.spindle.end_cycle(self.cycle_s)
@@ -282,146 +198,19 @@ class Machine:
                 else:
                     tb = min(max(tb, t0), t1)
                     amp.advance_to(tb)
-                    self._bdc(nb % z, tb)
+                    self.cut.bdc(nb % z, self.feed.position_at(tb), amp.actuator.x_um)
                     self._next_bdc = nb + 1
         amp.advance_to(t1)
-        # camera triggers
-        while True:
-            la = self._latch
-            tn = self.triggers.next_time()
-            tb = la.t_b if la is not None else math.inf
-            if tb <= t1 and tb <= tn:
-                self._trigger_b(la, frames)
-            elif tn <= t1:
-                self.triggers.consume()
-                if la is None:
-                    self._trigger_a(tn)
-            else:
-                break
-
-    # ------------------------------------------------------------------ the cut
-    def _bdc(self, knife: int, t: float) -> None:
-        s = self.feed.position_at(t)
-        if knife == 0:
-            i = self._idx_n % _INDEX_RING
-            self._idx_s[i] = s
-            self._idx_raw[i] = self.encoder.raw(s)
-            self._idx_n += 1
-        bid, x = self.boards.at(s, 0.0, margin_mm=5.0)
-        if bid == 0:
-            return
-        log = self._logs.get(bid)
-        if log is None:
-            log = self._logs[bid] = _PassLog(self.head.radius_mm)
-            for old in [k for k in self._logs if k < bid - 3]:
-                del self._logs[old]
-        log.append(x, self.amp.actuator.x_um - self._standout[knife], knife)
-
-    # ------------------------------------------------------------------ the camera
-    def _trigger_a(self, t: float) -> None:
-        s = self.feed.position_at(t)
-        bid, x = self.boards.at(s, self.L_mm)
-        if bid == 0:
-            return
-        length = self.boards.length_mm
-        if x + self._fov_lo < 5.0 or x + self._fov_hi > length - 5.0:
-            return
-        raw = self.encoder.raw(s)
-        self._seq += 1
-        self._latch = Latch(
-            seq=self._seq,
-            t_a=t,
-            s_a=s,
-            counts_a=self.encoder.wrap(raw),
-            v_a=self.feed.speed_at(t),
-            board_id=bid,
-            x_centre_mm=x,
-            index_latch=self._index_latch(s - self.L_mm),
-            t_b=t + self.cfg.camera.dt_ab_s,
-        )
-        if self._pending_slip is not None:
-            self._latch.slip_counts = self._pending_slip
-            self.encoder.add_slip(self._pending_slip)
-            self._pending_slip = None
-
-    def _index_latch(self, s_cut: float) -> int:
-        n = min(self._idx_n, _INDEX_RING)
-        if n == 0:
-            return self.encoder.wrap(0)
-        d = np.abs(self._idx_s[:n] - s_cut)
-        i = int(np.nanargmin(d))
-        return self.encoder.wrap(int(self._idx_raw[i]))
-
-    def _trigger_b(self, la: Latch, frames: list[Frame]) -> None:
-        self._latch = None
-        la.s_b = self.feed.position_at(la.t_b)
-        la.counts_b = self.encoder.read(la.s_b)
-        self._last_pair = la
-        log = self._logs.get(la.board_id)
-        if log is None or log.n == 0:
-            self.frames_dropped += 1
-            return
-        try:
-            frame = self.assembler.assemble(
-                la, log.passes(), self.knots, board_length_mm=self.boards.length_mm
-            )
-        except ValueError:
-            self.frames_dropped += 1
-            return
-        frames.append(frame)
+        self.capture.events_until(t1, frames)
 
     # ------------------------------------------------------------------ PLC side
     def register_values(self) -> dict[str, float | int]:
         """Every register of ``config/registers.toml`` with its current value."""
-        t = self._t
-        s = self.feed.position_at(t)
-        cfg = self.cfg
-        last = self._last_pair
-        bid, _ = self.boards.at(s, self.L_mm)
-        values: dict[str, float | int] = {
-            "heartbeat_service": self.heartbeat_service,
-            "heartbeat_plc": self.heartbeat_plc,
-            "feed_setpoint_mm_s": self.feed.setpoint_mm_s,
-            "feed_min_mm_s": cfg.feed.min_mm_s,
-            "feed_max_mm_s": cfg.feed.max_mm_s,
-            "feed_accel_max_mm_s2": cfg.feed.accel_max_mm_s2,
-            "feed_actual_mm_s": self.feed.speed_at(t),
-            "spindle_rpm": self.spindle.rpm,
-            "encoder_counts": self.encoder.read(s),
-            "trigger_a_counts": last.counts_a if last else 0,
-            "trigger_b_counts": last.counts_b if last else 0,
-            "trigger_seq": (last.seq if last else 0) & 0xFFFF,
-            "index_latch_counts": last.index_latch if last else 0,
-            "machine_state": self.machine_state(),
-            "faults": self.fault_bits,
-            "knives": self.knives,
-            "cutter_to_camera_mm": self.L_mm,
-            "counts_per_mm": cfg.encoder.counts_per_mm,
-            "board_id": bid,
-            "board_position_mm": (self.boards.length_mm - last.x_centre_mm) if last else 0.0,
-            "watchdog_ms": cfg.plc.watchdog_ms,
-            "cutterhead_radius_mm": self.head.radius_mm,
-        }
-        missing = [n for n in self._register_names if n not in values]
-        if missing:
-            raise RuntimeError(f"machine has no value for registers {missing}")
-        return values
+        return self.plc.values(self._t)
 
-    def machine_state(self) -> int:
+    def machine_state(self) -> MachineState:
         """The ``machine_state`` register's bits."""
-        s = self.feed.position_at(self._t)
-        st = 0
-        if self.spindle.running:
-            st |= ST_SPINDLE
-        if self.feed.enabled:
-            st |= ST_FEED
-        if self.spindle.running and self.feed.enabled and not self.estop:
-            st |= ST_RUNNING
-        if self.estop:
-            st |= ST_ESTOP
-        if self.boards.at(s, self.L_mm)[0]:
-            st |= ST_BOARD
-        return st
+        return self.plc.machine_state(self._t)
 
     def set_feed_setpoint(self, feed_mm_s: float) -> None:
         """New feed setpoint; ``ValueError`` outside ``[feed_min, feed_max]`` (never clamped)."""
@@ -429,11 +218,27 @@ class Machine:
 
     def set_service_heartbeat(self, value: int) -> None:
         """The service's heartbeat; a changed value feeds the PLC's watchdog."""
-        v = check_int("value", value, lo=0, hi=0xFFFF)
-        if v != self.heartbeat_service:
-            self._hb_changed_s = self._t
-            self.fault_bits &= ~F_HEARTBEAT
-        self.heartbeat_service = v
+        self.plc.set_service_heartbeat(value, self._t)
+
+    @property
+    def heartbeat_plc(self) -> int:
+        """The PLC's heartbeat (incremented every PLC cycle, 0..65535)."""
+        return self.plc.heartbeat_plc
+
+    @property
+    def heartbeat_service(self) -> int:
+        """The service's heartbeat as last written (0..65535)."""
+        return self.plc.heartbeat_service
+
+    @property
+    def estop(self) -> bool:
+        """E-stop pressed."""
+        return self.plc.estop
+
+    @property
+    def fault_bits(self) -> PlcFault:
+        """The ``faults`` register's bits."""
+        return self.plc.fault_bits
 
     # ------------------------------------------------------------------ piezo amplifier side
     def piezo_command(self, *, enable: bool, alive_counter: int, knives: int | None = None) -> None:
@@ -447,7 +252,7 @@ class Machine:
         if knives is not None and check_int("knives", knives) != self.knives:
             raise ValueError(f"knives must be {self.knives} (the cutterhead's), got {knives}")
         check_int("alive_counter", alive_counter, lo=0, hi=255)
-        if self._dropped():
+        if self.faults.can_frame_lost(self._t):
             return
         self.amp.command(self._t, enable=bool(enable), alive_counter=alive_counter)
 
@@ -457,17 +262,10 @@ class Machine:
         ``ValueError`` beyond the stroke or with fewer values than knives; values for knives
         the head does not have (up to 8, as the CAN frames carry) are checked and ignored.
         """
-        if self._dropped():
+        if self.faults.can_frame_lost(self._t):
             self.amp.check_offsets(offsets_um)  # still validated, then lost on the bus
             return
         self.amp.set_offsets(offsets_um)
-
-    def _dropped(self) -> bool:
-        """Whether a CAN frame to the amplifier is lost now (``can_drop`` fault)."""
-        if self._t >= self._can_drop_until:
-            return False
-        f = self._can_drop_fraction
-        return f >= 1.0 or float(self._drop_rng.random()) < f
 
     def piezo_status(self) -> PiezoStatus:
         """The amplifier's status: sensed displacement, temperature, fault bits, state."""
@@ -484,168 +282,38 @@ class Machine:
 
     # ------------------------------------------------------------------ faults
     def inject(self, fault: str, **params: Any) -> None:
-        """Inject a fault now or at ``at_s`` (see the module docstring for kinds and parameters).
+        """Inject a fault now or at ``at_s`` (kinds, parameters: :mod:`plant_sim.fault_injection`).
 
         Raises
         ------
         ValueError
             Unknown kind or parameter, or a parameter out of range.
         """
-        if fault not in FAULT_KINDS:
-            raise ValueError(f"fault must be one of {', '.join(FAULT_KINDS)}; got {fault!r}")
-        params = dict(params)
-        at = params.pop("at_s", None)
-        self._validate_fault(fault, params)
-        if at is not None and check_finite("at_s", at) > self._t:
-            self._n_sched += 1
-            self._scheduled.append((float(at), self._n_sched, fault, params))
-            self._scheduled.sort()
-            return
-        self._apply(fault, params)
-
-    _PARAMS: dict[str, tuple[str, ...]] = {
-        "belt_slip": ("px", "counts"),
-        "encoder_wrap": ("counts_before_wrap",),
-        "encoder_fault": (),
-        "knot": ("board_id", "at_mm", "length_mm", "width_mm", "y_mm", "darkness", "roughness_um"),
-        "spindle_stop": (),
-        "estop": (),
-        "feed_fault": (),
-        "piezo_fault": ("bit",),
-        "can_drop": ("duration_s", "fraction"),
-        "modbus_restart": ("duration_s",),
-        "can_silence": ("duration_s",),
-        "reset": (),
-    }
-
-    def _validate_fault(self, fault: str, params: dict[str, Any]) -> None:
-        allowed = self._PARAMS[fault]
-        for k, v in params.items():
-            if k not in allowed:
-                raise ValueError(
-                    f"{fault}: unknown parameter {k!r} (allowed: {', '.join(allowed) or 'none'})"
-                )
-            check_finite(f"{fault}.{k}", v)
-        if fault == "belt_slip" and "px" in params and "counts" in params:
-            raise ValueError("belt_slip: give px or counts, not both")
-        ranges = {
-            "counts_before_wrap": (1, self.encoder.modulus - 1),
-            "fraction": (1e-9, 1.0),
-            "duration_s": (0.0, math.inf),
-            "bit": (0, 7),
-            "at_mm": (0.0, self.boards.length_mm),
-            "board_id": (1, math.inf),
-            "length_mm": (1e-3, math.inf),
-            "width_mm": (1e-3, math.inf),
-            "darkness": (0.0, 1.0),
-            "roughness_um": (0.0, math.inf),
-        }
-        for k, v in params.items():
-            lo, hi = ranges.get(k, (-math.inf, math.inf))
-            if not lo <= float(v) <= hi:
-                raise ValueError(f"{fault}.{k} must be in [{lo}, {hi}], got {v!r}")
-            if k in ("counts", "counts_before_wrap", "bit", "board_id") and float(v) != int(v):
-                raise ValueError(f"{fault}.{k} must be an integer, got {v!r}")
-
-    def _apply_scheduled(self, t: float) -> None:
-        while self._scheduled and self._scheduled[0][0] <= t + _EPS_S:
-            _, _, fault, params = self._scheduled.pop(0)
-            self._apply(fault, params)
-
-    def _apply(self, fault: str, p: dict[str, Any]) -> None:
-        t = self._t
-        s = self.feed.position_at(t)
-        if fault == "belt_slip":
-            if "counts" in p:
-                n = check_int("belt_slip.counts", int(p["counts"]))
-            else:
-                px = float(p.get("px", 12.0))
-                n = int(round(px / self.cfg.camera.rig.encoder.px_per_count))
-            self._pending_slip = n
-        elif fault == "encoder_wrap":
-            n = int(p.get("counts_before_wrap", 2000))
-            old = self.encoder.start
-            self.encoder.preset_before_wrap(s, n)
-            # latches already recorded are shifted alike (as if the counter had started there)
-            delta = self.encoder.start - old
-            if self._latch is not None:
-                self._latch.counts_a = (self._latch.counts_a + delta) % self.encoder.modulus
-                self._latch.index_latch = (self._latch.index_latch + delta) % self.encoder.modulus
-        elif fault == "encoder_fault":
-            self.encoder.freeze(s)
-            self.fault_bits |= F_ENCODER
-        elif fault == "knot":
-            self._add_knot(s, p)
-        elif fault == "spindle_stop":
-            if self.spindle.mode == RUN:
-                self.spindle.mode = COAST
-            self.fault_bits |= F_SPINDLE
-        elif fault == "estop":
-            self.estop = True
-            self.spindle.mode = BRAKE
-            self.amp.power_off(t, True)
-        elif fault == "feed_fault":
-            self.fault_bits |= F_FEED
-        elif fault == "piezo_fault":
-            bit = check_int("piezo_fault.bit", int(p.get("bit", 3)), lo=0, hi=7)
-            self.amp.inject_fault(t, 1 << bit)
-        elif fault == "can_drop":
-            self._can_drop_until = t + check_positive("can_drop.duration_s",
-                                                      p.get("duration_s", 0.5))
-            frac = check_finite("can_drop.fraction", p.get("fraction", 1.0))
-            if not 0.0 < frac <= 1.0:
-                raise ValueError(f"can_drop.fraction must be in (0, 1], got {frac}")
-            self._can_drop_fraction = frac
-        elif fault in ("modbus_restart", "can_silence"):
-            self._interface_events.append({"kind": fault, "t_s": t, **p})
-        elif fault == "reset":
-            self.reset_faults()
-
-    def _add_knot(self, s: float, p: dict[str, Any]) -> None:
-        b = self.boards
-        if "board_id" in p:
-            bid = check_int("knot.board_id", int(p["board_id"]), lo=1)
-        else:
-            cur, _ = b.at(s, 0.0)
-            bid = cur + 1 if cur else max(1, math.floor((s - b.first_at_mm) / b.period_mm) + 2)
-        at = check_finite("knot.at_mm", p.get("at_mm", 1000.0))
-        if not 0.0 <= at <= b.length_mm:
-            raise ValueError(f"knot.at_mm must be on the board (0..{b.length_mm}), got {at}")
-        knot = Knot(
-            board_id=bid,
-            x_mm=b.length_mm - at,
-            y_mm=check_finite("knot.y_mm", p.get("y_mm", 0.0)),
-            length_mm=check_positive("knot.length_mm", p.get("length_mm", 40.0)),
-            width_mm=check_positive("knot.width_mm", p.get("width_mm", 30.0)),
-            darkness=min(max(check_finite("knot.darkness", p.get("darkness", 0.6)), 0.0), 1.0),
-            roughness_um=check_positive("knot.roughness_um", p.get("roughness_um", 4.0),
-                                        allow_zero=True),
-            seed=int(self._knot_rng.integers(0, 2**31)),
-        )
-        self.knots.append(knot)
+        self.faults.inject(fault, params, now_s=self._t)
 
     def reset_faults(self) -> None:
         """Acknowledge: clear the e-stop and the drive faults; the spindle runs up again."""
-        s = self.feed.position_at(self._t)
-        self.estop = False
-        self.spindle.mode = RUN
-        self.amp.power_off(self._t, False)
-        if self.encoder.frozen is not None:
-            self.encoder.unfreeze(s)
-        self.fault_bits &= ~(F_FEED | F_SPINDLE | F_ENCODER)
+        self.faults.reset(self._t)
 
     def take_interface_events(self) -> list[dict[str, Any]]:
         """Interface faults that came due (``modbus_restart``, ``can_silence``); cleared on read."""
-        out, self._interface_events = self._interface_events, []
-        return out
+        return self.faults.take_interface_events()
+
+    # ------------------------------------------------------------------ camera
+    @property
+    def knots(self) -> list[Knot]:
+        """Knots placed on boards (by the ``knot`` fault)."""
+        return self.capture.knots
+
+    @property
+    def frames_dropped(self) -> int:
+        """Pairs that could not be assembled (no passes under the field of view)."""
+        return self.capture.frames_dropped
 
     # ------------------------------------------------------------------ truth and state
     def passes(self, board_id: int) -> Passes:
         """Every knife pass recorded over board ``board_id`` (recent boards only)."""
-        log = self._logs.get(check_int("board_id", board_id, lo=1))
-        if log is None:
-            raise ValueError(f"board_id {board_id}: no passes recorded (not cut yet or too old)")
-        return log.passes()
+        return self.cut.passes(board_id)
 
     def surface(self, x_lo_board_mm: float, x_hi_board_mm: float, *,
                 board_id: int | None = None) -> Surface:
@@ -671,11 +339,10 @@ class Machine:
         return surf.metrics(x_lo_board_mm, x_hi_board_mm)
 
     def _default_board(self) -> int:
-        if self._last_pair is not None and self._last_pair.board_id in self._logs:
-            return self._last_pair.board_id
-        if not self._logs:
-            raise ValueError("no board has been cut yet")
-        return max(self._logs)
+        last = self.capture.last_pair
+        if last is not None and last.board_id in self.cut.logs:
+            return last.board_id
+        return self.cut.latest_board()
 
     @property
     def feed_position_mm(self) -> float:

@@ -16,6 +16,34 @@ Geometry (docs/architecture.md)
   ``q = dz/dy`` (roughness). The light at azimuth 0 deg stands on the +x side, so a surface
   rising toward +x is darker in image A.
 
+Effects of a real rig and real wood (:class:`RigEffects`, all off by default)
+-----------------------------------------------------------------------------
+- Camera roll about the optical axis (the convention of :mod:`vision.orientation` and
+  ``docs/architecture.md``): the pixel at camera-frame offset ``(Xc, Yc)`` (mm from the axis,
+  undistorted) shows the board point ``X = Xc cos(r) + Yc sin(r)``, ``Y = -Xc sin(r) +
+  Yc cos(r)``; a mark (constant ``X``) runs down the image leaning ``tan(r)`` columns per row
+  toward -u, and the feed runs along ``(cos r, sin r)`` in ``(u, v)``, so the measured
+  ``roll_deg`` equals the simulated one. ``x_phys_mm`` /
+  ``y_phys_mm`` are board-frame positions; the lights (azimuths, fall-off) are fixed to the
+  machine, i.e. to the board frame.
+- True light slant: light i shines at the rig file's slant (``Lights.slants_deg``) plus
+  ``slant_offset_deg[i]`` while the rig file
+  keeps the nominal slant. Each LED's power is set so that a flat board shows ``Optics.level``
+  (its slope sensitivity ``tan(s_i)`` changes, its flat brightness does not).
+- Rough-wood reflectance (Oren-Nayar, roughness ``reflectance_roughness_deg``): the profile's
+  shading is ``A cos(ti) + B cos(ti) sin(alpha) tan(beta) max(0, cos(phi_i - phi_r))`` with the
+  camera looking straight down; ``A = 1`` and ``B = 0`` is Lambert.
+- Subsurface scattering: a fraction ``Wood.translucency`` of the reflected light leaves the wood
+  spread by an exponential kernel of length ``scattering_mm`` along the fibres (x) and
+  ``scattering_mm / Wood.scattering_anisotropy`` across them; it lowers the contrast of the marks
+  and of the fibre-scale roughness.
+- Bow and cup of the board (sagitta over its length / width, ends and edges higher for positive
+  values) tilt the surface: bow adds the slope ``8 bow (b - L/2) / L^2`` to the profile, cup the
+  slope ``8 cup y / W^2`` across it. Neither is part of the truth profile (the marks).
+- Pencil lines along the feed (across the marks) darken the albedo.
+The static parts (roll, scattering of the roughness, cup, pencil lines) are built into the maps
+and textures once per renderer; per frame only 1-D work along x is added.
+
 Rendering is done on a regular board grid (one column per undistorted pixel along x, or finer
 with ``Optics.oversample``; one row per pixel along y), blurred along the feed by the exposure
 (exact box average of the radiance), then resampled at the precomputed positions of the distorted
@@ -39,9 +67,19 @@ from config.wood import Wood
 from core.checks import check_finite, check_int, check_positive, check_range
 from plant_sim.wood import texture_tiles
 
-__all__ = ["ImagePair", "Optics", "Renderer", "Truth", "wrap_counts"]
+__all__ = [
+    "ImagePair",
+    "Optics",
+    "PencilLine",
+    "Renderer",
+    "RigEffects",
+    "Truth",
+    "effects_from_config",
+    "wrap_counts",
+]
 
 HeightSource = Any  # callable height_um(b_mm), a Surface, or an object with x_mm, height_um
+AlbedoFactor = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (board x, board y) -> factor
 
 
 @dataclass(frozen=True)
@@ -129,6 +167,112 @@ class Optics:
         return np.uint8 if self.bit_depth <= 8 else np.uint16
 
 
+@dataclass(frozen=True)
+class PencilLine:
+    """A pencil line drawn on the board along the feed (so across the marks).
+
+    Attributes
+    ----------
+    y_mm : float
+        Position across the board, millimetres from the optical axis (board frame).
+    width_mm : float
+        Full width of the line, millimetres.
+    darkness : float
+        Relative darkening of the albedo at the line's centre (0..1).
+    """
+
+    y_mm: float = 0.0
+    width_mm: float = 0.6
+    darkness: float = 0.5
+
+    def __post_init__(self) -> None:
+        check_finite("y_mm", self.y_mm)
+        check_range("width_mm", self.width_mm, 0.01, 50.0)
+        check_range("darkness", self.darkness, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class RigEffects:
+    """Effects of a real rig and real wood that the rig file does not describe.
+
+    The defaults (all off) render exactly what the rig file says.
+
+    Attributes
+    ----------
+    roll_deg : float
+        Roll of the camera about its optical axis, degrees (within +-10).
+    slant_offset_deg : tuple of float
+        True slant minus the rig file's slant, lights A and B, degrees (within +-10 each).
+    scattering_mm : float
+        Subsurface scattering length along the fibres, millimetres (0: none; up to 2). How much
+        light scatters is the wood's ``translucency``; across the fibres the length is divided
+        by its ``scattering_anisotropy``.
+    reflectance_roughness_deg : float
+        Oren-Nayar roughness sigma of the wood's reflectance, degrees (0: Lambert; up to 60).
+    bow_mm, cup_mm : float
+        Sagitta of the board along its length and across its width, millimetres (positive: the
+        ends / edges stand higher than the middle).
+    board_length_mm, board_width_mm : float
+        Board size for bow and cup; board coordinate 0 is the board's trailing end.
+    pencil_lines : tuple of PencilLine
+        Pencil lines along the feed.
+    """
+
+    roll_deg: float = 0.0
+    slant_offset_deg: tuple[float, float] = (0.0, 0.0)
+    scattering_mm: float = 0.0
+    reflectance_roughness_deg: float = 0.0
+    bow_mm: float = 0.0
+    cup_mm: float = 0.0
+    board_length_mm: float = 4000.0
+    board_width_mm: float = 150.0
+    pencil_lines: tuple[PencilLine, ...] = ()
+
+    def __post_init__(self) -> None:
+        check_range("roll_deg", self.roll_deg, -10.0, 10.0)
+        offsets = tuple(float(v) for v in self.slant_offset_deg)
+        if len(offsets) != 2:
+            raise ValueError(f"slant_offset_deg must hold 2 values (A, B), got {offsets!r}")
+        for v in offsets:
+            check_range("slant_offset_deg", v, -10.0, 10.0)
+        object.__setattr__(self, "slant_offset_deg", offsets)
+        check_range("scattering_mm", self.scattering_mm, 0.0, 2.0)
+        check_range("reflectance_roughness_deg", self.reflectance_roughness_deg, 0.0, 60.0)
+        check_range("bow_mm", self.bow_mm, -100.0, 100.0)
+        check_range("cup_mm", self.cup_mm, -20.0, 20.0)
+        check_range("board_length_mm", self.board_length_mm, 100.0, 100000.0)
+        check_range("board_width_mm", self.board_width_mm, 10.0, 2000.0)
+        lines = tuple(self.pencil_lines)
+        for line in lines:
+            if not isinstance(line, PencilLine):
+                raise ValueError(f"pencil_lines must hold PencilLine objects, got {line!r}")
+        object.__setattr__(self, "pencil_lines", lines)
+
+
+def effects_from_config(cfg: Any) -> RigEffects:
+    """The :class:`RigEffects` of a simulator configuration (``config.sim.SimConfig``).
+
+    ``[camera] roll_deg``, ``slant_offset_a_deg``, ``slant_offset_b_deg`` and ``[board]``
+    ``scattering_mm``, ``reflectance_roughness_deg``, ``bow_mm``, ``cup_mm``, ``length_mm``,
+    ``width_mm``, ``pencil_lines``.
+    """
+    cam, board = cfg.camera, cfg.board
+    return RigEffects(
+        roll_deg=cam.roll_deg,
+        slant_offset_deg=tuple(cam.slant_offset_deg),
+        scattering_mm=board.scattering_mm,
+        reflectance_roughness_deg=board.reflectance_roughness_deg,
+        bow_mm=board.bow_mm,
+        cup_mm=board.cup_mm,
+        board_length_mm=board.length_mm,
+        board_width_mm=board.width_mm,
+        pencil_lines=tuple(
+            PencilLine(y_mm=p.y_mm, width_mm=p.width_mm, darkness=p.darkness)
+            for p in board.pencil_lines
+        ),
+    )
+
+
 def wrap_counts(counts: int, bits: int) -> int:
     """Encoder counts wrapped to an unsigned ``bits``-bit counter."""
     return int(counts) % (1 << int(bits))
@@ -143,7 +287,9 @@ class Truth:
     x_mm : ndarray, shape (W,)
         ``u / px_per_mm`` for every undistorted column ``u`` of image A.
     height_um : ndarray, shape (W,)
-        True (kinematic) height of the board point seen at that column on the centre row, um.
+        True (kinematic) height of the board point seen at that column on the centre row, um
+        (board point ``x_mm + board_offset_mm`` along the feed through the optical axis; with
+        camera roll, along the feed rather than along the image row); the bow is not in it.
     shift_px : float
         True shift from A to B in undistorted pixels, ``speed * dt_ab * px_per_mm``.
     surface : Surface or None
@@ -244,6 +390,8 @@ class Renderer:
         Species appearance (the board's texture is drawn from ``seed``).
     seed : int
         Seed of the board texture and of the default noise stream.
+    effects : RigEffects, optional
+        Roll, true light slants, scattering, reflectance, bow, cup, pencil lines (default: none).
 
     Raises
     ------
@@ -251,11 +399,19 @@ class Renderer:
         The rig's ``px_per_count`` does not match ``px_per_mm / counts_per_mm``.
     """
 
-    def __init__(self, rig: Rig, optics: Optics, wood: Wood, *, seed: int) -> None:
+    def __init__(
+        self, rig: Rig, optics: Optics, wood: Wood, *, seed: int,
+        effects: RigEffects | None = None,
+    ) -> None:
         self.rig = rig
         self.optics = optics
         self.wood = wood
         self.seed = check_int("seed", seed, lo=0)
+        if effects is None:
+            effects = RigEffects()
+        elif not isinstance(effects, RigEffects):
+            raise ValueError(f"effects must be a RigEffects, got {type(effects).__name__}")
+        self.effects = fx = effects
         cam = rig.camera
         ppm = float(cam.px_per_mm)
         expect = ppm / optics.counts_per_mm
@@ -293,8 +449,14 @@ class Renderer:
             und = und.reshape(h, w, 2)
         else:
             und = pts.reshape(h, w, 2)
-        self.x_phys_mm = ((und[..., 0] - cam.cx) / ppm).astype(np.float64)
-        self.y_phys_mm = ((und[..., 1] - cam.cy) / self.px_per_mm_y).astype(np.float64)
+        xc = (und[..., 0] - cam.cx) / ppm
+        yc = (und[..., 1] - cam.cy) / self.px_per_mm_y
+        roll = math.radians(fx.roll_deg)
+        cr, sr = math.cos(roll), math.sin(roll)
+        # board-frame position shown by each pixel (the camera rolled by `roll`)
+        self.x_phys_mm = (xc * cr + yc * sr).astype(np.float64)
+        self.y_phys_mm = (yc * cr - xc * sr).astype(np.float64)
+        del xc, yc
         x_lo, x_hi = float(self.x_phys_mm.min()), float(self.x_phys_mm.max())
         y_lo, y_hi = float(self.y_phys_mm.min()), float(self.y_phys_mm.max())
         self.field_width_mm = x_hi - x_lo
@@ -317,32 +479,62 @@ class Renderer:
         tiles = texture_tiles(
             wood, rows=n_rows, cols=period, dx_mm=self.dx_mm, dy_mm=self.dy_mm, seed=self.seed
         )
-        # lights
+        # lights: the true slant of each (the rig file's plus the effect's offset)
         lit = rig.lights
-        s = math.radians(lit.slant_deg)
-        self._sin_s, self._cos_s = math.sin(s), math.cos(s)
         self._tau = (math.radians(lit.azimuth_a_deg), math.radians(lit.azimuth_b_deg))
-        # Lambert (seed Eq. 1) with p = p_profile + p_rough, q = q_rough, split as
-        #   rho * shade = U - p_profile * cos(tau) * rho * sin(s),
-        #   U = rho * (cos(s) - sin(s) * (p_rough cos(tau) + q_rough sin(tau)));
-        # the normalisation 1 / sqrt(1 + p^2 + q^2) takes p_profile exactly and the roughness by
-        # its mean square (the cross term is below 1e-5 relative).
+        nominal = getattr(lit, "slants_deg", (lit.slant_deg, lit.slant_deg))
+        self.true_slant_deg = tuple(
+            float(n) + d for n, d in zip(nominal, fx.slant_offset_deg, strict=True)
+        )
+        for sl in self.true_slant_deg:
+            if not 0.0 < sl < 90.0:
+                raise ValueError(f"slant_offset_deg gives a true slant of {sl} deg (0..90)")
+        sig = math.radians(fx.reflectance_roughness_deg)
+        self._on_a = 1.0 - 0.5 * sig * sig / (sig * sig + 0.33)
+        self._on_b = 0.45 * sig * sig / (sig * sig + 0.09)
+        self._light = tuple(
+            (math.sin(math.radians(sl)), math.cos(math.radians(sl)), math.cos(t), math.sin(t))
+            for sl, t in zip(self.true_slant_deg, self._tau, strict=True)
+        )
+        # bow: slope 8 bow (b - L/2) / L^2 added to the profile's
+        self._bow_per_mm = 8.0 * fx.bow_mm / fx.board_length_mm**2
+        self._bow_mid_mm = 0.5 * fx.board_length_mm
+        # subsurface scattering: the fraction `a` leaves through an exponential kernel
+        self._scatter_a = float(wood.translucency) if fx.scattering_mm > 0 else 0.0
+        if self._scatter_a > 0:
+            self._scatter_kernel = _exp_kernel(fx.scattering_mm / self.dx_mm)
+        else:
+            self._scatter_kernel = np.ones(1)
+        # Shading (seed Eq. 1, or Oren-Nayar) with p = p_profile + p_rough, q = q_rough + q_cup:
+        #   rho * shade = rho * g(p_profile) - R * c(p_profile),
+        #   g = the profile's exact shading (per grid column, per frame),
+        #   R = rho * (p_rough cos(tau) + q sin(tau)), c = A sin(s) / sqrt(1 + p^2 + <rough^2>);
+        # the roughness enters linearly and the normalisation by its mean square (the cross term
+        # is below 1e-5 relative). R is scattered once here; g per frame along x.
         pad = span_cols + 512
         self._pad = pad
         rho = tiles.albedo
-        self._tile_u = []
+        y_rows = self._y0 + np.arange(n_rows) * self.dy_mm
+        if fx.pencil_lines:
+            rho = rho * _pencil_factor(y_rows, fx.pencil_lines)[:, None]
+        q_cup = (8.0 * fx.cup_mm / fx.board_width_mm**2 * y_rows).astype(np.float32)
+        self._tile_r = []
         for tau in self._tau:
             rough = np.float32(math.cos(tau)) * tiles.slope_x
-            rough += np.float32(math.sin(tau)) * tiles.slope_y
-            u = rho * (np.float32(self._cos_s) - np.float32(self._sin_s) * rough)
-            self._tile_u.append(np.ascontiguousarray(np.concatenate([u, u[:, :pad]], axis=1)))
-        rs = rho * np.float32(self._sin_s)
-        self._tile_rs = np.ascontiguousarray(np.concatenate([rs, rs[:, :pad]], axis=1))
+            if math.sin(tau) != 0.0:
+                rough += np.float32(math.sin(tau)) * (tiles.slope_y + q_cup[:, None])
+            if self._scatter_a > 0:
+                rough = self._scatter_tile(rough, fx.scattering_mm, wood.scattering_anisotropy)
+            r = rho * rough
+            self._tile_r.append(np.ascontiguousarray(np.concatenate([r, r[:, :pad]], axis=1)))
+        self._tile_rho = np.ascontiguousarray(np.concatenate([rho, rho[:, :pad]], axis=1))
         self._rough_ms = float(np.mean(tiles.slope_x**2) + np.mean(tiles.slope_y**2))
-        del tiles, rho, rs, u
-        scale = optics.level * optics.max_dn / (wood.albedo * self._cos_s) * optics.gain
+        del tiles, rho, rough, r
         gains = []
         for i, tau in enumerate(self._tau):
+            # each LED's power gives `level` on a flat board of mean albedo
+            flat = self._on_a * self._light[i][1]
+            scale = optics.level * optics.max_dn / (wood.albedo * flat) * optics.gain
             proj = self.x_phys_mm * math.cos(tau) + self.y_phys_mm * math.sin(tau)
             g = scale * (1.0 + optics.falloff * proj / self.field_width_mm)
             if i == 1:
@@ -369,6 +561,41 @@ class Renderer:
         out *= f
         out += win[:, :n]
         return out
+
+    def _scatter_tile(self, field_: np.ndarray, length_mm: float, anisotropy: float) -> np.ndarray:
+        """``(1 - a) f + a K * f`` of a tile (periodic along x), K the scattering kernel."""
+        a = np.float32(self._scatter_a)
+        rows, cols = field_.shape
+        kx = 2 * np.pi * sfft.rfftfreq(cols, self.dx_mm)
+        ky = 2 * np.pi * sfft.fftfreq(rows, self.dy_mm)
+        ly = length_mm / anisotropy
+        h = 1.0 / ((1.0 + (kx[None, :] * length_mm) ** 2) * (1.0 + (ky[:, None] * ly) ** 2))
+        spec = sfft.rfft2(field_, workers=1)
+        spec *= ((1.0 - a) + a * h).astype(np.complex64)
+        return sfft.irfft2(spec, s=field_.shape, workers=1).astype(np.float32, copy=False)
+
+    def _shade(self, p: np.ndarray, which: int) -> tuple[np.ndarray, np.ndarray]:
+        """Profile shading ``g`` and roughness coefficient ``c`` per grid column (float64)."""
+        sin_s, cos_s, cos_t, sin_t = self._light[which]
+        norm = 1.0 / np.sqrt(1.0 + p * p + self._rough_ms)
+        cos_i = (cos_s - p * (cos_t * sin_s)) * norm
+        g = self._on_a * cos_i
+        if self._on_b > 0:
+            inv = 1.0 / np.sqrt(1.0 + p * p)
+            cos_i0 = (cos_s - p * (cos_t * sin_s)) * inv
+            # light and view projected on the tangent plane (normal (-p, 0, 1) inv, view +z)
+            lx = sin_s * cos_t + cos_i0 * inv * p
+            ly = sin_s * sin_t
+            lz = cos_s - cos_i0 * inv
+            vx, vz = p * inv * inv, 1.0 - inv * inv
+            num = lx * vx + lz * vz
+            den = np.sqrt(lx * lx + ly * ly + lz * lz) * np.sqrt(vx * vx + vz * vz)
+            cos_dphi = np.divide(num, den, out=np.zeros_like(num), where=den > 1e-15)
+            th_i = np.arccos(np.clip(cos_i0, -1.0, 1.0))
+            th_r = np.arctan(np.abs(p))
+            back = np.sin(np.maximum(th_i, th_r)) * np.tan(np.minimum(th_i, th_r))
+            g = g + self._on_b * np.maximum(cos_i, 0.0) * back * np.maximum(cos_dphi, 0.0)
+        return g, (self._on_a * sin_s) * norm
 
     def _grid_extent(self, speed_mm_s: float) -> tuple[float, int, int, int]:
         """Blur length (grid columns), blur half-width, first grid column and column count."""
@@ -397,8 +624,9 @@ class Renderer:
         _, _, k, n = self._grid_extent(v)
         dx = self.dx_mm
         shift = v * self.optics.dt_ab_s
-        lo_grid = (k - 0.5) * dx - self._cx_mm
-        hi_grid = (k + n - 0.5) * dx - self._cx_mm
+        m = self._scatter_kernel.size // 2
+        lo_grid = (k - m - 0.5) * dx - self._cx_mm
+        hi_grid = (k + n + m - 0.5) * dx - self._cx_mm
         lo_truth = -self._cx_mm - 0.5 / self.px_per_mm
         hi_truth = (self.optics.width - 0.5) / self.px_per_mm - self._cx_mm
         lo = bc + min(lo_grid, lo_truth) + min(0.0, -shift)
@@ -420,18 +648,25 @@ class Renderer:
         t0 = b_u0 / dx + k  # tile column of node 0
         c0 = math.floor(t0)
         frac = t0 - c0
-        edges = b_u0 + (k + np.arange(n + 1) - 0.5) * dx
+        m = self._scatter_kernel.size // 2
+        edges = b_u0 + (k - m + np.arange(n + 2 * m + 1) - 0.5) * dx
         z = np.asarray(height(edges), dtype=np.float64)
         if z.shape != edges.shape or not np.all(np.isfinite(z)):
             raise ValueError("height returned non-finite values or a wrong shape")
         p_prof = np.diff(z) * (1e-3 / dx)  # mean slope over each grid cell
-        tau = self._tau[which]
-        norm = (1.0 / np.sqrt(1.0 + p_prof * p_prof + self._rough_ms)).astype(np.float32)
-        rad = self._tile_window(self._tile_rs, c0, n, frac)
-        rad *= (-math.cos(tau) * p_prof).astype(np.float32)[None, :]
-        rad += self._tile_window(self._tile_u[which], c0, n, frac)
+        if self._bow_per_mm != 0.0:
+            p_prof += self._bow_per_mm * (edges[:-1] + 0.5 * dx - self._bow_mid_mm)
+        g, c = self._shade(p_prof, which)
+        if m:
+            a = self._scatter_a
+            g = (1.0 - a) * g[m:-m] + a * np.convolve(g, self._scatter_kernel, mode="valid")
+            c = c[m:-m]
+        rad = self._tile_window(self._tile_rho, c0, n, frac)
+        rad *= g.astype(np.float32)[None, :]
+        rough = self._tile_window(self._tile_r[which], c0, n, frac)
+        rough *= c.astype(np.float32)[None, :]
+        rad -= rough
         np.maximum(rad, 0.0, out=rad)
-        rad *= norm[None, :]
         kernel = self._pixel_kernel
         if blur_cols > 1e-3:
             kernel = np.convolve(kernel, _box_kernel(blur_cols)).astype(np.float32)
@@ -442,11 +677,18 @@ class Renderer:
     def _render_one(
         self, height: Callable[[np.ndarray], np.ndarray], b_at_axis_mm: float,
         speed_mm_s: float, which: int, rng: np.random.Generator,
+        albedo_factor: AlbedoFactor | None = None,
     ) -> np.ndarray:
         rad, k = self._radiance_grid(height, b_at_axis_mm, speed_mm_s, which)
         map_x = self._col_index - np.float32(k)
         img = cv2.remap(rad, map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         img *= self._gain_maps[which]
+        if albedo_factor is not None:
+            f = albedo_factor(self.x_phys_mm + b_at_axis_mm, self.y_phys_mm)
+            f = np.asarray(f, dtype=np.float32)
+            if f.shape != img.shape or not np.all(np.isfinite(f)) or np.any(f < 0):
+                raise ValueError("albedo_factor must return finite factors >= 0, one per pixel")
+            img *= f
         o = self.optics
         if o.shot_noise or o.read_noise_dn > 0:
             if o.shot_noise:
@@ -473,6 +715,7 @@ class Renderer:
         encoder_error_px: float = 0.0,
         counter_bits: int | None = None,
         rng_seed: int | None = None,
+        albedo_factor: AlbedoFactor | None = None,
     ) -> ImagePair:
         """Render the images A and B of a moving board and the encoder counts at both triggers.
 
@@ -495,6 +738,9 @@ class Renderer:
             Encoder counter width, 16 or 32; ``None`` takes the rig's ``encoder.counter_bits``.
         rng_seed : int, optional
             Seed of the sensor noise; ``None`` draws from the renderer's own stream.
+        albedo_factor : callable, optional
+            ``factor(board_x_mm, board_y_mm)`` (arrays of the image's shape) multiplying the
+            reflected light per pixel before the sensor noise: knots, stains.
 
         Returns
         -------
@@ -515,8 +761,8 @@ class Renderer:
         o = self.optics
         shift_mm = v * o.dt_ab_s
         # at trigger A board point b is at X = b - bc; at B at X + shift -> b = X + bc - shift
-        img_a = self._render_one(fn, bc, v, 0, rng)
-        img_b = self._render_one(fn, bc - shift_mm, v, 1, rng)
+        img_a = self._render_one(fn, bc, v, 0, rng, albedo_factor)
+        img_b = self._render_one(fn, bc - shift_mm, v, 1, rng, albedo_factor)
         ppm = self.px_per_mm
         cam = self.rig.camera
         counts_a_w = wrap_counts(ca, bits)
@@ -549,6 +795,27 @@ class Renderer:
             speed_mm_s=v,
             truth=truth,
         )
+
+
+def _exp_kernel(length_cols: float) -> np.ndarray:
+    """Taps of the two-sided exponential ``exp(-|j| / length)`` over +-5 lengths, sum one.
+
+    Shape (2J + 1,), float64.
+    """
+    j_max = max(1, int(math.ceil(5.0 * length_cols)))
+    j = np.arange(-j_max, j_max + 1, dtype=np.float64)
+    w = np.exp(-np.abs(j) / length_cols)
+    return w / w.sum()
+
+
+def _pencil_factor(y_mm: np.ndarray, lines: tuple[PencilLine, ...]) -> np.ndarray:
+    """Albedo factor per board row: ``prod(1 - darkness * raised cosine)``; float32."""
+    f = np.ones(y_mm.shape, dtype=np.float64)
+    for line in lines:
+        r = np.abs(y_mm - line.y_mm) / (0.5 * line.width_mm)
+        w = np.where(r < 1.0, 0.5 * (1.0 + np.cos(np.pi * np.minimum(r, 1.0))), 0.0)
+        f *= 1.0 - line.darkness * w
+    return f.astype(np.float32)
 
 
 def _pixel_kernel(m: int) -> np.ndarray:

@@ -1,40 +1,63 @@
-"""The PLC's Modbus TCP server: the simulated machine's registers over pymodbus 3.16.
+"""The PLC's Modbus TCP server: the simulated machine's registers, as a PLC serves them.
 
 The holding registers mirror ``machine.register_values()`` as of the last :meth:`PlcServer.refresh`
-(the runner calls it every PLC cycle). Writes go through the register map
-(:mod:`protocol.registers`):
+(the machine's stepping calls it every PLC cycle). The server speaks Modbus TCP itself (asyncio
+streams, no Modbus library): like a PLC it offers only what the register map offers
+(``docs/register_map.md``) and says nothing about its software.
 
-* a write to a read-only register, to a gap or to half of a 32-bit register is refused with
-  Modbus exception 02 (ILLEGAL DATA ADDRESS);
-* a value outside the register's limits (or one the machine refuses) with exception 03
-  (ILLEGAL DATA VALUE) -- never clamped;
-* an accepted ``feed_setpoint_mm_s`` goes to ``machine.set_feed_setpoint``, an accepted
-  ``heartbeat_service`` to ``machine.set_service_heartbeat``.
+* Function codes 3 (read), 6 (write one), 16 (write several) and 23 (read/write) are served;
+  every other function code answers exception 01 (ILLEGAL FUNCTION).
+* A quantity outside the spec's range (read 1..125, write 1..123, 23: 1..125 / 1..121), a byte
+  count that does not match it or a PDU of the wrong length: exception 03 (ILLEGAL DATA VALUE).
+* A read outside the map, a write to a read-only register, to a gap or to half of a 32-bit
+  register: exception 02 (ILLEGAL DATA ADDRESS).
+* A value outside the register's limits (or one the machine refuses): exception 03, never clamped.
+* Another unit id than the map's: exception 0B (gateway target failed to respond).
+* A header that is not Modbus TCP (protocol id not 0, length outside 2..254) closes that
+  connection; the server and its other clients go on.
 
-Only the holding-register functions (3, 6, 16, 23) are served; others answer exception 01. A
-request for another unit id than the map's answers exception 0B (gateway target failed to
-respond). The hook pymodbus 3.16 offers for this is ``SimDevice(action=...)``: an async callback
-called on every access with the live register list (which it may refresh) and the values to be
-written; returning an ``ExcCodes`` member refuses the request with that exception code.
+Accepted writes go through the register map's one dispatch
+(:func:`protocol.registers.apply_writes`). Threads: the server may run on its own asyncio loop
+in another thread than the one stepping the machine (``queue_writes=True``, see
+:mod:`plant_sim.interfaces`). Then requests only read the published register snapshot (swapped
+under a lock by :meth:`PlcServer.refresh`) and accepted writes are queued; the stepping thread
+applies them, in the order received, with :meth:`PlcServer.apply_writes`. Until then the
+snapshot already shows the written values.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
-from collections.abc import Mapping
+import struct
+import threading
+from collections import deque
+from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
-from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import NoSuchIdException
-from pymodbus.server import ModbusTcpServer
-from pymodbus.simulator import DataType, SimData, SimDevice
-from pymodbus.simulator.simcore import SimCore
-
-from protocol.registers import RegisterAccessError, RegisterMap, RegisterRangeError
+from protocol.registers import (
+    RegisterAccessError,
+    RegisterMap,
+    RegisterRangeError,
+    apply_writes,
+)
 
 log = logging.getLogger(__name__)
 
-HOLDING_FUNCTIONS = frozenset({3, 6, 16, 23})
+FUNCTION_CODES = frozenset({3, 6, 16, 23})
+"""The function codes the register map offers (``docs/register_map.md``)."""
+MAX_READ = 125
+MAX_WRITE = 123
+MAX_RW_WRITE = 121
+MAX_CLIENTS = 16
+"""Connections served at once (a PLC's limit); more are closed at once."""
+
+EXC_ILLEGAL_FUNCTION = 0x01
+EXC_ILLEGAL_ADDRESS = 0x02
+EXC_ILLEGAL_VALUE = 0x03
+EXC_GATEWAY_TARGET = 0x0B
+
+_MBAP = struct.Struct(">HHHB")
 
 
 class PlcMachine(Protocol):
@@ -45,20 +68,12 @@ class PlcMachine(Protocol):
     def set_service_heartbeat(self, value: int) -> None: ...  # noqa: D102
 
 
-class _StrictCore(SimCore):
-    """pymodbus' datastore answering only the configured unit ids (others: exception 0B)."""
+class _Refused(Exception):
+    """A request answered with a Modbus exception code."""
 
-    def _check(self, device_id: int) -> None:
-        if device_id not in self.devices and 0 not in self.devices:
-            raise NoSuchIdException(f"unit id {device_id} not served")
-
-    async def async_getValues(self, device_id, func_code, address, count=1):  # noqa: D102, N802
-        self._check(device_id)
-        return await super().async_getValues(device_id, func_code, address, count)
-
-    async def async_setValues(self, device_id, func_code, address, values):  # noqa: D102, N802
-        self._check(device_id)
-        return await super().async_setValues(device_id, func_code, address, values)
+    def __init__(self, code: int, why: str = "") -> None:
+        super().__init__(why)
+        self.code = code
 
 
 class PlcServer:
@@ -76,11 +91,21 @@ class PlcServer:
         TCP port; 0 picks a free port (read the actual one from :attr:`port` after :meth:`start`).
     unit_id : int, optional
         Modbus unit id served; default the map's ``unit_id``.
+    queue_writes : bool
+        Queue accepted writes for :meth:`apply_writes` (the server runs on another thread than
+        the machine) instead of applying them at once.
 
     Attributes
     ----------
     requests, refused : int
         Count of served requests and of those refused with an exception.
+    write_errors : int
+        Queued writes the machine refused when they were applied (answered already).
+    on_queued : callable or None
+        Called with each write queued (``queue_writes``): a server in another process than the
+        machine sends it on (:mod:`plant_sim.plc_process`).
+    before_request : callable or None
+        Called before each request is answered (to load a newer snapshot).
     """
 
     def __init__(
@@ -91,6 +116,7 @@ class PlcServer:
         host: str = "127.0.0.1",
         port: int = 502,
         unit_id: int | None = None,
+        queue_writes: bool = False,
     ) -> None:
         if not 0 <= int(port) <= 65535:
             raise ValueError(f"port must be in 0..65535, got {port!r}")
@@ -99,12 +125,20 @@ class PlcServer:
         self.host = host
         self.port = int(port)
         self.unit_id = self.rmap.unit_id if unit_id is None else int(unit_id)
+        self.queue_writes = bool(queue_writes)
         self._first, self._count = self.rmap.span()
+        self._lock = threading.Lock()
         self._values: dict[str, float | int] = {}
         self._words: list[int] = [0] * self._count
-        self._server: ModbusTcpServer | None = None
+        self._pending: deque[dict[str, float | int]] = deque()
+        self._server: asyncio.Server | None = None
+        self._clients: set[asyncio.StreamWriter] = set()
+        self.on_queued: Callable[[dict[str, float | int]], None] | None = None
+        self.before_request: Callable[[], None] | None = None
+        self._queued = 0
         self.requests = 0
         self.refused = 0
+        self.write_errors = 0
         self.refresh()
 
     # ------------------------------------------------------------------ state
@@ -119,58 +153,175 @@ class PlcServer:
         return self._values
 
     def refresh(self) -> None:
-        """Copy ``machine.register_values()`` into the served registers (once per PLC cycle)."""
-        values = dict(self.machine.register_values())
-        self._words = self.rmap.encode_block(values)
-        self._values = values
+        """Publish ``machine.register_values()`` (once per PLC cycle, on the stepping thread).
 
-    # ------------------------------------------------------------------ the pymodbus hook
-    async def _action(
-        self,
-        function_code: int,
-        start_address: int,
-        address: int,
-        count: int,
-        current_registers: list[int],
-        set_values: list[int] | list[bool] | None,
-    ) -> ExcCodes | None:
+        Writes accepted but not yet applied keep their written value in the snapshot.
+        """
+        values = dict(self.machine.register_values())
+        with self._lock:
+            for accepted in self._pending:
+                values.update(accepted)
+            words = self.rmap.encode_block(values)
+            self._words, self._values = words, values
+
+    def load_snapshot(self, values: Mapping[str, float | int], *, applied: int) -> None:
+        """Serve register values published by another process (:mod:`plant_sim.plc_process`).
+
+        Parameters
+        ----------
+        values : mapping
+            Every register's value as the stepping side published it.
+        applied : int
+            How many of the writes this server ever queued the stepping side had applied when
+            it published; those leave the overlay of written values.
+        """
+        values = dict(values)
+        with self._lock:
+            done = applied - (self._queued - len(self._pending))
+            for _ in range(max(0, min(done, len(self._pending)))):
+                self._pending.popleft()
+            for accepted in self._pending:
+                values.update(accepted)
+            self._words, self._values = self.rmap.encode_block(values), values
+
+    def apply_writes(self) -> int:
+        """Apply the queued writes to the machine, in order (on the stepping thread).
+
+        Returns
+        -------
+        int
+            Writes applied (a write the machine refuses now is logged and counted in
+            :attr:`write_errors`).
+        """
+        n = 0
+        while True:
+            with self._lock:
+                if not self._pending:
+                    return n
+                accepted = self._pending[0]
+            try:
+                apply_writes(self.machine, accepted)
+            except ValueError as exc:  # RegisterAccessError / RegisterRangeError
+                self.write_errors += 1
+                log.warning("queued Modbus write not applied: %s", exc)
+            with self._lock:
+                self._pending.popleft()
+            n += 1
+
+    # ------------------------------------------------------------------ the protocol (sans-I/O)
+    def respond(self, unit_id: int, pdu: bytes) -> bytes:
+        """Answer one request PDU (function code and data) with the response PDU.
+
+        Parameters
+        ----------
+        unit_id : int
+            The request's unit id.
+        pdu : bytes
+            Function code and data (at least one byte).
+
+        Returns
+        -------
+        bytes
+            The response PDU: the data asked for, or ``function | 0x80`` and an exception code.
+        """
+        fc = pdu[0]
         self.requests += 1
-        if function_code not in HOLDING_FUNCTIONS:
-            self.refused += 1
-            return ExcCodes.ILLEGAL_FUNCTION
-        off = self._first - start_address
-        current_registers[off : off + self._count] = self._words
-        if set_values is None or function_code == 3:
-            return None
-        words = [int(w) for w in set_values]
+        if self.before_request is not None:
+            self.before_request()
         try:
-            accepted = self.rmap.parse_write(address, words, self._values)
-            self._apply(accepted)
-        except RegisterAccessError as exc:
+            if unit_id != self.unit_id:
+                raise _Refused(EXC_GATEWAY_TARGET, f"unit id {unit_id} not served")
+            if fc not in FUNCTION_CODES:
+                raise _Refused(EXC_ILLEGAL_FUNCTION, f"function {fc} not offered")
+            return bytes([fc]) + self._dispatch(fc, pdu[1:])
+        except _Refused as exc:
             self.refused += 1
-            log.info("Modbus write refused (02): %s", exc)
-            return ExcCodes.ILLEGAL_ADDRESS
-        except (RegisterRangeError, ValueError) as exc:
-            self.refused += 1
-            log.info("Modbus write refused (03): %s", exc)
-            return ExcCodes.ILLEGAL_VALUE
-        for name, value in accepted.items():
-            reg = self.rmap[name]
-            i = reg.address - self._first
-            self._words[i : i + reg.count] = self.rmap.encode(name, value)
-            self._values[name] = value
-        return None
+            if exc.code in (EXC_ILLEGAL_ADDRESS, EXC_ILLEGAL_VALUE) and str(exc):
+                log.info("Modbus request refused (%02d): %s", exc.code, exc)
+            return bytes([(fc | 0x80) & 0xFF, exc.code])
+
+    def _dispatch(self, fc: int, data: bytes) -> bytes:
+        if fc == 3:
+            start, qty = _fields(data, ">HH")
+            return self._read(start, qty, MAX_READ)
+        if fc == 6:
+            address, value = _fields(data, ">HH")
+            self._write(address, [value])
+            return data
+        if fc == 16:
+            start, qty, nbytes = _fields(data[:5], ">HHB")
+            words = _words(data[5:], qty, nbytes, MAX_WRITE)
+            self._write(start, words)
+            return data[:4]
+        # 23: read/write multiple registers (the write is done before the read)
+        r_start, r_qty, w_start, w_qty, nbytes = _fields(data[:9], ">HHHHB")
+        if not 1 <= r_qty <= MAX_READ:
+            raise _Refused(EXC_ILLEGAL_VALUE, f"read quantity {r_qty}")
+        words = _words(data[9:], w_qty, nbytes, MAX_RW_WRITE)
+        self._write(w_start, words)
+        return self._read(r_start, r_qty, MAX_READ)
+
+    def _read(self, start: int, qty: int, max_qty: int) -> bytes:
+        if not 1 <= qty <= max_qty:
+            raise _Refused(EXC_ILLEGAL_VALUE, f"read quantity {qty} (1..{max_qty})")
+        off = start - self._first
+        if off < 0 or off + qty > self._count:
+            raise _Refused(EXC_ILLEGAL_ADDRESS, f"read of {qty} at {start} outside the map")
+        with self._lock:
+            words = self._words[off : off + qty]
+        return bytes([2 * qty]) + struct.pack(f">{qty}H", *words)
+
+    def _write(self, address: int, words: list[int]) -> None:
+        with self._lock:
+            try:
+                accepted = self.rmap.parse_write(address, words, self._values)
+                if not self.queue_writes:
+                    self._apply(accepted)
+            except RegisterAccessError as exc:
+                raise _Refused(EXC_ILLEGAL_ADDRESS, str(exc)) from None
+            except (RegisterRangeError, ValueError) as exc:
+                raise _Refused(EXC_ILLEGAL_VALUE, str(exc)) from None
+            for name, value in accepted.items():
+                reg = self.rmap[name]
+                i = reg.address - self._first
+                self._words[i : i + reg.count] = self.rmap.encode(name, value)
+                self._values[name] = value
+            if self.queue_writes:
+                self._pending.append(accepted)
+                self._queued += 1
+                if self.on_queued is not None:
+                    self.on_queued(accepted)
 
     def _apply(self, accepted: Mapping[str, float | int]) -> None:
-        for name, value in accepted.items():
-            if name == "feed_setpoint_mm_s":
-                self.machine.set_feed_setpoint(float(value))
-            elif name == "heartbeat_service":
-                self.machine.set_service_heartbeat(int(value))
+        apply_writes(self.machine, accepted)  # the one write dispatch (protocol.registers)
 
-    # ------------------------------------------------------------------ life cycle
+    # ------------------------------------------------------------------ I/O
+    async def _serve_client(self, reader: asyncio.StreamReader,
+                            writer: asyncio.StreamWriter) -> None:
+        if self._server is None or len(self._clients) >= MAX_CLIENTS:
+            writer.close()  # stopped meanwhile, or too many clients
+            return
+        self._clients.add(writer)
+        try:
+            while True:
+                header = await reader.readexactly(_MBAP.size)
+                tid, pid, length, unit = _MBAP.unpack(header)
+                if pid != 0 or not 2 <= length <= 254:
+                    log.info("not a Modbus TCP header (protocol %d, length %d): closing",
+                             pid, length)
+                    return
+                pdu = await reader.readexactly(length - 1)
+                reply = self.respond(unit, pdu)
+                writer.write(_MBAP.pack(tid, 0, len(reply) + 1, unit) + reply)
+                await writer.drain()
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass  # the client went away
+        finally:
+            self._clients.discard(writer)
+            writer.close()
+
     async def start(self) -> tuple[str, int]:
-        """Bind and listen; returns ``(host, port)`` actually bound.
+        """Bind and listen on the running loop; returns ``(host, port)`` actually bound.
 
         Raises
         ------
@@ -181,31 +332,37 @@ class PlcServer:
 
         if self._server is not None:
             return self.host, self.port
-        device = SimDevice(
-            id=self.unit_id,
-            simdata=[SimData(self._first, count=self._count, datatype=DataType.REGISTERS)],
-            action=self._action,
-        )
-        server = ModbusTcpServer(device, address=(self.host, self.port))
-        server.context = _StrictCore(device)
         try:
-            await server.serve_forever(background=True)
-        except RuntimeError as exc:
+            server = await asyncio.start_server(self._serve_client, self.host, self.port,
+                                                reuse_address=True)
+        except OSError as exc:
             raise FieldbusError(
-                f"Modbus server cannot listen on {self.host}:{self.port}: {exc}"
+                f"Modbus server cannot listen on {self.host}:{self.port}: "
+                f"{exc.strerror or exc}"
             ) from None
-        sockets = getattr(server.transport, "sockets", None) or []
-        if sockets:
-            self.port = int(sockets[0].getsockname()[1])
+        self.port = int(server.sockets[0].getsockname()[1])
         self._server = server
         log.info("Modbus server listening on %s:%d", self.host, self.port)
         return self.host, self.port
 
-    async def stop(self) -> None:
-        """Stop listening and drop every client connection (idempotent)."""
+    def close_now(self) -> asyncio.Server | None:
+        """Stop listening and drop every client at once (on the server's loop; idempotent).
+
+        Returns the closed server (await its ``wait_closed()``) or ``None``.
+        """
         server, self._server = self._server, None
         if server is not None:
-            await server.shutdown()
+            server.close()
+            for writer in list(self._clients):
+                writer.close()
+            self._clients.clear()
+        return server
+
+    async def stop(self) -> None:
+        """Stop listening and drop every client connection (idempotent)."""
+        server = self.close_now()
+        if server is not None:
+            await server.wait_closed()
 
     async def restart(self) -> tuple[str, int]:
         """Stop and start again on the same port (fault injection: "Modbus server restart")."""
@@ -215,3 +372,18 @@ class PlcServer:
     def describe(self) -> dict[str, Any]:
         """Where the server listens, for the runner's banner."""
         return {"host": self.host, "port": self.port, "unit_id": self.unit_id}
+
+
+def _fields(data: bytes, fmt: str) -> tuple[int, ...]:
+    """Unpack a fixed request body; a body of another length is exception 03."""
+    size = struct.calcsize(fmt)
+    if len(data) != size:
+        raise _Refused(EXC_ILLEGAL_VALUE, f"request body of {len(data)} bytes, not {size}")
+    return struct.unpack(fmt, data)
+
+
+def _words(data: bytes, qty: int, nbytes: int, max_qty: int) -> list[int]:
+    """The values of a multiple write; quantity and byte count checked (exception 03)."""
+    if not 1 <= qty <= max_qty or nbytes != 2 * qty or len(data) != nbytes:
+        raise _Refused(EXC_ILLEGAL_VALUE, f"write of {qty} registers with {nbytes} bytes")
+    return list(struct.unpack(f">{qty}H", data))

@@ -1,29 +1,34 @@
 """The ``planer sim`` runner: the machine stepped in scaled real time behind its interfaces.
 
-One asyncio task owns the :class:`~plant_sim.machine.Machine` and steps it so that machine time
-follows ``time_scale`` x wall time (clock and sleep injected, so tests run on simulated time).
-Around it: the PLC's Modbus TCP server (:mod:`plant_sim.plc_server`), the piezo amplifier's CAN
-node (:mod:`plant_sim.amp_node`) and the frame sink (a spool directory or an in-process source,
-:mod:`protocol.frames`).
+Threads and processes (``SimRunner.from_config``, as ``planer sim`` runs it):
 
-Per loop iteration: received CAN frames go to the amplifier (at the current machine time); the
-machine advances by whole steps up to the time due (each step: frames to the sink, status and
-heartbeat frames due to the bus); the Modbus registers are refreshed; then the loop sleeps until
-the next step is due, and the Modbus server answers requests meanwhile.
+* the **stepping thread** (the runner's asyncio loop) owns the :class:`~plant_sim.machine.Machine`
+  and drives it through the one :class:`~plant_sim.driver.PlantDriver`: so that machine time
+  follows ``time_scale`` x wall time (clock and sleep injected: tests run on simulated time);
+* the **PLC process** (:class:`~plant_sim.plc_process.PlcProcess`) serves Modbus TCP: it reads
+  the register snapshot the stepping thread publishes every iteration (shared memory, sequence
+  lock) and sends accepted writes back, which the driver applies in order before the next step;
+  the amplifier node (:mod:`plant_sim.amp_node`) reads its CAN bus on a thread of its own;
+* the **render worker** (:class:`~plant_sim.render_worker.RenderPool`, a process) renders the
+  images of each pair and writes the pairs to the spool directory, in order (PNG encoding and
+  fsync stay out of this process); for an in-process sink (:mod:`protocol.frames`) the workers
+  hand the images back, in order. Without images, frames go to the sink from a writer thread.
+
+When the host cannot keep up (the render backlog grows, or stepping falls behind the wall clock),
+the runner does not catch up in bursts nor skip frames: the simulated clock slows itself (the
+interfaces keep answering), and the runner says so once, with the factor achieved.
 
 Faults: the machine injects every ``[faults] inject`` entry itself (at its ``at_s``), and hands
-the interface faults due to the runner (``machine.take_interface_events()``): ``modbus_restart``
+the interface faults due to the driver (``machine.take_interface_events()``): ``modbus_restart``
 (the server closes, dropping every client, and listens again ``duration_s`` machine seconds later)
-and ``can_silence`` (the amplifier node sends nothing for ``duration_s``). The runner plays them.
-``SimRunner.inject`` also takes ``can_drop`` (``fraction``, ``duration_s``: the node drops that
-fraction of received frames) for tests; any other kind goes to ``machine.inject``.
+and ``can_silence`` (the amplifier node sends nothing for ``duration_s``). ``SimRunner.inject``
+also takes ``can_drop`` (``fraction``, ``duration_s``: the node drops that fraction of received
+frames) for tests; any other kind goes to ``machine.inject``.
 """
 
 from __future__ import annotations
 
 import asyncio
-import heapq
-import itertools
 import logging
 import math
 import time
@@ -35,6 +40,9 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from plant_sim.amp_node import AmpNode, AmpNodeCore
+from plant_sim.driver import INTERFACE_FAULTS, PlantDriver
+from plant_sim.interfaces import InterfaceLoop, ServedPlc
+from plant_sim.plc_process import PlcProcess
 from plant_sim.plc_server import PlcServer
 from protocol.can_transport import bus_from_config, describe_bus
 from protocol.piezo_can import PiezoCodec
@@ -42,11 +50,32 @@ from protocol.registers import RegisterMap
 
 log = logging.getLogger(__name__)
 
-INTERFACE_FAULTS = ("modbus_restart", "can_drop", "can_silence")
+__all__ = ["INTERFACE_FAULTS", "RunSummary", "SimRunner", "parse_banner"]
+
 MAX_PENDING_WRITES = 8
 """Frames queued for the writer thread before the runner waits for it."""
 MAX_STEPS_PER_ITERATION = 200
 """Steps done before yielding to the event loop when the machine runs late."""
+MAX_LAG_S = 0.5
+"""Wall seconds the machine may fall behind its clock and catch up (at most
+:data:`MAX_STEPS_PER_ITERATION` steps at a time); further behind, the clock slows instead."""
+MAX_RENDER_BACKLOG = 3
+"""Pairs waiting for their images (per worker) above which the clock slows down (twice as
+many: the machine waits)."""
+SCALE_DOWN = 0.7
+"""Factor on the time scale per adjustment while the render backlog is too long."""
+SCALE_UP = 1.1
+"""Factor on the time scale per adjustment while at most one pair waits for the renderer."""
+ADJUST_EVERY_S = 0.2
+"""Wall seconds between adjustments of the time scale."""
+MIN_SCALE_FRACTION = 0.01
+"""The clock never slows below this fraction of the asked time scale."""
+SLOW_REPORT_AFTER_S = 3.0
+"""Wall seconds after the first slow-down over which the achieved time scale is measured."""
+SLOW_REPORT_BELOW = 0.9
+"""A slow-down is reported when the achieved time scale is below this fraction of the asked one."""
+TICK_S = 0.002
+"""Machine time stepped per wake-up at most as often (fewer wake-ups on a busy host), s."""
 
 
 @dataclass
@@ -67,6 +96,8 @@ class RunSummary:
         Frames the amplifier node received, sent, dropped by the fault.
     faults : list of str
         Interface faults played, ``"<kind>@<t_s>"``.
+    slowed_s : float
+        Wall seconds by which the clock was slowed because the host could not keep up.
     """
 
     sim_time_s: float = 0.0
@@ -79,6 +110,7 @@ class RunSummary:
     can_sent: int = 0
     can_dropped: int = 0
     faults: list[str] | None = None
+    slowed_s: float = 0.0
 
     @property
     def real_time_factor(self) -> float:
@@ -99,8 +131,9 @@ class SimRunner:
     ----------
     machine : Machine
         The machine model (``t_s``, ``advance``, ``register_values`` ... see architecture.md).
-    plc : PlcServer, optional
-        The Modbus server (not started yet); ``None`` runs without one.
+    plc : PlcServer or PlcProcess, optional
+        The Modbus server (not started yet); ``None`` runs without one. A ``PlcProcess``
+        serves from its own process.
     amp : AmpNode, optional
         The amplifier node on its bus; ``None`` runs without CAN.
     sink : FrameSink, optional
@@ -108,6 +141,13 @@ class SimRunner:
     sink_thread : bool, optional
         Write frames from one worker thread (in order) so PNG encoding and fsync do not stall
         the event loop; default: when the sink is a spool directory (has ``directory``).
+    render : RenderPool, optional
+        Renders the frames' images in worker processes (the machine then defers its rendering:
+        ``machine.assembler.defer_rendering()``); started with the runner.
+    threaded_interfaces : bool
+        Read CAN on the node's own thread and serve a ``PlcServer`` from an
+        :class:`~plant_sim.interfaces.InterfaceLoop` (its own thread; it must queue its
+        writes). Default: a ``PlcServer`` listens on the runner's loop.
     time_scale : float
         Simulated seconds per wall second (> 0); ``math.inf`` runs as fast as possible.
     step_s : float
@@ -126,10 +166,12 @@ class SimRunner:
         self,
         machine: Any,
         *,
-        plc: PlcServer | None = None,
+        plc: PlcServer | PlcProcess | None = None,
         amp: AmpNode | None = None,
         sink: FrameSink | None = None,
         sink_thread: bool | None = None,
+        render: Any = None,
+        threaded_interfaces: bool = False,
         time_scale: float = 1.0,
         step_s: float = 0.001,
         clock: Callable[[], float] | None = None,
@@ -141,10 +183,15 @@ class SimRunner:
             raise ValueError(f"time_scale must be > 0, got {time_scale!r}")
         if not (step_s > 0 and math.isfinite(step_s)):
             raise ValueError(f"step_s must be a finite number > 0, got {step_s!r}")
+        if threaded_interfaces and plc is not None and not plc.queue_writes:
+            raise ValueError("threaded_interfaces needs a PlcServer with queue_writes=True")
         self.machine = machine
         self.plc = plc
         self.amp = amp
         self.sink = sink
+        self.render = render
+        self.threaded_interfaces = bool(threaded_interfaces)
+        self._io: InterfaceLoop | None = None
         if sink_thread is None:
             sink_thread = sink is not None and hasattr(sink, "directory")
         self._pool = ThreadPoolExecutor(max_workers=1) if sink_thread else None
@@ -157,10 +204,7 @@ class SimRunner:
         self.progress_every_s = float(progress_every_s)
         self.summary = RunSummary(faults=[])
         self._stop = asyncio.Event()
-        self._pending_stop = False
-        self._schedule: list[tuple[float, int, str, dict[str, Any]]] = []
-        self._tie = itertools.count()
-        self._plc_up_at: float | None = None
+        self.driver = PlantDriver(machine, amp=amp, plc=plc, plc_switch=self, say=self.say)
         self.description: dict[str, str] = {}
 
     # ------------------------------------------------------------------ construction
@@ -172,6 +216,7 @@ class SimRunner:
         machine: Any = None,
         seed: int = 0,
         render_images: bool = True,
+        render_workers: int = 2,
         time_scale: float | None = None,
         modbus_port: int | None = None,
         spool_dir: str | Path | None = None,
@@ -181,12 +226,20 @@ class SimRunner:
     ) -> SimRunner:
         """A runner wired as a ``SimConfig`` says: ``[modbus]``, ``[can]``, ``[frames]``, ``[run]``.
 
+        Modbus is served from its own process, CAN read on its own thread and, for a machine
+        built here with ``render_images``, the images rendered by ``render_workers`` processes.
+
         Parameters
         ----------
         cfg : config.sim.SimConfig
             The simulator configuration.
         machine : Machine, optional
-            Default: ``plant_sim.machine.Machine(cfg, seed=seed, render_images=render_images)``.
+            Default: ``plant_sim.machine.Machine(cfg, seed=seed)`` with deferred rendering.
+        render_images : bool
+            Render the camera's images (default machine only).
+        render_workers : int
+            Worker processes rendering images and writing the spool (>= 1, in order): two take
+            twice the CPU share of a busy host, so the clock slows less.
         time_scale, modbus_port, spool_dir : optional
             Override ``[run] time_scale``, ``[modbus] port``, ``[frames] spool_dir``.
         sink : FrameSink, optional
@@ -198,12 +251,17 @@ class SimRunner:
         """
         from protocol.frames import SpoolWriter
 
+        render = None
         if machine is None:
             from plant_sim.machine import Machine
+            from plant_sim.render_worker import RenderPool
 
-            machine = Machine(cfg, seed=seed, render_images=render_images)
+            machine = Machine(cfg, seed=seed, render_images=False)
+            if render_images:
+                machine.assembler.defer_rendering()
+                render = (RenderPool, render_workers)
         rmap = RegisterMap.load()
-        plc = PlcServer(
+        plc = PlcProcess(
             machine,
             register_map=rmap,
             host=cfg.modbus.host,
@@ -219,11 +277,17 @@ class SimRunner:
             if sink is None:
                 directory = Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir)
                 sink = SpoolWriter(directory, keep=cfg.frames.keep)
+            if render is not None:  # a spool is written by the one render worker
+                pool_cls, workers = render
+                spool = sink if isinstance(sink, SpoolWriter) else None
+                render = pool_cls(cfg, seed=seed, workers=workers, writer=spool)
             runner = cls(
                 machine,
                 plc=plc,
                 amp=amp,
                 sink=sink,
+                render=render,
+                threaded_interfaces=True,
                 time_scale=cfg.run.time_scale if time_scale is None else time_scale,
                 step_s=cfg.run.step_s,
                 **kwargs,
@@ -238,54 +302,30 @@ class SimRunner:
     # ------------------------------------------------------------------ faults
     def schedule(self, at_s: float, fault: str, **params: Any) -> None:
         """Play an interface fault at machine time ``at_s`` (see :meth:`inject`)."""
-        heapq.heappush(self._schedule, (float(at_s), next(self._tie), fault, params))
+        self.driver.schedule(at_s, fault, **params)
 
     def inject(self, fault: str, **params: Any) -> None:
-        """Inject a fault now.
+        """Inject a fault now (:meth:`plant_sim.driver.PlantDriver.inject`).
 
         ``modbus_restart`` (``duration_s``, default 0: the server is closed, dropping every
         client, and listens again ``duration_s`` machine seconds later); ``can_drop``
         (``fraction``, ``duration_s``); ``can_silence`` (``duration_s``); any other kind goes to
         ``machine.inject``.
         """
-        now = float(self.machine.t_s)
-        if fault == "modbus_restart":
-            if self.plc is None:
-                raise ValueError("modbus_restart: the runner has no Modbus server")
-            down = float(params.get("duration_s", params.get("down_s", 0.0)))
-            self._plc_up_at = now + max(down, 0.0)
-            self._pending_stop = True
-        elif fault in ("can_drop", "can_silence"):
-            if self.amp is None:
-                raise ValueError(f"{fault}: the runner has no CAN node")
-            kind = "drop_rx" if fault == "can_drop" else "silence"
-            p = {k: float(v) for k, v in params.items() if k in ("fraction", "duration_s")}
-            self.amp.core.inject(kind, start_s=now, **p)
-        else:
-            self.machine.inject(fault, **params)
-            return
-        self.summary.faults.append(f"{fault}@{now:.3f}")  # type: ignore[union-attr]
+        self.driver.inject(fault, **params)
 
-    async def _play_faults(self) -> None:
-        now = float(self.machine.t_s)
-        take = getattr(self.machine, "take_interface_events", None)
-        for event in take() if take is not None else ():
-            ev = dict(event)
-            kind = ev.pop("kind")
-            ev.pop("t_s", None)
-            if kind in INTERFACE_FAULTS:
-                self.inject(kind, **ev)
-        while self._schedule and self._schedule[0][0] <= now + 1e-12:
-            _at, _n, fault, params = heapq.heappop(self._schedule)
-            self.inject(fault, **params)
-        if self._pending_stop and self.plc is not None:
-            self._pending_stop = False
-            await self.plc.stop()
-            self.say(f"fault: modbus server down at t={now:.3f} s")
-        if self._plc_up_at is not None and now >= self._plc_up_at - 1e-12 and self.plc:
-            self._plc_up_at = None
-            await self.plc.start()
-            self.say(f"fault: modbus server up again at t={now:.3f} s")
+    def set_up(self, up: bool) -> None:
+        """Switch the Modbus server on or off (the driver's ``modbus_restart``; synchronous)."""
+        if self.plc is None:
+            return
+        if isinstance(self.plc, PlcProcess):
+            self.plc.set_up(up)
+        elif self._io is not None:
+            ServedPlc(self.plc, self._io).set_up(up)
+        elif up:  # on this loop: listening before the next request can be served
+            asyncio.get_running_loop().create_task(self.plc.start())
+        else:
+            self.plc.close_now()
 
     # ------------------------------------------------------------------ running
     def say(self, line: str) -> None:
@@ -298,12 +338,20 @@ class SimRunner:
         self._stop.set()
 
     async def start(self) -> None:
-        """Start the interfaces and print where they listen (one line each)."""
+        """Start the renderers and interfaces and print where they listen (one line each)."""
+        if self.render is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.render.start)
         if self.plc is not None:
-            host, port = await self.plc.start()
+            if self.threaded_interfaces and not isinstance(self.plc, PlcProcess):
+                self._io = InterfaceLoop()
+                host, port = await self._io.run_async(self.plc.start())
+            else:
+                host, port = await self.plc.start()
             self.description["modbus"] = f"{host}:{port}"
             self.say(f"modbus: {host}:{port} unit {self.plc.unit_id}")
         if self.amp is not None:
+            if self.threaded_interfaces:
+                self.amp.start_receiving()
             self.description.setdefault("can", type(self.amp.bus).__name__)
             self.say(f"can: {self.description['can']}")
         if self.sink is not None:
@@ -314,23 +362,40 @@ class SimRunner:
             self.say(f"frames: {desc}")
 
     async def close(self) -> None:
-        """Finish pending frame writes, stop the server and close the bus.
+        """Finish pending frames and writes, stop the server and close the bus and workers.
 
         Each step runs even when an earlier one fails; that error is raised afterwards.
         """
         try:
-            if self._pool is not None:
-                try:
-                    self._collect_writes(wait_all=True)
-                finally:
-                    self._pool.shutdown(wait=True)
+            try:
+                if self.render is not None:
+                    try:
+                        for f in self.render.take(wait=True):
+                            self._hand_over(f)
+                    finally:
+                        self.render.close()
+            finally:
+                if self._pool is not None:
+                    try:
+                        self._collect_writes(wait_all=True)
+                    finally:
+                        self._pool.shutdown(wait=True)
         finally:
             try:
-                if self.plc is not None:
-                    await self.plc.stop()
+                if isinstance(self.plc, PlcProcess):
+                    self.plc.close()
+                elif self.plc is not None:
+                    if self._io is not None:
+                        await self._io.run_async(self.plc.stop())
+                    else:
+                        await self.plc.stop()
             finally:
-                if self.amp is not None:
-                    self.amp.close()
+                try:
+                    if self.amp is not None:
+                        self.amp.close()
+                finally:
+                    if self._io is not None:
+                        self._io.close()
 
     def _collect_writes(self, *, wait_all: bool = False) -> None:
         """Drop finished writes (raising a failed one's error); wait when too many are queued."""
@@ -339,20 +404,38 @@ class SimRunner:
         ):
             self._writes.popleft().result()
 
+    def _hand_over(self, frame: Any) -> None:
+        """One frame to the sink (in order; from the writer thread for a spool)."""
+        if self.render is not None and self.render.writes_spool:
+            pass  # the render worker wrote it
+        elif self._pool is not None:
+            self._writes.append(self._pool.submit(self.sink.write, frame))  # type: ignore[union-attr]
+            self._collect_writes()
+        elif self.sink is not None:
+            self.sink.write(frame)
+        self.summary.frames += 1
+
     def _step(self) -> None:
-        m = self.machine
-        frames = m.advance(self.step_s)
+        frames = self.driver.step(self.step_s, publish=False)
         self.summary.steps += 1
-        if frames:
-            for f in frames:
-                if self._pool is not None:
-                    self._writes.append(self._pool.submit(self.sink.write, f))  # type: ignore[union-attr]
-                    self._collect_writes()
-                elif self.sink is not None:
-                    self.sink.write(f)
-                self.summary.frames += 1
-        if self.amp is not None:
-            self.amp.transmit(float(m.t_s))
+        for f in frames:
+            if self.render is not None:
+                self.render.submit(f, self.machine.assembler.take_job(f.seq))
+            else:
+                self._hand_over(f)
+
+    def _render_backlog(self) -> int:
+        """Take back rendered frames; how many pairs still wait for their images (per worker)."""
+        if self.render is None:
+            return 0
+        for f in self.render.take():
+            self._hand_over(f)
+        return -(-self.render.pending // self.render.workers)
+
+    def _held(self) -> bool:
+        """Whether so many pairs wait for their images that the machine must wait."""
+        r = self.render
+        return r is not None and r.pending > 2 * MAX_RENDER_BACKLOG * r.workers
 
     async def run(self, *, duration_s: float | None = None) -> RunSummary:
         """Run until :meth:`request_stop` or ``duration_s`` of machine time; returns the summary.
@@ -374,45 +457,99 @@ class SimRunner:
         return self.summary
 
     async def _loop(self, duration_s: float | None) -> None:
+        """Step in scaled real time; the clock slows itself when the host cannot keep up.
+
+        ``scale`` (simulated s per wall s) starts at ``time_scale``. A render backlog above
+        :data:`MAX_RENDER_BACKLOG` lowers it step by step (the machine keeps moving, slower, so
+        the amplifier's frames keep coming), a short one (<= 1) raises it back; above twice the
+        backlog the machine waits. Stepping that falls behind catches up in slices of at most
+        :data:`MAX_STEPS_PER_ITERATION` steps (a short stall leaves machine time on the wall
+        clock); more than :data:`MAX_LAG_S` behind, the clock goes on from where the machine is.
+        """
         m = self.machine
-        wall0 = self.clock()
-        sim0 = float(m.t_s)
+        wall0 = wall_anchor = self.clock()
+        sim0 = sim_anchor = float(m.t_s)
         end = math.inf if duration_s is None else sim0 + duration_s
         next_progress = sim0 + self.progress_every_s
         tol = 1e-6 * self.step_s
+        scale = self.time_scale
+        floor = self.time_scale * MIN_SCALE_FRACTION
+        slow_since: tuple[float, float] | None = None  # (wall, sim) at the first slow-down
+        said = False
+        last_adjust = -math.inf
+        self.driver.publish()
         self.say("ready")
         while not self._stop.is_set():
             now_sim = float(m.t_s)
-            if self.amp is not None:
-                self.amp.receive(now_sim)
-            if math.isinf(self.time_scale):
+            now_wall = self.clock()
+            backlog = self._render_backlog()
+            new_scale = scale
+            if now_wall - last_adjust >= ADJUST_EVERY_S:
+                if backlog > MAX_RENDER_BACKLOG:
+                    new_scale = max(scale * SCALE_DOWN, floor)
+                elif backlog <= 1 and scale < self.time_scale:
+                    new_scale = min(scale * SCALE_UP, self.time_scale)
+                if new_scale != scale:
+                    last_adjust = now_wall
+            if new_scale != scale or (
+                not math.isinf(scale)
+                and sim_anchor + (now_wall - wall_anchor) * scale - now_sim > MAX_LAG_S * scale
+            ):  # a new rate, or stepping fell behind: the clock goes on from here
+                lag = sim_anchor + (now_wall - wall_anchor) * scale - now_sim
+                if not math.isinf(scale) and lag > MAX_LAG_S * scale:
+                    self.summary.slowed_s += lag / scale
+                scale, sim_anchor, wall_anchor = new_scale, now_sim, now_wall
+                if slow_since is None and not said and (
+                    scale < self.time_scale or lag > MAX_LAG_S * scale
+                ):
+                    slow_since = (now_wall, now_sim)
+            hold = self._held()
+            if hold:
+                target = now_sim
+            elif math.isinf(scale):
                 target = now_sim + self.step_s * MAX_STEPS_PER_ITERATION
             else:
-                target = sim0 + (self.clock() - wall0) * self.time_scale
+                target = sim_anchor + (now_wall - wall_anchor) * scale
             target = min(target, end)
             steps = 0
-            while float(m.t_s) + self.step_s <= target + tol and steps < MAX_STEPS_PER_ITERATION:
+            while (float(m.t_s) + self.step_s <= target + tol and steps < MAX_STEPS_PER_ITERATION
+                   and not self._held()):
                 self._step()
                 steps += 1
-            if self.plc is not None:
-                self.plc.refresh()
-            await self._play_faults()
+            if steps:
+                self.driver.publish()
             now_sim = float(m.t_s)
             self.summary.sim_time_s = now_sim - sim0
             self.summary.wall_time_s = self.clock() - wall0
+            if slow_since is not None:
+                span = self.clock() - slow_since[0]
+                if span >= SLOW_REPORT_AFTER_S:
+                    achieved = (now_sim - slow_since[1]) / span
+                    if achieved < SLOW_REPORT_BELOW * self.time_scale:
+                        self.say(
+                            f"slow host: the simulated clock slowed itself to {achieved:.2f} "
+                            f"simulated s per wall s (asked {self.time_scale:g}); Modbus and "
+                            "CAN keep answering"
+                        )
+                        said = True
+                    slow_since = None  # a hiccup, or said: watch again only if not said
             if now_sim >= next_progress:
                 next_progress = now_sim + self.progress_every_s
                 self.say(self._progress_line())
             if now_sim + self.step_s > end + tol:
                 break
-            if math.isinf(self.time_scale) or steps >= MAX_STEPS_PER_ITERATION:
+            if hold:
+                await self.sleep(TICK_S)
+            elif math.isinf(scale) or steps >= MAX_STEPS_PER_ITERATION:
                 await self.sleep(0)
             else:
-                due = wall0 + (now_sim + self.step_s - sim0) / self.time_scale
+                ahead = max(self.step_s, TICK_S * min(scale, 1.0))
+                due = wall_anchor + (now_sim + ahead - sim_anchor) / scale
                 await self.sleep(max(0.0, due - self.clock()))
 
     def _fill_summary(self) -> None:
         s = self.summary
+        s.faults = list(self.driver.faults)
         if self.plc is not None:
             s.modbus_requests, s.modbus_refused = self.plc.requests, self.plc.refused
         if self.amp is not None:

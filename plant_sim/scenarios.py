@@ -8,6 +8,7 @@ parameter from the ranges of the vision issue's acceptance criteria, for held-ou
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from functools import lru_cache
@@ -19,7 +20,8 @@ from config import wood as wood_presets
 from config.rig import Camera, Encoder, Lights, Rig
 from config.wood import SPECIES, Wood
 from core.checks import check_finite, check_int, check_positive, check_range
-from plant_sim.optics import ImagePair, Optics, Renderer
+from plant_sim.camera import Knot
+from plant_sim.optics import ImagePair, Optics, PencilLine, Renderer, RigEffects
 from plant_sim.surface import Cutterhead, Surface, envelope, passes_steady
 
 __all__ = [
@@ -69,9 +71,11 @@ def make_rig(
 
 
 @lru_cache(maxsize=4)
-def renderer(rig: Rig, optics: Optics, wood: Wood, seed: int) -> Renderer:
+def renderer(
+    rig: Rig, optics: Optics, wood: Wood, seed: int, effects: RigEffects | None = None
+) -> Renderer:
     """A cached :class:`Renderer` (building one draws the wood texture; about 0.1-0.5 s)."""
-    return Renderer(rig, optics, wood, seed=seed)
+    return Renderer(rig, optics, wood, seed=seed, effects=effects)
 
 
 def board_surface(
@@ -127,6 +131,17 @@ def board_pair(
     quantize: bool = True,
     board_x_at_centre_mm: float | None = None,
     flat: bool = False,
+    roll_deg: float = 0.0,
+    slant_offset_deg: tuple[float, float] = (0.0, 0.0),
+    scattering_mm: float = 0.0,
+    reflectance_roughness_deg: float = 0.0,
+    bow_mm: float = 0.0,
+    cup_mm: float = 0.0,
+    pencil_lines: Sequence[PencilLine] = (),
+    read_noise_dn: float | None = None,
+    board_length_mm: float = 4000.0,
+    knots: Sequence[Knot] = (),
+    pore_density_per_mm2: float | None = None,
 ) -> tuple[Rig, ImagePair]:
     """A simulated rig and one rendered image pair of a freshly planed board.
 
@@ -173,6 +188,22 @@ def board_pair(
     flat : bool
         Render a flat board (height 0 everywhere, same wood, LEDs and camera): the flat-field
         reference of the vision's illumination correction. Its truth has no surface.
+    roll_deg, slant_offset_deg, scattering_mm, reflectance_roughness_deg, bow_mm, cup_mm,
+    pencil_lines, board_length_mm
+        Effects of a real rig and real wood (:class:`plant_sim.optics.RigEffects`): camera roll,
+        true slant minus the rig file's per light (the rig keeps ``slant_deg``), scattering
+        length along the fibres (the species' ``translucency`` sets how much), Oren-Nayar
+        roughness, bow and cup sagitta, pencil lines along the feed. All off by default.
+    read_noise_dn : float, optional
+        Sensor read noise, DN rms; ``None`` gives 0.5 with ``noise`` and 0 without (shot noise
+        follows ``noise``).
+    knots : sequence of plant_sim.camera.Knot
+        Knots (dark rough patches; ``x_mm`` in board coordinates, so give
+        ``board_x_at_centre_mm`` to place them in view): their roughness is in the height (and
+        the truth profile), their darkness in the images, not in the true marks.
+    pore_density_per_mm2 : float, optional
+        Pores per mm^2, replacing the species' (``None``: the species' own); a species without
+        pores gets them with a contrast of 0.3.
 
     Returns
     -------
@@ -196,16 +227,37 @@ def board_pair(
         runout = tuple(runout_um)
     check_range("k1", k1, -1.0, 1.0)
     wood = wood_presets.species(species)
+    if pore_density_per_mm2 is not None:
+        check_positive("pore_density_per_mm2", pore_density_per_mm2, allow_zero=True)
+        wood = dataclasses.replace(wood, pore_density_per_mm2=float(pore_density_per_mm2))
+        if wood.pore_contrast == 0.0 and wood.pore_density_per_mm2 > 0:
+            wood = dataclasses.replace(wood, pore_contrast=0.3)
+    knots = tuple(knots)
+    for kn in knots:
+        if not isinstance(kn, Knot):
+            raise ValueError(f"knots must hold plant_sim.camera.Knot objects, got {kn!r}")
     head = Cutterhead(z, radius_mm, runout, eccentricity_um)
     rng = np.random.default_rng([seed, 0xB0A2D])
     rig = make_rig(
         width=width, height=height, k1=k1, exposure_ms=exposure_ms, counter_bits=counter_bits,
         slant_deg=slant_deg,
     )
+    if read_noise_dn is None:
+        read_noise_dn = 0.5 if noise else 0.0
+    effects = RigEffects(
+        roll_deg=roll_deg,
+        slant_offset_deg=tuple(slant_offset_deg),
+        scattering_mm=scattering_mm,
+        reflectance_roughness_deg=reflectance_roughness_deg,
+        bow_mm=bow_mm,
+        cup_mm=cup_mm,
+        board_length_mm=board_length_mm,
+        pencil_lines=tuple(pencil_lines),
+    )
     optics = Optics(
         width=width,
         height=height,
-        read_noise_dn=0.5 if noise else 0.0,
+        read_noise_dn=read_noise_dn,
         shot_noise=bool(noise),
         led_imbalance=imbalance,
         falloff=falloff,
@@ -215,7 +267,7 @@ def board_pair(
         gain=gain,
         quantize=quantize,
     )
-    rend = renderer(rig, optics, wood, seed)
+    rend = renderer(rig, optics, wood, seed, None if effects == RigEffects() else effects)
     if board_x_at_centre_mm is None:
         bc = float(rng.uniform(100.0, 1000.0))
     else:
@@ -231,16 +283,47 @@ def board_pair(
         ca = int(rng.integers(0, 1 << counter_bits))
     else:
         ca = check_int("counts_a", counts_a)
+    source: Any = _flat_board if flat else surface
+    if knots:
+        source = _Knotted(source, knots)
     pair = rend.render_pair(
-        _flat_board if flat else surface,
+        source,
         board_x_at_centre_mm=bc,
         speed_mm_s=speed,
         counts_a=ca,
         encoder_error_px=encoder_error_px,
         counter_bits=counter_bits,
         rng_seed=int(rng.integers(0, 2**63 - 1)),
+        albedo_factor=_knot_darkness(knots) if knots else None,
     )
     return rig, pair
+
+
+class _Knotted:
+    """A height source plus the roughness of knots (marks and metrics from the surface)."""
+
+    def __init__(self, source: Any, knots: tuple[Knot, ...]) -> None:
+        self._height = source.height_at if hasattr(source, "height_at") else source
+        self._source = source
+        self._knots = knots
+        if hasattr(source, "metrics"):
+            self.metrics = source.metrics
+
+    def height_at(self, x_mm: np.ndarray) -> np.ndarray:
+        h = np.asarray(self._height(x_mm), dtype=float)
+        for k in self._knots:
+            h = h + k.roughness(x_mm)
+        return h
+
+
+def _knot_darkness(knots: tuple[Knot, ...]) -> Any:
+    def factor(x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+        f = np.ones(np.shape(x_mm))
+        for k in knots:
+            f = f * k.albedo_factor(x_mm, y_mm)
+        return f
+
+    return factor
 
 
 def _flat_board(b_mm: np.ndarray) -> np.ndarray:

@@ -19,13 +19,14 @@ range checks); this module adds errors that name the knife or signal and never i
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import cantools
 
-from config.loading import default_path
+from config.loading import default_path, naming_file
 from core.errors import ConfigError
 
 COMMAND = "PIEZO_COMMAND"
@@ -62,6 +63,40 @@ _REQUIRED = {
 }
 
 
+def _check_scale(message: str, sig: Any) -> None:
+    """A signal's scale and offset must be finite, the scale non-zero (else nothing decodes)."""
+    scale, offset = float(sig.scale), float(sig.offset)
+    if not (math.isfinite(scale) and scale != 0.0 and math.isfinite(offset)):
+        raise ConfigError(
+            f"piezo DBC: {message}.{sig.name}: scale {sig.scale} and offset {sig.offset} must "
+            "be finite, the scale non-zero"
+        )
+    if sig.length < 1:
+        raise ConfigError(f"piezo DBC: {message}.{sig.name}: length must be >= 1 bit")
+
+
+def _check_range(message: str, sig: Any) -> None:
+    """A signal the codec encodes needs a ``[min|max]`` that its raw bit field can carry."""
+    _check_scale(message, sig)
+    where = f"piezo DBC: {message}.{sig.name}"
+    if sig.minimum is None or sig.maximum is None:
+        raise ConfigError(f"{where}: needs a range [min|max]")
+    lo, hi = float(sig.minimum), float(sig.maximum)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise ConfigError(
+            f"{where}: range [{sig.minimum}|{sig.maximum}] must be finite with min <= max"
+        )
+    n = int(sig.length)
+    raw_lo, raw_hi = (-(2 ** (n - 1)), 2 ** (n - 1) - 1) if sig.is_signed else (0, 2**n - 1)
+    for x in (lo, hi):
+        raw = round((x - float(sig.offset)) / float(sig.scale))
+        if not raw_lo <= raw <= raw_hi:
+            raise ConfigError(
+                f"{where}: range [{sig.minimum}|{sig.maximum}] does not fit its {n}-bit "
+                f"{'signed' if sig.is_signed else 'unsigned'} field"
+            )
+
+
 class PiezoCodec:
     """Encoder and decoder of the amplifier's frames, built once from the DBC file.
 
@@ -83,7 +118,12 @@ class PiezoCodec:
             for sig in signals:
                 if sig not in have:
                     raise ConfigError(f"piezo DBC: message {name} lacks signal {sig}")
+            for sig in msg.signals:
+                _check_range(name, sig)
             self._msgs[name] = msg
+        for msg in db.messages:
+            for sig in msg.signals:
+                _check_scale(msg.name, sig)
         self._by_id = {m.frame_id: m for m in db.messages}
         self.ids: dict[str, int] = {name: m.frame_id for name, m in self._msgs.items()}
         """Arbitration id of each message, by name."""
@@ -100,9 +140,14 @@ class PiezoCodec:
             db = cantools.database.load_file(str(p), database_format="dbc", strict=True)
         except FileNotFoundError:
             raise ConfigError(f"DBC file not found: {p}") from None
-        except Exception as exc:  # cantools raises its own parse errors
+        except OSError as exc:  # a folder, no permission, an I/O error
+            raise ConfigError(f"cannot read DBC file {p}: {exc.strerror or exc}") from None
+        except (cantools.database.Error, UnicodeDecodeError) as exc:
+            # cantools' parse and strict-check errors (UnsupportedDatabaseFormatError wraps the
+            # DBC parser's message); text it cannot decode
             raise ConfigError(f"{p}: not a valid DBC file: {exc}") from None
-        return cls(db)
+        with naming_file(p):  # a message or signal missing: name the file too
+            return cls(db)
 
     def signal_range(self, message: str, signal: str) -> tuple[float, float]:
         """Physical ``(minimum, maximum)`` of a signal as the DBC file states it."""
@@ -129,6 +174,9 @@ class PiezoCodec:
                 raise ValueError(
                     f"{name}.{sig_name} = {v!r} outside [{sig.minimum}, {sig.maximum}]"
                 )
+            # within half a step of the range: the nearest step is the range's end (rounding
+            # it on the wire would step past the raw field: 32.7675 um -> 32768 > 32767)
+            fv = min(max(fv, float(sig.minimum)), float(sig.maximum))
             values[sig_name] = int(fv) if sig.scale == 1 and sig.offset == 0 else fv
         data = msg.encode(values, scaling=True, strict=False)
         return msg.frame_id, bytes(data)
@@ -232,16 +280,27 @@ class PiezoCodec:
         Raises
         ------
         ValueError
-            Unknown arbitration id, or data shorter than the message.
+            An id that is not an integer, an unknown id, data that is not bytes, or data shorter
+            than the message; the message names the id or the message. Never another type.
         """
-        msg = self._by_id.get(int(arbitration_id))
+        try:
+            if isinstance(arbitration_id, bool):
+                raise TypeError("bool")
+            fid = operator.index(arbitration_id)  # int or numpy integer; not float or str
+        except TypeError:
+            raise ValueError(
+                f"CAN arbitration id must be an integer, got {arbitration_id!r}"
+            ) from None
+        msg = self._by_id.get(fid)
         if msg is None:
-            raise ValueError(f"unknown CAN arbitration id 0x{int(arbitration_id):X}")
+            raise ValueError(f"unknown CAN arbitration id 0x{fid:X}")
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise ValueError(f"{msg.name}: data must be bytes, got {type(data).__name__}")
         if len(data) < msg.length:
             raise ValueError(f"{msg.name}: {len(data)} data bytes, expected {msg.length}")
         try:
             vals = msg.decode(bytes(data[: msg.length]), decode_choices=False, scaling=True)
-        except Exception as exc:  # cantools DecodeError
+        except cantools.database.DecodeError as exc:  # e.g. a multiplexer value the DBC lacks
             raise ValueError(f"{msg.name}: cannot decode: {exc}") from None
         out: dict[str, float | int] = {}
         for sig in msg.signals:

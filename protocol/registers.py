@@ -13,25 +13,41 @@ A write to a read-only register, to an address no register covers, or to half of
 register raises :class:`RegisterAccessError` (the server answers Modbus exception 02, ILLEGAL
 DATA ADDRESS). A value outside the register's limits raises :class:`RegisterRangeError`
 (exception 03, ILLEGAL DATA VALUE). Both derive from ``ValueError`` and name the register.
+
+Facts both sides share, written once here
+-----------------------------------------
+* :class:`MachineState` and :class:`PlcFault`: the flag bits of the ``machine_state`` and
+  ``faults`` registers. The TOML file lists the same bits (``bits = [...]``, bit 0 first) for
+  readers of the contract; :meth:`RegisterMap.load` refuses a file whose list differs.
+* :data:`WRITE_DISPATCH` and :func:`apply_writes`: what the PLC does with an accepted write of
+  each writable register (``feed_setpoint_mm_s`` -> ``set_feed_setpoint``, ``heartbeat_service``
+  -> ``set_service_heartbeat``), used by the simulator's server and the service's in-process bus.
 """
 
 from __future__ import annotations
 
+import enum
 import math
 import struct
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
+from typing import Protocol
 
 import numpy as np
 
-from config.loading import Section, default_path, load_toml
+from config.loading import Section, default_path, load_toml, naming_file
 from core.errors import ConfigError
 
 TYPES: dict[str, int] = {"u16": 1, "u32": 2, "i32": 2, "f32": 2}
 """Register types and how many 16-bit registers each takes."""
 
 ACCESS = ("ro", "rw")
+WORD_ORDERS = ("big", "little")
+"""Word orders of 32-bit values; the first is the default."""
+DEFAULT_UNIT_ID = 1
+"""Modbus unit id when the map's ``[map]`` table names none."""
 
 _INT_RANGE: dict[str, tuple[int, int]] = {
     "u16": (0, 0xFFFF),
@@ -40,11 +56,82 @@ _INT_RANGE: dict[str, tuple[int, int]] = {
 }
 _F32_MAX = float(np.finfo(np.float32).max)
 
-MODBUS_ILLEGAL_DATA_ADDRESS = 2
-MODBUS_ILLEGAL_DATA_VALUE = 3
+
+
+class ModbusException(enum.IntEnum):
+    """Modbus exception codes the PLC answers with (Modbus application protocol 1.1b3, 7).
+
+    ``ModbusException(2).text`` is the name the spec gives (``"ILLEGAL DATA ADDRESS"``).
+    """
+
+    ILLEGAL_FUNCTION = 0x01
+    ILLEGAL_DATA_ADDRESS = 0x02
+    ILLEGAL_DATA_VALUE = 0x03
+    SERVER_DEVICE_FAILURE = 0x04
+    SERVER_DEVICE_BUSY = 0x06
+    GATEWAY_TARGET_FAILED = 0x0B
+
+    @property
+    def text(self) -> str:
+        """The spec's name, words separated by spaces."""
+        if self is ModbusException.GATEWAY_TARGET_FAILED:
+            return "GATEWAY TARGET DEVICE FAILED TO RESPOND"
+        return str(self.name).replace("_", " ")
+
+
+MODBUS_ILLEGAL_DATA_ADDRESS = int(ModbusException.ILLEGAL_DATA_ADDRESS)
+MODBUS_ILLEGAL_DATA_VALUE = int(ModbusException.ILLEGAL_DATA_VALUE)
+
+HOLDING_FUNCTION_CODES = (3, 6, 16, 23)
+"""Modbus functions on holding registers: read (3), write one (6), write several (16),
+read/write (23). A map offers these (``[map] function_codes``, default all four)."""
 
 Value = float | int
 Limit = float | int | str | None
+
+
+class MachineState(enum.IntFlag):
+    """Bits of the ``machine_state`` register (``config/registers.toml``, ``bits``)."""
+
+    RUNNING = 1 << 0
+    """Spindle running, feed enabled, no e-stop."""
+    BOARD_PRESENT = 1 << 1
+    """A board is under the camera."""
+    ESTOP = 1 << 2
+    """The e-stop is active."""
+    SPINDLE_RUNNING = 1 << 3
+    """The spindle runs at speed."""
+    FEED_ENABLED = 1 << 4
+    """The feed drive is enabled."""
+
+
+class PlcFault(enum.IntFlag):
+    """Bits of the ``faults`` register (``config/registers.toml``, ``bits``)."""
+
+    FEED_DRIVE = 1 << 0
+    """The feed drive tripped."""
+    SPINDLE_STOPPED = 1 << 1
+    """The spindle drive tripped (coasting or stopped)."""
+    ENCODER = 1 << 2
+    """The feed encoder stopped counting."""
+    HEARTBEAT_LOST = 1 << 3
+    """The service heartbeat did not change within ``watchdog_ms``."""
+    PIEZO_AMPLIFIER = 1 << 4
+    """The piezo amplifier reports a fault."""
+
+
+BIT_FLAGS: Mapping[str, type[enum.IntFlag]] = MappingProxyType(
+    {"machine_state": MachineState, "faults": PlcFault}
+)
+"""Registers whose bits are declared here, by register name."""
+
+
+def flag_names(flags: type[enum.IntFlag]) -> tuple[str, ...]:
+    """The TOML ``bits`` list of a flag enum: lower-case member names, bit 0 first."""
+    members = sorted(flags, key=lambda m: m.value)
+    if [m.value for m in members] != [1 << i for i in range(len(members))]:
+        raise ValueError(f"{flags.__name__}: bits must be 0, 1, 2, ... without gaps")
+    return tuple(str(m.name).lower() for m in members)
 
 
 class RegisterAccessError(ValueError):
@@ -94,6 +181,8 @@ class Register:
         Physical unit (``"mm/s"``), empty when dimensionless.
     description : str
         What the register holds.
+    bits : tuple of str
+        Names of the flag bits, bit 0 first (``u16``/``u32`` registers only); empty otherwise.
     """
 
     name: str
@@ -105,6 +194,7 @@ class Register:
     max: Limit = None
     unit: str = ""
     description: str = ""
+    bits: tuple[str, ...] = ()
 
     @property
     def last_address(self) -> int:
@@ -169,12 +259,26 @@ class RegisterMap:
     """
 
     def __init__(
-        self, registers: Sequence[Register], *, unit_id: int = 1, word_order: str = "big"
+        self,
+        registers: Sequence[Register],
+        *,
+        unit_id: int = DEFAULT_UNIT_ID,
+        word_order: str = WORD_ORDERS[0],
+        function_codes: Sequence[int] = HOLDING_FUNCTION_CODES,
     ) -> None:
-        if word_order not in ("big", "little"):
+        if word_order not in WORD_ORDERS:
             raise ConfigError(f"map.word_order must be big or little, got {word_order!r}")
         self.unit_id = unit_id
         self.word_order = word_order
+        codes = [int(c) for c in function_codes]
+        bad = [c for c in codes if c not in HOLDING_FUNCTION_CODES]
+        if bad or not codes or 3 not in codes:
+            raise ConfigError(
+                f"map.function_codes must include 3 and be among {list(HOLDING_FUNCTION_CODES)},"
+                f" got {codes}"
+            )
+        self.function_codes: frozenset[int] = frozenset(codes)
+        """The Modbus functions the PLC offers; a server answers others with exception 01."""
         self.registers: dict[str, Register] = {}
         for reg in registers:
             if reg.name in self.registers:
@@ -193,6 +297,7 @@ class RegisterMap:
                 self._by_address[a] = reg
         for reg in self.registers.values():
             self._validate_limits(reg)
+            self._validate_bits(reg)
         first = min(r.address for r in self.registers.values())
         last = max(r.last_address for r in self.registers.values())
         self._span = (first, last - first + 1)
@@ -200,7 +305,7 @@ class RegisterMap:
     # ------------------------------------------------------------------ loading
     @classmethod
     def load(cls, path: str | Path | None = None) -> RegisterMap:
-        """Load and validate a register map TOML file.
+        """Load and validate a register map TOML file; every error names the file.
 
         Parameters
         ----------
@@ -215,13 +320,32 @@ class RegisterMap:
         ------
         ConfigError
             Malformed file, unknown keys, bad types or access, overlapping addresses, limits that
-            name no register; the message names the register.
+            name no register, flag bits that differ from :data:`BIT_FLAGS`; the message names
+            the file and the register (``registers.toml: register faults: bits ...``).
         """
-        doc = load_toml(default_path("registers.toml") if path is None else path)
+        p = Path(default_path("registers.toml") if path is None else path)
+        doc = load_toml(p)
+        with naming_file(p):
+            return cls.from_dict(doc)
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, object]) -> RegisterMap:
+        """A register map from a parsed TOML document (errors name the register, not a file).
+
+        Raises
+        ------
+        ConfigError
+            As :meth:`load`, without the file name.
+        """
         top = Section(doc, "")
         m = top.section("map", required=False)
-        unit_id = m.integer("unit_id", 1, lo=0, hi=255)
-        word_order = m.string("word_order", "big", choices=("big", "little"))
+        unit_id = m.integer("unit_id", DEFAULT_UNIT_ID, lo=0, hi=255)
+        word_order = m.string("word_order", WORD_ORDERS[0], choices=WORD_ORDERS)
+        codes = m.raw("function_codes", list(HOLDING_FUNCTION_CODES))
+        if not isinstance(codes, list) or not all(
+            isinstance(c, int) and not isinstance(c, bool) for c in codes
+        ):
+            raise ConfigError(f"map.function_codes must be a list of integers, got {codes!r}")
         m.reject_unknown()
         raw = top.raw("register")
         if not isinstance(raw, list):
@@ -244,15 +368,16 @@ class RegisterMap:
                 count=TYPES[rtype],
                 min=_limit(s, "min"),
                 max=_limit(s, "max"),
-                unit=s.string("unit", ""),
-                description=s.string("description", ""),
+                unit=s.string("unit", Register.unit),
+                description=s.string("description", Register.description),
+                bits=_bits(s, rtype),
             )
             s.reject_unknown()
             if reg.access == "ro" and (reg.min is not None or reg.max is not None):
                 raise ConfigError(f"register {name}: min/max only make sense on rw registers")
             regs.append(reg)
         top.reject_unknown()
-        return cls(regs, unit_id=unit_id, word_order=word_order)
+        return cls(regs, unit_id=unit_id, word_order=word_order, function_codes=codes)
 
     def _validate_limits(self, reg: Register) -> None:
         for key in ("min", "max"):
@@ -270,6 +395,16 @@ class RegisterMap:
         if isinstance(reg.min, (int, float)) and isinstance(reg.max, (int, float)):
             if reg.min > reg.max:
                 raise ConfigError(f"register {reg.name}: min {reg.min} > max {reg.max}")
+
+    def _validate_bits(self, reg: Register) -> None:
+        flags = BIT_FLAGS.get(reg.name)
+        if reg.bits and reg.type not in ("u16", "u32"):
+            raise ConfigError(f"register {reg.name}: bits only on u16 or u32 registers")
+        if flags is not None and tuple(reg.bits) != flag_names(flags):
+            raise ConfigError(
+                f"register {reg.name}: bits must be {list(flag_names(flags))} "
+                f"(protocol.registers.{flags.__name__}), got {list(reg.bits)}"
+            )
 
     # ------------------------------------------------------------------ lookup
     def __getitem__(self, name: str) -> Register:
@@ -308,9 +443,13 @@ class RegisterMap:
         for r in self:
             lo = "" if r.min is None else (f"`{r.min}`" if isinstance(r.min, str) else str(r.min))
             hi = "" if r.max is None else (f"`{r.max}`" if isinstance(r.max, str) else str(r.max))
+            text = r.description
+            if r.bits:
+                listed = ", ".join(f"{i} `{b}`" for i, b in enumerate(r.bits))
+                text = f"{text}. Bits: {listed}" if text else f"Bits: {listed}"
             rows.append(
                 f"| {r.address} | `{r.name}` | {r.type} | {r.count} | {r.access} | {lo} | {hi} "
-                f"| {r.unit} | {r.description} |"
+                f"| {r.unit} | {text} |"
             )
         return "\n".join(rows) + "\n"
 
@@ -541,6 +680,55 @@ class RegisterMap:
         return {name: self.check_write(name, v, merged) for name, v in decoded.items()}
 
 
+class WriteTarget(Protocol):
+    """What a PLC applies accepted writes to (``plant_sim.machine.Machine`` is one)."""
+
+    def set_feed_setpoint(self, feed_mm_s: float) -> None:
+        """New feed setpoint, mm/s; ``ValueError`` when the machine refuses it."""
+
+    def set_service_heartbeat(self, value: int) -> None:
+        """New service heartbeat (0..65535); feeds the PLC's watchdog."""
+
+
+WRITE_DISPATCH: Mapping[str, Callable[[WriteTarget, float | int], None]] = MappingProxyType(
+    {
+        "feed_setpoint_mm_s": lambda target, v: target.set_feed_setpoint(float(v)),
+        "heartbeat_service": lambda target, v: target.set_service_heartbeat(int(v)),
+    }
+)
+"""What the PLC does with an accepted write, by register name (every ``rw`` register of the
+shipped map has an entry; a test checks)."""
+
+
+def apply_writes(target: WriteTarget, accepted: Mapping[str, float | int]) -> None:
+    """Apply the values :meth:`RegisterMap.parse_write` accepted to ``target``, in order.
+
+    Parameters
+    ----------
+    target : WriteTarget
+        The machine (or anything with its ``set_*`` methods).
+    accepted : mapping
+        Register name to value, as returned by ``parse_write``.
+
+    Raises
+    ------
+    RegisterAccessError
+        A register without an entry in :data:`WRITE_DISPATCH` (Modbus exception 02).
+    RegisterRangeError
+        The target refused the value with ``ValueError`` (exception 03); names the register.
+    """
+    for name in accepted:
+        if name not in WRITE_DISPATCH:
+            raise RegisterAccessError(f"register {name}: the PLC applies no writes to it")
+    for name, value in accepted.items():
+        try:
+            WRITE_DISPATCH[name](target, value)
+        except RegisterRangeError:
+            raise
+        except ValueError as exc:
+            raise RegisterRangeError(f"register {name}: {exc}") from None
+
+
 def _as_f32(x: float) -> float:
     return float(np.float32(x)) if abs(x) <= _F32_MAX else x
 
@@ -552,3 +740,20 @@ def _limit(s: Section, key: str) -> Limit:
     if isinstance(val, bool) or not isinstance(val, (int, float, str)):
         raise ConfigError(f"{s.key(key)} must be a number or a register name, got {val!r}")
     return val
+
+
+def _bits(s: Section, rtype: str) -> tuple[str, ...]:
+    if not s.has("bits"):
+        return ()
+    val = s.raw("bits")
+    if not isinstance(val, list) or not all(isinstance(b, str) for b in val):
+        raise ConfigError(f"{s.key('bits')} must be a list of bit names, got {val!r}")
+    width = 16 * TYPES[rtype]
+    if len(val) > width:
+        raise ConfigError(f"{s.key('bits')}: {len(val)} names for a {width}-bit register")
+    for b in val:
+        if not b.isidentifier():
+            raise ConfigError(f"{s.key('bits')}: {b!r} is not an identifier")
+    if len(set(val)) != len(val):
+        raise ConfigError(f"{s.key('bits')}: duplicate names")
+    return tuple(val)

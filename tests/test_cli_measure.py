@@ -138,3 +138,26 @@ def test_bad_rig_value(files, capsys, old, new, key):
 
 def test_flat_options_go_together(files, capsys):
     _fails(capsys, _args(files, extra=("--flat-a", str(files["a"]))), "--flat-a")
+
+
+@pytest.mark.parametrize("speed", ["-800", "1e9"])
+def test_implausible_speed_is_refused_in_one_line(files, capsys, speed):
+    rc = main(_args(files, extra=("--speed-mm-s", speed)))
+    _, err = capsys.readouterr()
+    assert rc == 2 and err.count("\n") == 1 and "--speed-mm-s" in err and f"{float(speed):g}" in err
+
+
+def test_new_keys_and_machine_facts(files, capsys):
+    pair = files["pair"]
+    rc = main(_args(files, extra=("--speed-mm-s", str(pair.speed_mm_s))))
+    off = json.loads(capsys.readouterr()[0])
+    assert rc == 0 and off["calibration"]["state"] == "off"
+    assert off["kinematic_depth_um"] is None and "roll_deg" in off
+    rc = main(_args(files, extra=("--speed-mm-s", str(pair.speed_mm_s), "--radius-mm", "60",
+                                  "--knives", "4", "--rpm", "6000")))
+    on = json.loads(capsys.readouterr()[0])
+    assert rc == 0 and on["calibration"]["state"] in ("applied", "untrusted")
+    assert on["kinematic_depth_um"] > 0 and len(on["knife_widths_mm"]) == 4
+    assert on["feed_per_pass_mm"] == pytest.approx(pair.speed_mm_s * 60 / (6000 * 4), rel=1e-4)
+    for key in off:
+        assert key in on

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -138,3 +139,50 @@ def test_check_image_and_shapes():
         checks.check_image("image_a", np.full((10, 20), np.nan))
     with pytest.raises(ValueError, match="image_a and image_b differ in shape"):
         checks.check_same_shape(("image_a", "image_b"), img, np.zeros((10, 21)))
+
+
+@pytest.mark.parametrize(
+    ("key", "shown"),
+    [("gain", "feed_loop.gain"), ("a b", 'feed_loop."a b"'), ("x\ny", 'feed_loop."x\\ny"'),
+     ("k-1_A", "feed_loop.k-1_A"), ("", 'feed_loop.""')],
+)
+def test_keys_that_are_not_bare_are_quoted_so_messages_stay_one_line(key, shown):
+    s = Section({key: 1}, "feed_loop")
+    with pytest.raises(ConfigError) as err:
+        s.reject_unknown()
+    assert str(err.value) == f"unknown key {shown}" and "\n" not in str(err.value)
+
+
+def test_a_file_that_is_not_utf8_is_a_config_error_naming_it(tmp_path):
+    p = tmp_path / "latin1.toml"
+    p.write_bytes('name = "Säge"\n'.encode("latin-1"))
+    with pytest.raises(ConfigError, match=r"latin1\.toml: not valid TOML: not UTF-8"):
+        load_toml(p)
+
+
+def test_sim_defaults_are_written_once_in_the_dataclasses():
+    """An empty sim file gives every table's dataclass defaults (the loader repeats none)."""
+    import dataclasses
+
+    import config.sim as sim
+
+    rig_path = default_path("rig.toml")
+    expected = {}
+    for f in dataclasses.fields(sim.SimConfig):
+        if f.name == "camera":  # the only table with required fields: the shipped rig
+            expected[f.name] = sim.CameraConfig(rig_path=rig_path, rig=load_rig(rig_path))
+        elif f.name == "faults":
+            expected[f.name] = ()
+        elif f.name != "source":
+            name = f.type if isinstance(f.type, str) else f.type.__name__
+            expected[f.name] = getattr(sim, name)()
+    assert sim.sim_from_dict({}) == sim.SimConfig(**expected)
+
+
+def test_simulator_and_service_meet_at_the_same_default_endpoints():
+    from config.machine import machine_from_dict
+    from config.sim import sim_from_dict
+
+    s, m = sim_from_dict({}), machine_from_dict({})
+    assert (s.modbus.host, s.modbus.port) == (m.plc.host, m.plc.port)
+    assert Path(s.frames.spool_dir) == Path(m.frames.spool_dir)

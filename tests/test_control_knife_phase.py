@@ -10,9 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.knife_phase import (
+    PassAttribution,
     attribute_marks,
-    knife_means,
-    knife_of_marks,
     knives_from_passes,
     pass_numbers,
     phase_offset,
@@ -21,6 +20,18 @@ from controller.knife_phase import (
 )
 
 WRAP = 1 << 32
+
+
+def knife_of_marks(bottom_x_mm, *, knives, align_phase=False, **kw):
+    """Knife of each mark in the service's two steps: pass numbers, then knives."""
+    return knives_from_passes(pass_numbers(bottom_x_mm, **kw), knives, align_phase=align_phase)
+
+
+def per_knife_mean(widths_mm, knife, knives):
+    """Reference: the mean width of each knife's marks, NaN for a knife without marks."""
+    w = np.asarray(widths_mm, dtype=float)
+    k = np.asarray(knife, dtype=int)
+    return np.array([w[k == j].mean() if np.any(k == j) else math.nan for j in range(knives)])
 
 
 def synthetic_marks(
@@ -175,31 +186,33 @@ def test_knife_of_marks_rejects_bad_inputs(kwargs, name):
         knife_of_marks([1.0, 2.0], **args)
 
 
-def test_knife_means():
+def test_knife_widths_without_missing_passes_are_the_knife_means():
     w = [1.0, 2.0, 3.0, 1.2, 2.2, 5.0]
-    k = [0, 1, 2, 0, 1, 2]
-    m = knife_means(w, k, 4)
+    k = np.array([0, 1, 2, 0, 1, 2])
+    # knife_widths reads the knives and the passes per knife: one mark per pass, none missing
+    pa = PassAttribution(passes=-np.arange(6), knife=k, reliable=np.ones(6, bool), pass_mm=1.0,
+                         phase=0.0, spread=0.0, passes_per_knife=np.bincount(k, minlength=4))
+    m = pa.knife_widths(w)
     assert np.allclose(m[:3], [1.1, 2.1, 4.0])
     assert math.isnan(m[3])
-    assert np.all(np.isnan(knife_means([], np.array([], dtype=int), 3)))
-    with pytest.raises(ValueError, match="knife_of_mark"):
-        knife_means(w, [0, 1, 2, 0, 1, 4], 4)
-    with pytest.raises(ValueError, match="knife_of_mark"):
-        knife_means(w, [0, 1], 4)
+    assert np.allclose(m, per_knife_mean(w, k, 4), equal_nan=True)
     with pytest.raises(ValueError, match="widths_mm"):
-        knife_means([1.0, math.nan], [0, 1], 4)
+        pa.knife_widths(w[:2])
+    with pytest.raises(ValueError, match="widths_mm"):
+        pa.knife_widths([1.0, math.nan, 3.0, 1.2, 2.2, 5.0])
 
 
 @pytest.mark.parametrize("align", [False, True])
-def test_knives_from_passes_is_knife_of_marks_in_two_steps(align):
-    """The service computes the pass numbers once (spread check, then knives): same answer."""
+def test_knives_from_passes_rounds_the_pass_numbers_mod_z(align):
+    """The service computes the pass numbers once (spread check, then knives): round, mod Z."""
     rng = np.random.default_rng(4)
     x = np.sort(rng.uniform(0.0, 60.0, 25))
     kw = dict(counts_a=(2**32 - 500), index_latch_counts=1234, cutter_to_camera_mm=300.0,
               counts_per_mm=100.0, px_per_mm=10.0, cx_px=329.5, pitch_mm=1.5)
     passes = pass_numbers(x, **kw)
     got = knives_from_passes(passes, 4, align_phase=align)
-    assert np.array_equal(got, knife_of_marks(x, knives=4, align_phase=align, **kw))
+    shifted = passes - (phase_offset(passes) if align else 0.0)
+    assert np.array_equal(got, np.mod(np.rint(shifted).astype(int), 4))
     assert got.min() >= 0 and got.max() < 4
     with pytest.raises(ValueError, match="passes"):
         knives_from_passes(np.array([0.0, np.nan]), 4)
@@ -304,7 +317,7 @@ def test_attribute_marks_without_missing_marks_is_the_plain_attribution():
     assert np.array_equal(pa.knife, knives_from_passes(n, 4, align_phase=True))
     assert pa.missing == 0 and pa.reliable.all()
     w = np.linspace(1.0, 2.0, x.size)
-    assert np.allclose(pa.knife_widths(w), knife_means(w, pa.knife, 4), equal_nan=True)
+    assert np.allclose(pa.knife_widths(w), per_knife_mean(w, pa.knife, 4), equal_nan=True)
 
 
 def test_knife_widths_nan_for_a_knife_without_marks():

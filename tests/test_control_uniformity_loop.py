@@ -9,7 +9,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.knife_phase import knife_means
 from controller.limits import project_zero_mean_box
 from controller.uniformity_loop import (
     UniformityLoop,
@@ -52,6 +51,13 @@ def envelope_marks(relative_depth_um, *, pitch_mm, radius_mm=R_MM, revolutions=1
     lo, hi = 3 * knives, (revolutions - 3) * knives  # passes of the middle revolutions
     keep = (marks >= lo) & (marks < hi)
     return widths[keep], marks[keep] % knives
+
+
+def knife_means(widths_mm, knife, knives):
+    """Mean mark width of each knife, NaN for a knife without marks."""
+    w = np.asarray(widths_mm, dtype=float)
+    k = np.asarray(knife, dtype=int)
+    return np.array([w[k == j].mean() if np.any(k == j) else math.nan for j in range(knives)])
 
 
 def per_knife_widths(relative_depth_um, pitch_mm, knives):

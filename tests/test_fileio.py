@@ -44,3 +44,23 @@ def test_record_to_json_round_trips_the_fields():
     d = json.loads(record_to_json(rec))
     assert d["seq"] == 3 and d["pitch_mm"] == 1.5 and d["mark_widths_mm"] == [1.4, None]
     assert d["extra"] == {"state": "run"} and d["ok"] is True
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+def test_new_files_follow_the_umask_and_replaced_files_keep_their_mode(tmp_path, umask):
+    import os
+    import stat
+
+    old = os.umask(umask)
+    try:
+        p = tmp_path / "fig.png"
+        atomic_write_bytes(p, b"x", durable=False)
+        assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~umask
+        with open(tmp_path / "plain.txt", "w") as fh:  # the same as open() gives
+            fh.write("x")
+        assert stat.S_IMODE((tmp_path / "plain.txt").stat().st_mode) == 0o666 & ~umask
+        os.chmod(p, 0o640)
+        atomic_write_text(p, "again", durable=False)
+        assert stat.S_IMODE(p.stat().st_mode) == 0o640
+    finally:
+        os.umask(old)

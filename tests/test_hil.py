@@ -13,6 +13,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+import tomllib
 
 from config.loading import load_toml
 from controller.events import EventKind, ServiceEvent
@@ -63,13 +64,23 @@ def test_scenario_file_errors_name_the_key(tmp_path):
     p.write_text("[a]\n[b]\n")
     with pytest.raises(ConfigError, match=r"several scenarios \(a, b\).*s\.toml:NAME"):
         load_scenario(str(p))
+    # a base that names a table not in this file (the shipped "default" is not inherited)
+    p.write_text("[fast]\nbase = 'default'\ndistance_m = 1.0\n")
+    with pytest.raises(ConfigError) as err:
+        load_scenario(str(p))
+    assert str(err.value).startswith(f"{p}: fast.base = 'default': no scenario 'default' in "
+                                     "this file (have: fast)"), err.value
+    p.write_text("[a]\nbase = 3\n")
+    with pytest.raises(ConfigError, match=r"a\.base must be the name of a scenario"):
+        load_scenario(str(p))
 
 
 def test_unknown_fault_kind_names_the_file_and_the_table(tmp_path):
+    from config.faults import FaultKind
     from config.sim import FAULT_KINDS
 
     p = tmp_path / "hil.toml"
-    p.write_text("[base]\nfaults = [{ kind = 'can_silence', at_s = 1 }, "
+    p.write_text("[base]\nfaults = [{ kind = 'can_silence', at_s = 1, duration_s = 1 }, "
                  "{ kind = 'gremlin', at_s = 2 }]\n[child]\nbase = 'base'\n")
     for spec in (f"{p}:base", f"{p}:child"):  # also when the bad table is inherited
         with pytest.raises(ConfigError) as err:
@@ -77,8 +88,9 @@ def test_unknown_fault_kind_names_the_file_and_the_table(tmp_path):
         msg = str(err.value)
         assert msg.startswith(f"{p}: base.faults[1].kind must be one of "), msg
         assert "'gremlin'" in msg and all(k in msg for k in FAULT_KINDS)
-    for kind in ("can_drop", "belt_slip", "modbus_restart"):  # every known kind loads
-        p.write_text(f"[a]\nfaults = [{{ kind = '{kind}', at_s = 1 }}]\n")
+    for kind in FaultKind:  # every known kind loads, with its required parameters
+        extra = "".join(f", {name} = 1.0" for name in kind.required)
+        p.write_text(f"[a]\nfaults = [{{ kind = '{kind}', at_s = 1{extra} }}]\n")
         assert [f.kind for f in load_scenario(str(p)).faults] == [kind]
 
 
@@ -130,7 +142,8 @@ def test_sim_config_carries_the_scenario(tmp_path):
     sc = Scenario(
         runout_um=(0.0, 3.0, -1.0),
         initial_feed_mm_s=700.0,
-        faults=(FaultEvent("belt_slip", 2.0, {"px": 5.0}), FaultEvent("can_silence", 1.0)),
+        faults=(FaultEvent("belt_slip", 2.0, {"px": 5.0}),
+                FaultEvent("can_silence", 1.0, {"duration_s": 0.5})),
     )
     cfg = sim_config_for(sc)
     assert cfg.cutterhead.knives == 3 and tuple(cfg.cutterhead.runout_um) == (0.0, 3.0, -1.0)
@@ -141,6 +154,13 @@ def test_sim_config_carries_the_scenario(tmp_path):
     p = tmp_path / "sim.toml"
     p.write_text(to_toml(doc))
     assert load_toml(p) == json.loads(json.dumps(doc))
+    # tomli-w underneath: odd keys and strings survive; what TOML cannot hold is refused
+    odd = {"a b": {"s": 'q"uo\\te\n', "p": tmp_path, "l": [1, 2.5, True]}, "x": 1}
+    assert tomllib.loads(to_toml(odd)) == {"a b": {"s": 'q"uo\\te\n', "p": str(tmp_path),
+                                                   "l": [1, 2.5, True]}, "x": 1}
+    for bad, key in (({"t": {"v": float("nan")}}, "t.v"), ({"l": [1, None]}, r"l\[1\]")):
+        with pytest.raises(ValueError, match=key):
+            to_toml(bad)
 
 
 # ---------------------------------------------------------------------------------- summary
@@ -202,7 +222,7 @@ def test_fault_timing_uses_the_clock_mapping_in_force_at_the_fault():
 
     lag = [0.01 if i < 15 else 0.3 for i in range(80)]  # the sim lags 0.3 s from 1.5 s on
     res = [_result(i, cv=0.02, pitch=1.5, t=i * 0.1 + lag[i]) for i in range(80)]
-    fault = FaultEvent("modbus_restart", 4.0, {"down_s": 1.0})
+    fault = FaultEvent("modbus_restart", 4.0, {"duration_s": 1.0})
     events = [ServiceEvent(4.0 + 0.3 + 0.5, EventKind.SAFE_STATE, "safe state: plc gone"),
               ServiceEvent(5.0 + 0.3 + 0.4, EventKind.RECOVERED, "recovered")]
     s = summarize(res, target_pitch_mm=1.5, counts_per_mm=20.0, feed_limits_mm_s=(50.0, 1e3),
@@ -340,7 +360,7 @@ def test_planer_hil_in_process_json_with_modbus_fault(tmp_path):
         capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300,
     )
     assert out.returncode in (0, 1), out.stderr
-    summary = json.loads(out.stdout)  # exactly one JSON object
+    summary = json.loads(out.stdout, parse_constant=_no_bare_constants)  # one strict JSON object
     assert summary["mode"] == "in-process" and summary["plc_transport"] == "tcp"
     _check_figures(summary, tmp_path / "q.sqlite")
     (fault,) = summary["faults"]
@@ -349,6 +369,10 @@ def test_planer_hil_in_process_json_with_modbus_fault(tmp_path):
     assert summary["quality_log"]["ok"]
     assert summary["done"]["setpoints_within_limits"]
     assert "fault: Modbus server down" in out.stderr
+
+
+def _no_bare_constants(name):
+    raise AssertionError(f"planer hil --json printed a bare {name}: not strict JSON")
 
 
 def _check_figures(summary, log):
@@ -407,7 +431,7 @@ def test_planer_hil_cross_process_with_faults(tmp_path):
         capture_output=True, text=True, cwd=tmp_path, timeout=170,
     )
     assert out.returncode in (0, 1), out.stderr
-    summary = json.loads(out.stdout)
+    summary = json.loads(out.stdout, parse_constant=_no_bare_constants)
     assert summary["mode"] == "cross-process"
     _check_figures(summary, tmp_path / "q.sqlite")
     _check_progress_distances(out.stderr.splitlines(), summary)

@@ -15,7 +15,7 @@ from controller.plc_client import (
     PlcProtocol,
 )
 from core.errors import FieldbusError, ModbusRefused
-from protocol.registers import RegisterMap
+from protocol.registers import MachineState, PlcFault, RegisterMap
 
 RMAP = RegisterMap.load()
 
@@ -177,6 +177,36 @@ def test_refusals_name_the_register():
         with pytest.raises(ModbusRefused, match=r"feed_setpoint_mm_s.*03 ILLEGAL DATA VALUE"):
             await c.write_feed(1e4)
         assert c.connected  # a refusal keeps the connection
+
+    asyncio.run(main())
+
+
+@pytest.mark.parametrize("state", range(0, 32, 3))
+def test_snapshot_flags_are_the_register_maps_bits(state):
+    async def main():
+        m = FakeMachine()
+        m.values.update(machine_state=state, faults=31 - state)
+        snap = await PlcClient(MachineRegisterBus(m, RMAP), RMAP, clock=Clock()).read()
+        assert snap.machine_state == MachineState(state) and snap.faults == PlcFault(31 - state)
+        assert snap.board_present == bool(state & 0b10)
+        assert snap.estop == bool(state & 0b100)
+        assert snap.spindle_running == bool(state & 0b1000)
+
+    asyncio.run(main())
+
+
+def test_a_value_the_machine_refuses_inside_the_map_limits_is_exception_03():
+    class Picky(FakeMachine):
+        def set_feed_setpoint(self, feed_mm_s: float) -> None:
+            raise ValueError("the drive is busy")
+
+    async def main():
+        m = Picky()
+        c = PlcClient(MachineRegisterBus(m, RMAP), RMAP, clock=Clock())
+        await c.read()
+        with pytest.raises(ModbusRefused, match=r"feed_setpoint_mm_s.*03 ILLEGAL DATA VALUE"):
+            await c.write_feed(500.0)
+        assert m.feed == 300.0
 
     asyncio.run(main())
 

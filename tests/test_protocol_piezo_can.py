@@ -125,3 +125,79 @@ def test_bad_dbc_is_a_config_error(tmp_path):
         PiezoCodec.load(p)
     with pytest.raises(ConfigError, match="not found"):
         PiezoCodec.load(tmp_path / "missing.dbc")
+
+
+def test_dbc_errors_name_the_file(tmp_path):
+    p = tmp_path / "x.dbc"
+    p.write_text('VERSION ""\n\nBU_: A\n\nBO_ 1 OTHER: 1 A\n SG_ s : 0|8@1+ (1,0) [0|255] "" A\n')
+    with pytest.raises(ConfigError, match=r"x\.dbc: piezo DBC: message PIEZO_COMMAND missing"):
+        PiezoCodec.load(p)
+    p.write_text("this is not a DBC file {{{")
+    with pytest.raises(ConfigError, match=r"x\.dbc: not a valid DBC file"):
+        PiezoCodec.load(p)
+    with pytest.raises(ConfigError, match="cannot read DBC file"):
+        PiezoCodec.load(tmp_path)  # a folder
+
+
+@pytest.mark.parametrize(
+    ("fid", "data", "needle"),
+    [
+        (0x200, [1, 4, 7, 0], "data must be bytes"),
+        (0x200, 4, "data must be bytes"),
+        (0x200, "abcd", "data must be bytes"),
+        ("0x200", b"\x01\x04\x07\x00", "must be an integer"),
+        (512.0, b"\x01\x04\x07\x00", "must be an integer"),
+        (True, b"\x01\x04\x07\x00", "must be an integer"),
+        (0x7FF, b"", "unknown CAN arbitration id 0x7FF"),
+    ],
+)
+def test_decode_refuses_what_is_not_a_frame_with_a_value_error(fid, data, needle):
+    with pytest.raises(ValueError, match=needle):
+        CODEC.decode(fid, data)
+
+
+def test_decode_takes_numpy_ids_and_bytes_like_data():
+    import numpy as np
+
+    fid, data = CODEC.encode_command(enable=True, knives=4, alive_counter=7)
+    expected = CODEC.decode(fid, data)
+    assert CODEC.decode(np.uint32(fid), bytearray(data)) == expected
+    assert CODEC.decode(fid, memoryview(data)) == expected
+
+
+def test_values_within_half_a_step_of_the_range_encode_as_its_end():
+    """32.7675 um is half a step above the top: it is the top (32.767), not an overflow."""
+    for v in (HI + 0.0005, HI + 0.0004, HI):
+        ((_, data),) = CODEC.encode_offsets([v])
+        assert CODEC.offsets_from(*CODEC.decode(CODEC.offset_ids[0], data))[0] == HI
+    ((_, data),) = CODEC.encode_offsets([LO - 0.0005])
+    assert CODEC.offsets_from(*CODEC.decode(CODEC.offset_ids[0], data))[0] == LO
+    with pytest.raises(ValueError, match="knife 0"):
+        CODEC.encode_offsets([HI + 0.0011])
+    fid, data = CODEC.encode_status(displacement_um=0.0, temperature_c=3276.75, fault=0, state=0,
+                                    alive_counter=0)
+    assert CODEC.decode(fid, data)[1]["temperature_c"] == 3276.7
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "needle"),
+    [
+        ("(1,0) [1|8]", "(0,0) [1|8]", "PIEZO_COMMAND.knives: scale 0"),
+        ("(1,0) [1|8]", "(1,0) [0|0]", "PIEZO_COMMAND.knives: needs a range"),
+        ("(1,0) [1|8]", "(1,0) [1|1000]", "PIEZO_COMMAND.knives: range .* 4-bit unsigned"),
+        ("(1,0) [1|8]", "(1,0) [8|1]", "min <= max"),
+        ("(0.1,0) [-3276.8|3276.7]", "(0.1,0) [-3276.8|3276.8]", "temperature_c.*16-bit signed"),
+    ],
+)
+def test_dbc_signals_the_codec_cannot_carry_are_refused_naming_file_and_signal(
+    tmp_path, old, new, needle
+):
+    from config.loading import default_path
+
+    text = default_path("piezo.dbc").read_text()
+    assert old in text
+    p = tmp_path / "x.dbc"
+    p.write_text(text.replace(old, new, 1))
+    with pytest.raises(ConfigError, match=needle) as err:
+        PiezoCodec.load(p)
+    assert str(err.value).startswith(f"{p}: ")

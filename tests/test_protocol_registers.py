@@ -13,9 +13,15 @@ from hypothesis import strategies as st
 from config.loading import default_path, load_toml
 from core.errors import ConfigError
 from protocol.registers import (
+    BIT_FLAGS,
+    WRITE_DISPATCH,
+    MachineState,
+    PlcFault,
     RegisterAccessError,
     RegisterMap,
     RegisterRangeError,
+    apply_writes,
+    flag_names,
 )
 
 RMAP = RegisterMap.load()
@@ -243,8 +249,97 @@ access = "ro"
 )
 def test_load_rejects_bad_maps_naming_the_register(tmp_path, edit, needle):
     assert RegisterMap.load(_write_map(tmp_path, GOOD)).span() == (0, 4)
+    path = _write_map(tmp_path, edit(GOOD))
+    with pytest.raises(ConfigError, match=needle) as err:
+        RegisterMap.load(path)
+    assert str(err.value).startswith(f"{path}: ")  # every error names the file too
+
+
+# ------------------------------------------------------------------ flag bits, write dispatch
+def test_flag_enums_are_the_bits_the_toml_declares():
+    by_name = {e["name"]: e for e in TOML["register"]}
+    for name, flags in BIT_FLAGS.items():
+        declared = by_name[name]["bits"]
+        assert RMAP[name].bits == tuple(declared) == flag_names(flags)
+        for i, bit in enumerate(declared):  # bit i of the TOML is the member of value 1 << i
+            assert flags[bit.upper()].value == 1 << i
+    assert MachineState.BOARD_PRESENT == 2 and PlcFault.HEARTBEAT_LOST == 8  # the documented bits
+
+
+@pytest.mark.parametrize(
+    ("edit", "needle"),
+    [
+        (lambda b: b[::-1], "bits must be"),
+        (lambda b: b[:-1], "bits must be"),
+        (lambda b: [*b, "extra"], "bits must be"),
+        (lambda b: None, "bits must be"),
+    ],
+)
+def test_load_refuses_flag_bits_that_differ_from_the_enums(tmp_path, edit, needle):
+    text = default_path("registers.toml").read_text()
+    line = "bits = [" + ", ".join(f'"{b}"' for b in flag_names(PlcFault)) + "]"
+    assert line in text
+    bits = edit(list(flag_names(PlcFault)))
+    new = "" if bits is None else "bits = [" + ", ".join(f'"{b}"' for b in bits) + "]"
+    path = _write_map(tmp_path, text.replace(line, new))
+    with pytest.raises(ConfigError, match=needle) as err:
+        RegisterMap.load(path)
+    assert str(path) in str(err.value) and "register faults" in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("bits", "needle"),
+    [('"x"', "list of bit names"), ("[1, 2]", "list of bit names"), ('["a b"]', "identifier"),
+     ('["a", "a"]', "duplicate"), ("[" + ", ".join(f'"b{i}"' for i in range(33)) + "]", "33")],
+)
+def test_load_refuses_malformed_bits(tmp_path, bits, needle):
+    body = GOOD.replace('"f32"\naccess = "ro"', f'"u32"\naccess = "ro"\nbits = {bits}')
     with pytest.raises(ConfigError, match=needle):
-        RegisterMap.load(_write_map(tmp_path, edit(GOOD)))
+        RegisterMap.load(_write_map(tmp_path, body))
+
+
+def test_bits_only_on_integer_registers(tmp_path):
+    body = GOOD.replace('access = "ro"', 'access = "ro"\nbits = ["x"]')
+    with pytest.raises(ConfigError, match="register b: bits only on u16 or u32"):
+        RegisterMap.load(_write_map(tmp_path, body))
+
+
+def test_every_writable_register_has_one_write_action():
+    assert set(WRITE_DISPATCH) == {r.name for r in RMAP if r.writable}
+
+
+class _Target:
+    def __init__(self, refuse_feed: bool = False) -> None:
+        self.calls: list[tuple[str, object]] = []
+        self.refuse_feed = refuse_feed
+
+    def set_feed_setpoint(self, feed_mm_s: float) -> None:
+        if self.refuse_feed:
+            raise ValueError("feed drive says no")
+        self.calls.append(("feed", feed_mm_s))
+
+    def set_service_heartbeat(self, value: int) -> None:
+        self.calls.append(("hb", value))
+
+
+CURRENT_VALUES = {"feed_min_mm_s": 100.0, "feed_max_mm_s": 900.0}
+
+
+def test_apply_writes_dispatches_by_register_name_with_the_register_type():
+    t = _Target()
+    apply_writes(t, RMAP.parse_write(0, [7], CURRENT_VALUES))
+    apply_writes(t, RMAP.parse_write(2, RMAP.encode("feed_setpoint_mm_s", 600.0), CURRENT_VALUES))
+    assert t.calls == [("hb", 7), ("feed", 600.0)]
+    assert type(t.calls[0][1]) is int and type(t.calls[1][1]) is float
+
+
+def test_apply_writes_refusals_carry_the_modbus_code_and_the_register():
+    with pytest.raises(RegisterRangeError, match="register feed_setpoint_mm_s: feed drive says"):
+        apply_writes(_Target(refuse_feed=True), {"feed_setpoint_mm_s": 500.0})
+    t = _Target()
+    with pytest.raises(RegisterAccessError, match="register knives"):
+        apply_writes(t, {"heartbeat_service": 1, "knives": 4})
+    assert t.calls == []  # nothing applied when one register has no action
 
 
 def test_numpy_scalars_accepted():
@@ -260,3 +355,19 @@ def test_docs_table_matches_the_toml():
     assert table == RMAP.markdown_table()
     first, count = RMAP.span()
     assert f"addresses {first}..{first + count - 1} ({count} registers)" in doc
+
+
+def test_function_codes_and_exception_codes_come_from_the_map_module(tmp_path):
+    from protocol.registers import HOLDING_FUNCTION_CODES, ModbusException
+
+    assert RMAP.function_codes == frozenset(TOML["map"]["function_codes"]) == {3, 6, 16, 23}
+    assert RegisterAccessError.exception_code == ModbusException.ILLEGAL_DATA_ADDRESS == 2
+    assert RegisterRangeError.exception_code == ModbusException.ILLEGAL_DATA_VALUE == 3
+    assert ModbusException(1).text == "ILLEGAL FUNCTION"
+    only_reads = RegisterMap.load(_write_map(tmp_path, GOOD.replace(
+        'word_order = "big"', 'word_order = "big"\nfunction_codes = [3]')))
+    assert only_reads.function_codes == {3} and set(HOLDING_FUNCTION_CODES) >= {3}
+    for bad in ("[4]", "[6, 16]", "[]", '["3"]', "3"):
+        body = GOOD.replace('word_order = "big"', f'word_order = "big"\nfunction_codes = {bad}')
+        with pytest.raises(ConfigError, match="map.function_codes"):
+            RegisterMap.load(_write_map(tmp_path, body))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -45,7 +46,7 @@ def _rec(i: int = 0, **kw) -> QualityRecord:
         board_position_mm=40.0 * (i % 10), ok=True, pitch_mm=1.5 + 0.001 * i,
         mark_widths_mm=[1.4, 1.5, 1.6, 1.5], uniformity_cv=0.05, depth_um=4.7, shift_px=42.5,
         confidence=0.93, feed_setpoint_mm_s=600.0, piezo_offsets_um=[1.0, -2.0, 0.5, 0.0],
-        target_pitch_mm=1.5, passed=True,
+        target_pitch_mm=1.5, passed=True, machine_id="planer-test",
     )
     base.update(kw)
     return QualityRecord(**base)
@@ -143,6 +144,7 @@ def records(draw):
         feed_setpoint_mm_s=draw(_opt), piezo_offsets_um=draw(_widths),
         target_pitch_mm=draw(_opt), true_pitch_mm=draw(_opt), true_uniformity_cv=draw(_opt),
         extra=draw(st.dictionaries(st.text(max_size=6), _json, max_size=3)),
+        machine_id=draw(st.sampled_from(["planer-1", "Hobel 7 \u00fc", "m"])),
     )
     if ok:
         kw.update(pitch_mm=draw(_opt), mark_widths_mm=draw(_widths), uniformity_cv=draw(_opt),
@@ -251,13 +253,54 @@ def test_newer_schema_is_refused(tmp_path):
     assert _one_line(info.value)
 
 
+def test_table_columns_are_the_csv_header(tmp_path):
+    p = tmp_path / "q.db"
+    QualityLog(p).close()
+    with sqlite3.connect(p) as conn:
+        cols = tuple(r[1] for r in conn.execute("PRAGMA table_info(records)"))
+    assert cols == CSV_COLUMNS and SCHEMA_VERSION == 3 and cols[-1] == "machine_id"
+
+
+def _make_v1_log(p: Path, n: int) -> list[QualityRecord]:
+    recs = [_rec(i) for i in range(n)]
+    with QualityLog(p) as log:
+        for r in recs:
+            log.append(r)
+    with sqlite3.connect(p) as conn:  # the layout of version 1: the record's field names
+        for old, new in (("record_id", "id"), ("wall_time_utc", "wall_time"),
+                         ("extra_json", "extra")):
+            conn.execute(f"ALTER TABLE records RENAME COLUMN {old} TO {new}")
+        conn.execute("DROP INDEX records_machine_time")
+        conn.execute("ALTER TABLE records DROP COLUMN machine_id")
+        conn.execute("UPDATE schema_version SET version = 1")
+    return [dataclasses.replace(r, machine_id=None) for r in recs]
+
+
+def test_version_1_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):
+    p = tmp_path / "q.db"
+    recs = _make_v1_log(p, 3)
+    with QualityLog(p, create=False) as reader:  # a reader changes nothing
+        assert reader.schema_version == 1 and reader.last_id == 3
+        assert [_key(r) for r in reader.records()] == [_key(r) for r in recs]
+        assert [r.seq for r in reader.records(after_id=1)] == [1, 2]
+    with QualityLog(p) as writer:
+        assert writer.schema_version == SCHEMA_VERSION
+        writer.append(_rec(3))
+        assert [r.machine_id for r in writer.records()] == [None, None, None, "planer-test"]
+        assert [r.seq for r in writer.records()] == [0, 1, 2, 3]
+        assert writer.export_csv(tmp_path / "q.csv") == 4
+    with sqlite3.connect(p) as conn:
+        cols = tuple(r[1] for r in conn.execute("PRAGMA table_info(records)"))
+    assert cols == CSV_COLUMNS
+
+
 def test_unreadable_row_names_the_record(tmp_path):
     p = tmp_path / "q.db"
     with QualityLog(p) as log:
         log.append(_rec(0))
         rid = log.append(_rec(1))
     with sqlite3.connect(p) as conn:
-        conn.execute("UPDATE records SET mark_widths_mm = '[1, ' WHERE id = ?", (rid,))
+        conn.execute("UPDATE records SET mark_widths_mm = '[1, ' WHERE record_id = ?", (rid,))
     with QualityLog(p) as log, pytest.raises(QualityLogError, match=f"record {rid}"):
         log.records()
 
@@ -274,6 +317,7 @@ _GEN = textwrap.dedent("""
         rng = random.Random(run * 1_000_003 + i)
         ok = rng.random() > 0.1
         kw = dict(t_s=i * 0.05, wall_time=utc_iso(1.7e9 + i), seq=i, board_id=run,
+                  machine_id=f"planer-{run}",
                   board_position_mm=rng.uniform(0, 4000), ok=ok, confidence=rng.random(),
                   feed_setpoint_mm_s=rng.uniform(100, 900),
                   piezo_offsets_um=[rng.uniform(-20, 20) for _ in range(4)],
@@ -509,3 +553,41 @@ def test_quality_class_from_config():
     assert QualityClass.from_dict(qc.to_dict()) == qc
     with pytest.raises(ConfigError, match="quality.target_pitch_mm"):
         quality_class_from_section(Section({"name": "c", "pitch_tolerance": 0.02}, "quality"))
+
+
+# --------------------------------------------------------------------------------------------
+# machine ids
+
+
+def test_record_without_machine_id_gets_the_logs_and_filters_by_machine(tmp_path):
+    from controller.quality_log import default_machine_id
+
+    with QualityLog(tmp_path / "q.db", machine_id="planer-5") as log:
+        log.append(_rec(0, machine_id=None))
+        log.append(_rec(1, machine_id="planer-6"))
+        assert [r.machine_id for r in log.records()] == ["planer-5", "planer-6"]
+        assert [r.seq for r in log.records(machine_id="planer-6")] == [1]
+        assert log.export_csv(tmp_path / "m.csv", machine_id="planer-5") == 1
+    with QualityLog(tmp_path / "d.db") as log:
+        log.append(_rec(0, machine_id=None))
+        assert log.records()[0].machine_id == default_machine_id() == log.machine_id
+    assert default_machine_id() and default_machine_id().isprintable()
+
+
+@pytest.mark.parametrize("bad", ["", " x", "a\nb", "x" * 65, 7])
+def test_bad_machine_ids_are_refused_naming_them(tmp_path, bad):
+    with pytest.raises(ValueError, match="machine_id"):
+        _rec(machine_id=bad)
+    with pytest.raises(ValueError, match="machine_id"):
+        QualityLog(tmp_path / "q.db", machine_id=bad)
+
+
+def test_machine_toml_machine_id():
+    from config.machine import machine_from_dict
+
+    assert machine_from_dict({}).log.machine_id == ""  # "" = the host name
+    assert machine_from_dict({"machine": {"id": "planer-7"}}).log.machine_id == "planer-7"
+    for bad, key in [({"id": " x"}, "machine.id"), ({"id": 3}, "machine.id"),
+                     ({"name": "x"}, "machine.name")]:
+        with pytest.raises(ConfigError, match=key):
+            machine_from_dict({"machine": bad})

@@ -420,6 +420,25 @@ def test_cli_text_default_out_next_to_log(log_file, capsys):
     assert (log_file.parent / "run_setpoints.png").is_file()
 
 
+def test_cli_names_a_journal_left_beside_the_log(log_file, tmp_path, capsys):
+    from controller.record_journal import RecordSink, default_journal_path
+
+    assert main(["report", str(log_file), "--json", "--out", str(tmp_path / "f")]) == 0
+    assert json.loads(capsys.readouterr().out)["journal"] is None
+    closed = QualityLog(log_file)
+    closed.close()
+    sink = RecordSink(closed, journal_path=default_journal_path(log_file))
+    held = make_run(1)
+    for r in held:
+        sink.append(r)  # the log is closed: all go to the journal
+    assert sink.close() == default_journal_path(log_file)
+    assert main(["report", str(log_file), "--json", "--out", str(tmp_path / "f")]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["journal"]["records"] == len(held) and s["n_records"] == len(make_run(8))
+    assert main(["report", str(log_file), "--out", str(tmp_path / "f")]) == 0
+    assert f"holds {len(held)} record(s) not yet in this log" in capsys.readouterr().out
+
+
 def test_cli_empty_log(tmp_path, capsys):
     QualityLog(tmp_path / "e.db").close()
     assert main(["report", str(tmp_path / "e.db"), "--json"]) == 0

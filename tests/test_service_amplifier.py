@@ -58,7 +58,7 @@ def test_amplifier_fault_goes_safe_once_and_recovers_when_healthy(tmp_path):
         plant.machine.inject("piezo_fault")  # overcurrent: state 3, output to zero
         took = await _until(plant, lambda: svc.state is SafetyState.SAFE, 1.0)
         assert took <= AMP_CONFIRM_S + 3 * cfg.cycle_s + 1e-9
-        assert "amplifier" in svc.status.missing and "can" not in svc.status.missing
+        assert "amplifier" in svc.status().missing and "can" not in svc.status().missing
         (ev,) = _events(svc, t0, EventKind.AMPLIFIER_PROBLEM)
         assert "overcurrent" in ev[1]
         await run_for(plant, 0.04)
@@ -90,7 +90,7 @@ def test_refused_offsets_are_not_believed(tmp_path):
 
         machine.set_piezo_offsets = refuse
         await _until(plant, lambda: svc.state is SafetyState.SAFE, 1.0)
-        assert "amplifier" in svc.status.missing
+        assert "amplifier" in svc.status().missing
         (ev,) = _events(svc, t0, EventKind.AMPLIFIER_PROBLEM)
         assert "stroke limit" in ev[1]
         # while the amplifier refuses, the service stays safe and applies nothing
@@ -117,7 +117,7 @@ def test_long_setpoint_timeout_with_status_flowing_is_a_can_failure(tmp_path):
         t0 = plant.clock()
         plant.can_fault("can_drop", 0.6)
         await _until(plant, lambda: svc.state is SafetyState.SAFE, 0.6)
-        assert "amplifier" in svc.status.missing and "can" not in svc.status.missing
+        assert "amplifier" in svc.status().missing and "can" not in svc.status().missing
         (ev,) = _events(svc, t0, EventKind.AMPLIFIER_PROBLEM)
         assert "setpoint timeout" in ev[1]
         t_rec = await _until(plant, lambda: svc.state is SafetyState.RUN, 2.0)

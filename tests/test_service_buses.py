@@ -102,6 +102,6 @@ def test_plc_that_never_answers_does_not_delay_the_can_heartbeat(tmp_path, where
         assert len(alive) >= N_COMMANDS
         # every command carried a new alive counter (the amplifier's setpoint timeout restarts)
         assert all(b == (a + 1) % 256 for a, b in zip(alive[:-1], alive[1:], strict=True))
-        assert svc.state.value == "safe" and "plc" in svc.status.missing
+        assert svc.state.value == "safe" and "plc" in svc.status().missing
 
     asyncio.run(main())

@@ -45,7 +45,7 @@ def test_empty_document_gives_defaults():
         ({"can": {"channel": ""}}, "can.channel"),
         ({"can": {"options": 5}}, "can.options"),
         ({"can": {"command_period_s": 0.5}}, "can.command_period_s"),
-        ({"frames": {"source": "camera"}}, "frames.source"),
+        ({"frames": {"source": "usb"}}, "frames.source"),
         ({"quality": {"target_pitch_mm": -1.5}}, "quality.target_pitch_mm"),
         ({"quality": {"tolerance": 0}}, "quality.tolerance"),
         ({"piezo": {"stroke_um": 40.0}}, "piezo.stroke_um"),
@@ -95,3 +95,51 @@ def test_bad_loop_keys_fail_when_the_service_is_built(table, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         Service(cfg, plc=None, piezo=None, measurer_factory=lambda s: None,
                 rig=SimpleNamespace(), log=None)
+
+
+@pytest.mark.parametrize("table", ["feed_loop", "uniformity_loop"])
+def test_bad_loop_keys_name_the_file_they_came_from(tmp_path, table):
+    """Issue 14: ``unknown key feed_loop.gian`` must say which file holds it."""
+    from types import SimpleNamespace
+
+    from controller.service import Service
+
+    p = tmp_path / "mine.toml"
+    p.write_text(f"[{table}]\ngian = 0.5\n")
+    cfg = load_machine(p)
+    assert cfg.source == p and cfg.with_changes().source == p
+    with pytest.raises(ConfigError) as err:
+        Service(cfg, plc=None, piezo=None, measurer_factory=lambda s: None,
+                rig=SimpleNamespace(), log=None)
+    assert str(err.value) == f"{p}: unknown key {table}.gian"
+
+
+def test_source_does_not_take_part_in_equality(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_text("")
+    assert load_machine(p) == machine_from_dict({}) and machine_from_dict({}).source is None
+
+
+def test_naming_file_prefixes_once():
+    from config.loading import naming_file
+
+    with pytest.raises(ConfigError, match=r"^a\.toml: bad$"):
+        with naming_file("a.toml"):
+            with naming_file("a.toml"):
+                raise ConfigError("bad")
+    with pytest.raises(ConfigError, match=r"^bad$"):
+        with naming_file(None):
+            raise ConfigError("bad")
+    with pytest.raises(ValueError, match=r"^plain$"):  # only ConfigError is about the file
+        with naming_file("a.toml"):
+            raise ValueError("plain")
+
+
+def test_missing_keys_take_the_dataclass_defaults():
+    """Each default is written once (the field's default): an empty file is ``MachineConfig()``."""
+    from config.machine import MachineConfig
+
+    assert machine_from_dict({}) == MachineConfig()
+    # and a table with one key set keeps every other field's default
+    cfg = machine_from_dict({"safety": {"recovery_s": 1.25}})
+    assert cfg.safety == MachineConfig().safety.__class__(recovery_s=1.25)

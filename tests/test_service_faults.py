@@ -100,6 +100,36 @@ def test_unexpected_vision_exception_is_a_logged_failure(tmp_path, exc):
     asyncio.run(main())
 
 
+class VisionBug(Exception):
+    """An exception type nobody names: not in ``VISION_ERRORS``."""
+
+
+def test_vision_exception_of_an_unknown_kind_is_a_failed_pair_and_a_service_fault(tmp_path):
+    async def main():
+        plant, measurer = await _running_plant(tmp_path)
+        svc = plant.service
+        t0 = plant.clock()
+        measurer.fail_with = VisionBug("nobody expected this")
+        failed = []
+        while not failed:
+            failed += await plant.step()  # must not raise
+        assert not failed[0].ok and not failed[0].applied
+        assert "VisionBug" in failed[0].error and "measurement failed" in failed[0].error
+        errors = _events(svc, t0, EventKind.SERVICE_ERROR)
+        assert errors and "VisionBug" in errors[0][1]
+        assert svc.state is SafetyState.SAFE
+        await run_for(plant, 0.1)  # the amplifier got the safe commands
+        assert _amp_safe(plant)
+        measurer.fail_with = None
+        await run_for(plant, 1.5)
+        assert svc.state is SafetyState.RUN
+        recs = await _close_and_check_log(plant, tmp_path)
+        bad = [r for r in recs if r.seq == failed[0].seq]
+        assert len(bad) == 1 and not bad[0].ok and "VisionBug" in bad[0].error
+
+    asyncio.run(main())
+
+
 # ------------------------------------------------------------------ the PLC answers garbage
 NAN = [0x7FC0, 0x0000]
 INF = [0x7F80, 0x0000]
@@ -219,7 +249,7 @@ def test_service_clock_going_backwards_keeps_heartbeats_and_timeouts(tmp_path):
         for i in range(30):
             plant.machine.advance(0.02)
             await svc.tick(t1 + 0.02 * i)
-        assert svc.state is SafetyState.SAFE and "can" in svc.status.missing
+        assert svc.state is SafetyState.SAFE and "can" in svc.status().missing
         await plant.close()
 
     asyncio.run(main())
@@ -274,7 +304,7 @@ def test_control_exception_goes_safe_logs_the_pair_and_recovers(tmp_path):
     asyncio.run(main())
 
 
-def test_tick_exception_keeps_heartbeat_goes_safe_and_recovers(tmp_path):
+def test_tick_exception_keeps_heartbeat_goes_safe_and_recovers(tmp_path, caplog):
     async def main():
         plant, _ = await _running_plant(tmp_path)
         svc = plant.service
@@ -282,15 +312,19 @@ def test_tick_exception_keeps_heartbeat_goes_safe_and_recovers(tmp_path):
         async def broken(t, snap):
             raise FloatingPointError("overflow in the feed-forward")
 
-        orig = svc._feed_forward
-        svc._feed_forward = broken
+        orig = svc.loops.feed_forward
+        svc.loops.feed_forward = broken
         t0 = plant.clock()
         hb = plant.machine.heartbeat_service
         await run_for(plant, 0.2)  # must not raise
         assert plant.machine.heartbeat_service != hb
         assert svc.state is SafetyState.SAFE and _amp_safe(plant)
-        assert any("FloatingPointError" in e for _, e in _events(svc, t0, None))
-        svc._feed_forward = orig
+        errors = _events(svc, t0, EventKind.SERVICE_ERROR)
+        assert len(errors) == 1 and "FloatingPointError" in errors[0][1]  # once, not per cycle
+        # the supervisor boundary logged the traceback, once
+        logged = [r for r in caplog.records if r.name == "controller.service" and r.exc_info]
+        assert len(logged) == 1 and logged[0].exc_info[0] is FloatingPointError
+        svc.loops.feed_forward = orig
         await run_for(plant, 1.0)
         assert svc.state is SafetyState.RUN
         await plant.close()
@@ -375,10 +409,10 @@ def test_records_unwritten_at_close_are_saved_beside_the_log(tmp_path):
         during = await run_for(plant, 0.5)
         assert during
         await plant.close()
-        saved = sorted(tmp_path.glob("q.sqlite.unlogged-*.jsonl"))
+        saved = sorted(tmp_path.glob("q.sqlite.journal*"))
         assert len(saved) == 1
         lines = saved[0].read_text().splitlines()
-        assert [json.loads(x)["seq"] for x in lines] == [r.seq for r in during]
+        assert [json.loads(x)["record"]["seq"] for x in lines] == [r.seq for r in during]
         assert any("NOT in the quality log" in ev.text for ev in plant.service.events)
 
     asyncio.run(main())

@@ -287,14 +287,19 @@ def test_log_that_never_works_keeps_the_machine_safe_and_the_records(tmp_path):
         res = await run_for(plant, 2.0)
         svc = plant.service
         assert res and all(r.record_id is None for r in res)
-        assert svc.counters["log_errors"] == log.calls >= len(res)
-        assert [e for e in svc.events if e.kind is EventKind.LOG_FAILED]
+        # every record the log did not take is counted; the log is tried again for each pair
+        assert svc.counters["log_errors"] == len(res) and log.calls >= len(res)
+        assert len([e for e in svc.events if e.kind is EventKind.LOG_FAILED]) == 1
         assert svc.state is SafetyState.SAFE and not any(r.applied for r in res[1:])
-        assert "log" in svc.status.missing
+        status = svc.status()
+        assert "log" in status.missing and "quality log" in status.safe_reason
+        assert status.log_problem and status.records_pending == len(res)
         await plant.close()
-        # what the log never took was saved beside it, every pair once, in order
-        (saved,) = tmp_path.glob("broken.sqlite.unlogged-*.jsonl")
-        seqs = [json.loads(line)["seq"] for line in saved.read_text().splitlines()]
+        # what the log never took was kept in the journal beside it, every pair once, in order
+        (saved,) = tmp_path.glob("broken.sqlite.journal*")
+        seqs = [json.loads(line)["record"]["seq"] for line in saved.read_text().splitlines()]
         assert seqs == [r.seq for r in res]
+        assert any(e.kind is EventKind.RECORDS_SAVED and str(saved) in e.text
+                   for e in svc.events)
 
     asyncio.run(main())

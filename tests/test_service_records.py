@@ -21,9 +21,9 @@ import pytest
 from controller.events import EventKind
 from controller.plc_client import BusRefused
 from controller.quality_log import QualityLog, record_to_json
+from controller.quality_records import PROFILE_EVERY, PROFILE_MAX_POINTS, decimated_profile
 from controller.report import last_profile
 from controller.safety import SafetyState
-from controller.service import PROFILE_EVERY, PROFILE_MAX_POINTS, decimated_profile
 from tests.plant_support import run_for
 from tests.test_service_loop import TruthMeasurer, make_plant
 
@@ -50,8 +50,7 @@ class ProfileMeasurer(TruthMeasurer):
 def _plant(tmp_path, **kw):
     plant, measurer = make_plant(tmp_path, **kw)
     prof = ProfileMeasurer(measurer.frames)
-    plant.service._measurer_factory = lambda shape: prof
-    plant.service._measurers.clear()
+    plant.service.measurement.set_factory(lambda shape: prof)
     return plant, prof
 
 

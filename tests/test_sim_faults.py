@@ -244,7 +244,7 @@ def test_feed_fault_and_encoder_fault_and_piezo_fault(cfg):
 def test_interface_faults_are_queued_for_the_runner(cfg):
     c = dataclasses.replace(cfg, faults=(
         FaultSpec("modbus_restart", {"at_s": 0.5, "duration_s": 1.0}),
-        FaultSpec("can_silence", {"at_s": 0.8}),
+        FaultSpec("can_silence", {"at_s": 0.8, "duration_s": 0.5}),
     ))
     m = Machine(c, seed=0, render_images=False)
     m.advance(0.4)

@@ -46,9 +46,12 @@ def keep_piezo_alive(m: Machine, duration_s: float, offsets=None, step_s: float 
 
 def test_shipped_config_loads_and_matches_defaults(cfg):
     d = default_sim()
-    for table in ("spindle", "cutterhead", "piezo", "feed", "encoder", "board", "plc", "run",
+    for table in ("spindle", "cutterhead", "piezo", "feed", "encoder", "plc", "run",
                   "modbus", "frames"):
         assert getattr(cfg, table) == getattr(d, table), table
+    b, db = cfg.board, d.board  # [board] also holds the realistic rig's wood effects
+    assert (b.length_mm, b.gap_mm, b.first_at_mm, b.count) == (
+        db.length_mm, db.gap_mm, db.first_at_mm, db.count)
     assert cfg.modbus.host == "127.0.0.1"
     assert cfg.camera.rig_path.name == "rig.toml"
     # initial feed is the pitch-2.0 mm equivalent so the controller has work to do
@@ -447,6 +450,33 @@ def test_register_values_cover_the_map(cfg):
         m.feed_position_mm - 0.1 * 800 - cfg.board.first_at_mm - 300, abs=1.0)
 
 
+def test_state_and_fault_registers_use_the_register_maps_flags(cfg):
+    from protocol.registers import WRITE_DISPATCH, MachineState, PlcFault, apply_writes
+
+    m = Machine(cfg, seed=0, render_images=False)
+    m.advance(1.2)
+    state = MachineState(m.register_values()["machine_state"])
+    assert state == m.machine_state()
+    assert MachineState.RUNNING in state and MachineState.ESTOP not in state
+    assert type(m.register_values()["faults"]) is int  # plain ints on the wire side
+    m.inject("estop")
+    m.advance(0.1)
+    v = m.register_values()
+    assert MachineState(v["machine_state"]) & (MachineState.ESTOP | MachineState.RUNNING) == (
+        MachineState.ESTOP
+    )
+    m.inject("feed_fault")
+    m.advance(0.1)
+    assert PlcFault.FEED_DRIVE in PlcFault(m.register_values()["faults"])
+    # the machine is a complete target of the PLC's write dispatch
+    feed = 0.5 * (cfg.feed.min_mm_s + cfg.feed.max_mm_s)
+    writes = {"heartbeat_service": 42, "feed_setpoint_mm_s": feed}
+    assert set(writes) == set(WRITE_DISPATCH)
+    apply_writes(m, writes)
+    v = m.register_values()
+    assert (v["heartbeat_service"], v["feed_setpoint_mm_s"]) == (42, feed)
+
+
 def test_watchdog(cfg):
     m = Machine(cfg, seed=0, render_images=False)
     wd = cfg.plc.watchdog_ms * 1e-3
@@ -496,3 +526,23 @@ def test_images_rendered_with_counts(cfg):
     assert 40 < f.image_a.mean() < 200
     assert not np.array_equal(f.image_a, f.image_b)
     assert (f.counts_b - f.counts_a) * 0.625 == pytest.approx(f.truth["shift_px"], abs=0.7)
+
+
+def test_fault_parameters_default_to_the_registry(cfg):
+    """Defaults of fault parameters are written once, in config.faults (not in the machine)."""
+    from config.faults import FaultKind
+
+    m = Machine(cfg, seed=0, render_images=False)
+    m.inject("belt_slip")
+    px = FaultKind.BELT_SLIP.value_of({}, "px")
+    assert m.capture.pending_slip == round(px / cfg.camera.rig.encoder.px_per_count)
+    m.inject("piezo_fault")
+    bit = int(FaultKind.PIEZO_FAULT.value_of({}, "bit"))
+    assert m.piezo_status().fault & (1 << bit)
+    m.inject("knot", board_id=3)
+    knot = m.knots[-1]
+    d = {p.name: p.default for p in FaultKind.KNOT.params}
+    assert (knot.length_mm, knot.width_mm, knot.darkness) == (
+        d["length_mm"], d["width_mm"], d["darkness"]
+    )
+    assert knot.x_mm == m.boards.length_mm - d["at_mm"]

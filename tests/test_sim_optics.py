@@ -11,7 +11,7 @@ import pytest
 from scipy.optimize import minimize_scalar
 
 from config.wood import SPECIES, Wood, species
-from plant_sim.optics import Optics, Renderer, wrap_counts
+from plant_sim.optics import Optics, PencilLine, Renderer, RigEffects, wrap_counts
 from plant_sim.scenarios import board_pair, make_rig, random_board_pair, random_board_params
 from plant_sim.surface import Cutterhead, passes_steady
 
@@ -340,3 +340,390 @@ def test_board_range_covers_every_height_query(speed, k1):
     assert lo <= got_lo and got_hi <= hi
     assert got_lo - lo < 1e-6 or hi - got_hi < 1e-6  # tight on at least one end
     assert hi - lo < (W + 20) / PPM + speed * rend.optics.dt_ab_s
+
+
+# -- effects of a real rig and real wood (issue 12 item 5) ----------------------------------
+
+
+def _fx_renderer(wood=FLAT_WOOD, w=W, h=H, seed=0, **effects):
+    rig = make_rig(width=w, height=h, exposure_ms=0.0)
+    rend = Renderer(rig, Optics(width=w, height=h, **CLEAN), wood, seed=seed,
+                    effects=RigEffects(**effects))
+    return rig, rend
+
+
+def _plane(slope):
+    def height(b):
+        return 1e3 * slope * b
+
+    return height
+
+
+def _fundamental_fit(profile, period_px):
+    """Least-squares ``c0 sin + c1 cos + c2`` at ``period_px``; returns (c0, c1)."""
+    u = np.arange(profile.size)
+    m = np.stack([np.sin(2 * np.pi * u / period_px), np.cos(2 * np.pi * u / period_px),
+                  np.ones(u.size)], axis=1)
+    c, *_ = np.linalg.lstsq(m, profile, rcond=None)
+    return c[0], c[1]
+
+
+def _fundamental(profile, period_px):
+    """Amplitude of a profile's component at ``period_px``."""
+    return math.hypot(*_fundamental_fit(profile, period_px))
+
+
+@pytest.mark.parametrize("roll_deg", [-3.0, 0.4, 2.0])
+def test_roll_leans_the_marks_by_the_roll_angle(roll_deg):
+    _, rend = _fx_renderer(h=200, roll_deg=roll_deg)
+    pitch = 1.6
+    surf = _marks(pitch=pitch, runout=(0.0, 0.0, 0.0, 0.0))
+    img = rend.render_pair(surf, board_x_at_centre_mm=0.0, speed_mm_s=0.0).image_a
+    r = math.radians(roll_deg)
+    period = pitch * PPM / math.cos(r)  # along a row the board advances cos(roll) per column
+    rows = np.arange(10, 190)
+    # each row's mark phase: cos(2 pi (u - d) / period) has phase 2 pi d / period
+    fits = [_fundamental_fit(img[v, 20:220], period) for v in rows]
+    phase = np.unwrap([math.atan2(c0, c1) for c0, c1 in fits])
+    d = phase * period / (2 * np.pi)
+    lean = np.polyfit(rows, d, 1)[0]
+    # a mark (constant board x) leans tan(roll) columns per row toward -u (the vision's sign)
+    assert math.degrees(math.atan(-lean)) == pytest.approx(roll_deg, abs=0.02)
+    # the board frame of every pixel is the camera frame turned by the roll
+    xc = (np.arange(W) - rend.rig.camera.cx) / PPM
+    yc = (np.arange(200) - rend.rig.camera.cy) / PPM
+    assert np.allclose(rend.x_phys_mm, xc[None, :] * math.cos(r) + yc[:, None] * math.sin(r))
+    assert np.allclose(rend.y_phys_mm, yc[:, None] * math.cos(r) - xc[None, :] * math.sin(r))
+
+
+def test_scattering_lowers_mark_contrast_with_its_length():
+    wood = dataclasses.replace(FLAT_WOOD, translucency=0.6, scattering_anisotropy=3.0)
+    pitch = 1.6  # 20 px: an exact number of periods in the profile below
+    surf = _marks(pitch=pitch, runout=(0.0, 0.0, 0.0, 0.0))
+    amps = []
+    for length in (0.0, 0.1, 0.25, 0.5):
+        _, rend = _fx_renderer(wood=wood, scattering_mm=length)
+        pair = rend.render_pair(surf, board_x_at_centre_mm=0.0, speed_mm_s=0.0)
+        a = pair.image_a[:, 20:220].mean(axis=0)
+        amps.append(_fundamental(a, pitch * PPM))
+        # the fraction `translucency` is spread by an exponential kernel (transfer 1/(1+k^2 l^2))
+        k = 2 * np.pi / pitch
+        expect = 0.4 + 0.6 / (1.0 + (k * length) ** 2)
+        assert amps[-1] / amps[0] == pytest.approx(expect, rel=0.03)
+    assert all(a1 < a0 for a0, a1 in zip(amps, amps[1:], strict=False))
+    # an opaque wood does not scatter
+    opaque = dataclasses.replace(wood, translucency=0.0)
+    _, r0 = _fx_renderer(wood=opaque)
+    _, r1 = _fx_renderer(wood=opaque, scattering_mm=0.5)
+    i0 = r0.render_pair(surf, board_x_at_centre_mm=0.0, speed_mm_s=0.0).image_a
+    i1 = r1.render_pair(surf, board_x_at_centre_mm=0.0, speed_mm_s=0.0).image_a
+    assert np.array_equal(i0, i1)
+
+
+def test_scattering_is_stronger_along_the_fibres_than_across():
+    wood = dataclasses.replace(FLAT_WOOD, translucency=0.8, scattering_anisotropy=4.0)
+    length = 0.3
+    _, rend = _fx_renderer(wood=wood, scattering_mm=length)
+    rows, cols = 256, 2048  # a texture tile: periodic along x (and here along y)
+    y = np.arange(rows)[:, None] * rend.dy_mm
+    x = np.arange(cols)[None, :] * rend.dx_mm
+    # whole periods of about 1.3 mm along x and along y
+    k_along = 2 * np.pi * 125 / (cols * rend.dx_mm)
+    k_across = 2 * np.pi * 16 / (rows * rend.dy_mm)
+    along = np.broadcast_to(np.sin(k_along * x), (rows, cols)).astype(np.float32)
+    across = np.broadcast_to(np.sin(k_across * y), (rows, cols)).astype(np.float32)
+    got_along = float(np.ptp(rend._scatter_tile(along, length, 4.0))) / float(np.ptp(along))
+    got_across = float(np.ptp(rend._scatter_tile(across, length, 4.0))) / float(np.ptp(across))
+    assert got_along == pytest.approx(0.2 + 0.8 / (1 + (k_along * length) ** 2), rel=1e-3)
+    assert got_across == pytest.approx(0.2 + 0.8 / (1 + (k_across * length / 4) ** 2), rel=1e-3)
+    assert got_along < got_across < 1.0
+
+
+@pytest.mark.parametrize(("off_a", "off_b"), [(0.0, 0.0), (1.5, -1.0), (-2.0, 0.5), (3.0, 3.0)])
+@pytest.mark.parametrize("slope", [-0.012, 0.02])
+def test_slant_offset_changes_the_ab_ratio_as_lambert_with_the_true_slant(off_a, off_b, slope):
+    rig, rend = _fx_renderer(slant_offset_deg=(off_a, off_b))
+    assert rig.lights.slant_deg == 82.0  # the rig file keeps the nominal slant
+    assert rend.true_slant_deg == pytest.approx((82.0 + off_a, 82.0 + off_b))
+    pair = rend.render_pair(_plane(slope), board_x_at_centre_mm=0.0, speed_mm_s=0.0)
+    ratio = float(np.mean(pair.image_a / pair.image_b))
+    sa, sb = (math.radians(82.0 + off_a), math.radians(82.0 + off_b))
+    # each LED gives the same brightness on a flat board; its slope sensitivity is tan(true slant)
+    expect = (1.0 - slope * math.tan(sa)) / (1.0 + slope * math.tan(sb))
+    assert ratio == pytest.approx(expect, rel=1e-5)
+    flat = rend.render_pair(_flat, board_x_at_centre_mm=0.0, speed_mm_s=0.0)
+    assert flat.image_a.mean() == pytest.approx(0.45 * 255, rel=1e-4)
+    assert flat.image_b.mean() == pytest.approx(0.45 * 255, rel=1e-4)
+
+
+def _oren_nayar(p, slant_deg, azimuth_deg, sigma_deg):
+    """Independent Oren-Nayar radiance of a plane of slope p seen from straight above."""
+    n = np.array([-p, 0.0, 1.0]) / math.sqrt(1 + p * p)
+    s, t = math.radians(slant_deg), math.radians(azimuth_deg)
+    light = np.array([math.sin(s) * math.cos(t), math.sin(s) * math.sin(t), math.cos(s)])
+    view = np.array([0.0, 0.0, 1.0])
+    ti, tr = math.acos(light @ n), math.acos(view @ n)
+    lt, vt = light - (light @ n) * n, view - (view @ n) * n
+    nv = np.linalg.norm(vt)
+    cos_dphi = 0.0 if nv < 1e-12 else lt @ vt / np.linalg.norm(lt) / nv
+    sg = math.radians(sigma_deg) ** 2
+    a, b = 1 - 0.5 * sg / (sg + 0.33), 0.45 * sg / (sg + 0.09)
+    back = math.sin(max(ti, tr)) * math.tan(min(ti, tr))
+    return math.cos(ti) * (a + b * max(0.0, cos_dphi) * back)
+
+
+@pytest.mark.parametrize("sigma_deg", [20.0, 45.0])
+def test_rough_wood_reflectance_is_oren_nayar(sigma_deg):
+    _, lam = _fx_renderer()
+    _, rough = _fx_renderer(reflectance_roughness_deg=sigma_deg)
+    for slope in (-0.03, -0.01, 0.01, 0.03):
+        pr = rough.render_pair(_plane(slope), board_x_at_centre_mm=0.0, speed_mm_s=0.0)
+        pl = lam.render_pair(_plane(slope), board_x_at_centre_mm=0.0, speed_mm_s=0.0)
+        for img, az in ((pr.image_a, 0.0), (pr.image_b, 180.0)):
+            expect = _oren_nayar(slope, 82.0, az, sigma_deg) / _oren_nayar(0.0, 82.0, az, sigma_deg)
+            assert img.mean() / (0.45 * 255) == pytest.approx(expect, rel=1e-4)
+        # rough wood shows the slopes with less contrast than Lambert
+        c_rough = (pr.image_b - pr.image_a).mean() / (pr.image_b + pr.image_a).mean()
+        c_lam = (pl.image_b - pl.image_a).mean() / (pl.image_b + pl.image_a).mean()
+        assert abs(c_rough) < abs(c_lam)
+
+
+@pytest.mark.parametrize("read_noise_dn", [2.0, 7.0, 20.0])
+def test_read_noise_gives_the_configured_std_in_a_flat_region(read_noise_dn):
+    rig = make_rig(width=W, height=H, exposure_ms=0.0)
+    optics = Optics(width=W, height=H, shot_noise=False, read_noise_dn=read_noise_dn,
+                    quantize=False)
+    rend = Renderer(rig, optics, SPECIES["spruce"], seed=0)
+    a = rend.render_pair(_flat, board_x_at_centre_mm=0.0, speed_mm_s=0.0, rng_seed=1).image_a
+    b = rend.render_pair(_flat, board_x_at_centre_mm=0.0, speed_mm_s=0.0, rng_seed=2).image_a
+    region = (a - b)[10:-10, 20:-20]  # the same board twice: only the noise differs
+    assert np.std(region) / math.sqrt(2) == pytest.approx(read_noise_dn, rel=0.03)
+    # board_pair passes it on (8-bit images add the quantisation's 1/12 DN^2)
+    kw = {"seed": 4, "width": W, "height": H, "noise": False, "flat": True,
+          "read_noise_dn": read_noise_dn, "board_x_at_centre_mm": 50.0, "counts_a": 0}
+    _, p1 = board_pair(**kw)
+    clean = board_pair(**(kw | {"read_noise_dn": 0.0, "quantize": False}))[1].image_a
+    diff = (p1.image_a.astype(float) - clean)[10:-10, 20:-20]
+    expect = math.sqrt(read_noise_dn**2 + 1 / 12)
+    assert np.std(diff) == pytest.approx(expect, rel=0.05)
+
+
+def test_bow_tilts_the_board_and_stays_out_of_the_truth():
+    bow, length = 20.0, 4000.0
+    _, rend = _fx_renderer(bow_mm=bow, board_length_mm=length)
+    for bc in (300.0, 2000.0, 3500.0):
+        pair = rend.render_pair(_flat, board_x_at_centre_mm=bc, speed_mm_s=0.0)
+        a, b = pair.image_a.astype(float), pair.image_b.astype(float)
+        p = float(np.mean((b - a) / (b + a))) / math.tan(math.radians(82.0))
+        assert p == pytest.approx(8 * bow * (bc - length / 2) / length**2, abs=2e-5)
+        assert np.all(pair.truth.slope == 0.0) and np.all(pair.truth.height_um == 0.0)
+
+
+def test_cup_tilts_the_board_across():
+    from config.rig import Lights
+
+    cup, width = 2.0, 100.0
+    rig = make_rig(width=W, height=H, exposure_ms=0.0)
+    rig = dataclasses.replace(rig, lights=Lights(slant_deg=82.0, azimuth_a_deg=90.0,
+                                                 azimuth_b_deg=270.0))
+    rends = [Renderer(rig, Optics(width=W, height=H, **CLEAN), FLAT_WOOD, seed=0,
+                      effects=RigEffects(cup_mm=c, board_width_mm=width)) for c in (0.0, cup)]
+    imgs = [r.render_pair(_flat, board_x_at_centre_mm=0.0, speed_mm_s=0.0).image_a for r in rends]
+    y = (np.arange(H) - rig.camera.cy) / PPM
+    q = 8 * cup * y / width**2  # dz/dy of the cupped board (edges up)
+    # light A at azimuth 90 deg (+y): I ~ cos(s) - q sin(s)
+    ratio = imgs[1].mean(axis=1) / imgs[0].mean(axis=1)
+    assert np.allclose(ratio, 1.0 - q * math.tan(math.radians(82.0)), atol=2e-3)
+    assert np.ptp(ratio) > 0.05
+
+
+def test_pencil_line_darkens_its_rows_only():
+    line = PencilLine(y_mm=1.0, width_mm=0.6, darkness=0.4)
+    _, plain = _fx_renderer()
+    rig, lined = _fx_renderer(pencil_lines=(line,))
+    surf = _marks()
+    a0 = plain.render_pair(surf, board_x_at_centre_mm=0.0, speed_mm_s=0.0).image_a
+    a1 = lined.render_pair(surf, board_x_at_centre_mm=0.0, speed_mm_s=0.0).image_a
+    ratio = (a1 / a0).mean(axis=1)
+    y = (np.arange(H) - rig.camera.cy) / PPM
+    inside = np.abs(y - 1.0) < 0.3
+    assert ratio.min() == pytest.approx(0.6, abs=0.01)
+    assert abs(y[np.argmin(ratio)] - 1.0) <= 0.5 / PPM
+    assert np.allclose(ratio[~inside], 1.0, atol=1e-6) and np.all(ratio[inside] < 1.0)
+    # across the marks: every column of the line's row is darkened alike
+    row = int(np.argmin(ratio))
+    assert np.allclose(a1[row] / a0[row], ratio[row], rtol=1e-4)
+
+
+def test_effects_reject_bad_values_naming_them():
+    for kwargs, name in [
+        ({"roll_deg": 12.0}, "roll_deg"),
+        ({"slant_offset_deg": (1.0,)}, "slant_offset_deg"),
+        ({"slant_offset_deg": (0.0, 11.0)}, "slant_offset_deg"),
+        ({"scattering_mm": -0.1}, "scattering_mm"),
+        ({"reflectance_roughness_deg": 90.0}, "reflectance_roughness_deg"),
+        ({"bow_mm": float("nan")}, "bow_mm"),
+        ({"pencil_lines": ({"y_mm": 1.0},)}, "pencil_lines"),
+    ]:
+        with pytest.raises(ValueError, match=name):
+            RigEffects(**kwargs)
+    with pytest.raises(ValueError, match="darkness"):
+        PencilLine(darkness=1.5)
+    with pytest.raises(ValueError, match="translucency"):
+        dataclasses.replace(FLAT_WOOD, translucency=1.2)
+    with pytest.raises(ValueError, match="effects"):
+        Renderer(make_rig(width=64, height=8), Optics(width=64, height=8), FLAT_WOOD, seed=0,
+                 effects={"roll_deg": 1.0})
+    rig = make_rig(width=64, height=8, slant_deg=85.0)
+    with pytest.raises(ValueError, match="slant_offset_deg"):
+        Renderer(rig, Optics(width=64, height=8), FLAT_WOOD, seed=0,
+                 effects=RigEffects(slant_offset_deg=(6.0, 0.0)))
+
+
+def test_softwoods_are_the_translucent_species():
+    soft = {SPECIES[n].translucency for n in ("spruce", "pine")}
+    hard = {SPECIES[n].translucency for n in ("beech", "oak", "ramin", "meranti")}
+    assert min(soft) > max(hard) > 0.0
+    assert all(w.scattering_anisotropy > 1.0 for w in SPECIES.values())
+
+
+def test_board_pair_passes_the_effects_and_keeps_the_rig_nominal():
+    kw = {"seed": 2, "width": W, "height": H, "species": "spruce"}
+    rig0, p0 = board_pair(**kw)
+    rig1, p1 = board_pair(roll_deg=0.5, slant_offset_deg=(1.5, -1.0), scattering_mm=0.2,
+                          reflectance_roughness_deg=15.0, bow_mm=3.0, cup_mm=0.5,
+                          pencil_lines=(PencilLine(y_mm=1.0),), read_noise_dn=2.0, **kw)
+    assert rig0 == rig1  # the rig file knows nothing of the effects
+    assert p0.counts_a == p1.counts_a and p0.truth.shift_px == p1.truth.shift_px
+    assert np.array_equal(p0.truth.height_um, p1.truth.height_um)
+    assert not np.array_equal(p0.image_a, p1.image_a)
+    # no effects: the same renderer (and images) as before the effects existed
+    _, p2 = board_pair(roll_deg=0.0, **kw)
+    assert np.array_equal(p0.image_a, p2.image_a)
+
+
+def test_sim_config_effects_defaults_and_errors(tmp_path):
+    from config.sim import default_sim, load_sim, sim_from_dict
+    from core.errors import ConfigError
+    from plant_sim.optics import effects_from_config
+
+    # a config without the new keys renders the ideal rig, as before they existed
+    assert effects_from_config(default_sim()) == RigEffects()
+    old = tmp_path / "old.toml"
+    old.write_text('[camera]\nspecies = "spruce"\n[camera.optics]\nnoise = 0.5\n')
+    assert effects_from_config(load_sim(old)) == RigEffects()
+    assert load_sim(old).camera.optics == default_sim().camera.optics
+    # the shipped config/sim.toml is a realistic rig: what a real machine has, its rig file not
+    shipped = load_sim()
+    fx = effects_from_config(shipped)
+    assert 0.0 < abs(fx.roll_deg) < 1.0  # a fraction of a degree
+    assert all(1.0 <= abs(d) <= 2.0 for d in fx.slant_offset_deg)
+    assert SPECIES[shipped.camera.species].translucency >= 0.5 and fx.scattering_mm > 0
+    assert fx.reflectance_roughness_deg > 0 and fx.bow_mm != 0 and fx.cup_mm != 0
+    assert fx.pencil_lines  # the wood effects of [board]
+    assert shipped.camera.optics.read_noise_dn > default_sim().camera.optics.read_noise_dn
+    cfg = sim_from_dict({
+        "camera": {"roll_deg": -0.7, "slant_offset_a_deg": 2.0, "optics": {"read_noise_dn": 7}},
+        "board": {"scattering_mm": 0.3, "bow_mm": 2.0, "length_mm": 3000.0,
+                  "pencil_lines": [{"y_mm": 4.0, "darkness": 0.3}]},
+    })
+    fx = effects_from_config(cfg)
+    assert fx.roll_deg == -0.7 and fx.slant_offset_deg == (2.0, 0.0)
+    assert fx.scattering_mm == 0.3 and fx.bow_mm == 2.0 and fx.board_length_mm == 3000.0
+    assert fx.pencil_lines == (PencilLine(y_mm=4.0, width_mm=0.6, darkness=0.3),)
+    assert cfg.camera.optics.read_noise_dn == 7.0
+    for data, key in [
+        ({"camera": {"roll_deg": 11.0}}, "camera.roll_deg"),
+        ({"camera": {"slant_offset_b_deg": "x"}}, "camera.slant_offset_b_deg"),
+        ({"camera": {"slant_offset_a_deg": 9.5}}, "camera.slant_offset_a_deg"),
+        ({"camera": {"optics": {"read_noise_dn": -1.0}}}, "camera.optics.read_noise_dn"),
+        ({"camera": {"optics": {"read_noise_dn": 1.0, "noise": 1.0}}}, "read_noise_dn"),
+        ({"board": {"scattering_mm": 3.0}}, "board.scattering_mm"),
+        ({"board": {"reflectance_roughness_deg": -1.0}}, "board.reflectance_roughness_deg"),
+        ({"board": {"cup_mm": 50.0}}, "board.cup_mm"),
+        ({"board": {"pencil_lines": {"y_mm": 1.0}}}, "board.pencil_lines"),
+        ({"board": {"pencil_lines": [{"y_mm": 1.0, "dark": 0.2}]}}, r"board.pencil_lines\[0\]"),
+        ({"board": {"pencil_lines": [{"darkness": 2.0}]}}, r"board.pencil_lines\[0\].darkness"),
+    ]:
+        with pytest.raises(ConfigError, match=key):
+            sim_from_dict(data)
+    bad = tmp_path / "sim.toml"
+    bad.write_text("[camera]\nroll_deg = 45.0\n")
+    with pytest.raises(ConfigError, match="camera.roll_deg"):
+        load_sim(bad)
+
+
+def test_board_pair_knots_and_pores():
+    from plant_sim.camera import Knot
+
+    bc = 500.0
+    kw = {"seed": 6, "width": W, "height": H, "noise": False, "quantize": False,
+          "board_x_at_centre_mm": bc, "exposure_ms": 0.0}
+    knot = Knot(board_id=1, x_mm=bc + 3.0, y_mm=0.5, length_mm=6.0, width_mm=4.0, darkness=0.6,
+                roughness_um=0.0)
+    _, plain = board_pair(**kw)
+    _, knotted = board_pair(knots=(knot,), **kw)
+    ratio = knotted.image_a / plain.image_a
+    col = int(round(3.0 * PPM + (W - 1) / 2))
+    row = int(round((H - 1) / 2 + 0.5 * PPM))
+    assert ratio[row, col] == pytest.approx(0.4, abs=0.02)  # dark at its centre
+    assert np.allclose(ratio[:, : col - 50], 1.0)  # and nowhere else
+    # image B sees it where the board has moved to
+    shift = int(round(knotted.truth.shift_px))
+    assert knotted.image_b[row, col + shift] / plain.image_b[row, col + shift] == pytest.approx(
+        0.4, abs=0.03)
+    assert knotted.truth.metrics(1.0, W / PPM - 1) == plain.truth.metrics(1.0, W / PPM - 1)
+    rough = dataclasses.replace(knot, roughness_um=3.0)
+    _, bumpy = board_pair(knots=(rough,), **kw)
+    assert not np.allclose(bumpy.truth.height_um, plain.truth.height_um)
+    # pores: small dark spots in a species that has none
+    _, clean = board_pair(species="spruce", flat=True, **kw)
+    _, pored = board_pair(species="spruce", flat=True, pore_density_per_mm2=5.0, **kw)
+    assert pored.image_a.mean() < clean.image_a.mean()
+    assert np.percentile(pored.image_a, 1) < np.percentile(clean.image_a, 1) - 2.0
+    with pytest.raises(ValueError, match="knots"):
+        board_pair(knots=({"x_mm": 1.0},), **kw)
+    with pytest.raises(ValueError, match="pore_density_per_mm2"):
+        board_pair(pore_density_per_mm2=-1.0, **kw)
+
+
+@pytest.mark.parametrize("roll_deg", [-2.0, 3.0])
+def test_with_roll_the_texture_moves_along_the_rolled_feed(roll_deg):
+    rig = make_rig(width=W, height=H, exposure_ms=0.0)
+    # no roughness (A and B alike but for the shift), no sub-pixel texture (clean interpolation)
+    smooth = dataclasses.replace(SPECIES["oak"], roughness_um=0.0, fibre_width_mm=0.4,
+                                 fibre_length_mm=0.6, pore_density_per_mm2=0.0)
+    rend = Renderer(rig, Optics(width=W, height=H, **CLEAN), smooth, seed=2,
+                    effects=RigEffects(roll_deg=roll_deg))
+    d = 12.0
+    pair = rend.render_pair(_flat, board_x_at_centre_mm=5.0, speed_mm_s=d / PPM / 0.002)
+    r = math.radians(roll_deg)
+    du, dv = d * math.cos(r), d * math.sin(r)  # the feed in the image: (cos r, sin r)
+    cols, rows = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    b_at = cv2.remap(pair.image_b, cols + np.float32(du), rows + np.float32(dv), cv2.INTER_CUBIC)
+    a, b = pair.image_a, b_at
+    inner = (slice(8, -8), slice(20, -20))
+    err = np.std((a - b)[inner]) / a.mean()
+    b_wrong = cv2.remap(pair.image_b, cols + np.float32(d), rows, cv2.INTER_CUBIC)
+    assert err < 0.002
+    assert err < 0.1 * np.std((a - b_wrong)[inner]) / a.mean()
+
+
+def test_board_range_covers_the_height_queries_with_roll_and_scattering():
+    wood = dataclasses.replace(FLAT_WOOD, translucency=0.5)
+    rig = make_rig(width=W, height=H, exposure_ms=0.1)
+    rend = Renderer(rig, Optics(width=W, height=H, **CLEAN), wood, seed=0,
+                    effects=RigEffects(roll_deg=-4.0, scattering_mm=0.5))
+    plain = Renderer(rig, Optics(width=W, height=H, **CLEAN), wood, seed=0)
+    seen = []
+
+    def spy(b):
+        seen.append((b.min(), b.max()))
+        return np.zeros_like(b)
+
+    rend.render_pair(spy, board_x_at_centre_mm=12.0, speed_mm_s=700.0)
+    lo, hi = rend.board_range_mm(board_x_at_centre_mm=12.0, speed_mm_s=700.0)
+    assert lo <= min(s[0] for s in seen) and max(s[1] for s in seen) <= hi
+    # wider than the ideal rig's by the scattering kernel and the rolled field
+    lo0, hi0 = plain.board_range_mm(board_x_at_centre_mm=12.0, speed_mm_s=700.0)
+    assert lo < lo0 - 2.0 and hi > hi0 + 2.0

@@ -344,3 +344,119 @@ def test_real_machine_register_values_match_the_map():
     server = PlcServer(m, port=0)
     words = RMAP.encode_block(server.values)
     assert RMAP.decode_block(words)["knives"] == values["knives"]
+
+
+# ------------------------------------------------------------------ raw Modbus TCP frames
+def raw_exchange(port: int, pdu: bytes, *, unit: int = 1, tid: int = 7) -> bytes | None:
+    """Send one ADU over a fresh socket; the response PDU, or ``None`` if the server closed."""
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=5.0) as s:
+        s.sendall(struct.pack(">HHHB", tid, 0, len(pdu) + 1, unit) + pdu)
+        return read_adu(s, tid=tid, unit=unit)
+
+
+def read_adu(sock, *, tid: int, unit: int) -> bytes | None:
+    """Read one response ADU; checks its header; the PDU (``None``: connection closed)."""
+    head = b""
+    while len(head) < 7:
+        chunk = sock.recv(7 - len(head))
+        if not chunk:
+            return None
+        head += chunk
+    r_tid, pid, length, r_unit = struct.unpack(">HHHB", head)
+    assert (r_tid, pid, r_unit) == (tid, 0, unit) and 2 <= length <= 254
+    body = b""
+    while len(body) < length - 1:
+        chunk = sock.recv(length - 1 - len(body))
+        assert chunk, "connection closed inside a response"
+        body += chunk
+    return body
+
+
+# every function code the map does not offer: coils, inputs, diagnostics, report server id,
+# file records, FIFO, encapsulated interface (device identification), user codes
+NOT_OFFERED = [1, 2, 4, 5, 7, 8, 11, 12, 15, 17, 20, 21, 22, 24, 43, 65, 100, 127]
+
+
+@pytest.mark.parametrize("fc", NOT_OFFERED)
+def test_function_codes_the_map_does_not_offer_get_exception_01_and_reveal_nothing(plc, fc):
+    for body in (b"", b"\x00\x00\x00\x01", bytes(range(20))):
+        reply = raw_exchange(plc.port, bytes([fc]) + body)
+        assert reply == bytes([fc | 0x80, 0x01]), reply  # nothing else: no library name
+    assert plc.client.read_holding_registers(0, 1) is not None  # still serving
+
+
+@pytest.mark.parametrize("count", [0, 126, 2000, 0xFFFF])
+def test_read_quantity_outside_1_to_125_is_exception_03(plc, count):
+    assert raw_exchange(plc.port, struct.pack(">BHH", 3, 0, count)) == b"\x83\x03"
+
+
+@pytest.mark.parametrize(
+    "pdu, code",
+    [
+        (struct.pack(">BH", 3, 0), 0x03),  # short body
+        (struct.pack(">BHHB", 3, 0, 1, 0), 0x03),  # long body
+        (struct.pack(">BHHB", 16, 2, 2, 3) + b"\x00" * 3, 0x03),  # byte count != 2 * qty
+        (struct.pack(">BHHB", 16, 2, 0, 0), 0x03),  # no registers
+        (struct.pack(">BHHB", 16, 2, 124, 248) + b"\x00" * 248, None),  # 124 > 123: 03
+        (struct.pack(">BHHB", 16, 2, 2, 4) + b"\x00" * 2, 0x03),  # fewer bytes than said
+        (struct.pack(">BHH", 6, 40000, 1), 0x02),  # write past the map
+        (struct.pack(">BHH", 3, 37, 2), 0x02),  # read past the map
+    ],
+)
+def test_malformed_requests_get_the_spec_exception(plc, pdu, code):
+    reply = raw_exchange(plc.port, pdu)
+    if code is None:  # a PDU longer than an ADU may hold: refused or the connection closed
+        assert reply in (None, bytes([pdu[0] | 0x80, 0x03]))
+    else:
+        assert reply == bytes([pdu[0] | 0x80, code])
+
+
+def test_read_write_multiple_writes_then_reads(plc):
+    reg = RMAP["feed_setpoint_mm_s"]
+    words = RMAP.encode("feed_setpoint_mm_s", 612.5)
+    first, count = RMAP.span()
+    pdu = struct.pack(">BHHHHB", 23, first, count, reg.address, 2, 4) + struct.pack(">2H", *words)
+    reply = raw_exchange(plc.port, pdu)
+    assert reply[:2] == bytes([23, 2 * count])
+    got = RMAP.decode_block(list(struct.unpack(f">{count}H", reply[2:])), first)
+    assert got["feed_setpoint_mm_s"] == 612.5 and plc.machine.feed_setpoint == 612.5
+
+
+def test_not_modbus_tcp_header_closes_only_that_connection(plc):
+    import socket
+
+    for head in (struct.pack(">HHHB", 1, 1, 6, 1), struct.pack(">HHHB", 1, 0, 0, 1),
+                 struct.pack(">HHHB", 1, 0, 300, 1)):
+        with socket.create_connection(("127.0.0.1", plc.port), timeout=5.0) as s:
+            s.sendall(head + b"\x03\x00\x00\x00\x01")
+            assert s.recv(100) == b""  # closed without an answer
+    assert _read(plc.client, "knives") == [4]
+
+
+def test_queued_writes_served_at_once_applied_in_order_by_the_stepping_side():
+    """``queue_writes``: the snapshot shows a write at once; the machine gets it on apply."""
+    machine = FakeMachine()
+    lt = LoopThread()
+    server = PlcServer(machine, port=0, queue_writes=True)
+    try:
+        host, port = lt.call(server.start())
+        c = ModbusClient(host=host, port=port, unit_id=1, auto_open=True, timeout=2.0)
+        for value in (100.0, 250.0, 333.5):
+            words = long_list_to_word([encode_ieee(value)], big_endian=True)
+            assert c.write_multiple_registers(RMAP["feed_setpoint_mm_s"].address, words)
+        assert machine.feed_setpoint == 800.0  # not applied yet
+        server.refresh()  # a publish before the apply keeps the written value
+        got = decode_ieee(word_list_to_long(_read(c, "feed_setpoint_mm_s"))[0])
+        assert got == 333.5
+        applied: list[float] = []
+        orig = machine.set_feed_setpoint
+        machine.set_feed_setpoint = lambda v: (applied.append(v), orig(v))[1]
+        assert server.apply_writes() == 3 and applied == [100.0, 250.0, 333.5]
+        server.refresh()
+        assert decode_ieee(word_list_to_long(_read(c, "feed_setpoint_mm_s"))[0]) == 333.5
+        c.close()
+    finally:
+        lt.call(server.stop())
+        lt.close()

@@ -18,9 +18,11 @@ import math
 import numpy as np
 import pytest
 
+from config.loading import default_path
 from config.rig import load_rig
 from config.sim import SimConfig, load_sim
 from plant_sim.machine import Machine
+from plant_sim.optics import RigEffects, effects_from_config
 from plant_sim.surface import Cutterhead, envelope, passes_steady
 from vision.pipeline import Measurement, Measurer
 
@@ -28,9 +30,21 @@ STEP_S = 0.02  # piezo commands every 20 ms of simulated time (the timeout is 10
 SETTLE_S = 0.02  # piezo table switch plus shaped step, generously
 
 
+def ideal(cfg: SimConfig) -> SimConfig:
+    """``cfg`` with the real-rig effects off: the rig exactly as its file says, opaque wood."""
+    return variant(
+        cfg,
+        camera={"roll_deg": 0.0, "slant_offset_deg": (0.0, 0.0),
+                "optics": dataclasses.replace(cfg.camera.optics, noise=0.5)},
+        board={"scattering_mm": 0.0, "reflectance_roughness_deg": 0.0, "bow_mm": 0.0,
+               "cup_mm": 0.0, "pencil_lines": ()},
+    )
+
+
 @pytest.fixture(scope="module")
 def cfg() -> SimConfig:
-    return load_sim()
+    """The shipped configuration on an ideal rig (the kinematics checks below are exact)."""
+    return ideal(load_sim())
 
 
 @pytest.fixture(scope="module")
@@ -245,3 +259,42 @@ def test_offsets_out_of_step_with_the_knives_do_not_equalise(cfg, measurer):
     cv_after = mean(g.uniformity_cv for g in measure(measurer, after))
     assert cv_after >= 0.10
     assert cv_after == pytest.approx(mean(f.truth["uniformity_cv"] for f in after), abs=0.02)
+
+
+# ---------------------------------------------------------------- 4. a realistic rig
+
+
+def test_realistic_rig_changes_the_images_not_the_cut(measurer):
+    """The shipped config/sim.toml: roll, lights off the file, translucent spruce, sensor noise.
+
+    The machine renders those effects (the images differ from the ideal rig's, the cut and the
+    truth do not), and the pipeline still measures the marks' pitch and evenness.
+    """
+    real = load_sim()
+    assert real.camera.rig == load_rig(default_path("rig.toml"))  # the rig file is the shipped one
+    m = Machine(real, seed=11)
+    assert m.renderer.effects == effects_from_config(real)
+    assert m.renderer.effects != RigEffects()
+    frames = collect(Piezo(m, enable=False), 3)
+    plain = collect(Piezo(Machine(ideal(real), seed=11), enable=False), 3)
+    for f, g in zip(frames, plain, strict=True):
+        assert f.truth["pitch_mm"] == g.truth["pitch_mm"]
+        assert f.truth["mark_widths_mm"] == g.truth["mark_widths_mm"]
+        assert (f.counts_a, f.counts_b) == (g.counts_a, g.counts_b)
+        assert np.mean(np.abs(f.image_a.astype(float) - g.image_a)) > 1.0
+    got = measure(measurer, frames)
+    pitch_truth = mean(f.truth["feed_per_knife_mm"] for f in frames)
+    assert mean(g.pitch_mm for g in got) == pytest.approx(pitch_truth, rel=0.01)
+    cv_truth = mean(f.truth["uniformity_cv"] for f in frames)
+    assert cv_truth >= 0.10
+    assert mean(g.uniformity_cv for g in got) == pytest.approx(cv_truth, abs=0.03)
+
+
+@pytest.mark.parametrize("roll_deg", [-2.0, 1.5])
+def test_the_measured_roll_is_the_simulated_roll(cfg, measurer, roll_deg):
+    """Simulator and vision share one roll convention (docs/architecture.md)."""
+    rolled = variant(cfg, camera={"roll_deg": roll_deg})
+    frames = collect(Piezo(Machine(rolled, seed=3), enable=False), 2)
+    got = measure(measurer, frames)
+    for g in got:
+        assert g.roll_deg == pytest.approx(roll_deg, abs=0.1)

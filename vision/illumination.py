@@ -124,9 +124,10 @@ class Detrender:
             if n - period_px >= 4 * (self.degree + 1):
                 fit_basis = running_mean(basis, period_px)
                 fit_values = running_mean(v, period_px)
-        gram = fit_basis.T @ fit_basis
-        coef = np.linalg.solve(gram, fit_basis.T @ fit_values)
-        return basis @ coef
+        # small products through einsum: BLAS threads cost more than they save here
+        gram = np.einsum("ij,ik->jk", fit_basis, fit_basis)
+        coef = np.linalg.solve(gram, np.einsum("ij,i->j", fit_basis, fit_values))
+        return np.einsum("ij,j->i", basis, coef)
 
     def __call__(
         self, values: np.ndarray, *, start: int = 0, period_px: float | None = None

@@ -376,6 +376,15 @@ class Registrar:
     max_frequency : float, optional
         Highest frequency used by the fine fit, cycles per pixel (above it pixel sampling and
         blur make the two images' fine detail differ).
+    min_significance : float, optional
+        Noisy images: a texture peak below ``min_peak_ncc`` is still used when it stands this
+        many chance levels ``1 / sqrt(N_eff)`` above zero (``N_eff``: rows x overlap / short
+        band length / 2), and its confidence is then ``0.9 uniqueness x clip((z - z_min) / 5)``
+        with ``z = peak / chance level`` -- high for a strong, unique peak in many rows, falling
+        with the noise.
+    noisy_short_px : int, optional
+        When the texture does not register with ``band_px``, it is tried once more with this
+        short length (noisy images).
     """
 
     _TRIM = 0.75  # fraction of the smallest squares kept by the robust profile correlation
@@ -398,6 +407,8 @@ class Registrar:
         min_profile_ncc: float = 0.35,
         min_shading_score: float = 0.5,
         max_frequency: float = 0.35,
+        min_significance: float = 5.0,
+        noisy_short_px: int = 15,
     ) -> None:
         self.width = check_int("width", width, lo=16)
         self.search_px = check_positive("search_px", search_px, allow_zero=True)
@@ -414,6 +425,8 @@ class Registrar:
         self.min_profile_ncc = check_range("min_profile_ncc", min_profile_ncc, -1.0, 1.0)
         self.min_shading_score = check_range("min_shading_score", min_shading_score, -1.0, 1.0)
         self.max_frequency = check_range("max_frequency", max_frequency, 0.05, 0.5)
+        self.min_significance = check_positive("min_significance", min_significance)
+        self.noisy_short_px = check_int("noisy_short_px", noisy_short_px, lo=1)
         short, long = (int(band_px[0]), int(band_px[1]))
         if not 1 <= short < long < self.width:
             raise ValueError(f"band_px must be (short, long) with 1 <= short < long < width, "
@@ -465,10 +478,11 @@ class Registrar:
             taper = self._tapers[n] = np.hanning(n)
         return taper
 
-    def band_pass(self, texture: np.ndarray) -> np.ndarray:
+    def band_pass(self, texture: np.ndarray, band_px: tuple[int, int] | None = None
+                  ) -> np.ndarray:
         """Difference of running means along x (lengths ``band_px``), edges reflected."""
         t = np.asarray(texture, dtype=np.float32)
-        short, long = self.band_px
+        short, long = self.band_px if band_px is None else band_px
         smooth = cv2.blur(t, (long, 1), borderType=cv2.BORDER_REFLECT)
         if short > 1:
             t = cv2.blur(t, (short, 1), borderType=cv2.BORDER_REFLECT)
@@ -477,7 +491,8 @@ class Registrar:
     # -- coarse stages --------------------------------------------------------------------------
 
     def coarse(
-        self, texture_a: np.ndarray, texture_b: np.ndarray, *, encoder_shift_px: float
+        self, texture_a: np.ndarray, texture_b: np.ndarray, *, encoder_shift_px: float,
+        band_px: tuple[int, int] | None = None,
     ) -> Registration:
         """Shift from the 2-D textures alone.
 
@@ -487,6 +502,8 @@ class Registrar:
             Shading-free textures of A and B (:func:`shading_free_texture`), same rows.
         encoder_shift_px : float
             Shift from the encoder, pixels.
+        band_px : tuple of int, optional
+            Band-pass lengths (default ``band_px`` of the registrar).
 
         Returns
         -------
@@ -508,8 +525,9 @@ class Registrar:
             )
         lo, hi, u0, u1 = self._lag_window(guess, w)
         reach = self.search_px + self.margin_px
-        ta = self.band_pass(ta)
-        tb = self.band_pass(tb)
+        band = self.band_px if band_px is None else band_px
+        ta = self.band_pass(ta, band)
+        tb = self.band_pass(tb, band)
         a = np.zeros_like(ta)
         a[:, u0:u1] = ta[:, u0:u1]
         n = self.nfft
@@ -526,7 +544,15 @@ class Registrar:
             raise RegistrationError("the images have no texture to register on")
         ncc = cc[lags % n] / den
         shift, peak_ncc, confidence = _window_peak(ncc, lags, "texture", guess, reach)
-        if peak_ncc < self.min_peak_ncc or confidence < self.min_confidence:
+        # Evidence of many rows: the chance level of the correlation falls as 1 / sqrt(N_eff).
+        n_eff = ta.shape[0] * (u1 - u0) / (2.0 * band[0])
+        z = peak_ncc * math.sqrt(max(n_eff, 1.0))
+        if z >= self.min_significance and peak_ncc > 0:
+            uniqueness = confidence / min(peak_ncc, 1.0)
+            confidence = max(confidence,
+                             0.9 * uniqueness * min(1.0, (z - self.min_significance) / 5))
+        significant = peak_ncc >= self.min_peak_ncc or z >= self.min_significance
+        if not significant or confidence < self.min_confidence:
             raise RegistrationError(
                 f"cannot register the pair: texture correlation {peak_ncc:.3f} at {shift:.1f} px, "
                 f"confidence {confidence:.2f} < {self.min_confidence:.2f} "
@@ -645,7 +671,7 @@ class Registrar:
         # |X| e^(2i arg X): the phase doubled, so frequencies where the mirrored shading
         # dominates (X < 0 at the true delay) vote with the albedo's (X > 0).
         doubled = cross * cross / np.where(mag > 0, mag, 1.0)
-        score = (self._fine_phasor @ doubled).real
+        score = np.einsum("ij,j->i", self._fine_phasor, doubled).real  # no BLAS threads
         j = int(np.argmax(score))
         if j == 0 or j == score.size - 1:
             return math.nan, float(score[j]) / total
@@ -739,25 +765,81 @@ class Registrar:
             texture = self.coarse(texture_a, texture_b, encoder_shift_px=guess)
         except RegistrationError as exc:
             reasons.append(str(exc).removeprefix("cannot register the pair: "))
+            # Noisy images: a wider short band keeps the fibres' texture and drops the noise.
+            wide = (max(self.band_px[0], self.noisy_short_px), self.band_px[1])
+            if wide != self.band_px and wide[0] < wide[1]:
+                try:
+                    texture = self.coarse(texture_a, texture_b, encoder_shift_px=guess,
+                                          band_px=wide)
+                except RegistrationError as exc2:
+                    reasons.append(str(exc2).removeprefix("cannot register the pair: "))
+        profile: Registration | None = None
+        profile_tried = False
+        disagree: RegistrationError | None = None
         reg = texture
         if texture is None or texture.confidence < self.strong_confidence:
-            profile: Registration | None = None
+            profile = _try_profile(self, pa, pb, guess, reasons)
+            profile_tried = True
             try:
-                profile = self.coarse_profile(pa, pb, encoder_shift_px=guess)
+                reg = self._choose(texture, profile)
             except RegistrationError as exc:
-                reasons.append(str(exc))
-            reg = self._choose(texture, profile)
-        if reg is None:
+                disagree = exc
+                reg = None
+        if reg is None and disagree is None:
             return self._shading_only(pa, pb, guess, reasons)
-        shift, score = self.fine(pa, pb, guess_px=reg.shift_px)
-        if score < self.min_fine_score:  # featureless profiles: keep the coarse shift
-            return replace(reg, fine_score=score)
-        if not math.isfinite(shift):
-            raise RegistrationError(
-                f"the column profiles do not line up within {self.fine_px} px of the "
-                f"{reg.source} registration ({reg.shift_px:.1f} px)"
-            )
-        return replace(reg, shift_px=shift, fine_score=score, coarse_shift_px=reg.shift_px)
+        if reg is not None:
+            candidates = [reg]
+        else:  # the stages disagree: the one the fine fit confirms, if any
+            found = [r for r in (texture, profile) if r is not None]
+            candidates = sorted(found, key=lambda r: -r.confidence)
+        message = ""
+        while candidates:
+            cand = candidates.pop(0)
+            shift, score = self.fine(pa, pb, guess_px=cand.shift_px)
+            if score < self.min_fine_score:  # featureless profiles: keep the coarse shift
+                if disagree is None:
+                    return replace(cand, fine_score=score)
+                continue
+            if not math.isfinite(shift):
+                shift, score = _fine_beside(self, pa, pb, cand.shift_px)
+            if math.isfinite(shift):
+                return replace(cand, shift_px=shift, fine_score=score,
+                               coarse_shift_px=cand.shift_px)
+            message = (f"the column profiles do not line up within {self.fine_px} px of the "
+                       f"{cand.source} registration ({cand.shift_px:.1f} px)")
+            # A texture misled (e.g. fibres tilted by a roll): the 1-D profiles may still hold.
+            if not profile_tried:
+                profile = _try_profile(self, pa, pb, guess, reasons)
+                profile_tried = True
+                if profile is not None and abs(profile.shift_px - cand.shift_px) > self.fine_px:
+                    candidates.append(profile)
+        if disagree is not None:
+            raise disagree
+        raise RegistrationError(message)
+
+def _fine_beside(reg: Registrar, pa: np.ndarray, pb: np.ndarray, coarse: float
+                 ) -> tuple[float, float]:
+    """Fine fit in the windows either side of a coarse shift off by a little over ``fine_px``.
+
+    A noisy or biased coarse shift (e.g. fibres crossing the row bins of a rolled camera)
+    may miss the fine window; its neighbours are tried, and a coherent interior delay
+    within ``1.5 fine_px`` of the coarse shift -- short of the half-mark alias -- is taken.
+    """
+    best = (math.nan, -1.0)
+    for side in (-1, 1):
+        shift, score = reg.fine(pa, pb, guess_px=coarse + side * reg.fine_px)
+        if (math.isfinite(shift) and score >= reg.min_fine_score
+                and abs(shift - coarse) <= 1.5 * reg.fine_px and score > best[1]):
+            best = (shift, score)
+    return best
+
+def _try_profile(reg: Registrar, pa: np.ndarray, pb: np.ndarray, guess: float,
+                 reasons: list[str]) -> Registration | None:
+    try:
+        return reg.coarse_profile(pa, pb, encoder_shift_px=guess)
+    except RegistrationError as exc:
+        reasons.append(str(exc))
+        return None
 
 
 def refine_shift(

@@ -80,6 +80,7 @@ def slope_from_ratio(
     slant_deg: float,
     azimuth_a_deg: float = 0.0,
     azimuth_b_deg: float = 180.0,
+    slant_b_deg: float | None = None,
 ) -> np.ndarray:
     """Slope from the intensity ratio ``I_B / I_A`` (seed Eq. 4 divided through by ``I_A``).
 
@@ -89,15 +90,22 @@ def slope_from_ratio(
         ``I_B / I_A`` after any illumination correction.
     slant_deg, azimuth_a_deg, azimuth_b_deg : float
         As in :func:`slope_eq4`.
+    slant_b_deg : float, optional
+        Light B's own slant when it differs from light A's (``slant_deg`` is then light A's).
+        Each intensity divided by its own ``cos(sigma)`` (the illumination correction does
+        that), ``r = (1 - p cos(tau_B) tan(sigma_B)) / (1 - p cos(tau_A) tan(sigma_A))``.
 
     Returns
     -------
     ndarray
-        Slope ``p = (r - 1) / (r cos(tau_A) - cos(tau_B)) / tan(sigma)``.
+        Slope ``p = (r - 1) / (r cos(tau_A) tan(sigma_A) - cos(tau_B) tan(sigma_B))``.
     """
     tan_s, ca, cb = _angles(slant_deg, azimuth_a_deg, azimuth_b_deg)
+    tan_b = tan_s
+    if slant_b_deg is not None:
+        tan_b, _, _ = _angles(slant_b_deg, azimuth_a_deg, azimuth_b_deg)
     r = np.asarray(ratio_ba, dtype=np.float64)
-    den = (r * ca - cb) * tan_s
+    den = r * ca * tan_s - cb * tan_b
     with np.errstate(divide="ignore", invalid="ignore"):
         p = (r - 1.0) / den
     return np.where(den != 0, p, np.nan)

@@ -53,6 +53,9 @@ class Undistorter:
         Binned rows whose samples are all inside the distorted image over :attr:`columns`.
     columns : tuple of int
         ``(c0, c1)``: undistorted columns that see the image on the middle row.
+    first_row_px : float
+        Undistorted image row at the centre of binned row 0 (binned row ``j`` is centred on
+        ``first_row_px + j * bin_rows``).
     """
 
     def __init__(
@@ -90,6 +93,7 @@ class Undistorter:
 
         # Tables from the binned output grid (u, j) to binned-source coordinates.
         centre = self._r0 + (bins - 1) / 2.0
+        self.first_row_px = float(centre)
         newk = np.array(
             [[camera.fx, 0.0, camera.cx], [0.0, camera.fy / bins, (camera.cy - centre) / bins],
              [0.0, 0.0, 1.0]],

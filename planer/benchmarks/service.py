@@ -87,8 +87,8 @@ async def _run(
         try:
             await asyncio.wait_for(running.wait(), ready_timeout_s)
         except asyncio.TimeoutError:
-            status = service.status
-            why = service._describe(status.missing) if status is not None else "no cycle ran"
+            status = service.status()
+            why = status.safe_reason if status.t_s is not None else "no cycle ran"
             stop.set()
             raise RuntimeError(
                 f"service benchmark: service not in RUN after {ready_timeout_s:g} s ({why})"

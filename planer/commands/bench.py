@@ -14,7 +14,7 @@ import sys
 from typing import Any
 
 HELP = "benchmarks: vision pairs/s, simulator real-time factor, service latency"
-PARTS = ("vision", "sim", "service")
+PARTS = ("vision", "sim", "service", "camera")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -66,9 +66,24 @@ def _format(name: str, result: Any) -> str:
                 f"p99 {result['p99_ms']:.1f} ms, max {result['max_ms']:.1f} ms "
                 f"({ok} the target p99 <= {result['target_p99_ms']:g} ms)"
             )
+        if name == "camera":
+            return _camera_text(result)
     except (KeyError, TypeError, ValueError):
         pass
     return f"{name}: {json.dumps(result, indent=2)}"
+
+
+def _camera_text(result: Any) -> str:
+    """The camera part (``planer/benchmarks/camera.py``)."""
+    if not result["available"]:
+        return f"camera: not measured ({result['reason']})"
+    t, f = result["at_target"], result["fastest"]
+    ok = "meets" if result["meets_target"] else "MISSES"
+    return (f"camera (fake Fake_1, {result['width']}x{result['height']} Mono8): "
+            f"{t['pairs_per_s']:.0f} pairs/s at {t['asked_pairs_per_s']:g} asked (camera made "
+            f"{t['camera_pairs_per_s']:.0f}), {t['drops']} drops; fastest "
+            f"{f['pairs_per_s']:.0f} pairs/s, {f['drops']} drops ({ok} the target "
+            f"{result['target_pairs_per_s']:g} pairs/s with no drop)")
 
 
 def run(args: argparse.Namespace) -> int:

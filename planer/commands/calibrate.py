@@ -5,7 +5,8 @@ Reads the images, finds the board in each (:func:`vision.calibration.find_corner
 intrinsics. Images that cannot be read or show no complete board are skipped with a one-line
 warning on stderr naming the file. The other values of the rig (``[lights]``, ``[encoder]``,
 ``px_per_mm``, ``exposure_ms``) come from ``--rig`` or, without it, from the shipped default
-``config/rig.toml``; ``--px-per-mm`` overrides the scale. The file is written atomically.
+``config/rig.toml``; ``--px-per-mm`` overrides the scale. The file is written atomically; its
+folder is created when missing (checked before the images are read).
 """
 
 from __future__ import annotations
@@ -124,18 +125,13 @@ def run(args: argparse.Namespace) -> int:
     from core.checks import check_positive
     from core.errors import ConfigError
     from core.fileio import atomic_write_text
-    from planer.cli import writable_folder
+    from planer.cli import output_file
     from vision.calibration import MIN_IMAGES, calibrate, find_corners, parse_pattern
 
     pattern = parse_pattern(args.pattern)
     square_mm = check_positive("--square-mm", args.square_mm)
     px_per_mm = None if args.px_per_mm is None else check_positive("--px-per-mm", args.px_per_mm)
-    out = Path(args.out)
-    if out.is_dir():
-        raise ValueError(f"--out is a directory: {out}")
-    if not (out.parent if str(out.parent) else Path(".")).is_dir():
-        raise ValueError(f"--out: folder does not exist: {out.parent}")
-    writable_folder("--out", out.parent if str(out.parent) else Path("."), what=str(out))
+    out = Path(output_file("--out", args.out))  # its folder is created if missing
 
     # The base rig first, so that a bad --rig fails before the slow corner search.
     base_path = Path(args.rig) if args.rig is not None else default_path("rig.toml")

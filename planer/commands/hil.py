@@ -5,7 +5,8 @@ itself inside a private network namespace (``unshare -rn``) so that CAN can go o
 ``udp_multicast`` on the namespace's loopback, and Modbus over 127.0.0.1. Where that is not
 possible (no unprivileged namespaces, no ``msgpack``), or with ``--in-process``, the simulator
 and the service run in one process on simulated time with the virtual CAN bus; the reason is
-printed. Progress goes to stderr; the summary (or with ``--json`` one JSON object) to stdout.
+printed. Progress goes to stderr; the summary (or with ``--json`` one strict JSON object: no
+NaN, a missing number is ``null`` with its reason in ``null_reasons``) to stdout.
 The report's figures of the run (``controller/report.py``: pitch and uniformity along the
 boards, setpoints, a profile) are written next to the quality log and their paths printed
 (``figures`` in the JSON object). Exit code 0 when every check of the summary's ``done`` table
@@ -38,6 +39,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--log", default=None, metavar="PATH", help="quality log (default runs/hil-<time>.sqlite)"
     )
     parser.add_argument("--seed", type=int, default=None, help="simulator seed")
+    parser.add_argument(
+        "--opcua", default=None, metavar="ENDPOINT",
+        help="serve OPC UA (OPC 40550 Woodworking) at ENDPOINT during the run, e.g. "
+        "opc.tcp://127.0.0.1:4840 (docs/opcua.md)",
+    )
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument(
         "--in-process",
@@ -82,12 +88,15 @@ def _human(summary: dict) -> str:
         f"{conv.get('reference', 'loop closed')}"
     )
     lim = summary["limits"]
-    rng = lim.get("feed_setpoint_range_mm_s") or [float("nan")] * 2
+    rng = lim.get("feed_setpoint_range_mm_s")
+    feed = "-" if not rng else f"{rng[0]:.1f}..{rng[1]:.1f}"
     lines.append(
-        f"  setpoints         feed {rng[0]:.1f}..{rng[1]:.1f} mm/s within "
-        f"[{lim['feed_min_mm_s']:g}, {lim['feed_max_mm_s']:g}], offsets |max| "
+        f"  setpoints         feed {feed} mm/s within "
+        f"[{f(lim['feed_min_mm_s'], 'g')}, {f(lim['feed_max_mm_s'], 'g')}], offsets |max| "
         f"{lim['max_abs_offset_um']:.2f} um within {lim['stroke_um']:g}"
     )
+    for why in lim.get("reasons") or ():
+        lines.append(f"                    NOT OK: {why}")
     lat = summary.get("latency_ms")
     if lat:
         lines.append(
@@ -96,13 +105,25 @@ def _human(summary: dict) -> str:
         )
     for fault in summary.get("faults", []):
         if "safe_after_s" in fault:
+            after = ""
+            if "recovered_after_end_s" in fault:
+                after = (f", recovered {f(fault['recovered_after_end_s'], '.2f')} s after it "
+                         f"ended, {fault['resumed_measurements']} measurements applied after")
             lines.append(
                 f"  fault {fault['kind']} at {fault['at_s']:g} s: safe after "
-                f"{f(fault['safe_after_s'], '.2f')} s, recovered "
-                f"{f(fault['recovered_after_end_s'], '.2f')} s after it ended, "
-                f"{fault['resumed_measurements']} measurements applied after -> "
+                f"{f(fault['safe_after_s'], '.2f')} s ({fault.get('safe_reason') or '-'}; "
+                f"should trip {fault['trips']}){after} -> "
                 f"{'ok' if fault['handled'] else 'NOT HANDLED'}"
             )
+    safe = summary.get("safe_entries")
+    if safe:
+        lines.append(f"  safe-state entries {safe['count']} ({safe['unexplained']} not explained "
+                     "by an injected fault)")
+        for e in safe["entries"][:20]:
+            lines.append(f"                    t={e['t_s']:.2f} s  {e['reason']}  "
+                         f"<- {e['fault'] or 'NO FAULT'}")
+        if len(safe["entries"]) > 20:
+            lines.append(f"                    ... {len(safe['entries']) - 20} more")
     for key, ok in summary["done"].items():
         lines.append(f"  [{'x' if ok else ' '}] {key}")
     lines.append(f"  quality log       {summary['quality_log']['path']} "
@@ -129,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
     import time
     from dataclasses import replace
 
+    from controller.quality_log import log_target
     from core.errors import FieldbusError
     from planer import hil
     from planer.cli import output_file
@@ -148,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.log is None and "PLANER_HIL_LOG" in os.environ:
         log_path = Path(os.environ["PLANER_HIL_LOG"])
-    output_file("--log", log_path)
+    log_path = Path(log_target(log_path, check_file=lambda p: output_file("--log", p)))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     signal.signal(signal.SIGTERM, _terminate_as_interrupt)  # clean up as on Ctrl-C
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -156,6 +178,12 @@ def run(args: argparse.Namespace) -> int:
     def progress(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
 
+    if getattr(args, "opcua", None) and not (args.in_process or args.cross_process
+                                             or can_transport.in_private_netns()):
+        # the cross-process run lives in a private network namespace no client outside reaches
+        progress("planer hil: --opcua: running the simulator in this process so that OPC UA "
+                 "clients on this machine can reach the server")
+        args.in_process = True
     cross = False
     if not args.in_process:
         ok, why = hil.cross_process_possible()
@@ -185,7 +213,8 @@ def run(args: argparse.Namespace) -> int:
         raise
     summary["figures"] = _write_figures(summary, progress)
     if args.json:
-        print(json.dumps(summary), flush=True)
+        # strict JSON: NaN/inf become null (listed in null_reasons); a regression fails loudly
+        print(json.dumps(hil.json_ready(summary), allow_nan=False), flush=True)
     else:
         print(_human(summary), flush=True)
     return 0 if summary["passed"] else 1
@@ -218,14 +247,27 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
     """Run the scenario in the chosen mode; return the summary."""
     import asyncio
 
+    from controller.opcua.compose import server_for, serving
+
+    cfg = hil.machine_config_for(scenario, log_path=log_path)
+    server_for(cfg, getattr(args, "opcua", None))  # bad endpoint / security: one line, early
+    opened: list = []
+
+    async def with_opcua(run: Any, get_service: Callable[[], Any]) -> dict:
+        async with serving(cfg, getattr(args, "opcua", None), get_service, say=progress):
+            return await run
+
     if cross:
         # the simulator's config and frame spool (tens of MB) live in a temporary folder that
         # run_cross_process removes when the run ends
-        summary = asyncio.run(hil.run_cross_process(scenario, log_path=log_path,
-                                                    progress=progress))
+        summary = asyncio.run(with_opcua(
+            hil.run_cross_process(scenario, log_path=log_path, progress=progress,
+                                  on_service=opened.append),
+            lambda: opened[-1] if opened else None))
     else:
         runner = hil.InProcessHil(
             scenario, log_path=log_path, plc_transport=args.plc, progress=progress
         )
-        summary = asyncio.run(runner.run())
+        summary = asyncio.run(with_opcua(runner.run(),
+                                         lambda: getattr(runner, "service", None)))
     return summary

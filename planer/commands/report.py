@@ -1,7 +1,11 @@
 """``planer report``: summarise a quality log, draw its figures, optionally export CSV.
 
-``planer report LOG [--out DIR] [--csv FILE] [--json]``. The log may be growing (the service
-appending) while this reads it: the report shows the records committed when it started.
+``planer report LOG [--machine ID] [--out DIR] [--csv FILE] [--json]``. LOG is an SQLite file
+or a PostgreSQL URL ``postgresql://USER@HOST:PORT/DB`` (a fleet's shared log; ``--machine``
+picks one machine's records). The log may be growing (the service appending) while this reads
+it: the report shows the records committed when it started. A record journal left on local
+disk (records the log could not take yet) is named with its record count; its records are not
+in the summary. An unreachable database is one line naming ``host:port/db`` (exit 2).
 """
 
 from __future__ import annotations
@@ -16,9 +20,13 @@ HELP = "summarise a quality log: text or JSON summary, PNG figures, CSV export"
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""
     parser.add_argument("log", metavar="LOG",
-                        help="quality log file (SQLite) written by the service")
+                        help="quality log written by the service: an SQLite file or "
+                             "postgresql://USER@HOST:PORT/DB")
+    parser.add_argument("--machine", metavar="ID", default=None,
+                        help="only the records of this machine id (a log shared by a fleet)")
     parser.add_argument("--out", metavar="DIR", default=None,
-                        help="folder for the PNG figures (default: the log's folder)")
+                        help="folder for the PNG figures (default: the log's folder; the "
+                             "current folder for a database)")
     parser.add_argument("--csv", metavar="FILE", default=None,
                         help="also export every record to this CSV file")
     parser.add_argument("--json", action="store_true",
@@ -27,37 +35,53 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    from controller.quality_log import QualityLog
+    from controller.quality_log import is_database_url, log_target, open_quality_log
+    from controller.record_journal import default_journal_path, read_journal
     from controller.report import build_figures, format_summary, save_figures, summarise
     from planer.cli import output_file, output_folder
 
-    log_path = Path(args.log)
-    if log_path.is_dir():
+    log_path = log_target(args.log)
+    if isinstance(log_path, Path) and log_path.is_dir():
         raise ValueError(f"LOG {log_path}: is a folder, expected a quality log file")
-    out_dir = Path(args.out) if args.out is not None else log_path.absolute().parent
+    if is_database_url(log_path):
+        default_out, stem = Path.cwd(), _database_stem(str(log_path))
+    else:
+        default_out, stem = Path(log_path).absolute().parent, Path(log_path).stem
+    out_dir = Path(args.out) if args.out is not None else default_out
     output_folder("--out" if args.out is not None else "figure folder (next to LOG; see --out)",
                   out_dir)
     if args.csv is not None:
         output_file("--csv", args.csv)
 
-    with QualityLog(log_path, create=False) as log:
-        records = log.records()
+    with open_quality_log(log_path, create=False) as log:
+        shown = str(log.path)
+        records = log.records(machine_id=args.machine)
         quality_class = log.quality_class()
         csv_path, n_csv = None, 0
         if args.csv is not None:
             csv_path = Path(args.csv)
-            n_csv = log.export_csv(csv_path)
+            n_csv = log.export_csv(csv_path, machine_id=args.machine)
+
+    journal = default_journal_path(log_path)
+    try:
+        held, bad = read_journal(journal)
+        journal_info = {"path": str(journal), "records": len(held), "unreadable_lines": bad}
+    except FileNotFoundError:
+        journal_info = None
+    except OSError as exc:
+        journal_info = {"path": str(journal), "records": None, "error": exc.strerror or str(exc)}
 
     summary = summarise(records, quality_class=quality_class)
     written = save_figures(build_figures(records, quality_class=quality_class), out_dir,
-                           stem=log_path.stem)  # each PNG written atomically
+                           stem=stem)  # each PNG written atomically
 
     if args.json:
-        summary = {"log": str(log_path), **summary, "figures": written,
-                   "csv": None if csv_path is None else str(csv_path)}
+        summary = {"log": shown, "machine": args.machine, **summary, "figures": written,
+                   "csv": None if csv_path is None else str(csv_path), "journal": journal_info}
         print(json.dumps(summary, allow_nan=False))
     else:
-        print(format_summary(summary, title=f"Quality log {log_path}"))
+        title = f"Quality log {shown}" + (f", machine {args.machine}" if args.machine else "")
+        print(format_summary(summary, title=title))
         if written:
             print("\nFigures:")
             for path in written.values():
@@ -66,4 +90,17 @@ def run(args: argparse.Namespace) -> int:
             print("\nNo figures: the log holds no measurements.")
         if csv_path is not None:
             print(f"CSV: {csv_path} ({n_csv} rows)")
+        if journal_info is not None:
+            n = journal_info["records"]
+            print(f"\nNote: the record journal {journal} holds "
+                  f"{'an unknown number of' if n is None else n} record(s) not yet in this "
+                  "log (not in this report); the service writes them in at its next start.")
     return 0
+
+
+def _database_stem(url: str) -> str:
+    """File-name stem of a database log's figures: the database name (``quality`` without)."""
+    from urllib.parse import urlsplit
+
+    name = urlsplit(url).path.strip("/")
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "quality"

@@ -36,6 +36,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help="while waiting in the safe state, say what is missing every S seconds (default 5)",
     )
+    parser.add_argument(
+        "--opcua", default=None, metavar="ENDPOINT",
+        help="serve OPC UA (OPC 40550 Woodworking) at ENDPOINT, e.g. opc.tcp://127.0.0.1:4840 "
+        "(overrides [opcua] endpoint; docs/opcua.md)",
+    )
 
 
 _MISSING = {
@@ -71,10 +76,11 @@ def run(args: argparse.Namespace) -> int:
     import logging
     import signal
     import sys
-    from pathlib import Path
 
     from config.machine import load_machine
+    from controller.events import EventKind
     from controller.frame_source import open_frame_source
+    from controller.quality_log import log_target
     from controller.safety import SafetyState
     from controller.service import open_service
     from core.checks import check_int
@@ -85,24 +91,33 @@ def run(args: argparse.Namespace) -> int:
     if not args.status_every > 0:
         raise ValueError(f"--status-every must be > 0, got {args.status_every}")
     cfg = load_machine(args.config)
-    if cfg.frames.source != "spool":
+    if cfg.frames.source not in ("spool", "camera"):
         raise ValueError(
-            f"planer serve needs frames.source = spool, got {cfg.frames.source!r} "
+            f"planer serve needs frames.source = spool or camera, got {cfg.frames.source!r} "
             "(inprocess is for tests and planer hil)"
         )
     output_folder(f"{args.config or 'config/machine.toml'}: frames.spool_dir", cfg.frames.spool_dir)
-    log_path = Path(output_file(
-        "--log" if args.log else f"{args.config or 'config/machine.toml'}: log.path",
-        args.log or cfg.log.path,
-    ))
+    log_opt = "--log" if args.log else f"{args.config or 'config/machine.toml'}: log.path"
+    log_path = log_target(args.log or cfg.log.path,  # a postgresql:// URL or a file
+                          check_file=lambda p: output_file(log_opt, p))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
     def say(line: str) -> None:
         print(line, flush=True)
 
+    from controller.opcua.compose import server_for, serving
+
+    server_for(cfg, args.opcua)  # a bad endpoint or missing security: one line before starting
+    opened: list = []
+
     async def main() -> int:
+        async with serving(cfg, args.opcua, lambda: opened[0] if opened else None, say=say):
+            return await serve()
+
+    async def serve() -> int:
         service = open_service(cfg, log_path=log_path)
+        opened.append(service)
         source = open_frame_source(cfg.frames)
         t0 = service.clock()
         say(f"plc: {cfg.plc.host}:{cfg.plc.port} unit {cfg.plc.unit_id}")
@@ -113,7 +128,17 @@ def run(args: argparse.Namespace) -> int:
             f"quality: {cfg.quality.class_name}, target pitch {cfg.quality.target_pitch_mm} mm, "
             f"safe state {cfg.safety.safe_state}"
         )
-        service.on_event = lambda e: say(f"t={e.t_s - t0:9.3f} s  {e.text}")
+        to_stderr = {EventKind.LOG_FAILED, EventKind.RECORDS_SAVED, EventKind.RECORDS_LOST,
+                     EventKind.SERVICE_ERROR}
+
+        def on_event(e) -> None:  # the log's trouble and the service's own faults: stderr
+            line = f"t={e.t_s - t0:9.3f} s  {e.text}"
+            if e.kind in to_stderr:
+                print(line, file=sys.stderr, flush=True)
+            else:
+                say(line)
+
+        service.on_event = on_event
         every = cfg.log.print_every
         window: list = []
 
@@ -150,8 +175,8 @@ def run(args: argparse.Namespace) -> int:
             # the service starts in SAFE and says nothing until it recovers: say what it waits for
             while not stop.is_set():
                 await asyncio.sleep(args.status_every)
-                status = service.status
-                if status is not None and status.state is not SafetyState.RUN:
+                status = service.status()
+                if status.t_s is not None and status.state != SafetyState.RUN.value:
                     say(f"t={service.clock() - t0:9.3f} s  "
                         + waiting_line(tuple(status.missing), **where))
 

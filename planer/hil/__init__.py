@@ -20,7 +20,9 @@ integrity.
 
 The package, by job: :mod:`planer.hil.scenario` (what to run), :mod:`planer.hil.in_process`
 (simulated time, one process), :mod:`planer.hil.cross_process` (real time, two processes),
-:mod:`planer.hil.summary` (what the run achieved).
+:mod:`planer.hil.summary` (what the run achieved; :func:`json_ready` for strict JSON),
+:mod:`planer.hil.soak` (an hour of machine time with faults: memory, files and latency flat;
+``python -m planer.hil.soak``). Fault kinds and their parameters: :mod:`config.faults`.
 """
 
 from planer.hil.cross_process import cross_process_possible, run_cross_process, to_toml
@@ -34,7 +36,7 @@ from planer.hil.scenario import (
     sim_config_for,
     sim_document,
 )
-from planer.hil.summary import BoardTravel, check_log, safe_periods, summarize
+from planer.hil.summary import BoardTravel, check_log, json_ready, safe_periods, summarize
 
 __all__ = [
     "BoardTravel",
@@ -44,6 +46,7 @@ __all__ = [
     "Scenario",
     "check_log",
     "cross_process_possible",
+    "json_ready",
     "load_scenario",
     "machine_config_for",
     "run_cross_process",

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import enum
 import math
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -37,41 +38,30 @@ def cross_process_possible() -> tuple[bool, str]:
     return True, "private network namespace available"
 
 
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        if isinstance(v, float) and not math.isfinite(v):
-            raise ValueError(f"cannot write {v!r} to TOML")
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, Mapping):
-        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, Path):
-        return _toml_value(str(v))
-    raise ValueError(f"cannot write {type(v).__name__} to TOML")
-
-
 def to_toml(doc: Mapping[str, Any]) -> str:
-    """Serialise a document of tables, sub-tables and plain values as TOML text."""
-    lines: list[str] = []
+    """A document of tables, sub-tables and plain values as TOML text (``tomli_w``).
 
-    def table(prefix: str, t: Mapping[str, Any]) -> None:
-        plain = {k: v for k, v in t.items() if not isinstance(v, Mapping)}
-        subs = {k: v for k, v in t.items() if isinstance(v, Mapping)}
-        if prefix:
-            lines.append(f"[{prefix}]")
-        for k, v in plain.items():
-            lines.append(f"{k} = {_toml_value(v)}")
-        lines.append("")
-        for k, v in subs.items():
-            table(f"{prefix}.{k}" if prefix else k, v)
+    Paths are written as strings; a value TOML cannot hold (NaN, infinity, ``None``, other
+    objects) raises ``ValueError`` naming it.
+    """
+    import tomli_w
 
-    table("", doc)
-    return "\n".join(lines) + "\n"
+    def plain(v: Any, key: str) -> Any:
+        if isinstance(v, Path):
+            return str(v)
+        if isinstance(v, enum.Enum):
+            return plain(v.value, key)
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"cannot write {key} = {v!r} to TOML")
+        if isinstance(v, Mapping):
+            return {str(k): plain(x, f"{key}.{k}" if key else str(k)) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [plain(x, f"{key}[{i}]") for i, x in enumerate(v)]
+        if v is None or not isinstance(v, (bool, int, float, str)):
+            raise ValueError(f"cannot write {key} = {v!r} ({type(v).__name__}) to TOML")
+        return v
+
+    return tomli_w.dumps(plain(doc, ""))
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child
@@ -140,6 +130,7 @@ async def run_cross_process(
     progress: Progress | None = None,
     progress_every: int = 10,
     workdir: Path | None = None,
+    on_service: Callable[[Any], None] | None = None,
 ) -> dict[str, Any]:
     """The simulator as a separate ``planer sim`` process, the service here, in real time.
 
@@ -166,10 +157,12 @@ async def run_cross_process(
         folder = Path(workdir)
         folder.mkdir(parents=True, exist_ok=True)
         return await _run_cross_process(scenario, folder, log_path=Path(log_path),
-                                        progress=progress, progress_every=progress_every)
+                                        progress=progress, progress_every=progress_every,
+                                        on_service=on_service)
     with tempfile.TemporaryDirectory(prefix="planer-hil-") as tmp:
         return await _run_cross_process(scenario, Path(tmp), log_path=Path(log_path),
-                                        progress=progress, progress_every=progress_every)
+                                        progress=progress, progress_every=progress_every,
+                                        on_service=on_service)
 
 
 async def _run_cross_process(
@@ -179,6 +172,7 @@ async def _run_cross_process(
     log_path: Path,
     progress: Progress | None,
     progress_every: int,
+    on_service: Callable[[Any], None] | None = None,
 ) -> dict[str, Any]:
     from config.machine import CanConfig
     from controller.frame_source import open_frame_source
@@ -194,9 +188,7 @@ async def _run_cross_process(
                   "options": {"port": can_port}}
     doc["frames"] = {**doc.get("frames", {}), "spool_dir": str(spool)}
     doc.setdefault("run", {})["time_scale"] = scenario.time_scale
-    doc["faults"] = {
-        "inject": [{"kind": f.kind, "at_s": f.at_s, **f.params} for f in scenario.faults]
-    }
+    doc["faults"] = {"inject": [f.table() for f in scenario.faults]}
     cam = doc.setdefault("camera", {})
     if not cam.get("rig"):
         cam["rig"] = str(default_path("rig.toml"))
@@ -237,6 +229,8 @@ async def _run_cross_process(
             raise
         start_id = service.log.last_id
         service.keep_results = True
+        if on_service is not None:  # e.g. the OPC UA server follows it
+            on_service(service)
         t_start = service.clock()
         service.on_event = lambda e: say(f"t={e.t_s - t_start:7.3f} s  {e.text}")
         say(PROGRESS_LEGEND)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import os
 import time
@@ -21,8 +22,9 @@ _channels = itertools.count()
 class InProcessPlant:
     """The simulated machine and the service wired together in one process (simulated time).
 
-    Every :meth:`step` advances the machine by one control cycle, lets the amplifier node read
-    and send its CAN frames, runs one :meth:`Service.tick` and hands the pairs captured in
+    Every :meth:`step` advances the plant by one control cycle through the simulator's one
+    :class:`~plant_sim.driver.PlantDriver` (amplifier node, queued PLC writes, machine, PLC
+    registers, interface faults), runs one :meth:`Service.tick` and hands the pairs captured in
     that cycle to :meth:`Service.handle_frame` -- all at the machine's time, so a run is
     deterministic and as fast as the CPU allows.
 
@@ -36,7 +38,7 @@ class InProcessPlant:
         Simulator seed.
     plc_transport : {"direct", "tcp"}
         ``direct``: :class:`MachineRegisterBus`; ``tcp``: the simulator's Modbus server on an
-        ephemeral 127.0.0.1 port (call :meth:`start` first).
+        ephemeral 127.0.0.1 port, served from its own thread (call :meth:`start` first).
     measurer_factory : callable, optional
         ``factory(shape)``; default the vision pipeline's ``Measurer(rig, shape)``.
     log : QualityLog or None or "config"
@@ -65,6 +67,7 @@ class InProcessPlant:
         from controller.plc_client import Backoff, MachineRegisterBus, PlcClient
         from controller.quality_log import QualityLog
         from plant_sim.amp_node import AmpNode, AmpNodeCore
+        from plant_sim.driver import PlantDriver
         from plant_sim.machine import Machine
         from protocol.piezo_can import PiezoCodec
         from protocol.registers import RegisterMap
@@ -86,7 +89,7 @@ class InProcessPlant:
             from plant_sim.plc_server import PlcServer
 
             self.server = PlcServer(self.machine, register_map=self.regmap, host="127.0.0.1",
-                                    port=0)
+                                    port=0, queue_writes=True)
             self.plc = None  # type: ignore[assignment]
             self._backoff = backoff
         codec = PiezoCodec.load()
@@ -123,7 +126,9 @@ class InProcessPlant:
                 self.svc_bus, codec, knives=knives, command_period_s=cfg.can.command_period_s,
                 offsets_period_s=cfg.can.offsets_period_s, stroke_um=cfg.stroke_um,
             )
-            self._plc_up_at: float | None = None
+            self._io: Any = None
+            self.driver = PlantDriver(self.machine, amp=self.amp, plc=self.server,
+                                      plc_switch=self)
             self.start_mm = self.machine.feed_position_mm
             if self.plc is not None:
                 self._make_service()
@@ -151,9 +156,11 @@ class InProcessPlant:
     async def start(self) -> None:
         """Start the Modbus server (``tcp``) and connect the service's client to it."""
         from controller.plc_client import PlcClient
+        from plant_sim.interfaces import InterfaceLoop
 
         if self.server is not None and self.service is None:
-            host, port = await self.server.start()
+            self._io = InterfaceLoop("hil-plc")
+            host, port = await self._io.run_async(self.server.start())
             self.plc = PlcClient.tcp(
                 host, port, unit_id=self.regmap.unit_id, timeout_s=self.cfg.plc.timeout_s,
                 regmap=self.regmap, backoff=self._backoff, clock=self.clock,
@@ -165,36 +172,28 @@ class InProcessPlant:
         """Table travel since the plant was made, mm."""
         return self.machine.feed_position_mm - self.start_mm
 
+    def set_up(self, up: bool) -> None:
+        """The driver's switch of the PLC's Modbus side (server or direct bus; synchronous)."""
+        if self.server is None:
+            self.direct_bus.down = not up
+        elif self._io is not None:
+            self._io.run(self.server.start() if up else self.server.stop())
+
     async def plc_down(self, duration_s: float) -> None:
         """Kill the PLC's Modbus side for ``duration_s`` machine seconds (server stopped)."""
-        if self.server is not None:
-            await self.server.stop()
-        else:
-            self.direct_bus.down = True
-        self._plc_up_at = self.clock() + float(duration_s)
+        self.driver.inject("modbus_restart", duration_s=float(duration_s))
 
     def can_fault(self, kind: str, duration_s: float, **params: float) -> None:
         """``can_silence`` (the amplifier sends nothing) or ``can_drop`` for ``duration_s``."""
-        core_kind = {"can_silence": "silence", "can_drop": "drop_rx"}[kind]
-        p = {k: float(v) for k, v in params.items() if k == "fraction"}
-        self.amp.core.inject(core_kind, start_s=self.clock(), duration_s=float(duration_s), **p)
+        if kind not in ("can_silence", "can_drop"):
+            raise ValueError(f"kind must be can_silence or can_drop, got {kind!r}")
+        self.driver.inject(kind, duration_s=duration_s, **params)  # the registry checks them
 
     async def step(self) -> list[FrameResult]:
         """One control cycle; returns the results of the pairs captured in it."""
         assert self.service is not None, "call start() first"
+        frames = self.driver.step(self.cfg.safety.cycle_s)
         t = self.clock()
-        if self._plc_up_at is not None and t >= self._plc_up_at - 1e-9:
-            self._plc_up_at = None
-            if self.server is not None:
-                await self.server.start()
-            else:
-                self.direct_bus.down = False
-        self.amp.receive(t)
-        frames = self.machine.advance(self.cfg.safety.cycle_s)
-        t = self.clock()
-        self.amp.transmit(t)
-        if self.server is not None and self.server.running:
-            self.server.refresh()
         await self.service.tick(t)
         out = []
         for fr in frames:
@@ -210,8 +209,11 @@ class InProcessPlant:
             if self.log is not None:
                 self.log.close()
         self.amp.close()
-        if self.server is not None:
-            await self.server.stop()
+        if self._io is not None:
+            try:
+                await self._io.run_async(self.server.stop())
+            finally:
+                self._io.close()
 
 
 class InProcessHil:
@@ -261,7 +263,7 @@ class InProcessHil:
         except BaseException:  # e.g. Modbus cannot listen: close the buses and the log
             await plant.close()
             raise
-        service = plant.service
+        service = self.service = plant.service  # others may follow it (OPC UA)
         assert service is not None
         service.on_event = lambda e: self._say(f"t={e.t_s:7.3f} s  {e.text}")
         pending = sorted(sc.faults, key=lambda f: f.at_s)
@@ -279,16 +281,13 @@ class InProcessHil:
                 t = plant.clock()
                 while pending and pending[0].at_s <= t + 1e-9:
                     f = pending.pop(0)
-                    if f.kind == "modbus_restart":
-                        self._say(f"t={t:7.3f} s  fault: Modbus server down for "
-                                  f"{f.duration_s:g} s")
-                        await plant.plc_down(f.duration_s)
-                    elif f.kind in ("can_silence", "can_drop"):
-                        self._say(f"t={t:7.3f} s  fault: {f.kind} for {f.duration_s:g} s")
-                        extra = {k: v for k, v in f.params.items() if k != "duration_s"}
-                        plant.can_fault(f.kind, f.duration_s, **extra)
+                    if f.kind.interface:  # the driver plays it (registry: config.faults)
+                        what = "Modbus server down" if f.kind == "modbus_restart" else f.kind
+                        self._say(f"t={t:7.3f} s  fault: {what} for {f.duration_s:g} s")
+                        plant.driver.inject(f.kind.value, **f.params)
                     # machine faults are in the simulator's [faults] table already
                 await plant.step()
+                await asyncio.sleep(0)  # a real suspension: Ctrl-C (task cancel) lands here
                 n = len(service.results)
                 for r in service.results[n_seen:]:
                     travel.add(r)

@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from config.loading import Section, default_path, load_toml
+from config.faults import Fault, parse_faults
+from config.loading import Section, default_path, load_toml, naming_file
 from config.machine import MachineConfig, load_machine
 from core.errors import ConfigError
 
-INTERFACE_FAULTS = ("modbus_restart", "can_silence", "can_drop")
 FINAL_MEASUREMENTS = 5
 """The ``final`` true values average the last this-many measurements."""
 UNIFORMITY_MAX_CV = 0.05
@@ -22,18 +22,8 @@ Progress = Callable[[str], None]
 
 
 # ---------------------------------------------------------------------------------- scenario
-@dataclass(frozen=True)
-class FaultEvent:
-    """One injected fault: ``kind`` at machine time ``at_s`` with its parameters."""
-
-    kind: str
-    at_s: float
-    params: Mapping[str, float] = field(default_factory=dict)
-
-    @property
-    def duration_s(self) -> float:
-        """How long the fault lasts (``down_s`` or ``duration_s``; 0 if instantaneous)."""
-        return float(self.params.get("down_s", self.params.get("duration_s", 0.0)))
+FaultEvent = Fault
+"""One injected fault of a scenario: ``FaultEvent(kind, at_s, params)`` (a ``Fault``)."""
 
 
 @dataclass(frozen=True)
@@ -78,22 +68,8 @@ class Scenario:
 
 
 def _fault_list(raw: Any, key: str) -> tuple[FaultEvent, ...]:
-    from config.sim import FAULT_KINDS
-
-    if not isinstance(raw, list):
-        raise ConfigError(f"{key} must be a list of tables")
-    out = []
-    for i, item in enumerate(raw):
-        s = Section(item, f"{key}[{i}]")
-        kind = s.string("kind", choices=FAULT_KINDS)
-        at_s = s.number("at_s", 0.0, lo=0.0)
-        params = {}
-        for name in list(item):
-            if name in ("kind", "at_s"):
-                continue
-            params[name] = s.number(name)
-        out.append(FaultEvent(kind=kind, at_s=at_s, params=params))
-    return tuple(out)
+    """A scenario's ``faults`` (``at_s`` defaults to 0: the start of the run)."""
+    return parse_faults(raw, key, default_at_s=0.0)
 
 
 def _config_file(key: str, value: str, base_dir: Path | None) -> Path:
@@ -187,11 +163,19 @@ def load_scenario(name_or_path: str | None = None) -> Scenario:
     def build(nm: str, seen: tuple[str, ...]) -> Scenario:
         if nm in seen:
             raise ConfigError(f"{path}: scenario {nm} has a circular base")
-        table = doc.get(nm)
+        if nm not in doc:  # only a base can name a missing table (the name was checked)
+            raise ConfigError(
+                f"{path}: {seen[-1]}.base = {nm!r}: no scenario {nm!r} in this file (have: "
+                f"{', '.join(sorted(doc))}); a base must be a table of the same file"
+            )
+        table = doc[nm]
         if not isinstance(table, Mapping):
             raise ConfigError(f"{path}: scenario {nm!r} is not a table")
         base_name = table.get("base")
-        base = build(str(base_name), (*seen, nm)) if base_name else Scenario()
+        if base_name is not None and not isinstance(base_name, str):
+            raise ConfigError(f"{path}: {nm}.base must be the name of a scenario, got "
+                              f"{base_name!r}")
+        base = build(base_name, (*seen, nm)) if base_name else Scenario()
         try:
             return scenario_from_table(nm, table, base, base_dir=path.parent)
         except ConfigError as exc:
@@ -218,16 +202,13 @@ def sim_config_for(scenario: Scenario, *, machine_faults: bool = True) -> Any:
 
     doc = sim_document(scenario)
     if machine_faults:
-        extra = [
-            {"kind": f.kind, "at_s": f.at_s, **f.params}
-            for f in scenario.faults
-            if f.kind not in INTERFACE_FAULTS
-        ]
+        extra = [f.table() for f in scenario.faults if not f.kind.interface]
         if extra:
             doc.setdefault("faults", {}).setdefault("inject", [])
             doc["faults"]["inject"] = list(doc["faults"]["inject"]) + extra
     base = Path(scenario.sim_config).parent if scenario.sim_config else None
-    return sim_from_dict(doc, base_dir=base)
+    with naming_file(scenario.sim_config or default_path("sim.toml")):  # errors name the file
+        return sim_from_dict(doc, base_dir=base)
 
 
 def machine_config_for(scenario: Scenario, *, log_path: Path | None = None) -> MachineConfig:

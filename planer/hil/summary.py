@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,6 @@ from controller.service import FrameResult, Service
 from planer.hil.scenario import (
     CONVERGE_WITHIN_MM,
     FINAL_MEASUREMENTS,
-    INTERFACE_FAULTS,
     PITCH_TOL,
     UNIFORMITY_MAX_CV,
     FaultEvent,
@@ -104,8 +104,12 @@ def summarize(
     -------
     dict
         Keys ``measurements``, ``initial``, ``final``, ``target_pitch_mm`` (the contract), and
-        ``converged``, ``limits``, ``faults``, ``counts``, ``latency_ms``, ``done`` ...
+        ``converged``, ``limits`` (``ok`` never without a written setpoint; ``reasons``),
+        ``faults`` (per fault what it tripped), ``safe_entries`` (every safe-state entry, laid
+        to the fault that explains it), ``counts``, ``latency_ms``, ``done`` ... Values may be
+        NaN; :func:`json_ready` makes it strict JSON.
     """
+    faults = [f if f.at_s is not None else replace(f, at_s=0.0) for f in faults]  # "now": 0
     pos = _unwrapped_mm(results, counts_per_mm)
     lo, hi = feed_limits_mm_s
     meas = []
@@ -187,17 +191,7 @@ def summarize(
         }
     out["converged"] = conv
 
-    feeds = [r.feed_setpoint_mm_s for r in results if r.feed_setpoint_mm_s is not None]
-    offs = [abs(v) for r in results for v in r.offsets_um]
-    out["limits"] = {
-        "feed_min_mm_s": lo,
-        "feed_max_mm_s": hi,
-        "stroke_um": stroke_um,
-        "feed_setpoint_range_mm_s": [min(feeds), max(feeds)] if feeds else None,
-        "max_abs_offset_um": max(offs) if offs else 0.0,
-        "ok": all(lo - 1e-6 <= f <= hi + 1e-6 for f in feeds)
-        and all(o <= stroke_um + 1e-9 for o in offs),
-    }
+    out["limits"] = _limits(results, lo, hi, stroke_um)
     lat = [r.latency_s * 1e3 for r in results if r.ok]
     out["latency_ms"] = (
         {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)), "n": len(lat)}
@@ -213,6 +207,7 @@ def summarize(
     out["faults"] = [
         _fault_report(f, results, events, safety, time_offset_s) for f in faults
     ]
+    out["safe_entries"] = _safe_entries(results, events, faults, safety, time_offset_s)
     cv0 = out["initial"].get("uniformity_cv")
     cv1 = out["final"].get("uniformity_cv")
     p1 = out["final"].get("pitch_mm")
@@ -227,6 +222,7 @@ def summarize(
         <= CONVERGE_WITHIN_MM,
         "setpoints_within_limits": out["limits"]["ok"],
         "faults_handled": all(f.get("handled", True) for f in out["faults"]),
+        "no_unexplained_safe_state": out["safe_entries"]["unexplained"] == 0,
     }
     out["done"] = done
     out["passed"] = all(done.values())
@@ -243,6 +239,111 @@ def _num(v: Any) -> float | None:
     return round(f, 6) if math.isfinite(f) else None
 
 
+def _limits(
+    results: Sequence[FrameResult], lo: float, hi: float, stroke_um: float
+) -> dict[str, Any]:
+    """Whether every setpoint stayed in the machine's limits; never ``ok`` without a setpoint.
+
+    ``reasons`` lists what failed: no setpoint written (no measurement applied), feed limits
+    unknown (no PLC data), setpoints that are not numbers or lie outside the limits, offsets
+    beyond the stroke.
+    """
+    reasons: list[str] = []
+    applied = sum(bool(r.applied) for r in results)
+    given = [r.feed_setpoint_mm_s for r in results if r.feed_setpoint_mm_s is not None]
+    feeds = [float(f) for f in given if math.isfinite(f)]
+    offs = [abs(float(v)) for r in results for v in r.offsets_um]
+    limits_known = math.isfinite(lo) and math.isfinite(hi)
+    if not applied:
+        reasons.append("no setpoint was written: no measurement was applied")
+    if not feeds:
+        reasons.append("no feed setpoint known")
+    if len(feeds) < len(given):
+        reasons.append(f"{len(given) - len(feeds)} feed setpoint(s) not a number")
+    if not limits_known:
+        reasons.append("feed limits unknown: no PLC data")
+    else:
+        outside = sum(not lo - 1e-6 <= f <= hi + 1e-6 for f in feeds)
+        if outside:
+            reasons.append(f"{outside} feed setpoint(s) outside [{lo:g}, {hi:g}] mm/s")
+    if any(not math.isfinite(o) for o in offs):
+        reasons.append("piezo offsets not a number")
+    beyond = sum(o > stroke_um + 1e-9 for o in offs if math.isfinite(o))
+    if beyond:
+        reasons.append(f"{beyond} piezo offset(s) beyond the stroke {stroke_um:g} um")
+    finite_offs = [o for o in offs if math.isfinite(o)]
+    return {
+        "feed_min_mm_s": lo if math.isfinite(lo) else None,
+        "feed_max_mm_s": hi if math.isfinite(hi) else None,
+        "stroke_um": stroke_um,
+        "feed_setpoint_range_mm_s": [min(feeds), max(feeds)] if feeds else None,
+        "max_abs_offset_um": max(finite_offs) if finite_offs else 0.0,
+        "applied": applied,
+        "ok": not reasons,
+        "reasons": reasons,
+    }
+
+
+def _names_condition(reason: str, condition: str) -> bool:
+    """Whether a safe-state reason (``"plc gone, can gone"``) names ``condition``."""
+    return condition.replace("_", " ") in reason
+
+
+SAFE_ENTRY_SLACK_S = 5.0
+"""Seconds after a fault's end (plus the timeouts and ``recovery_s``) within which a safe-state
+entry is laid to it."""
+
+
+def _fault_window(
+    f: FaultEvent, results: Sequence[FrameResult], safety: Any, offset_s: float
+) -> tuple[float, float]:
+    """Service-time window in which a safe-state entry is explained by fault ``f``."""
+    t0 = f.at_s + _local_offset(results, f.at_s, offset_s)
+    t1 = t0 + f.duration_s
+    slack = SAFE_ENTRY_SLACK_S
+    if safety is not None:
+        slack += max(safety.plc_timeout_s, safety.can_timeout_s, safety.measurement_timeout_s,
+                     safety.recovery_s)
+    return t0 - 1e-9, t1 + slack
+
+
+def _safe_entries(
+    results: Sequence[FrameResult],
+    events: Sequence[ServiceEvent],
+    faults: Sequence[FaultEvent],
+    safety: Any,
+    offset_s: float,
+) -> dict[str, Any]:
+    """Every safe-state entry of the run (machine time, reason) and which fault explains it.
+
+    An entry is explained by a fault that should trip a service condition (``FaultKind.trips``)
+    when it came while the fault acted or within its timeouts and ``recovery_s`` (plus
+    ``SAFE_ENTRY_SLACK_S``) after; a run with unexplained entries did not run cleanly, whatever
+    its final values.
+    """
+    tripping = [f for f in faults if f.kind.trips is not None]
+    windows = [(f, *_fault_window(f, results, safety, offset_s)) for f in tripping]
+    listed = []
+    for e in events:
+        if e.kind is not EventKind.SAFE_STATE:
+            continue
+        why = e.text.partition(":")[2].strip() or "unknown"
+        near = [(f, a) for f, a, b in windows if a <= e.t_s <= b]
+        # the fault whose condition the reason names, else the one that began last
+        near.sort(key=lambda fa: (_names_condition(why, fa[0].kind.trips), fa[1]))
+        by = near[-1][0] if near else None
+        listed.append({
+            "t_s": round(e.t_s - offset_s, 3),
+            "reason": why,
+            "fault": None if by is None else f"{by.kind.value}@{by.at_s:g}",
+        })
+    return {
+        "count": len(listed),
+        "unexplained": sum(x["fault"] is None for x in listed),
+        "entries": listed,
+    }
+
+
 def _fault_report(
     f: FaultEvent,
     results: Sequence[FrameResult],
@@ -250,39 +351,73 @@ def _fault_report(
     safety: Any,
     offset_s: float,
 ) -> dict[str, Any]:
+    """What fault ``f`` did: for a kind that should trip a condition, the safe state it caused.
+
+    Every report has ``kind``, ``at_s``, the parameters, ``interface`` and ``trips`` (the
+    condition of :attr:`config.faults.FaultKind.trips`). A tripping kind adds ``safe_after_s``,
+    ``safe_reason`` and ``tripped`` (the reason names the condition); a kind that ends by itself
+    (``duration_s``) also ``recovered_after_end_s``, ``resumed_measurements``, ``timeout_s`` and
+    ``offsets_zero_in_safe``. ``handled``: the right safe state came in time, the offsets were
+    zero in it, and (for a fault that ends) control resumed.
+    """
+    kind = f.kind
     t0 = f.at_s + _local_offset(results, f.at_s, offset_s)
     t1 = t0 + f.duration_s
-    rep: dict[str, Any] = {"kind": f.kind, "at_s": f.at_s, **dict(f.params)}
-    if f.kind not in INTERFACE_FAULTS:
+    rep: dict[str, Any] = {"kind": kind.value, "at_s": f.at_s, **dict(f.params),
+                           "interface": kind.interface, "trips": kind.trips}
+    if kind.trips is None:
         return rep
-    safe = next((e.t_s for e in events
-                 if e.kind is EventKind.SAFE_STATE and e.t_s >= t0 - 1e-9), None)
+    safe_ev = next((e for e in events
+                    if e.kind is EventKind.SAFE_STATE and e.t_s >= t0 - 1e-9), None)
+    safe = None if safe_ev is None else safe_ev.t_s
+    reason = None if safe_ev is None else safe_ev.text.partition(":")[2].strip()
+    rep["safe_after_s"] = None if safe is None else round(safe - t0, 3)
+    rep["safe_reason"] = reason
+    rep["tripped"] = reason is not None and _names_condition(reason, kind.trips)
     rec = next(
         (e.t_s for e in events
          if e.kind is EventKind.RECOVERED and safe is not None and e.t_s > safe),
         None,
     )
-    timeout = None
-    if safety is not None:
-        timeout = safety.plc_timeout_s if f.kind == "modbus_restart" else safety.can_timeout_s
-    rep["safe_after_s"] = None if safe is None else round(safe - t0, 3)
-    rep["recovered_after_end_s"] = None if rec is None else round(rec - t1, 3)
-    resumed = [r for r in results if rec is not None and r.t_s > rec and r.applied]
-    rep["resumed_measurements"] = len(resumed)
     # every pair handled while in the safe state (state and offsets are read at one instant)
     in_safe = [r for r in results if safe is not None and r.t_s >= t0 and r.state == "safe"
                and (rec is None or r.t_s < rec)]
     rep["offsets_zero_in_safe"] = all(all(v == 0 for v in r.offsets_um) for r in in_safe)
+    timeout = None if safety is None else getattr(safety, f"{kind.trips}_timeout_s", None)
     rep["timeout_s"] = timeout
     slack = 0.1 + (safety.cycle_s if safety is not None else 0.02)
-    rep["handled"] = (
-        safe is not None
-        and (timeout is None or safe - t0 <= timeout + slack)
-        and rec is not None
-        and len(resumed) > 0
-        and rep["offsets_zero_in_safe"]
-    )
+    in_time = safe is not None and (timeout is None or safe - t0 <= timeout + slack)
+    handled = in_time and rep["tripped"] and rep["offsets_zero_in_safe"]
+    if kind.lasts:
+        rep["recovered_after_end_s"] = None if rec is None else round(rec - t1, 3)
+        resumed = [r for r in results if rec is not None and r.t_s > rec and r.applied]
+        rep["resumed_measurements"] = len(resumed)
+        handled = handled and rec is not None and len(resumed) > 0
+    rep["handled"] = handled
     return rep
+
+
+def json_ready(summary: Mapping[str, Any]) -> dict[str, Any]:
+    """The summary for strict JSON: every non-finite number becomes ``null`` with a reason.
+
+    Each replaced value is listed in ``null_reasons`` (``{"limits.feed_min_mm_s": "nan: not a
+    number"}``), so ``json.dumps(..., allow_nan=False)`` never meets a NaN or an infinity.
+    """
+    reasons: dict[str, str] = dict(summary.get("null_reasons") or {})
+
+    def walk(v: Any, path: str) -> Any:
+        if isinstance(v, float) and not math.isfinite(v):
+            reasons[path] = f"{v!r}: not a finite number"
+            return None
+        if isinstance(v, Mapping):
+            return {k: walk(x, f"{path}.{k}" if path else str(k)) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [walk(x, f"{path}[{i}]") for i, x in enumerate(v)]
+        return v
+
+    out = walk({k: v for k, v in summary.items() if k != "null_reasons"}, "")
+    out["null_reasons"] = reasons
+    return out
 
 
 def safe_periods(

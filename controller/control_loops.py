@@ -1,0 +1,272 @@
+"""The loops stage: the feed loop and the uniformity loop, fed by the pipeline and the PLC cycle.
+
+:class:`ControlLoops` builds both loops for the machine the PLC describes (and rebuilds them when
+its geometry or limits change), runs them on each valid, attributed measurement
+(:meth:`ControlLoops.apply`) and between measurements lets the feed-forward follow the spindle
+(:meth:`ControlLoops.feed_forward`). The laws themselves are in ``controller/feed_loop.py`` and
+``controller/uniformity_loop.py`` (pure); what goes on the wire goes through
+:class:`~controller.actuators.Actuators`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from typing import Any
+
+import numpy as np
+
+from config.loading import naming_file
+from config.machine import MachineConfig
+from controller.actuators import Actuators
+from controller.events import EventKind, EventLog
+from controller.feed_loop import FeedLoop, FeedLoopConfig
+from controller.mark_attribution import Attributed
+from controller.plc_client import PlcSnapshot
+from controller.safety import AmplifierMonitor
+from controller.uniformity_loop import UniformityLoop, UniformityLoopConfig
+from core.errors import FieldbusError
+
+FEED_WRITE_DEADBAND_MM_S = 0.5
+"""Feed-forward changes smaller than this between measurements are not written, mm/s."""
+
+
+def check_loop_tables(cfg: MachineConfig) -> None:
+    """Build the loops' configurations once with defaults: ``ConfigError`` names a bad key."""
+    with naming_file(cfg.source):  # "machine.toml: unknown key feed_loop.x"
+        FeedLoopConfig.from_mapping(dict(cfg.feed_loop))
+        UniformityLoopConfig.from_mapping(dict(cfg.uniformity_loop), stroke_um=cfg.stroke_um)
+
+
+class ControlLoops:
+    """Both control loops of one service.
+
+    Parameters
+    ----------
+    cfg : MachineConfig
+        ``[quality]`` (target pitch, depth ceiling), ``[feed_loop]``, ``[uniformity_loop]``,
+        ``stroke_um``.
+    rig : Rig
+        The camera's field of view (the feed loop's window).
+    actuators : Actuators
+        The writes (feed setpoint, offsets).
+    report : EventLog
+        Events and counters.
+    amp_monitor : AmplifierMonitor
+        When the amplifier last did not play the offsets (no learning from that board).
+    pairs_per_s : float
+        Nominal camera rate (the feed loop's default sample time), pairs per second.
+    """
+
+    def __init__(
+        self,
+        cfg: MachineConfig,
+        rig: Any,
+        actuators: Actuators,
+        report: EventLog,
+        amp_monitor: AmplifierMonitor,
+        *,
+        pairs_per_s: float,
+    ) -> None:
+        check_loop_tables(cfg)  # a bad [feed_loop] / [uniformity_loop] key fails now
+        self.cfg = cfg
+        self.rig = rig
+        self.out = actuators
+        self._report = report
+        self._amp_monitor = amp_monitor
+        self.pairs_per_s = float(pairs_per_s)
+        self.feed_loop: Any = None
+        self.uniformity_loop: Any = None
+        self._key: tuple | None = None
+        self._learned_offsets: np.ndarray | None = None
+        self._t_loops = -math.inf
+        self._lock: asyncio.Lock | None = None
+        self._lock_loop: Any = None
+
+    @property
+    def ready(self) -> bool:
+        """Whether the loops are built (a valid register read happened)."""
+        return self.feed_loop is not None
+
+    def ensure(self, snap: PlcSnapshot) -> None:
+        """Build (or rebuild when the machine's geometry or limits change) the control loops."""
+        key = (
+            snap.knives,
+            round(snap.feed_min_mm_s, 3),
+            round(snap.feed_max_mm_s, 3),
+            round(float(snap["cutterhead_radius_mm"]), 3),
+            round(snap.cutter_to_camera_mm, 3),
+        )
+        if key == self._key:
+            return
+        q = self.cfg.quality
+        cam = self.rig.camera
+        overrides: dict[str, Any] = {
+            "target_pitch_mm": q.target_pitch_mm,
+            "depth_max_um": q.depth_max_um,
+            "knives": snap.knives,
+            "radius_mm": float(snap["cutterhead_radius_mm"]),
+            "feed_min_mm_s": snap.feed_min_mm_s,
+            "feed_max_mm_s": snap.feed_max_mm_s,
+            "cutter_to_camera_mm": snap.cutter_to_camera_mm,
+            "window_mm": 2.0 * cam.cx / cam.px_per_mm,
+        }
+        fl_map = dict(self.cfg.feed_loop)
+        fl_map.setdefault("sample_time_s", 1.0 / self.pairs_per_s)
+        accel = float(snap.values.get("feed_accel_max_mm_s2", 0.0) or 0.0)
+        if accel > 0 and "rate_max_mm_s2" in fl_map:
+            fl_map["rate_max_mm_s2"] = min(float(fl_map["rate_max_mm_s2"]), accel)
+        self.feed_loop = FeedLoop(FeedLoopConfig.from_mapping(fl_map, **overrides))
+        lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
+        self.feed_loop.reset(feed_mm_s=min(max(snap.feed_setpoint_mm_s, lo), hi))
+        self.uniformity_loop = UniformityLoop(UniformityLoopConfig.from_mapping(
+            dict(self.cfg.uniformity_loop),
+            knives=snap.knives,
+            radius_mm=float(snap["cutterhead_radius_mm"]),
+            stroke_um=self.cfg.stroke_um,
+        ))
+        self._learned_offsets = np.zeros(snap.knives)
+        self.out.set_knives(snap.knives)
+        self._key = key
+
+    def loop_time(self, t: float) -> float:
+        """Time for the control loops: never earlier than their last call.
+
+        In real time the cycles and the frame task interleave at awaits, so a time read before
+        an await may be older than one another task already used.
+        """
+        t = max(t, self._t_loops)
+        self._t_loops = t
+        return t
+
+    def _feed_lock(self) -> asyncio.Lock:
+        """Held from a feed loop update to the end of its write (and its reject).
+
+        In real time the PLC cycle's feed-forward and a pair's update interleave at the write's
+        await; the lock keeps each setpoint's update, write and reject together, so a reject
+        always takes back its own setpoint.
+        """
+        loop = asyncio.get_running_loop()
+        if self._lock is None or self._lock_loop is not loop:
+            self._lock = asyncio.Lock()
+            self._lock_loop = loop
+        return self._lock
+
+    async def feed_forward(self, t: float, snap: PlcSnapshot) -> None:
+        """Between measurements the feed loop's feed-forward follows the spindle speed.
+
+        No measurement enters here (the learnt correction is held); the setpoint is written only
+        when it moved by more than ``FEED_WRITE_DEADBAND_MM_S`` (e.g. ramping back after a
+        recovery), so spindle ripple does not flood the bus. A setpoint not written (deadband,
+        refused, failed) is taken back from the loop's history: it learns against the feed
+        that really was in force.
+        """
+        async with self._feed_lock():
+            loop = self.feed_loop
+            feed = loop.update(
+                measured_pitch_mm=None, spindle_rpm=snap.spindle_rpm, now_s=self.loop_time(t)
+            )
+            feed = min(max(float(feed), snap.feed_min_mm_s), snap.feed_max_mm_s)
+            current = self.out.feed_setpoint_mm_s
+            if current is None:
+                current = snap.feed_setpoint_mm_s
+            if abs(feed - current) <= FEED_WRITE_DEADBAND_MM_S or not await self.out.write_feed(
+                feed, t
+            ):
+                loop.reject()
+
+    async def apply(
+        self, att: Attributed | None, measured_at: float, snap: PlcSnapshot, t: float
+    ) -> bool:
+        """Both loops on one valid measurement; the offsets (CAN) go out first, then the feed.
+
+        Both get the pitch per knife pass (:attr:`Attributed.pass_pitch_mm`), not the mean mark
+        width: with a knife that leaves no mark the latter is a multiple of the feed per knife,
+        and slowing the feed would not bring the mark back (the uniformity loop does).
+
+        The uniformity loop learns only from board cut while the amplifier played the offsets
+        (:meth:`amp_tracked`); a feed setpoint the PLC did not take is taken back from the feed
+        loop's history (:meth:`FeedLoop.reject`). Returns whether a setpoint went out.
+        """
+        if att is None:
+            return False
+        lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
+        pitch = float(att.pass_pitch_mm)
+        widths = att.knife_widths_mm
+        applied = False
+        async with self._feed_lock():
+            t = self.loop_time(t)
+            measured_at = min(measured_at, t)
+            loop = self.feed_loop
+            feed = loop.update(
+                measured_pitch_mm=pitch,
+                spindle_rpm=snap.spindle_rpm,
+                now_s=t,
+                measured_at_s=measured_at,
+            )
+            feed = min(max(float(feed), lo), hi)
+            if np.any(np.isfinite(widths)):
+                interval = loop.cut_interval_s(measured_at)
+                cut_at = None if interval is None else min(interval[0], t)
+                applied = self._learn_offsets(widths, pitch, cut_at, t)
+            if await self.out.write_feed(feed, t):
+                applied = True
+            else:
+                loop.reject()
+        if applied:
+            self._report.count("applied")
+        return applied
+
+    def _learn_offsets(
+        self, widths: np.ndarray, pitch: float, cut_at: float | None, t: float
+    ) -> bool:
+        """One uniformity-loop update and its offsets on CAN; whether they were sent."""
+        if not self.amp_tracked(cut_at, t):
+            self._report.count("uniformity_skipped")
+            return False
+        offs = self.uniformity_loop.update(
+            knife_widths_mm=widths, pitch_mm=pitch, now_s=t, cut_at_s=cut_at
+        )
+        try:
+            sent = self.out.set_offsets(offs, t)
+        except FieldbusError as exc:
+            self._report.count("can_errors")
+            self._report.emit(t, EventKind.OFFSETS_NOT_SENT, f"piezo offsets not sent: {exc}")
+            return False
+        self._learned_offsets = np.asarray(sent, dtype=float)
+        return True
+
+    def amp_tracked(self, cut_at_s: float | None, t: float) -> bool:
+        """Whether the board a measurement shows was cut while the amplifier played the offsets.
+
+        The amplifier was last seen not tracking (disabled, ramping, faulted, refusing the
+        table, or an enable not yet confirmed) at ``untracked_s``; board cut before that plus
+        the offsets' settling time shows offsets that were not applied. Without a cut time
+        (the feed loop's history is too short) the uniformity loop's hold-off is used instead.
+        """
+        last = self._amp_monitor.untracked_s
+        if last is None:
+            return True
+        ucfg = self.uniformity_loop.cfg
+        if cut_at_s is None:
+            return t - ucfg.holdoff_s > last
+        return cut_at_s - ucfg.settle_s > last
+
+    def resume(self, t: float, snap: PlcSnapshot | None) -> None:
+        """Back to RUN: restart the feed loop from the feed in force, restore learnt offsets."""
+        t = self.loop_time(t)
+        out = self.out
+        if snap is not None and snap.problem() is None and self.feed_loop is not None:
+            lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
+            feed = min(max(snap.feed_setpoint_mm_s, lo), hi)
+            self.feed_loop.reset(feed_mm_s=feed, now_s=t, correction=self.feed_loop.correction)
+            out.feed_setpoint_mm_s = feed
+        out.enable(True, t)
+        learned = self._learned_offsets
+        if learned is not None and len(learned) == out.piezo.knives:
+            try:
+                out.offsets_um = out.piezo.set_offsets(learned, now_s=t)
+                if self.uniformity_loop is not None:
+                    self.uniformity_loop.reset(learned, now_s=t)
+            except FieldbusError:
+                self._report.count("can_errors")

@@ -1,0 +1,287 @@
+"""Quality records stage: one record per pair, durable, whatever happens to the log.
+
+:class:`QualityRecords` turns each :class:`~controller.frame_result.FrameResult` into a
+:class:`~controller.quality_log.QualityRecord` (failed pairs included, with their reason and the
+setpoints in force; every ``PROFILE_EVERY``-th successful one and the first of each board with a
+decimated profile) and hands it to a :class:`~controller.record_journal.RecordSink`: the record
+is in the log, or in the local journal beside it when the log cannot take it (disk full, file
+locked, a value the schema refuses), and the journal is written to the log as soon as it takes
+records again. Log trouble is reported once (``LOG_FAILED`` ... ``LOG_RECOVERED``) and fails the
+supervisor's ``log`` condition while it lasts (no control without a record of it).
+"""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from config.machine import MachineConfig
+from controller.events import EventKind, EventLog
+from controller.frame_intake import finite_or_none, frame_metadata, int_or
+from controller.frame_result import FrameResult
+from controller.measurement import call_blocking
+from controller.quality_log import QualityClass, QualityRecord, judge, utc_iso
+from controller.record_journal import RecordSink, default_journal_path
+from protocol.frames import Frame
+
+PROFILE_EVERY = 10
+"""Every this many successful measurements (and the first of each board) a record carries the
+surface profile (``extra["profile"]``, drawn by ``planer report``)."""
+PROFILE_MAX_POINTS = 800
+"""Most points of a stored profile (about 6 kB of JSON)."""
+
+
+def decimated_profile(
+    x_mm: Any, height_um: Any, *, max_points: int = PROFILE_MAX_POINTS
+) -> dict[str, list[float]] | None:
+    """A profile small enough for every tenth quality record: samples, rounded.
+
+    Parameters
+    ----------
+    x_mm, height_um : array_like, shape (n,)
+        Positions along the feed (mm) and heights (um) of the measured profile.
+    max_points : int
+        Most samples kept (evenly spaced in index, the first and last always; samples, not
+        averages, so the marks' cusps stay sharp).
+
+    Returns
+    -------
+    dict or None
+        ``{"x_mm": [...], "height_um": [...]}`` rounded to 0.001 mm and 0.1 um, or ``None``
+        when fewer than two finite samples of equal-length 1-D arrays are given.
+    """
+    try:
+        x = np.asarray(x_mm, dtype=float)
+        h = np.asarray(height_um, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if x.ndim != 1 or x.shape != h.shape:
+        return None
+    good = np.isfinite(x) & np.isfinite(h)
+    x, h = x[good], h[good]
+    if x.size < 2:
+        return None
+    if x.size > max_points:
+        idx = np.unique(np.round(np.linspace(0, x.size - 1, max_points)).astype(int))
+        x, h = x[idx], h[idx]
+    return {
+        "x_mm": [round(float(v), 3) for v in x],
+        "height_um": [round(float(v), 1) for v in h],
+    }
+
+
+def quality_class_of(cfg: MachineConfig) -> QualityClass:
+    """The quality class ``[quality]`` describes."""
+    q = cfg.quality
+    return QualityClass(
+        name=q.class_name,
+        target_pitch_mm=q.target_pitch_mm,
+        pitch_tolerance=q.tolerance,
+        uniformity_max_cv=q.uniformity_max_cv,
+        depth_max_um=q.depth_max_um,
+    )
+
+
+class QualityRecords:
+    """Records of every pair, through a journal-backed sink into the quality log.
+
+    Parameters
+    ----------
+    cfg : MachineConfig
+        ``[quality]`` (target, class) and ``[log] path`` (the journal's place when ``log`` has
+        no ``path``).
+    log : QualityLog or None
+        The quality log (``None``: nothing is recorded). Closed by :meth:`close`.
+    report : EventLog
+        Events and counters (``log_errors``).
+    on_health : callable
+        ``on_health(ok)`` when the log starts or stops failing (the supervisor's ``log``).
+    threaded : bool
+        Append in a worker thread (real time; the log commits with fsync).
+    journal_path : Path, optional
+        The journal; default beside the log (``<log>.journal.jsonl``).
+    """
+
+    def __init__(
+        self,
+        cfg: MachineConfig,
+        log: Any,
+        report: EventLog,
+        *,
+        on_health: Callable[[bool], None],
+        threaded: bool,
+        journal_path: Path | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.log = log
+        self.quality_class = quality_class_of(cfg)
+        self._report = report
+        self._on_health = on_health
+        self.threaded = threaded
+        self._ok_count = 0  # successful measurements so far (profile every PROFILE_EVERY-th)
+        self._profile_board: int | None = None
+        self._failing = False
+        self._rewritten = 0
+        self.sink: RecordSink | None = None
+        if log is not None:
+            if journal_path is None:
+                journal_path = default_journal_path(getattr(log, "path", None) or cfg.log.path)
+            self.sink = RecordSink(log, journal_path=Path(journal_path))
+
+    @property
+    def problem(self) -> str | None:
+        """The log's trouble in one line (``None`` when healthy or not logging)."""
+        return None if self.sink is None else self.sink.problem
+
+    @property
+    def pending(self) -> int:
+        """Records waiting for the log (journal or memory)."""
+        return 0 if self.sink is None else self.sink.pending
+
+    def profile_of(self, meas: Any, frame: Frame) -> dict[str, list[float]] | None:
+        """The decimated profile of a successful measurement if this one carries it.
+
+        The first successful measurement of each board and every ``PROFILE_EVERY``-th one
+        (counted over the run) do; ``None`` for the others or without a usable profile.
+        """
+        self._ok_count += 1
+        board = int_or(getattr(frame, "board_id", 0), 0)
+        first_of_board = board != self._profile_board
+        self._profile_board = board
+        if not (first_of_board or (self._ok_count - 1) % PROFILE_EVERY == 0):
+            return None
+        try:
+            return decimated_profile(meas.x_mm, meas.height_um)
+        except (AttributeError, TypeError, ValueError):
+            return None
+
+    def record_of(self, r: FrameResult, frame: Frame) -> QualityRecord:
+        """The quality record of a result (never raises: odd metadata is noted, not fatal)."""
+        m = r.measurement
+        truth = frame.truth or {}
+        meta, odd = frame_metadata(frame)
+        feed = finite_or_none(r.feed_setpoint_mm_s)
+        if feed is None:  # the service wrote none yet: the setpoint the PLC reported in force
+            feed = finite_or_none(r.extra.get("plc_feed_setpoint_mm_s"))
+        fields: dict[str, Any] = {
+            **meta,
+            "wall_time": utc_iso(time.time()),
+            "ok": r.ok,
+            "error": r.error,
+            "feed_setpoint_mm_s": feed,
+            "piezo_offsets_um": tuple(r.offsets_um),
+            "target_pitch_mm": self.cfg.quality.target_pitch_mm,
+            "true_pitch_mm": finite_or_none(truth.get("pitch_mm")),
+            "true_uniformity_cv": finite_or_none(truth.get("uniformity_cv")),
+            "extra": {
+                "state": r.state,
+                "safe_reason": r.extra.get("safe_reason"),
+                "applied": r.applied,
+                "latency_ms": r.latency_s * 1e3,
+                "timing_ms": r.extra.get("timing_ms", {}),
+                "knife_widths_mm": [None if not math.isfinite(w) else w
+                                    for w in r.knife_widths_mm],
+                **({"frame_metadata_invalid": odd} if odd else {}),
+                **({"passes": r.extra["passes"]} if "passes" in r.extra else {}),
+                **({"profile": r.extra["profile"]} if "profile" in r.extra else {}),
+            },
+        }
+        if m is not None:
+            fields["shift_px"] = finite_or_none(getattr(m, "shift_px", None))
+            fields["confidence"] = finite_or_none(getattr(m, "confidence", None))
+        if r.ok:
+            fields.update(
+                pitch_mm=finite_or_none(getattr(m, "pitch_mm", None)),
+                mark_widths_mm=tuple(float(w) for w in r.knife_widths_mm),
+                uniformity_cv=finite_or_none(getattr(m, "uniformity_cv", None)),
+                depth_um=finite_or_none(getattr(m, "depth_um", None)),
+            )
+            try:
+                fields["extra"]["marks_mm"] = [float(w) for w in m.mark_widths_mm]
+                fields["passed"] = judge(fields, self.quality_class)
+            except (TypeError, ValueError):
+                fields["passed"] = None
+        try:
+            return QualityRecord(**fields)
+        except (TypeError, ValueError) as exc:  # keep the pair: a record that says why
+            return QualityRecord(
+                **meta,
+                wall_time=fields["wall_time"],
+                ok=False,
+                error=f"record invalid: {exc}" if r.ok else f"{r.error} (record invalid: {exc})",
+                feed_setpoint_mm_s=feed,
+                extra={"state": r.state, "safe_reason": r.extra.get("safe_reason"),
+                       "applied": r.applied},
+            )
+
+
+    async def append(self, r: FrameResult, frame: Frame, t: float) -> int | None:
+        """Store the pair's record durably; its id in the log, or ``None`` (journal, no log).
+
+        A log that fails is reported once (``LOG_FAILED``, the supervisor's ``log`` condition
+        fails) and counted per record it did not take (``log_errors``); held records go to the
+        log, in order, as soon as it takes them again (``LOG_RECOVERED``).
+        """
+        sink = self.sink
+        if sink is None:
+            return None
+        rec = self.record_of(r, frame)
+        logged, rid = await call_blocking(self.threaded, self._store, sink, rec)
+        self._health(t, r.seq)
+        if not logged:
+            self._report.count("log_errors")
+        return rid
+
+    def _store(self, sink: RecordSink, rec: QualityRecord) -> tuple[bool, int | None]:
+        """Append (after the held ones): whether it is in the log, and its id there if known."""
+        if sink.pending:
+            sink.retry()  # the held ones first, in order
+        sink.append(rec)
+        if sink.pending:
+            return False, None  # in the journal
+        try:  # the log's newest id is this record's: one appender (this stage)
+            last = self.log.last_id
+        except (AttributeError, OSError, ValueError, sqlite3.Error):
+            return True, None
+        return True, (last if isinstance(last, int) else None)
+
+    def _health(self, t: float, seq: Any) -> None:
+        sink = self.sink
+        assert sink is not None
+        rewritten = sink.counters.get("rewritten", 0)
+        if rewritten != self._rewritten:
+            self._rewritten = rewritten
+            self._report.emit(t, EventKind.LOG_REFUSED_RECORD,
+                              f"quality record of pair {seq} refused by the log: logged as a "
+                              "failed record naming the value")
+        problem = sink.problem
+        if problem is not None and not self._failing:
+            self._failing = True
+            self._on_health(False)
+            self._report.emit(t, EventKind.LOG_FAILED,
+                              f"quality log failing, records held in the journal: {problem}")
+        elif problem is None and self._failing:
+            self._failing = False
+            self._on_health(True)
+            self._report.emit(t, EventKind.LOG_RECOVERED,
+                              "quality log writable again: held records written")
+
+    def close(self, t: float) -> Path | None:
+        """Write what the log takes, close it; the journal left behind (reported) or ``None``."""
+        sink = self.sink
+        if sink is None:
+            return None
+        left = sink.close()
+        if left is not None:
+            n = sink.pending
+            self._report.emit(t, EventKind.RECORDS_SAVED,
+                              f"{n} quality records NOT in the quality log: kept in {left} "
+                              "(written to the log when a service opens it again)")
+        self.log.close()
+        return left

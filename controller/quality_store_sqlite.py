@@ -1,0 +1,285 @@
+"""The quality log's embedded store: one SQLite file (WAL, ``synchronous=FULL``).
+
+:class:`SqliteStore` is the default backend of :class:`controller.quality_log.QualityLog`: the
+log validates and converts records, the store keeps rows. ``insert`` returns only after its
+transaction is committed, so a killed process leaves no torn record and loses none it
+acknowledged. Several processes may append and read at once (one writer at a time, readers
+never block). Table layout: ``docs/quality_log.md``.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from controller.quality_log import (
+    APPLICATION_ID,
+    SCHEMA_VERSION,
+    QualityLogError,
+    RecordRefusedError,
+    Selection,
+    column_names,
+    create_statements,
+)
+from core.checks import check_positive
+
+__all__ = ["SqliteStore"]
+
+#: Identities of records appended with a ``uid`` (journal replays append each only once).
+#: Created on first use, so logs written before it need no migration.
+_UIDS_TABLE = ("CREATE TABLE IF NOT EXISTS record_uids "
+               "(uid TEXT PRIMARY KEY, record_id INTEGER NOT NULL)")
+
+#: Column renames of version 1 -> 2 (the CSV header's names).
+_RENAMES_V2 = (("id", "record_id"), ("wall_time", "wall_time_utc"), ("extra", "extra_json"))
+
+
+def _uri_path(p: Path) -> str:
+    from urllib.parse import quote
+
+    return quote(str(p.absolute()))
+
+
+class SqliteStore:
+    """Rows of the quality log in an SQLite file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The log file. Opening an existing log continues it.
+    create : bool, keyword-only
+        Create the file when it does not exist, and bring an older layout to the current one.
+        With ``False`` a missing file raises ``FileNotFoundError`` (readers such as
+        ``planer report``) and an older layout is read as it is.
+    timeout_s : float, keyword-only
+        How long to wait for another process's write lock, seconds.
+
+    Raises
+    ------
+    OSError
+        The file cannot be opened or created (missing folder, a directory, no permission).
+    QualityLogError
+        The file is not a quality log, is corrupt, or was written by a newer version.
+
+    Notes
+    -----
+    Not thread-safe by itself: :class:`~controller.quality_log.QualityLog` serialises calls.
+    """
+
+    def __init__(self, path: str | Path, *, create: bool = True, timeout_s: float = 10.0) -> None:
+        self.path = Path(path)
+        self.name = str(self.path)
+        timeout_s = check_positive("timeout_s", timeout_s)
+        self._conn: sqlite3.Connection | None = None
+        p = self.path
+        if p.is_dir():
+            raise IsADirectoryError(f"quality log path is a directory: {p}")
+        if not p.exists():
+            if not create:
+                raise FileNotFoundError(f"quality log not found: {p}")
+            if not p.parent.is_dir():
+                raise FileNotFoundError(f"folder of the quality log does not exist: {p.parent}")
+        try:
+            conn = sqlite3.connect(
+                f"file:{_uri_path(p)}?mode={'rwc' if create else 'rw'}", uri=True,
+                timeout=timeout_s, isolation_level=None, check_same_thread=False,
+            )
+        except sqlite3.Error as exc:
+            raise OSError(f"cannot open quality log {p}: {exc}") from None
+        try:
+            self._conn = conn
+            self._open(timeout_s, create=create)
+        except BaseException:
+            self._conn = None
+            conn.close()
+            raise
+
+    # -- opening ------------------------------------------------------------------------------
+
+    def _open(self, timeout_s: float, *, create: bool) -> None:
+        conn = self._connection()
+        p = self.path
+        try:
+            conn.execute(f"PRAGMA busy_timeout = {int(timeout_s * 1000)}")
+            app_id = conn.execute("PRAGMA application_id").fetchone()[0]
+            tables = {r[0] for r in conn.execute(
+                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+            if tables and (app_id != APPLICATION_ID or "records" not in tables):
+                raise QualityLogError(f"{p} is an SQLite file but not a quality log")
+            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+            if str(mode).lower() != "wal":
+                raise OSError(f"cannot use write-ahead logging for {p} (journal mode {mode})")
+            conn.execute("PRAGMA synchronous = FULL")
+            if not tables:
+                if not create:
+                    raise QualityLogError(f"{p} is empty, not a quality log")
+                self._create_schema()
+            rows = conn.execute("SELECT version FROM schema_version").fetchall()
+        except sqlite3.DatabaseError as exc:
+            msg = str(exc)
+            if isinstance(exc, sqlite3.OperationalError) and "unable to open" in msg:
+                raise OSError(f"cannot open quality log {p}: {msg}") from None
+            raise QualityLogError(f"{p} is not a readable quality log: {msg}") from None
+        if len(rows) != 1:
+            raise QualityLogError(f"{p}: quality log has no valid schema version")
+        version = rows[0][0]
+        if not isinstance(version, int) or version > SCHEMA_VERSION or version < 1:
+            raise QualityLogError(
+                f"{p}: quality log schema version {version} is not supported "
+                f"(this planer reads versions 1..{SCHEMA_VERSION}; update planer)")
+        if version < SCHEMA_VERSION and create:
+            version = self._migrate()
+        self.schema_version = int(version)
+
+    def _migrate(self) -> int:
+        """Bring an older log to the current layout (v2: CSV names; v3: ``machine_id``)."""
+        conn = self._connection()
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                version = conn.execute("SELECT version FROM schema_version").fetchone()[0]
+                if version == 1:  # another process may have migrated it while we waited
+                    for old, new in _RENAMES_V2:
+                        conn.execute(f"ALTER TABLE records RENAME COLUMN {old} TO {new}")
+                    version = 2
+                if version == 2:
+                    conn.execute("ALTER TABLE records ADD COLUMN machine_id TEXT")
+                    conn.execute("CREATE INDEX IF NOT EXISTS records_machine_time "
+                                 "ON records (machine_id, wall_time_utc)")
+                    version = 3
+                conn.execute("UPDATE schema_version SET version = ?", (version,))
+                conn.execute("COMMIT")
+            except BaseException:
+                if conn.in_transaction:
+                    conn.execute("ROLLBACK")
+                raise
+        except sqlite3.Error as exc:
+            raise OSError(f"cannot update quality log {self.path} to schema version "
+                          f"{SCHEMA_VERSION}: {exc}") from None
+        return int(version)
+
+    def _create_schema(self) -> None:
+        conn = self._connection()
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            exists = conn.execute(
+                "SELECT 1 FROM sqlite_master WHERE name = 'records'").fetchone()
+            if not exists:  # another process may have created it while we waited
+                for stmt in create_statements("sqlite"):
+                    conn.execute(stmt)
+                conn.execute("INSERT INTO schema_version (version) VALUES (?)",
+                             (SCHEMA_VERSION,))
+                conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+            conn.execute("COMMIT")
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+
+    def _connection(self) -> sqlite3.Connection:
+        if self._conn is None:
+            raise ValueError(f"quality log {self.path} is closed")
+        return self._conn
+
+    # -- writing ------------------------------------------------------------------------------
+
+    def insert(self, row: Sequence[Any], *, uid: str | None) -> int:
+        """Insert one row (field order, current layout); its id, or the stored one of ``uid``."""
+        conn = self._connection()
+        cols = column_names(self.schema_version)[1]
+        sql = f"INSERT INTO records ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})"
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                if uid is not None:
+                    conn.execute(_UIDS_TABLE)
+                    known = conn.execute(
+                        "SELECT record_id FROM record_uids WHERE uid = ?", (uid,)).fetchone()
+                    if known is not None:
+                        conn.execute("ROLLBACK")
+                        return int(known[0])
+                rid = int(conn.execute(sql, tuple(row)[:len(cols)]).lastrowid)
+                if uid is not None:
+                    conn.execute("INSERT INTO record_uids (uid, record_id) VALUES (?, ?)",
+                                 (uid, rid))
+                conn.execute("COMMIT")
+            except BaseException:
+                if conn.in_transaction:
+                    conn.execute("ROLLBACK")
+                raise
+        except OverflowError as exc:  # check_storable should have caught it
+            raise RecordRefusedError("record", f"record refused by the log: {exc}") from None
+        except sqlite3.Error as exc:
+            raise OSError(f"cannot append to quality log {self.path}: {exc}") from None
+        return rid
+
+    def has_uid(self, uid: str) -> bool:
+        """Whether a record appended with this ``uid`` is in the log."""
+        conn = self._connection()
+        try:
+            exists = conn.execute(
+                "SELECT 1 FROM sqlite_master WHERE name = 'record_uids'").fetchone()
+            if not exists:
+                return False
+            return conn.execute("SELECT 1 FROM record_uids WHERE uid = ?",
+                                (uid,)).fetchone() is not None
+        except sqlite3.DatabaseError as exc:
+            raise QualityLogError(f"cannot read quality log {self.path}: {exc}") from None
+
+    def set_meta(self, key: str, text: str) -> None:
+        """Store ``text`` under ``key`` (replacing)."""
+        conn = self._connection()
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, text))
+            conn.execute("COMMIT")
+        except sqlite3.Error as exc:
+            if conn.in_transaction:
+                conn.execute("ROLLBACK")
+            raise OSError(f"cannot write to quality log {self.path}: {exc}") from None
+
+    # -- reading ------------------------------------------------------------------------------
+
+    def _query(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
+        conn = self._connection()
+        try:
+            return conn.execute(sql, tuple(params)).fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise QualityLogError(f"cannot read quality log {self.path}: {exc}") from None
+
+    def get_meta(self, key: str) -> str | None:
+        """The text stored under ``key``, or ``None``."""
+        rows = self._query("SELECT value FROM meta WHERE key = ?", (key,))
+        return rows[0][0] if rows else None
+
+    def select(self, selection: Selection) -> list[tuple[Any, ...]]:
+        """Rows ``(id, *fields)`` in id order (a layout before ``machine_id`` reads NULL)."""
+        rid, cols = column_names(self.schema_version)
+        if selection.machine_id is not None and "machine_id" not in cols:
+            return []  # a layout before machine ids: no record names a machine
+        exprs = list(cols) + ["NULL"] * (len(column_names(SCHEMA_VERSION)[1]) - len(cols))
+        where, params = selection.where(rid, "?")
+        sql = (f"SELECT {rid}, {', '.join(exprs)} FROM records"
+               + (" WHERE " + " AND ".join(where) if where else "") + f" ORDER BY {rid}")
+        return self._query(sql, params)
+
+    def last_id(self) -> int:
+        """Id of the newest record (0 when empty)."""
+        rid = column_names(self.schema_version)[0]
+        return int(self._query(f"SELECT COALESCE(MAX({rid}), 0) FROM records")[0][0])
+
+    def count(self) -> int:
+        """Number of records."""
+        return int(self._query("SELECT COUNT(*) FROM records")[0][0])
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._conn is None
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None

@@ -1,0 +1,246 @@
+"""Running a sweep: jobs on Dask distributed (or in this process), rows into ``results.csv``.
+
+``results.csv`` is written as the runs finish (one flushed line each, so Ctrl-C keeps every
+finished row) and sorted by run number once the sweep is complete. Dask is imported only here.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import sys
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+from typing import Any, TextIO
+
+from core.fileio import atomic_write_text
+from planer.sweep.point import OUTCOME_COLUMNS, Job, error_row, input_cells, run_job
+
+RESULTS_NAME = "results.csv"
+CONNECT_TIMEOUT_S = 30.0
+"""How long to wait for a scheduler given by ``--scheduler``, and for its first worker."""
+
+
+def columns(keys: Sequence[str]) -> list[str]:
+    """The CSV header: ``run``, ``seed``, the varied keys, then ``OUTCOME_COLUMNS``."""
+    return ["run", "seed", *keys, *OUTCOME_COLUMNS]
+
+
+def _line(row: Mapping[str, str], header: Sequence[str]) -> str:
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow([row.get(c, "") for c in header])
+    return buf.getvalue()
+
+
+class ResultsWriter:
+    """``results.csv`` written one finished run at a time.
+
+    Parameters
+    ----------
+    path : Path
+        The file (replaced).
+    header : sequence of str
+        Its columns.
+    """
+
+    def __init__(self, path: Path, header: Sequence[str]) -> None:
+        self.path = Path(path)
+        self.header = list(header)
+        self.rows: list[dict[str, str]] = []
+        self._fh: TextIO | None = self.path.open("w", encoding="utf-8", newline="")
+        self._fh.write(_line({c: c for c in self.header}, self.header))
+        self._fh.flush()
+
+    def add(self, row: Mapping[str, str]) -> None:
+        """Append one row now (flushed: an interrupted sweep keeps it)."""
+        assert self._fh is not None, "closed"
+        self.rows.append(dict(row))
+        self._fh.write(_line(row, self.header))
+        self._fh.flush()
+
+    def close(self, *, sort: bool) -> None:
+        """Close; with ``sort`` rewrite the file (atomically) ordered by run number."""
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+        if sort:
+            rows = sorted(self.rows, key=lambda r: int(r["run"]))
+            text = "".join(_line(r, self.header) for r in [{c: c for c in self.header}, *rows])
+            atomic_write_text(self.path, text)
+
+
+def read_results(path: str | Path) -> list[dict[str, str]]:
+    """The rows of a ``results.csv`` (as strings)."""
+    with Path(path).open(encoding="utf-8", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+class ProgressBar:
+    """A one-line progress bar (``[####....] 12/80 runs, 1 failed, 2:10 left``).
+
+    On a terminal the line is redrawn in place; otherwise one line per finished run.
+    """
+
+    def __init__(self, total: int, *, stream: TextIO | None = None, width: int = 30,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.total = int(total)
+        self.stream = stream if stream is not None else sys.stderr
+        self.width = width
+        self.clock = clock
+        self.t0 = clock()
+        self.done = self.failed = 0
+        isatty = getattr(self.stream, "isatty", None)
+        self.tty = bool(isatty and isatty())
+
+    def text(self) -> str:
+        """The bar's current text."""
+        frac = self.done / self.total if self.total else 1.0
+        filled = int(round(frac * self.width))
+        elapsed = self.clock() - self.t0
+        left = elapsed / self.done * (self.total - self.done) if self.done else None
+        eta = "" if left is None else f", {int(left) // 60}:{int(left) % 60:02d} left"
+        return (f"sweep [{'#' * filled}{'.' * (self.width - filled)}] {self.done}/{self.total} "
+                f"runs, {self.failed} failed, {int(elapsed) // 60}:{int(elapsed) % 60:02d}{eta}")
+
+    def update(self, *, failed: bool) -> None:
+        """One more run finished."""
+        self.done += 1
+        self.failed += bool(failed)
+        end = "\n" if not self.tty or self.done == self.total else ""
+        self.stream.write(("\r" if self.tty else "") + self.text() + end)
+        self.stream.flush()
+
+
+@contextmanager
+def dask_client(*, workers: int, scheduler: str | None) -> Iterator[Any]:
+    """A Dask client: on ``scheduler`` (``tcp://HOST:PORT``) or on a new local cluster.
+
+    The local cluster binds 127.0.0.1, has ``workers`` worker processes of one thread each and
+    no dashboard; it is closed on the way out.
+    """
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        if not scheduler.startswith("tcp://"):
+            raise ValueError(f"--scheduler must be tcp://HOST:PORT, got {scheduler!r}")
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except OSError as exc:
+            raise OSError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+        try:
+            try:
+                client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+            except TimeoutError:
+                raise TimeoutError(f"--scheduler {scheduler}: no worker joined within "
+                                   f"{CONNECT_TIMEOUT_S:g} s") from None
+            yield client
+        finally:
+            client.close()
+        return
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           host="127.0.0.1", dashboard_address=None)
+    try:
+        client = Client(cluster)
+        try:
+            yield client
+        finally:
+            client.close()
+    finally:
+        cluster.close()
+
+
+def _dask_results(jobs: Sequence[Job], client: Any) -> Iterator[tuple[int, dict[str, str]]]:
+    """Yield ``(index, outcome)`` as runs finish; a run whose task failed is an error row."""
+    from distributed import as_completed
+
+    futures = {
+        client.submit(run_job, job, key=f"planer-sweep-{os.getpid()}-{job.point.index}",
+                      pure=False): job.point.index
+        for job in jobs
+    }
+    try:
+        for fut in as_completed(futures):
+            if fut.status == "finished":
+                index, row, _ = fut.result()
+                yield index, row
+            else:  # the worker died or the task raised what run_job does not catch
+                exc = fut.exception()
+                yield futures[fut], error_row(f"{type(exc).__name__}: {exc}")
+    finally:
+        client.cancel(list(futures))
+
+
+def _local_results(jobs: Sequence[Job]) -> Iterator[tuple[int, dict[str, str]]]:
+    for job in jobs:
+        index, row, _ = run_job(job)
+        yield index, row
+
+
+def run_sweep(
+    jobs: Sequence[Job],
+    out_dir: str | Path,
+    *,
+    keys: Sequence[str],
+    bases: Mapping[str, Any],
+    workers: int = 2,
+    scheduler: str | None = None,
+    progress: TextIO | None = None,
+    results: Callable[[Sequence[Job]], Iterable[tuple[int, dict[str, str]]]] | None = None,
+) -> list[dict[str, str]]:
+    """Run every job and write ``out_dir/results.csv``; return its rows, ordered by run.
+
+    Parameters
+    ----------
+    jobs : sequence of Job
+        From :func:`planer.sweep.point.prepare`.
+    out_dir : str or Path
+        Output folder (created).
+    keys : sequence of str
+        The varied keys (the input columns).
+    bases : mapping
+        Base value of each key (cells a run's grid leaves out).
+    workers : int
+        Local cluster size; 0 runs the jobs one after the other in this process (no Dask).
+    scheduler : str, optional
+        ``tcp://HOST:PORT`` of a running Dask scheduler (``workers`` is then ignored).
+    progress : text stream, optional
+        Where the progress bar goes (default stderr).
+    results : callable, optional
+        ``results(jobs)`` yielding ``(index, outcome cells)`` as runs finish (tests; default
+        Dask or, with ``workers=0``, this process).
+
+    Returns
+    -------
+    list of dict
+        The rows of ``results.csv``. Interrupted (Ctrl-C), the file keeps the finished rows
+        in the order they finished and ``KeyboardInterrupt`` propagates.
+    """
+    if workers < 0:
+        raise ValueError(f"workers must be >= 0, got {workers}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    by_index = {job.point.index: job for job in jobs}
+    writer = ResultsWriter(out / RESULTS_NAME, columns(keys))
+    bar = ProgressBar(len(jobs), stream=progress)
+    complete = False
+    try:
+        with ExitStack() as stack:
+            if results is not None:
+                stream: Any = results(jobs)
+            elif scheduler or workers > 0:
+                client = stack.enter_context(dask_client(workers=workers, scheduler=scheduler))
+                stream = _dask_results(jobs, client)
+            else:
+                stream = _local_results(jobs)
+            if hasattr(stream, "close"):
+                stack.callback(stream.close)  # runs before the client closes
+            for index, outcome in stream:
+                writer.add({**input_cells(by_index[index].point, keys, bases), **outcome})
+                bar.update(failed=bool(outcome.get("error")))
+        complete = True
+    finally:
+        writer.close(sort=complete)
+    return sorted(writer.rows, key=lambda r: int(r["run"]))

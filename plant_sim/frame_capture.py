@@ -1,0 +1,176 @@
+"""Frame capture: the camera's triggers, their latches, and the assembly of each image pair.
+
+Trigger A fires on the trigger clock (``[camera] pairs_per_s``) whenever the whole field of view
+lies on a board (5 mm clear of its ends); it latches the encoder count, the index latch (the
+count at the index pulse nearest to the moment the board point at the image centre was under
+the cutter, from :class:`plant_sim.cut_record.CutRecord`) and the board position. Trigger B
+fires ``dt_ab_s`` later and latches the count again; then the frame is assembled
+(:class:`plant_sim.camera.FrameAssembler`, images by the optics renderer built once here). A
+pending belt slip (the ``belt_slip`` fault) is applied to the counter between A and B.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from config.sim import SimConfig
+from plant_sim.camera import FrameAssembler, Knot, Latch, TriggerClock
+from plant_sim.cut_record import CutRecord
+from plant_sim.feed_drive import BoardStream, Encoder, FeedDrive
+from protocol.frames import Frame
+
+__all__ = ["FrameCapture", "build_renderer"]
+
+_FIELD_MARGIN_MM = 5.0  # the field of view must be this far inside the board's ends
+
+
+def build_renderer(cfg: SimConfig, *, seed: int) -> Any:
+    """The optics renderer of ``cfg``'s camera (rig, species, ``[camera.optics]``, rig effects).
+
+    Parameters
+    ----------
+    cfg : config.sim.SimConfig
+        The simulator configuration.
+    seed : int
+        Seed of the wood texture and the image noise.
+
+    Returns
+    -------
+    plant_sim.optics.Renderer
+        Built once; renders each pair's two images.
+    """
+    from config.wood import SPECIES
+    from plant_sim.optics import Optics, Renderer, effects_from_config
+
+    cam = cfg.camera
+    o = cam.optics
+    optics = Optics(
+        width=o.width,
+        height=o.height,
+        led_imbalance=o.imbalance,
+        falloff=o.falloff,
+        read_noise_dn=o.noise,
+        dt_ab_s=cam.dt_ab_s,
+        counts_per_mm=cfg.encoder.counts_per_mm,
+    )
+    return Renderer(cam.rig, optics, SPECIES[cam.species], seed=seed,
+                    effects=effects_from_config(cfg))
+
+
+class FrameCapture:
+    """The camera station: trigger clock, latches A/B, knots on the boards, frame assembly.
+
+    Parameters
+    ----------
+    cfg : config.sim.SimConfig
+        The configuration (``[camera]``, ``[encoder]``).
+    feed, encoder, boards : plant_sim.feed_drive.FeedDrive, Encoder, BoardStream
+        The table, its counter and the boards on it.
+    cut : plant_sim.cut_record.CutRecord
+        The passes (for the truth and the images) and the index pulses.
+    renderer : plant_sim.optics.Renderer or None
+        Renders the images; ``None``: frames without images.
+
+    Attributes
+    ----------
+    assembler : plant_sim.camera.FrameAssembler
+        Builds each frame (the runner may defer its rendering).
+    knots : list of plant_sim.camera.Knot
+        Knots placed on boards (by the ``knot`` fault).
+    last_pair : plant_sim.camera.Latch or None
+        The last completed pair's latches (the trigger registers show them).
+    frames_dropped : int
+        Pairs that could not be assembled (no passes under the field of view).
+    pending_slip : int or None
+        Counts a ``belt_slip`` adds between A and B of the next pair.
+    """
+
+    def __init__(self, cfg: SimConfig, *, feed: FeedDrive, encoder: Encoder,
+                 boards: BoardStream, cut: CutRecord, renderer: Any = None) -> None:
+        cam = cfg.camera
+        self.L_mm = cam.cutter_to_camera_mm
+        self.dt_ab_s = cam.dt_ab_s
+        self.feed = feed
+        self.encoder = encoder
+        self.boards = boards
+        self.cut = cut
+        self.assembler = FrameAssembler(
+            cam.rig, width=cam.optics.width, counter_bits=cfg.encoder.counter_bits,
+            renderer=renderer,
+        )
+        self._fov_lo, self._fov_hi = self.assembler.x_lo_mm, self.assembler.x_hi_mm
+        self.triggers = TriggerClock(cam.pairs_per_s)
+        self.latch: Latch | None = None
+        self.seq = 0
+        self.last_pair: Latch | None = None
+        self.knots: list[Knot] = []
+        self.frames_dropped = 0
+        self.pending_slip: int | None = None
+
+    def events_until(self, t1: float, frames: list[Frame]) -> None:
+        """Fire every trigger due up to ``t1`` s; completed frames are appended to ``frames``."""
+        while True:
+            la = self.latch
+            tn = self.triggers.next_time()
+            tb = la.t_b if la is not None else math.inf
+            if tb <= t1 and tb <= tn:
+                self._trigger_b(la, frames)
+            elif tn <= t1:
+                self.triggers.consume()
+                if la is None:
+                    self._trigger_a(tn)
+            else:
+                break
+
+    def shift_latch(self, delta_counts: int) -> None:
+        """Shift the counts of a pair in flight (the counter was preset by ``delta_counts``)."""
+        la = self.latch
+        if la is not None:
+            mod = self.encoder.modulus
+            la.counts_a = (la.counts_a + delta_counts) % mod
+            la.index_latch = (la.index_latch + delta_counts) % mod
+
+    def _trigger_a(self, t: float) -> None:
+        s = self.feed.position_at(t)
+        bid, x = self.boards.at(s, self.L_mm)
+        if bid == 0:
+            return
+        length = self.boards.length_mm
+        if x + self._fov_lo < _FIELD_MARGIN_MM or x + self._fov_hi > length - _FIELD_MARGIN_MM:
+            return
+        raw = self.encoder.raw(s)
+        self.seq += 1
+        self.latch = Latch(
+            seq=self.seq,
+            t_a=t,
+            s_a=s,
+            counts_a=self.encoder.wrap(raw),
+            v_a=self.feed.speed_at(t),
+            board_id=bid,
+            x_centre_mm=x,
+            index_latch=self.cut.index_latch(s - self.L_mm),
+            t_b=t + self.dt_ab_s,
+        )
+        if self.pending_slip is not None:
+            self.latch.slip_counts = self.pending_slip
+            self.encoder.add_slip(self.pending_slip)
+            self.pending_slip = None
+
+    def _trigger_b(self, la: Latch, frames: list[Frame]) -> None:
+        self.latch = None
+        la.s_b = self.feed.position_at(la.t_b)
+        la.counts_b = self.encoder.read(la.s_b)
+        self.last_pair = la
+        log = self.cut.logs.get(la.board_id)
+        if log is None or log.n == 0:
+            self.frames_dropped += 1
+            return
+        try:
+            frame = self.assembler.assemble(
+                la, log.passes(), self.knots, board_length_mm=self.boards.length_mm
+            )
+        except ValueError:
+            self.frames_dropped += 1
+            return
+        frames.append(frame)

@@ -1,0 +1,157 @@
+"""The PLC's own logic and its register view: fault bits, e-stop, heartbeats, watchdog, interlock.
+
+What the Modbus server (:mod:`plant_sim.plc_server`) exposes comes from here:
+:meth:`PlcRegisters.values` gives every register of ``config/registers.toml`` from the drives'
+state, the last camera pair's latches and the PLC's flags. Per PLC cycle
+(:meth:`PlcRegisters.start_cycle`) the PLC increments its heartbeat and checks the service's
+(no new ``heartbeat_service`` value for ``[plc] watchdog_ms``: faults bit 3, flagged only); the
+feed interlock (:meth:`PlcRegisters.feed_permitted`) lets the feed run only while the spindle
+runs, no e-stop and no feed-drive fault.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from config.sim import SimConfig
+from core.checks import check_int
+from plant_sim.feed_drive import BoardStream, Encoder, FeedDrive
+from plant_sim.frame_capture import FrameCapture
+from plant_sim.spindle import Spindle
+from protocol.registers import MachineState, PlcFault, RegisterMap
+
+__all__ = ["PlcRegisters", "register_names"]
+
+
+def register_names(path: str | Path | None = None) -> list[str]:
+    """Names of every register in the register map (``config/registers.toml`` by default)."""
+    return [reg.name for reg in RegisterMap.load(path)]
+
+
+class PlcRegisters:
+    """The PLC's state and the values of its registers.
+
+    Parameters
+    ----------
+    cfg : config.sim.SimConfig
+        The configuration (``[plc]``, ``[feed]`` limits, ``[encoder]``, ``[cutterhead]``).
+    spindle, feed, encoder, boards : the drives, the counter and the boards
+        Read for the register values.
+    capture : plant_sim.frame_capture.FrameCapture
+        The camera station (the last pair's latches).
+    radius_mm : float
+        Cutting radius, mm (a register).
+
+    Attributes
+    ----------
+    estop : bool
+        E-stop pressed.
+    fault_bits : protocol.registers.PlcFault
+        The ``faults`` register.
+    heartbeat_plc, heartbeat_service : int
+        The two heartbeats (0..65535).
+    """
+
+    def __init__(self, cfg: SimConfig, *, spindle: Spindle, feed: FeedDrive, encoder: Encoder,
+                 boards: BoardStream, capture: FrameCapture, radius_mm: float) -> None:
+        self.cfg = cfg
+        self.spindle = spindle
+        self.feed = feed
+        self.encoder = encoder
+        self.boards = boards
+        self.capture = capture
+        self.radius_mm = radius_mm
+        self.knives = cfg.cutterhead.knives
+        self.L_mm = cfg.camera.cutter_to_camera_mm
+        self._watchdog_s = cfg.plc.watchdog_ms * 1e-3
+        self._names = register_names()
+        self.estop = False
+        self.fault_bits = PlcFault(0)
+        self.heartbeat_plc = 0
+        self.heartbeat_service = 0
+        self._hb_changed_s = 0.0
+
+    def start_cycle(self, t_s: float) -> None:
+        """A PLC cycle begins at ``t_s``: check the service's heartbeat, count the PLC's own."""
+        if t_s - self._hb_changed_s > self._watchdog_s:
+            self.fault_bits |= PlcFault.HEARTBEAT_LOST
+        else:
+            self.fault_bits &= ~PlcFault.HEARTBEAT_LOST
+        self.heartbeat_plc = (self.heartbeat_plc + 1) & 0xFFFF
+
+    def feed_permitted(self) -> bool:
+        """The interlock: the feed may run (spindle running, no e-stop, no feed-drive fault)."""
+        return (not self.estop and self.spindle.running
+                and not (self.fault_bits & PlcFault.FEED_DRIVE))
+
+    def set_flag(self, bit: PlcFault, on: bool) -> None:
+        """Set or clear one bit of the ``faults`` register."""
+        if on:
+            self.fault_bits |= bit
+        else:
+            self.fault_bits &= ~bit
+
+    def set_service_heartbeat(self, value: int, t_s: float) -> None:
+        """The service's heartbeat at ``t_s``; a changed value feeds the watchdog."""
+        v = check_int("value", value, lo=0, hi=0xFFFF)
+        if v != self.heartbeat_service:
+            self._hb_changed_s = t_s
+            self.fault_bits &= ~PlcFault.HEARTBEAT_LOST
+        self.heartbeat_service = v
+
+    def machine_state(self, t_s: float) -> MachineState:
+        """The ``machine_state`` register's bits at ``t_s``."""
+        s = self.feed.position_at(t_s)
+        st = MachineState(0)
+        if self.spindle.running:
+            st |= MachineState.SPINDLE_RUNNING
+        if self.feed.enabled:
+            st |= MachineState.FEED_ENABLED
+        if self.spindle.running and self.feed.enabled and not self.estop:
+            st |= MachineState.RUNNING
+        if self.estop:
+            st |= MachineState.ESTOP
+        if self.boards.at(s, self.L_mm)[0]:
+            st |= MachineState.BOARD_PRESENT
+        return st
+
+    def values(self, t_s: float) -> dict[str, float | int]:
+        """Every register of ``config/registers.toml`` with its value at ``t_s``.
+
+        Raises
+        ------
+        RuntimeError
+            The register map names a register the machine has no value for.
+        """
+        s = self.feed.position_at(t_s)
+        cfg = self.cfg
+        last = self.capture.last_pair
+        bid, _ = self.boards.at(s, self.L_mm)
+        values: dict[str, float | int] = {
+            "heartbeat_service": self.heartbeat_service,
+            "heartbeat_plc": self.heartbeat_plc,
+            "feed_setpoint_mm_s": self.feed.setpoint_mm_s,
+            "feed_min_mm_s": cfg.feed.min_mm_s,
+            "feed_max_mm_s": cfg.feed.max_mm_s,
+            "feed_accel_max_mm_s2": cfg.feed.accel_max_mm_s2,
+            "feed_actual_mm_s": self.feed.speed_at(t_s),
+            "spindle_rpm": self.spindle.rpm,
+            "encoder_counts": self.encoder.read(s),
+            "trigger_a_counts": last.counts_a if last else 0,
+            "trigger_b_counts": last.counts_b if last else 0,
+            "trigger_seq": (last.seq if last else 0) & 0xFFFF,
+            "index_latch_counts": last.index_latch if last else 0,
+            "machine_state": int(self.machine_state(t_s)),
+            "faults": int(self.fault_bits),
+            "knives": self.knives,
+            "cutter_to_camera_mm": self.L_mm,
+            "counts_per_mm": cfg.encoder.counts_per_mm,
+            "board_id": bid,
+            "board_position_mm": (self.boards.length_mm - last.x_centre_mm) if last else 0.0,
+            "watchdog_ms": cfg.plc.watchdog_ms,
+            "cutterhead_radius_mm": self.radius_mm,
+        }
+        missing = [n for n in self._names if n not in values]
+        if missing:
+            raise RuntimeError(f"machine has no value for registers {missing}")
+        return values

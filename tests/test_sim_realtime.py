@@ -1,0 +1,297 @@
+"""The simulator's real-time structure: PLC in its own process, images in workers, a clock that
+slows itself, CAN read on its own thread. Simulated time throughout (no sleeping, no timing)."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import socket
+import struct
+
+import numpy as np
+import pytest
+
+from plant_sim.amp_node import AmpNode, AmpNodeCore
+from plant_sim.driver import PlantDriver
+from plant_sim.plc_process import PlcProcess
+from plant_sim.runner import SimRunner
+from protocol import can_transport
+from protocol.frames import InProcessSource
+from protocol.piezo_can import PiezoCodec
+from protocol.registers import RegisterMap
+from tests.test_sim_plc import FakeMachine, read_adu
+from tests.test_sim_runner import FakeClock
+
+RMAP = RegisterMap.load()
+
+
+def _read_all(sock: socket.socket, tid: int) -> dict:
+    first, count = RMAP.span()
+    sock.sendall(struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, first, count))
+    pdu = read_adu(sock, tid=tid, unit=1)
+    assert pdu is not None and pdu[:2] == bytes([3, 2 * count])
+    return RMAP.decode_block(list(struct.unpack(f">{count}H", pdu[2:])), first)
+
+
+def _write_feed(sock: socket.socket, tid: int, value: float) -> bytes | None:
+    reg = RMAP["feed_setpoint_mm_s"]
+    words = RMAP.encode("feed_setpoint_mm_s", value)
+    pdu = struct.pack(">BHHB2H", 16, reg.address, 2, 4, *words)
+    sock.sendall(struct.pack(">HHHB", tid, 0, len(pdu) + 1, 1) + pdu)
+    return read_adu(sock, tid=tid, unit=1)
+
+
+@pytest.fixture
+def plc_process():
+    machine = FakeMachine()
+    plc = PlcProcess(machine, port=0)
+    plc.set_up(True)
+    try:
+        yield machine, plc
+    finally:
+        plc.close()
+
+
+def test_plc_process_serves_the_published_snapshot_while_the_machine_stands(plc_process):
+    """Nothing on the stepping side runs: the server process still answers, consistently."""
+    machine, plc = plc_process
+    with socket.create_connection(("127.0.0.1", plc.port), timeout=10.0) as s:
+        before = _read_all(s, 1)
+        assert before["heartbeat_plc"] == machine.heartbeat_plc
+        machine.advance(0.001)  # not published yet: the server keeps the snapshot
+        assert _read_all(s, 2)["heartbeat_plc"] == before["heartbeat_plc"]
+        plc.refresh()
+        assert _read_all(s, 3)["heartbeat_plc"] == (before["heartbeat_plc"] + 1) & 0xFFFF
+        for tid in range(4, 40):  # many requests with no stepping at all
+            assert _read_all(s, tid)["knives"] == machine.knives
+    assert plc.requests >= 39 and plc.refused == 0
+
+
+def test_plc_process_writes_shown_at_once_applied_in_order(plc_process):
+    machine, plc = plc_process
+    with socket.create_connection(("127.0.0.1", plc.port), timeout=10.0) as s:
+        for tid, value in enumerate((120.0, 640.25, 333.5), start=1):
+            assert _write_feed(s, tid, value)[:1] == b"\x10"
+        assert _write_feed(s, 9, 5000.0) == b"\x90\x03"  # out of range: refused at once
+        assert machine.feed_setpoint == 800.0  # the stepping side has not applied them
+        plc.refresh()  # a publish before the apply: the written value stays served
+        assert _read_all(s, 10)["feed_setpoint_mm_s"] == 333.5
+        seen: list[float] = []
+        orig = machine.set_feed_setpoint
+        machine.set_feed_setpoint = lambda v: (seen.append(v), orig(v))[1]
+        n = 0
+        for _ in range(1000):  # the pipe delivers them; poll the stepping side's queue
+            n += plc.apply_writes()
+            if n == 3:
+                break
+        assert seen == [120.0, 640.25, 333.5]
+        plc.refresh()
+        assert _read_all(s, 11)["feed_setpoint_mm_s"] == 333.5 == machine.feed_setpoint
+
+
+def test_plc_process_restart_drops_clients_keeps_port_and_port_in_use_is_named(plc_process):
+    from core.errors import FieldbusError
+
+    machine, plc = plc_process
+    port = plc.port
+    s = socket.create_connection(("127.0.0.1", port), timeout=10.0)
+    plc.set_up(False)
+    assert not plc.running
+    try:
+        assert s.recv(10) == b""  # dropped
+    except ConnectionResetError:  # dropped before the server had accepted it
+        pass
+    s.close()
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", port), timeout=10.0)
+    plc.set_up(True)
+    assert plc.port == port
+    with socket.create_connection(("127.0.0.1", port), timeout=10.0) as s2:
+        assert _read_all(s2, 1)["knives"] == machine.knives
+    other = PlcProcess(FakeMachine(), port=port)
+    try:
+        with pytest.raises(FieldbusError, match=str(port)):
+            other.set_up(True)
+    finally:
+        other.close()
+    assert other._proc is None and other._shm is None
+
+
+# ------------------------------------------------------------------ rendering in workers
+@pytest.mark.parametrize("workers, to_spool", [(1, True), (2, True)])
+def test_worker_images_equal_the_machines_own(tmp_path, workers, to_spool):
+    """The images the machine would render itself, handed back or written to the spool by the
+    workers in order: one worker with the machine's own noise stream; several with each pair's
+    noise seeded from (seed, seq)."""
+    from config.sim import default_sim
+    from plant_sim.camera import render_images
+    from plant_sim.machine import Machine
+    from plant_sim.render_worker import RenderPool, noise_seed
+    from protocol.frames import SpoolReader, SpoolWriter
+
+    cfg = default_sim()
+    own = Machine(cfg, seed=3, render_images=True)
+    deferred = Machine(cfg, seed=3, render_images=False)
+    deferred.assembler.defer_rendering()
+    writer = SpoolWriter(tmp_path / "spool", keep=10, fsync=False) if to_spool else None
+    pool = RenderPool(cfg, seed=3, workers=workers, writer=writer)
+    pool.start()
+    try:
+        expect, jobs = [], {}
+        while len(expect) < 4:
+            expect += own.advance(0.05)
+            for f in deferred.advance(0.05):
+                assert f.image_a is None
+                jobs[f.seq] = deferred.assembler.take_job(f.seq)
+                pool.submit(f, jobs[f.seq])
+        got = pool.take(wait=True)
+    finally:
+        pool.close()
+    assert [f.seq for f in got] == [f.seq for f in expect]
+    if workers > 1:  # seeded per pair: independent of which worker rendered it
+        expect = [
+            dataclasses.replace(f, **dict(zip(("image_a", "image_b"), render_images(
+                own.renderer, jobs[f.seq], rng_seed=noise_seed(3, f.seq)), strict=True)))
+            for f in expect
+        ]
+    if to_spool:
+        assert all(f.image_a is None for f in got)  # written there, not handed back
+        reader = SpoolReader(tmp_path / "spool", start="all")
+        got = [reader.poll() for _ in expect]
+        assert [f.seq for f in got] == [f.seq for f in expect] and reader.poll() is None
+    for a, b in zip(expect, got, strict=True):
+        assert np.array_equal(a.image_a, b.image_a) and np.array_equal(a.image_b, b.image_b)
+        assert a.truth["pitch_mm"] == b.truth["pitch_mm"] and a.counts_b == b.counts_b
+
+
+# ------------------------------------------------------------------ the clock slows itself
+class SlowHostMachine(FakeMachine):
+    """Each step costs ``cost`` x its machine time of (fake) wall time: a host too slow."""
+
+    def __init__(self, clock: FakeClock, cost: float) -> None:
+        super().__init__()
+        self.clock = clock
+        self.cost = cost
+
+    def advance(self, dt_s: float):
+        self.clock.now += self.cost * dt_s
+        return super().advance(dt_s)
+
+
+@pytest.mark.parametrize("cost", [2.0, 4.0])
+def test_slow_host_slows_the_clock_says_so_once_and_never_bursts(cost):
+    from plant_sim import runner as runner_mod
+
+    clock, lines = FakeClock(), []
+    m = SlowHostMachine(clock, cost)
+    runner = SimRunner(m, sink=InProcessSource(maxlen=1000), clock=clock, sleep=clock.sleep,
+                       out=lines.append, progress_every_s=100.0, time_scale=1.0)
+    bursts: list[int] = []
+    orig = runner._step
+    count = [0]
+
+    def counting_step():
+        count[0] += 1
+        orig()
+
+    async def watch():
+        while not runner._stop.is_set():
+            bursts.append(count[0])
+            count[0] = 0
+            await asyncio.sleep(0)
+
+    runner._step = counting_step
+
+    async def main():
+        w = asyncio.create_task(watch())
+        s = await runner.run(duration_s=8.0)
+        w.cancel()
+        return s
+
+    summary = asyncio.run(main())
+    slow = [ln for ln in lines if ln.startswith("slow host")]
+    assert len(slow) == 1, lines
+    achieved = float(slow[0].split("slowed itself to ")[1].split()[0])
+    assert achieved == pytest.approx(1.0 / cost, rel=0.1)
+    assert summary.real_time_factor == pytest.approx(1.0 / cost, rel=0.1)
+    assert summary.frames == 80 and summary.slowed_s > 0  # every pair, none skipped
+    # never more than one slice of catching up at once; further behind, the clock resets
+    assert max(bursts) <= runner_mod.MAX_STEPS_PER_ITERATION
+
+
+class SlowRender:
+    """A render pool whose worker finishes one frame per ``per`` runner iterations."""
+
+    workers = 1
+    writes_spool = False
+
+    def __init__(self, per: int) -> None:
+        self.per = per
+        self.queue: list = []
+        self.calls = 0
+        self.max_pending = 0
+
+    def start(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    @property
+    def pending(self) -> int:
+        return len(self.queue)
+
+    def submit(self, frame, job) -> None:
+        self.queue.append(frame)
+        self.max_pending = max(self.max_pending, len(self.queue))
+
+    def take(self, *, wait: bool = False):
+        self.calls += 1
+        if wait:
+            out, self.queue = self.queue, []
+            return out
+        if self.queue and self.calls % self.per == 0:
+            return [self.queue.pop(0)]
+        return []
+
+
+def test_render_backlog_slows_the_machine_instead_of_dropping_frames():
+    from plant_sim import runner as runner_mod
+
+    clock, lines = FakeClock(), []
+    m = FakeMachine(pairs_per_s=200.0)  # more pairs than the slow renderer takes
+    m.assembler = type("A", (), {"take_job": staticmethod(lambda seq: None)})()
+    sink = InProcessSource(maxlen=10_000)
+    render = SlowRender(per=10)
+    runner = SimRunner(m, sink=sink, render=render, clock=clock, sleep=clock.sleep,
+                       out=lines.append, progress_every_s=100.0)
+    summary = asyncio.run(runner.run(duration_s=2.0))
+    seqs = [sink.poll().seq for _ in range(len(sink))]
+    assert seqs == list(range(1, len(seqs) + 1)) and len(seqs) == m.seq  # in order, all
+    assert render.max_pending <= 2 * runner_mod.MAX_RENDER_BACKLOG + 1
+    assert summary.real_time_factor < 0.9 and any(ln.startswith("slow host") for ln in lines)
+
+
+# ------------------------------------------------------------------ CAN on its own thread
+def test_amp_node_receiving_thread_hands_frames_over_at_machine_time():
+    m = FakeMachine()
+    codec = PiezoCodec.load()
+    bus = can_transport.open_bus("virtual", "rt-rx")
+    svc = can_transport.open_bus("virtual", "rt-rx")
+    node = AmpNode(bus, AmpNodeCore(m, codec, knives=4), own_bus=True)
+    node.start_receiving()
+    driver = PlantDriver(m, amp=node)
+    try:
+        import can
+
+        for alive in (5, 6, 7):
+            fid, data = codec.encode_command(enable=True, knives=4, alive_counter=alive)
+            svc.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+        for _ in range(100_000):  # the thread queues them; the machine sees them on a step
+            driver.step(0.001)
+            if len(m.alive_counters) == 3:
+                break
+        assert m.alive_counters == [5, 6, 7]
+        assert m.last_cmd_s is not None and m.last_cmd_s < m.t_s
+    finally:
+        node.close()
+        svc.shutdown()
+    assert not node._rx_thread.is_alive() and bus._is_shutdown
