@@ -11,6 +11,7 @@ Every wrong or missing value raises :class:`core.errors.ConfigError` naming the 
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -185,6 +186,16 @@ class OpcUaConfig:
     users_file: Path | None = None
 
 
+@dataclass(frozen=True)
+class HttpConfig:
+    """``[http]``: the operator and quality web pages (``docs/web.md``).
+
+    Off while ``listen`` is empty; e.g. ``listen = "127.0.0.1:8080"``.
+    """
+
+    listen: str = ""
+
+
 IDENTIFICATION_KEYS = (
     "Manufacturer", "Model", "SerialNumber", "ProductInstanceUri", "DeviceClass",
     "YearOfConstruction", "MonthOfConstruction", "ManufacturerUri", "ProductCode",
@@ -236,6 +247,7 @@ class MachineConfig:
     safety: SafetyConfig = SafetyConfig()
     log: LogConfig = LogConfig()
     opcua: OpcUaConfig = OpcUaConfig()
+    http: HttpConfig = HttpConfig()
     identification: Mapping[str, Any] = field(default_factory=_frozen)
     source: Path | None = field(default=None, compare=False)
     """The file this configuration was loaded from (``None``: built in code). Code that checks
@@ -413,6 +425,11 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
     log_cfg = replace(log_cfg, machine_id=mid)
     mc.reject_unknown()
     opcua_cfg, identification = _opcua_tables(root)
+    ht = root.section("http", required=False)
+    listen = ht.string("listen", "")
+    if listen and not re.fullmatch(r"(\[[0-9A-Fa-f:.]+\]|[^\s:\[\]]+):[0-9]{1,5}", listen):
+        raise ConfigError(f"{ht.key('listen')} must look like 127.0.0.1:8080, got {listen!r:.80}")
+    ht.reject_unknown()
 
     root.reject_unknown()
     return MachineConfig(
@@ -428,6 +445,7 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
         safety=safety_cfg,
         log=log_cfg,
         opcua=opcua_cfg,
+        http=HttpConfig(listen=listen),
         identification=identification,
     )
 

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.checks import check_finite, check_int, check_positive
+from core.units import counter_difference
 
 
 def wrapped_difference(a: int, b: int, *, counter_bits: int = 32) -> int:
@@ -48,10 +49,9 @@ def wrapped_difference(a: int, b: int, *, counter_bits: int = 32) -> int:
     """
     bits = check_int("counter_bits", counter_bits, lo=2, hi=64)
     modulus = 1 << bits
-    half = modulus >> 1
     a = check_int("a", a, lo=0, hi=modulus - 1)
     b = check_int("b", b, lo=0, hi=modulus - 1)
-    return (a - b + half) % modulus - half
+    return counter_difference(a, b, bits=bits)
 
 
 def pass_numbers(

@@ -160,7 +160,7 @@ class PairPipeline:
             self.loops.ensure(snap)
         except (ValueError, LookupError, TypeError, ArithmeticError) as exc:
             return f"no control loops: {exc_name(exc)}: {exc}", None, None
-        error, meas = await self.measurement.measure(frame)
+        error, meas = await self.measurement.measure(frame, snap)
         if error is not None:
             return error, None, None
         error = self.measurement.implausible(meas, frame, snap)

@@ -29,6 +29,9 @@ from core.fileio import atomic_writer
 
 __all__ = [
     "SCHEMA_VERSION",
+    "CALIBRATION_STATES",
+    "CALIBRATION_FIELDS",
+    "vision_fields",
     "CSV_COLUMNS",
     "QualityLogError",
     "RecordRefusedError",
@@ -58,7 +61,7 @@ __all__ = [
 ]
 
 #: Version of the table layout this code writes; logs with a higher version are refused.
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 #: SQLite ``application_id`` marking a file as a planer quality log ("PLQL").
 APPLICATION_ID = 0x504C514C
 #: Longest machine id (``[machine] id``), characters.
@@ -214,6 +217,31 @@ class QualityRecord:
     machine_id : str or None
         The machine that measured (``[machine] id``); ``None`` = the log's own machine id is
         stamped on append (records read back from logs before schema version 3 hold ``None``).
+    roll_deg : float or None
+        Direction of the marks' normal (the feed) in the image: the camera's roll, degrees.
+    roll_confidence : float or None
+        Confidence of the per-pair roll estimate, 0..1 (below the vision's threshold the rig
+        file's roll was used).
+    calibration_state : {"off", "applied", "untrusted"} or None
+        The self-calibration from the knife kinematics: ``off`` (no cutting radius),
+        ``applied`` (the values below corrected the profile), ``untrusted`` (estimated, not
+        applied: confidence too low); ``None`` = not known (records before schema version 4,
+        pairs the vision could not measure).
+    calibration_gain : float or None
+        Photometric gain (measured slope / kinematic slope), dimensionless.
+    calibration_gain_confidence : float or None
+        Its confidence, 0..1 (smoothed over the board's pairs).
+    calibration_scatter_mm : float or None
+        Subsurface scattering length along the fibres, mm.
+    calibration_scatter_fraction : float or None
+        Fraction of the light scattered, 0..1.
+    calibration_scatter_confidence : float or None
+        Confidence of the scattering estimate, 0..1.
+    kinematic_depth_um : float or None
+        Mark depth from the marks' cusps and lowest points with the cutting radius, um: beside
+        ``depth_um`` (photometric), a difference shows spring-back, tear-out or chatter.
+    uncalibrated_depth_um : float or None
+        ``depth_um`` before the self-calibration, um.
     """
 
     t_s: float
@@ -237,6 +265,16 @@ class QualityRecord:
     true_uniformity_cv: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     machine_id: str | None = None
+    roll_deg: float | None = None
+    roll_confidence: float | None = None
+    calibration_state: str | None = None
+    calibration_gain: float | None = None
+    calibration_gain_confidence: float | None = None
+    calibration_scatter_mm: float | None = None
+    calibration_scatter_fraction: float | None = None
+    calibration_scatter_confidence: float | None = None
+    kinematic_depth_um: float | None = None
+    uncalibrated_depth_um: float | None = None
 
     def __post_init__(self) -> None:
         def put(name: str, value: Any) -> None:
@@ -259,6 +297,14 @@ class QualityRecord:
         put("machine_id", _check_machine_id("machine_id", self.machine_id))
         if self.error is not None and not isinstance(self.error, str):
             raise ValueError(f"error must be a string or None, got {self.error!r}")
+        if self.calibration_state not in (None, *CALIBRATION_STATES):
+            raise ValueError(f"calibration_state must be one of {', '.join(CALIBRATION_STATES)} "
+                             f"or None, got {self.calibration_state!r:.80}")
+        if self.calibration_state in (None, "off"):
+            given = [n for n in CALIBRATION_FIELDS if getattr(self, n) is not None]
+            if given:
+                raise ValueError(f"{given[0]} needs calibration_state applied or untrusted, "
+                                 f"got {self.calibration_state!r}")
         if not isinstance(self.extra, Mapping) or not all(isinstance(k, str) for k in self.extra):
             raise ValueError(f"extra must be a dict with string keys, got {self.extra!r:.80}")
         put("extra", dict(self.extra))
@@ -269,7 +315,8 @@ class QualityRecord:
         else:
             if not self.error:
                 raise ValueError("error must say why the measurement failed (ok=False)")
-            carried = [n for n in ("pitch_mm", "uniformity_cv", "depth_um", "passed")
+            carried = [n for n in ("pitch_mm", "uniformity_cv", "depth_um", "passed",
+                                   "kinematic_depth_um", "uncalibrated_depth_um")
                        if getattr(self, n) is not None]
             if self.mark_widths_mm:
                 carried.append("mark_widths_mm")
@@ -277,14 +324,71 @@ class QualityRecord:
                 raise ValueError(f"a failed measurement carries no metrics, got {carried[0]}")
 
 
+#: The self-calibration's states (``calibration_state``).
+CALIBRATION_STATES = ("off", "applied", "untrusted")
+#: The self-calibration's values, set only with state ``applied`` or ``untrusted``.
+CALIBRATION_FIELDS = (
+    "calibration_gain", "calibration_gain_confidence", "calibration_scatter_mm",
+    "calibration_scatter_fraction", "calibration_scatter_confidence",
+)
 _OPT_FLOATS = (
     "pitch_mm", "uniformity_cv", "depth_um", "shift_px", "confidence", "feed_setpoint_mm_s",
-    "target_pitch_mm", "true_pitch_mm", "true_uniformity_cv",
+    "target_pitch_mm", "true_pitch_mm", "true_uniformity_cv", "roll_deg", "roll_confidence",
+    *CALIBRATION_FIELDS, "kinematic_depth_um", "uncalibrated_depth_um",
 )
 _TUPLES = ("mark_widths_mm", "piezo_offsets_um")
 _FIELD_NAMES = tuple(f.name for f in fields(QualityRecord))
 _INT_FIELDS = ("seq", "board_id")
 _TEXT_FIELDS = ("wall_time", "error")
+
+
+def _finite(value: Any) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def vision_fields(measurement: Any, *, ok: bool) -> dict[str, Any]:
+    """The record fields of a vision measurement's orientation and self-calibration.
+
+    Parameters
+    ----------
+    measurement : object
+        A ``vision.pipeline.Measurement`` (or anything with some of its attributes:
+        ``roll_deg``, ``roll_confidence``, ``calibration``, ``kinematic_depth_um``,
+        ``uncalibrated_depth_um``); missing attributes give no field.
+    ok : bool
+        Whether the record is a successful one: only then the depths (metrics) are given.
+
+    Returns
+    -------
+    dict
+        ``roll_deg``, ``roll_confidence``, ``calibration_state`` (``off`` when the
+        measurement has ``calibration = None``, ``applied`` / ``untrusted`` by its
+        ``trusted``) and the ``calibration_*`` values, ``kinematic_depth_um``,
+        ``uncalibrated_depth_um``; non-finite values as ``None``.
+    """
+    out: dict[str, Any] = {}
+    for name in ("roll_deg", "roll_confidence"):
+        if hasattr(measurement, name):
+            out[name] = _finite(getattr(measurement, name))
+    if hasattr(measurement, "calibration"):
+        cal = measurement.calibration
+        if cal is None:
+            out["calibration_state"] = "off"
+        else:
+            trusted = bool(getattr(cal, "trusted", False))
+            out["calibration_state"] = "applied" if trusted else "untrusted"
+            for name in CALIBRATION_FIELDS:
+                attr = name.removeprefix("calibration_")
+                out[name] = _finite(getattr(cal, attr, None))
+    if ok:
+        for name in ("kinematic_depth_um", "uncalibrated_depth_um"):
+            if hasattr(measurement, name):
+                out[name] = _finite(getattr(measurement, name))
+    return out
 
 
 def check_storable(record: QualityRecord) -> None:
@@ -361,7 +465,8 @@ def storable_record(record: QualityRecord) -> QualityRecord:
     kept = {n: getattr(base, n) for n in (
         "t_s", "wall_time", "seq", "board_id", "board_position_mm", "shift_px", "confidence",
         "feed_setpoint_mm_s", "piezo_offsets_um", "target_pitch_mm", "true_pitch_mm",
-        "true_uniformity_cv")}
+        "true_uniformity_cv", "roll_deg", "roll_confidence", "calibration_state",
+        *CALIBRATION_FIELDS)}
     out = QualityRecord(**kept, ok=False, error=error, extra=extra)
     check_storable(out)
     return out
@@ -492,6 +597,8 @@ def _required(metrics: Any, name: str) -> Any:
 # --------------------------------------------------------------------------------------------
 # the table layout (shared by the stores: the same columns in SQLite and PostgreSQL)
 
+_STATE_CHECK = ("TEXT CHECK (calibration_state IN ("
+                + ", ".join(f"'{v}'" for v in CALIBRATION_STATES) + "))")
 #: Columns in record-field order: (field, SQLite type, PostgreSQL type).
 _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("t_s", "REAL NOT NULL", "DOUBLE PRECISION NOT NULL"),
@@ -515,21 +622,38 @@ _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("true_uniformity_cv", "REAL", "DOUBLE PRECISION"),
     ("extra", "TEXT NOT NULL", "TEXT NOT NULL"),
     ("machine_id", "TEXT", "TEXT"),
+    ("roll_deg", "REAL", "DOUBLE PRECISION"),
+    ("roll_confidence", "REAL", "DOUBLE PRECISION"),
+    ("calibration_state", _STATE_CHECK, _STATE_CHECK),
+    ("calibration_gain", "REAL", "DOUBLE PRECISION"),
+    ("calibration_gain_confidence", "REAL", "DOUBLE PRECISION"),
+    ("calibration_scatter_mm", "REAL", "DOUBLE PRECISION"),
+    ("calibration_scatter_fraction", "REAL", "DOUBLE PRECISION"),
+    ("calibration_scatter_confidence", "REAL", "DOUBLE PRECISION"),
+    ("kinematic_depth_um", "REAL", "DOUBLE PRECISION"),
+    ("uncalibrated_depth_um", "REAL", "DOUBLE PRECISION"),
 )
 assert tuple(c for c, _, _ in _COLUMNS) == _FIELD_NAMES, "schema and record differ"
 
 #: The table's column of each record field: the CSV header's names (one set, with units).
 _COLUMN_OF = {"wall_time": "wall_time_utc", "extra": "extra_json"}
-_V1 = tuple(n for n in _FIELD_NAMES if n != "machine_id")
+_V3 = _FIELD_NAMES[:_FIELD_NAMES.index("machine_id") + 1]
+_V1 = tuple(n for n in _V3 if n != "machine_id")
 #: Column names by schema version: (id column, record columns in field order). Version 1
 #: used the field names; version 2 the CSV header's (``record_id``, ``wall_time_utc``,
-#: ``extra_json``); version 3 added ``machine_id``.
+#: ``extra_json``); version 3 added ``machine_id``; version 4 the orientation, the
+#: self-calibration and the kinematic depth (``roll_deg`` ... ``uncalibrated_depth_um``).
 _NAMES = {
     1: ("id", _V1),
     2: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V1)),
-    3: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
+    3: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V3)),
+    4: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
 }
 assert SCHEMA_VERSION == max(_NAMES)
+
+
+#: The columns version 4 added: (name, SQLite type, PostgreSQL type), for the migrations.
+ADDED_IN_V4: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V3)
 
 
 def column_names(version: int) -> tuple[str, tuple[str, ...]]:
@@ -1031,7 +1155,7 @@ def log_target(text: str | Path, *, check_file: Callable[[Any], Any] | None = No
 # --------------------------------------------------------------------------------------------
 # CSV layout
 
-#: CSV header = the table's column names (schema version 3): the record id, then the
+#: CSV header = the table's column names (schema version 4): the record id, then the
 #: record's fields (``wall_time`` as ``wall_time_utc``, ``extra`` as ``extra_json``).
 CSV_COLUMNS: tuple[str, ...] = (_NAMES[SCHEMA_VERSION][0],) + _NAMES[SCHEMA_VERSION][1]
 

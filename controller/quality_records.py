@@ -26,7 +26,7 @@ from controller.events import EventKind, EventLog
 from controller.frame_intake import finite_or_none, frame_metadata, int_or
 from controller.frame_result import FrameResult
 from controller.measurement import call_blocking
-from controller.quality_log import QualityClass, QualityRecord, judge, utc_iso
+from controller.quality_log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
 from controller.record_journal import RecordSink, default_journal_path
 from protocol.frames import Frame
 
@@ -195,6 +195,12 @@ class QualityRecords:
         if m is not None:
             fields["shift_px"] = finite_or_none(getattr(m, "shift_px", None))
             fields["confidence"] = finite_or_none(getattr(m, "confidence", None))
+            # orientation and self-calibration (also on implausible pairs: diagnostics); the
+            # kinematic and uncalibrated depths on successful ones
+            fields.update(vision_fields(m, ok=r.ok))
+            cal = getattr(m, "calibration", None)
+            if cal is not None and getattr(cal, "deblurred", False):
+                fields["extra"]["calibration_deblurred"] = True
         if r.ok:
             fields.update(
                 pitch_mm=finite_or_none(getattr(m, "pitch_mm", None)),

@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from controller.quality_log import (
+    ADDED_IN_V4,
     SCHEMA_VERSION,
     QualityLogError,
     RecordRefusedError,
@@ -36,6 +37,8 @@ _SCHEMA_LOCK = 0x504C514C
 _NUL_CHECKED = ("error",)
 #: Columns that are BOOLEAN in PostgreSQL (0/1 integers in SQLite).
 _BOOLEANS = ("ok", "passed")
+#: Layout versions read in PostgreSQL (3 is brought to 4 by a writer; a reader reads it as is).
+_READABLE = (3, SCHEMA_VERSION)
 
 
 def describe_url(url: str) -> str:
@@ -186,12 +189,20 @@ class PostgresStore:
                     conn.execute("INSERT INTO schema_version (version) VALUES (%s)",
                                  (SCHEMA_VERSION,))
                 rows = conn.execute("SELECT version FROM schema_version").fetchall()
-            if len(rows) != 1 or rows[0][0] != SCHEMA_VERSION:
-                found = rows[0][0] if len(rows) == 1 else None
-                raise QualityLogError(
-                    f"{self.name}: quality log schema version {found} is not supported "
-                    f"(this planer reads version {SCHEMA_VERSION} in PostgreSQL)")
-            return int(rows[0][0])
+                if len(rows) != 1 or rows[0][0] not in _READABLE:
+                    found = rows[0][0] if len(rows) == 1 else None
+                    raise QualityLogError(
+                        f"{self.name}: quality log schema version {found} is not supported "
+                        f"(this planer reads versions {min(_READABLE)}..{SCHEMA_VERSION} in "
+                        "PostgreSQL)")
+                version = int(rows[0][0])
+                if version == 3 and create:  # v4: orientation, self-calibration, depths
+                    for name, _, pg_type in ADDED_IN_V4:
+                        conn.execute(f"ALTER TABLE records ADD COLUMN IF NOT EXISTS {name} "
+                                     f"{pg_type}")
+                    conn.execute("UPDATE schema_version SET version = %s", (SCHEMA_VERSION,))
+                    version = SCHEMA_VERSION
+            return version
 
         return int(self._run(work, what="opening"))
 
@@ -199,9 +210,9 @@ class PostgresStore:
 
     def insert(self, row: Sequence[Any], *, uid: str | None) -> int:
         """Commit one row (field order); its id, or the stored one of a known ``uid``."""
-        rid_col, cols = column_names(SCHEMA_VERSION)
+        rid_col, cols = column_names(self.schema_version)  # a reader's v3: what it has
         values = tuple(bool(v) if name in _BOOLEANS and v is not None else v
-                       for name, v in zip(cols, row, strict=True))
+                       for name, v in zip(cols, tuple(row)[:len(cols)], strict=True))
         for i, name in enumerate(cols):
             if name in _NUL_CHECKED and isinstance(values[i], str) and "\x00" in values[i]:
                 raise RecordRefusedError(
@@ -257,10 +268,11 @@ class PostgresStore:
         return rows[0][0] if rows else None
 
     def select(self, selection: Selection) -> list[tuple[Any, ...]]:
-        """Rows ``(id, *fields)`` in id order."""
-        rid, cols = column_names(SCHEMA_VERSION)
+        """Rows ``(id, *fields)`` in id order (columns a version 3 log lacks read NULL)."""
+        rid, cols = column_names(self.schema_version)
+        exprs = list(cols) + ["NULL"] * (len(column_names(SCHEMA_VERSION)[1]) - len(cols))
         where, params = selection.where(rid, "%s")
-        sql = (f"SELECT {rid}, {', '.join(cols)} FROM records"
+        sql = (f"SELECT {rid}, {', '.join(exprs)} FROM records"
                + (" WHERE " + " AND ".join(where) if where else "") + f" ORDER BY {rid}")
         return self._query(sql, params)
 

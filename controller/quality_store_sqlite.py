@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from controller.quality_log import (
+    ADDED_IN_V4,
     APPLICATION_ID,
     SCHEMA_VERSION,
     QualityLogError,
@@ -134,7 +135,11 @@ class SqliteStore:
         self.schema_version = int(version)
 
     def _migrate(self) -> int:
-        """Bring an older log to the current layout (v2: CSV names; v3: ``machine_id``)."""
+        """Bring an older log to the current layout.
+
+        v2: the CSV header's names; v3: ``machine_id``; v4: orientation, self-calibration and
+        kinematic depth (records before it read ``None`` there).
+        """
         conn = self._connection()
         try:
             conn.execute("BEGIN IMMEDIATE")
@@ -149,6 +154,10 @@ class SqliteStore:
                     conn.execute("CREATE INDEX IF NOT EXISTS records_machine_time "
                                  "ON records (machine_id, wall_time_utc)")
                     version = 3
+                if version == 3:
+                    for name, sqlite_type, _ in ADDED_IN_V4:
+                        conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
+                    version = 4
                 conn.execute("UPDATE schema_version SET version = ?", (version,))
                 conn.execute("COMMIT")
             except BaseException:

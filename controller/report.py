@@ -23,6 +23,9 @@ __all__ = [
     "DEFAULT_PITCH_TOLERANCE",
     "failure_reason",
     "summarise",
+    "vision_summary",
+    "KINEMATIC_LABEL",
+    "UNTRUSTED_LABEL",
     "format_summary",
     "board_axis",
     "build_figures",
@@ -39,8 +42,13 @@ DEFAULT_PITCH_TOLERANCE = 0.02
 #: breaks the setpoint lines: nothing was recorded there.
 GAP_FACTOR = 3.0
 
-_PASS, _FAIL, _NOTJUDGED, _TRUE, _TARGET, _FAILED, _SAFE = (
-    "tab:blue", "tab:orange", "tab:gray", "black", "tab:green", "tab:red", "tab:purple")
+_PASS, _FAIL, _NOTJUDGED, _TRUE, _TARGET, _FAILED, _SAFE, _KINEMATIC = (
+    "tab:blue", "tab:orange", "tab:gray", "black", "tab:green", "tab:red", "tab:purple",
+    "tab:brown")
+#: Legend of the kinematic depth in the depth panel.
+KINEMATIC_LABEL = "kinematic (R and the marks' positions)"
+#: Legend of the depths measured while the self-calibration was not trusted (not applied).
+UNTRUSTED_LABEL = "self-calibration untrusted (not applied)"
 
 
 def failure_reason(error: str | None) -> str:
@@ -95,9 +103,11 @@ def summarise(
         targets), ``quality_class``, ``boards`` (one dict per board in order of first
         appearance: ``board_id``, ``n_records``, ``n_failed``, ``position_mm`` min/max,
         ``mean_pitch_mm``, ``std_pitch_mm``, ``mean_uniformity_cv``, ``mean_depth_um``,
-        ``n_judged``, ``pass_rate``, ``mean_true_pitch_mm``, ``mean_true_uniformity_cv``),
-        ``setpoints`` (``feed_mm_s`` min/max/last, ``piezo_offsets_um`` per knife).
-        Means are over successful measurements; missing values are ``None``.
+        ``n_judged``, ``pass_rate``, ``mean_true_pitch_mm``, ``mean_true_uniformity_cv``,
+        ``mean_kinematic_depth_um``), ``setpoints`` (``feed_mm_s`` min/max/last,
+        ``piezo_offsets_um`` per knife), ``mean_kinematic_depth_um``, ``vision`` (see
+        :func:`vision_summary`). Means are over successful measurements; missing values are
+        ``None``.
     """
     recs = list(records)
     ok = [r for r in recs if r.ok]
@@ -124,6 +134,7 @@ def summarise(
             "pass_rate": br,
             "mean_true_pitch_mm": _mean([r.true_pitch_mm for r in rs]),
             "mean_true_uniformity_cv": _mean([r.true_uniformity_cv for r in rs]),
+            "mean_kinematic_depth_um": _mean([r.kinematic_depth_um for r in good]),
         })
     n_knives = max((len(r.piezo_offsets_um) for r in recs), default=0)
     piezo = []
@@ -146,11 +157,35 @@ def summarise(
         "mean_pitch_mm": _mean([r.pitch_mm for r in ok]),
         "mean_uniformity_cv": _mean([r.uniformity_cv for r in ok]),
         "mean_depth_um": _mean([r.depth_um for r in ok]),
+        "mean_kinematic_depth_um": _mean([r.kinematic_depth_um for r in ok]),
+        "vision": vision_summary(recs),
         "boards": board_rows,
         "setpoints": {
             "feed_mm_s": _range([r.feed_setpoint_mm_s for r in recs]),
             "piezo_offsets_um": piezo,
         },
+    }
+
+
+def vision_summary(records: Sequence[QualityRecord]) -> dict[str, Any]:
+    """The orientation and self-calibration over records (those that carry them).
+
+    Returns
+    -------
+    dict
+        ``roll_deg`` (min/max/last, or ``None``), ``calibration_states`` (state -> count of
+        records, most frequent first; records without a state not counted),
+        ``mean_calibration_gain`` (over ``applied`` records), ``mean_uncalibrated_depth_um``
+        (successful records).
+    """
+    recs = list(records)
+    states = Counter(r.calibration_state for r in recs if r.calibration_state is not None)
+    applied = [r for r in recs if r.calibration_state == "applied"]
+    return {
+        "roll_deg": _range([r.roll_deg for r in recs]),
+        "calibration_states": dict(states.most_common()),
+        "mean_calibration_gain": _mean([r.calibration_gain for r in applied]),
+        "mean_uncalibrated_depth_um": _mean([r.uncalibrated_depth_um for r in recs if r.ok]),
     }
 
 
@@ -187,11 +222,24 @@ def format_summary(summary: dict[str, Any], *, title: str = "Quality log") -> st
                  f"mean pitch {_f(s['mean_pitch_mm'], '.3f', ' mm')}, "
                  f"uniformity CV {_f(s['mean_uniformity_cv'], '.3f')}, "
                  f"depth {_f(s['mean_depth_um'], '.2f', ' um')}")
+    vis = s.get("vision") or {}
+    if vis.get("roll_deg") or vis.get("calibration_states"):
+        roll = vis["roll_deg"]
+        states = ", ".join(f"{k} x{n}" for k, n in vis["calibration_states"].items()) or "-"
+        lines.append(
+            "Orientation and self-calibration: roll "
+            + ("-" if roll is None else f"{roll['min']:+.2f} .. {roll['max']:+.2f} deg")
+            + f"; calibration {states}; gain {_f(vis['mean_calibration_gain'], '.3f')}; "
+            f"depth uncalibrated {_f(vis['mean_uncalibrated_depth_um'], '.2f', ' um')}, "
+            f"kinematic {_f(s.get('mean_kinematic_depth_um'), '.2f', ' um')}")
     if s["boards"]:
         lines.append("")
         head = (f"{'board':>6} {'meas':>5} {'failed':>6} {'position mm':>15} "
                 f"{'pitch mm (mean+-sd)':>20} {'unif. CV':>8} {'depth um':>8} {'pass':>7}")
         truth = any(b["mean_true_pitch_mm"] is not None for b in s["boards"])
+        kin = any(b.get("mean_kinematic_depth_um") is not None for b in s["boards"])
+        if kin:
+            head += f" {'kin. depth':>10}"
         if truth:
             head += f" {'true pitch':>10} {'true CV':>7}"
         lines.append(head)
@@ -203,6 +251,8 @@ def format_summary(summary: dict[str, Any], *, title: str = "Quality log") -> st
             row = (f"{b['board_id']:>6} {b['n_records']:>5} {b['n_failed']:>6} {pos:>15} "
                    f"{pitch:>20} {_f(b['mean_uniformity_cv'], '.3f'):>8} "
                    f"{_f(b['mean_depth_um'], '.2f'):>8} {_pct(b['pass_rate']):>7}")
+            if kin:
+                row += f" {_f(b.get('mean_kinematic_depth_um'), '.2f'):>10}"
             if truth:
                 row += (f" {_f(b['mean_true_pitch_mm'], '.3f'):>10}"
                         f" {_f(b['mean_true_uniformity_cv'], '.3f'):>7}")
@@ -434,7 +484,7 @@ def _pitch_uniformity_figure(
 ) -> Figure:
     x, xlabel, starts = board_axis(recs)
     order = np.argsort(x, kind="stable")
-    have_depth = any(r.depth_um is not None for r in recs)
+    have_depth = any(r.depth_um is not None or r.kinematic_depth_um is not None for r in recs)
     fig, axes = _new_figure(3 if have_depth else 2, height_in=9.0 if have_depth else 7.0)
     ax_p, ax_u = axes[0], axes[1]
 
@@ -490,14 +540,27 @@ def _pitch_uniformity_figure(
         if depth_max is not None:
             ax_d.axhline(depth_max, color=_FAILED, linestyle="--", linewidth=1.2,
                          label=f"limit {depth_max:g} µm")
-        _scatter_verdict(ax_d, x, _arr([r.depth_um for r in recs]),
+        kin = _arr([r.kinematic_depth_um for r in recs])
+        if np.isfinite(kin).any():  # from R and the marks' positions, beside the photometry
+            m = np.isfinite(kin[order])
+            ax_d.plot(x[order][m], kin[order][m], color=_KINEMATIC, linewidth=1.0,
+                      marker=".", markersize=2.5, label=KINEMATIC_LABEL)
+        untrusted = np.array([r.calibration_state == "untrusted" for r in recs], dtype=bool)
+        depth = _arr([r.depth_um for r in recs])
+        if (untrusted & np.isfinite(depth)).any():
+            m = untrusted & np.isfinite(depth)
+            ax_d.plot(x[m], depth[m], linestyle="none", marker="s", markersize=6,
+                      markerfacecolor="none", color=_NOTJUDGED, label=UNTRUSTED_LABEL)
+        _scatter_verdict(ax_d, x, depth,
                          [_within(r.depth_um, depth_max) for r in recs],
                          ("measured, within limit", "measured, above limit",
                           "measured, no limit set"))
         ax_d.set_ylabel("mark depth (µm)")
         ax_d.set_ylim(bottom=0.0)
         ax_d.set_title("Depth of the cutter marks (waviness): the points should stay below "
-                       "the red line", fontsize="medium")
+                       "the red line"
+                       + (" and on the kinematic depth (a gap: spring-back, tear-out, chatter)"
+                          if np.isfinite(kin).any() else ""), fontsize="medium")
 
     if safe_periods_s is None:
         spans = safe_spans(x, [record_state(r) == "safe" for r in recs])

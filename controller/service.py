@@ -38,7 +38,7 @@ from controller.control_loops import ControlLoops
 from controller.events import EventKind, EventLog, ServiceEvent, exc_name
 from controller.frame_intake import FrameIntake
 from controller.frame_result import FrameResult
-from controller.measurement import MeasurementStage
+from controller.measurement import MeasurementStage, VisionMeasurers
 from controller.pair_pipeline import PairPipeline
 from controller.piezo_client import PiezoClient
 from controller.plc_client import PlcClient
@@ -63,9 +63,11 @@ class Service:
         The one PLC connection.
     piezo : PiezoClient
         The one CAN connection to the amplifier.
-    measurer_factory : callable
+    measurer_factory : callable, optional
         ``factory(shape) -> measurer`` with ``measurer.measure(image_a, image_b, *, counts_a,
-        counts_b, speed_mm_s) -> Measurement``; called once per image shape.
+        counts_b, speed_mm_s) -> Measurement``; called once per image shape. Default
+        (``None``): :class:`~controller.measurement.VisionMeasurers` of ``rig`` -- the vision's
+        ``Measurer`` with the PLC's cutting radius and knives, self-calibrating per board.
     rig : Rig
         The rig (``px_per_mm``, ``cx`` for the mark-to-knife phase; field of view).
     log : QualityLog or None
@@ -86,7 +88,7 @@ class Service:
         *,
         plc: PlcClient,
         piezo: PiezoClient,
-        measurer_factory: Callable[[tuple[int, int]], Any],
+        measurer_factory: Callable[..., Any] | None = None,
         rig: Any,
         log: Any = None,
         clock: Callable[[], float] = time.monotonic,
@@ -102,9 +104,14 @@ class Service:
         self.threaded = threaded
         self.pairs_per_s = float(pairs_per_s)
         self.report = EventLog()
+        if measurer_factory is None:
+            measurer_factory = VisionMeasurers(rig)
         self.measurement = MeasurementStage(cfg.plausibility, measurer_factory, threaded=threaded)
         fr = cfg.frames
-        if fr.image_width > 0 and fr.image_height > 0:  # set-up once, before the first pair
+        if fr.image_width > 0 and fr.image_height > 0:
+            # set-up before the first pair (imports, tables); a factory taking the machine's
+            # facts builds again, once, at the first pair with the PLC's R and Z (20-60 ms, in
+            # the worker thread in real time)
             self.measurement.measurer((fr.image_height, fr.image_width))
         self.service_clock = ServiceClock(clock, self.report)
         amp_monitor = AmplifierMonitor()
@@ -413,8 +420,12 @@ class Service:
             self.piezo.close()
 
 
-def default_log_path(cfg: MachineConfig) -> Path:
-    """The quality log path of a configuration (its folder is created)."""
+def default_log_path(cfg: MachineConfig) -> Path | str:
+    """The quality log of a configuration: a file (its folder is created) or a database URL."""
+    from controller.quality_log import database_url, is_database_url
+
+    if is_database_url(cfg.log.path):
+        return database_url(cfg.log.path)
     p = Path(cfg.log.path)
     p.parent.mkdir(parents=True, exist_ok=True)
     return p
@@ -426,7 +437,7 @@ def open_service(
     clock: Callable[[], float] = time.monotonic,
     threaded: bool = True,
     can_bus: Any = None,
-    log_path: Path | None = None,
+    log_path: Path | str | None = None,
 ) -> Service:
     """A service wired as ``machine.toml`` says: Modbus TCP client, CAN bus, rig, quality log.
 
@@ -443,17 +454,16 @@ def open_service(
         Measure and log in worker threads (real time).
     can_bus : can.BusABC, optional
         Use this bus instead of opening ``[can]``.
-    log_path : Path, optional
-        Override ``[log] path``.
+    log_path : Path or str, optional
+        Override ``[log] path`` (a file, or a ``postgresql://`` URL).
     """
     from config.machine import dbc_path, registers_path, rig_path
     from config.rig import load_rig
     from controller.piezo_client import open_bus
     from controller.plc_client import Backoff
-    from controller.quality_log import QualityLog
+    from controller.quality_log import database_url, is_database_url, open_quality_log
     from protocol.piezo_can import PiezoCodec
     from protocol.registers import RegisterMap
-    from vision.pipeline import Measurer
 
     rig = load_rig(rig_path(cfg))
     regmap = RegisterMap.load(registers_path(cfg))
@@ -477,9 +487,14 @@ def open_service(
         offsets_period_s=cfg.can.offsets_period_s,
         stroke_um=cfg.stroke_um,
     )
-    path = Path(log_path) if log_path is not None else default_log_path(cfg)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    log = QualityLog(path)
+    if log_path is None:
+        path: Path | str = default_log_path(cfg)
+    elif is_database_url(log_path):
+        path = database_url(log_path)
+    else:
+        path = Path(log_path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+    log = open_quality_log(path, machine_id=cfg.log.machine_id or None)
     service = Service(
         cfg,
         plc=plc,
@@ -488,7 +503,7 @@ def open_service(
         log=log,
         clock=clock,
         threaded=threaded,
-        measurer_factory=lambda shape: Measurer(rig, shape),
+        measurer_factory=VisionMeasurers(rig),
         pairs_per_s=cfg.frames.pairs_per_s,
     )
     log.set_quality_class(service.quality_class)

@@ -42,6 +42,8 @@ log = logging.getLogger(__name__)
 
 RX_POLL_S = 0.05
 """How long the receiving thread waits on the bus before it checks whether to stop, s."""
+RX_START_TIMEOUT_S = 10.0
+"""How long :meth:`AmpNode.start_receiving` waits for its thread to have set its priority, s."""
 
 
 class AmpMachine(Protocol):
@@ -277,24 +279,35 @@ class AmpNode:
         self._rx: queue.SimpleQueue[Any] | None = None
         self._rx_stop = threading.Event()
         self._rx_thread: threading.Thread | None = None
+        self._rx_started = threading.Event()
+        self.rx_priority: str | None = None
 
-    def start_receiving(self) -> None:
+    def start_receiving(self, *, realtime: bool = False) -> None:
         """Read the bus on a thread of its own (frames are queued for :meth:`receive`).
 
         So frames are taken off the bus at once, however busy the stepping thread is; the
-        machine still sees them at its own time, in the order received.
+        machine still sees them at its own time, in the order received. ``realtime``: the
+        thread asks for real-time scheduling (:func:`plant_sim.interfaces.raise_priority`);
+        :attr:`rx_priority` says what it got.
         """
         if self._rx_thread is not None:
             return
         self._rx = queue.SimpleQueue()
-        self._rx_thread = threading.Thread(target=self._read_bus, name="amp-node-rx",
-                                           daemon=True)
+        self._rx_thread = threading.Thread(target=self._read_bus, args=(realtime,),
+                                           name="amp-node-rx", daemon=True)
         self._rx_thread.start()
+        self._rx_started.wait(RX_START_TIMEOUT_S)
 
-    def _read_bus(self) -> None:
+    def _read_bus(self, realtime: bool = False) -> None:
         import can
 
+        from plant_sim.interfaces import raise_priority
+
         assert self._rx is not None
+        try:
+            self.rx_priority = raise_priority() if realtime else "normal (not asked)"
+        finally:
+            self._rx_started.set()
         while not self._rx_stop.is_set():
             try:
                 msg = self.bus.recv(timeout=RX_POLL_S)

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from core.units import counter_difference
 from plant_sim.surface import Passes, Surface, envelope
 from protocol.frames import Frame
 
@@ -322,7 +323,7 @@ class FrameAssembler:
         near = passes.slice(lo, hi, margin_mm=self.MARGIN_MM)
         surf = self.surface(near, lo - 5.0, hi + 5.0)
         truth = self.truth(surf, latch.x_centre_mm, shift_px, near)
-        counted_px = _count_diff(latch.counts_b, latch.counts_a, self.counter_bits)
+        counted_px = counter_difference(latch.counts_b, latch.counts_a, bits=self.counter_bits)
         truth["encoder_error_px"] = counted_px * self.px_per_count - shift_px
         mine = [k for k in knots if k.board_id == latch.board_id and k.overlaps(lo - 5, hi + 5)]
         truth["knot"] = bool(mine)
@@ -355,10 +356,3 @@ class FrameAssembler:
             board_position_mm=board_length_mm - latch.x_centre_mm,
             truth=truth,
         )
-
-
-def _count_diff(b: int, a: int, bits: int) -> int:
-    """``b - a`` on a wrapping ``bits``-bit counter (signed, shortest way)."""
-    m = 1 << bits
-    d = (b - a) % m
-    return d - m if d >= m // 2 else d

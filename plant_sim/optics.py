@@ -65,6 +65,7 @@ import scipy.fft as sfft
 from config.rig import Rig
 from config.wood import Wood
 from core.checks import check_finite, check_int, check_positive, check_range
+from core.units import wrap_counter
 from plant_sim.wood import texture_tiles
 
 __all__ = [
@@ -75,7 +76,6 @@ __all__ = [
     "RigEffects",
     "Truth",
     "effects_from_config",
-    "wrap_counts",
 ]
 
 HeightSource = Any  # callable height_um(b_mm), a Surface, or an object with x_mm, height_um
@@ -271,11 +271,6 @@ def effects_from_config(cfg: Any) -> RigEffects:
             for p in board.pencil_lines
         ),
     )
-
-
-def wrap_counts(counts: int, bits: int) -> int:
-    """Encoder counts wrapped to an unsigned ``bits``-bit counter."""
-    return int(counts) % (1 << int(bits))
 
 
 @dataclass(frozen=True)
@@ -765,7 +760,7 @@ class Renderer:
         img_b = self._render_one(fn, bc - shift_mm, v, 1, rng, albedo_factor)
         ppm = self.px_per_mm
         cam = self.rig.camera
-        counts_a_w = wrap_counts(ca, bits)
+        counts_a_w = wrap_counter(ca, bits=bits)
         counts_b = (
             ca + int(round(shift_mm * o.counts_per_mm)) + int(round(err / self.px_per_count))
         )
@@ -791,7 +786,7 @@ class Renderer:
             image_a=img_a,
             image_b=img_b,
             counts_a=counts_a_w,
-            counts_b=wrap_counts(counts_b, bits),
+            counts_b=wrap_counter(counts_b, bits=bits),
             speed_mm_s=v,
             truth=truth,
         )

@@ -30,6 +30,7 @@ import asyncio
 import logging
 import multiprocessing
 import struct
+import time
 from collections.abc import Mapping
 from multiprocessing.shared_memory import SharedMemory
 from typing import Any
@@ -41,6 +42,8 @@ log = logging.getLogger(__name__)
 _HEAD = struct.Struct("<QQQQ")  # seq, applied writes, requests, refused
 START_TIMEOUT_S = 120.0
 """How long the stepping side waits for the server process to answer (a loaded host), s."""
+READ_RETRY_S = 0.0001
+"""Pause before reading the shared block again while the stepping side writes it, s."""
 
 
 class _Block:
@@ -71,16 +74,28 @@ class _Block:
     def seq(self) -> int:
         return struct.unpack_from("<Q", self.buf, 0)[0]
 
+    def try_read(self) -> tuple[int, int, tuple[int, ...]] | None:
+        """``(seq, applied, words)`` of one consistent snapshot, or ``None`` while written.
+
+        The caller then serves the snapshot it has: it never waits for the stepping side.
+        """
+        seq = self.seq()
+        if seq % 2:
+            return None
+        applied = struct.unpack_from("<Q", self.buf, 8)[0]
+        words = self.words.unpack_from(self.buf, _HEAD.size)
+        return (seq, applied, words) if self.seq() == seq else None
+
     def read(self) -> tuple[int, int, tuple[int, ...]]:
-        """``(seq, applied, words)`` of one consistent snapshot."""
+        """``(seq, applied, words)`` of one consistent snapshot; waits while it is written.
+
+        Sleeping, not spinning: a real-time reader never keeps the writer off its core.
+        """
         while True:
-            seq = self.seq()
-            if seq % 2:
-                continue
-            applied = struct.unpack_from("<Q", self.buf, 8)[0]
-            words = self.words.unpack_from(self.buf, _HEAD.size)
-            if self.seq() == seq:
-                return seq, applied, words
+            snap = self.try_read()
+            if snap is not None:
+                return snap
+            time.sleep(READ_RETRY_S)
 
     def set_counts(self, requests: int, refused: int) -> None:
         struct.pack_into("<QQ", self.buf, 16, requests, refused)
@@ -105,13 +120,19 @@ class _SnapshotMachine:
 
 
 def _serve(shm_name: str, rmap: RegisterMap, host: str, port: int, unit_id: int,
-           control: Any, writes: Any) -> None:  # pragma: no cover - runs in the child
+           control: Any, writes: Any, realtime: bool) -> None:  # pragma: no cover - child
     """The server process: serve the shared snapshot; obey ``control``; send writes."""
     import signal
 
+    from plant_sim.interfaces import guard_realtime, raise_priority
     from plant_sim.plc_server import PlcServer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    priority = "normal (not asked)"
+    if realtime:  # a real PLC does not stop answering because a PC is busy
+        priority = raise_priority()
+        if priority.startswith("SCHED_FIFO"):
+            guard_realtime()
     logging.getLogger("asyncio").setLevel(logging.CRITICAL)
     shm = SharedMemory(name=shm_name)
     try:
@@ -122,11 +143,14 @@ def _serve(shm_name: str, rmap: RegisterMap, host: str, port: int, unit_id: int,
         seen = [-1]
 
         def sync() -> None:
-            seq = block.seq()
-            if seq != seen[0]:
-                seq, applied, words = block.read()
-                server.load_snapshot(rmap.decode_block(list(words), first), applied=applied)
-                seen[0] = seq
+            if block.seq() != seen[0]:
+                # mid-write: serve the snapshot loaded before (one PLC cycle old, consistent)
+                snap = block.try_read() if seen[0] >= 0 else block.read()
+                if snap is not None:
+                    seq, applied, words = snap
+                    server.load_snapshot(rmap.decode_block(list(words), first),
+                                         applied=applied)
+                    seen[0] = seq
 
         def counted(accepted: dict[str, float | int]) -> None:
             writes.send(accepted)
@@ -141,13 +165,14 @@ def _serve(shm_name: str, rmap: RegisterMap, host: str, port: int, unit_id: int,
             return reply
 
         server.respond = respond_and_count  # type: ignore[method-assign]
-        asyncio.run(_control_loop(server, control))
+        asyncio.run(_control_loop(server, control, priority))
     finally:
         block = None  # type: ignore[assignment]
         shm.close()
 
 
-async def _control_loop(server: Any, control: Any) -> None:  # pragma: no cover - child
+async def _control_loop(server: Any, control: Any,
+                        priority: str) -> None:  # pragma: no cover - child
     loop = asyncio.get_running_loop()
     done = asyncio.Event()
     queue: asyncio.Queue[Any] = asyncio.Queue()
@@ -173,6 +198,8 @@ async def _control_loop(server: Any, control: Any) -> None:  # pragma: no cover 
                 _reply(control, ("error", str(exc)))
             else:
                 _reply(control, ("ok", port))
+        elif cmd == "priority":
+            _reply(control, ("ok", priority))
         elif cmd == "down":
             await server.stop()
             _reply(control, ("ok", server.port))
@@ -205,9 +232,15 @@ class PlcProcess:
         TCP port; 0 picks a free one (kept across restarts).
     unit_id : int, optional
         Modbus unit id served; default the map's.
+    realtime : bool
+        The server process asks for real-time scheduling (``SCHED_FIFO``, else a raised nice
+        value: :func:`plant_sim.interfaces.raise_priority`); :attr:`priority` says what it got.
 
     Attributes
     ----------
+    priority : str or None
+        What the server process was granted (``"SCHED_FIFO 10"``, ``"nice -10"``,
+        ``"normal (...)"`` with the reason), once it listens.
     write_errors : int
         Accepted writes the machine refused when they were applied.
     """
@@ -222,6 +255,7 @@ class PlcProcess:
         host: str = "127.0.0.1",
         port: int = 502,
         unit_id: int | None = None,
+        realtime: bool = False,
     ) -> None:
         if not 0 <= int(port) <= 65535:
             raise ValueError(f"port must be in 0..65535, got {port!r}")
@@ -240,6 +274,8 @@ class PlcProcess:
         self._writes: Any = None
         self._running = False
         self.write_errors = 0
+        self.realtime = bool(realtime)
+        self.priority: str | None = None
 
     # ------------------------------------------------------------------ the process
     def _launch(self) -> None:
@@ -254,7 +290,7 @@ class PlcProcess:
         self._proc = ctx.Process(
             target=_serve, name="plc-modbus", daemon=True,
             args=(self._shm.name, self.rmap, self.host, self.port, self.unit_id,
-                  child_control, writes_out),
+                  child_control, writes_out, self.realtime),
         )
         self._proc.start()
         child_control.close()
@@ -284,6 +320,8 @@ class PlcProcess:
         if up:
             self._launch()
             self.port = int(self._ask("up"))
+            if self.priority is None:
+                self.priority = str(self._ask("priority"))
             self._running = True
             log.info("Modbus server listening on %s:%d", self.host, self.port)
         elif self._proc is not None and self._running:

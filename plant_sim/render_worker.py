@@ -42,12 +42,16 @@ def build_renderer(cfg: Any, *, seed: int) -> Any:
     return Machine(cfg, seed=seed, render_images=True).renderer
 
 
-def _init_worker(cfg: Any, seed: int, writer: Any, turn: Any,
-                 seeded: bool) -> None:  # pragma: no cover - worker
+def _init_worker(cfg: Any, seed: int, writer: Any, turn: Any, seeded: bool,
+                 nice: int | None) -> None:  # pragma: no cover - worker
     import signal
 
     global _renderer, _writer, _turn, _seeded, _seed
+    from plant_sim.interfaces import lower_priority
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    if nice is not None:  # the heavy part yields to the interfaces and the service
+        lower_priority(nice)
     _renderer = build_renderer(cfg, seed=seed)
     _writer, _turn, _seeded, _seed = writer, turn, seeded, seed
 
@@ -131,6 +135,10 @@ class RenderPool:
     writer : protocol.frames.SpoolWriter, optional
         The workers write every frame submitted to this spool, in order, taking turns; the
         caller must not write to it meanwhile.
+    nice : int, optional
+        Nice value of the workers (``planer sim``:
+        :data:`~plant_sim.interfaces.RENDER_NICE`, so they yield to the interfaces and the
+        service); ``None`` leaves them as the caller runs.
 
     Attributes
     ----------
@@ -138,13 +146,15 @@ class RenderPool:
         Frames whose images could not be rendered (dropped, as the machine drops them).
     """
 
-    def __init__(self, cfg: Any, *, seed: int, workers: int = 1, writer: Any = None) -> None:
+    def __init__(self, cfg: Any, *, seed: int, workers: int = 1, writer: Any = None,
+                 nice: int | None = None) -> None:
         if int(workers) < 1:
             raise ValueError(f"workers must be >= 1, got {workers!r}")
         self.writer = writer
         self.cfg = cfg
         self.seed = int(seed)
         self.workers = int(workers)
+        self.nice = None if nice is None else int(nice)
         self._pool: ProcessPoolExecutor | None = None
         self._queue: deque[tuple[Frame, Future | None]] = deque()
         self._index = 0
@@ -160,7 +170,8 @@ class RenderPool:
                                                                            lock=False))
         self._pool = ProcessPoolExecutor(
             max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
-            initargs=(self.cfg, self.seed, self.writer, self._turn, self.workers > 1),
+            initargs=(self.cfg, self.seed, self.writer, self._turn, self.workers > 1,
+                      self.nice),
         )
         for f in [self._pool.submit(_ready) for _ in range(self.workers)]:
             f.result()

@@ -41,7 +41,7 @@ from typing import Any, Protocol
 
 from plant_sim.amp_node import AmpNode, AmpNodeCore
 from plant_sim.driver import INTERFACE_FAULTS, PlantDriver
-from plant_sim.interfaces import InterfaceLoop, ServedPlc
+from plant_sim.interfaces import RENDER_NICE, InterfaceLoop, ServedPlc
 from plant_sim.plc_process import PlcProcess
 from plant_sim.plc_server import PlcServer
 from protocol.can_transport import bus_from_config, describe_bus
@@ -56,20 +56,14 @@ MAX_PENDING_WRITES = 8
 """Frames queued for the writer thread before the runner waits for it."""
 MAX_STEPS_PER_ITERATION = 200
 """Steps done before yielding to the event loop when the machine runs late."""
-MAX_LAG_S = 0.5
+MAX_LAG_S = 1.0
 """Wall seconds the machine may fall behind its clock and catch up (at most
 :data:`MAX_STEPS_PER_ITERATION` steps at a time); further behind, the clock slows instead."""
 MAX_RENDER_BACKLOG = 3
-"""Pairs waiting for their images (per worker) above which the clock slows down (twice as
-many: the machine waits)."""
-SCALE_DOWN = 0.7
-"""Factor on the time scale per adjustment while the render backlog is too long."""
-SCALE_UP = 1.1
-"""Factor on the time scale per adjustment while at most one pair waits for the renderer."""
-ADJUST_EVERY_S = 0.2
-"""Wall seconds between adjustments of the time scale."""
-MIN_SCALE_FRACTION = 0.01
-"""The clock never slows below this fraction of the asked time scale."""
+"""Pairs waiting for their images (per worker) above which the machine goes slower (twice
+as many: it waits)."""
+BACKLOG_RATE = 0.25
+"""Pace of the machine (fraction of the time scale) while the renderer is behind."""
 SLOW_REPORT_AFTER_S = 3.0
 """Wall seconds after the first slow-down over which the achieved time scale is measured."""
 SLOW_REPORT_BELOW = 0.9
@@ -148,6 +142,9 @@ class SimRunner:
         Read CAN on the node's own thread and serve a ``PlcServer`` from an
         :class:`~plant_sim.interfaces.InterfaceLoop` (its own thread; it must queue its
         writes). Default: a ``PlcServer`` listens on the runner's loop.
+    realtime_interfaces : bool
+        The CAN receive thread asks for real-time scheduling (a ``PlcProcess`` asks for it
+        when built with ``realtime``); :meth:`start` prints a ``priority:`` line.
     time_scale : float
         Simulated seconds per wall second (> 0); ``math.inf`` runs as fast as possible.
     step_s : float
@@ -172,6 +169,7 @@ class SimRunner:
         sink_thread: bool | None = None,
         render: Any = None,
         threaded_interfaces: bool = False,
+        realtime_interfaces: bool = False,
         time_scale: float = 1.0,
         step_s: float = 0.001,
         clock: Callable[[], float] | None = None,
@@ -191,6 +189,7 @@ class SimRunner:
         self.sink = sink
         self.render = render
         self.threaded_interfaces = bool(threaded_interfaces)
+        self.realtime_interfaces = bool(realtime_interfaces)
         self._io: InterfaceLoop | None = None
         if sink_thread is None:
             sink_thread = sink is not None and hasattr(sink, "directory")
@@ -217,6 +216,8 @@ class SimRunner:
         seed: int = 0,
         render_images: bool = True,
         render_workers: int = 2,
+        render_nice: int | None = RENDER_NICE,
+        realtime_interfaces: bool = True,
         time_scale: float | None = None,
         modbus_port: int | None = None,
         spool_dir: str | Path | None = None,
@@ -240,6 +241,13 @@ class SimRunner:
         render_workers : int
             Worker processes rendering images and writing the spool (>= 1, in order): two take
             twice the CPU share of a busy host, so the clock slows less.
+        render_nice : int or None
+            Nice value of the render workers (default
+            :data:`~plant_sim.interfaces.RENDER_NICE`: they yield to the interfaces and the
+            service); ``None``: as this process.
+        realtime_interfaces : bool
+            The PLC process and the CAN receive thread ask for real-time scheduling (a real
+            PLC does not stop answering because a PC is busy); the banner says what they got.
         time_scale, modbus_port, spool_dir : optional
             Override ``[run] time_scale``, ``[modbus] port``, ``[frames] spool_dir``.
         sink : FrameSink, optional
@@ -267,6 +275,7 @@ class SimRunner:
             host=cfg.modbus.host,
             port=cfg.modbus.port if modbus_port is None else modbus_port,
             unit_id=cfg.modbus.unit_id,
+            realtime=realtime_interfaces,
         )
         own_bus = can_bus is None
         bus = bus_from_config(cfg.can) if own_bus else can_bus
@@ -280,7 +289,8 @@ class SimRunner:
             if render is not None:  # a spool is written by the one render worker
                 pool_cls, workers = render
                 spool = sink if isinstance(sink, SpoolWriter) else None
-                render = pool_cls(cfg, seed=seed, workers=workers, writer=spool)
+                render = pool_cls(cfg, seed=seed, workers=workers, writer=spool,
+                                  nice=render_nice)
             runner = cls(
                 machine,
                 plc=plc,
@@ -288,6 +298,7 @@ class SimRunner:
                 sink=sink,
                 render=render,
                 threaded_interfaces=True,
+                realtime_interfaces=realtime_interfaces,
                 time_scale=cfg.run.time_scale if time_scale is None else time_scale,
                 step_s=cfg.run.step_s,
                 **kwargs,
@@ -351,15 +362,38 @@ class SimRunner:
             self.say(f"modbus: {host}:{port} unit {self.plc.unit_id}")
         if self.amp is not None:
             if self.threaded_interfaces:
-                self.amp.start_receiving()
+                self.amp.start_receiving(realtime=self.realtime_interfaces)
             self.description.setdefault("can", type(self.amp.bus).__name__)
             self.say(f"can: {self.description['can']}")
+        line = self._priority_line()
+        if line is not None:
+            self.description["priority"] = line
+            self.say(f"priority: {line}")
         if self.sink is not None:
             where = getattr(self.sink, "directory", None)
             keep = getattr(self.sink, "keep", None)
             desc = f"spool {where} keep {keep}" if where is not None else "in-process"
             self.description["frames"] = desc
             self.say(f"frames: {desc}")
+
+    def _priority_line(self) -> str | None:
+        """What the interfaces and workers were granted (``None``: nothing was asked)."""
+        asked = []
+        if isinstance(self.plc, PlcProcess) and self.plc.realtime:
+            asked.append(("modbus", self.plc.priority or "unknown"))
+        if self.amp is not None and self.realtime_interfaces and self.threaded_interfaces:
+            asked.append(("can receive", self.amp.rx_priority or "unknown"))
+        if not asked:
+            return None
+        parts = [f"{who} {what}" for who, what in asked]
+        nice = getattr(self.render, "nice", None)
+        if nice is not None:
+            parts.append(f"render workers nice {nice}")
+        line = ", ".join(parts)
+        if any(not what.startswith(("SCHED_FIFO", "nice")) for _, what in asked):
+            line += ("; not permitted to raise it: on a busy host the interfaces may answer "
+                     "late")
+        return line
 
     async def close(self) -> None:
         """Finish pending frames and writes, stop the server and close the bus and workers.
@@ -459,57 +493,45 @@ class SimRunner:
     async def _loop(self, duration_s: float | None) -> None:
         """Step in scaled real time; the clock slows itself when the host cannot keep up.
 
-        ``scale`` (simulated s per wall s) starts at ``time_scale``. A render backlog above
-        :data:`MAX_RENDER_BACKLOG` lowers it step by step (the machine keeps moving, slower, so
-        the amplifier's frames keep coming), a short one (<= 1) raises it back; above twice the
-        backlog the machine waits. Stepping that falls behind catches up in slices of at most
-        :data:`MAX_STEPS_PER_ITERATION` steps (a short stall leaves machine time on the wall
-        clock); more than :data:`MAX_LAG_S` behind, the clock goes on from where the machine is.
+        Machine time follows ``time_scale`` x wall time from an anchor. While more than
+        :data:`MAX_RENDER_BACKLOG` pairs wait for their images the machine steps at only
+        :data:`BACKLOG_RATE` of that pace (it keeps moving, so the amplifier's frames keep
+        coming); above twice that it waits. A machine behind its clock catches up in slices of
+        at most :data:`MAX_STEPS_PER_ITERATION` steps, so a short stall leaves machine time on
+        the wall clock; more than :data:`MAX_LAG_S` behind, the clock goes on from where the
+        machine is (it has slowed) and the runner says so once.
         """
         m = self.machine
-        wall0 = wall_anchor = self.clock()
+        wall0 = wall_anchor = prev_wall = self.clock()
         sim0 = sim_anchor = float(m.t_s)
         end = math.inf if duration_s is None else sim0 + duration_s
         next_progress = sim0 + self.progress_every_s
         tol = 1e-6 * self.step_s
         scale = self.time_scale
-        floor = self.time_scale * MIN_SCALE_FRACTION
         slow_since: tuple[float, float] | None = None  # (wall, sim) at the first slow-down
         said = False
-        last_adjust = -math.inf
         self.driver.publish()
         self.say("ready")
         while not self._stop.is_set():
             now_sim = float(m.t_s)
             now_wall = self.clock()
             backlog = self._render_backlog()
-            new_scale = scale
-            if now_wall - last_adjust >= ADJUST_EVERY_S:
-                if backlog > MAX_RENDER_BACKLOG:
-                    new_scale = max(scale * SCALE_DOWN, floor)
-                elif backlog <= 1 and scale < self.time_scale:
-                    new_scale = min(scale * SCALE_UP, self.time_scale)
-                if new_scale != scale:
-                    last_adjust = now_wall
-            if new_scale != scale or (
-                not math.isinf(scale)
-                and sim_anchor + (now_wall - wall_anchor) * scale - now_sim > MAX_LAG_S * scale
-            ):  # a new rate, or stepping fell behind: the clock goes on from here
-                lag = sim_anchor + (now_wall - wall_anchor) * scale - now_sim
-                if not math.isinf(scale) and lag > MAX_LAG_S * scale:
-                    self.summary.slowed_s += lag / scale
-                scale, sim_anchor, wall_anchor = new_scale, now_sim, now_wall
-                if slow_since is None and not said and (
-                    scale < self.time_scale or lag > MAX_LAG_S * scale
-                ):
-                    slow_since = (now_wall, now_sim)
-            hold = self._held()
-            if hold:
-                target = now_sim
-            elif math.isinf(scale):
+            if math.isinf(scale):
                 target = now_sim + self.step_s * MAX_STEPS_PER_ITERATION
             else:
                 target = sim_anchor + (now_wall - wall_anchor) * scale
+                lag = target - now_sim
+                if lag > MAX_LAG_S * scale:  # far behind: the clock goes on from here
+                    self.summary.slowed_s += lag / scale
+                    sim_anchor, wall_anchor, target = now_sim, now_wall, now_sim
+                    if slow_since is None and not said:
+                        slow_since = (now_wall, now_sim)
+                if backlog > MAX_RENDER_BACKLOG:  # the renderer is behind: go slower
+                    target = min(target, now_sim + (now_wall - prev_wall) * scale * BACKLOG_RATE)
+            prev_wall = now_wall
+            hold = self._held()
+            if hold:
+                target = now_sim
             target = min(target, end)
             steps = 0
             while (float(m.t_s) + self.step_s <= target + tol and steps < MAX_STEPS_PER_ITERATION
@@ -532,13 +554,13 @@ class SimRunner:
                             "CAN keep answering"
                         )
                         said = True
-                    slow_since = None  # a hiccup, or said: watch again only if not said
+                    slow_since = None  # said, or a hiccup
             if now_sim >= next_progress:
                 next_progress = now_sim + self.progress_every_s
                 self.say(self._progress_line())
             if now_sim + self.step_s > end + tol:
                 break
-            if hold:
+            if hold or backlog > MAX_RENDER_BACKLOG:
                 await self.sleep(TICK_S)
             elif math.isinf(scale) or steps >= MAX_STEPS_PER_ITERATION:
                 await self.sleep(0)

@@ -223,7 +223,8 @@ def test_fault_timing_uses_the_clock_mapping_in_force_at_the_fault():
     lag = [0.01 if i < 15 else 0.3 for i in range(80)]  # the sim lags 0.3 s from 1.5 s on
     res = [_result(i, cv=0.02, pitch=1.5, t=i * 0.1 + lag[i]) for i in range(80)]
     fault = FaultEvent("modbus_restart", 4.0, {"duration_s": 1.0})
-    events = [ServiceEvent(4.0 + 0.3 + 0.5, EventKind.SAFE_STATE, "safe state: plc gone"),
+    events = [ServiceEvent(4.0 + 0.3 + 0.5, EventKind.SAFE_STATE, "safe state: plc gone",
+                           "plc gone"),
               ServiceEvent(5.0 + 0.3 + 0.4, EventKind.RECOVERED, "recovered")]
     s = summarize(res, target_pitch_mm=1.5, counts_per_mm=20.0, feed_limits_mm_s=(50.0, 1e3),
                   stroke_um=20.0, faults=[fault], events=events, safety=SafetyConfig(),
@@ -238,7 +239,8 @@ def test_safe_periods_from_the_service_events():
     from planer.hil import safe_periods
 
     k = EventKind
-    events = [ServiceEvent(t, kind, text) for t, kind, text in [
+    events = [ServiceEvent(t, kind, text, text.partition(": ")[2] if kind is k.SAFE_STATE else None)
+              for t, kind, text in [
         (10.3, k.RECOVERED, "recovered: control resumed"),
         (12.0, k.SAFE_STATE, "safe state: plc gone"),
         (12.5, k.PLC_DATA_INVALID, "PLC data invalid: x"),

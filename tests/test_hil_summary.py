@@ -78,7 +78,9 @@ def test_json_ready_turns_every_non_finite_number_into_null_with_a_reason():
 
 
 def _events(*items):
-    return [ServiceEvent(t, k, text) for t, k, text in items]
+    """Service events; a safe-state entry carries its reason as the service sets it."""
+    return [ServiceEvent(t, k, text, text.partition(": ")[2] if k is EventKind.SAFE_STATE else None)
+            for t, k, text in items]
 
 
 def test_safe_entries_are_counted_listed_and_laid_to_their_faults():

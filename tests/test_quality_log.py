@@ -22,6 +22,7 @@ from hypothesis import strategies as st
 
 from config.loading import Section
 from controller.quality_log import (
+    ADDED_IN_V4,
     CSV_COLUMNS,
     CSV_NOISE_ULPS,
     CSV_SIGNIFICANT_DIGITS,
@@ -258,7 +259,9 @@ def test_table_columns_are_the_csv_header(tmp_path):
     QualityLog(p).close()
     with sqlite3.connect(p) as conn:
         cols = tuple(r[1] for r in conn.execute("PRAGMA table_info(records)"))
-    assert cols == CSV_COLUMNS and SCHEMA_VERSION == 3 and cols[-1] == "machine_id"
+    assert cols == CSV_COLUMNS and SCHEMA_VERSION == 4 and cols[-1] == "uncalibrated_depth_um"
+    renamed = {"wall_time": "wall_time_utc", "extra": "extra_json"}
+    assert cols[1:] == tuple(renamed.get(f.name, f.name) for f in dataclasses.fields(QualityRecord))
 
 
 def _make_v1_log(p: Path, n: int) -> list[QualityRecord]:
@@ -271,6 +274,8 @@ def _make_v1_log(p: Path, n: int) -> list[QualityRecord]:
                          ("extra_json", "extra")):
             conn.execute(f"ALTER TABLE records RENAME COLUMN {old} TO {new}")
         conn.execute("DROP INDEX records_machine_time")
+        for name, _, _ in ADDED_IN_V4:
+            conn.execute(f"ALTER TABLE records DROP COLUMN {name}")
         conn.execute("ALTER TABLE records DROP COLUMN machine_id")
         conn.execute("UPDATE schema_version SET version = 1")
     return [dataclasses.replace(r, machine_id=None) for r in recs]

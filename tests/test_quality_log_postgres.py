@@ -327,3 +327,33 @@ def test_documented_pass_rate_query_counts_as_python_does(fresh_db):
         judged = [r.passed for r in group if r.passed is not None]
         assert n == len(group) and failed == sum(not r.ok for r in group)
         assert float(rate) == pytest.approx(round(100 * sum(judged) / len(judged), 1))
+
+
+def test_version_3_database_is_read_as_is_and_migrated_by_a_writer(fresh_db):
+    import psycopg
+
+    from controller.quality_log import ADDED_IN_V4, SCHEMA_VERSION
+
+    rng = random.Random(3)
+    old = [_record(i, rng=rng, machine_id="planer-1") for i in range(5)]
+    with QualityLog(fresh_db) as log:
+        for r in old:
+            log.append(r)
+    with psycopg.connect(fresh_db, autocommit=True) as conn:  # the layout of version 3
+        for name, _, _ in ADDED_IN_V4:
+            conn.execute(f"ALTER TABLE records DROP COLUMN {name}")
+        conn.execute("UPDATE schema_version SET version = 3")
+    with QualityLog(fresh_db, create=False) as reader:
+        assert reader.schema_version == 3
+        assert [_key(r) for r in reader.records()] == [_key(r) for r in old]
+    new = QualityRecord(t_s=1.0, wall_time=utc_iso(1.7e9), seq=99, board_id=3,
+                        board_position_mm=10.0, ok=True, pitch_mm=1.5, depth_um=4.0,
+                        roll_deg=0.4, roll_confidence=0.9, calibration_state="applied",
+                        calibration_gain=0.8, calibration_gain_confidence=0.95,
+                        kinematic_depth_um=4.6, uncalibrated_depth_um=3.2, machine_id="planer-1")
+    with QualityLog(fresh_db) as writer:
+        assert writer.schema_version == SCHEMA_VERSION
+        writer.append(new)
+        back = writer.records()
+    assert [_key(r) for r in back] == [_key(r) for r in old + [new]]
+    assert back[0].calibration_state is None and back[-1].calibration_state == "applied"

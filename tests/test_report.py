@@ -14,6 +14,8 @@ from hypothesis import strategies as st
 from controller.quality_log import QualityClass, QualityLog, QualityRecord, judge, utc_iso
 from controller.report import (
     DEFAULT_PITCH_TOLERANCE,
+    KINEMATIC_LABEL,
+    UNTRUSTED_LABEL,
     board_axis,
     build_figures,
     failure_reason,
@@ -475,3 +477,75 @@ def test_cli_figures_are_written_whole_or_not_at_all(log_file, tmp_path, capsys,
     assert "\n" not in err
     assert sorted(p.name for p in out.iterdir()) == ["run_setpoints.png"]  # no temp files
     assert (out / "run_setpoints.png").read_bytes() == b"old figure"
+
+
+# --------------------------------------------------------------------------------------------
+# orientation, self-calibration, kinematic depth (schema version 4)
+
+
+def _with_vision(recs, seed: int = 0):
+    """``recs`` with orientation and calibration: untrusted early on each board, then applied;
+    the kinematic depth 10 % above the photometric depth (fibre spring-back, say)."""
+    rng = random.Random(seed)
+    out = []
+    for r in recs:
+        k = r.board_position_mm / 60.0  # pair index on the board
+        state = "untrusted" if k < 3 else "applied"
+        vis = dict(roll_deg=0.4 + rng.gauss(0, 0.01), roll_confidence=0.9,
+                   calibration_state=state, calibration_gain=0.8 + rng.gauss(0, 0.01),
+                   calibration_gain_confidence=0.3 if state == "untrusted" else 0.9)
+        if r.ok:
+            vis.update(kinematic_depth_um=1.1 * r.depth_um, uncalibrated_depth_um=0.8 * r.depth_um)
+        out.append(QualityRecord(**{**vars(r), **vis}))
+    return out
+
+
+def test_summary_of_orientation_and_calibration_matches_independent_counts():
+    recs = _with_vision(make_run(5))
+    s = summarise(recs, quality_class=QC)
+    ok = [r for r in recs if r.ok]
+    assert s["mean_kinematic_depth_um"] == pytest.approx(np.mean([1.1 * r.depth_um for r in ok]))
+    v = s["vision"]
+    assert v["calibration_states"] == {
+        st: sum(r.calibration_state == st for r in recs) for st in ("applied", "untrusted")}
+    assert v["roll_deg"] == {"min": min(r.roll_deg for r in recs),
+                             "max": max(r.roll_deg for r in recs), "last": recs[-1].roll_deg}
+    assert v["mean_calibration_gain"] == pytest.approx(
+        np.mean([r.calibration_gain for r in recs if r.calibration_state == "applied"]))
+    assert v["mean_uncalibrated_depth_um"] == pytest.approx(np.mean([0.8 * r.depth_um
+                                                                     for r in ok]))
+    for b in s["boards"]:
+        good = [r for r in ok if r.board_id == b["board_id"]]
+        assert b["mean_kinematic_depth_um"] == pytest.approx(np.mean(
+            [r.kinematic_depth_um for r in good]))
+    json.dumps(s, allow_nan=False)
+    text = format_summary(s)
+    assert "Orientation and self-calibration" in text and "kin. depth" in text
+    assert f"applied x{v['calibration_states']['applied']}" in text
+    # a log before version 4: no such line, no such column, nothing invented
+    old = summarise(make_run(5), quality_class=QC)
+    assert old["vision"] == {"roll_deg": None, "calibration_states": {},
+                             "mean_calibration_gain": None, "mean_uncalibrated_depth_um": None}
+    assert "self-calibration" not in format_summary(old) and "kin. depth" not in \
+        format_summary(old)
+
+
+def test_depth_panel_shows_the_kinematic_depth_and_the_untrusted_calibration():
+    recs = _with_vision(make_run(6))
+    figs = build_figures(recs, quality_class=QC)
+    ax_d = _data_axes(figs["pitch_uniformity"])[2]
+    x, _, _ = board_axis(recs)
+    kx, ky = _series(ax_d, KINEMATIC_LABEL)
+    want = sorted((xi, r.kinematic_depth_um) for xi, r in zip(x, recs, strict=True) if r.ok)
+    assert np.allclose(kx, [w[0] for w in want]) and np.allclose(ky, [w[1] for w in want])
+    ux, uy = _series(ax_d, UNTRUSTED_LABEL)
+    untrusted = [r for r in recs if r.ok and r.calibration_state == "untrusted"]
+    assert untrusted and sorted(uy) == sorted(r.depth_um for r in untrusted)
+    assert "kinematic" in ax_d.get_title()
+    assert _legend_outside(figs["pitch_uniformity"], ax_d)
+    # without the columns the panel is as before
+    plain = build_figures(make_run(6), quality_class=QC)["pitch_uniformity"]
+    ax_plain = _data_axes(plain)[2]
+    assert _series(ax_plain, KINEMATIC_LABEL)[0].size == 0
+    assert _series(ax_plain, UNTRUSTED_LABEL)[0].size == 0
+    assert "kinematic" not in ax_plain.get_title()

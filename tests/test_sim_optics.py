@@ -11,7 +11,8 @@ import pytest
 from scipy.optimize import minimize_scalar
 
 from config.wood import SPECIES, Wood, species
-from plant_sim.optics import Optics, PencilLine, Renderer, RigEffects, wrap_counts
+from core.units import wrap_counter
+from plant_sim.optics import Optics, PencilLine, Renderer, RigEffects
 from plant_sim.scenarios import board_pair, make_rig, random_board_pair, random_board_params
 from plant_sim.surface import Cutterhead, passes_steady
 
@@ -112,7 +113,7 @@ def test_encoder_counts_wrap_around(bits):
         assert pair.counts_a == counts_a % top
         moved = round(600.0 * rend.optics.dt_ab_s * 20.0) + round(err_px / rend.px_per_count)
         assert (pair.counts_b - pair.counts_a) % top == moved % top
-    assert wrap_counts(top + 5, bits) == 5
+    assert wrap_counter(top + 5, bits=bits) == 5
     # by default the counter width is the rig's
     rig16 = make_rig(width=64, height=8, counter_bits=16)
     rend16 = Renderer(rig16, Optics(width=64, height=8), FLAT_WOOD, seed=0)

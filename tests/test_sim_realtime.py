@@ -295,3 +295,107 @@ def test_amp_node_receiving_thread_hands_frames_over_at_machine_time():
         node.close()
         svc.shutdown()
     assert not node._rx_thread.is_alive() and bus._is_shutdown
+
+
+# ------------------------------------------------------------------ priority (issue 14)
+class _FakeOs:
+    """An ``os`` stand-in: records what was asked, refuses what it is told to."""
+
+    SCHED_FIFO = 1
+    PRIO_PROCESS = 0
+
+    def __init__(self, *, fifo_ok: bool, nice_ok: bool) -> None:
+        self.fifo_ok, self.nice_ok = fifo_ok, nice_ok
+        self.asked: list[tuple] = []
+
+    @staticmethod
+    def sched_param(priority: int) -> tuple:
+        return ("param", priority)
+
+    def sched_setscheduler(self, pid: int, policy: int, param: tuple) -> None:
+        self.asked.append(("sched", pid, policy, param))
+        if not self.fifo_ok:
+            raise PermissionError(1, "Operation not permitted")
+
+    def setpriority(self, which: int, who: int, value: int) -> None:
+        self.asked.append(("nice", which, who, value))
+        if not self.nice_ok:
+            raise PermissionError(13, "Permission denied")
+
+
+@pytest.mark.parametrize(("fifo_ok", "nice_ok", "granted"), [
+    (True, True, "SCHED_FIFO 7"),
+    (False, True, "nice -5"),
+    (False, False, "normal"),
+])
+def test_raise_priority_falls_back_fifo_then_nice_then_says_why(fifo_ok, nice_ok, granted):
+    from plant_sim.interfaces import raise_priority
+
+    fake = _FakeOs(fifo_ok=fifo_ok, nice_ok=nice_ok)
+    got = raise_priority(rt_priority=7, nice=-5, os_module=fake)
+    assert got.startswith(granted)
+    assert fake.asked[0] == ("sched", 0, fake.SCHED_FIFO, ("param", 7))  # the calling thread
+    if fifo_ok:
+        assert len(fake.asked) == 1  # nothing else touched once real time is granted
+    else:
+        assert fake.asked[1] == ("nice", fake.PRIO_PROCESS, 0, -5)
+    if granted == "normal":
+        assert "Operation not permitted" in got and "Permission denied" in got
+
+
+def test_lower_priority_sets_the_nice_value_or_says_why():
+    from plant_sim.interfaces import lower_priority
+
+    ok = _FakeOs(fifo_ok=False, nice_ok=True)
+    assert lower_priority(12, os_module=ok) == "nice 12"
+    assert ok.asked == [("nice", ok.PRIO_PROCESS, 0, 12)]  # never real time
+    refused = lower_priority(12, os_module=_FakeOs(fifo_ok=False, nice_ok=False))
+    assert refused.startswith("normal") and "Permission denied" in refused
+
+
+def test_shared_block_mid_write_is_never_served_nor_waited_for():
+    """The server serves its last snapshot while the stepping side writes (no spinning)."""
+    from multiprocessing.shared_memory import SharedMemory
+
+    from plant_sim.plc_process import _Block
+
+    shm = SharedMemory(create=True, size=_Block.size(3))
+    try:
+        block = _Block(shm.buf, 3)
+        block.publish([1, 2, 3], applied=4)
+        seq, applied, words = block.try_read()
+        assert (applied, words) == (4, (1, 2, 3)) and seq % 2 == 0
+        struct.pack_into("<Q", shm.buf, 0, seq + 1)  # the writer is descheduled mid-write
+        assert block.try_read() is None
+        struct.pack_into("<Q", shm.buf, 0, seq + 2)
+        assert block.read()[0] == seq + 2
+    finally:
+        block = None
+        shm.close()
+        shm.unlink()
+
+
+def test_runner_banner_says_what_priority_the_interfaces_got(plc_process):
+    """The priority line names each interface's grant; refused ones are said once."""
+    _machine, plc = plc_process
+    assert plc.priority is not None and plc.priority.startswith("normal")  # not asked
+    lines: list[str] = []
+    runner = SimRunner(FakeMachine(), plc=plc, out=lines.append)
+    assert runner._priority_line() is None  # nothing asked, nothing said
+    plc.realtime = True
+    line = runner._priority_line()
+    assert line.startswith("modbus normal") and "not permitted to raise it" in line
+    plc.priority = "SCHED_FIFO 10"
+    assert runner._priority_line() == "modbus SCHED_FIFO 10"
+
+
+def test_plc_process_realtime_reports_its_grant_and_still_serves():
+    machine = FakeMachine()
+    plc = PlcProcess(machine, port=0, realtime=True)
+    plc.set_up(True)
+    try:
+        assert plc.priority.startswith(("SCHED_FIFO", "nice", "normal ("))
+        with socket.create_connection(("127.0.0.1", plc.port), timeout=30) as sock:
+            assert _read_all(sock, 1) == dict(plc.values)
+    finally:
+        plc.close()

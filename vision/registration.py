@@ -55,6 +55,7 @@ import scipy.fft
 
 from core.checks import check_finite, check_int, check_positive, check_range
 from core.errors import RegistrationError
+from core.units import counter_difference
 
 
 @dataclass(frozen=True)
@@ -120,9 +121,7 @@ def encoder_shift_px(
     a = check_int("counts_a", counts_a, lo=-(modulus >> 1), hi=modulus - 1)
     b = check_int("counts_b", counts_b, lo=-(modulus >> 1), hi=modulus - 1)
     scale = check_positive("px_per_count", px_per_count)
-    diff = (b - a) % modulus
-    if diff >= modulus >> 1:
-        diff -= modulus
+    diff = counter_difference(b, a, bits=bits)
     return diff * scale
 
 

@@ -10,7 +10,10 @@ Targets (issue 3): >= 20 without images, >= 1 with.
 ``modbus_latency``: a real ``planer sim`` process (images rendered by its worker, time scale 1)
 answering reads of the whole register map over Modbus TCP on 127.0.0.1, timed from request
 to response (target issue 14: p99 <= 5 ms whatever the renderer does), and the time scale the
-simulator achieved.
+simulator achieved. ``echo_latency``: the same reads against a bare server that answers every
+request with a fixed reply (the host's scheduling floor; same priority options). Both can time
+from a client at real-time priority (``client_realtime``), so that the number is the server's
+and not the measuring client's own wait for a core.
 """
 
 from __future__ import annotations
@@ -57,8 +60,63 @@ def _measure(render: bool, sim_s: float) -> dict[str, Any]:
     }
 
 
+_ECHO_SERVER = """
+import asyncio, os, sys, struct
+if sys.argv[1] == "1":
+    from plant_sim.interfaces import raise_priority
+    raise_priority()
+REPLY_WORDS = int(sys.argv[2])
+async def handle(r, w):
+    try:
+        while True:
+            head = await r.readexactly(7)
+            body = await r.readexactly(struct.unpack(">H", head[4:6])[0] - 1)
+            pdu = bytes([3, 2 * REPLY_WORDS]) + bytes(2 * REPLY_WORDS)
+            w.write(head[:4] + struct.pack(">HB", len(pdu) + 1, head[6]) + pdu)
+    except (asyncio.IncompleteReadError, ConnectionError):
+        w.close()
+async def main():
+    srv = await asyncio.start_server(handle, "127.0.0.1", 0)
+    print("modbus: 127.0.0.1:%d" % srv.sockets[0].getsockname()[1], flush=True)
+    print("ready", flush=True)
+    await srv.serve_forever()
+asyncio.run(main())
+"""
+
+
+def echo_latency(*, duration_s: float = 10.0, reads_per_s: float = 100.0,
+                 realtime: bool = False, client_realtime: bool = False) -> dict[str, Any]:
+    """Time the same reads against a bare asyncio server (fixed reply): the host's floor.
+
+    Parameters
+    ----------
+    duration_s, reads_per_s : float
+        As :func:`modbus_latency`.
+    realtime : bool
+        The server asks for the PLC process's priority (``SCHED_FIFO`` 10).
+    client_realtime : bool
+        The timing client runs at that priority too (in a process of its own).
+
+    Returns
+    -------
+    dict
+        ``reads``, ``p50_ms``, ``p99_ms``, ``max_ms``, ``errors``.
+    """
+    import subprocess
+    import sys
+
+    from protocol.registers import RegisterMap
+
+    _, count = RegisterMap.load().span()
+    argv = [sys.executable, "-c", _ECHO_SERVER, "1" if realtime else "0", str(count)]
+    return _time_server(argv, duration_s=duration_s, reads_per_s=reads_per_s,
+                        client_realtime=client_realtime, popen=subprocess.Popen)[0]
+
+
 def modbus_latency(*, duration_s: float = 15.0, reads_per_s: float = 100.0,
-                   time_scale: float = 1.0, images: bool = True) -> dict[str, Any]:
+                   time_scale: float = 1.0, images: bool = True,
+                   client_realtime: bool = False,
+                   realtime_interfaces: bool = True) -> dict[str, Any]:
     """Time whole-map Modbus reads against a ``planer sim`` process.
 
     Parameters
@@ -71,6 +129,12 @@ def modbus_latency(*, duration_s: float = 15.0, reads_per_s: float = 100.0,
         The simulator's ``--time-scale``.
     images : bool
         Render images (the renderer busy) or ``--no-images``.
+    client_realtime : bool
+        Time from a client at real-time priority (its own process): the server's latency
+        without the client's own wait for a core.
+    realtime_interfaces : bool
+        ``False`` runs ``planer sim --no-realtime`` (its interfaces at normal priority, render
+        workers not lowered: the comparison).
 
     Returns
     -------
@@ -78,74 +142,121 @@ def modbus_latency(*, duration_s: float = 15.0, reads_per_s: float = 100.0,
         ``reads``, ``p50_ms``, ``p99_ms``, ``max_ms`` (request to response), ``errors``
         (exception responses, must be 0), ``achieved_time_scale`` (simulated s per wall s,
         from the simulator's ``stopped`` line), ``slow_host_line`` (its slow-down notice, if
-        any).
+        any), ``priority`` (the simulator's ``priority:`` banner line).
     """
     import os
     import re
-    import socket
-    import struct
     import subprocess
     import sys
     import tempfile
     from pathlib import Path
 
-    import numpy as np
-
-    from plant_sim.runner import parse_banner
-    from protocol.registers import RegisterMap
-
-    first, count = RegisterMap.load().span()
     root = Path(__file__).resolve().parents[2]
     with tempfile.TemporaryDirectory(prefix="planer-bench-sim-") as tmp:
         argv = [sys.executable, "-m", "planer.cli", "sim", "--port", "0", "--spool",
                 str(Path(tmp) / "spool"), "--time-scale", str(time_scale), "--progress", "1000"]
         if not images:
             argv.append("--no-images")
+        if not realtime_interfaces:
+            argv.append("--no-realtime")
         env = {**os.environ, "PYTHONPATH": str(root)}
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                text=True, env=env, cwd=tmp)
-        try:
-            lines = []
-            assert proc.stdout is not None
-            for line in proc.stdout:
-                lines.append(line.strip())
-                if line.strip() == "ready":
-                    break
-            host, port = parse_banner(lines)["modbus"].rsplit(":", 1)
-            lat: list[float] = []
-            errors = 0
-            with socket.create_connection((host, int(port)), timeout=5.0) as sock:
-                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                period = 1.0 / reads_per_s
-                t_end = time.perf_counter() + duration_s
-                tid = 0
-                while time.perf_counter() < t_end:
-                    tid = (tid + 1) & 0xFFFF
-                    req = struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, first, count)
-                    t0 = time.perf_counter()
-                    sock.sendall(req)
-                    reply = _recv_adu(sock)
-                    lat.append(time.perf_counter() - t0)
-                    errors += reply[7] != 3 or struct.unpack(">H", reply[:2])[0] != tid
-                    time.sleep(max(0.0, period - (time.perf_counter() - t0)))
-            proc.terminate()
-            out, _ = proc.communicate(timeout=60)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-    ms = np.asarray(lat) * 1e3
+
+        def popen(cmd: list[str], **kw: Any) -> Any:
+            return subprocess.Popen(cmd, env=env, cwd=tmp, **kw)
+
+        res, out = _time_server(argv, duration_s=duration_s, reads_per_s=reads_per_s,
+                                client_realtime=client_realtime, popen=popen)
     stopped = re.search(r"real-time factor ([0-9.]+)", out)
     slow = [ln for ln in out.splitlines() if ln.startswith("slow host")]
+    prio = [ln for ln in out.splitlines() if ln.startswith("priority:")]
+    return {
+        **res,
+        "achieved_time_scale": float(stopped.group(1)) if stopped else None,
+        "slow_host_line": slow[0] if slow else None,
+        "priority": prio[0] if prio else None,
+        "target_p99_ms": TARGET_MODBUS_P99_MS,
+    }
+
+
+def _time_server(argv: list[str], *, duration_s: float, reads_per_s: float,
+                 client_realtime: bool, popen: Any) -> tuple[dict[str, Any], str]:
+    """Time whole-map reads against the server ``argv`` starts; its statistics and output.
+
+    ``argv`` prints a ``modbus: host:port`` line, then ``ready``; it is stopped afterwards.
+    """
+    import json
+    import subprocess
+    import sys
+
+    from plant_sim.runner import parse_banner
+
+    proc = popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.append(line.strip())
+            if line.strip() == "ready":
+                break
+        host, port = parse_banner(lines)["modbus"].rsplit(":", 1)
+        if client_realtime:  # a client process of its own at the interfaces' priority
+            code = ("import json, sys; from plant_sim.interfaces import raise_priority; "
+                    "raise_priority(); from planer.benchmarks.sim import _read_loop; "
+                    "print(json.dumps(_read_loop(sys.argv[1], int(sys.argv[2]), "
+                    "float(sys.argv[3]), float(sys.argv[4]))))")
+            client = subprocess.run(
+                [sys.executable, "-c", code, host, port, str(duration_s), str(reads_per_s)],
+                capture_output=True, text=True, check=True, timeout=duration_s + 120)
+            lat, errors = json.loads(client.stdout.strip().splitlines()[-1])
+        else:
+            lat, errors = _read_loop(host, int(port), duration_s, reads_per_s)
+        proc.terminate()
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return _stats(lat, errors), "\n".join(lines) + "\n" + (out or "")
+
+
+def _read_loop(host: str, port: int, duration_s: float,
+               reads_per_s: float) -> tuple[list[float], int]:
+    """Whole-map FC3 reads at ``reads_per_s`` for ``duration_s``: latencies (s) and errors."""
+    import socket
+    import struct
+
+    from protocol.registers import RegisterMap
+
+    first, count = RegisterMap.load().span()
+    lat: list[float] = []
+    errors = 0
+    with socket.create_connection((host, port), timeout=5.0) as sock:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        period = 1.0 / reads_per_s
+        t_end = time.perf_counter() + duration_s
+        tid = 0
+        while time.perf_counter() < t_end:
+            tid = (tid + 1) & 0xFFFF
+            req = struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, first, count)
+            t0 = time.perf_counter()
+            sock.sendall(req)
+            reply = _recv_adu(sock)
+            lat.append(time.perf_counter() - t0)
+            errors += reply[7] != 3 or struct.unpack(">H", reply[:2])[0] != tid
+            time.sleep(max(0.0, period - (time.perf_counter() - t0)))
+    return lat, int(errors)
+
+
+def _stats(lat: list[float], errors: int) -> dict[str, Any]:
+    import numpy as np
+
+    ms = np.asarray(lat) * 1e3
     return {
         "reads": int(ms.size),
         "p50_ms": round(float(np.percentile(ms, 50)), 3),
         "p99_ms": round(float(np.percentile(ms, 99)), 3),
         "max_ms": round(float(ms.max()), 3),
         "errors": int(errors),
-        "achieved_time_scale": float(stopped.group(1)) if stopped else None,
-        "slow_host_line": slow[0] if slow else None,
-        "target_p99_ms": TARGET_MODBUS_P99_MS,
     }
 
 

@@ -7,6 +7,14 @@ whose field matches the default rig's 52 mm).  The timed work is everything
 slope, deblur, integrate, cuttermark metrics.  The reference rate is plainly copying the same
 two images (``ndarray.copy``), measured in the same run.
 
+The issue-12 steps are timed beside it: ``no_roll_pairs_per_s`` is the same measurement without
+the per-pair orientation (``max_roll_deg=0``: no roll search, no shear, the vertical bins no
+longer capped for a leaning mark), ``selfcal_pairs_per_s`` the measurement as the service runs
+it (the PLC's cutting radius and knives given, one ``SelfCalibrator`` for the board:
+self-calibration from the knife kinematics, calibrated profile, kinematic depth).
+``orientation_ms`` and ``selfcal_ms`` are the per-pair costs these give (differences of the
+per-pair times; noisy on a shared machine, may come out slightly negative when a step is cheap).
+
 One core: OpenCV is set to one thread for the run.  numpy/scipy use no BLAS threads on this path
 (every array product in it is tiny); run with ``OPENBLAS_NUM_THREADS=1`` to be certain.
 """
@@ -113,6 +121,19 @@ def _rate(fn: Any, min_time_s: float, min_calls: int, *, repeats: int = 5) -> fl
     return best
 
 
+SELFCAL_RADIUS_MM = 60.0
+"""Cutting radius of the self-calibration timing (the synthetic board's), mm."""
+SELFCAL_KNIVES = 4
+"""Knives of the self-calibration timing."""
+
+
+def _cost_ms(with_step: float, without: float) -> float:
+    """Per-pair cost of a step from two rates (pairs/s), ms (NaN-free: 0 for no rate)."""
+    if with_step <= 0 or without <= 0:
+        return 0.0
+    return round(1e3 / with_step - 1e3 / without, 2)
+
+
 def run(quick: bool) -> list[dict[str, Any]]:
     """Measure the vision throughput at 659x493 and 1920x1200.
 
@@ -124,11 +145,14 @@ def run(quick: bool) -> list[dict[str, Any]]:
     Returns
     -------
     list of dict
-        ``{width, height, pairs_per_s, copy_pairs_per_s}`` per image size.
+        ``{width, height, pairs_per_s, copy_pairs_per_s}`` per image size, and the issue-12
+        steps: ``no_roll_pairs_per_s``, ``selfcal_pairs_per_s``, ``orientation_ms``,
+        ``selfcal_ms`` (see the module docstring).
     """
     import cv2
 
     from vision.pipeline import Measurer
+    from vision.selfcal import SelfCalibrator
 
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
@@ -137,24 +161,37 @@ def run(quick: bool) -> list[dict[str, Any]]:
     try:
         for width, height in SIZES:
             rig, a, b, ca, cb = synthetic_pair(width, height)
-            measurer = Measurer(rig, a.shape)
+            calibrator = SelfCalibrator()
+            rates = {}
+            for name, measurer, kw in (
+                ("pairs_per_s", Measurer(rig, a.shape), {}),
+                ("no_roll_pairs_per_s", Measurer(rig, a.shape, max_roll_deg=0.0), {}),
+                ("selfcal_pairs_per_s", Measurer(rig, a.shape, radius_mm=SELFCAL_RADIUS_MM,
+                                                 knives=SELFCAL_KNIVES),
+                 {"calibrator": calibrator}),
+            ):
+                def measure(m: Measurer = measurer, a: np.ndarray = a, b: np.ndarray = b,
+                            ca: int = ca, cb: int = cb, kw: dict[str, Any] = kw) -> None:
+                    m.measure(a, b, counts_a=ca, counts_b=cb, speed_mm_s=500.0, **kw)
 
-            def measure(m: Measurer = measurer, a: np.ndarray = a, b: np.ndarray = b,
-                        ca: int = ca, cb: int = cb) -> None:
-                m.measure(a, b, counts_a=ca, counts_b=cb, speed_mm_s=500.0)
+                rates[name] = _rate(measure, min_time, 20)
 
             def copy(a: np.ndarray = a, b: np.ndarray = b) -> None:
                 a.copy()
                 b.copy()
 
-            pairs = _rate(measure, min_time, 20)
             copies = _rate(copy, min_time, 20)
             out.append(
                 {
                     "width": width,
                     "height": height,
-                    "pairs_per_s": round(pairs, 1),
+                    "pairs_per_s": round(rates["pairs_per_s"], 1),
                     "copy_pairs_per_s": round(copies, 1),
+                    "no_roll_pairs_per_s": round(rates["no_roll_pairs_per_s"], 1),
+                    "selfcal_pairs_per_s": round(rates["selfcal_pairs_per_s"], 1),
+                    "orientation_ms": _cost_ms(rates["pairs_per_s"],
+                                               rates["no_roll_pairs_per_s"]),
+                    "selfcal_ms": _cost_ms(rates["selfcal_pairs_per_s"], rates["pairs_per_s"]),
                 }
             )
     finally:

@@ -44,6 +44,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="serve OPC UA (OPC 40550 Woodworking) at ENDPOINT during the run, e.g. "
         "opc.tcp://127.0.0.1:4840 (docs/opcua.md)",
     )
+    parser.add_argument(
+        "--http", default=None, metavar="HOST:PORT",
+        help="serve the operator and quality web pages at HOST:PORT during the run, e.g. "
+        "127.0.0.1:8080 (runs the simulator in this process; docs/web.md)",
+    )
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument(
         "--in-process",
@@ -178,6 +183,12 @@ def run(args: argparse.Namespace) -> int:
     def progress(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
 
+    if getattr(args, "http", None) and not (args.in_process or args.cross_process
+                                            or can_transport.in_private_netns()):
+        # the cross-process run lives in a private network namespace no browser outside reaches
+        progress("planer hil: --http: running the simulator in this process so that a browser "
+                 "on this machine can reach the pages")
+        args.in_process = True
     if getattr(args, "opcua", None) and not (args.in_process or args.cross_process
                                              or can_transport.in_private_netns()):
         # the cross-process run lives in a private network namespace no client outside reaches
@@ -251,10 +262,15 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
 
     cfg = hil.machine_config_for(scenario, log_path=log_path)
     server_for(cfg, getattr(args, "opcua", None))  # bad endpoint / security: one line, early
+    from controller.web.compose import listen_for
+    from controller.web.compose import serving as serving_http
+
+    listen_for(cfg, getattr(args, "http", None))  # bad address / no web packages: one line
     opened: list = []
 
     async def with_opcua(run: Any, get_service: Callable[[], Any]) -> dict:
-        async with serving(cfg, getattr(args, "opcua", None), get_service, say=progress):
+        async with serving(cfg, getattr(args, "opcua", None), get_service, say=progress), \
+                serving_http(cfg, getattr(args, "http", None), get_service, say=progress):
             return await run
 
     if cross:

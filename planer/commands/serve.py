@@ -12,6 +12,8 @@ machine: only ``--config`` changes (see ``docs/service.md``, "Running it").
 from __future__ import annotations
 
 import argparse
+from collections.abc import Mapping
+from typing import Any
 
 HELP = "run the service beside the PLC (measure, control, log) until stopped"
 
@@ -40,6 +42,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--opcua", default=None, metavar="ENDPOINT",
         help="serve OPC UA (OPC 40550 Woodworking) at ENDPOINT, e.g. opc.tcp://127.0.0.1:4840 "
         "(overrides [opcua] endpoint; docs/opcua.md)",
+    )
+    parser.add_argument(
+        "--http", default=None, metavar="HOST:PORT",
+        help="serve the operator and quality web pages at HOST:PORT, e.g. 127.0.0.1:8080 "
+        "(overrides [http] listen; docs/web.md)",
     )
 
 
@@ -70,6 +77,65 @@ def waiting_line(missing: tuple[str, ...], *, plc: str, can: str, frames: str) -
     return "waiting in the safe state: " + ("; ".join(parts) or "confirming recovery")
 
 
+def source_counts(source: Any) -> dict[str, int]:
+    """What a frame source counts, for the progress lines (empty when it counts nothing).
+
+    A camera source (``counters``: ``images``, ``pairs``, ``failed``, ``dropped``,
+    ``queue_dropped`` ...) gives ``images``, ``pairs``, ``failed`` and ``dropped`` (pairs the
+    pairing dropped plus frames the service did not take); a spool or queue source its
+    ``received`` pairs and ``dropped`` (given up: ``abandoned``, or dropped from a full queue).
+    """
+    counters = getattr(source, "counters", None)
+    if isinstance(counters, Mapping):
+        out: dict[str, Any] = {k: counters.get(k) for k in ("images", "pairs", "failed")}
+        drops = [counters.get(k) for k in ("dropped", "queue_dropped")]
+        out["dropped"] = sum(d for d in drops if isinstance(d, int)) if any(
+            isinstance(d, int) for d in drops) else None
+    else:
+        drops = [getattr(source, k, None) for k in ("abandoned", "dropped")]
+        out = {"pairs": getattr(source, "received", None),
+               "dropped": sum(d for d in drops if isinstance(d, int)) if any(
+                   isinstance(d, int) for d in drops) else None}
+    return {k: int(v) for k, v in out.items() if isinstance(v, int) and not isinstance(v, bool)}
+
+
+def source_text(counts: Mapping[str, int]) -> str:
+    """``"source: images 1200, pairs 600, failed 1, dropped 2"`` (``""`` for no counts)."""
+    if not counts:
+        return ""
+    return "source: " + ", ".join(f"{k} {v}" for k, v in counts.items())
+
+
+def open_source(cfg: Any) -> tuple[Any, Any]:
+    """The frame source of ``[frames]`` and, for a camera, its reader of the PLC's latches.
+
+    With ``source = "camera"`` the pairs carry the encoder counts the PLC latched at the two
+    triggers: a ``ModbusLatchReader`` of its own on ``[plc]`` (the service's client stays the
+    owner of the control registers; ``docs/camera.md``).
+
+    Returns
+    -------
+    (source, latch_reader)
+        ``latch_reader`` is ``None`` for a spool.
+    """
+    from config.machine import registers_path
+    from controller.frame_source import open_frame_source
+
+    latch_reader = None
+    if cfg.frames.source == "camera":
+        from controller.camera.latches import ModbusLatchReader
+
+        latch_reader = ModbusLatchReader(cfg.plc.host, cfg.plc.port, unit_id=cfg.plc.unit_id,
+                                         registers=registers_path(cfg),
+                                         timeout_s=cfg.plc.timeout_s)
+    try:
+        return open_frame_source(cfg.frames, latch_reader=latch_reader), latch_reader
+    except BaseException:
+        if latch_reader is not None:
+            latch_reader.close()
+        raise
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
     import asyncio
@@ -79,7 +145,6 @@ def run(args: argparse.Namespace) -> int:
 
     from config.machine import load_machine
     from controller.events import EventKind
-    from controller.frame_source import open_frame_source
     from controller.quality_log import log_target
     from controller.safety import SafetyState
     from controller.service import open_service
@@ -109,20 +174,36 @@ def run(args: argparse.Namespace) -> int:
     from controller.opcua.compose import server_for, serving
 
     server_for(cfg, args.opcua)  # a bad endpoint or missing security: one line before starting
+    from controller.web.compose import listen_for
+    from controller.web.compose import serving as serving_http
+
+    listen_for(cfg, args.http)  # a bad address or no web packages: one line before starting
     opened: list = []
 
     async def main() -> int:
-        async with serving(cfg, args.opcua, lambda: opened[0] if opened else None, say=say):
+        get = lambda: opened[0] if opened else None  # noqa: E731
+        async with serving(cfg, args.opcua, get, say=say), \
+                serving_http(cfg, args.http, get, say=say, log=log_path):
             return await serve()
 
     async def serve() -> int:
         service = open_service(cfg, log_path=log_path)
         opened.append(service)
-        source = open_frame_source(cfg.frames)
+        try:
+            source, latch_reader = open_source(cfg)
+        except BaseException:
+            service.close()
+            raise
         t0 = service.clock()
         say(f"plc: {cfg.plc.host}:{cfg.plc.port} unit {cfg.plc.unit_id}")
         say(f"can: {cfg.can.interface}:{cfg.can.channel}")
-        say(f"frames: {cfg.frames.source} {cfg.frames.spool_dir}")
+        if cfg.frames.source == "camera":
+            frames_at = f"camera {cfg.frames.camera_id}"
+            say(f"frames: {frames_at}, trigger latches from the PLC {cfg.plc.host}:"
+                f"{cfg.plc.port}")
+        else:
+            frames_at = f"spool {cfg.frames.spool_dir}"
+            say(f"frames: {frames_at}")
         say(f"log: {service.log.path}")
         say(
             f"quality: {cfg.quality.class_name}, target pitch {cfg.quality.target_pitch_mm} mm, "
@@ -151,12 +232,14 @@ def run(args: argparse.Namespace) -> int:
             cv = sum(x.measurement.uniformity_cv for x in ok) / len(ok) if ok else float("nan")
             lat = sorted(x.latency_s for x in window)
             feed = r.feed_setpoint_mm_s
+            counts = source_text(source_counts(source))
             say(
                 f"t={r.t_s - t0:9.3f} s  #{service.counters['frames']}  {r.state}  "
                 f"ok {len(ok)}/{len(window)}  pitch {pitch:.3f} mm  cv {cv:.3f}  "
                 f"feed {feed if feed is not None else float('nan'):.1f} mm/s  "
                 f"offsets [{' '.join(f'{v:+.2f}' for v in r.offsets_um)}] um  "
                 f"latency p50 {lat[len(lat) // 2] * 1e3:.1f} ms"
+                + (f"  {counts}" if counts else "")
             )
             window.clear()
 
@@ -168,7 +251,7 @@ def run(args: argparse.Namespace) -> int:
         where = {
             "plc": f"{cfg.plc.host}:{cfg.plc.port}",
             "can": f"{cfg.can.interface}:{cfg.can.channel}",
-            "frames": f"spool {cfg.frames.spool_dir}",
+            "frames": frames_at,
         }
 
         async def tell_why_waiting() -> None:
@@ -188,6 +271,8 @@ def run(args: argparse.Namespace) -> int:
             watcher.cancel()
             service.close()
             source.close()
+            if latch_reader is not None:  # after the camera's thread that polls it
+                latch_reader.close()
         c = service.counters
         print(
             f"stopped: {c['frames']} pairs, {c['ok']} measured, {c['failed']} failed, "

@@ -52,6 +52,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--no-images", action="store_true", help="do not render images (machine model only)"
     )
     parser.add_argument(
+        "--no-realtime",
+        action="store_true",
+        help="do not ask for real-time priority for the Modbus server and the CAN node "
+        "(nor lower the render workers' priority)",
+    )
+    parser.add_argument(
         "--progress",
         type=float,
         default=1.0,
@@ -122,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
     from config.sim import load_sim
     from core.checks import check_int
     from planer.cli import output_folder
+    from plant_sim.interfaces import RENDER_NICE
     from plant_sim.runner import SimRunner
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration >= 0):
@@ -158,6 +165,8 @@ def run(args: argparse.Namespace) -> int:
             time_scale=scale,
             modbus_port=args.port,
             spool_dir=args.spool,
+            realtime_interfaces=not args.no_realtime,
+            render_nice=None if args.no_realtime else RENDER_NICE,
             out=out,
             progress_every_s=args.progress,
         )

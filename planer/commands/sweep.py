@@ -59,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     failed = sum(bool(r["error"]) for r in rows)
     if not args.no_plots:
         base_text = {k: "" if v is None else canonical(v) for k, v in bases.items()}
-        save_plots(rows, sweep.keys, base_text, out)
+        groups = [group for grid in sweep.grids for group, _ in grid]
+        save_plots(rows, sweep.keys, base_text, out, groups=groups)
     print(f"{out / RESULTS_NAME}: {len(rows)} runs, {failed} failed, {wall:.1f} s wall "
           f"({wall / max(len(rows), 1):.1f} s per run)")
     return 0

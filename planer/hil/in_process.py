@@ -94,14 +94,10 @@ class InProcessPlant:
             self._backoff = backoff
         codec = PiezoCodec.load()
         self.rig = load_rig(rig_path(cfg))
-        if measurer_factory is None:
-            from vision.pipeline import Measurer
+        if measurer_factory is None:  # the vision with the PLC's R and Z, self-calibrating
+            from controller.measurement import VisionMeasurers
 
-            rig = self.rig
-
-            def measurer_factory(shape: tuple[int, int]) -> Any:
-                return Measurer(rig, shape)
-
+            measurer_factory = VisionMeasurers(self.rig)
         self._measurer_factory = measurer_factory
         opened_log = log == "config"
         if opened_log:  # before the buses: an unusable log path leaves nothing open

@@ -313,7 +313,7 @@ def _safe_reasons(events: Sequence[Any]) -> dict[str, int]:
     out: dict[str, int] = {}
     for e in events:
         if e.kind is EventKind.SAFE_STATE:
-            why = e.text.partition(":")[2].strip() or "unknown"
+            why = e.reason or "unknown"
             out[why] = out.get(why, 0) + 1
     return out
 

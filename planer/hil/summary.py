@@ -13,6 +13,7 @@ import numpy as np
 from config.machine import MachineConfig
 from controller.events import EventKind, ServiceEvent
 from controller.service import FrameResult, Service
+from core.units import counter_difference
 from planer.hil.scenario import (
     CONVERGE_WITHIN_MM,
     FINAL_MEASUREMENTS,
@@ -36,12 +37,9 @@ def _truth(r: FrameResult, key: str) -> float | None:
 
 def _unwrapped_mm(results: Sequence[FrameResult], counts_per_mm: float, bits: int = 32) -> list:
     out, acc, prev = [], 0.0, None
-    m = 1 << bits
     for r in results:
         if prev is not None:
-            d = (r.counts_a - prev) % m
-            d = d - m if d >= m // 2 else d
-            acc += d / counts_per_mm
+            acc += counter_difference(r.counts_a, prev, bits=bits) / counts_per_mm
         prev = r.counts_a
         out.append(acc)
     return out
@@ -327,7 +325,7 @@ def _safe_entries(
     for e in events:
         if e.kind is not EventKind.SAFE_STATE:
             continue
-        why = e.text.partition(":")[2].strip() or "unknown"
+        why = e.reason or "unknown"
         near = [(f, a) for f, a, b in windows if a <= e.t_s <= b]
         # the fault whose condition the reason names, else the one that began last
         near.sort(key=lambda fa: (_names_condition(why, fa[0].kind.trips), fa[1]))
@@ -370,7 +368,7 @@ def _fault_report(
     safe_ev = next((e for e in events
                     if e.kind is EventKind.SAFE_STATE and e.t_s >= t0 - 1e-9), None)
     safe = None if safe_ev is None else safe_ev.t_s
-    reason = None if safe_ev is None else safe_ev.text.partition(":")[2].strip()
+    reason = None if safe_ev is None else (safe_ev.reason or "")
     rep["safe_after_s"] = None if safe is None else round(safe - t0, 3)
     rep["safe_reason"] = reason
     rep["tripped"] = reason is not None and _names_condition(reason, kind.trips)
@@ -454,7 +452,7 @@ def safe_periods(
     for ev in events:
         t = ev.t_s
         if ev.kind is EventKind.SAFE_STATE and since is None:
-            since, why = t, ev.text.partition(":")[2].strip() or "unknown"
+            since, why = t, ev.reason or "unknown"
         elif ev.kind is EventKind.RECOVERED and since is not None:
             out.append([since, t, why])
             since = None
@@ -558,7 +556,7 @@ class BoardTravel:
         if not (counts_per_mm > 0 and math.isfinite(counts_per_mm)):
             raise ValueError(f"counts_per_mm must be a finite number > 0, got {counts_per_mm!r}")
         self.counts_per_mm = float(counts_per_mm)
-        self._modulus = 1 << int(bits)
+        self._bits = int(bits)
         self._prev: int | None = None
         self.measured_mm = 0.0
         """Board travel from the first result to the last one added, mm."""
@@ -568,9 +566,7 @@ class BoardTravel:
     def add(self, result: FrameResult) -> None:
         """Account for the next result (in order)."""
         if self._prev is not None:
-            d = (result.counts_a - self._prev) % self._modulus
-            if d >= self._modulus // 2:
-                d -= self._modulus
+            d = counter_difference(result.counts_a, self._prev, bits=self._bits)
             self.measured_mm += d / self.counts_per_mm
         self._prev = result.counts_a
         if self.closed_at_mm is None and result.applied:

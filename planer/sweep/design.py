@@ -43,6 +43,9 @@ CONFIG_PREFIXES = ("sim", "machine")
 MAX_POINTS = 100_000
 """Refuse grids larger than this (a typo in a list would otherwise hang the planner)."""
 
+Axis = tuple[tuple[str, ...], tuple[tuple[Any, ...], ...]]
+"""One axis of a grid: the keys varied together and, per entry, one value per key."""
+
 
 @dataclass(frozen=True)
 class Sweep:
@@ -66,7 +69,7 @@ class Sweep:
     base: str
     seeds: tuple[int, ...]
     fixed: Mapping[str, Any] = field(default_factory=dict)
-    grids: tuple[tuple[tuple[tuple[str, ...], tuple[tuple[Any, ...], ...]], ...], ...] = ()
+    grids: tuple[tuple[Axis, ...], ...] = ()
     source: Path | None = None
 
     @property
@@ -118,7 +121,7 @@ def check_key(key: str, where: str) -> str:
     )
 
 
-def _axis(key: str, values: Any, where: str) -> tuple[tuple[str, ...], tuple[tuple[Any, ...], ...]]:
+def _axis(key: str, values: Any, where: str) -> Axis:
     group = tuple(k.strip() for k in key.split(","))
     for k in group:
         check_key(k, where)
@@ -140,7 +143,7 @@ def _axis(key: str, values: Any, where: str) -> tuple[tuple[str, ...], tuple[tup
     return group, tuple(out)
 
 
-def _grid(table: Any, where: str) -> tuple[tuple[tuple[str, ...], tuple[tuple[Any, ...], ...]], ...]:
+def _grid(table: Any, where: str) -> tuple[Axis, ...]:
     if not isinstance(table, Mapping):
         raise ConfigError(f"{where} must be a table of key = [values]")
     axes = tuple(_axis(str(k), v, where) for k, v in table.items())
@@ -185,7 +188,7 @@ def sweep_from_dict(data: Mapping[str, Any], *, source: Path | None = None) -> S
         grids = tuple(_grid(g, f"grid[{i}]") for i, g in enumerate(raw_grid))
     else:
         grids = (_grid(raw_grid, "grid"),)
-    for gi, grid in enumerate(grids):
+    for grid in grids:
         for group, _ in grid:
             both = [k for k in group if k in fixed]
             if both:
@@ -282,7 +285,8 @@ def expand(sweep: Sweep, base_values: Mapping[str, Any] | None = None) -> list[P
         for combo in grid_combinations(grid):
             for seed in sweep.seeds:
                 full = {k: combo.get(k, base.get(k)) for k in keys}
-                ident = (str(seed), *(canonical(full[k]) if full[k] is not None else "" for k in keys))
+                ident = (str(seed),
+                         *("" if full[k] is None else canonical(full[k]) for k in keys))
                 if ident in seen:
                     continue
                 seen.add(ident)

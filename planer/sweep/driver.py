@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 import sys
 import time
+import uuid
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
@@ -118,8 +118,8 @@ class ProgressBar:
 def dask_client(*, workers: int, scheduler: str | None) -> Iterator[Any]:
     """A Dask client: on ``scheduler`` (``tcp://HOST:PORT``) or on a new local cluster.
 
-    The local cluster binds 127.0.0.1, has ``workers`` worker processes of one thread each and
-    no dashboard; it is closed on the way out.
+    The local cluster binds 127.0.0.1 only (its HTTP servers too), has ``workers`` worker
+    processes of one thread each and no dashboard; it is closed on the way out.
     """
     from distributed import Client, LocalCluster
 
@@ -140,8 +140,12 @@ def dask_client(*, workers: int, scheduler: str | None) -> Iterator[Any]:
         finally:
             client.close()
         return
+    # no dashboard; the scheduler's and workers' HTTP servers (health, metrics) still start,
+    # so give them a free port on the loopback interface
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", dashboard_address=None)
+                           host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                           worker_dashboard_address="127.0.0.1:0",
+                           scheduler_kwargs={"dashboard": False})
     try:
         client = Client(cluster)
         try:
@@ -156,9 +160,10 @@ def _dask_results(jobs: Sequence[Job], client: Any) -> Iterator[tuple[int, dict[
     """Yield ``(index, outcome)`` as runs finish; a run whose task failed is an error row."""
     from distributed import as_completed
 
+    tag = uuid.uuid4().hex[:8]  # task keys unique on a shared scheduler
     futures = {
-        client.submit(run_job, job, key=f"planer-sweep-{os.getpid()}-{job.point.index}",
-                      pure=False): job.point.index
+        client.submit(run_job, job, key=f"planer-sweep-{tag}-{job.point.index}", pure=False):
+            job.point.index
         for job in jobs
     }
     try:

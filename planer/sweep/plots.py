@@ -37,12 +37,35 @@ def varied_keys(rows: Sequence[Mapping[str, str]], keys: Sequence[str]) -> list[
     return [k for k in keys if len({r.get(k, "") for r in rows}) > 1]
 
 
+def _order(text: str) -> tuple[Any, ...]:
+    """Sort key of a value's text: numbers by value, lists by length then by their spread."""
+    v = _float(text)
+    if v is not None:
+        return (0, v, text)
+    items = [_float(x) for x in text.strip("[]").split(",")] if text.startswith("[") else []
+    nums = [x for x in items if x is not None]
+    if nums and len(nums) == len(items):
+        return (1, len(nums), max(nums) - min(nums), text)
+    return (2, 0, 0.0, text)
+
+
 def _positions(values: Sequence[str]) -> tuple[dict[str, float], list[str] | None]:
-    """x of each distinct value: numeric when all are numbers, else 0, 1, ... with labels."""
-    distinct = sorted(set(values), key=lambda v: (_float(v) is None, _float(v) or 0.0, v))
+    """The x of each distinct value: numeric when all are numbers, else 0, 1, ... with labels."""
+    distinct = sorted(set(values), key=_order)
     if all(_float(v) is not None for v in distinct):
         return {v: float(_float(v)) for v in distinct}, None  # type: ignore[arg-type]
     return {v: float(i) for i, v in enumerate(distinct)}, distinct
+
+
+def _on_line(row: Mapping[str, str], key: str, keys: Sequence[str], bases: Mapping[str, str],
+             group: frozenset[str]) -> bool:
+    """Whether ``row`` lies on ``key``'s one-at-a-time line.
+
+    It differs from the base only in keys varied together with ``key`` (``group``), and in
+    ``key`` itself unless it is the base plant.
+    """
+    diff = {k for k in keys if row.get(k, "") != bases.get(k, "")}
+    return diff <= group and (key in diff or not diff)
 
 
 def outcome_figure(
@@ -50,6 +73,8 @@ def outcome_figure(
     keys: Sequence[str],
     bases: Mapping[str, str],
     outcome: str,
+    *,
+    groups: Sequence[Sequence[str]] = (),
 ) -> Any:
     """One outcome over every varied key (a matplotlib ``Figure``; no pyplot).
 
@@ -63,6 +88,9 @@ def outcome_figure(
         Base value of each key, as the CSV writes it.
     outcome : str
         One of the columns of ``OUTCOMES``.
+    groups : sequence of sequence of str
+        Keys a grid varies together (its axes); a key's line also takes the runs that change
+        the keys of its smallest group (knives with their runout lists).
     """
     from matplotlib.figure import Figure
 
@@ -82,11 +110,12 @@ def outcome_figure(
     for i, key in enumerate(shown):
         ax = fig.add_subplot(nrow, ncol, i + 1)
         pos, labels = _positions([r.get(key, "") for r in rows])
-        others = [k for k in keys if k != key]
+        mine = [frozenset(g) for g in groups if key in g] or [frozenset([key])]
+        group = min(mine, key=len) | {key}
         line: dict[float, list[float]] = {}
         for r in rows:
             x = pos[r.get(key, "")]
-            on_line = all(r.get(k, "") == bases.get(k, "") for k in others)
+            on_line = _on_line(r, key, keys, bases, group)
             if r.get("error"):
                 ax.plot([x], [floor], "x", color="tab:red", ms=7)
                 continue
@@ -108,7 +137,7 @@ def outcome_figure(
             ax.axhline(ref, color="tab:green", lw=0.8, ls="--")
         if labels is not None:
             ax.set_xticks(range(len(labels)))
-            ax.set_xticklabels(labels, rotation=20, fontsize=7)
+            ax.set_xticklabels(labels, rotation=35, ha="right", fontsize=6)
         base = bases.get(key, "")
         if base in pos:
             ax.axvline(pos[base], color="0.8", lw=0.8, zorder=0)
@@ -116,8 +145,9 @@ def outcome_figure(
         ax.set_ylabel(ylabel if i % ncol == 0 else "", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.grid(True, alpha=0.3)
+    never = "; triangles: never settled" if outcome.endswith("_after_mm") else ""
     fig.suptitle(f"{ylabel} over the sweep ({len(ok)} runs, {len(rows) - len(ok)} failed; "
-                 "filled: other keys at base)", fontsize=9)
+                 f"filled: other keys at base{never})", fontsize=9)
     return fig
 
 
@@ -128,6 +158,7 @@ def save_plots(
     out_dir: str | Path,
     *,
     stem: str = "sweep",
+    groups: Sequence[Sequence[str]] = (),
 ) -> list[Path]:
     """Write ``out_dir/<stem>_<outcome>.png`` for every outcome; return the paths."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -137,7 +168,7 @@ def save_plots(
     out = Path(out_dir)
     paths = []
     for name, *_ in OUTCOMES:
-        fig = outcome_figure(rows, keys, bases, name)
+        fig = outcome_figure(rows, keys, bases, name, groups=groups)
         FigureCanvasAgg(fig)
         path = out / f"{stem}_{name}.png"
         with atomic_writer(path, binary=True) as fh:

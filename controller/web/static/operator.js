@@ -1,0 +1,170 @@
+// The operator page: follows /api/live/stream (server-sent events) and draws the snapshot.
+"use strict";
+
+const KNIFE_COLOURS = 8; // CSS classes k0..k7
+const feedHistory = []; // {t, set, act} from the service snapshots
+const FEED_KEEP = 600;
+let lastVersion = -1;
+
+function $(id) { return document.getElementById(id); }
+function num(v, digits) { return Plot.finite(v) ? v.toFixed(digits) : "-"; }
+function setText(id, text) { const e = $(id); if (e.textContent !== text) e.textContent = text; }
+
+function drawState(status) {
+  const badge = $("state");
+  if (!status) {
+    badge.className = "badge unknown"; badge.textContent = "no service";
+    setText("safe-reason", "");
+    return;
+  }
+  const run = status.state === "run";
+  badge.className = `badge ${run ? "run" : "safe"}`;
+  badge.textContent = run ? "RUN" : "SAFE STATE";
+  setText("safe-reason", run ? "" : (status.safe_reason || status.missing.join(", ") || ""));
+  setText("feed-set", num(status.feed_setpoint_mm_s, 1));
+  setText("feed-act", num(status.feed_actual_mm_s, 1));
+  setText("amplifier", status.amplifier_enabled ? "enabled" : "disabled");
+  const c = status.counters || {};
+  setText("counters", `${c.frames ?? 0} handled, ${c.ok ?? 0} measured, ${c.failed ?? 0} failed, ` +
+    `${c.safe_entries ?? 0} safe-state entries` +
+    (status.log_problem ? ` - log: ${status.log_problem}` : ""));
+  if (Plot.finite(status.t_s)) {
+    const last = feedHistory[feedHistory.length - 1];
+    if (!last || status.t_s > last.t) {
+      feedHistory.push({ t: status.t_s, set: status.feed_setpoint_mm_s, act: status.feed_actual_mm_s });
+      if (feedHistory.length > FEED_KEEP) feedHistory.shift();
+    }
+  }
+}
+
+function drawNow(last, qc) {
+  if (!last) return;
+  setText("seq", `#${last.seq}${last.ok ? "" : " failed: " + (last.error || "")}`);
+  setText("pitch", num(last.pitch_mm, 3));
+  setText("cv", num(last.uniformity_cv, 3));
+  setText("depth", num(last.depth_um, 2));
+  setText("confidence", num(last.confidence, 2));
+  setText("roll", num(last.roll_deg, 2));
+  setText("roll-conf", Plot.finite(last.roll_confidence) ? `confidence ${last.roll_confidence.toFixed(2)}` : "");
+  const cal = last.calibration;
+  setText("calibration", cal ? `gain ${num(cal.gain, 3)} (${cal.trusted ? "trusted" : "not trusted"}` +
+    `${cal.deblurred ? ", deblurred" : ""})` : "off");
+  setText("latency", num(last.latency_ms, 1));
+  if (qc) {
+    setText("pitch-target", `target ${qc.target_pitch_mm} mm ±${(qc.pitch_tolerance * 100).toFixed(1)} %`);
+    setText("cv-limit", Plot.finite(qc.uniformity_max_cv) ? `limit ${qc.uniformity_max_cv}` : "");
+    setText("band-name", `class ${qc.name}`);
+  }
+}
+
+function drawProfile(last) {
+  const svg = $("profile");
+  if (!last || !last.profile) return;
+  const p = last.profile;
+  const marks = last.marks || [];
+  const spans = marks.map((m) => ({ x0: m.lo_mm, x1: m.hi_mm,
+    cls: m.knife === null ? "span" : `knife k${m.knife % KNIFE_COLOURS}` }));
+  const hmax = Math.max(...p.height_um.filter(Plot.finite));
+  const labels = marks.map((m) => ({ x: (m.lo_mm + m.hi_mm) / 2, y: hmax,
+    text: m.knife === null ? "?" : String(m.knife), cls: "mark-label" }));
+  Plot.lines(svg, { series: [{ x: p.x_mm, y: p.height_um, cls: "profile" }], spans, labels,
+    xlabel: "x along the feed in image A (mm)", ylabel: "height (µm)" });
+  setText("profile-info", `pair #${last.seq}, ${marks.length} marks` +
+    ({ widths: " (knife of each mark matched by width)",
+       "widths-ambiguous": " (knife of each mark matched by width: ambiguous, the knives cut alike)" }[last.knife_source] || ""));
+  const knives = new Set(marks.map((m) => m.knife).filter((k) => k !== null));
+  const legend = $("knife-legend");
+  const text = [...knives].sort((a, b) => a - b).map((k) => `knife ${k}`).join(" ");
+  if (legend.dataset.text !== text) {
+    legend.dataset.text = text;
+    legend.replaceChildren(...[...knives].sort((a, b) => a - b).map((k) => {
+      const s = document.createElement("span");
+      s.className = `chip k${k % KNIFE_COLOURS}`;
+      s.textContent = `knife ${k}`;
+      return s;
+    }));
+  }
+}
+
+function drawTraces(trace, qc) {
+  const alongBoard = trace.length && trace.every((r) => Plot.finite(r.board_m));
+  const x = trace.map((r) => (alongBoard ? r.board_m : r.t_s));
+  const xlabel = alongBoard ? "board travel since start (m)" : "service time (s)";
+  const col = (k) => trace.map((r) => r[k]);
+  const safe = [];
+  for (let i = 0; i < trace.length; i++) {
+    if (trace[i].state === "safe") safe.push({ x0: x[Math.max(0, i - 1)], x1: x[i], cls: "safe-span" });
+  }
+  Plot.lines($("pitch-chart"), { series: [{ x, y: col("pitch_mm"), cls: "pitch", points: true }],
+    band: qc ? { lo: qc.pitch_lo_mm, hi: qc.pitch_hi_mm } : null,
+    hlines: qc ? [{ y: qc.target_pitch_mm, cls: "target" }] : [], spans: safe,
+    xlabel, ylabel: "pitch (mm)" });
+  Plot.lines($("cv-chart"), { series: [{ x, y: col("uniformity_cv"), cls: "cv", points: true }],
+    band: qc && Plot.finite(qc.uniformity_max_cv) ? { lo: 0, hi: qc.uniformity_max_cv } : null,
+    spans: safe, xlabel, ylabel: "CV" });
+  Plot.lines($("depth-chart"), { series: [{ x, y: col("depth_um"), cls: "depth", points: true }],
+    band: qc && Plot.finite(qc.depth_max_um) ? { lo: 0, hi: qc.depth_max_um } : null,
+    spans: safe, xlabel, ylabel: "depth (µm)" });
+}
+
+function drawKnives(last, status) {
+  const widths = last ? last.knife_widths_mm : [];
+  const offsets = status ? status.offsets_um : (last ? last.offsets_um : []);
+  const labels = (n) => Array.from({ length: n }, (_, i) => `knife ${i}`);
+  const cls = (n) => Array.from({ length: n }, (_, i) => `bar k${i % KNIFE_COLOURS}`);
+  Plot.bars($("widths-chart"), { values: widths, labels: labels(widths.length),
+    cls: cls(widths.length), ylabel: "width (mm)" });
+  Plot.bars($("offsets-chart"), { values: offsets, labels: labels(offsets.length),
+    cls: cls(offsets.length), ylabel: "offset (µm)" });
+}
+
+function drawFeed() {
+  const t = feedHistory.map((r) => r.t);
+  Plot.lines($("feed-chart"), { series: [
+    { x: t, y: feedHistory.map((r) => r.set), cls: "setpoint" },
+    { x: t, y: feedHistory.map((r) => r.act), cls: "actual" },
+  ], xlabel: "service time (s): setpoint (blue), actual (orange)", ylabel: "feed (mm/s)" });
+}
+
+function drawEvents(events) {
+  const list = $("events");
+  const key = events.length ? `${events.length}:${events[events.length - 1].t_s}:${events[events.length - 1].text}` : "";
+  if (list.dataset.key === key) return;
+  list.dataset.key = key;
+  list.replaceChildren(...events.slice().reverse().map((e) => {
+    const li = document.createElement("li");
+    li.className = `ev ${e.kind}`;
+    li.textContent = `t=${num(e.t_s, 3)} s  ${e.text}`;
+    return li;
+  }));
+}
+
+function draw(snap) {
+  if (snap.version === lastVersion) return;
+  lastVersion = snap.version;
+  const qc = snap.quality_class;
+  drawState(snap.status);
+  drawNow(snap.last, qc);
+  drawProfile(snap.last);
+  drawTraces(snap.trace || [], qc);
+  drawKnives(snap.last, snap.status);
+  drawFeed();
+  drawEvents(snap.events || []);
+  document.body.dataset.version = String(snap.version);
+}
+
+function connect() {
+  const link = $("link");
+  const source = new EventSource("/api/live/stream");
+  source.onopen = () => { link.className = "link up"; link.textContent = "live"; };
+  source.onerror = () => { link.className = "link down"; link.textContent = "reconnecting"; };
+  source.onmessage = (msg) => {
+    try {
+      draw(JSON.parse(msg.data));
+    } catch (err) {
+      link.textContent = `display error: ${err}`;
+    }
+  };
+}
+
+window.addEventListener("DOMContentLoaded", connect);

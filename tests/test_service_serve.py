@@ -1,0 +1,105 @@
+"""``planer serve``'s composition: the camera's latch reader and the frame source's counters."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from types import SimpleNamespace
+
+import pytest
+
+from config.machine import load_machine
+from planer.commands.serve import open_source, source_counts, source_text
+
+
+@pytest.mark.parametrize(
+    "source, expected",
+    [
+        # a camera source: the pairing's counters and Aravis' own
+        (SimpleNamespace(counters={"images": 1200, "pairs": 598, "failed": 2, "dropped": 3,
+                                   "skipped_images": 1, "latches": 600, "queue_dropped": 4,
+                                   "aravis_n_failures": 0}),
+         {"images": 1200, "pairs": 598, "failed": 2, "dropped": 7}),
+        (SimpleNamespace(counters={"images": 10, "pairs": 5}), {"images": 10, "pairs": 5}),
+        # a spool source: pairs handed over, pairs given up
+        (SimpleNamespace(received=41, abandoned=1, restarts=0), {"pairs": 41, "dropped": 1}),
+        # an in-process queue: pairs handed over, dropped from a full queue
+        (SimpleNamespace(received=9, dropped=2), {"pairs": 9, "dropped": 2}),
+        (SimpleNamespace(), {}),
+        (SimpleNamespace(received=True, counters=None), {}),  # nothing countable
+    ],
+)
+def test_source_counts_of_every_kind_of_source(source, expected):
+    counts = source_counts(source)
+    assert counts == expected
+    text = source_text(counts)
+    if expected:
+        assert text.startswith("source: ")
+        assert all(f"{k} {v}" in text for k, v in expected.items())
+    else:
+        assert text == ""
+
+
+def _capture(monkeypatch):
+    import controller.frame_source as fs
+
+    got = {}
+
+    def fake_open(frames, *, inprocess=None, latch_reader=None):
+        got.update(frames=frames, latch_reader=latch_reader)
+        return SimpleNamespace(close=lambda: None)
+
+    monkeypatch.setattr(fs, "open_frame_source", fake_open)
+    return got
+
+
+def test_a_camera_source_gets_the_plcs_latches(monkeypatch):
+    from controller.camera.latches import ModbusLatchReader
+
+    got = _capture(monkeypatch)
+    cfg = load_machine()
+    cfg = cfg.with_changes(frames=replace(cfg.frames, source="camera", camera_id="Fake_1"),
+                           plc=replace(cfg.plc, host="127.0.0.1", port=1502, unit_id=7))
+    source, reader = open_source(cfg)
+    try:
+        assert isinstance(reader, ModbusLatchReader) and got["latch_reader"] is reader
+        assert got["frames"] is cfg.frames
+        assert reader.unit_id == 7
+        assert (reader.client.comm_params.host, reader.client.comm_params.port) == (
+            "127.0.0.1", 1502)
+        assert all(name in reader.map for name in ("trigger_seq", "trigger_a_counts",
+                                                   "trigger_b_counts", "index_latch_counts"))
+    finally:
+        reader.close()
+
+
+def test_a_spool_source_needs_no_latch_reader(monkeypatch):
+    got = _capture(monkeypatch)
+    cfg = load_machine()
+    assert cfg.frames.source == "spool"
+    _, reader = open_source(cfg)
+    assert reader is None and got["latch_reader"] is None
+
+
+def test_the_latch_reader_is_closed_when_the_camera_does_not_open(monkeypatch):
+    import controller.camera.latches as latches
+    import controller.frame_source as fs
+
+    closed = []
+
+    class Reader:
+        def __init__(self, *a, **kw):
+            pass
+
+        def close(self):
+            closed.append(True)
+
+    def failing(frames, *, inprocess=None, latch_reader=None):
+        raise OSError("camera Fake_9 not found")
+
+    monkeypatch.setattr(latches, "ModbusLatchReader", Reader)
+    monkeypatch.setattr(fs, "open_frame_source", failing)
+    cfg = load_machine()
+    cfg = cfg.with_changes(frames=replace(cfg.frames, source="camera", camera_id="Fake_9"))
+    with pytest.raises(OSError, match="Fake_9"):
+        open_source(cfg)
+    assert closed == [True]
