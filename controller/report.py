@@ -558,9 +558,9 @@ def _pitch_uniformity_figure(
         ax_d.set_ylabel("mark depth (µm)")
         ax_d.set_ylim(bottom=0.0)
         ax_d.set_title("Depth of the cutter marks (waviness): the points should stay below "
-                       "the red line"
-                       + (" and on the kinematic depth (a gap: spring-back, tear-out, chatter)"
-                          if np.isfinite(kin).any() else ""), fontsize="medium")
+                       "the red line" if not np.isfinite(kin).any() else
+                       "Depth of the cutter marks: below the red line, on the brown kinematic "
+                       "depth (a gap: spring-back, tear-out)", fontsize="medium")
 
     if safe_periods_s is None:
         spans = safe_spans(x, [record_state(r) == "safe" for r in recs])

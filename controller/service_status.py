@@ -13,10 +13,18 @@ from types import MappingProxyType
 from typing import Any
 
 from controller.frame_result import FrameResult
+from controller.quality_log import vision_fields
 
 
 def _json_float(v: float | None) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
+
+
+def _number(v: object) -> float | None:
+    try:
+        return float(v)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
 
 
 @dataclass(frozen=True)
@@ -41,6 +49,14 @@ class MeasurementSummary:
         Service time of its arrival, s.
     latency_ms : float
         Arrival to setpoints on the wire, ms.
+    roll_deg : float or None
+        The camera's roll the vision measured on the pair, degrees.
+    calibration_state : str or None
+        The self-calibration: ``off``, ``applied`` or ``untrusted`` (``None``: not known).
+    calibration_gain : float or None
+        Its photometric gain (``applied`` / ``untrusted``).
+    depth_um, kinematic_depth_um : float or None
+        Mark depth, photometric (calibrated) and from the kinematics, um (``ok`` pairs).
     """
 
     seq: int
@@ -51,6 +67,11 @@ class MeasurementSummary:
     applied: bool
     t_s: float
     latency_ms: float
+    roll_deg: float | None = None
+    calibration_state: str | None = None
+    calibration_gain: float | None = None
+    depth_um: float | None = None
+    kinematic_depth_um: float | None = None
 
     @classmethod
     def of(cls, r: FrameResult) -> MeasurementSummary:
@@ -60,6 +81,8 @@ class MeasurementSummary:
         if pitch is None and r.ok:
             pitch = getattr(r.measurement, "pitch_mm", None)
         cv = getattr(r.measurement, "uniformity_cv", None) if r.ok else None
+        vis = vision_fields(r.measurement, ok=r.ok) if r.measurement is not None else {}
+        depth = _json_float(_number(getattr(r.measurement, "depth_um", None))) if r.ok else None
         return cls(
             seq=int(r.seq),
             ok=bool(r.ok),
@@ -69,6 +92,11 @@ class MeasurementSummary:
             applied=bool(r.applied),
             t_s=float(r.t_s),
             latency_ms=float(r.latency_s) * 1e3,
+            roll_deg=vis.get("roll_deg"),
+            calibration_state=vis.get("calibration_state"),
+            calibration_gain=vis.get("calibration_gain"),
+            depth_um=depth,
+            kinematic_depth_um=vis.get("kinematic_depth_um"),
         )
 
 
@@ -139,6 +167,11 @@ class ServiceStatus:
                 "pitch_mm": _json_float(last.pitch_mm),
                 "uniformity_cv": _json_float(last.uniformity_cv),
                 "applied": last.applied, "t_s": last.t_s, "latency_ms": last.latency_ms,
+                "roll_deg": _json_float(last.roll_deg),
+                "calibration_state": last.calibration_state,
+                "calibration_gain": _json_float(last.calibration_gain),
+                "depth_um": _json_float(last.depth_um),
+                "kinematic_depth_um": _json_float(last.kinematic_depth_um),
             },
             "counters": dict(self.counters),
             "log_problem": self.log_problem,

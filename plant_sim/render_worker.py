@@ -50,9 +50,9 @@ def _init_worker(cfg: Any, seed: int, writer: Any, turn: Any, seeded: bool,
     from plant_sim.interfaces import lower_priority
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    _renderer = build_renderer(cfg, seed=seed)  # at the caller's priority: a prompt start
     if nice is not None:  # the heavy part yields to the interfaces and the service
         lower_priority(nice)
-    _renderer = build_renderer(cfg, seed=seed)
     _writer, _turn, _seeded, _seed = writer, turn, seeded, seed
 
 

@@ -170,10 +170,11 @@ def test_records_carry_roll_calibration_and_kinematic_depth_on_the_realistic_rig
         plant = InProcessPlant(cfg, sim_cfg, plc_transport="direct")  # default: the vision
         await plant.start()
         res = await run_for(plant, 2.5)
+        status = plant.service.status()
         await plant.close()
-        return res
+        return res, status
 
-    res = asyncio.run(main())
+    res, status = asyncio.run(main())
     with QualityLog(tmp_path / "q.sqlite", create=False) as log:
         recs = log.records()
     assert len(recs) == len(res) >= 12
@@ -194,6 +195,12 @@ def test_records_carry_roll_calibration_and_kinematic_depth_on_the_realistic_rig
     assert raw_err.mean() > 2 * err.mean()  # the self-calibration corrected the depth
     gains = np.array([r.calibration_gain for r, _ in late])
     assert np.all(np.abs(gains - 1) > 0.03)  # the rig is off, and the log says by how much
+    # the status (OPC UA, web, serve) shows the last pair's the same way
+    last = status.last_measurement
+    assert last.seq == recs[-1].seq and last.calibration_state == recs[-1].calibration_state
+    for name in ("roll_deg", "calibration_gain", "depth_um", "kinematic_depth_um"):
+        assert getattr(last, name) == pytest.approx(getattr(recs[-1], name), rel=1e-12)
+        assert status.to_dict()["last_measurement"][name] == getattr(last, name)
 
 
 # --------------------------------------------------------------------------------------------
@@ -240,3 +247,36 @@ def test_a_database_url_creates_no_local_folder(tmp_path, monkeypatch, where):
     with pytest.raises(OSError, match="127.0.0.1"):
         _open(cfg, **kw)
     assert list(tmp_path.iterdir()) == []  # no stray "postgresql:" folder
+
+
+# --------------------------------------------------------------------------------------------
+# planer bench: the cost of the new steps
+
+
+def test_vision_bench_times_orientation_and_self_calibration_as_the_service_runs_them(
+        monkeypatch):
+    from planer.benchmarks import vision as bench
+    from vision.pipeline import Measurer
+
+    seen = []
+    real = Measurer.measure
+
+    def spy(self, a, b, **kw):
+        seen.append((self.max_roll_deg, self.radius_mm, self.knives, kw.get("calibrator")))
+        return real(self, a, b, **kw)
+
+    monkeypatch.setattr(Measurer, "measure", spy)
+    monkeypatch.setattr(bench, "SIZES", ((400, 300),))
+    monkeypatch.setattr(bench, "_rate", lambda fn, t, n, **kw: (fn(), 100.0)[1])
+    (row,) = bench.run(quick=True)
+    assert {"width", "height", "pairs_per_s", "copy_pairs_per_s", "no_roll_pairs_per_s",
+            "selfcal_pairs_per_s", "remap_pairs_per_s", "cpu_ms", "selfcal_cpu_ms",
+            "remap_cpu_ms", "orientation_ms", "selfcal_ms"} <= set(row)
+    assert row["cpu_ms"] > 0 and row["selfcal_cpu_ms"] > 0 and row["remap_cpu_ms"] >= 0
+    assert row["selfcal_ms"] == pytest.approx(row["selfcal_cpu_ms"] - row["cpu_ms"], abs=0.011)
+    assert all(np.isfinite(row[k]) for k in ("cpu_ms", "orientation_ms", "selfcal_ms"))
+    variants = {(roll, radius, knives, cal is not None) for roll, radius, knives, cal in seen}
+    assert variants == {(5.0, None, None, False), (0.0, None, None, False),
+                        (5.0, bench.SELFCAL_RADIUS_MM, bench.SELFCAL_KNIVES, True)}
+    calibrators = {id(cal) for *_, cal in seen if cal is not None}
+    assert len(calibrators) == 1  # one board: one calibrator over the timed pairs

@@ -103,3 +103,23 @@ def test_the_latch_reader_is_closed_when_the_camera_does_not_open(monkeypatch):
     with pytest.raises(OSError, match="Fake_9"):
         open_source(cfg)
     assert closed == [True]
+
+
+@pytest.mark.parametrize(
+    "meas, parts",
+    [
+        (SimpleNamespace(roll_deg=0.4172, calibration=SimpleNamespace(
+            gain=0.8971, trusted=True, gain_confidence=0.9, scatter_mm=0.1,
+            scatter_fraction=0.5, scatter_confidence=0.8)),
+         ["roll +0.42 deg", "calibration applied (gain 0.897)"]),
+        (SimpleNamespace(roll_deg=-1.0, calibration=SimpleNamespace(gain=1.3, trusted=False)),
+         ["roll -1.00 deg", "calibration untrusted (gain 1.300)"]),
+        (SimpleNamespace(roll_deg=0.0, calibration=None), ["roll +0.00 deg", "calibration off"]),
+        (SimpleNamespace(pitch_mm=1.5), []),  # a measurer without orientation or calibration
+        (None, []),
+    ],
+)
+def test_progress_line_says_the_roll_and_the_calibration(meas, parts):
+    from planer.commands.serve import vision_text
+
+    assert vision_text(meas) == ", ".join(parts)

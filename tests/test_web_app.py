@@ -132,6 +132,7 @@ def test_boards_list_counts_every_record_once(client):
     board1 = client.get("/api/quality/boards/1").json()
     assert [r["seq"] for r in board1["records"]] == list(range(BOARDS[1]))
     assert [r["ok"] for r in board1["records"]].count(False) == 1
+    assert board1["figures"] == ["pitch_uniformity", "setpoints", "profile"]
 
 
 def test_board_csv_has_the_logs_columns_and_only_that_boards_rows(client):
@@ -154,6 +155,20 @@ def test_figures_are_png_and_unknown_ones_are_404(client):
     assert client.get("/api/quality/boards/1/nonsense.png").status_code == 404
     assert client.get("/api/quality/boards/99").status_code == 404
     assert client.get("/api/quality/boards/99.csv").status_code == 404
+
+
+def test_figures_asked_for_at_once_all_arrive(client):
+    # the page asks for a board's figures together; matplotlib is not thread-safe
+    from concurrent.futures import ThreadPoolExecutor
+
+    names = ["pitch_uniformity", "setpoints", "profile"] * 3
+    with ThreadPoolExecutor(len(names)) as pool:
+        got = list(pool.map(lambda n: client.get(f"/api/quality/boards/2/{n}.png"), names))
+    assert [r.status_code for r in got] == [200] * len(names)
+    by_name: dict = {}
+    for n, r in zip(names, got, strict=True):
+        by_name.setdefault(n, set()).add(r.content)
+    assert all(len(v) == 1 for v in by_name.values())  # drawn once, the same bytes for all
 
 
 def test_new_records_appear_without_restarting(client, log_path):

@@ -64,6 +64,8 @@ class QualityBrowser:
         self._entries: list[tuple[int, QualityRecord]] = []
         self._last_id = 0
         self._qc: QualityClass | None = None
+        self._figure_lock = threading.Lock()  # matplotlib is not thread-safe: one at a time
+        self._figures: dict[tuple[int, int], dict[str, bytes]] = {}
 
     def _open(self) -> QualityLog:
         if self._log is None:
@@ -129,7 +131,7 @@ class QualityBrowser:
         return out
 
     def board(self, board_id: int) -> dict[str, Any]:
-        """One board's records for the page's table.
+        """One board's records for the page's table, and the figures it has.
 
         Raises
         ------
@@ -155,11 +157,16 @@ class QualityBrowser:
             "state": (r.extra or {}).get("state"),
         } for rid, r in entries]
         qc = self._qc
-        return {"board_id": board_id, "records": rows,
+        has_profile = any(isinstance((r.extra or {}).get("profile"), dict) for _, r in entries)
+        figures = [n for n in FIGURE_NAMES if n != "profile" or has_profile]
+        return {"board_id": board_id, "records": rows, "figures": figures,
                 "quality_class": None if qc is None else qc.to_dict()}
 
     def figure_png(self, board_id: int, name: str, *, dpi: int = 80) -> bytes:
         """One of the board's figures (:data:`FIGURE_NAMES`) as PNG bytes.
+
+        The board's figures are drawn together, one board at a time, and kept until the
+        board has new records (the page asks for all of them at once).
 
         Raises
         ------
@@ -170,15 +177,25 @@ class QualityBrowser:
 
         if name not in FIGURE_NAMES:
             raise KeyError(name)
-        records = [r for _, r in self._board_entries(board_id)]
-        if not records:
+        entries = self._board_entries(board_id)
+        if not entries:
             raise KeyError(board_id)
-        figures = build_figures(records, quality_class=self._qc)
-        if name not in figures:
+        key = (board_id, entries[-1][0])
+        with self._figure_lock:
+            pngs = self._figures.get(key)
+            if pngs is None:
+                figures = build_figures([r for _, r in entries], quality_class=self._qc)
+                pngs = {}
+                for fig_name, fig in figures.items():
+                    buf = io.BytesIO()
+                    fig.savefig(buf, format="png", dpi=dpi)
+                    pngs[fig_name] = buf.getvalue()
+                if len(self._figures) >= 8:  # a few boards' figures at most
+                    self._figures.pop(next(iter(self._figures)))
+                self._figures[key] = pngs
+        if name not in pngs:
             raise KeyError(name)
-        buf = io.BytesIO()
-        figures[name].savefig(buf, format="png", dpi=dpi)
-        return buf.getvalue()
+        return pngs[name]
 
     def csv_text(self, board_id: int | None = None) -> str:
         """The records (of one board, or all) as CSV text, columns ``CSV_COLUMNS``.

@@ -106,6 +106,23 @@ def source_text(counts: Mapping[str, int]) -> str:
     return "source: " + ", ".join(f"{k} {v}" for k, v in counts.items())
 
 
+def vision_text(measurement: Any) -> str:
+    """``"roll +0.42 deg, calibration applied (gain 0.897)"`` of a measurement (``""``: none)."""
+    from controller.quality_log import vision_fields
+
+    if measurement is None:
+        return ""
+    v = vision_fields(measurement, ok=False)
+    parts = []
+    if v.get("roll_deg") is not None:
+        parts.append(f"roll {v['roll_deg']:+.2f} deg")
+    state = v.get("calibration_state")
+    if state is not None:
+        gain = v.get("calibration_gain")
+        parts.append(f"calibration {state}" + (f" (gain {gain:.3f})" if gain is not None else ""))
+    return ", ".join(parts)
+
+
 def open_source(cfg: Any) -> tuple[Any, Any]:
     """The frame source of ``[frames]`` and, for a camera, its reader of the PLC's latches.
 
@@ -233,13 +250,14 @@ def run(args: argparse.Namespace) -> int:
             lat = sorted(x.latency_s for x in window)
             feed = r.feed_setpoint_mm_s
             counts = source_text(source_counts(source))
+            vision = vision_text(ok[-1].measurement) if ok else ""
             say(
                 f"t={r.t_s - t0:9.3f} s  #{service.counters['frames']}  {r.state}  "
                 f"ok {len(ok)}/{len(window)}  pitch {pitch:.3f} mm  cv {cv:.3f}  "
                 f"feed {feed if feed is not None else float('nan'):.1f} mm/s  "
                 f"offsets [{' '.join(f'{v:+.2f}' for v in r.offsets_um)}] um  "
                 f"latency p50 {lat[len(lat) // 2] * 1e3:.1f} ms"
-                + (f"  {counts}" if counts else "")
+                + (f"  {vision}" if vision else "") + (f"  {counts}" if counts else "")
             )
             window.clear()
 

@@ -123,7 +123,8 @@ function drawFeed() {
   Plot.lines($("feed-chart"), { series: [
     { x: t, y: feedHistory.map((r) => r.set), cls: "setpoint" },
     { x: t, y: feedHistory.map((r) => r.act), cls: "actual" },
-  ], xlabel: "service time (s): setpoint (blue), actual (orange)", ylabel: "feed (mm/s)" });
+  ], xlabel: "service time (s): setpoint (blue), actual (orange)", ylabel: "feed (mm/s)",
+  minspan: 20 });
 }
 
 function drawEvents(events) {

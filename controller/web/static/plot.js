@@ -34,6 +34,14 @@ const Plot = (() => {
     return out;
   }
 
+  function stepFmt(lo, hi, n) {
+    // labels with just enough decimals for the tick step
+    const ticks = niceTicks(lo, hi, n);
+    const step = ticks.length > 1 ? ticks[1] - ticks[0] : Math.abs(hi - lo) || 1;
+    const digits = Math.min(6, Math.max(0, -Math.floor(Math.log10(step) + 1e-9)));
+    return { ticks, label: (v) => (Math.abs(v) < step * 1e-6 ? "0" : v.toFixed(digits)) };
+  }
+
   function fmt(v) {
     const a = Math.abs(v);
     if (a === 0) return "0";
@@ -48,12 +56,14 @@ const Plot = (() => {
     const X = (x) => PAD.l + ((x - xr[0]) / (xr[1] - xr[0] || 1)) * (w - PAD.l - PAD.r);
     const Y = (y) => h - PAD.b - ((y - yr[0]) / (yr[1] - yr[0] || 1)) * (h - PAD.t - PAD.b);
     const axes = el("g", { class: "axes" }, svg);
-    for (const t of niceTicks(yr[0], yr[1], 4)) {
+    const yt = stepFmt(yr[0], yr[1], 4);
+    for (const t of yt.ticks) {
       el("line", { x1: PAD.l, x2: w - PAD.r, y1: Y(t), y2: Y(t), class: "grid" }, axes);
-      el("text", { x: PAD.l - 4, y: Y(t) + 4, "text-anchor": "end" }, axes).textContent = fmt(t);
+      el("text", { x: PAD.l - 4, y: Y(t) + 4, "text-anchor": "end" }, axes).textContent = yt.label(t);
     }
-    for (const t of opts.noxticks ? [] : niceTicks(xr[0], xr[1], 6)) {
-      el("text", { x: X(t), y: h - PAD.b + 14, "text-anchor": "middle" }, axes).textContent = fmt(t);
+    const xt = stepFmt(xr[0], xr[1], 6);
+    for (const t of opts.noxticks ? [] : xt.ticks) {
+      el("text", { x: X(t), y: h - PAD.b + 14, "text-anchor": "middle" }, axes).textContent = xt.label(t);
     }
     el("rect", { x: PAD.l, y: PAD.t, width: w - PAD.l - PAD.r, height: h - PAD.t - PAD.b,
       class: "plotarea" }, axes);
@@ -68,17 +78,22 @@ const Plot = (() => {
     return { X, Y, w, h };
   }
 
-  function range(values, extra) {
+  function range(values, extra, minspan) {
     const v = values.filter(finite).concat((extra || []).filter(finite));
     if (!v.length) return [0, 1];
     let lo = Math.min(...v), hi = Math.max(...v);
+    if (minspan && hi - lo < minspan) {
+      const mid = (lo + hi) / 2;
+      lo = mid - minspan / 2; hi = mid + minspan / 2;
+    }
     if (lo === hi) { lo -= Math.abs(lo) * 0.1 || 1; hi += Math.abs(hi) * 0.1 || 1; }
     const m = (hi - lo) * 0.05;
     return [lo - m, hi + m];
   }
 
   // opts: {series: [{x, y, cls, points}], band: {lo, hi, cls}, hlines: [{y, cls}],
-  //        spans: [{x0, x1, cls}], labels: [{x, y, text, cls}], xlabel, ylabel, xrange, yrange}
+  //        spans: [{x0, x1, cls}], labels: [{x, y, text, cls}], xlabel, ylabel, xrange, yrange,
+  //        minspan (smallest y range drawn)}
   function lines(svg, opts) {
     const xs = [], ys = [];
     for (const s of opts.series) { xs.push(...s.x); ys.push(...s.y); }
@@ -86,7 +101,7 @@ const Plot = (() => {
     if (opts.band) lim.push(opts.band.lo, opts.band.hi);
     for (const l of opts.hlines || []) lim.push(l.y);
     const xr = opts.xrange || range(xs);
-    const yr = opts.yrange || range(ys, lim);
+    const yr = opts.yrange || range(ys, lim, opts.minspan);
     const { X, Y } = frame(svg, xr, yr, opts);
     const clip = (y) => Math.min(Math.max(y, yr[0]), yr[1]);
     for (const s of opts.spans || []) {

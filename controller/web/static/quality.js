@@ -55,15 +55,15 @@ async function showBoard(id) {
   const csv = $("board-csv");
   csv.href = `/api/quality/boards/${id}.csv`;
   csv.hidden = false;
+  const data = await getJson(`/api/quality/boards/${id}`);
   const figs = $("figures");
-  figs.replaceChildren(...["pitch_uniformity", "setpoints", "profile"].map((name) => {
+  figs.replaceChildren(...data.figures.map((name) => {
     const img = document.createElement("img");
     img.alt = `${name} of board ${id}`;
     img.src = `/api/quality/boards/${id}/${name}.png`;
-    img.addEventListener("error", () => img.remove()); // e.g. a board without a stored profile
+    img.addEventListener("error", () => img.remove());
     return img;
   }));
-  const data = await getJson(`/api/quality/boards/${id}`);
   $("records").tBodies[0].replaceChildren(...data.records.map((r) => {
     const tr = cells(document.createElement("tr"), [r.id, r.seq, fmt(r.board_position_mm, 1), r.state || "-",
       fmt(r.pitch_mm, 3), fmt(r.uniformity_cv, 3), fmt(r.depth_um, 1), fmt(r.confidence, 2),
