@@ -185,10 +185,16 @@ class MeasurementStage:
         self._calibrated = None
 
     def measurer(self, shape: tuple[int, int], facts: MachineFacts | None = None) -> Any:
-        """The measurer for images of ``shape`` (built once per shape and facts)."""
+        """The measurer for images of ``shape`` (built once per shape and facts).
+
+        Without ``facts`` a factory taking them gives the measurer in use for ``shape`` (built
+        without facts if there is none yet).
+        """
         takes = self.takes_facts
         key = (shape, facts.key if (takes and facts is not None) else None)
         m = self._measurers.get(key)
+        if m is None and takes and facts is None:
+            m = next((v for k, v in self._measurers.items() if k[0] == shape), None)
         if m is None:
             if takes:
                 # set-up work once: the measurers of facts no longer in force go

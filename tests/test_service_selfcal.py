@@ -280,3 +280,13 @@ def test_vision_bench_times_orientation_and_self_calibration_as_the_service_runs
                         (5.0, bench.SELFCAL_RADIUS_MM, bench.SELFCAL_KNIVES, True)}
     calibrators = {id(cal) for *_, cal in seen if cal is not None}
     assert len(calibrators) == 1  # one board: one calibrator over the timed pairs
+
+
+def test_the_measurer_in_use_is_what_the_service_shows():
+    factory = FactsFactory()
+    stage = MeasurementStage(None, factory, threaded=False)
+    pre = stage.measurer(SHAPE)  # set-up before the first pair: no facts yet
+    assert pre.facts is None and stage.measurer(SHAPE) is pre
+    used = _measure(stage, _frame(), FakeSnap()).facts
+    current = stage.measurer(SHAPE)
+    assert current.facts == used and current is not pre and len(factory.built) == 2

@@ -399,3 +399,19 @@ def test_plc_process_realtime_reports_its_grant_and_still_serves():
             assert _read_all(sock, 1) == dict(plc.values)
     finally:
         plc.close()
+
+
+def test_render_workers_run_at_the_nice_value_asked():
+    """``RenderPool(nice=...)``: the heavy part runs at the priority it is given, no higher."""
+    import os
+
+    from config.sim import default_sim
+    from plant_sim.render_worker import RenderPool
+
+    base = os.nice(0)
+    pool = RenderPool(default_sim(), seed=0, workers=1, nice=min(base + 3, 19))
+    pool.start()
+    try:
+        assert pool._pool.submit(os.nice, 0).result(timeout=60) == min(base + 3, 19)
+    finally:
+        pool.close()

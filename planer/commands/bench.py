@@ -38,12 +38,7 @@ def _format(name: str, result: Any) -> str:
     """The readable text of one part; unknown shapes fall back to indented JSON."""
     try:
         if name == "vision":
-            rows = [
-                f"  {r['width']}x{r['height']}: {r['pairs_per_s']:.0f} pairs/s "
-                f"(plain copy of the pair: {r['copy_pairs_per_s']:.0f}/s)"
-                for r in result
-            ]
-            return "vision (one core):\n" + "\n".join(rows)
+            return vision_text(result)
         if name == "sim":
             t = result["targets"]
             verdict = "meets the targets" if result["meets_targets"] else "MISSES a target"
@@ -71,6 +66,73 @@ def _format(name: str, result: Any) -> str:
     except (KeyError, TypeError, ValueError):
         pass
     return f"{name}: {json.dumps(result, indent=2)}"
+
+
+def _times(floor: Any, rate: Any) -> str:
+    """How many times faster ``floor`` runs than ``rate`` (``"?x"`` when not a positive rate)."""
+    try:
+        if float(rate) > 0 and float(floor) >= 0:
+            times = float(floor) / float(rate)
+            return f"{times:.0f}x" if times >= 10 else f"{times:.1f}x"
+    except (TypeError, ValueError):
+        pass
+    return "?x"
+
+
+def vision_row_text(row: dict[str, Any]) -> str:
+    """The readable lines of one image size of the vision part.
+
+    Parameters
+    ----------
+    row : dict
+        One entry of ``planer.benchmarks.vision.run``: ``width``, ``height``, ``pairs_per_s``,
+        ``copy_pairs_per_s`` and, when measured, ``no_roll_pairs_per_s``,
+        ``selfcal_pairs_per_s``, ``remap_pairs_per_s``, ``cpu_ms``, ``selfcal_cpu_ms``,
+        ``remap_cpu_ms``, ``orientation_ms``, ``selfcal_ms``.
+
+    Returns
+    -------
+    str
+        The measurement rate and CPU time, its floors measured in the same run (a copy of the
+        pair, one remap of the pair) as "N x faster" ratios, and the CPU cost of the
+        orientation and self-calibration steps; rows without the step keys give one line.
+    """
+    rate = row["pairs_per_s"]
+    head = f"  {row['width']}x{row['height']}: {rate:.0f} pairs/s"
+    if "cpu_ms" in row:
+        head += f", {row['cpu_ms']:.2f} ms CPU per pair"
+    floors = [f"copy {row['copy_pairs_per_s']:.0f} pairs/s ({_times(row['copy_pairs_per_s'], rate)}"
+              " faster)"]
+    if "remap_pairs_per_s" in row:
+        remap = f"one remap {row['remap_pairs_per_s']:.0f} pairs/s"
+        if "remap_cpu_ms" in row:
+            remap += f", {row['remap_cpu_ms']:.2f} ms CPU"
+        floors.append(f"{remap} ({_times(row['remap_pairs_per_s'], rate)} faster)")
+    lines = [head, "    floors, same run: " + "; ".join(floors)]
+    steps = []
+    if "orientation_ms" in row:
+        step = f"orientation {row['orientation_ms']:+.2f} ms"
+        if "no_roll_pairs_per_s" in row:
+            step += f" (without it {row['no_roll_pairs_per_s']:.0f} pairs/s)"
+        steps.append(step)
+    if "selfcal_ms" in row:
+        step = f"self-calibration {row['selfcal_ms']:+.2f} ms"
+        service = []
+        if "selfcal_pairs_per_s" in row:
+            service.append(f"{row['selfcal_pairs_per_s']:.0f} pairs/s")
+        if "selfcal_cpu_ms" in row:
+            service.append(f"{row['selfcal_cpu_ms']:.2f} ms CPU")
+        if service:
+            step += f" (as the service runs it: {', '.join(service)})"
+        steps.append(step)
+    if steps:
+        lines.append("    steps, CPU per pair: " + "; ".join(steps))
+    return "\n".join(lines)
+
+
+def vision_text(result: Any) -> str:
+    """The readable text of the vision part: :func:`vision_row_text` per image size."""
+    return "vision (one core):\n" + "\n".join(vision_row_text(r) for r in result)
 
 
 def _camera_text(result: Any) -> str:
