@@ -5,7 +5,9 @@ Threads and processes (``SimRunner.from_config``, as ``planer sim`` runs it):
 * the **stepping thread** (the runner's asyncio loop) owns the :class:`~plant_sim.machine.Machine`
   and drives it through the one :class:`~plant_sim.driver.PlantDriver`: so that machine time
   follows ``time_scale`` x wall time (clock and sleep injected: tests run on simulated time);
-* the **PLC process** (:class:`~plant_sim.plc_process.PlcProcess`) serves Modbus TCP: it reads
+* the **PLC process** (:class:`~plant_sim.plc_process.PlcProcess`, at real-time priority where
+  permitted, like the CAN receive thread: :func:`plant_sim.interfaces.raise_priority`; the
+  banner's ``priority:`` line says what they got) serves Modbus TCP: it reads
   the register snapshot the stepping thread publishes every iteration (shared memory, sequence
   lock) and sends accepted writes back, which the driver applies in order before the next step;
   the amplifier node (:mod:`plant_sim.amp_node`) reads its CAN bus on a thread of its own;

@@ -336,8 +336,8 @@ def test_serve_against_sim_as_the_docs_say(tmp_path):
         records = log.records()
     assert len(records) == 12  # every pair logged
     errors = [r.error for r in records if not r.ok]
-    assert len(errors) <= 2, errors  # measured (a loaded host may fail a pair, with a reason)
-    assert all(errors), errors
+    assert errors == []  # every pair measured (with the interfaces at real-time priority: 12
+    # of 12 in each of 4 runs under six CPU hogs, docs/simulator.md)
 
 
 def test_multicast_outside_a_namespace_says_what_to_do_in_words(tmp_path, capsys, monkeypatch):
