@@ -20,6 +20,9 @@ from plant_sim.frame_capture import FrameCapture
 from plant_sim.spindle import Spindle
 from protocol.registers import MachineState, PlcFault, RegisterMap
 
+_HEARTBEAT_LOST = int(PlcFault.HEARTBEAT_LOST)
+_FEED_DRIVE = int(PlcFault.FEED_DRIVE)
+
 __all__ = ["PlcRegisters", "register_names"]
 
 
@@ -66,37 +69,42 @@ class PlcRegisters:
         self._watchdog_s = cfg.plc.watchdog_ms * 1e-3
         self._names = register_names()
         self.estop = False
-        self.fault_bits = PlcFault(0)
+        self._faults = 0  # the register's bits as a plain int: IntFlag arithmetic is slow per cycle
         self.heartbeat_plc = 0
         self.heartbeat_service = 0
         self._hb_changed_s = 0.0
 
+    @property
+    def fault_bits(self) -> PlcFault:
+        """The ``faults`` register's bits."""
+        return PlcFault(self._faults)
+
     def start_cycle(self, t_s: float) -> None:
         """A PLC cycle begins at ``t_s``: check the service's heartbeat, count the PLC's own."""
         if t_s - self._hb_changed_s > self._watchdog_s:
-            self.fault_bits |= PlcFault.HEARTBEAT_LOST
+            self._faults |= _HEARTBEAT_LOST
         else:
-            self.fault_bits &= ~PlcFault.HEARTBEAT_LOST
+            self._faults &= ~_HEARTBEAT_LOST
         self.heartbeat_plc = (self.heartbeat_plc + 1) & 0xFFFF
 
     def feed_permitted(self) -> bool:
         """The interlock: the feed may run (spindle running, no e-stop, no feed-drive fault)."""
         return (not self.estop and self.spindle.running
-                and not (self.fault_bits & PlcFault.FEED_DRIVE))
+                and not (self._faults & _FEED_DRIVE))
 
     def set_flag(self, bit: PlcFault, on: bool) -> None:
         """Set or clear one bit of the ``faults`` register."""
         if on:
-            self.fault_bits |= bit
+            self._faults |= int(bit)
         else:
-            self.fault_bits &= ~bit
+            self._faults &= ~int(bit)
 
     def set_service_heartbeat(self, value: int, t_s: float) -> None:
         """The service's heartbeat at ``t_s``; a changed value feeds the watchdog."""
         v = check_int("value", value, lo=0, hi=0xFFFF)
         if v != self.heartbeat_service:
             self._hb_changed_s = t_s
-            self.fault_bits &= ~PlcFault.HEARTBEAT_LOST
+            self._faults &= ~_HEARTBEAT_LOST
         self.heartbeat_service = v
 
     def machine_state(self, t_s: float) -> MachineState:
@@ -142,7 +150,7 @@ class PlcRegisters:
             "trigger_seq": (last.seq if last else 0) & 0xFFFF,
             "index_latch_counts": last.index_latch if last else 0,
             "machine_state": int(self.machine_state(t_s)),
-            "faults": int(self.fault_bits),
+            "faults": self._faults,
             "knives": self.knives,
             "cutter_to_camera_mm": self.L_mm,
             "counts_per_mm": cfg.encoder.counts_per_mm,
