@@ -23,6 +23,8 @@ import argparse
 import json
 import sys
 
+from planer.commands.measure import knife_count, positive_number
+
 HELP = "estimate camera roll and light slants from a reference run and write them into rig.toml"
 
 
@@ -34,26 +36,6 @@ def _counts(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected CA,CB (two integer counts): {text!r}") from None
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (value > 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a positive number: {text!r}")
-    return value
-
-
-def _knives(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if not 1 <= value <= 64:
-        raise argparse.ArgumentTypeError(f"must be 1-64: {text!r}")
-    return value
-
-
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""
     parser.add_argument("images", nargs="*", metavar="IMAGE",
@@ -62,12 +44,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         metavar="CA,CB", help="encoder counts of one pair (once per pair)")
     parser.add_argument("--spool", metavar="DIR", default=None,
                         help="read the pairs (and their counts and speed) from a spool folder")
-    parser.add_argument("--radius-mm", type=_positive, required=True,
+    parser.add_argument("--radius-mm", type=positive_number, required=True,
                         help="cutting radius of the knives, mm")
-    parser.add_argument("--feed-mm-s", type=_positive, default=None,
+    parser.add_argument("--feed-mm-s", type=positive_number, default=None,
                         help="feed speed of the reference run, mm/s")
-    parser.add_argument("--rpm", type=_positive, default=None, help="spindle speed, rev/min")
-    parser.add_argument("--knives", type=_knives, default=None, help="number of knives")
+    parser.add_argument("--rpm", type=positive_number, default=None, help="spindle speed, rev/min")
+    parser.add_argument("--knives", type=knife_count, default=None, help="number of knives")
     parser.add_argument("--rig", required=True, help="rig file to start from")
     parser.add_argument("--out", required=True, help="rig file to write (may be --rig)")
 

@@ -58,14 +58,16 @@ def check_speed_mm_s(speed_mm_s: float | None) -> float | None:
     return speed_mm_s
 
 
-def _positive(text: str) -> float:
+def positive_number(text: str) -> float:
+    """Argument type: a finite number > 0 (``--radius-mm``, ``--rpm``, ...)."""
     value = _finite_float(text)
     if not value > 0:
         raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
     return value
 
 
-def _knives(text: str) -> int:
+def knife_count(text: str) -> int:
+    """Argument type: a number of knives, 1..64."""
     try:
         value = int(text)
     except ValueError:
@@ -92,11 +94,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="flat-board reference image for light A (with --flat-b)")
     parser.add_argument("--flat-b", metavar="FB", default=None,
                         help="flat-board reference image for light B (with --flat-a)")
-    parser.add_argument("--radius-mm", type=_positive, default=None,
+    parser.add_argument("--radius-mm", type=positive_number, default=None,
                         help="cutting radius of the knives, mm (turns the self-calibration on)")
-    parser.add_argument("--knives", type=_knives, default=None,
+    parser.add_argument("--knives", type=knife_count, default=None,
                         help="number of knives (per-knife mark widths)")
-    parser.add_argument("--rpm", type=_positive, default=None,
+    parser.add_argument("--rpm", type=positive_number, default=None,
                         help="spindle speed, rev/min (with --knives and --speed-mm-s: the feed "
                              "per knife pass)")
 
