@@ -286,7 +286,7 @@ def test_settled_at_table(values, expected):
 
 # ---------------------------------------------------------------------------------- closed loop
 _PROGRESS = re.compile(r"^\s*(?P<d>[\d.]+|-) m  \w+\s+pitch (?P<p>[\d.]+) mm  cv (?P<c>[\d.]+) "
-                       r"\(true (?P<tp>[\d.]+) / (?P<tc>[\d.]+)\)")
+                       r"\(true (?P<tp>[\d.]+) / (?P<tc>[\d.]+)\).*  pair (?P<seq>\d+)$")
 
 
 def _check_progress_distances(lines, summary):
@@ -297,12 +297,9 @@ def _check_progress_distances(lines, summary):
         m = _PROGRESS.match(line)
         if not m or m["d"] == "-":
             continue
-        same = [x for x in summary["measurements"] if x["pitch_mm"] is not None
-                and (f"{x['pitch_mm']:.3f}", f"{x['uniformity_cv']:.3f}",
-                     f"{x['true_pitch_mm']:.3f}", f"{x['true_uniformity_cv']:.3f}")
-                == (m["p"], m["c"], m["tp"], m["tc"])]
-        if len(same) != 1:
-            continue
+        same = [x for x in summary["measurements"] if x["seq"] == int(m["seq"])]
+        assert len(same) == 1, line  # the line names its pair
+        assert (f"{same[0]['pitch_mm']:.3f}", f"{same[0]['uniformity_cv']:.3f}") == (m["p"], m["c"])
         assert float(m["d"]) == pytest.approx((same[0]["board_travel_mm"] - closed) / 1000,
                                               abs=0.006), line
         checked += 1

@@ -236,18 +236,24 @@ def _write_figures(summary: dict, progress: Callable[[str], None]) -> dict[str, 
 
     A figure that cannot be written is reported on stderr; the summary still goes out.
     """
-    from controller.quality_log import QualityLog
+    import time
+
+    from controller.quality_log import QualityLog, is_database_url
     from controller.report import build_figures, save_figures
 
     qlog = summary["quality_log"]
     path = Path(qlog["path"])
+    # next to an SQLite log; for a database, in runs/ named after the run
+    out_dir, stem = (Path("runs"), time.strftime("hil-%Y%m%d-%H%M%S")) \
+        if is_database_url(path) else (path.parent, path.stem)
     try:
         with QualityLog(path, create=False) as log:
             records = log.records(after_id=int(qlog.get("after_id", 0)))
             quality_class = log.quality_class()
         figures = build_figures(records, quality_class=quality_class,
                                 safe_periods_s=summary.get("safe_periods_s"))
-        return save_figures(figures, path.parent, stem=path.stem)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        return save_figures(figures, out_dir, stem=stem)
     except (OSError, ValueError) as exc:
         progress(f"planer hil: figures not written: {exc}")
         return {}

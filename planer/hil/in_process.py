@@ -65,7 +65,7 @@ class InProcessPlant:
         from config.rig import load_rig
         from controller.piezo_client import PiezoClient
         from controller.plc_client import Backoff, MachineRegisterBus, PlcClient
-        from controller.quality_log import QualityLog
+        from controller.quality_log import is_database_url, open_quality_log
         from plant_sim.amp_node import AmpNode, AmpNodeCore
         from plant_sim.driver import PlantDriver
         from plant_sim.machine import Machine
@@ -102,8 +102,9 @@ class InProcessPlant:
         opened_log = log == "config"
         if opened_log:  # before the buses: an unusable log path leaves nothing open
             path = Path(cfg.log.path)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            log = QualityLog(path)
+            if not is_database_url(path):  # a PostgreSQL URL is no folder to make
+                path.parent.mkdir(parents=True, exist_ok=True)
+            log = open_quality_log(path, machine_id=cfg.log.machine_id or None)
         self.log = log
         self.service: Service | None = None
         buses: list[Any] = []

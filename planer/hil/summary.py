@@ -579,7 +579,7 @@ class BoardTravel:
 
 
 PROGRESS_LEGEND = ("progress: metres of board measured since the loop closed, state, measured "
-                   "pitch and CV (true), feed setpoint, piezo offsets")
+                   "pitch and CV (true), feed setpoint, piezo offsets, pair number")
 
 
 def _progress_line(r: FrameResult, travel: BoardTravel) -> str:
@@ -595,7 +595,7 @@ def _progress_line(r: FrameResult, travel: BoardTravel) -> str:
     dist = "  -  " if d is None else f"{d / 1000:5.2f}"
     return (
         f"{dist} m  {r.state:4s}  pitch {pitch} mm  cv {cv}{truth}  "
-        f"feed {feed} mm/s  offsets [{offs}] um"
+        f"feed {feed} mm/s  offsets [{offs}] um  pair {r.seq}"
     )
 
 
