@@ -1,7 +1,7 @@
 """The quality log's fleet store: a PostgreSQL database shared by several machines (psycopg 3).
 
 :class:`PostgresStore` keeps the same tables and columns as the SQLite file
-(:func:`controller.quality_log.create_statements`), with PostgreSQL's types (``DOUBLE
+(:func:`controller.quality_schema.create_statements`), with PostgreSQL's types (``DOUBLE
 PRECISION``, ``BIGINT``, ``BOOLEAN``). Each insert is one transaction, committed before it
 returns; the record's ``uid`` goes into ``record_uids`` (primary key) in the same transaction,
 so a record replayed from the journal after a lost connection is stored once
@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from controller.quality_log import (
+from controller.quality_schema import (
     ADDED_IN_V4,
     SCHEMA_VERSION,
     QualityLogError,

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from controller.quality_log import (
+from controller.quality_schema import (
     ADDED_IN_V4,
     APPLICATION_ID,
     SCHEMA_VERSION,

@@ -22,7 +22,6 @@ from hypothesis import strategies as st
 
 from config.loading import Section
 from controller.quality_log import (
-    ADDED_IN_V4,
     CSV_COLUMNS,
     CSV_NOISE_ULPS,
     CSV_SIGNIFICANT_DIGITS,
@@ -36,6 +35,7 @@ from controller.quality_log import (
     quality_class_from_section,
     utc_iso,
 )
+from controller.quality_schema import ADDED_IN_V4
 from core.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]

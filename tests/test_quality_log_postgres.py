@@ -332,7 +332,8 @@ def test_documented_pass_rate_query_counts_as_python_does(fresh_db):
 def test_version_3_database_is_read_as_is_and_migrated_by_a_writer(fresh_db):
     import psycopg
 
-    from controller.quality_log import ADDED_IN_V4, SCHEMA_VERSION
+    from controller.quality_log import SCHEMA_VERSION
+    from controller.quality_schema import ADDED_IN_V4
 
     rng = random.Random(3)
     old = [_record(i, rng=rng, machine_id="planer-1") for i in range(5)]

@@ -1,0 +1,779 @@
+"""The quality record and its table: fields, checks, the quality class, columns per schema version.
+
+Pure (no database): :mod:`controller.quality_log` (the log), its two stores
+(:mod:`controller.quality_store_sqlite`, :mod:`controller.quality_store_postgres`) and the journal
+all take the record, its checks and the table layout from here. Field meanings and units:
+``docs/quality_log.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from datetime import datetime, timezone
+from typing import Any
+
+from config.loading import Section
+from core.checks import check_finite, check_int, check_positive
+from core.errors import PlanerError
+
+#: Version of the table layout this code writes; logs with a higher version are refused.
+SCHEMA_VERSION = 4
+#: SQLite ``application_id`` marking a file as a planer quality log ("PLQL").
+APPLICATION_ID = 0x504C514C
+#: Longest machine id (``[machine] id``), characters.
+MACHINE_ID_MAX = 64
+
+
+class QualityLogError(PlanerError, ValueError):
+    """The file is not a readable quality log (corrupt, foreign or from a newer version)."""
+
+
+class RecordRefusedError(PlanerError, ValueError):
+    """A record holds a value the log's schema cannot store; ``field`` names it.
+
+    Raised by :meth:`QualityLog.append` before anything is written (e.g. a ``board_id`` beyond
+    SQLite's 64-bit integers). :func:`storable_record` turns such a record into a failed one
+    that the log takes.
+    """
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+#: Largest integer an SQLite INTEGER column holds (``seq``, ``board_id``).
+SQLITE_INT_MAX = 2**63 - 1
+
+
+# --------------------------------------------------------------------------------------------
+# time stamps
+
+
+def utc_iso(epoch_s: float) -> str:
+    """ISO-8601 UTC time stamp of a POSIX time, e.g. ``2026-05-09T07:35:25.123456+00:00``.
+
+    Parameters
+    ----------
+    epoch_s : float
+        Seconds since 1970-01-01 UTC (``time.time()`` of the injected wall clock).
+    """
+    v = check_finite("epoch_s", epoch_s)
+    return datetime.fromtimestamp(v, tz=timezone.utc).isoformat(timespec="microseconds")
+
+
+def _check_wall_time(value: str) -> str:
+    if not isinstance(value, str):
+        raise ValueError(f"wall_time must be an ISO-8601 UTC string, got {value!r}")
+    text = value[:-1] + "+00:00" if value.endswith("Z") else value
+    try:
+        stamp = datetime.fromisoformat(text)
+    except ValueError:
+        raise ValueError(f"wall_time is not an ISO-8601 time stamp: {value!r}") from None
+    if stamp.utcoffset() is None or stamp.utcoffset().total_seconds() != 0:
+        raise ValueError(f"wall_time must be in UTC (offset +00:00 or Z), got {value!r}")
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# the record
+
+
+def _opt_float(name: str, value: Any) -> float | None:
+    """``None`` or a finite float; NaN means "not measured" and becomes ``None``."""
+    if value is None:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number or None, got {value!r}") from None
+    if math.isnan(v):
+        return None
+    return check_finite(name, v)
+
+
+def _float_tuple(name: str, values: Any) -> tuple[float, ...]:
+    """A tuple of floats; NaN elements are kept (a knife whose mark was not found)."""
+    if values is None:
+        return ()
+    if isinstance(values, (str, bytes)) or not hasattr(values, "__iter__"):
+        raise ValueError(f"{name} must be a sequence of numbers, got {values!r}")
+    out = []
+    for i, x in enumerate(values):
+        try:
+            v = float(x)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name}[{i}] must be a number, got {x!r}") from None
+        if math.isinf(v):
+            raise ValueError(f"{name}[{i}] must be finite or NaN, got {x!r}")
+        out.append(v)
+    return tuple(out)
+
+
+def _opt_bool(name: str, value: Any) -> bool | None:
+    """``None`` or a bool; numpy booleans are accepted, numbers and strings are not."""
+    if value is None or isinstance(value, bool):
+        return value
+    if type(value).__name__ in ("bool_", "bool") and hasattr(value, "item"):
+        return bool(value)
+    raise ValueError(f"{name} must be true, false or None, got {value!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class QualityRecord:
+    """One measurement as the quality log stores it (all keyword arguments).
+
+    Scalar metrics are ``None`` when not measured; NaN given for one is stored as ``None``.
+    A failed measurement (``ok=False``) carries an ``error`` and no pitch, widths, uniformity,
+    depth or pass/fail; it may carry the registration's ``shift_px`` and ``confidence``.
+    Sequences are stored as tuples of floats.
+
+    Attributes
+    ----------
+    t_s : float
+        Machine time of the measurement (trigger A), seconds.
+    wall_time : str
+        Wall-clock time, ISO-8601 in UTC (see :func:`utc_iso`).
+    seq : int
+        Sequence number of the image pair, >= 0.
+    board_id : int
+        Board under the camera (0 when none), >= 0.
+    board_position_mm : float
+        Position of the imaged patch (image A's centre) from the board's leading end, mm.
+    ok : bool
+        Whether the measurement succeeded.
+    error : str or None
+        Why it failed (e.g. ``"registration failed: confidence 0.21"``); ``None`` when ok.
+        The text before the first colon is the reason the report counts.
+    pitch_mm : float or None
+        Measured mark pitch (feed per knife), mm.
+    mark_widths_mm : tuple of float, shape (Z,)
+        Measured mark width per knife, mm (index = knife number; NaN = not found).
+    uniformity_cv : float or None
+        Coefficient of variation of the mark widths (std / mean), dimensionless.
+    depth_um : float or None
+        Mark depth (waviness), micrometres.
+    shift_px : float or None
+        Registration shift of image B against A, pixels.
+    confidence : float or None
+        Registration confidence, 0..1.
+    feed_setpoint_mm_s : float or None
+        Feed-rate setpoint in force at the measurement, mm/s.
+    piezo_offsets_um : tuple of float, shape (Z,)
+        Piezo offset setpoint per knife in force at the measurement, micrometres
+        (> 0 lifts the cutterhead while that knife cuts).
+    target_pitch_mm : float or None
+        Target pitch of the quality class, mm.
+    passed : bool or None
+        Pass/fail against the quality class (:func:`judge`); ``None`` when not judged.
+    true_pitch_mm, true_uniformity_cv : float or None
+        Simulator only: the true pitch (mm) and uniformity (CV) of the imaged patch.
+    extra : dict
+        Free JSON-serialisable data, e.g. ``extra["profile"] = {"x_mm": [...],
+        "height_um": [...]}``.
+    machine_id : str or None
+        The machine that measured (``[machine] id``); ``None`` = the log's own machine id is
+        stamped on append (records read back from logs before schema version 3 hold ``None``).
+    roll_deg : float or None
+        Direction of the marks' normal (the feed) in the image: the camera's roll, degrees.
+    roll_confidence : float or None
+        Confidence of the per-pair roll estimate, 0..1 (below the vision's threshold the rig
+        file's roll was used).
+    calibration_state : {"off", "applied", "untrusted"} or None
+        The self-calibration from the knife kinematics: ``off`` (no cutting radius),
+        ``applied`` (the values below corrected the profile), ``untrusted`` (estimated, not
+        applied: confidence too low); ``None`` = not known (records before schema version 4,
+        pairs the vision could not measure).
+    calibration_gain : float or None
+        Photometric gain (measured slope / kinematic slope), dimensionless.
+    calibration_gain_confidence : float or None
+        Its confidence, 0..1 (smoothed over the board's pairs).
+    calibration_scatter_mm : float or None
+        Subsurface scattering length along the fibres, mm.
+    calibration_scatter_fraction : float or None
+        Fraction of the light scattered, 0..1.
+    calibration_scatter_confidence : float or None
+        Confidence of the scattering estimate, 0..1.
+    kinematic_depth_um : float or None
+        Mark depth from the marks' cusps and lowest points with the cutting radius, um: beside
+        ``depth_um`` (photometric), a difference shows spring-back, tear-out or chatter.
+    uncalibrated_depth_um : float or None
+        ``depth_um`` before the self-calibration, um.
+    """
+
+    t_s: float
+    wall_time: str
+    seq: int
+    board_id: int
+    board_position_mm: float
+    ok: bool
+    error: str | None = None
+    pitch_mm: float | None = None
+    mark_widths_mm: tuple[float, ...] = ()
+    uniformity_cv: float | None = None
+    depth_um: float | None = None
+    shift_px: float | None = None
+    confidence: float | None = None
+    feed_setpoint_mm_s: float | None = None
+    piezo_offsets_um: tuple[float, ...] = ()
+    target_pitch_mm: float | None = None
+    passed: bool | None = None
+    true_pitch_mm: float | None = None
+    true_uniformity_cv: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+    machine_id: str | None = None
+    roll_deg: float | None = None
+    roll_confidence: float | None = None
+    calibration_state: str | None = None
+    calibration_gain: float | None = None
+    calibration_gain_confidence: float | None = None
+    calibration_scatter_mm: float | None = None
+    calibration_scatter_fraction: float | None = None
+    calibration_scatter_confidence: float | None = None
+    kinematic_depth_um: float | None = None
+    uncalibrated_depth_um: float | None = None
+
+    def __post_init__(self) -> None:
+        def put(name: str, value: Any) -> None:
+            object.__setattr__(self, name, value)
+
+        put("t_s", check_finite("t_s", self.t_s))
+        put("wall_time", _check_wall_time(self.wall_time))
+        put("seq", check_int("seq", self.seq, lo=0))
+        put("board_id", check_int("board_id", self.board_id, lo=0))
+        put("board_position_mm", check_finite("board_position_mm", self.board_position_mm))
+        ok = _opt_bool("ok", self.ok)
+        if ok is None:
+            raise ValueError("ok must be true or false, got None")
+        put("ok", ok)
+        for name in _OPT_FLOATS:
+            put(name, _opt_float(name, getattr(self, name)))
+        for name in _TUPLES:
+            put(name, _float_tuple(name, getattr(self, name)))
+        put("passed", _opt_bool("passed", self.passed))
+        put("machine_id", _check_machine_id("machine_id", self.machine_id))
+        if self.error is not None and not isinstance(self.error, str):
+            raise ValueError(f"error must be a string or None, got {self.error!r}")
+        if self.calibration_state not in (None, *CALIBRATION_STATES):
+            raise ValueError(f"calibration_state must be one of {', '.join(CALIBRATION_STATES)} "
+                             f"or None, got {self.calibration_state!r:.80}")
+        if self.calibration_state in (None, "off"):
+            given = [n for n in CALIBRATION_FIELDS if getattr(self, n) is not None]
+            if given:
+                raise ValueError(f"{given[0]} needs calibration_state applied or untrusted, "
+                                 f"got {self.calibration_state!r}")
+        if not isinstance(self.extra, Mapping) or not all(isinstance(k, str) for k in self.extra):
+            raise ValueError(f"extra must be a dict with string keys, got {self.extra!r:.80}")
+        put("extra", dict(self.extra))
+        if self.ok:
+            if self.error is not None:
+                raise ValueError(f"error must be None for a successful measurement, got "
+                                 f"{self.error!r}")
+        else:
+            if not self.error:
+                raise ValueError("error must say why the measurement failed (ok=False)")
+            carried = [n for n in ("pitch_mm", "uniformity_cv", "depth_um", "passed",
+                                   "kinematic_depth_um", "uncalibrated_depth_um")
+                       if getattr(self, n) is not None]
+            if self.mark_widths_mm:
+                carried.append("mark_widths_mm")
+            if carried:
+                raise ValueError(f"a failed measurement carries no metrics, got {carried[0]}")
+
+
+#: The self-calibration's states (``calibration_state``).
+CALIBRATION_STATES = ("off", "applied", "untrusted")
+#: The self-calibration's values, set only with state ``applied`` or ``untrusted``.
+CALIBRATION_FIELDS = (
+    "calibration_gain", "calibration_gain_confidence", "calibration_scatter_mm",
+    "calibration_scatter_fraction", "calibration_scatter_confidence",
+)
+_OPT_FLOATS = (
+    "pitch_mm", "uniformity_cv", "depth_um", "shift_px", "confidence", "feed_setpoint_mm_s",
+    "target_pitch_mm", "true_pitch_mm", "true_uniformity_cv", "roll_deg", "roll_confidence",
+    *CALIBRATION_FIELDS, "kinematic_depth_um", "uncalibrated_depth_um",
+)
+_TUPLES = ("mark_widths_mm", "piezo_offsets_um")
+_FIELD_NAMES = tuple(f.name for f in fields(QualityRecord))
+_INT_FIELDS = ("seq", "board_id")
+_TEXT_FIELDS = ("wall_time", "error")
+
+
+def _finite(value: Any) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def vision_fields(measurement: Any, *, ok: bool) -> dict[str, Any]:
+    """The record fields of a vision measurement's orientation and self-calibration.
+
+    Parameters
+    ----------
+    measurement : object
+        A ``vision.pipeline.Measurement`` (or anything with some of its attributes:
+        ``roll_deg``, ``roll_confidence``, ``calibration``, ``kinematic_depth_um``,
+        ``uncalibrated_depth_um``); missing attributes give no field.
+    ok : bool
+        Whether the record is a successful one: only then the depths (metrics) are given.
+
+    Returns
+    -------
+    dict
+        ``roll_deg``, ``roll_confidence``, ``calibration_state`` (``off`` when the
+        measurement has ``calibration = None``, ``applied`` / ``untrusted`` by its
+        ``trusted``) and the ``calibration_*`` values, ``kinematic_depth_um``,
+        ``uncalibrated_depth_um``; non-finite values as ``None``.
+    """
+    out: dict[str, Any] = {}
+    for name in ("roll_deg", "roll_confidence"):
+        if hasattr(measurement, name):
+            out[name] = _finite(getattr(measurement, name))
+    if hasattr(measurement, "calibration"):
+        cal = measurement.calibration
+        if cal is None:
+            out["calibration_state"] = "off"
+        else:
+            trusted = bool(getattr(cal, "trusted", False))
+            out["calibration_state"] = "applied" if trusted else "untrusted"
+            for name in CALIBRATION_FIELDS:
+                attr = name.removeprefix("calibration_")
+                out[name] = _finite(getattr(cal, attr, None))
+    if ok:
+        for name in ("kinematic_depth_um", "uncalibrated_depth_um"):
+            if hasattr(measurement, name):
+                out[name] = _finite(getattr(measurement, name))
+    return out
+
+
+def check_storable(record: QualityRecord) -> None:
+    """Raise :class:`RecordRefusedError` naming the first field the log cannot store.
+
+    A valid :class:`QualityRecord` may still hold values the SQLite schema refuses: integers
+    beyond 64 bits (``seq``, ``board_id``), text that is not valid Unicode (lone surrogates) or
+    an ``extra`` that is not JSON serialisable.
+    """
+    for name in _INT_FIELDS:
+        v = getattr(record, name)
+        if not 0 <= v <= SQLITE_INT_MAX:
+            raise RecordRefusedError(
+                name, f"{name} {v} is out of the log's range 0..{SQLITE_INT_MAX}")
+    for name in _TEXT_FIELDS:
+        v = getattr(record, name)
+        if v is not None:
+            try:
+                v.encode("utf-8")
+            except UnicodeEncodeError:
+                raise RecordRefusedError(
+                    name, f"{name} is not valid Unicode text: {v!r:.80}") from None
+    try:
+        json.dumps(record.extra, default=_json_default)
+    except (TypeError, ValueError, RecursionError) as exc:
+        raise RecordRefusedError("extra", f"extra is not JSON serialisable: {exc}") from None
+
+
+def storable_record(record: QualityRecord) -> QualityRecord:
+    """``record`` itself when the log can store it, else a failed record naming the fields.
+
+    Each refused value is replaced (an integer by 0, text by its escaped form, ``extra`` by
+    its ``repr`` texts) and kept as text in ``extra["refused"]``; ``error`` reads
+    ``record refused: <field> ...`` (after the original error of a failed measurement). The
+    setpoints, registration diagnostics and truth are kept; the metrics of a successful
+    measurement go (a failed record carries none).
+
+    Returns
+    -------
+    QualityRecord
+        A record :meth:`QualityLog.append` accepts.
+    """
+    reasons: list[str] = []
+    refused: dict[str, str] = {}
+    changes: dict[str, Any] = {}
+    current = record
+    for _ in range(len(_INT_FIELDS) + len(_TEXT_FIELDS) + 1):
+        try:
+            check_storable(current)
+            break
+        except RecordRefusedError as exc:
+            name = exc.field
+            reasons.append(str(exc))
+            value = getattr(current, name)
+            if name in _INT_FIELDS:
+                refused[name] = str(value)
+                changes[name] = 0
+            elif name in _TEXT_FIELDS:
+                refused[name] = value.encode("utf-8", "backslashreplace").decode("utf-8")
+                changes[name] = (refused[name] if name == "error"
+                                 else utc_iso(0.0))
+            else:
+                refused[name] = repr(value)[:2000]
+                changes[name] = {}
+            current = dataclasses.replace(current, **changes)
+    if not reasons:
+        return record
+    base = current
+    error = "record refused: " + "; ".join(reasons)
+    if not base.ok and base.error:
+        error = f"{base.error} ({error})"
+    extra = dict(base.extra) if "extra" not in refused else {}
+    extra["refused"] = refused
+    kept = {n: getattr(base, n) for n in (
+        "t_s", "wall_time", "seq", "board_id", "board_position_mm", "shift_px", "confidence",
+        "feed_setpoint_mm_s", "piezo_offsets_um", "target_pitch_mm", "true_pitch_mm",
+        "true_uniformity_cv", "roll_deg", "roll_confidence", "calibration_state",
+        *CALIBRATION_FIELDS)}
+    out = QualityRecord(**kept, ok=False, error=error, extra=extra)
+    check_storable(out)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# quality class and pass/fail
+
+
+@dataclass(frozen=True)
+class QualityClass:
+    """Limits a measurement must meet to pass.
+
+    Parameters
+    ----------
+    name : str
+        Name of the class (e.g. ``"furniture-1.5"``).
+    target_pitch_mm : float
+        Target mark pitch, mm (> 0).
+    pitch_tolerance : float
+        Allowed relative pitch deviation, fraction of the target (0.02 = +-2 %), in [0, 1).
+    uniformity_max_cv : float or None
+        Largest allowed CV of the mark widths; ``None`` = not checked.
+    depth_max_um : float or None
+        Largest allowed mark depth, micrometres; ``None`` = not checked.
+    """
+
+    name: str
+    target_pitch_mm: float
+    pitch_tolerance: float
+    uniformity_max_cv: float | None = None
+    depth_max_um: float | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"name must be a non-empty string, got {self.name!r}")
+        object.__setattr__(self, "target_pitch_mm",
+                           check_positive("target_pitch_mm", self.target_pitch_mm))
+        tol = check_positive("pitch_tolerance", self.pitch_tolerance, allow_zero=True)
+        if tol >= 1:
+            raise ValueError(f"pitch_tolerance is a fraction and must be < 1, got {tol!r}")
+        object.__setattr__(self, "pitch_tolerance", tol)
+        for name in ("uniformity_max_cv", "depth_max_um"):
+            v = getattr(self, name)
+            if v is not None:
+                object.__setattr__(self, name, check_positive(name, v, allow_zero=True))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The class as a JSON-ready dict (the keys of the constructor)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> QualityClass:
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ValueError(f"unknown quality class key {unknown[0]!r}")
+        return cls(**dict(data))
+
+
+def quality_class_from_section(section: Section) -> QualityClass:
+    """Read a quality class from a config table (keys as :class:`QualityClass`; errors name them).
+
+    ``name``, ``target_pitch_mm`` and ``pitch_tolerance`` are required; ``uniformity_max_cv``
+    and ``depth_max_um`` are optional (absent = not checked).
+    """
+    return QualityClass(
+        name=section.string("name"),
+        target_pitch_mm=section.number("target_pitch_mm", lo=0.0, lo_open=True),
+        pitch_tolerance=section.number("pitch_tolerance", lo=0.0, hi=0.999),
+        uniformity_max_cv=(section.number("uniformity_max_cv", lo=0.0)
+                           if section.has("uniformity_max_cv") else None),
+        depth_max_um=(section.number("depth_max_um", lo=0.0)
+                      if section.has("depth_max_um") else None),
+    )
+
+
+def _metric(metrics: Any, name: str) -> Any:
+    if isinstance(metrics, Mapping):
+        return metrics.get(name)
+    return getattr(metrics, name, None)
+
+
+def judge(metrics: Any, quality_class: QualityClass) -> bool:
+    """Whether a measurement meets a quality class (all limits inclusive).
+
+    Parameters
+    ----------
+    metrics : QualityRecord, mapping or object
+        Anything with ``pitch_mm``, ``uniformity_cv`` and ``depth_um`` (attributes or keys).
+    quality_class : QualityClass
+        The limits. Uniformity and depth are checked only when the class sets a limit.
+
+    Returns
+    -------
+    bool
+        ``|pitch_mm / target_pitch_mm - 1| <= pitch_tolerance`` and
+        ``uniformity_cv <= uniformity_max_cv`` and ``depth_um <= depth_max_um``.
+
+    Raises
+    ------
+    ValueError
+        When a metric the class checks is missing or not finite (judge only successful
+        measurements; a failed one has ``passed=None``).
+    """
+    qc = quality_class
+    if not isinstance(qc, QualityClass):
+        raise ValueError(f"quality_class must be a QualityClass, got {type(qc).__name__}")
+    pitch = check_positive("pitch_mm", _required(metrics, "pitch_mm"))
+    ok = abs(pitch / qc.target_pitch_mm - 1.0) <= qc.pitch_tolerance + 1e-9
+    if qc.uniformity_max_cv is not None:
+        cv = check_positive("uniformity_cv", _required(metrics, "uniformity_cv"), allow_zero=True)
+        ok = ok and cv <= qc.uniformity_max_cv
+    if qc.depth_max_um is not None:
+        depth = check_finite("depth_um", _required(metrics, "depth_um"))
+        ok = ok and depth <= qc.depth_max_um
+    return bool(ok)
+
+
+def _required(metrics: Any, name: str) -> Any:
+    v = _metric(metrics, name)
+    if v is None:
+        raise ValueError(f"{name} is missing: judge only successful measurements")
+    return v
+
+
+# --------------------------------------------------------------------------------------------
+# the table layout (shared by the stores: the same columns in SQLite and PostgreSQL)
+
+_STATE_CHECK = ("TEXT CHECK (calibration_state IN ("
+                + ", ".join(f"'{v}'" for v in CALIBRATION_STATES) + "))")
+#: Columns in record-field order: (field, SQLite type, PostgreSQL type).
+_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("t_s", "REAL NOT NULL", "DOUBLE PRECISION NOT NULL"),
+    ("wall_time", "TEXT NOT NULL", "TEXT NOT NULL"),
+    ("seq", "INTEGER NOT NULL", "BIGINT NOT NULL"),
+    ("board_id", "INTEGER NOT NULL", "BIGINT NOT NULL"),
+    ("board_position_mm", "REAL NOT NULL", "DOUBLE PRECISION NOT NULL"),
+    ("ok", "INTEGER NOT NULL CHECK (ok IN (0, 1))", "BOOLEAN NOT NULL"),
+    ("error", "TEXT", "TEXT"),
+    ("pitch_mm", "REAL", "DOUBLE PRECISION"),
+    ("mark_widths_mm", "TEXT NOT NULL", "TEXT NOT NULL"),
+    ("uniformity_cv", "REAL", "DOUBLE PRECISION"),
+    ("depth_um", "REAL", "DOUBLE PRECISION"),
+    ("shift_px", "REAL", "DOUBLE PRECISION"),
+    ("confidence", "REAL", "DOUBLE PRECISION"),
+    ("feed_setpoint_mm_s", "REAL", "DOUBLE PRECISION"),
+    ("piezo_offsets_um", "TEXT NOT NULL", "TEXT NOT NULL"),
+    ("target_pitch_mm", "REAL", "DOUBLE PRECISION"),
+    ("passed", "INTEGER CHECK (passed IN (0, 1))", "BOOLEAN"),
+    ("true_pitch_mm", "REAL", "DOUBLE PRECISION"),
+    ("true_uniformity_cv", "REAL", "DOUBLE PRECISION"),
+    ("extra", "TEXT NOT NULL", "TEXT NOT NULL"),
+    ("machine_id", "TEXT", "TEXT"),
+    ("roll_deg", "REAL", "DOUBLE PRECISION"),
+    ("roll_confidence", "REAL", "DOUBLE PRECISION"),
+    ("calibration_state", _STATE_CHECK, _STATE_CHECK),
+    ("calibration_gain", "REAL", "DOUBLE PRECISION"),
+    ("calibration_gain_confidence", "REAL", "DOUBLE PRECISION"),
+    ("calibration_scatter_mm", "REAL", "DOUBLE PRECISION"),
+    ("calibration_scatter_fraction", "REAL", "DOUBLE PRECISION"),
+    ("calibration_scatter_confidence", "REAL", "DOUBLE PRECISION"),
+    ("kinematic_depth_um", "REAL", "DOUBLE PRECISION"),
+    ("uncalibrated_depth_um", "REAL", "DOUBLE PRECISION"),
+)
+assert tuple(c for c, _, _ in _COLUMNS) == _FIELD_NAMES, "schema and record differ"
+
+#: The table's column of each record field: the CSV header's names (one set, with units).
+_COLUMN_OF = {"wall_time": "wall_time_utc", "extra": "extra_json"}
+_V3 = _FIELD_NAMES[:_FIELD_NAMES.index("machine_id") + 1]
+_V1 = tuple(n for n in _V3 if n != "machine_id")
+#: Column names by schema version: (id column, record columns in field order). Version 1
+#: used the field names; version 2 the CSV header's (``record_id``, ``wall_time_utc``,
+#: ``extra_json``); version 3 added ``machine_id``; version 4 the orientation, the
+#: self-calibration and the kinematic depth (``roll_deg`` ... ``uncalibrated_depth_um``).
+_NAMES = {
+    1: ("id", _V1),
+    2: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V1)),
+    3: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V3)),
+    4: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
+}
+assert SCHEMA_VERSION == max(_NAMES)
+
+
+#: The columns version 4 added: (name, SQLite type, PostgreSQL type), for the migrations.
+ADDED_IN_V4: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V3)
+
+
+def column_names(version: int) -> tuple[str, tuple[str, ...]]:
+    """``(id column, record columns in field order)`` of a schema version's ``records`` table."""
+    return _NAMES[version]
+
+
+def create_statements(dialect: str) -> tuple[str, ...]:
+    """The statements creating an empty log's tables (``dialect``: "sqlite" or "postgresql").
+
+    Both create ``schema_version``, ``meta``, ``records`` (columns :data:`CSV_COLUMNS`),
+    ``record_uids`` (the journal's record identities, unique) and the same indexes.
+    """
+    if dialect not in ("sqlite", "postgresql"):
+        raise ValueError(f"dialect must be 'sqlite' or 'postgresql', got {dialect!r}")
+    pg = dialect == "postgresql"
+    rid = ("record_id BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY" if pg
+           else "record_id INTEGER PRIMARY KEY AUTOINCREMENT")
+    cols = ", ".join(f"{_COLUMN_OF.get(c, c)} {p if pg else s}" for c, s, p in _COLUMNS)
+    return (
+        "CREATE TABLE schema_version (version INTEGER NOT NULL)",
+        "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
+        f"CREATE TABLE records ({rid}, {cols})",
+        "CREATE INDEX records_board ON records (board_id)",
+        "CREATE INDEX records_seq ON records (seq)",
+        "CREATE INDEX records_machine_time ON records (machine_id, wall_time_utc)",
+        "CREATE TABLE record_uids (uid TEXT PRIMARY KEY, record_id "
+        + ("BIGINT NOT NULL REFERENCES records (record_id))" if pg else "INTEGER NOT NULL)"),
+    )
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which records to read (all filters optional, combined with AND); see ``records``."""
+
+    board_id: int | None = None
+    since_seq: int | None = None
+    after_id: int | None = None
+    machine_id: str | None = None
+
+    def where(self, id_column: str, mark: str) -> tuple[list[str], list[Any]]:
+        """SQL conditions (placeholder ``mark``: ``?`` or ``%s``) and their parameters."""
+        where: list[str] = []
+        params: list[Any] = []
+        for column, value in (("board_id", self.board_id), ("seq", self.since_seq),
+                              (id_column, self.after_id), ("machine_id", self.machine_id)):
+            if value is not None:
+                op = ">=" if column == "seq" else ">" if column == id_column else "="
+                where.append(f"{column} {op} {mark}")
+                params.append(value)
+        return where, params
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):  # numpy arrays and scalars
+        return obj.tolist()
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def _list_to_json(values: tuple[float, ...]) -> str:
+    return json.dumps([None if math.isnan(v) else v for v in values])
+
+
+def _list_from_json(text: str) -> tuple[float, ...]:
+    return tuple(math.nan if v is None else float(v) for v in json.loads(text))
+
+
+def _finite_json(value: Any) -> Any:
+    """``value`` with non-finite floats as ``None`` and numpy values as Python ones."""
+    if isinstance(value, Mapping):
+        return {str(k): _finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_json(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        return _finite_json(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def record_to_dict(record: QualityRecord) -> dict[str, Any]:
+    """One record as a JSON-ready dict (fields by name; NaN as ``None``, also inside ``extra``)."""
+    out: dict[str, Any] = {}
+    for name in _FIELD_NAMES:
+        v = getattr(record, name)
+        if name in _TUPLES:
+            v = [None if math.isnan(x) else x for x in v]
+        elif name == "extra":
+            v = _finite_json(v)
+        out[name] = v
+    return out
+
+
+def record_to_json(record: QualityRecord) -> str:
+    """One record as a line of JSON (fields by name; NaN as ``null``), e.g. for a fallback file."""
+    return json.dumps(record_to_dict(record), default=_json_default, allow_nan=False)
+
+
+def record_from_dict(data: Mapping[str, Any]) -> QualityRecord:
+    """Inverse of :func:`record_to_dict` (``null`` in a list reads back as NaN).
+
+    Raises
+    ------
+    ValueError
+        Not a record: unknown or missing fields, or invalid values (the message names them).
+    """
+    if not isinstance(data, Mapping):
+        raise ValueError(f"a record must be a JSON object, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(_FIELD_NAMES))
+    if unknown:
+        raise ValueError(f"unknown record field {unknown[0]!r}")
+    kw = dict(data)
+    for name in _TUPLES:
+        if name in kw:
+            vals = kw[name]
+            if not isinstance(vals, list):
+                raise ValueError(f"{name} must be a list, got {vals!r:.80}")
+            kw[name] = tuple(math.nan if v is None else v for v in vals)
+    try:
+        return QualityRecord(**kw)
+    except TypeError as exc:
+        raise ValueError(f"not a quality record: {exc}") from None
+
+
+def _to_row(rec: QualityRecord) -> tuple[Any, ...]:
+    row: list[Any] = []
+    for name in _FIELD_NAMES:
+        v = getattr(rec, name)
+        if name in _TUPLES:
+            v = _list_to_json(v)
+        elif name == "extra":
+            try:
+                v = json.dumps(v, default=_json_default)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"extra is not JSON serialisable: {exc}") from None
+        elif isinstance(v, bool):
+            v = int(v)
+        row.append(v)
+    return tuple(row)
+
+
+def _from_row(row: Sequence[Any]) -> QualityRecord:
+    rid, *vals = row
+    try:
+        kw = dict(zip(_FIELD_NAMES, vals, strict=True))
+        for name in _TUPLES:
+            kw[name] = _list_from_json(kw[name])
+        kw["extra"] = json.loads(kw["extra"])
+        kw["ok"] = bool(kw["ok"])
+        kw["passed"] = None if kw["passed"] is None else bool(kw["passed"])
+        return QualityRecord(**kw)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise QualityLogError(f"record {rid} of the quality log is unreadable: {exc}") from None
+
+
+def _check_machine_id(name: str, value: Any) -> str | None:
+    if value is None:
+        return None
+    if (not isinstance(value, str) or not value or not value.isprintable()
+            or len(value) > MACHINE_ID_MAX or value != value.strip()):
+        raise ValueError(f"{name} must be a printable string of 1..{MACHINE_ID_MAX} characters "
+                         f"without surrounding spaces, got {value!r:.80}")
+    return value
