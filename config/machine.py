@@ -173,6 +173,17 @@ class LogConfig:
 
 
 @dataclass(frozen=True)
+class ServiceConfig:
+    """``[service]``: how the service runs (``docs/service.md``, "Workers").
+
+    ``workers``: measure in this many worker processes (0: in the service's own process, a
+    worker thread); more than the cores available is a warning and one process per core.
+    """
+
+    workers: int = 0
+
+
+@dataclass(frozen=True)
 class OpcUaConfig:
     """``[opcua]``: the OPC UA server (``docs/opcua.md``); off while ``endpoint`` is empty.
 
@@ -249,6 +260,7 @@ class MachineConfig:
     opcua: OpcUaConfig = OpcUaConfig()
     http: HttpConfig = HttpConfig()
     identification: Mapping[str, Any] = field(default_factory=_frozen)
+    service: ServiceConfig = ServiceConfig()
     source: Path | None = field(default=None, compare=False)
     """The file this configuration was loaded from (``None``: built in code). Code that checks
     the raw ``feed_loop`` / ``uniformity_loop`` tables later names it with
@@ -430,6 +442,9 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
     if listen and not re.fullmatch(r"(\[[0-9A-Fa-f:.]+\]|[^\s:\[\]]+):[0-9]{1,5}", listen):
         raise ConfigError(f"{ht.key('listen')} must look like 127.0.0.1:8080, got {listen!r:.80}")
     ht.reject_unknown()
+    sv = root.section("service", required=False)
+    service_cfg = ServiceConfig(workers=sv.integer("workers", d.service.workers, lo=0, hi=256))
+    sv.reject_unknown()
 
     root.reject_unknown()
     return MachineConfig(
@@ -447,6 +462,7 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
         opcua=opcua_cfg,
         http=HttpConfig(listen=listen),
         identification=identification,
+        service=service_cfg,
     )
 
 

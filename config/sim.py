@@ -5,7 +5,9 @@ Tables: ``[spindle]``, ``[cutterhead]``, ``[piezo]``, ``[feed]``, ``[encoder]``,
 (:mod:`plant_sim.machine`); ``[modbus]``, ``[can]``, ``[frames]``, ``[run]`` its interfaces
 (the Modbus server, the CAN node, the frame spool and the ``planer sim`` runner). Every value is
 checked on load and an error names its key (``piezo.stroke_um must be > 0.0, got -1``).
-Missing keys take the defaults below; unknown keys are refused (typos).
+Missing keys take the defaults below; unknown keys are refused (typos). A file may start from
+a shipped one (top-level ``base = "sim.toml"``) and give only what it changes, e.g.
+``config/sim_drift.toml`` (``[cutterhead.drift]``: knives that warm up and wear, docs/drift.md).
 
 See ``docs/simulator.md`` for what each parameter means physically.
 """
@@ -39,6 +41,7 @@ __all__ = [
     "CameraConfig",
     "CanConfig",
     "CutterheadConfig",
+    "DriftConfig",
     "EncoderConfig",
     "FaultSpec",
     "FeedConfig",
@@ -55,6 +58,7 @@ __all__ = [
     "default_sim",
     "load_sim",
     "sim_from_dict",
+    "with_base",
 ]
 
 FAULT_KINDS: tuple[str, ...] = _FAULT_KINDS
@@ -93,6 +97,42 @@ class SpindleConfig:
 
 
 @dataclass(frozen=True)
+class DriftConfig:
+    """Runout drift of the knives over machine time (``[cutterhead.drift]``; docs/drift.md).
+
+    Knife k stands out by an extra ``warmup_um[k] (1 - exp(-t / warmup_tau_s[k])) -
+    wear_um_per_min[k] t / 60`` um at machine time t (s): a warm-up toward its amplitude plus
+    linear wear. Each tuple has one value per knife.
+
+    Attributes
+    ----------
+    warmup_um : tuple of float
+        Warm-up amplitude per knife, um (positive: stands further out when warm).
+    warmup_tau_s : tuple of float
+        Warm-up time constant per knife, seconds (the file may give one number for all).
+    wear_um_per_min : tuple of float
+        Wear per knife (the tip recedes), um per minute, >= 0.
+    """
+
+    warmup_um: tuple[float, ...]
+    warmup_tau_s: tuple[float, ...]
+    wear_um_per_min: tuple[float, ...]
+
+    @property
+    def active(self) -> bool:
+        """Whether any knife drifts."""
+        return any(self.warmup_um) or any(self.wear_um_per_min)
+
+
+DRIFT_WARMUP_MAX_UM = 50.0
+"""Largest warm-up amplitude of a knife, um."""
+DRIFT_TAU_DEFAULT_S = 120.0
+"""Warm-up time constant when ``[cutterhead.drift]`` gives none, seconds."""
+DRIFT_WEAR_MAX_UM_PER_MIN = 10.0
+"""Largest wear rate of a knife, um per minute."""
+
+
+@dataclass(frozen=True)
 class CutterheadConfig:
     """Cutterhead geometry: Z knives at tip radius R with per-knife runout and eccentricity.
 
@@ -107,12 +147,15 @@ class CutterheadConfig:
     eccentricity_um : float
         Eccentricity of the head on its spindle: knife k stands out by an extra
         ``eccentricity_um * cos(2 pi k / Z)`` micrometres.
+    drift : DriftConfig or None
+        Warm-up and wear of the knives (``[cutterhead.drift]``); ``None``: no such table.
     """
 
     knives: int = 4
     radius_mm: float = 60.0
     runout_um: tuple[float, ...] = (0.0, 4.0, -2.0, 2.0)
     eccentricity_um: float = 0.5
+    drift: DriftConfig | None = None
 
 
 @dataclass(frozen=True)
@@ -434,9 +477,37 @@ def _cutterhead(s: Section) -> CutterheadConfig:
         radius_mm=s.number("radius_mm", d.radius_mm, lo=5.0, hi=500.0),
         runout_um=runout,
         eccentricity_um=s.number("eccentricity_um", d.eccentricity_um, lo=-100.0, hi=100.0),
+        drift=_drift(s.section("drift"), knives) if s.has("drift") else None,
     )
     s.reject_unknown()
     return out
+
+
+def _drift(s: Section, knives: int) -> DriftConfig:
+    """``[cutterhead.drift]``: per-knife lists (``warmup_tau_s`` may be one number)."""
+    zeros = (0.0,) * knives
+    warmup = s.numbers("warmup_um", zeros, length=knives)
+    for i, v in enumerate(warmup):
+        if abs(v) > DRIFT_WARMUP_MAX_UM:
+            raise ConfigError(f"{s.key('warmup_um')}[{i}] must be within "
+                              f"+-{DRIFT_WARMUP_MAX_UM:g} um, got {v!r}")
+    raw_tau = s.raw("warmup_tau_s", DRIFT_TAU_DEFAULT_S)
+    if isinstance(raw_tau, (list, tuple)):
+        tau = s.numbers("warmup_tau_s", length=knives)
+    else:
+        tau = (s.number("warmup_tau_s", DRIFT_TAU_DEFAULT_S, lo=0.0, lo_open=True,
+                        hi=86400.0),) * knives
+    for i, v in enumerate(tau):
+        if not 0.0 < v <= 86400.0:
+            raise ConfigError(f"{s.key('warmup_tau_s')}[{i}] must be > 0 and <= 86400 s, "
+                              f"got {v!r}")
+    wear = s.numbers("wear_um_per_min", zeros, length=knives)
+    for i, v in enumerate(wear):
+        if not 0.0 <= v <= DRIFT_WEAR_MAX_UM_PER_MIN:
+            raise ConfigError(f"{s.key('wear_um_per_min')}[{i}] must be within 0.."
+                              f"{DRIFT_WEAR_MAX_UM_PER_MIN:g} um/min, got {v!r}")
+    s.reject_unknown()
+    return DriftConfig(warmup_um=warmup, warmup_tau_s=tau, wear_um_per_min=wear)
 
 
 def _piezo(s: Section) -> PiezoConfig:
@@ -670,13 +741,59 @@ def _run(s: Section) -> RunConfig:
     return out
 
 
+def _merged(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``over`` on top of ``base``: tables merge key by key, any other value replaces."""
+    out = dict(base)
+    for key, value in over.items():
+        below = out.get(key)
+        if isinstance(value, Mapping) and isinstance(below, Mapping):
+            out[key] = _merged(below, value)
+        else:
+            out[key] = value
+    return out
+
+
+def with_base(data: Mapping[str, Any], *, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The document with the shipped file its top-level ``base`` key names merged under it.
+
+    ``base = "sim.toml"`` starts from the shipped ``config/sim.toml`` and changes only the
+    tables and keys this document gives (tables merge key by key; lists and values replace).
+    ``base`` names a file of the shipped config folder only, so a copy of the document
+    elsewhere (the cross-process HIL writes one to a temporary folder) means the same.
+
+    Raises
+    ------
+    ConfigError
+        ``base`` is not a file name of the shipped config folder, the file is missing or bad,
+        or the bases form a circle; the message names the key.
+    """
+    if "base" not in data:
+        return dict(data)
+    name = data["base"]
+    if (not isinstance(name, str) or not name.endswith(".toml") or Path(name).name != name):
+        raise ConfigError(f"base must name a simulator file of the shipped config folder "
+                          f"(e.g. \"sim.toml\"), got {name!r}")
+    if name in _seen:
+        raise ConfigError(f"base = {name!r} is circular ({' -> '.join((*_seen, name))})")
+    path = default_path(name)
+    if not path.is_file():
+        raise ConfigError(f"base = {name!r}: no such file in the shipped config folder "
+                          f"{path.parent}")
+    try:
+        below = with_base(load_toml(path), _seen=(*_seen, name))
+    except ConfigError as exc:
+        raise ConfigError(f"base = {name!r}: {exc}") from None
+    return _merged(below, {k: v for k, v in data.items() if k != "base"})
+
+
 def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> SimConfig:
     """Build and check a :class:`SimConfig` from a parsed TOML document.
 
     Parameters
     ----------
     data : mapping
-        The parsed document; missing tables and keys take their defaults.
+        The parsed document; missing tables and keys take their defaults, or the values of
+        the shipped file a top-level ``base`` names (:func:`with_base`).
     base_dir : Path, optional
         Directory that a relative ``camera.rig`` path is relative to.
 
@@ -686,7 +803,7 @@ def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> S
         A value is missing, mistyped or out of range, or a key is unknown; the message names
         the key.
     """
-    root = Section(data, "")
+    root = Section(with_base(data), "")
 
     def sec(name: str) -> Section:
         return root.section(name, required=False)

@@ -4,11 +4,19 @@ One :class:`Actuators` owns what the service puts on the two buses and remembers
 force: the feed setpoint the PLC took, the offsets the amplifier got, the heartbeat and alive
 counters. Bus trouble is counted (``plc_errors``, ``can_errors``) and a refused feed setpoint
 reported once (``FEED_REFUSED`` ... ``FEED_ACCEPTED``); nothing here decides *what* to send.
+
+The piezo offsets stay within the bound the CAN client holds (``controller/limits.py``: the
+smaller of the amplifier's reported stroke and ``machine.toml``'s, narrowed by refused tables,
+zero until the amplifier has reported). Each change of that bound is reported once
+(``PIEZO_LIMITS``, one line saying which stroke is used and why), each refused table too
+(``OFFSETS_REFUSED``, counter ``tables_refused``), and the control loops are told the bound in
+force (``on_stroke``: ``ControlLoops.set_limit_um``, see :meth:`Actuators.sync_loop_limit`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import logging
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -18,6 +26,8 @@ from controller.piezo_client import PiezoClient
 from controller.plc_client import PlcClient
 from controller.safety import AmplifierMonitor
 from core.errors import FieldbusError, ModbusRefused
+
+_LOG = logging.getLogger("controller.service")
 
 
 class Actuators:
@@ -34,7 +44,8 @@ class Actuators:
     amp_monitor : AmplifierMonitor
         Told what the amplifier is commanded to do at each ``PIEZO_COMMAND``.
     stroke_um : float
-        Offsets are clipped to ``[-stroke_um, stroke_um]``, um.
+        ``machine.toml``'s stroke, um; the bound in force is the CAN client's
+        (:attr:`PiezoClient.limit`), never above the smaller of this and the amplifier's.
     """
 
     def __init__(
@@ -50,7 +61,11 @@ class Actuators:
         self.piezo = piezo
         self._report = report
         self._amp_monitor = amp_monitor
-        self.stroke_um = float(stroke_um)
+        self.config_stroke_um = float(stroke_um)
+        self.on_stroke: Callable[[float, float], Any] | None = None
+        """``on_stroke(limit_um, t)``: the control loops told the bound in force (they return
+        the offsets to apply, or ``None``): ``ControlLoops.set_limit_um``."""
+        self._loop_limit: float | None = None  # the bound the loops were last told
         self.heartbeat = 0
         """The PLC heartbeat register's value (16 bits), one step per PLC cycle."""
         self.alive = 0
@@ -103,18 +118,22 @@ class Actuators:
         """Enable or disable the amplifier (goes out with the next command)."""
         self.piezo.set_enable(on, now_s=t)
 
+    @property
+    def stroke_um(self) -> float:
+        """The bound on every piezo offset now, um (the CAN client's: 0 until reported)."""
+        return self.piezo.stroke_um
+
     def set_offsets(self, offsets_um: Sequence[float] | np.ndarray, t: float) -> tuple[float, ...]:
-        """Send per-knife offsets, clipped to the stroke; the offsets as sent.
+        """Send per-knife offsets within the bound in force; the offsets as sent.
+
+        A table beyond the bound is re-planned (nearest table with the same mean inside it).
 
         Raises
         ------
         FieldbusError
             The bus refused the frame (the offsets in force stay what they were).
         """
-        s = self.stroke_um
-        self.offsets_um = self.piezo.set_offsets(
-            np.clip(np.asarray(offsets_um, dtype=float), -s, s), now_s=t
-        )
+        self.offsets_um = self.piezo.set_offsets(np.asarray(offsets_um, dtype=float), now_s=t)
         return self.offsets_um
 
     def zero_offsets(self, t: float, safe_offsets_um: Sequence[float] | None = None) -> None:
@@ -144,6 +163,55 @@ class Actuators:
             self.piezo.tick(alive_counter=self.alive, now_s=t)
         except FieldbusError:
             self._report.count("can_errors")
+        self.offsets_um = self.piezo.offsets_um  # a re-planned table is the one in force
+        self.report_limits(t)
+        self.sync_loop_limit(t)
+
+    # ------------------------------------------------------------------ limits
+    def report_limits(self, t: float) -> None:
+        """Report what the CAN client noted: the bound changed, a table refused."""
+        for note in self.piezo.take_notes():
+            if note.kind == "refused":
+                self._report.count("tables_refused")
+                _LOG.warning("%s", note.text)
+                self._report.emit(t, EventKind.OFFSETS_REFUSED, note.text, data=note.data)
+            else:
+                _LOG.info("%s", note.text)
+                self._report.emit(t, EventKind.PIEZO_LIMITS, note.text, data=note.data)
+
+    def sync_loop_limit(self, t: float) -> None:
+        """Tell the control loops the bound in force (``on_stroke``) when it changed.
+
+        The uniformity loop then plans within it (keeping its own margin) and returns the
+        offsets to apply, re-planned if the table in force does not fit: sent at once while the
+        amplifier is enabled (in the safe state they wait for the recovery, which restores
+        them). Until the amplifier reported its limits nothing is told (the client holds the
+        offsets at zero meanwhile).
+        """
+        limit = self.piezo.stroke_um
+        if self.on_stroke is None or self.piezo.limit.stroke_um is None or limit <= 0.0:
+            return
+        if self._loop_limit is not None and abs(self._loop_limit - limit) < 1e-9:
+            return
+        offs = self.on_stroke(limit, t)
+        self._loop_limit = limit
+        if offs is not None and self.piezo.enable:
+            try:
+                self.set_offsets(offs, t)
+            except FieldbusError:
+                self._report.count("can_errors")
+
+    def limits(self) -> dict[str, Any]:
+        """The bound in force, its origin, the refused tables and reconnects (plain JSON).
+
+        ``OffsetLimit.to_dict()`` plus ``tables_refused`` and ``reconnects``: for the status,
+        the quality records and the HIL summary.
+        """
+        return {
+            **self.piezo.limit.to_dict(),
+            "tables_refused": self.piezo.tables_refused,
+            "reconnects": self.piezo.reconnects,
+        }
 
     def leave_safe(self, t: float) -> str | None:
         """At close: amplifier disabled with zero offsets, one last command; the problem or None."""
@@ -154,6 +222,21 @@ class Actuators:
         except (FieldbusError, ValueError) as exc:  # closing goes on; the amplifier times out
             return f"{exc_name(exc)}: {exc}"
         return None
+
+    def record_fields(self) -> dict[str, Any]:
+        """What each quality record carries of the piezo's limits (``extra["piezo"]``).
+
+        ``limit_um`` and its ``source`` now, and the running counts ``tables_refused`` and
+        ``safe_entries``: a jump between two records shows a refused table or a safe-state
+        entry between them, even one no pair was measured in.
+        """
+        lim = self.piezo.limit
+        return {
+            "limit_um": lim.limit_um,
+            "source": lim.source,
+            "tables_refused": self._report.counters.get("tables_refused", 0),
+            "safe_entries": self._report.counters.get("safe_entries", 0),
+        }
 
     def describe(self) -> dict[str, Any]:
         """What is in force: ``feed_setpoint_mm_s``, ``offsets_um``, ``enabled``."""

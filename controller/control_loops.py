@@ -19,8 +19,10 @@ import numpy as np
 from config.loading import naming_file
 from config.machine import MachineConfig
 from controller.actuators import Actuators
+from controller.board_speed import BoardSpeedHistory
 from controller.events import EventKind, EventLog
 from controller.feed_loop import FeedLoop, FeedLoopConfig
+from controller.limits import project_zero_mean_box
 from controller.mark_attribution import Attributed
 from controller.plc_client import PlcSnapshot
 from controller.safety import AmplifierMonitor
@@ -29,6 +31,12 @@ from core.errors import FieldbusError
 
 FEED_WRITE_DEADBAND_MM_S = 0.5
 """Feed-forward changes smaller than this between measurements are not written, mm/s."""
+PASS_TOL = 0.2
+"""The travel per pass the attribution fitted to the mark bottoms must lie within this factor
+(``1 / (1 + tol)`` to ``1 + tol``) of the feed per pass the measured board was cut with, else its
+pass counts (so the widths per knife) are not trusted and the uniformity loop skips the pair
+(:meth:`ControlLoops.attribution_trusted`). A wrong count is off by at least 4/3 (three passes
+for four) and mostly by 2 (two for one)."""
 
 
 def check_loop_tables(cfg: MachineConfig) -> None:
@@ -79,7 +87,10 @@ class ControlLoops:
         self.uniformity_loop: Any = None
         self._key: tuple | None = None
         self._learned_offsets: np.ndarray | None = None
+        self._stroke_limit_um: float | None = None
         self._t_loops = -math.inf
+        self.board_speed = BoardSpeedHistory()
+        """The PLC's actual feed and knife passing rate (the feed per pass at a cut)."""
         self._lock: asyncio.Lock | None = None
         self._lock_loop: Any = None
 
@@ -125,9 +136,25 @@ class ControlLoops:
             radius_mm=float(snap["cutterhead_radius_mm"]),
             stroke_um=self.cfg.stroke_um,
         ))
+        if self._stroke_limit_um is not None:
+            self.uniformity_loop.set_limit_um(self._stroke_limit_um)
         self._learned_offsets = np.zeros(snap.knives)
         self.out.set_knives(snap.knives)
         self._key = key
+
+    def set_limit_um(self, stroke_um: float, t: float) -> np.ndarray | None:
+        """The stroke the uniformity loop plans within from now on (e.g. the amplifier's).
+
+        Kept for loops built later (a new machine geometry). Returns the offsets to apply now
+        (re-planned when the table in force does not fit; ``None`` before the loops exist);
+        sending them is the caller's business.
+        """
+        self._stroke_limit_um = float(stroke_um)
+        if self.uniformity_loop is None:
+            return None
+        offs = self.uniformity_loop.set_limit_um(stroke_um, now_s=self.loop_time(t))
+        self._learned_offsets = offs.copy()  # what a recovery restores: inside the new limit
+        return offs
 
     def loop_time(self, t: float) -> float:
         """Time for the control loops: never earlier than their last call.
@@ -162,6 +189,7 @@ class ControlLoops:
         that really was in force.
         """
         async with self._feed_lock():
+            self._record_speed(t, snap)
             loop = self.feed_loop
             feed = loop.update(
                 measured_pitch_mm=None, spindle_rpm=snap.spindle_rpm, now_s=self.loop_time(t)
@@ -196,6 +224,7 @@ class ControlLoops:
         applied = False
         async with self._feed_lock():
             t = self.loop_time(t)
+            self._record_speed(t, snap)
             measured_at = min(measured_at, t)
             loop = self.feed_loop
             feed = loop.update(
@@ -207,8 +236,11 @@ class ControlLoops:
             feed = min(max(float(feed), lo), hi)
             if np.any(np.isfinite(widths)):
                 interval = loop.cut_interval_s(measured_at)
-                cut_at = None if interval is None else min(interval[0], t)
-                applied = self._learn_offsets(widths, pitch, cut_at, t)
+                cut = None if interval is None else (min(interval[0], t), min(interval[1], t))
+                if self.attribution_trusted(att, measured_at, snap.cutter_to_camera_mm):
+                    applied = self._learn_offsets(widths, pitch, cut, t)
+                else:
+                    self._report.count("uniformity_skipped")
             if await self.out.write_feed(feed, t):
                 applied = True
             else:
@@ -217,19 +249,52 @@ class ControlLoops:
             self._report.count("applied")
         return applied
 
+    def _record_speed(self, t: float, snap: PlcSnapshot) -> None:
+        self.board_speed.record(t, snap.feed_actual_mm_s, snap.spindle_rpm / 60.0 * snap.knives)
+
+    def attribution_trusted(self, att: Attributed, measured_at: float, back_mm: float) -> bool:
+        """Whether the attribution counted the knife passes the measured board was cut with.
+
+        The attribution counts the passes between mark bottoms with the guide ``V / (n Z)`` at
+        the pair (:attr:`Attributed.feed_per_pass_mm`); the board was cut ``L / V`` earlier.
+        During a fast feed change (e.g. the start-up ramp of a two-knife head, 800 to
+        300 mm/s) the two differ by up to a factor 2, the gaps count two passes where there
+        was one, and every other knife looks vanished (width 0). The travel per pass it then
+        fits to the bottoms (:attr:`Attributed.bdc_pitch_mm`) is off by the same factor from
+        the feed per pass the board was cut with: the PLC's actual feed over the knife passing
+        rate when the board was ``back_mm`` (the cutter-to-camera distance) short of where it
+        was at ``measured_at`` (:attr:`board_speed`). Within :data:`PASS_TOL` the count holds;
+        without history reaching back that far it is trusted.
+        """
+        fitted = float(att.bdc_pitch_mm)
+        if not (math.isfinite(fitted) and fitted > 0):
+            return True
+        at_cut = self.board_speed.pass_travel_mm(measured_at, back_mm=back_mm)
+        if at_cut is None:
+            return True
+        return 1.0 / (1.0 + PASS_TOL) <= fitted / at_cut <= 1.0 + PASS_TOL
+
     def _learn_offsets(
-        self, widths: np.ndarray, pitch: float, cut_at: float | None, t: float
+        self, widths: np.ndarray, pitch: float, cut: tuple[float, float] | None, t: float
     ) -> bool:
-        """One uniformity-loop update and its offsets on CAN; whether they were sent."""
+        """One uniformity-loop update and its offsets on CAN; whether they were sent.
+
+        ``cut``: when the first and the last mark of the measured window were cut (the loop
+        learns against the table in force then), ``None`` when the feed history is too short.
+        """
+        cut_at = None if cut is None else cut[0]
         if not self.amp_tracked(cut_at, t):
             self._report.count("uniformity_skipped")
             return False
-        offs = self.uniformity_loop.update(
-            knife_widths_mm=widths, pitch_mm=pitch, now_s=t, cut_at_s=cut_at
+        uni = self.uniformity_loop
+        offs = uni.update(
+            knife_widths_mm=widths, pitch_mm=pitch, now_s=t, cut_at_s=cut_at,
+            cut_until_s=None if cut is None else cut[1],
         )
         try:
             sent = self.out.set_offsets(offs, t)
         except FieldbusError as exc:
+            uni.reject()  # the table in force stays the one the board is cut with
             self._report.count("can_errors")
             self._report.emit(t, EventKind.OFFSETS_NOT_SENT, f"piezo offsets not sent: {exc}")
             return False
@@ -263,7 +328,10 @@ class ControlLoops:
             out.feed_setpoint_mm_s = feed
         out.enable(True, t)
         learned = self._learned_offsets
+        uni = self.uniformity_loop
         if learned is not None and len(learned) == out.piezo.knives:
+            if uni is not None and len(learned) == uni.cfg.knives:
+                learned = project_zero_mean_box(learned, bound=uni.limit_um)
             try:
                 out.offsets_um = out.piezo.set_offsets(learned, now_s=t)
                 if self.uniformity_loop is not None:

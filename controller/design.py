@@ -12,14 +12,16 @@ Feed loop (log domain, sample time ``Ts`` = the measurement interval)::
 with ``d = ceil(L / (V Ts)) + latency`` samples and ``H_m`` the mean of ``m = W / (V Ts)``
 samples (the measured window of board was cut over ``W / V`` seconds).
 
-Uniformity loop, per circulant mode ``m`` of the knives (iteration index, one iteration = one
-learning step after the previous offsets are visible)::
+Uniformity loop, per circulant Fourier mode ``m`` of the knives, in the same samples (one image
+pair): the loop learns on every pair against its prediction (Smith form), so per mode it is the
+feed loop's structure around the actuator-and-width plant::
 
-    L_m(z) = gamma * alpha_m * z^-(delay - 1) / (z - 1)
+    P(z) = alpha * z^-d * H_m(z)                   (alpha: true / modelled mode gain)
+    M(z) = z^-d * H_m(z)                           (the table history: the delay is known)
+    C(z) = g / (z - 1 + g - g M(z)),  g = ki * Ts / (T_delay + Ts)
 
-``alpha_m`` is the ratio of the true to the modelled width sensitivity of the mode (1 with the
-exact pseudo-inverse; below 1 where marks vanish). Run ``python -m controller.design`` to print
-the tables in ``docs/control_design.md``.
+with ``d = ceil((settle + L / V) / Ts) + latency``. ``alpha`` is complex when the identified
+actuator gain is off in phase (a slow piezo lags into the next knife).
 
 Margins are computed by :func:`control.stability_margins` on a dense frequency-response grid
 (``control.frd``): with transport delays of tens of samples the polynomial method of
@@ -359,54 +361,131 @@ def settling_time_s(t_s: np.ndarray, error: np.ndarray, *, band: float) -> float
 
 
 # -- uniformity loop ---------------------------------------------------------------------------
+#: Camera distances (cutter to image centre, mm) at which the uniformity loop is documented.
+DESIGN_CAMERAS_MM = (300.0, 1000.0, 2000.0)
+
+
 def mode_eigenvalues(knives: int) -> np.ndarray:
     """Eigenvalues ``-4 sin^2(pi m / Z)`` of the circulant second difference, m = 0..Z-1."""
     return np.linalg.eigvalsh(second_difference(knives))
 
 
-def uniformity_mode_loop(
-    gain: float, *, mode_gain: float = 1.0, delay_iterations: int = 1
-) -> ct.TransferFunction:
-    """Loop transfer function of one mode of the learning law, in iterations (``dt = 1``).
+def uniformity_delay_samples(
+    feed_mm_s: float,
+    cfg: UniformityLoopConfig,
+    *,
+    cutter_to_camera_mm: float,
+    window_mm: float = 40.0,
+    latency_samples: int = 1,
+) -> tuple[int, int]:
+    """Delay ``d`` and window ``m`` (samples) from a new table to the pair that shows it.
 
-    ``L(z) = gain * mode_gain * z^-(delay - 1) / (z - 1)``: a learning integrator whose effect
-    is measured ``delay_iterations`` learning steps later (1 = the next step, as the loop's
-    hold-off guarantees).
+    Returns
+    -------
+    (int, int)
+        ``d = ceil((settle + L / V) / Ts) + latency`` and ``m = max(1, round(W / (V Ts)))``.
     """
-    check_positive("gain", gain)
-    check_positive("mode_gain", mode_gain)
-    d = check_int("delay_iterations", delay_iterations, lo=1)
-    den = np.zeros(d + 1)
-    den[0], den[1] = 1.0, -1.0  # z^(d-1) (z - 1)
-    return ct.tf([gain * mode_gain], den, 1.0)
+    v = check_positive("feed_mm_s", feed_mm_s)
+    ts = cfg.sample_time_s
+    travel_s = cfg.settle_s + check_positive("cutter_to_camera_mm", cutter_to_camera_mm) / v
+    d = math.ceil(travel_s / ts - 1e-9) + check_int("latency_samples", latency_samples, lo=0)
+    m = max(1, round(check_positive("window_mm", window_mm) / (v * ts)))
+    return d, m
+
+
+def uniformity_loop_model(
+    cfg: UniformityLoopConfig,
+    feed_mm_s: float,
+    *,
+    cutter_to_camera_mm: float,
+    window_mm: float = 40.0,
+    latency_samples: int = 1,
+    mode_gain: float = 1.0,
+    model_delay_error_samples: int = 0,
+) -> FeedLoopModel:
+    """One knife mode of the uniformity loop at one feed (the feed loop's block layout).
+
+    Parameters
+    ----------
+    cfg : UniformityLoopConfig
+        The loop (``ki``, ``sample_time_s``, ``settle_s``).
+    feed_mm_s : float
+        Operating feed, mm/s.
+    cutter_to_camera_mm, window_mm : float
+        ``L`` and the measured window ``W``, mm.
+    latency_samples : int
+        Samples from the pair to the table it produces, >= 0.
+    mode_gain : float
+        ``alpha``, the true over the modelled gain of the mode (real; a phase error is checked
+        with :func:`uniformity_closed_loop_radius`).
+    model_delay_error_samples : int
+        Error of the table history's timing (the model uses ``d + error``), samples.
+
+    Returns
+    -------
+    FeedLoopModel
+        ``plant`` = ``alpha z^-d H_m``, ``model`` = ``z^-(d + error) H_m``, ``filter`` =
+        ``g / (z - 1 + g)``.
+    """
+    ts = cfg.sample_time_s
+    d, m = uniformity_delay_samples(
+        feed_mm_s, cfg, cutter_to_camera_mm=cutter_to_camera_mm, window_mm=window_mm,
+        latency_samples=latency_samples,
+    )
+    window = _window(m, ts)
+    plant = float(mode_gain) * _delay(d, ts) * window
+    model = _delay(max(0, d + int(model_delay_error_samples)), ts) * window
+    g = integral_gain(cfg.ki, ts, (d + 0.5 * (m - 1)) * ts)
+    return FeedLoopModel(float(feed_mm_s), d, m, g, plant, model, ct.tf([g], [1.0, g - 1.0], ts))
+
+
+def uniformity_closed_loop_radius(model: FeedLoopModel, mode_gain: complex = 1.0) -> float:
+    """Largest closed-loop pole magnitude of one mode for a complex true/model gain ``alpha``.
+
+    With ``N = d + m - 1`` and ``h(z) = z^(m-1) + ... + 1`` the characteristic polynomial of
+    ``1 + C alpha M = 0`` is ``m z^N (z - 1 + g) + g (alpha - 1) h(z)`` (exact; the loop is stable
+    iff the result is < 1). A complex ``alpha`` is a phase error of the identified actuator
+    gain (a mode pair ``m``, ``Z - m`` sees ``alpha`` and its conjugate).
+    """
+    d, m, g = model.delay_samples, model.window_samples, model.gain
+    n = d + m - 1
+    poly = np.zeros(n + 2, dtype=complex)
+    poly[0] = m  # m z^(N+1)
+    poly[1] = m * (g - 1.0)  # m (g - 1) z^N
+    poly[-m:] += g * (complex(mode_gain) - 1.0)  # h(z): z^(m-1) ... z^0
+    return float(np.max(np.abs(np.roots(poly))))
 
 
 @dataclass(frozen=True)
 class UniformityMarginsRow:
     """One row of the uniformity loop's margins table."""
 
-    mode_gain: float
-    delay_iterations: int
+    cutter_to_camera_mm: float
+    feed_mm_s: float
+    delay_samples: int
+    window_samples: int
+    gain: float
     margins: Margins
-    contraction: float  # spectral radius of the error recursion per iteration
 
 
-def uniformity_margins(
+def uniformity_loop_margins(
     cfg: UniformityLoopConfig,
-    *,
-    mode_gains: tuple[float, ...] = (0.5, 1.0, 1.5),
-    delays: tuple[int, ...] = (1, 2),
+    feeds_mm_s: tuple[float, ...] = DESIGN_FEEDS_MM_S,
+    cameras_mm: tuple[float, ...] = DESIGN_CAMERAS_MM,
+    **kwargs: float,
 ) -> list[UniformityMarginsRow]:
-    """Margins of the learning law per mode gain and delay.
+    """Margins of one knife mode at each camera distance and feed.
 
-    The pseudo-inverse makes all modes alike, so the table does not depend on the mode index.
+    ``kwargs`` go to :func:`uniformity_loop_model` (mode gain, latency, timing error).
     """
     rows = []
-    for d in delays:
-        for a in mode_gains:
-            loop = uniformity_mode_loop(cfg.gain, mode_gain=a, delay_iterations=d)
-            poles = ct.poles(ct.feedback(loop, 1))
-            rows.append(UniformityMarginsRow(a, d, margins(loop), float(np.max(np.abs(poles)))))
+    for cam in cameras_mm:
+        for v in feeds_mm_s:
+            mdl = uniformity_loop_model(cfg, v, cutter_to_camera_mm=cam, **kwargs)
+            rows.append(UniformityMarginsRow(
+                float(cam), float(v), mdl.delay_samples, mdl.window_samples, mdl.gain,
+                margins(feed_loop_frd(mdl)),
+            ))
     return rows
 
 
@@ -433,15 +512,19 @@ def feed_margins_markdown(rows: list[FeedMarginsRow], ts: float) -> str:
 
 
 def uniformity_margins_markdown(rows: list[UniformityMarginsRow]) -> str:
-    """Markdown table of the learning law's margins."""
+    """Markdown table of the uniformity loop's margins."""
     out = [
-        "| mode gain alpha | delay (iterations) | GM dB | PM deg | contraction per iteration |",
-        "|---:|---:|---:|---:|---:|",
+        "| camera mm | feed mm/s | delay d | window m | gain g | GM dB | PM deg | min abs(1+L) "
+        "| delay margin s |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
+        m = r.margins
         out.append(
-            f"| {r.mode_gain:.2f} | {r.delay_iterations} | {_fmt(r.margins.gain_margin_db)} "
-            f"| {_fmt(r.margins.phase_margin_deg)} | {r.contraction:.3f} |"
+            f"| {r.cutter_to_camera_mm:.0f} | {r.feed_mm_s:.0f} | {r.delay_samples} "
+            f"| {r.window_samples} | {r.gain:.4f} | {_fmt(m.gain_margin_db)} "
+            f"| {_fmt(m.phase_margin_deg)} | {m.stability_margin:.2f} "
+            f"| {_fmt(m.delay_margin_s, 2)} |"
         )
     return "\n".join(out)
 
@@ -473,8 +556,20 @@ def main() -> None:
             f"| {settle * v / 1000:.2f} |"
         )
     ucfg = UniformityLoopConfig()
-    print(f"\n## Uniformity loop (gain = {ucfg.gain})\n")
-    print(uniformity_margins_markdown(uniformity_margins(ucfg)))
+    print(f"\n## Uniformity loop, nominal (ki = {ucfg.ki})\n")
+    print(uniformity_margins_markdown(uniformity_loop_margins(ucfg)))
+    ucases = {
+        "mode gain 0.5 (actuator weaker than identified)": dict(mode_gain=0.5),
+        "mode gain 1.5 (actuator stronger than identified)": dict(mode_gain=1.5),
+        "table timing 1 sample late": dict(model_delay_error_samples=1),
+        "table timing 1 sample early": dict(model_delay_error_samples=-1),
+        "latency 2 samples": dict(latency_samples=2),
+    }
+    for name, kw in ucases.items():
+        rows = uniformity_loop_margins(ucfg, **kw)
+        gm = min(r.margins.gain_margin_db for r in rows)
+        pm = min(r.margins.phase_margin_deg for r in rows)
+        print(f"\nuniformity loop, {name}: worst GM {_fmt(gm)} dB, worst PM {_fmt(pm)} deg")
     print("\nmode eigenvalues, Z = 4:", np.round(mode_eigenvalues(4), 3))
 
 

@@ -3,14 +3,16 @@
 The service appends a :class:`ServiceEvent` to ``Service.events`` (and calls ``on_event``) for
 every change a person or a composition (HIL summary, benchmark, OPC UA, web page) follows:
 safe-state entries and recoveries, bus and amplifier problems, refused setpoints, log trouble.
-Consumers test ``event.kind``; ``event.text`` is the line shown to people.
+Consumers test ``event.kind`` and read ``event.reason`` / ``event.data`` (plain values);
+``event.text`` is the line shown to people and is never parsed.
 """
 
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 __all__ = ["COUNTERS", "EventKind", "EventLog", "ServiceEvent", "exc_name"]
 
@@ -29,6 +31,7 @@ COUNTERS = (
     "missed",
     "amp_faults",
     "uniformity_skipped",
+    "tables_refused",
 )
 """The service's counters (``Service.counters``), all starting at 0."""
 
@@ -37,9 +40,18 @@ class EventKind(enum.Enum):
     """Kinds of service events (the value is a short stable name for logs and JSON)."""
 
     SAFE_STATE = "safe_state"
-    """The supervisor entered the safe state; the text names what is missing."""
+    """The supervisor entered the safe state; ``reason`` names what is missing, ``data`` holds
+    ``missing`` (the sources and conditions, ``controller.safety.SOURCES`` names) and
+    ``recovery_s`` (how long everything must hold before RUN: the back-off)."""
     RECOVERED = "recovered"
-    """Everything held for ``recovery_s``: control resumed."""
+    """Everything held for the recovery time: control resumed (``data``: ``safe_s``)."""
+    PIEZO_LIMITS = "piezo_limits"
+    """The bound on the piezo offsets changed: the amplifier reported its limits, or was lost
+    (a reconnect: held at zero until it reports again). ``data``: ``OffsetLimit.to_dict()``."""
+    OFFSETS_REFUSED = "offsets_refused"
+    """The amplifier refused an offset table. ``data``: ``table_um`` (refused), ``limit_um``
+    (the narrowed bound, ``None`` if nothing smaller exists), ``replanned_um`` (the table sent
+    instead, ``None`` likewise): a refused table is never sent again unchanged."""
     AMPLIFIER_PROBLEM = "amplifier_problem"
     AMPLIFIER_HEALTHY = "amplifier_healthy"
     PLC_DATA_INVALID = "plc_data_invalid"
@@ -80,18 +92,24 @@ class ServiceEvent:
     reason : str or None
         For ``SAFE_STATE``: why, without the ``"safe state: "`` prefix (``"plc gone, can
         gone"``), so consumers need not parse ``text``; ``None`` for the other kinds.
+    data : Mapping or None
+        Plain values of the event for programs (see each :class:`EventKind`); ``None`` when
+        the kind has none.
     """
 
     t_s: float
     kind: EventKind
     text: str
     reason: str | None = None
+    data: Mapping[str, Any] | None = None
 
     def to_dict(self) -> dict[str, object]:
-        """JSON-ready form: ``{"t_s", "kind", "text"}`` (and ``"reason"`` when set)."""
+        """JSON-ready form: ``{"t_s", "kind", "text"}`` (and ``"reason"``, ``"data"`` when set)."""
         out: dict[str, object] = {"t_s": self.t_s, "kind": self.kind.value, "text": self.text}
         if self.reason is not None:
             out["reason"] = self.reason
+        if self.data is not None:
+            out["data"] = dict(self.data)
         return out
 
 
@@ -108,9 +126,17 @@ class EventLog:
         self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
         self.on_event: Callable[[ServiceEvent], None] | None = None
 
-    def emit(self, t_s: float, kind: EventKind, text: str, *, reason: str | None = None) -> None:
+    def emit(
+        self,
+        t_s: float,
+        kind: EventKind,
+        text: str,
+        *,
+        reason: str | None = None,
+        data: Mapping[str, Any] | None = None,
+    ) -> None:
         """Record one event and hand it to ``on_event``."""
-        event = ServiceEvent(t_s, kind, text, reason)
+        event = ServiceEvent(t_s, kind, text, reason, None if data is None else dict(data))
         self.events.append(event)
         if self.on_event is not None:
             self.on_event(event)

@@ -21,7 +21,8 @@ class FrameResult:
     measurement : object or None
         The vision result (``x_mm``, ``pitch_mm``, ``mark_widths_mm``, ...).
     knife_widths_mm : tuple of float
-        Mean mark width per knife, mm (NaN where no mark of that knife was seen).
+        Mark width per knife and pass, mm: 0 for a knife that left no mark in the field (a
+        vanished knife), NaN for a knife without a pass there.
     applied : bool
         Whether setpoints were updated from it (``ok`` and state ``RUN``).
     feed_setpoint_mm_s : float or None
@@ -45,7 +46,9 @@ class FrameResult:
         Id of the quality record (``None`` while it waits in the journal).
     extra : dict
         ``timing_ms`` (``plc_read_ms``, ``measure_ms``, ``control_ms``), ``safe_reason``,
-        ``passes`` (the attribution's summary), ``profile`` (a decimated profile, some pairs),
+        ``passes`` (the attribution's summary, :meth:`controller.mark_attribution.Attributed.
+        to_json`: ``vanished_knives``, ``kinematic_cv``, ``pitch_mm``, ``uniformity_cv``, ...),
+        ``profile`` (a decimated profile, some pairs),
         ``plc_feed_setpoint_mm_s`` (the PLC's setpoint in force, for the record while the
         service has written none).
     """
@@ -66,3 +69,43 @@ class FrameResult:
     frame_t_s: float = 0.0
     record_id: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def passes(self) -> dict[str, Any]:
+        """The attribution's summary ``extra["passes"]`` (empty: marks not attributed)."""
+        got = self.extra.get("passes")
+        return got if isinstance(got, dict) else {}
+
+    @property
+    def vanished_knives(self) -> tuple[int, ...]:
+        """Knives that left no mark in the field (another knife's cut removed it)."""
+        return tuple(int(k) for k in self.passes.get("vanished_knives") or ())
+
+    @property
+    def reported_pitch_mm(self) -> float | None:
+        """The pair's pitch for the record and displays, mm (``None`` unless ``ok``).
+
+        The measured pitch (mean mark width); the board travel per knife pass when passes
+        left no mark (a vanished knife: the mean of the marks found is a multiple of it).
+        """
+        return self._reported("pitch_mm")
+
+    @property
+    def reported_uniformity_cv(self) -> float | None:
+        """The pair's uniformity for the record and displays (``None`` unless ``ok``).
+
+        The measured CV of the marks; the kinematic CV (widths per knife and pass, a vanished
+        knife counted 0) when passes left no mark.
+        """
+        return self._reported("uniformity_cv")
+
+    def _reported(self, name: str) -> float | None:
+        if not self.ok:
+            return None
+        value = self.passes.get(name)
+        if value is None:
+            value = getattr(self.measurement, name, None)
+        try:
+            return None if value is None else float(value)
+        except (TypeError, ValueError):
+            return None

@@ -91,6 +91,7 @@ class SpoolFrameSource:
         self._reader = reader
         self._watch: tuple[int, float] | None = None  # (reader.serial, first seen busy)
         self._failure: str | None = None
+        self._arrived: tuple[asyncio.AbstractEventLoop, asyncio.Event] | None = None  # next()'s
         self._thread = self._start(reader, 0)
 
     @property
@@ -117,6 +118,7 @@ class SpoolFrameSource:
                         self._space.wait(0.05)
                     if generation == self._generation and not self._stop.is_set():
                         self._frames.append(frame)  # else given up meanwhile: delivered
+                        self._wake()
         finally:  # an error (a bug) ends the thread; next() reports it and starts another
             exc = sys.exc_info()[1]
             if exc is not None:
@@ -166,6 +168,15 @@ class SpoolFrameSource:
             self._give_up(slot, meta_frame,
                           f"reading took longer than {self.timeout_s:g} s (given up)")
 
+    def _wake(self) -> None:
+        """Wake a waiting :meth:`next` at once (reader thread; no poll interval lost)."""
+        arrived = self._arrived
+        if arrived is not None:
+            try:
+                arrived[0].call_soon_threadsafe(arrived[1].set)
+            except RuntimeError:  # its loop is closed: nobody waits
+                pass
+
     def _take(self) -> Frame | None:
         with self._space:
             if not self._frames:
@@ -177,8 +188,12 @@ class SpoolFrameSource:
     async def next(self, timeout_s: float | None = None) -> Frame | None:
         """The next frame (``None`` after ``timeout_s`` seconds without one)."""
         loop = asyncio.get_running_loop()
+        if self._arrived is None or self._arrived[0] is not loop:
+            self._arrived = (loop, asyncio.Event())
+        arrived = self._arrived[1]
         deadline = None if timeout_s is None else loop.time() + timeout_s
         while True:
+            arrived.clear()
             self._check_reader()
             self._check_time_limit()
             frame = self._take()
@@ -190,7 +205,10 @@ class SpoolFrameSource:
             wait = self.poll_s
             if deadline is not None:
                 wait = max(0.0, min(wait, deadline - loop.time()))
-            await asyncio.sleep(wait)
+            try:  # woken by the reader thread as a pair arrives, else after poll_s
+                await asyncio.wait_for(arrived.wait(), wait)
+            except asyncio.TimeoutError:
+                pass
 
     def take_skips(self) -> list[Skip]:
         """Spool files that gave no frame since the last call (file and reason), oldest first.

@@ -1,14 +1,28 @@
 """Mark-to-knife attribution stage: which knife pass cut each mark of a valid measurement.
 
 The phase and the travel per pass come from the mark bottoms that lie inside their marks
-(:func:`controller.knife_phase.attribute_marks`, guided by ``V / (n Z)``); a narrow mark whose
-bottom sits on its cusp and a knife that left no mark do not spoil them. The result
-(:class:`Attributed`) is what the loops get: widths per knife and the pitch per knife pass.
-Pure: no I/O.
+(:func:`controller.knife_phase.attribute_marks`, guided by the feed per pass ``V / (n Z)``
+from the encoder speed and the PLC's spindle speed and knives); a narrow mark whose bottom sits
+on its cusp and a knife that left no mark do not spoil them. The result (:class:`Attributed`)
+is what the loops get: widths per knife and the pitch per knife pass.
+
+Vanished marks (issue 10, item 5): every mark gets a knife pass of its own, so the passes
+between the first and the last mark that got none are the passes that left no mark, and a
+knife with passes there but no mark at all has *vanished* (another knife's cut removed its
+mark). Then the marks found say little: the mean mark width is a multiple of the feed per pass
+and their CV leaves the vanished knife out. The pair reports instead (:attr:`Attributed.pitch_mm`,
+:attr:`Attributed.uniformity_cv`) the kinematics: the board travel per knife pass, and the CV of
+the widths per knife and pass (:func:`kinematic_cv`) in which a vanished knife counts 0 and its
+neighbours the wider marks they cut; the uniformity loop gets the same widths (0 pushes the
+vanished knife's offset down until its mark is back). The board travel per pass is then
+fitted to the knives' BDCs (the mark bottoms inside their marks): ``V / (n Z)`` at the pair is
+only the guide, since the marks were cut ``L / V`` earlier, at the feed of then. Pure: no I/O.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,6 +41,55 @@ MIN_BOTTOM_INSET_SAMPLES = 1.0
 was clipped there by the vision (narrow mark, BDC outside it) and does not set the phase."""
 
 
+def vanished_knives(passes_per_knife: Sequence[int], mark_knife: Sequence[int]) -> tuple[int, ...]:
+    """Knives that had passes over the marks' span but left no mark there.
+
+    Parameters
+    ----------
+    passes_per_knife : sequence of int, shape (Z,)
+        Passes of each knife from the first mark's pass to the last mark's
+        (:attr:`controller.knife_phase.PassAttribution.passes_per_knife`).
+    mark_knife : sequence of int, shape (n,)
+        Knife of each mark, in ``[0, Z)``.
+
+    Returns
+    -------
+    tuple of int
+        The vanished knives, ascending (empty when every knife with a pass left a mark).
+    """
+    per = np.asarray(passes_per_knife)
+    if per.ndim != 1 or per.size < 1 or np.any(per < 0):
+        raise ValueError(f"passes_per_knife must be counts >= 0, one per knife, got {per!r}")
+    knife = np.asarray(mark_knife)
+    if knife.ndim != 1 or (knife.size and (knife.min() < 0 or knife.max() >= per.size)):
+        raise ValueError(f"mark_knife must hold knives in [0, {per.size}), got {knife!r}")
+    marked = np.bincount(knife.astype(np.int64), minlength=per.size) > 0
+    return tuple(int(k) for k in np.flatnonzero((per > 0) & ~marked))
+
+
+def kinematic_cv(knife_widths_mm: Sequence[float]) -> float:
+    """CV (population std / mean) of the widths per knife and pass, a vanished knife at 0.
+
+    Parameters
+    ----------
+    knife_widths_mm : sequence of float, shape (Z,)
+        Width of each knife's mark per pass, mm: 0 for a knife that left no mark, NaN for a
+        knife with no pass in the field (left out).
+
+    Returns
+    -------
+    float
+        ``std(w) / mean(w)`` over the knives with passes; NaN when none has or the mean is 0.
+        With one of Z knives vanished and the others equal: ``1 / sqrt(Z - 1)``.
+    """
+    w = np.asarray(knife_widths_mm, dtype=float)
+    if w.ndim != 1 or np.any(np.isinf(w)) or np.any(w[np.isfinite(w)] < 0):
+        raise ValueError("knife_widths_mm must be a 1-D sequence of widths >= 0 (or NaN)")
+    w = w[np.isfinite(w)]
+    mean = float(w.mean()) if w.size else math.nan
+    return float(w.std() / mean) if mean > 0 else math.nan
+
+
 @dataclass(frozen=True)
 class Attributed:
     """The marks of one valid pair attributed to knife passes (what the loops get).
@@ -34,18 +97,35 @@ class Attributed:
     Attributes
     ----------
     knife_widths_mm : ndarray, shape (Z,)
-        Width per knife and pass, a pass without a mark counting 0; NaN for a knife that
-        left no mark in the field, mm.
+        Width per knife and pass, a pass without a mark counting 0 (so a vanished knife has
+        width 0 and its neighbours the wider marks they cut); NaN for a knife without a pass
+        in the field (a field shorter than a revolution), mm.
     pass_pitch_mm : float
-        Board travel per knife pass: the marks' width sum over the knife passes they span
-        (the measured mean mark width when no knife is missing), mm. The feed loop holds this
-        at the target; the uniformity loop scales its steps by it.
+        Board travel per knife pass, the feed per pass: the measured mean mark width when no
+        pass is missing; else the travel per pass fitted to the knives' BDCs (the reliable
+        bottoms, :attr:`bdc_pitch_mm`), which neither the marks a vanished knife's neighbours
+        widened nor a feed change since the cut (``feed_per_pass_mm``) bias, mm. The feed
+        loop holds this at the target; the uniformity loop scales its steps by it.
     missing_passes : int
         Knife passes in that span that left no mark.
     spread : float
         Phase spread of the reliable bottoms, passes.
     reliable_marks : int
         Marks whose bottoms lie inside them (these set the phase).
+    mark_knife : tuple of int, shape (n,)
+        Knife of each mark, in the order of the measurement's marks.
+    vanished_knives : tuple of int
+        Knives with passes in the span and no mark (:func:`vanished_knives`).
+    kinematic_cv : float
+        :func:`kinematic_cv` of ``knife_widths_mm``.
+    feed_per_pass_mm : float
+        ``V / (n Z)``: the encoder's board speed over the PLC's spindle speed times knives, at
+        the pair (the guide of the attribution; the marks were cut ``L / V`` earlier), mm.
+    marks_pitch_mm, marks_cv : float
+        The measurement's own pitch (mean mark width) and CV over the marks found.
+    bdc_pitch_mm : float
+        Board travel per knife pass fitted to the reliable mark bottoms (the knives' BDCs),
+        mm.
     """
 
     knife_widths_mm: np.ndarray
@@ -53,15 +133,57 @@ class Attributed:
     missing_passes: int
     spread: float
     reliable_marks: int
+    mark_knife: tuple[int, ...] = ()
+    vanished_knives: tuple[int, ...] = ()
+    kinematic_cv: float = math.nan
+    feed_per_pass_mm: float = math.nan
+    marks_pitch_mm: float = math.nan
+    marks_cv: float = math.nan
+    bdc_pitch_mm: float = math.nan
+
+    @property
+    def complete(self) -> bool:
+        """Whether every knife pass over the marks' span left a mark."""
+        return self.missing_passes == 0
+
+    @property
+    def pitch_mm(self) -> float:
+        """The pitch the pair reports, mm.
+
+        The measured one, or the travel per pass if passes left no mark (the mean of the
+        marks found is then a multiple of it).
+        """
+        return self.marks_pitch_mm if self.complete else self.pass_pitch_mm
+
+    @property
+    def uniformity_cv(self) -> float:
+        """The uniformity the pair reports.
+
+        The CV of the marks found, or the :attr:`kinematic_cv` if passes left no mark (a
+        vanished knife counted as width 0).
+        """
+        return self.marks_cv if self.complete else self.kinematic_cv
 
     def to_json(self) -> dict[str, Any]:
-        """Plain-JSON summary for the quality record's ``extra["passes"]``."""
+        """Plain-JSON summary for the quality record's ``extra["passes"]`` (NaN as ``None``)."""
         return {
-            "pass_pitch_mm": self.pass_pitch_mm,
+            "pass_pitch_mm": _json_float(self.pass_pitch_mm),
             "missing_passes": self.missing_passes,
-            "phase_spread": self.spread,
+            "phase_spread": _json_float(self.spread),
             "reliable_marks": self.reliable_marks,
+            "vanished_knives": list(self.vanished_knives),
+            "kinematic_cv": _json_float(self.kinematic_cv),
+            "feed_per_pass_mm": _json_float(self.feed_per_pass_mm),
+            "bdc_pitch_mm": _json_float(self.bdc_pitch_mm),
+            "pitch_mm": _json_float(self.pitch_mm),
+            "uniformity_cv": _json_float(self.uniformity_cv),
+            "knife": list(self.mark_knife),
         }
+
+
+def _json_float(value: float) -> float | None:
+    v = float(value)
+    return v if math.isfinite(v) else None
 
 
 def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any) -> Attributed:
@@ -99,6 +221,7 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any) -> Attribute
         cusps = np.asarray(cusps, dtype=float)
         if cusps.shape != (widths.size + 1,):
             cusps = None  # not the cusps of these marks: every bottom counts
+    guide = expected_pitch_mm(frame, snap)
     pa = knife_phase.attribute_marks(
         bottoms,
         cusps,
@@ -108,24 +231,44 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any) -> Attribute
         counts_per_mm=snap.counts_per_mm,
         px_per_mm=cam.px_per_mm,
         cx_px=cam.cx,
-        pass_guide_mm=expected_pitch_mm(frame, snap),
+        pass_guide_mm=guide,
         knives=snap.knives,
         min_inset_mm=MIN_BOTTOM_INSET_SAMPLES / cam.px_per_mm,
         counter_bits=rig.encoder.counter_bits,
     )
     if not pa.spread <= MAX_PHASE_SPREAD:
         raise ValueError(f"marks off the knife passes (phase spread {pa.spread:.2f})")
+    marks_pitch = float(meas.pitch_mm)
     if pa.missing == 0:
-        pitch = float(meas.pitch_mm)  # the mean mark width, as measured
-    else:
-        pitch = float(widths.sum()) / pa.n_passes
+        pitch = marks_pitch  # the mean mark width, as measured
+    else:  # the feed per pass from the knives' BDCs: the widths' sum over the passes
+        pitch = float(pa.pass_mm)  # spanned is off by the widened end marks' overhang
+    per_knife = pa.knife_widths(widths)
+    gone = vanished_knives(pa.passes_per_knife, pa.knife)
+    per_knife[list(gone)] = 0.0  # no mark in any of its passes: width 0, not "unknown"
     return Attributed(
-        knife_widths_mm=pa.knife_widths(widths),
+        knife_widths_mm=per_knife,
         pass_pitch_mm=pitch,
         missing_passes=pa.missing,
         spread=float(pa.spread),
         reliable_marks=int(pa.reliable.sum()),
+        mark_knife=tuple(int(k) for k in pa.knife),
+        vanished_knives=gone,
+        kinematic_cv=kinematic_cv(per_knife),
+        feed_per_pass_mm=guide,
+        marks_pitch_mm=marks_pitch,
+        marks_cv=_marks_cv(meas, widths),
+        bdc_pitch_mm=float(pa.pass_mm),
     )
+
+
+def _marks_cv(meas: Any, widths: np.ndarray) -> float:
+    """The measurement's CV over the marks found (from the widths if it reports none)."""
+    cv = getattr(meas, "uniformity_cv", None)
+    if cv is not None:
+        return float(cv)
+    mean = float(widths.mean()) if widths.size else math.nan
+    return float(widths.std() / mean) if mean > 0 else math.nan
 
 
 def attribute_or_reason(

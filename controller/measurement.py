@@ -8,16 +8,22 @@ a measurer in a worker process plugs in as another factory. A factory that says
 (:class:`MachineFacts`: cutting radius, knives) and rebuilt only when they change; its
 measurers get ``calibrator=`` too: one :class:`vision.selfcal.SelfCalibrator` per board, reset
 when the board changes (the self-calibration from the knife kinematics, ``docs/vision.md``).
-In real time the call (and a build) runs in a worker thread (the heartbeats go on meanwhile).
-Whatever the vision raises (:data:`VISION_ERRORS`: its ``MeasurementError`` /
-``RegistrationError``, ``cv2.error``, numpy's and Python's numerical errors) is a failed
-measurement with its reason, never a crash of the service.
+In real time the call (and a build) runs in a worker thread (the heartbeats go on meanwhile), or
+in worker processes (:meth:`MeasurementStage.use_workers`, :mod:`controller.measure_workers`):
+then :meth:`MeasurementStage.start` hands the pair over at once and
+:meth:`MeasurementStage.finish` takes the results in sequence order, folding each pair's
+calibration estimates into the board's calibrator in that order. Whatever the vision raises
+(:data:`VISION_ERRORS`: its ``MeasurementError`` / ``RegistrationError``, ``cv2.error``, numpy's
+and Python's numerical errors) is a failed measurement with its reason, never a crash of the
+service.
 """
 
 from __future__ import annotations
 
 import asyncio
 import math
+import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -43,6 +49,9 @@ VISION_ERRORS: tuple[type[BaseException], ...] = (
     cv2.error,
 )
 """What a measurement may raise: each is a failed measurement (``measurement failed: ...``)."""
+
+
+_THREAD = threading.local()  # the nice value a measuring thread was given
 
 
 def failure_reason(exc: BaseException) -> str:
@@ -142,6 +151,35 @@ def expected_pitch_mm(frame: Frame, snap: PlcSnapshot) -> float:
     return speed_of(frame, snap) / (snap.spindle_rpm / 60.0 * snap.knives)
 
 
+@dataclass
+class PendingMeasurement:
+    """A pair handed to the measurement (:meth:`MeasurementStage.start`), not yet finished.
+
+    Attributes
+    ----------
+    frame : Frame
+        The pair.
+    snap : PlcSnapshot or None
+        The registers in force at its arrival.
+    future : asyncio.Future or None
+        The worker's :class:`~controller.measure_workers.WorkerOutcome` (``None``: measured
+        in this process when finished).
+    which : tuple or None
+        ``(board, facts key)`` of the calibrator it was measured with (worker processes).
+    measure_s : float
+        Wall time of the vision's own work, s (set when finished).
+    worker : int
+        The worker process that measured it (-1: this process).
+    """
+
+    frame: Frame
+    snap: PlcSnapshot | None
+    future: Any = None
+    which: tuple[Any, ...] | None = None
+    measure_s: float = 0.0
+    worker: int = -1
+
+
 class MeasurementStage:
     """Measure pairs and judge the results' plausibility.
 
@@ -172,11 +210,51 @@ class MeasurementStage:
         self._calibrated: tuple[int, Any] | None = None  # (board, facts key) it calibrates
         self.calibrator_resets = 0
         """How often a board's calibrator was started afresh (a new board or new facts)."""
+        self._pool: Any = None
+        # worker processes: the board's calibrator per (board, facts key), folded in sequence
+        # order at finish; the pairs in flight per key; the key handed out last
+        self._masters: dict[tuple[Any, ...], SelfCalibrator] = {}
+        self._in_flight: dict[tuple[Any, ...], int] = {}
+        self._dispatched: tuple[Any, ...] | None = None
+        self._prepared: tuple[Any, ...] | None = None
+        self._facts_prepared: tuple[float, int] | None = None
+        self._build_lock = threading.Lock()
+        self.last_measure_s = 0.0
+        """Wall time of the vision's own work on the last pair measured in this process, s."""
+        self.thread_nice: int | None = None
+        """Nice value of the thread measuring in real time (``None``: as started); a busy host
+        then shares its cores with the pairs first (:func:`controller.latency.prioritize`)."""
 
     @property
     def takes_facts(self) -> bool:
         """Whether the factory builds measurers with the machine's facts (and a calibrator)."""
         return bool(getattr(self._factory, "takes_facts", False))
+
+    @property
+    def factory(self) -> Callable[..., Any]:
+        """The measurer factory (a worker pool is started with it)."""
+        return self._factory
+
+    @property
+    def workers(self) -> int:
+        """Worker processes measuring (0: this process)."""
+        return 0 if self._pool is None else int(self._pool.workers)
+
+    @property
+    def pool(self) -> Any:
+        """The worker processes (``MeasureWorkerPool``), or ``None``."""
+        return self._pool
+
+    def use_workers(self, pool: Any) -> None:
+        """Measure in worker processes from the next pair on (``None``: in this process again).
+
+        Parameters
+        ----------
+        pool : MeasureWorkerPool or None
+            Started with this stage's factory (the caller owns it and closes it).
+        """
+        self._pool = pool
+        self._prepared = None
 
     def set_factory(self, measurer_factory: Callable[..., Any]) -> None:
         """Use another measurer factory from the next pair on (the built measurers go)."""
@@ -192,19 +270,50 @@ class MeasurementStage:
         """
         takes = self.takes_facts
         key = (shape, facts.key if (takes and facts is not None) else None)
-        m = self._measurers.get(key)
-        if m is None and takes and facts is None:
-            m = next((v for k, v in self._measurers.items() if k[0] == shape), None)
-        if m is None:
-            if takes:
-                # set-up work once: the measurers of facts no longer in force go
-                for old in [k for k in self._measurers if k[0] == shape]:
-                    del self._measurers[old]
-                m = self._factory(shape, facts)
-            else:
-                m = self._factory(shape)
-            self._measurers[key] = m
+        with self._build_lock:  # one set-up at a time (a pair waits for one under way)
+            m = self._measurers.get(key)
+            if m is None and takes and facts is None:
+                m = next((v for k, v in self._measurers.items() if k[0] == shape), None)
+            if m is None:
+                if takes:
+                    m = self._factory(shape, facts)
+                    # set-up work once: the measurers of facts no longer in force go
+                    for old in [k for k in self._measurers if k[0] == shape]:
+                        del self._measurers[old]
+                else:
+                    m = self._factory(shape)
+                self._measurers[key] = m
         return m
+
+    def prepare(self, snap: PlcSnapshot | None) -> None:
+        """Set up for the machine's facts of a register read now, not at the next pair.
+
+        Called with every PLC cycle's registers; only a change of the cutting radius or the
+        knives does anything: the measurers of the image shapes in use are built for them (in
+        a background thread in real time, in the workers with worker processes), so the pair
+        after a start or a change does not wait 20-60 ms for the set-up.
+        """
+        if not self.takes_facts or snap is None:
+            return
+        try:
+            facts = MachineFacts.of(snap)
+            if facts.key == self._facts_prepared or snap.problem() is not None:
+                return
+        except (ValueError, TypeError, OverflowError, KeyError):
+            return  # registers that make no sense: the cycle reports them
+        self._facts_prepared = facts.key
+        pool = self._pool
+        if pool is not None:
+            for shape in {k[0] for k in self._measurers} | ({pool.shape} - {None}):
+                self._prepared = (shape, facts.key)
+                pool.prepare(shape, facts)
+            return
+        for shape in {k[0] for k in list(self._measurers)}:
+            if self.threaded:
+                threading.Thread(target=self.measurer, args=(shape, facts), daemon=True,
+                                 name="measurer-set-up").start()
+            else:
+                self.measurer(shape, facts)
 
     def calibrator(self, board_id: int, facts: MachineFacts | None) -> Any:
         """The self-calibrator of ``board_id`` (a fresh one for a new board or new facts)."""
@@ -237,15 +346,97 @@ class MeasurementStage:
             if snap is not None:
                 facts = MachineFacts.of(snap)
             kwargs["calibrator"] = self.calibrator(_board_of(frame), facts)
+        self.last_measure_s = 0.0
         try:
-            meas = await call_blocking(self.threaded, self._measure_now, frame, facts, kwargs)
+            meas = await call_blocking(self.threaded, self._timed, frame, facts, kwargs)
         except VISION_ERRORS as exc:
             return failure_reason(exc), None
         return None, meas
 
-    def _measure_now(self, frame: Frame, facts: MachineFacts | None,
-                     kwargs: dict[str, Any]) -> Any:
-        """Build (if needed) and run the measurer (in the worker thread in real time)."""
+    def _timed(self, frame: Frame, facts: MachineFacts | None, kwargs: dict[str, Any]) -> Any:
+        nice = self.thread_nice
+        if nice is not None and getattr(_THREAD, "nice", None) != nice:
+            from core.realtime import lower_priority
+
+            lower_priority(nice)  # this worker thread, once
+            _THREAD.nice = nice
+        t0 = time.perf_counter()
+        try:
+            return self.measure_now(frame, facts, kwargs)
+        finally:
+            self.last_measure_s = time.perf_counter() - t0
+
+    def start(self, frame: Frame, snap: PlcSnapshot | None = None) -> PendingMeasurement:
+        """Start measuring one pair: handed to a worker process now, or measured at finish.
+
+        Call in sequence order; :meth:`finish` each in the same order. With worker processes
+        the pair goes out at once with the board's calibrator as the pairs finished so far
+        left it (a copy), and a change of the machine's facts sets every worker up anew.
+        """
+        pending = PendingMeasurement(frame, snap)
+        pool = self._pool
+        if pool is None:
+            return pending
+        facts = None
+        calibrator = None
+        if self.takes_facts:
+            if snap is not None:
+                facts = MachineFacts.of(snap)
+            which = (_board_of(frame), None if facts is None else facts.key)
+            if which != self._dispatched:  # a new board or new facts: a fresh calibrator
+                self._dispatched = which
+                self._masters[which] = SelfCalibrator()
+                self.calibrator_resets += 1
+                self._forget_masters()
+            pending.which = which
+            self._in_flight[which] = self._in_flight.get(which, 0) + 1
+            calibrator = self._masters[which]
+            shape = tuple(np.shape(frame.image_a))
+            key = (shape, None if facts is None else facts.key)
+            if facts is not None and key != self._prepared:
+                self._prepared = key
+                pool.prepare(shape, facts)
+        pending.future = pool.submit(frame, facts=facts, calibrator=calibrator)
+        return pending
+
+    async def finish(self, pending: PendingMeasurement) -> tuple[str | None, Any]:
+        """The measurement of a started pair: ``(None, measurement)`` or ``(reason, None)``.
+
+        Raises
+        ------
+        MeasurementWorkerError
+            A worker's measurement raised what the vision never raises (a bug: the caller's
+            supervisor boundary reports it).
+        """
+        if pending.future is None:
+            out = await self.measure(pending.frame, pending.snap)
+            pending.measure_s = self.last_measure_s
+            return out
+        try:
+            outcome = await pending.future
+        finally:
+            which = pending.which
+            if which is not None:
+                self._in_flight[which] -= 1
+        pending.measure_s = outcome.measure_s
+        pending.worker = outcome.worker
+        master = self._masters.get(which) if which is not None else None
+        if master is not None:
+            for estimate in outcome.estimates:  # in sequence order: as if measured here
+                master.update(estimate)
+        self._forget_masters()
+        return outcome.error, outcome.measurement
+
+    def _forget_masters(self) -> None:
+        """Drop the calibrators of boards no pair in flight or to come will use."""
+        for which in [w for w in self._masters if w != self._dispatched]:
+            if self._in_flight.get(which, 0) <= 0:
+                del self._masters[which]
+                self._in_flight.pop(which, None)
+
+    def measure_now(self, frame: Frame, facts: MachineFacts | None,
+                    kwargs: dict[str, Any]) -> Any:
+        """Build (if needed) and run the measurer (a worker thread or process in real time)."""
         return self.measurer(tuple(np.shape(frame.image_a)), facts).measure(
             frame.image_a,
             frame.image_b,

@@ -14,28 +14,51 @@
 Every pair gets exactly one record, whatever happens: a pair that cannot be measured changes
 no setpoint and is logged with ``ok = false`` and the reason; an unexpected error of the
 control code goes to the supervisor boundary (safe state), and the pair is still logged.
+
+:meth:`PairPipeline.handle` takes one pair through every stage before it returns.
+:meth:`PairPipeline.submit` (real time, measurement in worker processes) runs stages 1-2 and
+hands the pair to a worker at once, then returns so the next pair can come while this one is
+measured; stages 3-6 of the pairs run in sequence order (each waits for the pair before it),
+so the loops see the pairs in order whichever worker finishes first. :meth:`PairPipeline.drain`
+waits for the pairs in flight.
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 from controller.bus_cycles import BusCycles
 from controller.control_loops import ControlLoops
-from controller.events import EventLog, exc_name
+from controller.events import EventKind, EventLog, exc_name
 from controller.frame_intake import FrameIntake, finite_or_none, int_or
 from controller.frame_result import FrameResult
 from controller.mark_attribution import Attributed, attribute_or_reason
-from controller.measurement import MeasurementStage, failure_reason
+from controller.measurement import MeasurementStage, PendingMeasurement, failure_reason
 from controller.plc_client import PlcSnapshot
 from controller.quality_records import QualityRecords
 from controller.safety import SafetyState
 from controller.service_clock import ServiceClock
 from controller.supervision import SafeStateKeeper
 from protocol.frames import Frame
+
+
+@dataclass
+class _Pair:
+    """A pair between its arrival (stages 1-2, measurement started) and its record."""
+
+    frame: Frame
+    now_s: float | None
+    wall0: float
+    t_arr: float
+    measured_at: float
+    snap: PlcSnapshot | None
+    wall_plc: float
+    error: str | None = None
+    pending: PendingMeasurement | None = None
 
 
 class PairPipeline:
@@ -68,32 +91,109 @@ class PairPipeline:
         self.keep_results = False
         self.results: list[FrameResult] = []
         self.on_result: Callable[[FrameResult], None] | None = None
+        self._tail: asyncio.Task | None = None  # the last submitted pair's stages 3-6
+        self._in_flight: set[asyncio.Task] = set()
 
     async def handle(self, frame: Frame, now_s: float | None = None) -> FrameResult:
         """Measure one pair, control, write setpoints, log it (see the module docstring)."""
+        return await self._finish(await self._begin(frame, now_s))
+
+    def use_workers(self, pool: Any) -> None:
+        """Measure in worker processes from the next pair on (``None``: in this process again).
+
+        A worker that died or timed out is reported (``SERVICE_ERROR``, counter
+        ``worker_restarts``); its pairs are failed records naming the reason.
+        """
+        self.measurement.use_workers(pool)
+        if pool is not None:
+            pool.on_problem = self._worker_problem
+
+    def _worker_problem(self, text: str) -> None:
+        counters = self.report.counters
+        counters["worker_restarts"] = counters.get("worker_restarts", 0) + 1
+        t = self.clock.last_s
+        self.report.emit(0.0 if t is None else t, EventKind.SERVICE_ERROR, text)
+
+    @property
+    def in_flight(self) -> int:
+        """Submitted pairs whose stages 3-6 have not finished."""
+        return len(self._in_flight)
+
+    async def submit(self, frame: Frame) -> None:
+        """Take one pair in real time; return as soon as the next one may come.
+
+        Without worker processes this is :meth:`handle`. With them the pair is handed to a
+        worker and its later stages run after the previous pair's, in sequence order; this
+        returns at once unless the workers hold as many pairs as they can
+        (``MeasureWorkerPool.capacity``).
+        """
+        pool = self.measurement.pool
+        if pool is None:
+            await self.handle(frame)
+            return
+        pair = await self._begin(frame, None)
+        task = asyncio.ensure_future(self._finish_after(self._tail, pair))
+        self._tail = task
+        self._in_flight.add(task)
+        task.add_done_callback(self._in_flight.discard)
+        while len(self._in_flight) >= max(1, pool.capacity):
+            await asyncio.wait(set(self._in_flight), return_when=asyncio.FIRST_COMPLETED)
+
+    async def _finish_after(self, previous: asyncio.Task | None, pair: _Pair) -> None:
+        if previous is not None and not previous.done():
+            await asyncio.wait({previous})  # the pairs before this one first, whatever they did
+        with self.keeper.boundary(pair.t_arr, f"pair {pair.frame.seq}"):
+            await self._finish(pair)
+
+    async def drain(self) -> None:
+        """Wait until every submitted pair went through all its stages."""
+        while self._in_flight:
+            await asyncio.wait(set(self._in_flight))
+
+    async def _begin(self, frame: Frame, now_s: float | None) -> _Pair:
+        """Stages 1-2 and the start of the measurement (handed to a worker process at once)."""
         wall0 = time.perf_counter()
         t_arr = self.clock.now(now_s)
         self.report.count("frames")
         measured_at = self.intake.arrive(frame, t_arr)
         snap = await self.cycles.snapshot_for(t_arr)
-        wall_plc = time.perf_counter()
+        pair = _Pair(frame, now_s, wall0, t_arr, measured_at, snap, time.perf_counter())
+        if frame.error:
+            pair.error = f"unreadable pair: {frame.error}"
+        elif snap is None:
+            pair.error = "no PLC data: registers never read"
+        elif (problem := snap.problem()) is not None:
+            pair.error = f"no valid PLC data: {problem}"
+        else:
+            with self.keeper.boundary(t_arr, f"measurement of pair {frame.seq}") as g:
+                try:
+                    self.loops.ensure(snap)
+                except (ValueError, LookupError, TypeError, ArithmeticError) as exc:
+                    pair.error = f"no control loops: {exc_name(exc)}: {exc}"
+                else:
+                    pair.pending = self.measurement.start(frame, snap)
+            if g.error is not None:
+                pair.error = failure_reason(g.error)
+        return pair
+
+    async def _finish(self, pair: _Pair) -> FrameResult:
+        """Stages 3-6: the measurement's result, attribution, control, the record."""
+        frame, now_s, wall0, t_arr = pair.frame, pair.now_s, pair.wall0, pair.t_arr
+        measured_at, snap, wall_plc = pair.measured_at, pair.snap, pair.wall_plc
         wall_meas = wall_plc
         meas: Any = None
         att: Attributed | None = None
-        if frame.error:
-            error: str | None = f"unreadable pair: {frame.error}"
-        elif snap is None:
-            error = "no PLC data: registers never read"
-        elif (problem := snap.problem()) is not None:
-            error = f"no valid PLC data: {problem}"
-        else:
+        error = pair.error
+        vision_s = 0.0
+        if pair.pending is not None and snap is not None:
             # a vision error of a kind nobody named (VISION_ERRORS) is a failed measurement
             # too, and a fault of the service: the boundary reports it and goes safe
             with self.keeper.boundary(t_arr, f"measurement of pair {frame.seq}") as g:
-                error, meas, att = await self._measure(frame, snap)
+                error, meas, att = await self._measured(pair.pending, frame, snap)
             if g.error is not None:
                 error, meas, att = failure_reason(g.error), None, None
             wall_meas = time.perf_counter()
+            vision_s = pair.pending.measure_s
         ok = error is None
         applied = False
         profile = None
@@ -130,9 +230,11 @@ class PairPipeline:
                 "timing_ms": {
                     "plc_read_ms": (wall_plc - wall0) * 1e3,
                     "measure_ms": (wall_meas - wall_plc) * 1e3,
+                    "vision_ms": vision_s * 1e3,
                     "control_ms": (wall1 - wall_meas) * 1e3,
                 },
                 "safe_reason": keeper.safe_reason(),
+                "piezo": out.record_fields(),  # limit in force, refused tables, safe entries
                 "plc_feed_setpoint_mm_s": plc_feed,  # in force before the service wrote one
                 **({"passes": att.to_json()} if att is not None else {}),
                 **({"profile": profile} if profile is not None else {}),
@@ -148,19 +250,15 @@ class PairPipeline:
             self.on_result(result)
         return result
 
-    async def _measure(
-        self, frame: Frame, snap: PlcSnapshot
+    async def _measured(
+        self, pending: PendingMeasurement, frame: Frame, snap: PlcSnapshot
     ) -> tuple[str | None, Any, Attributed | None]:
-        """Measure the pair, check it, attribute its marks: ``(error, measurement, attributed)``.
+        """The pair measured, checked, its marks attributed: ``(error, measurement, attributed)``.
 
         The order: basic plausibility (marks, confidence, machine running), attribution of the
         marks to knife passes, then the pitch per knife pass against ``V / (n Z)``.
         """
-        try:
-            self.loops.ensure(snap)
-        except (ValueError, LookupError, TypeError, ArithmeticError) as exc:
-            return f"no control loops: {exc_name(exc)}: {exc}", None, None
-        error, meas = await self.measurement.measure(frame, snap)
+        error, meas = await self.measurement.finish(pending)
         if error is not None:
             return error, None, None
         error = self.measurement.implausible(meas, frame, snap)

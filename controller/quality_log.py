@@ -258,6 +258,34 @@ class QualityLog:
         check_storable(record)
         return int(self._call("insert", _to_row(record), uid=uid))
 
+    def append_many(self, records: Sequence[QualityRecord], *,
+                    uids: Sequence[str | None] | None = None) -> list[int]:
+        """Append records in one transaction (one commit, all or nothing); their ids.
+
+        As :meth:`append` for each record (``uids`` one per record, or ``None``); a record the
+        schema refuses raises :class:`RecordRefusedError` before anything is written. A
+        backend without batches appends them one after the other.
+        """
+        uids = [None] * len(records) if uids is None else list(uids)
+        if len(uids) != len(records):
+            raise ValueError(f"uids must be one per record: {len(uids)} for {len(records)}")
+        rows = []
+        for record, uid in zip(records, uids, strict=True):
+            if not isinstance(record, QualityRecord):
+                raise ValueError(f"record must be a QualityRecord, got {type(record).__name__}")
+            if uid is not None and (not isinstance(uid, str) or not uid or not uid.isprintable()):
+                raise ValueError(f"uid must be a non-empty printable string, got {uid!r}")
+            if record.machine_id is None:
+                record = dataclasses.replace(record, machine_id=self.machine_id)
+            check_storable(record)
+            rows.append(_to_row(record))
+        if not rows:
+            return []
+        if hasattr(self._store, "insert_many"):
+            return [int(i) for i in self._call("insert_many", rows, uids)]
+        return [int(self._call("insert", row, uid=uid))
+                for row, uid in zip(rows, uids, strict=True)]
+
     def has_uid(self, uid: str) -> bool:
         """Whether a record appended with this ``uid`` is in the log."""
         return bool(self._call("has_uid", uid))

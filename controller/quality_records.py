@@ -8,13 +8,24 @@ is in the log, or in the local journal beside it when the log cannot take it (di
 locked, a value the schema refuses), and the journal is written to the log as soon as it takes
 records again. Log trouble is reported once (``LOG_FAILED`` ... ``LOG_RECOVERED``) and fails the
 supervisor's ``log`` condition while it lasts (no control without a record of it).
+
+In real time (``threaded``) the record is written after the pair's setpoints went out, by one
+writer thread, off the control path: :meth:`QualityRecords.append` only queues it; the writer
+makes the records and commits all that queued up meanwhile in one transaction
+(:meth:`RecordSink.append_many`: one commit, or one journal fsync), so the log keeps up with
+pairs faster than one commit each. A record is durable (acknowledged) when its batch is
+committed, normally within one commit time of its setpoint; at most :data:`MAX_QUEUED` wait,
+beyond that the next pair waits for the writer (a log slower than the camera).
 """
 
 from __future__ import annotations
 
+import asyncio
 import math
 import sqlite3
+import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -25,7 +36,6 @@ from config.machine import MachineConfig
 from controller.events import EventKind, EventLog
 from controller.frame_intake import finite_or_none, frame_metadata, int_or
 from controller.frame_result import FrameResult
-from controller.measurement import call_blocking
 from controller.quality_log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
 from controller.record_journal import RecordSink, default_journal_path
 from protocol.frames import Frame
@@ -35,6 +45,9 @@ PROFILE_EVERY = 10
 surface profile (``extra["profile"]``, drawn by ``planer report``)."""
 PROFILE_MAX_POINTS = 800
 """Most points of a stored profile (about 6 kB of JSON)."""
+MAX_QUEUED = 200
+"""Records waiting for the writer thread (real time) before the next pair waits for it (2 s of
+pairs at 100 pairs/s)."""
 
 
 def decimated_profile(
@@ -103,7 +116,8 @@ class QualityRecords:
     on_health : callable
         ``on_health(ok)`` when the log starts or stops failing (the supervisor's ``log``).
     threaded : bool
-        Append in a worker thread (real time; the log commits with fsync).
+        Real time: records are written by a writer thread after the setpoints, in batches (the
+        log commits with fsync); ``False``: written at once, in the caller's thread.
     journal_path : Path, optional
         The journal; default beside the log (``<log>.journal.jsonl``).
     """
@@ -133,6 +147,22 @@ class QualityRecords:
             if journal_path is None:
                 journal_path = default_journal_path(getattr(log, "path", None) or cfg.log.path)
             self.sink = RecordSink(log, journal_path=Path(journal_path))
+        # real time: the writer thread's queue, its answers, and who waits for room
+        self._cond = threading.Condition()
+        self._queue: deque[tuple[FrameResult, Frame, float]] = deque()
+        self._answers: deque[tuple[float, Any, bool, float]] = deque()
+        self._queued = 0  # appended, not yet answered (queue + the batch being written)
+        self._writer: threading.Thread | None = None
+        self._closing = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._room: asyncio.Event | None = None
+        self.batches = 0
+        """Batches the writer thread committed (one transaction or journal fsync each)."""
+        self.writer_nice: int | None = None
+        """Nice value of the writer thread (``None``: as started)."""
+        self.on_stored: Callable[[Any, float], None] | None = None
+        """Called on the event loop with ``(seq, monotonic time)`` when a pair's record is
+        durable (real time; for benchmarks and tests)."""
 
     @property
     def problem(self) -> str | None:
@@ -141,8 +171,13 @@ class QualityRecords:
 
     @property
     def pending(self) -> int:
-        """Records waiting for the log (journal or memory)."""
-        return 0 if self.sink is None else self.sink.pending
+        """Records waiting for the log (journal or memory, and queued for the writer)."""
+        return 0 if self.sink is None else self.sink.pending + self._queued
+
+    @property
+    def queued(self) -> int:
+        """Records queued for the writer thread, not yet durable (real time)."""
+        return self._queued
 
     def profile_of(self, meas: Any, frame: Frame) -> dict[str, list[float]] | None:
         """The decimated profile of a successful measurement if this one carries it.
@@ -190,6 +225,7 @@ class QualityRecords:
                 **({"frame_metadata_invalid": odd} if odd else {}),
                 **({"passes": r.extra["passes"]} if "passes" in r.extra else {}),
                 **({"profile": r.extra["profile"]} if "profile" in r.extra else {}),
+                **({"piezo": r.extra["piezo"]} if "piezo" in r.extra else {}),
             },
         }
         if m is not None:
@@ -203,9 +239,10 @@ class QualityRecords:
                 fields["extra"]["calibration_deblurred"] = True
         if r.ok:
             fields.update(
-                pitch_mm=finite_or_none(getattr(m, "pitch_mm", None)),
+                # a vanished knife: the kinematic pitch and CV, not the marks found's
+                pitch_mm=finite_or_none(r.reported_pitch_mm),
                 mark_widths_mm=tuple(float(w) for w in r.knife_widths_mm),
-                uniformity_cv=finite_or_none(getattr(m, "uniformity_cv", None)),
+                uniformity_cv=finite_or_none(r.reported_uniformity_cv),
                 depth_um=finite_or_none(getattr(m, "depth_um", None)),
             )
             try:
@@ -230,19 +267,108 @@ class QualityRecords:
     async def append(self, r: FrameResult, frame: Frame, t: float) -> int | None:
         """Store the pair's record durably; its id in the log, or ``None`` (journal, no log).
 
-        A log that fails is reported once (``LOG_FAILED``, the supervisor's ``log`` condition
-        fails) and counted per record it did not take (``log_errors``); held records go to the
-        log, in order, as soon as it takes them again (``LOG_RECOVERED``).
+        In real time (``threaded``) the record is only queued for the writer thread (``None``;
+        it is durable once its batch is committed, :attr:`on_stored`); the caller does not wait
+        for a commit unless :data:`MAX_QUEUED` records wait already. A log that fails is
+        reported once (``LOG_FAILED``, the supervisor's ``log`` condition fails) and counted per
+        record it did not take (``log_errors``); held records go to the log, in order, as soon
+        as it takes them again (``LOG_RECOVERED``).
         """
         sink = self.sink
         if sink is None:
             return None
+        if self.threaded:
+            await self._enqueue(r, frame, t)
+            return None
         rec = self.record_of(r, frame)
-        logged, rid = await call_blocking(self.threaded, self._store, sink, rec)
-        self._health(t, r.seq)
+        logged, rid = self._store(sink, rec)
+        self._answered(t, r.seq, logged)
+        return rid
+
+    def _answered(self, t: float, seq: Any, logged: bool) -> None:
+        self._health(t, seq)
         if not logged:
             self._report.count("log_errors")
-        return rid
+
+    # ------------------------------------------------------------------ the writer thread
+    async def _enqueue(self, r: FrameResult, frame: Frame, t: float) -> None:
+        """Queue a record for the writer (after the setpoints); wait only when too many wait."""
+        loop = asyncio.get_running_loop()
+        if self._loop is not loop:
+            self._loop, self._room = loop, asyncio.Event()
+        with self._cond:
+            if self._writer is None:
+                self._writer = threading.Thread(target=self._write_loop,
+                                                name="quality-records", daemon=True)
+                self._writer.start()
+            self._queue.append((r, frame, t))
+            self._queued += 1
+            self._cond.notify()
+        while self._queued > MAX_QUEUED and self._writer is not None:
+            assert self._room is not None
+            self._room.clear()
+            await self._room.wait()  # the log is slower than the camera: the pairs wait
+
+    def _write_loop(self) -> None:
+        """The writer: every record queued meanwhile in one batch, in order."""
+        sink = self.sink
+        assert sink is not None
+        if self.writer_nice is not None:
+            from core.realtime import lower_priority
+
+            lower_priority(self.writer_nice)
+        while True:
+            with self._cond:
+                while not self._queue and not self._closing:
+                    self._cond.wait()
+                if not self._queue:
+                    return
+                batch = list(self._queue)
+                self._queue.clear()
+            records = [self.record_of(r, frame) for r, frame, _ in batch]
+            outcomes = self._store_batch(sink, records)
+            now = time.monotonic()
+            with self._cond:
+                self._answers.extend((t, r.seq, ok, now) for (r, _, t), ok in
+                                     zip(batch, outcomes, strict=True))
+            self.batches += 1
+            loop = self._loop
+            if loop is not None and not loop.is_closed():
+                try:
+                    loop.call_soon_threadsafe(self._take_answers)
+                except RuntimeError:  # the loop closed meanwhile: close() takes them
+                    pass
+
+    def _store_batch(self, sink: RecordSink, records: list[QualityRecord]) -> list[bool]:
+        """Append a batch after the held records; whether each is in the log (not journal)."""
+        sink.append_many(records)  # the held ones first, in order
+        logged = not sink.pending
+        return [logged] * len(records)
+
+    def _take_answers(self) -> None:
+        """On the event loop: the writer's answers (health, counters, room for more)."""
+        with self._cond:
+            answers = list(self._answers)
+            self._answers.clear()
+            self._queued -= len(answers)
+        for t, seq, logged, at in answers:
+            self._answered(t, seq, logged)
+            if self.on_stored is not None:
+                self.on_stored(seq, at)
+        if self._room is not None and self._queued <= MAX_QUEUED:
+            self._room.set()
+
+    def flush(self) -> None:
+        """Wait until the writer thread wrote every queued record (blocking; close uses it)."""
+        writer = self._writer
+        if writer is not None:
+            with self._cond:
+                self._closing = True
+                self._cond.notify()
+            writer.join()
+            self._writer = None
+            self._closing = False
+        self._take_answers()
 
     def _store(self, sink: RecordSink, rec: QualityRecord) -> tuple[bool, int | None]:
         """Append (after the held ones): whether it is in the log, and its id there if known."""
@@ -283,6 +409,7 @@ class QualityRecords:
         sink = self.sink
         if sink is None:
             return None
+        self.flush()  # the records queued for the writer first
         left = sink.close()
         if left is not None:
             n = sink.pending

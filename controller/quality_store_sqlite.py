@@ -223,6 +223,43 @@ class SqliteStore:
             raise OSError(f"cannot append to quality log {self.path}: {exc}") from None
         return rid
 
+    def insert_many(self, rows: Sequence[Sequence[Any]],
+                    uids: Sequence[str | None]) -> list[int]:
+        """Insert rows in one transaction (one commit); their ids (stored ones for known uids).
+
+        All or nothing: on any error none of them is stored.
+        """
+        conn = self._connection()
+        cols = column_names(self.schema_version)[1]
+        sql = f"INSERT INTO records ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})"
+        ids: list[int] = []
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                if any(u is not None for u in uids):
+                    conn.execute(_UIDS_TABLE)
+                for row, uid in zip(rows, uids, strict=True):
+                    known = None if uid is None else conn.execute(
+                        "SELECT record_id FROM record_uids WHERE uid = ?", (uid,)).fetchone()
+                    if known is not None:
+                        ids.append(int(known[0]))
+                        continue
+                    rid = int(conn.execute(sql, tuple(row)[:len(cols)]).lastrowid)
+                    if uid is not None:
+                        conn.execute("INSERT INTO record_uids (uid, record_id) VALUES (?, ?)",
+                                     (uid, rid))
+                    ids.append(rid)
+                conn.execute("COMMIT")
+            except BaseException:
+                if conn.in_transaction:
+                    conn.execute("ROLLBACK")
+                raise
+        except OverflowError as exc:  # check_storable should have caught it
+            raise RecordRefusedError("record", f"record refused by the log: {exc}") from None
+        except sqlite3.Error as exc:
+            raise OSError(f"cannot append to quality log {self.path}: {exc}") from None
+        return ids
+
     def has_uid(self, uid: str) -> bool:
         """Whether a record appended with this ``uid`` is in the log."""
         conn = self._connection()

@@ -377,6 +377,52 @@ class RecordSink:
                 return
             self._journal([entry])
 
+    def append_many(self, records: list[QualityRecord]) -> list[int | None]:
+        """Store records durably, in order, with one commit: as :meth:`append` for each.
+
+        Records waiting in the journal are tried first (a batch is a retry); while nothing
+        waits the records go to the log in one transaction (:meth:`QualityLog.append_many`);
+        when the log cannot take them they go to the journal together (one fsync). A record
+        the log refuses makes the batch go record by record.
+
+        Returns
+        -------
+        list of int or None
+            Each record's id in the log (``None``: in the journal, or the log gives no ids).
+        """
+        for record in records:
+            if not isinstance(record, QualityRecord):
+                raise ValueError(f"record must be a QualityRecord, got {type(record).__name__}")
+        batch = getattr(self.log, "append_many", None)
+        with self._lock:
+            if self._entries or self._unsaved:
+                self._retry_locked()
+            if self._entries or self._unsaved or batch is None or len(records) < 2:
+                for record in records:
+                    self.append(record)
+                return [None] * len(records)
+            recs = [storable_record(r) for r in records]
+            entries = [_Entry(uuid.uuid4().hex, r) for r in recs]
+            self.counters["rewritten"] += sum(
+                r is not o for r, o in zip(recs, records, strict=True))
+            try:
+                if self._uid_ok:
+                    ids = batch([e.record for e in entries], uids=[e.uid for e in entries])
+                else:
+                    ids = batch([e.record for e in entries])
+            except RecordRefusedError:  # one record refused: record by record, rewritten
+                for e in entries:
+                    if self._entries or self._unsaved or not self._to_log(e):
+                        self._journal([e])
+                return [None] * len(records)
+            except (OSError, ValueError) as exc:  # the log's trouble: the journal keeps them
+                self._log_error = f"quality log write failed: {_one_line(exc)}"
+                self._journal(entries)
+                return [None] * len(records)
+            self._log_error = None
+            self.counters["logged"] += len(entries)
+            return [int(i) if isinstance(i, int) else None for i in ids]
+
     def retry(self) -> int:
         """Write the journalled records to the log, oldest first, until it refuses one.
 

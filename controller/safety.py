@@ -12,8 +12,13 @@ be in and what to command in the safe state:
   condition fails. The feed is held or ramped down to ``safe_feed_mm_s`` (rate-limited, inside
   the machine's limits, as configured), the piezo offsets go to zero and the amplifier is
   disabled.
-* Recovery is automatic: once every source is back and every condition has held for
-  ``recovery_s`` (confirmation time), the state returns to ``RUN``.
+* Recovery is automatic: once every source is back and every condition has held for the
+  recovery time, the state returns to ``RUN``. With hysteresis: a timed source counts as back
+  only when heard within ``RECOVERY_FRESH_FRACTION`` of its timeout (it leaves RUN at the whole
+  timeout). With a growing back-off: the recovery time is ``recovery_s`` after the first entry
+  and doubles (``BACKOFF_FACTOR``) with every entry that follows a short RUN, up to
+  ``BACKOFF_MAX_FACTOR`` times ``recovery_s``; a RUN of ``BACKOFF_RESET_S`` resets it. A cause
+  that comes back at once therefore cycles ever more slowly instead of every ``recovery_s``.
 
 The supervisor starts in ``SAFE`` (nothing heard yet). Time is always passed in (``now_s``,
 seconds on any monotonic clock); the supervisor never reads a clock.
@@ -21,7 +26,10 @@ seconds on any monotonic clock); the supervisor never reads a clock.
 :class:`AmplifierMonitor` judges the piezo amplifier's own word (``PIEZO_STATUS``): a fault
 (state 3 or fault bits: over-temperature, stroke limit = offsets refused, setpoint timeout,
 overcurrent) or a state that is not what the service commands (not enabled and tracking while
-enable is commanded), confirmed for ``AMP_CONFIRM_S``, is the ``amplifier`` condition failing.
+enable is commanded), confirmed for ``AMP_CONFIRM_S``, is the ``amplifier`` condition failing. A
+stroke-limit bit alone while the amplifier tracks (it refused a table and still plays the one
+before, which the CAN client re-plans at once) is confirmed only after
+``AMP_REFUSAL_CONFIRM_S``.
 It also remembers when the amplifier was last seen *not* playing the offsets, so that the
 uniformity loop never learns from board cut meanwhile.
 """
@@ -35,7 +43,13 @@ from typing import Any
 
 from config.machine import SafetyConfig
 from core.checks import check_finite, check_positive
-from protocol.piezo_can import STATE_DISABLED, STATE_ENABLED, STATE_FAULT, STATE_RAMPING
+from protocol.piezo_can import (
+    FAULT_STROKE_LIMIT,
+    STATE_DISABLED,
+    STATE_ENABLED,
+    STATE_FAULT,
+    STATE_RAMPING,
+)
 
 TIMED_SOURCES = ("plc", "can", "measurement")
 """Sources that must be heard within their timeout."""
@@ -49,6 +63,18 @@ AMP_CONFIRM_S = 0.1
 """How long the amplifier must report a fault or a state other than commanded before it counts
 as failed, s: a few status periods (10 ms) and command cycles (20 ms), well inside the CAN
 timeout, so the latency of an enable or disable is never mistaken for a failure."""
+AMP_REFUSAL_CONFIRM_S = 0.3
+"""Confirmation time of a stroke-limit bit alone while the amplifier tracks, s: long enough for
+the CAN client to re-plan the refused table (``controller.piezo_client.REFUSAL_GRACE_S``) and the
+amplifier to take the new one, short enough that an amplifier refusing everything goes safe."""
+RECOVERY_FRESH_FRACTION = 0.5
+"""In SAFE a timed source counts as back only when heard within this fraction of its timeout."""
+BACKOFF_FACTOR = 2.0
+"""The recovery time grows by this factor with each safe entry after a short RUN."""
+BACKOFF_MAX_FACTOR = 8.0
+"""... up to this multiple of ``recovery_s``."""
+BACKOFF_RESET_S = 10.0
+"""A RUN this long resets the back-off (the next entry waits ``recovery_s`` again), s."""
 AMP_FAULT_BITS = {
     0: "over-temperature",
     1: "stroke limit (offsets refused)",
@@ -106,10 +132,36 @@ class Supervisor:
     now_s : float
         Start time. Measurements get one ``measurement_timeout_s`` of grace from here; the PLC
         and the CAN bus must be heard first.
+    backoff_factor, backoff_max_factor, backoff_reset_s, fresh_fraction : float
+        The recovery's back-off and hysteresis (module constants by default): the recovery time
+        after the n-th entry in a row of short RUNs is ``recovery_s * backoff_factor**(n-1)``,
+        at most ``recovery_s * backoff_max_factor``; a RUN of ``backoff_reset_s`` resets n;
+        a timed source counts as back within ``fresh_fraction`` of its timeout.
     """
 
-    def __init__(self, cfg: SafetyConfig, *, now_s: float) -> None:
+    def __init__(
+        self,
+        cfg: SafetyConfig,
+        *,
+        now_s: float,
+        backoff_factor: float = BACKOFF_FACTOR,
+        backoff_max_factor: float = BACKOFF_MAX_FACTOR,
+        backoff_reset_s: float = BACKOFF_RESET_S,
+        fresh_fraction: float = RECOVERY_FRESH_FRACTION,
+    ) -> None:
         t0 = check_finite("now_s", now_s)
+        if not backoff_factor >= 1.0:
+            raise ValueError(f"backoff_factor must be >= 1, got {backoff_factor!r}")
+        if not backoff_max_factor >= 1.0:
+            raise ValueError(f"backoff_max_factor must be >= 1, got {backoff_max_factor!r}")
+        self.backoff_factor = float(backoff_factor)
+        self.backoff_max_factor = float(backoff_max_factor)
+        self.backoff_reset_s = check_positive("backoff_reset_s", backoff_reset_s)
+        if not 0.0 < fresh_fraction <= 1.0:
+            raise ValueError(f"fresh_fraction must be in (0, 1], got {fresh_fraction!r}")
+        self.fresh_fraction = float(fresh_fraction)
+        self.backoff_level = 0
+        """Safe entries in a row, each after a RUN shorter than ``backoff_reset_s``."""
         self.cfg = cfg
         self._timeouts = {
             "plc": cfg.plc_timeout_s,
@@ -161,8 +213,12 @@ class Supervisor:
         return self._last[source]
 
     # ------------------------------------------------------------------ state
-    def missing(self, now_s: float) -> tuple[str, ...]:
-        """Sources gone for longer than their timeout at ``now_s`` (never heard counts)."""
+    def missing(self, now_s: float, *, fraction: float = 1.0) -> tuple[str, ...]:
+        """Sources gone and conditions failing at ``now_s``.
+
+        A timed source is gone when not heard for longer than ``fraction`` of its timeout (never
+        heard counts); ``fraction < 1`` is the stricter test of the recovery (hysteresis).
+        """
         t = check_finite("now_s", now_s)
         out = []
         for src in SOURCES:
@@ -171,9 +227,16 @@ class Supervisor:
                     out.append(src)
                 continue
             last = self._last[src]
-            if last is None or t - last > self._timeouts[src]:
+            if last is None or t - last > self._timeouts[src] * fraction:
                 out.append(src)
         return tuple(out)
+
+    @property
+    def recovery_required_s(self) -> float:
+        """How long everything must hold before RUN now, s (the back-off)."""
+        n = max(self.backoff_level - 1, 0)
+        factor = min(self.backoff_factor**n, self.backoff_max_factor)
+        return self.cfg.recovery_s * factor
 
     def step(self, now_s: float) -> SafetyStatus:
         """Advance the state machine to ``now_s``.
@@ -187,16 +250,19 @@ class Supervisor:
         gone = self.missing(t)
         changed = False
         if self.state is SafetyState.RUN:
+            if t - self.since_s >= self.backoff_reset_s:
+                self.backoff_level = 0  # a good period: the next entry starts afresh
             if gone:
                 self.state, self.since_s, changed = SafetyState.SAFE, t, True
                 self._ok_since = None
                 self.entries += 1
-        elif gone:
-            self._ok_since = None
+                self.backoff_level += 1
+        elif gone or self.missing(t, fraction=self.fresh_fraction):
+            self._ok_since = None  # hysteresis: back only when clearly back
         else:
             if self._ok_since is None:
                 self._ok_since = t
-            if t - self._ok_since >= self.cfg.recovery_s:
+            if t - self._ok_since >= self.recovery_required_s - 1e-9:
                 self.state, self.since_s, changed = SafetyState.RUN, t, True
                 self._ok_since = None
         return SafetyStatus(state=self.state, missing=gone, changed=changed, since_s=self.since_s)
@@ -300,10 +366,17 @@ class AmplifierMonitor:
     ----------
     confirm_s : float
         Confirmation time, s (>= 0).
+    refusal_confirm_s : float
+        Confirmation time of a stroke-limit bit alone while the amplifier tracks, s (>= 0).
     """
 
-    def __init__(self, *, confirm_s: float = AMP_CONFIRM_S) -> None:
+    def __init__(
+        self, *, confirm_s: float = AMP_CONFIRM_S, refusal_confirm_s: float = AMP_REFUSAL_CONFIRM_S
+    ) -> None:
         self.confirm_s = check_positive("confirm_s", confirm_s, allow_zero=True)
+        self.refusal_confirm_s = check_positive(
+            "refusal_confirm_s", refusal_confirm_s, allow_zero=True
+        )
         self.enable = False
         self._since = -math.inf  # when the command last changed
         self._bad_since: float | None = None
@@ -343,6 +416,9 @@ class AmplifierMonitor:
         self.untracked_s = t
         if self._bad_since is None:
             self._bad_since = float(status.t_s)
-        if t - self._bad_since >= self.confirm_s - 1e-9:
+        refusal = (int(status.fault) == FAULT_STROKE_LIMIT and int(status.state) == STATE_ENABLED
+                   and self.enable)
+        confirm = max(self.confirm_s, self.refusal_confirm_s) if refusal else self.confirm_s
+        if t - self._bad_since >= confirm - 1e-9:
             self.problem = found
         return self.problem

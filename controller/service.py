@@ -118,6 +118,7 @@ class Service:
         self.out = Actuators(plc, piezo, self.report, amp_monitor, stroke_um=cfg.stroke_um)
         self.loops = ControlLoops(cfg, rig, self.out, self.report, amp_monitor,
                                   pairs_per_s=self.pairs_per_s)
+        self.out.on_stroke = getattr(self.loops, "set_limit_um", None)  # the bound in force
         self.keeper = SafeStateKeeper(cfg.safety, self.report, self.out, amp_monitor,
                                       now_s=clock())
         self.keeper.on_recovered = lambda t: self.loops.resume(t, self.plc.last)
@@ -229,6 +230,7 @@ class Service:
             counters=ServiceStatus.freeze(self.report.counters),
             log_problem=self.records.problem,
             records_pending=self.records.pending,
+            piezo_limits=self.out.limits() if self.piezo is not None else None,
         )
 
     # ------------------------------------------------------------------ the control cycles
@@ -275,6 +277,7 @@ class Service:
         t = self.service_clock.now(now_s)
         with self.keeper.boundary(t, "PLC cycle", part="plc") as g:
             snap = await self.cycles.plc_io(t)
+            self.measurement.prepare(snap)  # set up for the PLC's R and Z before the pair
             self.keeper.step(t)
             await self.cycles.plc_actions(t, snap)
         if not g.failed:
@@ -359,9 +362,10 @@ class Service:
                     continue
                 t = self.service_clock.now()
                 with self.keeper.boundary(t, f"pair {frame.seq}"):
-                    await self.handle_frame(frame)
+                    await self.pipeline.submit(frame)  # handle_frame, or to a worker process
                 n += 1
                 if max_frames is not None and n >= max_frames:
+                    await self.pipeline.drain()
                     stop.set()
 
         tasks = [
@@ -381,6 +385,7 @@ class Service:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
+            await self.pipeline.drain()  # pairs still with the workers get their records
 
     async def _next_frame(self, source: Any) -> Frame | None:
         """The next pair of ``source`` (``None``: none within 0.1 s, or the source failed)."""

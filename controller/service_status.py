@@ -76,11 +76,8 @@ class MeasurementSummary:
     @classmethod
     def of(cls, r: FrameResult) -> MeasurementSummary:
         """The summary of a frame result."""
-        passes = r.extra.get("passes") or {}
-        pitch = passes.get("pass_pitch_mm")
-        if pitch is None and r.ok:
-            pitch = getattr(r.measurement, "pitch_mm", None)
-        cv = getattr(r.measurement, "uniformity_cv", None) if r.ok else None
+        pitch = r.reported_pitch_mm
+        cv = r.reported_uniformity_cv
         vis = vision_fields(r.measurement, ok=r.ok) if r.measurement is not None else {}
         depth = _json_float(_number(getattr(r.measurement, "depth_um", None))) if r.ok else None
         return cls(
@@ -130,6 +127,9 @@ class ServiceStatus:
         The quality log's trouble in one line; ``None`` when healthy.
     records_pending : int
         Quality records kept aside (journal or memory) waiting for the log.
+    piezo_limits : Mapping or None
+        The bound on the piezo offsets in force and where it comes from (the amplifier's
+        reported stroke or ``machine.toml``'s, ``controller.actuators.Actuators.limits``).
     """
 
     t_s: float | None
@@ -144,6 +144,7 @@ class ServiceStatus:
     counters: Mapping[str, int]
     log_problem: str | None = None
     records_pending: int = 0
+    piezo_limits: Mapping[str, Any] | None = None
 
     @staticmethod
     def freeze(counters: Mapping[str, int]) -> Mapping[str, int]:
@@ -176,4 +177,5 @@ class ServiceStatus:
             "counters": dict(self.counters),
             "log_problem": self.log_problem,
             "records_pending": self.records_pending,
+            "piezo_limits": None if self.piezo_limits is None else dict(self.piezo_limits),
         }

@@ -3,8 +3,9 @@
 :class:`SafeStateKeeper` wraps the pure :class:`~controller.safety.Supervisor` (timeouts and
 conditions) and the :class:`~controller.safety.AmplifierMonitor` with the service's side of
 them: it judges the PLC's registers and the amplifier's status, steps the supervisor, reports
-safe-state entries (``SAFE_STATE`` with its ``reason``) and recoveries, and puts the piezo in
-its safe state at once (offsets zero, amplifier disabled) whichever cycle noticed.
+safe-state entries (``SAFE_STATE`` with its ``reason`` and, in ``data``, the sources ``missing``
+and the recovery time of the back-off) and recoveries, and puts the piezo in its safe state at
+once (offsets zero, amplifier disabled) whichever cycle noticed.
 
 It also holds the service's one supervisor boundary (:meth:`SafeStateKeeper.boundary`): the
 only place in ``controller/`` that catches a bare ``Exception``. Every entry point (each bus
@@ -142,18 +143,25 @@ class SafeStateKeeper:
     # ------------------------------------------------------------------ deciding
     def step(self, t: float) -> SafetyStatus:
         """Step the supervisor; on entering SAFE zero the offsets at once, on RUN resume."""
-        status = self.supervisor.step(t)
+        sup = self.supervisor
+        safe_since = sup.since_s
+        status = sup.step(t)
         self.status = status
         if status.changed:
             if status.state is SafetyState.SAFE:
                 self._report.count("safe_entries")
                 reason = self.describe(status.missing)
-                self._report.emit(t, EventKind.SAFE_STATE, f"safe state: {reason}",
-                                  reason=reason)
+                wait = sup.recovery_required_s
+                again = f" (recovery after {wait:.2f} s: back-off)" if sup.backoff_level > 1 else ""
+                self._report.emit(t, EventKind.SAFE_STATE, f"safe state: {reason}{again}",
+                                  reason=reason, data={"missing": list(status.missing),
+                                                       "recovery_s": wait,
+                                                       "backoff_level": sup.backoff_level})
                 self.zero_offsets(t)  # at once, whichever cycle noticed (non-blocking CAN)
             else:
                 self._report.count("recoveries")
-                self._report.emit(t, EventKind.RECOVERED, "recovered: control resumed")
+                self._report.emit(t, EventKind.RECOVERED, "recovered: control resumed",
+                                  data={"safe_s": t - safe_since})
                 if self.on_recovered is not None:
                     self.on_recovered(t)
         return status

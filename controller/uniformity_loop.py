@@ -1,33 +1,42 @@
 """The uniformity loop: learn per-knife piezo offsets that make every knife cut the same mark.
 
 Pure and clock-injected. Width model (parabolic tip circles, small differences; derivation in
-``docs/control_design.md``): with relative depths ``z_k = offset_k - runout_k`` (um, positive =
-knife k cuts less deep) and pitch ``f`` (mm), the mark of knife k is::
+``docs/control_design.md``): with relative depths ``z_k = a_k - runout_k`` (um, positive = knife
+k cuts less deep; ``a = A o`` the actuator's effective response to the offset table ``o``) and
+pitch ``f`` (mm), the mark of knife k is::
 
     width_k = f + (R / f) * 1e-3 * (z_{k-1} - 2 z_k + z_{k+1})   =  f + G * (D z)_k
 
 ``D`` is the circulant second difference (knife numbering follows the rotation, so the
 neighbours of knife 0 are Z-1 and 1). A knife cutting deeper (smaller ``z_k``) makes its own
 mark wider and both neighbours narrower; a constant ``z`` (the mean offset, i.e. the board
-thickness) changes no width. ``D`` is singular on the constants, so the law uses its
-pseudo-inverse on the zero-mean subspace::
+thickness) changes no width.
 
-    offsets <- P_box( offsets - gamma * D^+ (w - mean(w)) / G )
+Law: a learning update on every image pair against the surface the loop predicts (the Smith
+predictor form, as the feed loop's). The measured board was cut ``L / V`` seconds ago with the
+table in force then, ``o_cut`` (:class:`controller.offset_history.OffsetHistory`, cut times
+from :meth:`controller.feed_loop.FeedLoop.cut_interval_s`), so each pair is a direct estimate of
+the runout as the loop sees it::
 
-``P_box`` is the Euclidean projection onto zero mean and ``|offset| <= stroke - margin``; the
-stored offsets are the projected ones, so a correction that the stroke cannot follow does not
-wind up. With the exact model each learning step multiplies the width error by ``1 - gamma``;
-for a true sensitivity ``alpha G`` the factor is ``1 - gamma alpha``, convergent for
-``0 < gamma alpha < 2``.
+    y     = D^+ (w - mean(w)) / G              width errors in um of offset (= A o_cut - s)
+    s_est = A_hat o_cut - y                    the runout; no integrator, nothing to wind up
+    o*    = argmin_{sum o = 0, |o| <= b} || D (A_hat o - s_est) ||      (controller.offset_qp)
+    o    += g (o* - o),   g = ki Ts / (T_delay + Ts)
 
-A knife that left no mark (``nan``) cuts too shallow relative to its neighbours: its linearised
-width is <= 0. It is taken as 0, which under-states its error (``alpha <= 1`` for that
-direction) but pushes it the right way: the step lowers its offset (it cuts deeper) until the
-mark reappears.
+Before any table the loop sent shows at the camera every pair is an open-loop estimate of the
+same runout: those are averaged (``g = 1 / n``, the first one taken whole), so the first table
+goes out with the first pair and the measured board follows one transport delay later.
 
-One learning step is taken only when the measured board was cut after the previous offsets took
-effect (``cut_at_s >= t_change + settle_s``; without a cut time, ``now_s >= t_change +
-holdoff_s``); :meth:`controller.feed_loop.FeedLoop.cut_interval_s` gives the cut time.
+``A_hat`` is the actuator's effective gain per knife mode, identified online from the same pairs
+(:class:`controller.actuator_id.ActuatorIdentifier`: a slow or hysteretic piezo). With an exact
+model each pair moves the offsets a fraction ``g`` of the way to the constrained optimum and the
+measured board follows one transport delay later; for a true/model gain ratio ``alpha`` per mode
+the loop is the feed loop's ``C = g / (z - 1 + g - g z^-d)`` around ``alpha z^-d``: the margins
+are the same at every feed (``controller.design``). The stored offsets are always a convex
+combination of feasible tables: zero mean, inside the stroke, no windup.
+
+A knife that left no mark (``nan``) is taken as width 0, which under-states its error but pushes
+it the right way; such pairs do not enter the identification.
 """
 
 from __future__ import annotations
@@ -39,12 +48,22 @@ from typing import Any
 
 import numpy as np
 
-from controller.feed_loop import config_from_mapping
+from controller.actuator_id import ActuatorIdentifier
+from controller.feed_loop import config_from_mapping, integral_gain
 from controller.limits import check_time_forward, project_zero_mean_box
+from controller.offset_history import OffsetHistory
+from controller.offset_qp import best_offsets_um
 from core.checks import check_finite, check_int, check_positive, check_range
 
 #: Values of :attr:`UniformityLoop.status` after an update.
-STATUSES = ("stepped", "waiting", "averaging", "deadband", "no_marks", "idle")
+STATUSES = ("stepped", "waiting", "no_marks", "idle")
+
+DEFAULT_MARGIN_UM = 0.01
+"""Default reserve from the stroke, um: ten steps of the CAN codec (1 nm, rounded to the nearest
+step, so a sent offset may exceed the planned one by 0.5 nm). The simulated amplifier refuses an
+offset beyond its stroke and raises the stroke-limit bit when the displacement reaches it (at
+exactly the table's value without hysteresis); with the matched input shaper the displacement
+of a zero-mean table never exceeds the table, and hysteresis only takes some off."""
 
 
 def second_difference(knives: int) -> np.ndarray:
@@ -109,36 +128,48 @@ class UniformityLoopConfig:
     radius_mm : float
         Cutting radius ``R``, mm.
     stroke_um : float
-        Piezo stroke: offsets stay within ``+-(stroke_um - margin_um)``, um.
+        Piezo stroke at start: offsets stay within ``+-(stroke_um - margin_um)``, um (the
+        amplifier's own stroke replaces it at run time: :meth:`UniformityLoop.set_limit_um`).
     margin_um : float
-        Reserve kept from the stroke for the actuator's own dynamics and hysteresis, um.
-    gain : float
-        Learning gain ``gamma`` in (0, 1]; 0.4 keeps >= 6 dB and 45 deg even with a
-        one-step-late measurement (``controller.design``).
+        Reserve kept from the stroke, um (at most half the stroke is kept back). The default,
+        :data:`DEFAULT_MARGIN_UM`, covers the CAN codec's rounding only: the amplifier accepts
+        offsets within its stroke (1 nm steps) and the displacement of a zero-mean table stays
+        within the table (``docs/control_design.md``, "The stroke"); a stack that overshoots
+        needs a larger one.
+    ki : float
+        Learning gain per loop delay (the per-pair gain is ``ki Ts / (T_delay + Ts)``); 2.0
+        keeps >= 7 dB and >= 62 deg at every feed and camera distance (``controller.design``).
     sample_time_s : float
-        Nominal interval between measurements, seconds (documentation of the cadence; the
-        hold-off uses times, not counts).
-    deadband_mm : float
-        No step while every knife's width error ``|w_k - mean(w)|`` is within it, mm.
+        Nominal interval between measurements, seconds.
     settle_s : float
-        Time for new offsets to take effect (CAN, amplifier, next revolution), seconds.
+        Time for a new table to take effect at the cutter (CAN, amplifier, next revolution), s.
     holdoff_s : float
-        Hold-off after a step when the caller gives no cut time (``cut_at_s``), seconds; should
-        exceed the transport delay ``L / V_f`` plus the window.
-    measurements_per_step : int
-        Valid measurements averaged into one learning step (noise).
+        Without cut times (``cut_at_s``) a table counts as visible this long after it was sent,
+        seconds; should exceed the transport delay ``L / V_f`` plus the window.
+    history_s : float
+        How far back the table history reaches (longest transport delay plus the window), s.
+    identify : bool
+        Identify the actuator's gain per knife mode online (else it is taken as ideal).
+    id_lag_pairs, id_min_step_um, id_memory, id_prior_um2, gain_min, gain_max
+        The identification's parameters (:class:`controller.actuator_id.ActuatorIdentifier`).
     """
 
     knives: int = 4
     radius_mm: float = 60.0
     stroke_um: float = 20.0
-    margin_um: float = 2.0
-    gain: float = 0.4
+    margin_um: float = DEFAULT_MARGIN_UM
+    ki: float = 2.0
     sample_time_s: float = 0.1
-    deadband_mm: float = 0.005
     settle_s: float = 0.05
     holdoff_s: float = 2.0
-    measurements_per_step: int = 1
+    history_s: float = 120.0
+    identify: bool = True
+    id_lag_pairs: int = 5
+    id_min_step_um: float = 0.5
+    id_memory: float = 200.0
+    id_prior_um2: float = 1.0
+    gain_min: float = 0.1
+    gain_max: float = 2.0
 
     def __post_init__(self) -> None:
         check_int("knives", self.knives, lo=1)
@@ -147,12 +178,19 @@ class UniformityLoopConfig:
         check_range("margin_um", self.margin_um, 0.0, self.stroke_um)
         if self.margin_um >= self.stroke_um:
             raise ValueError(f"margin_um must be < stroke_um, got {self.margin_um!r}")
-        check_range("gain", self.gain, 1e-6, 1.0)
+        check_range("ki", self.ki, 1e-6, 3.0)
         check_positive("sample_time_s", self.sample_time_s)
-        check_positive("deadband_mm", self.deadband_mm, allow_zero=True)
         check_positive("settle_s", self.settle_s, allow_zero=True)
         check_positive("holdoff_s", self.holdoff_s, allow_zero=True)
-        check_int("measurements_per_step", self.measurements_per_step, lo=1)
+        check_positive("history_s", self.history_s)
+        if not isinstance(self.identify, bool):
+            raise ValueError(f"identify must be true or false, got {self.identify!r}")
+        check_int("id_lag_pairs", self.id_lag_pairs, lo=1)
+        check_positive("id_min_step_um", self.id_min_step_um)
+        check_range("id_memory", self.id_memory, 1.0, 1e9)
+        check_positive("id_prior_um2", self.id_prior_um2)
+        check_range("gain_min", self.gain_min, 1e-3, 1.0)
+        check_range("gain_max", self.gain_max, 1.0, 100.0)
 
     @classmethod
     def from_mapping(
@@ -163,12 +201,17 @@ class UniformityLoopConfig:
 
     @property
     def offset_limit_um(self) -> float:
-        """Largest magnitude of an offset, ``stroke_um - margin_um``."""
-        return self.stroke_um - self.margin_um
+        """Largest magnitude of an offset at the configured stroke, um."""
+        return offset_limit_um(self.stroke_um, self.margin_um)
+
+
+def offset_limit_um(stroke_um: float, margin_um: float) -> float:
+    """``stroke - margin``, but never less than half the stroke (a small amplifier), um."""
+    return max(stroke_um - margin_um, 0.5 * stroke_um)
 
 
 class UniformityLoop:
-    """Iterative learning of per-knife offsets from per-knife mean mark widths.
+    """Delay-aware learning of per-knife offsets from per-knife mean mark widths.
 
     Parameters
     ----------
@@ -177,19 +220,40 @@ class UniformityLoop:
 
     Notes
     -----
-    ``offsets_um`` always has zero mean and every entry within ``cfg.offset_limit_um``.
-    ``status`` tells what the last update did (one of :data:`STATUSES`).
+    ``offsets_um`` always has zero mean and every entry within :attr:`limit_um`. ``status``
+    tells what the last update did (one of :data:`STATUSES`).
     """
 
     def __init__(self, cfg: UniformityLoopConfig) -> None:
         if not isinstance(cfg, UniformityLoopConfig):
             raise ValueError(f"cfg must be a UniformityLoopConfig, got {type(cfg).__name__}")
         self.cfg = cfg
-        self._d_pinv = np.linalg.pinv(second_difference(cfg.knives))
+        z = cfg.knives
+        self._d = second_difference(z)
+        self._d_pinv = np.linalg.pinv(self._d)
+        self._stroke = cfg.stroke_um
+        self._ident = ActuatorIdentifier(
+            z,
+            lag_pairs=cfg.id_lag_pairs,
+            min_step_um=cfg.id_min_step_um,
+            memory=cfg.id_memory,
+            prior_um2=cfg.id_prior_um2,
+            gain_min=cfg.gain_min,
+            gain_max=cfg.gain_max,
+        )
+        self._history = OffsetHistory(z, horizon_s=cfg.history_s)
+        self._disturbance: np.ndarray | None = None
+        self._estimates = 0  # open-loop estimates (board cut with the starting table)
+        self._open_table: np.ndarray | None = np.zeros(z)
         self.reset()
 
+    # -- state ------------------------------------------------------------------------------
     def reset(
-        self, offsets_um: Sequence[float] | None = None, *, now_s: float | None = None
+        self,
+        offsets_um: Sequence[float] | None = None,
+        *,
+        now_s: float | None = None,
+        forget: bool = False,
     ) -> None:
         """Start again from ``offsets_um`` (projected into the stroke) or from zero.
 
@@ -198,7 +262,10 @@ class UniformityLoop:
         offsets_um : sequence of float, shape (Z,), optional
             Offsets in force (e.g. learnt on the previous board), um; default zeros.
         now_s : float, optional
-            When they took effect; the first learning step then waits until they are visible.
+            When they took effect: board cut before then (plus ``settle_s``) is not learnt from.
+            Without it they count as always in force.
+        forget : bool
+            Also forget the runout estimate and the identified actuator gains (a new machine).
         """
         z = self.cfg.knives
         if offsets_um is None:
@@ -207,19 +274,116 @@ class UniformityLoop:
             start = np.asarray(offsets_um, dtype=float)
             if start.shape != (z,) or not np.all(np.isfinite(start)):
                 raise ValueError(f"offsets_um must be {z} finite values, got {offsets_um!r}")
-            start = project_zero_mean_box(start, bound=self.cfg.offset_limit_um)
+            start = project_zero_mean_box(start, bound=self.limit_um)
+        t = -math.inf if now_s is None else check_finite("now_s", now_s)
         self._offsets = start
-        self._t_change = None if now_s is None else check_finite("now_s", now_s)
-        self._t_last = self._t_change
-        self._acc: list[np.ndarray] = []
+        self._history.restart(start, t)
+        self._t_last = None if now_s is None else t
+        self._undo: tuple[np.ndarray, bool, np.ndarray | None] | None = None
+        if forget:
+            self._disturbance = None
+            self._estimates = 0
+            self._open_table = start.copy()
+            self._ident.reset()
         self.status = "idle"
         self.steps = 0
+        self.last_gain = 0.0
 
     @property
     def offsets_um(self) -> np.ndarray:
-        """Current offsets per knife, um (a copy; zero mean, inside the stroke)."""
+        """Current offsets per knife, um (a copy; zero mean, inside the limit)."""
         return self._offsets.copy()
 
+    @property
+    def stroke_um(self) -> float:
+        """The stroke the loop plans within (configured, or the amplifier's), um."""
+        return self._stroke
+
+    @property
+    def limit_um(self) -> float:
+        """Largest magnitude of an offset, um (the stroke less the margin)."""
+        return offset_limit_um(self._stroke, self.cfg.margin_um)
+
+    @property
+    def mode_gains(self) -> np.ndarray:
+        """Identified effective actuator gain per Fourier mode of the knives (complex, (Z,))."""
+        return self._ident.mode_gains
+
+    @property
+    def runout_estimate_um(self) -> np.ndarray | None:
+        """The runout as the loop sees it (zero mean, um), ``None`` before a measurement."""
+        return None if self._disturbance is None else self._disturbance.copy()
+
+    def set_limit_um(self, stroke_um: float, *, now_s: float | None = None) -> np.ndarray:
+        """Plan within a new stroke from now on (e.g. the amplifier's, read over CAN).
+
+        The offsets in force are re-planned at once when they lie outside the new limit: the
+        best table within it for the runout estimate (or, before any measurement, the one whose
+        widths come nearest to the present table's). A larger stroke is used by the next
+        learning steps.
+
+        Parameters
+        ----------
+        stroke_um : float
+            The stroke, um (> 0); the loop keeps ``margin_um`` of it (at most half).
+        now_s : float, optional
+            When a re-planned table goes out (default: the last update's time).
+
+        Returns
+        -------
+        ndarray, shape (Z,)
+            The offsets to apply, um (unchanged when they fit).
+        """
+        self._stroke = check_positive("stroke_um", stroke_um)
+        self._undo = None  # a table from before the change is never taken back
+        bound = self.limit_um
+        if np.max(np.abs(self._offsets)) <= bound + 1e-12:
+            return self.offsets_um
+        a_hat = self._ident.matrix()
+        target = self._disturbance if self._disturbance is not None else a_hat @ self._offsets
+        new = project_zero_mean_box(
+            best_offsets_um(target, width_operator=self._d, actuator=a_hat, bound_um=bound),
+            bound=bound,
+        )
+        t = now_s if now_s is not None else self._t_last
+        self._set(new, -math.inf if t is None else check_finite("now_s", t))
+        self._undo = None
+        return self.offsets_um
+
+    def reject(self) -> np.ndarray:
+        """The offsets the last update returned never reached the amplifier.
+
+        They leave the history (the board is cut with the table really in force) and
+        :attr:`offsets_um` goes back to that table. What the update learnt stays. After
+        :meth:`set_limit_um` nothing is taken back (the old table may not fit the new stroke).
+
+        Returns
+        -------
+        ndarray, shape (Z,)
+            The offsets in force, um.
+        """
+        if self._undo is not None:
+            prev, appended, replaced = self._undo
+            self._undo = None
+            if appended or replaced is not None:
+                self._history.pop(replaced)
+            self._offsets = prev
+        return self.offsets_um
+
+    def _set(self, new: np.ndarray, t: float) -> None:
+        prev = self._offsets
+        self._offsets = new
+        appended, replaced = False, None
+        if not np.array_equal(new, prev):
+            if math.isfinite(t):  # never before the newest entry (a re-plan stamped ahead)
+                n0 = len(self._history)
+                replaced = self._history.append(new, max(t, self._history.last_change_s))
+                appended = len(self._history) > n0
+            else:
+                self._history.restart(new)
+        self._undo = (prev, appended, replaced)
+
+    # -- the law ----------------------------------------------------------------------------
     def update(
         self,
         *,
@@ -227,6 +391,7 @@ class UniformityLoop:
         pitch_mm: float,
         now_s: float,
         cut_at_s: float | None = None,
+        cut_until_s: float | None = None,
     ) -> np.ndarray:
         """Take one measurement; return the offsets to apply (um, one per knife).
 
@@ -236,13 +401,14 @@ class UniformityLoop:
             Mean mark width of each knife in the measured window, mm; ``nan`` where the knife
             left no mark.
         pitch_mm : float
-            Measured pitch (mean mark width), mm.
+            Measured travel per knife pass, mm.
         now_s : float
             Current time, seconds (never decreasing).
-        cut_at_s : float, optional
-            When the first mark of the measured window was cut, seconds (e.g. from
-            :meth:`controller.feed_loop.FeedLoop.cut_interval_s`); without it the hold-off is
-            ``holdoff_s`` after the last change.
+        cut_at_s, cut_until_s : float, optional
+            When the first and the last mark of the measured window were cut, seconds (from
+            :meth:`controller.feed_loop.FeedLoop.cut_interval_s`); ``cut_until_s`` defaults to
+            ``cut_at_s``. Without them the table in force counts as the measured board's once
+            it has been in force for ``holdoff_s``.
 
         Returns
         -------
@@ -260,35 +426,60 @@ class UniformityLoop:
             raise ValueError("knife_widths_mm must be >= 0, finite or nan")
         if cut_at_s is not None:
             check_finite("cut_at_s", cut_at_s)
-        if self._t_change is not None:
-            visible = (
-                cut_at_s >= self._t_change + cfg.settle_s
-                if cut_at_s is not None
-                else t >= self._t_change + cfg.holdoff_s
-            )
-            if not visible:
-                self.status = "waiting"
-                return self.offsets_um
+        if cut_until_s is not None:
+            check_finite("cut_until_s", cut_until_s)
+        self._undo = None
+        self.last_gain = 0.0
         if np.all(np.isnan(w)) or cfg.knives == 1:
             self.status = "no_marks"
             return self.offsets_um
-        self._acc.append(np.nan_to_num(w, nan=0.0))  # a vanished mark has width 0
-        if len(self._acc) < cfg.measurements_per_step:
-            self.status = "averaging"
+        if cut_at_s is not None:
+            t0 = cut_at_s - cfg.settle_s
+            t1 = (cut_at_s if cut_until_s is None else cut_until_s) - cfg.settle_s
+            o_cut = self._history.mean_over(t0, t1)
+            delay_s = t - 0.5 * (t0 + t1)
+        elif t >= self._history.last_change_s + cfg.holdoff_s:
+            o_cut, delay_s = self._history.latest(), cfg.holdoff_s
+        else:
+            o_cut, delay_s = None, 0.0
+        if o_cut is None:
+            self.status = "waiting"
             return self.offsets_um
-        w_mean = np.mean(self._acc, axis=0)
-        self._acc.clear()
-        err = w_mean - w_mean.mean()
-        if float(np.max(np.abs(err))) <= cfg.deadband_mm:
-            self.status = "deadband"
-            return self.offsets_um
-        step = -cfg.gain * (self._d_pinv @ err) / width_sensitivity_mm_per_um(f, cfg.radius_mm)
-        new = project_zero_mean_box(self._offsets + step, bound=cfg.offset_limit_um)
-        self._offsets = new
-        self._t_change = t
+        err = np.nan_to_num(w, nan=0.0)  # a vanished mark has width 0
+        err = err - err.mean()
+        y = self._d_pinv @ err / width_sensitivity_mm_per_um(f, cfg.radius_mm)
+        if cfg.identify and np.all(np.isfinite(w)):
+            self._ident.add(o_cut, y)
+        a_hat = self._ident.matrix()
+        s_est = a_hat @ o_cut - y
+        s_est -= s_est.mean()
+        g = min(integral_gain(cfg.ki, cfg.sample_time_s, delay_s), 1.0)
+        if self._open_table is not None and np.allclose(o_cut, self._open_table, atol=1e-9):
+            # board cut with the table the loop started from: open-loop estimates of the same
+            # runout, so the first one is taken whole and the next ones averaged in
+            g = max(g, 1.0 / (self._estimates + 1))
+            self._estimates += 1
+        else:
+            self._open_table = None  # the loop's own tables show: the scheduled gain from now
+        prev = s_est if self._disturbance is None else self._disturbance
+        self._disturbance = prev + g * (s_est - prev)
+        bound = self.limit_um
+        best = best_offsets_um(
+            s_est, width_operator=self._d, actuator=a_hat, bound_um=bound, start_um=self._offsets
+        )
+        new = project_zero_mean_box(self._offsets + g * (best - self._offsets), bound=bound)
+        self._set(new, t)
+        self.last_gain = g
         self.steps += 1
         self.status = "stepped"
         return self.offsets_um
+
+    def predicted_widths_mm(self, pitch_mm: float) -> np.ndarray | None:
+        """Widths the offsets in force will cut by the loop's model (``None`` before a pair)."""
+        if self._disturbance is None:
+            return None
+        z = self._ident.matrix() @ self._offsets - self._disturbance
+        return linear_widths_mm(z, pitch_mm=pitch_mm, radius_mm=self.cfg.radius_mm)
 
 
 def width_cv(widths_mm: Sequence[float]) -> float:

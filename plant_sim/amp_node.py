@@ -18,7 +18,12 @@ Behaviour (see ``docs/piezo_can.md``):
 * frames the node sends itself (status, heartbeat) and unknown ids are ignored on receive.
 
 :meth:`AmpNode.start_receiving` reads the bus on a thread of its own (``planer sim``), so frames
-leave the bus at once whatever the stepping thread does.
+leave the bus at once whatever the stepping thread does. That thread stamps each frame with its
+arrival on the wall clock; with a time base (:meth:`AmpNode.set_timebase`: the runner's mapping
+of wall time to machine time) a frame reaches the machine at the machine time it arrived, not
+earlier, so a stepping thread that catches up after a stall does not pile a stall's commands
+onto one instant and then run on without any (which the setpoint timeout would judge as
+silence).
 
 Faults: ``drop_rx`` drops a fraction of received frames, or all of them in a time window;
 ``silence`` stops the node sending in a time window (the CAN side going silent).
@@ -31,7 +36,9 @@ import math
 import queue
 import random
 import threading
-from collections.abc import Sequence
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -44,6 +51,8 @@ RX_POLL_S = 0.05
 """How long the receiving thread waits on the bus before it checks whether to stop, s."""
 RX_START_TIMEOUT_S = 10.0
 """How long :meth:`AmpNode.start_receiving` waits for its thread to have set its priority, s."""
+ARRIVAL_TOLERANCE_S = 1e-9
+"""A frame whose machine arrival time is this close after ``now_s`` is delivered now, s."""
 
 
 class AmpMachine(Protocol):
@@ -232,6 +241,7 @@ class AmpNodeCore:
             self._next_heartbeat_s = _next(self._next_heartbeat_s, self.heartbeat_period_s, now_s)
             if not silent:
                 out.append(self.codec.encode_heartbeat(nmt_state=piezo_can.NMT_OPERATIONAL))
+                out.extend(self._limits())  # PIEZO_LIMITS rides with the heartbeat
         self.sent += len(out)
         return out
 
@@ -249,6 +259,22 @@ class AmpNodeCore:
         )
         self._alive = (self._alive + 1) % 256
         return frame
+
+    def _limits(self) -> list[Frame]:
+        """PIEZO_LIMITS from the amplifier's own limits (none if its machine reports none).
+
+        The machine's ``piezo_limits()``, else its amplifier's ``limits()``
+        (``plant_sim/piezo.py``): stroke, accepted offsets, slew limit, setpoint timeout.
+        """
+        report = getattr(self.machine, "piezo_limits", None) or getattr(
+            getattr(self.machine, "amp", None), "limits", None)
+        if report is None:
+            return []
+        lim = report()
+        return [self.codec.encode_limits(
+            stroke_um=lim.stroke_um, offset_min_um=lim.offset_min_um,
+            offset_max_um=lim.offset_max_um, slew_max_um_ms=lim.slew_max_um_ms,
+            setpoint_timeout_ms=lim.setpoint_timeout_ms)]
 
 
 def _next(scheduled: float | None, period: float, now_s: float) -> float:
@@ -276,18 +302,40 @@ class AmpNode:
         self.core = core
         self.own_bus = own_bus
         self.send_errors = 0
-        self._rx: queue.SimpleQueue[Any] | None = None
+        self._rx: queue.SimpleQueue[tuple[float, Any]] | None = None
+        self._early: deque[tuple[float, Any]] = deque()  # received, not yet due on machine time
+        self._stamp: Callable[[], float] = time.monotonic
+        self._to_machine: Callable[[float], float] | None = None
+        self._last_command_stamp: float | None = None
+        self.command_gap_max_s = 0.0
+        """Longest wall gap between two ``PIEZO_COMMAND`` frames received on the receiving
+        thread since :meth:`take_command_gap` (the service's side of the setpoint timeout)."""
         self._rx_stop = threading.Event()
         self._rx_thread: threading.Thread | None = None
         self._rx_started = threading.Event()
         self.rx_priority: str | None = None
+
+    def set_timebase(self, clock: Callable[[], float],
+                     to_machine: Callable[[float], float] | None) -> None:
+        """Stamp received frames with ``clock`` and hand each over at ``to_machine(stamp)``.
+
+        Parameters
+        ----------
+        clock : callable
+            Wall clock the receiving thread stamps frames with, s.
+        to_machine : callable or None
+            Machine time of a wall stamp (the runner's current mapping); ``None``: every frame
+            is handed over at the next :meth:`receive`.
+        """
+        self._stamp = clock
+        self._to_machine = to_machine
 
     def start_receiving(self, *, realtime: bool = False) -> None:
         """Read the bus on a thread of its own (frames are queued for :meth:`receive`).
 
         So frames are taken off the bus at once, however busy the stepping thread is; the
         machine still sees them at its own time, in the order received. ``realtime``: the
-        thread asks for real-time scheduling (:func:`plant_sim.interfaces.raise_priority`);
+        thread asks for real-time scheduling (:func:`core.realtime.raise_priority`);
         :attr:`rx_priority` says what it got.
         """
         if self._rx_thread is not None:
@@ -301,7 +349,7 @@ class AmpNode:
     def _read_bus(self, realtime: bool = False) -> None:
         import can
 
-        from plant_sim.interfaces import raise_priority
+        from core.realtime import raise_priority
 
         assert self._rx is not None
         try:
@@ -316,17 +364,46 @@ class AmpNode:
                     log.warning("CAN receive failed: %s", exc)
                 return
             if msg is not None:
-                self._rx.put(msg)
+                stamp = self._stamp()
+                if msg.arbitration_id == self.core.codec.command_id:
+                    last = self._last_command_stamp
+                    if last is not None and stamp - last > self.command_gap_max_s:
+                        self.command_gap_max_s = stamp - last
+                    self._last_command_stamp = stamp
+                self._rx.put((stamp, msg))
+
+    @property
+    def receiving(self) -> bool:
+        """Whether the bus is read on the node's own thread (:meth:`start_receiving`)."""
+        return self._rx_thread is not None
+
+    def take_command_gap(self) -> float:
+        """:attr:`command_gap_max_s` so far, and start the next window, s."""
+        gap, self.command_gap_max_s = self.command_gap_max_s, 0.0
+        return gap
 
     def receive(self, now_s: float, *, max_frames: int = 1000) -> int:
-        """Hand received frames to the core (non-blocking); returns how many were read."""
+        """Hand received frames to the core (non-blocking); returns how many were read.
+
+        With a time base (:meth:`set_timebase`) a frame that arrived after machine time
+        ``now_s`` (the machine runs behind the wall clock and is catching up) waits for a later
+        call; the frames keep their order.
+        """
         n = 0
         while n < max_frames:
             if self._rx is not None:
-                try:
-                    msg = self._rx.get_nowait()
-                except queue.Empty:
-                    break
+                if self._early:
+                    stamp, msg = self._early[0]
+                else:
+                    try:
+                        stamp, msg = self._rx.get_nowait()
+                    except queue.Empty:
+                        break
+                    self._early.append((stamp, msg))
+                to_machine = self._to_machine
+                if to_machine is not None and to_machine(stamp) > now_s + ARRIVAL_TOLERANCE_S:
+                    break  # not yet arrived on the machine's clock
+                self._early.popleft()
             else:
                 msg = self.bus.recv(timeout=0.0)
                 if msg is None:

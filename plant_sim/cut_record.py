@@ -3,7 +3,8 @@
 At every knife's bottom dead centre (BDC) the machine model (:class:`plant_sim.machine.Machine`)
 calls :meth:`CutRecord.bdc`: the pass is recorded for the board under the cutter (5 mm clear
 of its ends) as the board coordinate of the cutter axis, the cut bottom
-``-standout_k + x_piezo`` (um) and the knife. Knife 0 at BDC is also the index pulse: the
+``-standout_k(t) + x_piezo`` (um; the stand-out drifts with machine time when the head has a
+:class:`plant_sim.surface.RunoutDrift`) and the knife. Knife 0 at BDC is also the index pulse: the
 encoder's raw count there goes into a ring of the last :data:`INDEX_RING` pulses, from which the
 camera's index latch is taken (:meth:`CutRecord.index_latch`). Only the last few boards are kept.
 """
@@ -16,7 +17,7 @@ import numpy as np
 
 from core.checks import check_int
 from plant_sim.feed_drive import BoardStream, Encoder
-from plant_sim.surface import Passes
+from plant_sim.surface import Passes, RunoutDrift
 
 __all__ = ["INDEX_RING", "CutRecord", "PassLog"]
 
@@ -75,11 +76,18 @@ class CutRecord:
         Where the boards are.
     encoder : plant_sim.feed_drive.Encoder
         The feed encoder (raw counts at the index pulses).
+    drift : plant_sim.surface.RunoutDrift, optional
+        Warm-up and wear added to the stand-out at each pass's machine time.
     """
 
     def __init__(self, standout_um: Sequence[float], radius_mm: float, *,
-                 boards: BoardStream, encoder: Encoder) -> None:
+                 boards: BoardStream, encoder: Encoder,
+                 drift: RunoutDrift | None = None) -> None:
         self._standout = [float(v) for v in standout_um]
+        if drift is not None and drift.knives != len(self._standout):
+            raise ValueError(f"drift must have one value per knife ({len(self._standout)}), "
+                             f"got {drift.knives}")
+        self.drift = drift if drift is not None and drift.active else None
         self.radius_mm = radius_mm
         self.boards = boards
         self.encoder = encoder
@@ -88,8 +96,13 @@ class CutRecord:
         self._idx_raw = np.zeros(INDEX_RING, dtype=np.int64)
         self._idx_n = 0
 
-    def bdc(self, knife: int, s_mm: float, piezo_um: float) -> None:
-        """Knife ``knife`` at BDC with the table at ``s_mm`` and the head displaced ``piezo_um``."""
+    def standout_um(self, knife: int, t_s: float) -> float:
+        """Stand-out of knife ``knife`` at machine time ``t_s`` (runout, eccentricity, drift)."""
+        base = self._standout[knife]
+        return base if self.drift is None else base + self.drift.knife_um(knife, t_s)
+
+    def bdc(self, knife: int, s_mm: float, piezo_um: float, *, t_s: float = 0.0) -> None:
+        """Knife ``knife`` at BDC at time ``t_s``: table at ``s_mm``, head at ``piezo_um``."""
         if knife == 0:
             i = self._idx_n % INDEX_RING
             self._idx_s[i] = s_mm
@@ -103,7 +116,7 @@ class CutRecord:
             log = self.logs[bid] = PassLog(self.radius_mm)
             for old in [k for k in self.logs if k < bid - _BOARDS_KEPT]:
                 del self.logs[old]
-        log.append(x, piezo_um - self._standout[knife], knife)
+        log.append(x, piezo_um - self.standout_um(knife, t_s), knife)
 
     def index_latch(self, s_cut_mm: float) -> int:
         """Counter value (wrapped) at the index pulse nearest to table position ``s_cut_mm``."""

@@ -49,6 +49,7 @@ class FeedDrive:
         self.t_c = 0.0
         self.enabled = True
         self._k = 2.0 * math.pi * cfg.bandwidth_hz
+        self._amax = cfg.accel_max_mm_s2
 
     def set_setpoint(self, feed_mm_s: float) -> None:
         """New setpoint; ``ValueError`` outside ``[min_mm_s, max_mm_s]`` (never clamped)."""
@@ -61,9 +62,11 @@ class FeedDrive:
     def start_cycle(self, t_s: float, dt_s: float) -> None:
         """Choose the acceleration for the cycle ``[t_s, t_s + dt_s)``."""
         self.t_c = t_s
-        goal = self.setpoint_mm_s if self.enabled else 0.0
-        err = goal - self.v_mm_s
-        amax = self.cfg.accel_max_mm_s2
+        err = (self.setpoint_mm_s if self.enabled else 0.0) - self.v_mm_s
+        if err == 0.0:  # at the goal (the steady state): what the lines below give
+            self.a_mm_s2 = 0.0
+            return
+        amax = self._amax
         a = max(-amax, min(amax, self._k * err))
         if abs(a) * dt_s >= abs(err):  # reach the goal within the cycle, never overshoot
             a = err / dt_s

@@ -16,8 +16,9 @@ from typing import Any
 
 from config.sim import SimConfig
 from plant_sim.camera import FrameAssembler, Knot, Latch, TriggerClock
-from plant_sim.cut_record import CutRecord
+from plant_sim.cut_record import CutRecord, PassLog
 from plant_sim.feed_drive import BoardStream, Encoder, FeedDrive
+from plant_sim.surface import Passes
 from protocol.frames import Frame
 
 __all__ = ["FrameCapture", "build_renderer"]
@@ -107,20 +108,25 @@ class FrameCapture:
         self.knots: list[Knot] = []
         self.frames_dropped = 0
         self.pending_slip: int | None = None
+        self._due_s = -math.inf  # the next trigger A or B, once known
 
     def events_until(self, t1: float, frames: list[Frame]) -> None:
         """Fire every trigger due up to ``t1`` s; completed frames are appended to ``frames``."""
+        if t1 < self._due_s:  # runs every PLC cycle: nothing is due before the next trigger
+            return
+        trig = self.triggers
         while True:
             la = self.latch
-            tn = self.triggers.next_time()
+            tn = trig.k * trig.period_s  # TriggerClock.next_time(), inlined
             tb = la.t_b if la is not None else math.inf
             if tb <= t1 and tb <= tn:
-                self._trigger_b(la, frames)
+                self._trigger_b(la, frames)  # type: ignore[arg-type]
             elif tn <= t1:
-                self.triggers.consume()
+                trig.consume()
                 if la is None:
                     self._trigger_a(tn)
             else:
+                self._due_s = min(tn, tb)  # latch and clock change only here
                 break
 
     def shift_latch(self, delta_counts: int) -> None:
@@ -168,9 +174,24 @@ class FrameCapture:
             return
         try:
             frame = self.assembler.assemble(
-                la, log.passes(), self.knots, board_length_mm=self.boards.length_mm
+                la, self._near_passes(log, la.x_centre_mm), self.knots,
+                board_length_mm=self.boards.length_mm,
             )
         except ValueError:
             self.frames_dropped += 1
             return
         frames.append(frame)
+
+    def _near_passes(self, log: PassLog, x_centre_mm: float) -> Passes:
+        """The passes of ``log`` the assembler keeps for a field centred at ``x_centre_mm``.
+
+        The same selection as :meth:`plant_sim.camera.FrameAssembler.assemble` makes first
+        (``Passes.slice(lo, hi, margin_mm=MARGIN_MM)``), taken from the log's arrays directly:
+        the whole board's passes are not copied and checked for every pair.
+        """
+        a = self.assembler
+        lo, hi = a.field_mm(x_centre_mm)
+        n = log.n
+        x = log.x[:n]
+        sel = (x >= lo - a.MARGIN_MM) & (x <= hi + a.MARGIN_MM)
+        return Passes(x[sel], log.bottom[:n][sel], log.knife[:n][sel], log.radius_mm)

@@ -12,21 +12,43 @@ Lock/queue discipline (see :mod:`plant_sim.plc_server`): the interface thread re
 snapshot the stepping thread publishes (under the server's lock) and queues accepted writes; the
 stepping thread applies them in order before it advances the machine.
 
-Priority (:func:`raise_priority`, :func:`lower_priority`): a real PLC does not stop answering
-because a PC is busy, so the PLC process and the CAN receive thread ask the OS for real-time
-scheduling (``SCHED_FIFO`` at a low priority; else a raised nice value; else they run at normal
-priority and the banner says so), while the render workers run at a lowered one and the stepping
-thread at normal priority: on a loaded host the interfaces and the service win.
+Priority (:mod:`core.realtime`, one definition for the simulator and the service, re-exported
+here): a real PLC does not stop answering because a PC is busy, so the PLC process and the CAN
+receive thread ask the OS for real-time scheduling (``SCHED_FIFO`` at a low priority, with
+``SCHED_RESET_ON_FORK``; else a raised nice value; else they run at normal priority and the
+banner says so), while the render workers and the stepping thread run at normal priority: on a
+loaded host the interfaces and the service's bus thread win.
 """
 
 from __future__ import annotations
 
 import asyncio
-import os
 import threading
 from collections.abc import Coroutine
 from concurrent.futures import Future
 from typing import Any, TypeVar
+
+from core.realtime import (
+    INTERFACE_NICE,
+    INTERFACE_RT_PRIORITY,
+    RENDER_NICE,
+    RT_CPU_LIMIT_S,
+    guard_realtime,
+    lower_priority,
+    raise_priority,
+)
+
+__all__ = [
+    "INTERFACE_NICE",
+    "INTERFACE_RT_PRIORITY",
+    "RENDER_NICE",
+    "RT_CPU_LIMIT_S",
+    "InterfaceLoop",
+    "ServedPlc",
+    "guard_realtime",
+    "lower_priority",
+    "raise_priority",
+]
 
 T = TypeVar("T")
 
@@ -94,114 +116,3 @@ class ServedPlc:
         """Listen (``True``) or stop listening and drop every client (``False``)."""
         self.io.run(self.plc.start() if up else self.plc.stop())
 
-
-# ---------------------------------------------------------------------------------------------
-# Priority: the interfaces answer like a PLC's, the heavy parts yield (issue 14)
-# ---------------------------------------------------------------------------------------------
-
-INTERFACE_RT_PRIORITY = 10
-"""SCHED_FIFO priority of the PLC process and the CAN receive thread (1..99; low: above every
-normal process, below the kernel's own real-time threads)."""
-INTERFACE_NICE = -10
-"""Nice value asked for when real-time scheduling is not permitted."""
-RENDER_NICE = 0
-"""Nice value of the render workers: normal. Lowered (nice 10) against six CPU hogs they got
-about 2-3 % of a core each, the simulated clock fell to 0.13-0.17 and the machine was held for
-its images long enough for the service to see "can gone" (measured; docs/simulator.md)."""
-RT_CPU_LIMIT_S = 0.5
-"""CPU seconds a real-time PLC process may run without blocking before the kernel signals it
-(``RLIMIT_RTTIME``); it then drops to normal scheduling instead of starving the host."""
-
-
-def raise_priority(*, rt_priority: int = INTERFACE_RT_PRIORITY, nice: int = INTERFACE_NICE,
-                   os_module: Any = None) -> str:
-    """Ask the OS to schedule the calling thread (Linux: thread; elsewhere process) first.
-
-    Tries ``SCHED_FIFO`` at ``rt_priority``, then a nice value of ``nice``; never raises.
-
-    Parameters
-    ----------
-    rt_priority : int
-        Real-time priority, 1..99.
-    nice : int
-        Nice value to fall back on, -20..19.
-    os_module : module, optional
-        The ``os`` module (tests inject a stand-in).
-
-    Returns
-    -------
-    str
-        What was granted, e.g. ``"SCHED_FIFO 10"`` or ``"nice -10"``, or ``"normal (...)"``
-        with the reason when neither was permitted.
-    """
-    o = os if os_module is None else os_module
-    reasons = []
-    fifo = getattr(o, "SCHED_FIFO", None)
-    if fifo is not None and hasattr(o, "sched_setscheduler"):
-        try:
-            o.sched_setscheduler(0, fifo, o.sched_param(int(rt_priority)))
-            return f"SCHED_FIFO {int(rt_priority)}"
-        except (OSError, ValueError) as exc:
-            reasons.append(f"SCHED_FIFO: {getattr(exc, 'strerror', None) or exc}")
-    else:
-        reasons.append("SCHED_FIFO: not offered by this OS")
-    try:
-        if hasattr(o, "setpriority"):
-            o.setpriority(o.PRIO_PROCESS, 0, int(nice))
-        else:
-            o.nice(int(nice) - o.nice(0))
-        return f"nice {int(nice)}"
-    except (OSError, ValueError, AttributeError) as exc:
-        reasons.append(f"nice {int(nice)}: {getattr(exc, 'strerror', None) or exc}")
-    return f"normal ({'; '.join(reasons)})"
-
-
-def lower_priority(nice: int = RENDER_NICE, *, os_module: Any = None) -> str:
-    """Give the calling thread (Linux; elsewhere process) the nice value ``nice``; never raises.
-
-    Returns
-    -------
-    str
-        ``"nice 10"``, or ``"normal (...)"`` with the reason.
-    """
-    o = os if os_module is None else os_module
-    try:
-        if hasattr(o, "setpriority"):
-            o.setpriority(o.PRIO_PROCESS, 0, int(nice))
-        else:
-            o.nice(int(nice) - o.nice(0))
-        return f"nice {int(nice)}"
-    except (OSError, ValueError, AttributeError) as exc:
-        return f"normal (nice {int(nice)}: {getattr(exc, 'strerror', None) or exc})"
-
-
-def guard_realtime(*, limit_s: float = RT_CPU_LIMIT_S) -> bool:
-    """Drop the process to normal scheduling if it ever runs ``limit_s`` without blocking.
-
-    A safety net for a real-time process (a bug that spins would otherwise take a core from
-    the host): ``RLIMIT_RTTIME`` makes the kernel send ``SIGXCPU``, and the handler switches
-    the main thread back to ``SCHED_OTHER``. Call from the main thread. Returns whether the
-    guard is in place.
-    """
-    import resource
-    import signal
-
-    if not (hasattr(resource, "RLIMIT_RTTIME") and hasattr(signal, "SIGXCPU")):
-        return False
-
-    def demote(signum: int, frame: Any) -> None:  # pragma: no cover - only on a spin
-        import contextlib
-
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-
-    try:
-        us = int(limit_s * 1e6)
-        hard = resource.getrlimit(resource.RLIMIT_RTTIME)[1]
-        if hard != resource.RLIM_INFINITY:
-            us = min(us, hard)
-        resource.setrlimit(resource.RLIMIT_RTTIME, (us, hard))
-        signal.signal(signal.SIGXCPU, demote)
-    except (OSError, ValueError):
-        return False
-    return True

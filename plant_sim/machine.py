@@ -15,7 +15,8 @@ The machine composes parts with one job each:
   :mod:`plant_sim.piezo` (actuator and amplifier);
 - :class:`plant_sim.cut_record.CutRecord`: the cut. At every knife's BDC the pass is recorded for
   the board under the cutter: board coordinate of the cutter axis and ``bottom_um =
-  -(runout_k + eccentricity term) +`` the actual piezo displacement at that instant. The surface
+  -(runout_k + eccentricity term + drift_k(t)) +`` the actual piezo displacement at that
+  instant (``drift_k``: the knives' warm-up and wear, ``[cutterhead.drift]``). The surface
   under the camera is the envelope of those passes (:mod:`plant_sim.surface`), so compensation
   genuinely changes the surface;
 - :class:`plant_sim.frame_capture.FrameCapture`: the camera's triggers, latches and frames;
@@ -36,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from config.sim import SimConfig
+from config.sim import DriftConfig, SimConfig
 from core.checks import check_finite, check_int, check_positive
 from plant_sim.camera import Knot
 from plant_sim.cut_record import CutRecord
@@ -47,14 +48,21 @@ from plant_sim.piezo import FAULT as PIEZO_FAULT
 from plant_sim.piezo import PiezoAmplifier, PiezoStatus
 from plant_sim.plc_registers import PlcRegisters, register_names
 from plant_sim.spindle import Spindle
-from plant_sim.surface import Cutterhead, Passes, Surface
+from plant_sim.surface import Cutterhead, Passes, RunoutDrift, Surface
 from protocol.frames import Frame
 from protocol.registers import MachineState, PlcFault
 
-__all__ = ["Machine", "PiezoStatus", "register_names"]
+__all__ = ["Machine", "PiezoStatus", "register_names", "runout_drift"]
 
 
 _EPS_S = 1e-9
+
+
+def runout_drift(cfg: DriftConfig | None) -> RunoutDrift | None:
+    """The knives' warm-up and wear of ``[cutterhead.drift]`` (``None`` without the table)."""
+    if cfg is None:
+        return None
+    return RunoutDrift(cfg.warmup_um, cfg.warmup_tau_s, cfg.wear_um_per_min)
 
 
 class Machine:
@@ -75,7 +83,7 @@ class Machine:
     cfg : SimConfig
         The configuration.
     head : plant_sim.surface.Cutterhead
-        Knives, radius, runout and eccentricity.
+        Knives, radius, runout, eccentricity and drift (warm-up and wear).
     cut : plant_sim.cut_record.CutRecord
         The knife passes per board and the index pulses.
     capture : plant_sim.frame_capture.FrameCapture
@@ -94,8 +102,9 @@ class Machine:
         r_ripple, r_sensor, r_knot, r_drop = (np.random.default_rng(s) for s in ss.spawn(4))
         ch = cfg.cutterhead
         self.knives = ch.knives
-        self.head = Cutterhead(ch.knives, ch.radius_mm, tuple(ch.runout_um), ch.eccentricity_um)
-        self._standout = [float(v) for v in self.head.standout_um()]
+        self.head = Cutterhead(ch.knives, ch.radius_mm, tuple(ch.runout_um), ch.eccentricity_um,
+                               drift=runout_drift(ch.drift))
+        self._standout = [float(v) for v in self.head.standout_um()]  # at t = 0: no drift yet
         self.cycle_s = cfg.plc.cycle_s
         self.spindle = Spindle(cfg.spindle, ripple_phase_rad=float(r_ripple.uniform(0, 2 * np.pi)))
         self.feed = FeedDrive(cfg.feed)
@@ -106,7 +115,7 @@ class Machine:
         self.L_mm = cfg.camera.cutter_to_camera_mm
         self.renderer = build_renderer(cfg, seed=self.seed) if self.render_images else None
         self.cut = CutRecord(self._standout, self.head.radius_mm, boards=self.boards,
-                             encoder=self.encoder)
+                             encoder=self.encoder, drift=self.head.drift)
         self.capture = FrameCapture(cfg, feed=self.feed, encoder=self.encoder,
                                     boards=self.boards, cut=self.cut, renderer=self.renderer)
         self.assembler = self.capture.assembler
@@ -198,7 +207,8 @@ class Machine:
                 else:
                     tb = min(max(tb, t0), t1)
                     amp.advance_to(tb)
-                    self.cut.bdc(nb % z, self.feed.position_at(tb), amp.actuator.x_um)
+                    self.cut.bdc(nb % z, self.feed.position_at(tb), amp.actuator.x_um,
+                                 t_s=tb)
                     self._next_bdc = nb + 1
         amp.advance_to(t1)
         self.capture.events_until(t1, frames)
@@ -368,8 +378,8 @@ class Machine:
         return self.boards.at(self.feed_position_mm, self.L_mm)
 
     def standout_um(self) -> list[float]:
-        """True radial stand-out of each knife (runout plus eccentricity), um."""
-        return list(self._standout)
+        """True radial stand-out of each knife now (runout, eccentricity, drift), um."""
+        return [self.cut.standout_um(k, self._t) for k in range(self.knives)]
 
     def pitch_mm(self) -> float:
         """Nominal feed per knife pass from the current speeds, mm."""

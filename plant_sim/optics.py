@@ -49,6 +49,12 @@ with ``Optics.oversample``; one row per pixel along y), blurred along the feed b
 (exact box average of the radiance), then resampled at the precomputed positions of the distorted
 pixels with :func:`cv2.remap`; illumination (LED imbalance, fall-off) is applied per pixel, then
 shot and read noise, then quantisation with saturation.
+
+Cost (issue 11): per image the work is a fixed number of passes over the board grid and the
+image, in float32, with no per-pixel Python; the texture window is interpolated in one
+``cv2.addWeighted`` and the sensor noise drawn by OpenCV's generator seeded from the
+renderer's stream (:func:`standard_normal_f32`); ``tests/test_sim_speed_optics.py`` holds
+the step-by-step reference formulas the images must equal.
 """
 
 from __future__ import annotations
@@ -543,19 +549,20 @@ class Renderer:
     # -- rendering -------------------------------------------------------------------------
 
     def _tile_window(self, tile: np.ndarray, c0: int, n: int, frac: float) -> np.ndarray:
-        """Columns ``c0 + frac .. c0 + frac + n - 1`` of a padded periodic tile (linear in x)."""
+        """Columns ``c0 + frac .. c0 + frac + n - 1`` of a padded periodic tile (linear in x).
+
+        Shape ``(rows, n)``, float32; when ``frac`` is 0 a view into the tile (never write to it).
+        """
         c0 %= self._period
         if c0 + n + 1 <= tile.shape[1]:
             win = tile[:, c0 : c0 + n + 1]
         else:  # a window longer than the padding (extreme motion blur)
             win = tile[:, (c0 + np.arange(n + 1)) % self._period]
         if frac < 1e-9:
-            return win[:, :n].copy()
-        f = np.float32(frac)
-        out = win[:, 1:] - win[:, :n]
-        out *= f
-        out += win[:, :n]
-        return out
+            return win[:, :n]  # a view: the caller must not write into it
+        # (1 - f) w[j] + f w[j + 1] in one pass (equal to w[j] + f (w[j + 1] - w[j]) within
+        # float32 rounding; tests/test_sim_speed_optics.py)
+        return cv2.addWeighted(win[:, :n], 1.0 - frac, win[:, 1:], frac, 0.0)
 
     def _scatter_tile(self, field_: np.ndarray, length_mm: float, anisotropy: float) -> np.ndarray:
         """``(1 - a) f + a K * f`` of a tile (periodic along x), K the scattering kernel."""
@@ -656,12 +663,11 @@ class Renderer:
             a = self._scatter_a
             g = (1.0 - a) * g[m:-m] + a * np.convolve(g, self._scatter_kernel, mode="valid")
             c = c[m:-m]
-        rad = self._tile_window(self._tile_rho, c0, n, frac)
-        rad *= g.astype(np.float32)[None, :]
-        rough = self._tile_window(self._tile_r[which], c0, n, frac)
-        rough *= c.astype(np.float32)[None, :]
-        rad -= rough
-        np.maximum(rad, 0.0, out=rad)
+        rad = np.multiply(self._tile_window(self._tile_rho, c0, n, frac),
+                          g.astype(np.float32)[None, :])
+        rad -= np.multiply(self._tile_window(self._tile_r[which], c0, n, frac),
+                           c.astype(np.float32)[None, :])
+        cv2.max(rad, 0.0, dst=rad)  # np.maximum's NaN handling costs 3x; rad has no NaN
         kernel = self._pixel_kernel
         if blur_cols > 1e-3:
             kernel = np.convolve(kernel, _box_kernel(blur_cols)).astype(np.float32)
@@ -686,14 +692,15 @@ class Renderer:
             img *= f
         o = self.optics
         if o.shot_noise or o.read_noise_dn > 0:
+            noise = standard_normal_f32(rng, img.shape)
             if o.shot_noise:
-                var = np.maximum(img, 0.0)
+                var = cv2.max(img, 0.0)
                 var *= np.float32(self._dn_per_e)
                 var += np.float32(o.read_noise_dn**2)
-                sd = np.sqrt(var, out=var)
+                noise *= cv2.sqrt(var, dst=var)
             else:
-                sd = np.float32(o.read_noise_dn)
-            img += sd * rng.standard_normal(img.shape, dtype=np.float32)
+                noise *= np.float32(o.read_noise_dn)
+            img += noise
         if not o.quantize:
             return img
         img += 0.5
@@ -790,6 +797,31 @@ class Renderer:
             speed_mm_s=v,
             truth=truth,
         )
+
+
+def standard_normal_f32(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Independent standard normal samples, float32, drawn for one image from ``rng``'s stream.
+
+    One integer drawn from ``rng`` seeds OpenCV's generator (thread-local), which fills the
+    array: the same distribution as ``rng.standard_normal(shape, dtype=np.float32)`` (i.i.d.
+    N(0, 1); tests/test_sim_speed_optics.py checks it) and deterministic for ``rng``'s state,
+    at a fifth of the cost (the ziggurat of numpy's generator took 60 % of a rendered pair).
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        The noise stream (advanced by one draw).
+    shape : tuple of int
+        Shape of the result.
+
+    Returns
+    -------
+    ndarray, float32, shape ``shape``
+    """
+    out = np.empty(shape, dtype=np.float32)
+    cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
+    cv2.randn(out, 0.0, 1.0)
+    return out
 
 
 def _exp_kernel(length_cols: float) -> np.ndarray:

@@ -23,7 +23,9 @@ and the output steps to knife k's offset. With ``input_shaper`` every step is sp
 ``K = exp(-zeta pi / sqrt(1 - zeta^2))``), which cancels the resonance's ringing, so the
 displacement has settled when the knife cuts. States (CAN ``PIEZO_STATUS.state``): 0 disabled,
 1 enabled and tracking, 2 ramping to zero after a setpoint timeout, 3 fault. Fault bits: 0
-over-temperature, 1 stroke limit reached, 2 setpoint timeout, 3 overcurrent.
+over-temperature, 1 stroke limit reached, 2 setpoint timeout, 3 overcurrent. Its limits
+(:meth:`PiezoAmplifier.limits`, CAN ``PIEZO_LIMITS``) come from its own configuration: the stroke,
+the offsets it accepts (``+-stroke``), no slew limit (0) and its setpoint timeout.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ __all__ = [
     "RAMPING",
     "PiezoActuator",
     "PiezoAmplifier",
+    "PiezoLimits",
     "PiezoStatus",
 ]
 
@@ -74,6 +77,29 @@ class PiezoStatus:
     fault: int
     state: int
     alive_counter: int
+
+
+@dataclass(frozen=True)
+class PiezoLimits:
+    """The limits the amplifier enforces and reports (CAN ``PIEZO_LIMITS``).
+
+    Attributes
+    ----------
+    stroke_um : float
+        The actuator's stroke, um.
+    offset_min_um, offset_max_um : float
+        The offsets it accepts in a table, um; a table with one outside is refused.
+    slew_max_um_ms : float
+        Largest output slew rate, um/ms; 0: not limited (the simulated amplifier steps).
+    setpoint_timeout_ms : float
+        Without a new ``PIEZO_COMMAND`` for this long it ramps to zero, ms.
+    """
+
+    stroke_um: float
+    offset_min_um: float
+    offset_max_um: float
+    slew_max_um_ms: float
+    setpoint_timeout_ms: float
 
 
 class PiezoActuator:
@@ -150,11 +176,17 @@ class PiezoActuator:
         tau = t_s - self.t_s
         if tau <= 0.0:
             return
-        a, b, c, d = self._transition(tau)
+        # _transition(tau) inlined, the same expressions bit for bit (runs ~2000 times per
+        # simulated second; tests/test_sim_speed_model.py compares the two)
+        ex = math.exp(-self.sigma * tau)
+        wd, wn = self.wd, self.wn
+        c = math.cos(wd * tau)
+        s = math.sin(wd * tau)
+        k = self.sigma / wd
         e = self.x_um - self.level_um
         v = self.v_um_s
-        self.x_um = self.level_um + a * e + b * v
-        self.v_um_s = c * e + d * v
+        self.x_um = self.level_um + ex * (c + k * s) * e + ex * s / wd * v
+        self.v_um_s = -ex * s * wn * wn / wd * e + ex * (c - k * s) * v
         self.t_s = t_s
 
     def displacement_at(self, t_s: np.ndarray) -> np.ndarray:
@@ -263,6 +295,17 @@ class PiezoAmplifier:
                 raise ValueError(f"offsets_um[{i}] must be within +-{stroke} um, got {v!r}")
             out.append(f)
         return out[: self.knives]
+
+    def limits(self) -> PiezoLimits:
+        """What the amplifier reports of its limits: from its own configuration."""
+        stroke = float(self.cfg.stroke_um)
+        return PiezoLimits(
+            stroke_um=stroke,
+            offset_min_um=-stroke,
+            offset_max_um=stroke,
+            slew_max_um_ms=0.0,
+            setpoint_timeout_ms=float(self.cfg.timeout_s) * 1e3,
+        )
 
     def inject_fault(self, t_s: float, bits: int) -> None:
         """Amplifier fault (e.g. overcurrent): output to zero, state 3."""

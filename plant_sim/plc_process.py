@@ -124,7 +124,7 @@ def _serve(shm_name: str, rmap: RegisterMap, host: str, port: int, unit_id: int,
     """The server process: serve the shared snapshot; obey ``control``; send writes."""
     import signal
 
-    from plant_sim.interfaces import guard_realtime, raise_priority
+    from core.realtime import guard_realtime, raise_priority
     from plant_sim.plc_server import PlcServer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
@@ -234,7 +234,7 @@ class PlcProcess:
         Modbus unit id served; default the map's.
     realtime : bool
         The server process asks for real-time scheduling (``SCHED_FIFO``, else a raised nice
-        value: :func:`plant_sim.interfaces.raise_priority`); :attr:`priority` says what it got.
+        value: :func:`core.realtime.raise_priority`); :attr:`priority` says what it got.
 
     Attributes
     ----------

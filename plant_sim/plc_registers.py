@@ -22,6 +22,12 @@ from protocol.registers import MachineState, PlcFault, RegisterMap
 
 _HEARTBEAT_LOST = int(PlcFault.HEARTBEAT_LOST)
 _FEED_DRIVE = int(PlcFault.FEED_DRIVE)
+# machine_state bits as plain ints: building an IntFlag per read cost more than the rest of it
+_RUNNING = int(MachineState.RUNNING)
+_BOARD_PRESENT = int(MachineState.BOARD_PRESENT)
+_ESTOP = int(MachineState.ESTOP)
+_SPINDLE_RUNNING = int(MachineState.SPINDLE_RUNNING)
+_FEED_ENABLED = int(MachineState.FEED_ENABLED)
 
 __all__ = ["PlcRegisters", "register_names"]
 
@@ -68,6 +74,7 @@ class PlcRegisters:
         self.L_mm = cfg.camera.cutter_to_camera_mm
         self._watchdog_s = cfg.plc.watchdog_ms * 1e-3
         self._names = register_names()
+        self._names_checked = False
         self.estop = False
         self._faults = 0  # the register's bits as a plain int: IntFlag arithmetic is slow per cycle
         self.heartbeat_plc = 0
@@ -92,12 +99,13 @@ class PlcRegisters:
         return (not self.estop and self.spindle.running
                 and not (self._faults & _FEED_DRIVE))
 
-    def set_flag(self, bit: PlcFault, on: bool) -> None:
-        """Set or clear one bit of the ``faults`` register."""
+    def set_flag(self, bit: PlcFault | int, on: bool) -> None:
+        """Set or clear one bit of the ``faults`` register (a ``PlcFault`` or its int value)."""
+        b = int(bit)
         if on:
-            self._faults |= int(bit)
-        else:
-            self._faults &= ~int(bit)
+            self._faults |= b
+        elif self._faults & b:
+            self._faults &= ~b
 
     def set_service_heartbeat(self, value: int, t_s: float) -> None:
         """The service's heartbeat at ``t_s``; a changed value feeds the watchdog."""
@@ -109,18 +117,22 @@ class PlcRegisters:
 
     def machine_state(self, t_s: float) -> MachineState:
         """The ``machine_state`` register's bits at ``t_s``."""
-        s = self.feed.position_at(t_s)
-        st = MachineState(0)
-        if self.spindle.running:
-            st |= MachineState.SPINDLE_RUNNING
-        if self.feed.enabled:
-            st |= MachineState.FEED_ENABLED
-        if self.spindle.running and self.feed.enabled and not self.estop:
-            st |= MachineState.RUNNING
+        return MachineState(self._state_bits(self.boards.at(self.feed.position_at(t_s),
+                                                            self.L_mm)[0]))
+
+    def _state_bits(self, board_id: int) -> int:
+        """``machine_state`` as an int, given the board under the camera (0: none)."""
+        running = self.spindle.running
+        enabled = self.feed.enabled
+        st = _BOARD_PRESENT if board_id else 0
+        if running:
+            st |= _SPINDLE_RUNNING
+        if enabled:
+            st |= _FEED_ENABLED
         if self.estop:
-            st |= MachineState.ESTOP
-        if self.boards.at(s, self.L_mm)[0]:
-            st |= MachineState.BOARD_PRESENT
+            st |= _ESTOP
+        elif running and enabled:
+            st |= _RUNNING
         return st
 
     def values(self, t_s: float) -> dict[str, float | int]:
@@ -131,25 +143,26 @@ class PlcRegisters:
         RuntimeError
             The register map names a register the machine has no value for.
         """
-        s = self.feed.position_at(t_s)
+        feed = self.feed
+        s = feed.position_at(t_s)
         cfg = self.cfg
         last = self.capture.last_pair
-        bid, _ = self.boards.at(s, self.L_mm)
+        bid = self.boards.at(s, self.L_mm)[0]
         values: dict[str, float | int] = {
             "heartbeat_service": self.heartbeat_service,
             "heartbeat_plc": self.heartbeat_plc,
-            "feed_setpoint_mm_s": self.feed.setpoint_mm_s,
+            "feed_setpoint_mm_s": feed.setpoint_mm_s,
             "feed_min_mm_s": cfg.feed.min_mm_s,
             "feed_max_mm_s": cfg.feed.max_mm_s,
             "feed_accel_max_mm_s2": cfg.feed.accel_max_mm_s2,
-            "feed_actual_mm_s": self.feed.speed_at(t_s),
+            "feed_actual_mm_s": feed.speed_at(t_s),
             "spindle_rpm": self.spindle.rpm,
             "encoder_counts": self.encoder.read(s),
             "trigger_a_counts": last.counts_a if last else 0,
             "trigger_b_counts": last.counts_b if last else 0,
             "trigger_seq": (last.seq if last else 0) & 0xFFFF,
             "index_latch_counts": last.index_latch if last else 0,
-            "machine_state": int(self.machine_state(t_s)),
+            "machine_state": self._state_bits(bid),
             "faults": self._faults,
             "knives": self.knives,
             "cutter_to_camera_mm": self.L_mm,
@@ -159,7 +172,9 @@ class PlcRegisters:
             "watchdog_ms": cfg.plc.watchdog_ms,
             "cutterhead_radius_mm": self.radius_mm,
         }
-        missing = [n for n in self._names if n not in values]
-        if missing:
-            raise RuntimeError(f"machine has no value for registers {missing}")
+        if not self._names_checked:  # the keys above are fixed: check them against the map once
+            missing = [n for n in self._names if n not in values]
+            if missing:
+                raise RuntimeError(f"machine has no value for registers {missing}")
+            self._names_checked = True
         return values

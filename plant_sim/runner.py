@@ -6,8 +6,9 @@ Threads and processes (``SimRunner.from_config``, as ``planer sim`` runs it):
   and drives it through the one :class:`~plant_sim.driver.PlantDriver`: so that machine time
   follows ``time_scale`` x wall time (clock and sleep injected: tests run on simulated time);
 * the **PLC process** (:class:`~plant_sim.plc_process.PlcProcess`, at real-time priority where
-  permitted, like the CAN receive thread: :func:`plant_sim.interfaces.raise_priority`; the
-  banner's ``priority:`` line says what they got) serves Modbus TCP: it reads
+  permitted, like the CAN receive thread: :func:`core.realtime.raise_priority`, guarded by
+  :func:`core.realtime.guard_realtime`; the banner's ``priority:`` line says what they got)
+  serves Modbus TCP: it reads
   the register snapshot the stepping thread publishes every iteration (shared memory, sequence
   lock) and sends accepted writes back, which the driver applies in order before the next step;
   the amplifier node (:mod:`plant_sim.amp_node`) reads its CAN bus on a thread of its own;
@@ -18,7 +19,12 @@ Threads and processes (``SimRunner.from_config``, as ``planer sim`` runs it):
 
 When the host cannot keep up (the render backlog grows, or stepping falls behind the wall clock),
 the runner does not catch up in bursts nor skip frames: the simulated clock slows itself (the
-interfaces keep answering), and the runner says so once, with the factor achieved.
+interfaces keep answering), and the runner says so once, with the factor achieved. Machine time
+never runs ahead of ``time_scale`` x wall time by more than :data:`MAX_LAG_S` (the catch-up
+after a short stall), so a fault of ``duration_s`` machine seconds (``modbus_restart``,
+``can_silence``) lasts at least that long on the wall clock (less at most ``MAX_LAG_S``), as a
+real one would, and CAN frames reach the amplifier at the machine time they arrived
+(:meth:`plant_sim.amp_node.AmpNode.set_timebase`).
 
 Faults: the machine injects every ``[faults] inject`` entry itself (at its ``at_s``), and hands
 the interface faults due to the driver (``machine.take_interface_events()``): ``modbus_restart``
@@ -41,26 +47,28 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from plant_sim.amp_node import AmpNode, AmpNodeCore
+from core.realtime import RENDER_NICE, guard_realtime
+from plant_sim.amp_node import AmpNode
 from plant_sim.driver import INTERFACE_FAULTS, PlantDriver
-from plant_sim.interfaces import RENDER_NICE, InterfaceLoop, ServedPlc
+from plant_sim.interfaces import InterfaceLoop, ServedPlc
 from plant_sim.plc_process import PlcProcess
 from plant_sim.plc_server import PlcServer
-from protocol.can_transport import bus_from_config, describe_bus
-from protocol.piezo_can import PiezoCodec
-from protocol.registers import RegisterMap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["INTERFACE_FAULTS", "RunSummary", "SimRunner", "parse_banner"]
+__all__ = ["CLOCK_KEY", "INTERFACE_FAULTS", "RunSummary", "SimRunner", "parse_banner"]
 
 MAX_PENDING_WRITES = 8
 """Frames queued for the writer thread before the runner waits for it."""
 MAX_STEPS_PER_ITERATION = 200
 """Steps done before yielding to the event loop when the machine runs late."""
-MAX_LAG_S = 1.0
+MAX_LAG_S = 0.05
 """Wall seconds the machine may fall behind its clock and catch up (at most
-:data:`MAX_STEPS_PER_ITERATION` steps at a time); further behind, the clock slows instead."""
+:data:`MAX_STEPS_PER_ITERATION` steps at a time); further behind, the clock slows instead. Was
+1.0: after a one-second stall a starved stepping thread caught up in a burst, squeezing a
+1.5 s ``modbus_restart`` below the service's 0.5 s PLC timeout and delivering a stall's CAN
+commands at one instant followed by a gap the amplifier's 0.1 s setpoint timeout judged as
+silence (measured under six CPU hogs; docs/reliability.md). Well below that timeout."""
 MAX_RENDER_BACKLOG = 3
 """Pairs waiting for their images (per worker) above which the machine goes slower (twice
 as many: it waits)."""
@@ -70,6 +78,11 @@ SLOW_REPORT_AFTER_S = 3.0
 """Wall seconds after the first slow-down over which the achieved time scale is measured."""
 SLOW_REPORT_BELOW = 0.9
 """A slow-down is reported when the achieved time scale is below this fraction of the asked one."""
+CLOCK_KEY = "sim_clock_s"
+"""Key of ``Frame.truth`` stamped with the runner's clock (default ``time.monotonic``: on one
+host the service's clock too) when the step that captured the pair ran: maps the camera's
+machine time onto the service's clock exactly, however much the simulated clock slowed (the
+HIL summary judges the faults' timing with it)."""
 TICK_S = 0.002
 """Machine time stepped per wake-up at most as often (fewer wake-ups on a busy host), s."""
 
@@ -207,6 +220,9 @@ class SimRunner:
         self._stop = asyncio.Event()
         self.driver = PlantDriver(machine, amp=amp, plc=plc, plc_switch=self, say=self.say)
         self.description: dict[str, str] = {}
+        self._anchor: tuple[float, float] | None = None  # (wall, machine) the clock runs from
+        self.achieved_scale: float | None = None
+        """The time scale achieved over a slow-down, once said (``None``: never slowed)."""
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -259,58 +275,14 @@ class SimRunner:
         **kwargs
             Passed to the constructor (``clock``, ``sleep``, ``out``...).
         """
-        from protocol.frames import SpoolWriter
+        from plant_sim.runner_wiring import wire_runner
 
-        render = None
-        if machine is None:
-            from plant_sim.machine import Machine
-            from plant_sim.render_worker import RenderPool
-
-            machine = Machine(cfg, seed=seed, render_images=False)
-            if render_images:
-                machine.assembler.defer_rendering()
-                render = (RenderPool, render_workers)
-        rmap = RegisterMap.load()
-        plc = PlcProcess(
-            machine,
-            register_map=rmap,
-            host=cfg.modbus.host,
-            port=cfg.modbus.port if modbus_port is None else modbus_port,
-            unit_id=cfg.modbus.unit_id,
-            realtime=realtime_interfaces,
+        return wire_runner(
+            cls, cfg, machine=machine, seed=seed, render_images=render_images,
+            render_workers=render_workers, render_nice=render_nice,
+            realtime_interfaces=realtime_interfaces, time_scale=time_scale,
+            modbus_port=modbus_port, spool_dir=spool_dir, sink=sink, can_bus=can_bus, **kwargs,
         )
-        own_bus = can_bus is None
-        bus = bus_from_config(cfg.can) if own_bus else can_bus
-        try:  # a failure from here on (unusable spool folder, bad option) closes our bus
-            core = AmpNodeCore(machine, PiezoCodec.load(), knives=cfg.cutterhead.knives,
-                               seed=seed)
-            amp = AmpNode(bus, core, own_bus=own_bus)
-            if sink is None:
-                directory = Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir)
-                sink = SpoolWriter(directory, keep=cfg.frames.keep)
-            if render is not None:  # a spool is written by the one render worker
-                pool_cls, workers = render
-                spool = sink if isinstance(sink, SpoolWriter) else None
-                render = pool_cls(cfg, seed=seed, workers=workers, writer=spool,
-                                  nice=render_nice)
-            runner = cls(
-                machine,
-                plc=plc,
-                amp=amp,
-                sink=sink,
-                render=render,
-                threaded_interfaces=True,
-                realtime_interfaces=realtime_interfaces,
-                time_scale=cfg.run.time_scale if time_scale is None else time_scale,
-                step_s=cfg.run.step_s,
-                **kwargs,
-            )
-        except BaseException:
-            if own_bus:
-                bus.shutdown()
-            raise
-        runner.description["can"] = describe_bus(cfg.can.interface, cfg.can.channel)
-        return runner
 
     # ------------------------------------------------------------------ faults
     def schedule(self, at_s: float, fault: str, **params: Any) -> None:
@@ -364,7 +336,12 @@ class SimRunner:
             self.say(f"modbus: {host}:{port} unit {self.plc.unit_id}")
         if self.amp is not None:
             if self.threaded_interfaces:
+                if not math.isinf(self.time_scale):
+                    self.amp.set_timebase(self.clock, self.machine_time_at)
                 self.amp.start_receiving(realtime=self.realtime_interfaces)
+                if self.realtime_interfaces and (self.amp.rx_priority or "").startswith(
+                        "SCHED_FIFO"):
+                    guard_realtime()  # a spinning receive thread drops to normal scheduling
             self.description.setdefault("can", type(self.amp.bus).__name__)
             self.say(f"can: {self.description['can']}")
         line = self._priority_line()
@@ -377,6 +354,19 @@ class SimRunner:
             desc = f"spool {where} keep {keep}" if where is not None else "in-process"
             self.description["frames"] = desc
             self.say(f"frames: {desc}")
+
+    def machine_time_at(self, wall_s: float) -> float:
+        """Machine time the clock assigns to wall time ``wall_s`` (``-inf`` before the run).
+
+        The mapping in force now: ``time_scale`` x wall time from the current anchor (moved
+        whenever the clock slowed itself); a frame that arrived before the anchor maps to
+        before the machine's present and is handed over at once.
+        """
+        anchor = self._anchor
+        if anchor is None:
+            return -math.inf
+        wall0, sim0 = anchor
+        return sim0 + (wall_s - wall0) * self.time_scale
 
     def _priority_line(self) -> str | None:
         """What the interfaces and workers were granted (``None``: nothing was asked)."""
@@ -455,6 +445,8 @@ class SimRunner:
         frames = self.driver.step(self.step_s, publish=False)
         self.summary.steps += 1
         for f in frames:
+            if isinstance(f.truth, dict):  # when, on this host's clock, the pair was taken
+                f.truth[CLOCK_KEY] = self.clock()
             if self.render is not None:
                 self.render.submit(f, self.machine.assembler.take_job(f.seq))
             else:
@@ -506,6 +498,7 @@ class SimRunner:
         m = self.machine
         wall0 = wall_anchor = prev_wall = self.clock()
         sim0 = sim_anchor = float(m.t_s)
+        self._anchor = (wall_anchor, sim_anchor)
         end = math.inf if duration_s is None else sim0 + duration_s
         next_progress = sim0 + self.progress_every_s
         tol = 1e-6 * self.step_s
@@ -526,6 +519,7 @@ class SimRunner:
                 if lag > MAX_LAG_S * scale:  # far behind: the clock goes on from here
                     self.summary.slowed_s += lag / scale
                     sim_anchor, wall_anchor, target = now_sim, now_wall, now_sim
+                    self._anchor = (wall_anchor, sim_anchor)
                     if slow_since is None and not said:
                         slow_since = (now_wall, now_sim)
                 if backlog > MAX_RENDER_BACKLOG:  # the renderer is behind: go slower
@@ -550,6 +544,7 @@ class SimRunner:
                 if span >= SLOW_REPORT_AFTER_S:
                     achieved = (now_sim - slow_since[1]) / span
                     if achieved < SLOW_REPORT_BELOW * self.time_scale:
+                        self.achieved_scale = achieved
                         self.say(
                             f"slow host: the simulated clock slowed itself to {achieved:.2f} "
                             f"simulated s per wall s (asked {self.time_scale:g}); Modbus and "
@@ -596,6 +591,8 @@ class SimRunner:
             parts.append(f"modbus={s.modbus_requests} req/{s.modbus_refused} refused")
         if self.amp is not None:
             parts.append(f"can rx={s.can_received} tx={s.can_sent} dropped={s.can_dropped}")
+            if self.amp.receiving:  # the service's commands, as they arrived
+                parts.append(f"command gap max={self.amp.take_command_gap() * 1e3:.0f} ms")
         return "  ".join(parts)
 
 

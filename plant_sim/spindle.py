@@ -45,23 +45,38 @@ class Spindle:
         self.rev_s = self.nominal_rev_s
         self.t_c = 0.0
         self.mode = RUN
+        # set up once (the same expressions as per cycle, so the results are bit-identical)
+        self._goal = {RUN: self.nominal_rev_s, COAST: 0.0, BRAKE: 0.0}
+        self._tau = {RUN: cfg.spinup_tau_s, COAST: cfg.coast_tau_s, BRAKE: cfg.brake_tau_s}
+        self._ripple_frac = cfg.ripple_frac
+        self._ripple_w = 2.0 * math.pi * cfg.ripple_hz
+        self._droop = cfg.load_droop_frac
+        self._stop_below = 0.005 * self.nominal_rev_s
+        self._running_from = 0.9 * self.nominal_rev_s
+        self._gains_dt: float | None = None
+        self._gain: dict[str, float] = {}
+        self._load_gain = 0.0
+
+    def _set_gains(self, dt_s: float) -> None:
+        """First-order gains ``1 - exp(-dt / tau)`` of a cycle of ``dt_s`` (once per step size)."""
+        self._gain = {m: 1.0 - math.exp(-dt_s / tau) for m, tau in self._tau.items()}
+        self._load_gain = 1.0 - math.exp(-dt_s / 0.1)
+        self._gains_dt = dt_s
 
     def start_cycle(self, t_s: float, dt_s: float, *, cutting: bool) -> None:
         """Set the speed for the cycle ``[t_s, t_s + dt_s)``."""
-        cfg = self.cfg
         self.t_c = t_s
-        if self.mode == RUN:
-            goal, tau = self.nominal_rev_s, cfg.spinup_tau_s
-        elif self.mode == COAST:
-            goal, tau = 0.0, cfg.coast_tau_s
-        else:
-            goal, tau = 0.0, cfg.brake_tau_s
-        self.drive_rev_s += (goal - self.drive_rev_s) * (1.0 - math.exp(-dt_s / tau))
-        if goal == 0.0 and self.drive_rev_s < 0.005 * self.nominal_rev_s:
-            self.drive_rev_s = 0.0
-        self.load += ((1.0 if cutting else 0.0) - self.load) * (1.0 - math.exp(-dt_s / 0.1))
-        ripple = cfg.ripple_frac * math.sin(2.0 * math.pi * cfg.ripple_hz * t_s + self.ripple_phase)
-        self.rev_s = self.drive_rev_s * (1.0 + ripple - cfg.load_droop_frac * self.load)
+        if dt_s != self._gains_dt:
+            self._set_gains(dt_s)
+        mode = self.mode
+        goal = self._goal[mode]
+        drive = self.drive_rev_s + (goal - self.drive_rev_s) * self._gain[mode]
+        if goal == 0.0 and drive < self._stop_below:
+            drive = 0.0
+        self.drive_rev_s = drive
+        self.load += ((1.0 if cutting else 0.0) - self.load) * self._load_gain
+        ripple = self._ripple_frac * math.sin(self._ripple_w * t_s + self.ripple_phase)
+        self.rev_s = drive * (1.0 + ripple - self._droop * self.load)
 
     def end_cycle(self, dt_s: float) -> None:
         """Advance the angle over the whole cycle."""
@@ -84,7 +99,7 @@ class Spindle:
     @property
     def running(self) -> bool:
         """Drive on and within 10 % of the nominal speed."""
-        return self.mode == RUN and self.drive_rev_s >= 0.9 * self.nominal_rev_s
+        return self.mode == RUN and self.drive_rev_s >= self._running_from
 
     @property
     def turning(self) -> bool:

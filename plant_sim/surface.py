@@ -33,12 +33,94 @@ from core.checks import check_finite, check_int, check_positive
 __all__ = [
     "Cutterhead",
     "Passes",
+    "RunoutDrift",
     "Surface",
     "concat_passes",
     "envelope",
     "passes_steady",
     "pitch_per_pass_mm",
 ]
+
+
+def _per_knife(name: str, values: Sequence[float], knives: int) -> tuple[float, ...]:
+    """``values`` as a tuple of ``knives`` finite floats (a ``ValueError`` names ``name[i]``)."""
+    try:
+        out = tuple(float(v) for v in values)
+    except TypeError:
+        raise ValueError(f"{name} must be a sequence of numbers, got {values!r}") from None
+    if len(out) != knives:
+        raise ValueError(f"{name} must have one value per knife ({knives}), got {len(out)}")
+    for i, v in enumerate(out):
+        check_finite(f"{name}[{i}]", v)
+    return out
+
+
+@dataclass(frozen=True)
+class RunoutDrift:
+    """Slow change of each knife's stand-out over machine time: warm-up and wear.
+
+    Knife ``k`` stands out by an extra::
+
+        drift_k(t) = warmup_um[k] * (1 - exp(-t / warmup_tau_s[k])) - wear_um_per_min[k] * t / 60
+
+    micrometres at machine time ``t >= 0`` (0 before): the warm-up approaches its amplitude
+    with its time constant (thermal growth of the knife and its seat), the wear takes the tip
+    back linearly. ``drift_k(0) = 0``: at the start every knife stands at its runout.
+
+    Parameters
+    ----------
+    warmup_um : tuple of float, shape (Z,)
+        Warm-up amplitude of each knife, um (positive: stands further out when warm).
+    warmup_tau_s : tuple of float, shape (Z,)
+        Warm-up time constant of each knife, seconds (> 0).
+    wear_um_per_min : tuple of float, shape (Z,)
+        Wear rate of each knife (its tip recedes), um per minute (>= 0).
+    """
+
+    warmup_um: tuple[float, ...]
+    warmup_tau_s: tuple[float, ...]
+    wear_um_per_min: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        try:
+            z = len(self.warmup_um)
+        except TypeError:
+            raise ValueError(f"warmup_um must be a sequence of numbers, got "
+                             f"{self.warmup_um!r}") from None
+        if not 1 <= z <= 64:
+            raise ValueError(f"warmup_um must hold one value per knife (1..64), got {z}")
+        amp = _per_knife("warmup_um", self.warmup_um, z)
+        tau = _per_knife("warmup_tau_s", self.warmup_tau_s, z)
+        wear = _per_knife("wear_um_per_min", self.wear_um_per_min, z)
+        for i, v in enumerate(tau):
+            check_positive(f"warmup_tau_s[{i}]", v)
+        for i, v in enumerate(wear):
+            check_positive(f"wear_um_per_min[{i}]", v, allow_zero=True)
+        object.__setattr__(self, "warmup_um", amp)
+        object.__setattr__(self, "warmup_tau_s", tau)
+        object.__setattr__(self, "wear_um_per_min", wear)
+
+    @property
+    def knives(self) -> int:
+        """Number of knives Z."""
+        return len(self.warmup_um)
+
+    @property
+    def active(self) -> bool:
+        """Whether any knife drifts at all."""
+        return any(self.warmup_um) or any(self.wear_um_per_min)
+
+    def knife_um(self, knife: int, t_s: float) -> float:
+        """``drift_k(t)`` of one knife, um (the machine model's per-pass call: no arrays)."""
+        if not t_s > 0.0:
+            return 0.0
+        warm = self.warmup_um[knife] * -math.expm1(-t_s / self.warmup_tau_s[knife])
+        return warm - self.wear_um_per_min[knife] * t_s / 60.0
+
+    def drift_um(self, t_s: float) -> np.ndarray:
+        """``drift_k(t)`` of every knife at machine time ``t_s``, shape (Z,), um."""
+        t = check_finite("t_s", t_s)
+        return np.array([self.knife_um(k, t) for k in range(self.knives)])
 
 
 @dataclass(frozen=True)
@@ -56,12 +138,15 @@ class Cutterhead:
     eccentricity_um : float
         Eccentricity of the cutterhead on its spindle, micrometres: knife ``k`` stands out by an
         extra ``eccentricity_um * cos(2 pi k / knives)``.
+    drift : RunoutDrift or None
+        Warm-up and wear of the knives over machine time (``None``: the runout stays put).
     """
 
     knives: int
     radius_mm: float
     runout_um: tuple[float, ...]
     eccentricity_um: float = 0.0
+    drift: RunoutDrift | None = None
 
     def __post_init__(self) -> None:
         check_int("knives", self.knives, lo=1, hi=64)
@@ -84,12 +169,24 @@ class Cutterhead:
         object.__setattr__(self, "runout_um", runout)
         object.__setattr__(self, "radius_mm", float(self.radius_mm))
         object.__setattr__(self, "eccentricity_um", float(self.eccentricity_um))
+        if self.drift is not None:
+            if not isinstance(self.drift, RunoutDrift):
+                raise ValueError(f"drift must be a RunoutDrift or None, got {self.drift!r}")
+            if self.drift.knives != self.knives:
+                raise ValueError(f"drift must have one value per knife ({self.knives}), got "
+                                 f"{self.drift.knives}")
 
-    def standout_um(self) -> np.ndarray:
-        """Effective radial stand-out of each knife (runout plus eccentricity), shape (Z,), um."""
+    def standout_um(self, t_s: float = 0.0) -> np.ndarray:
+        """Effective radial stand-out of each knife at machine time ``t_s``, shape (Z,), um.
+
+        Runout plus eccentricity, plus the :class:`RunoutDrift` at ``t_s`` (none at 0).
+        """
         k = np.arange(self.knives)
         ecc = self.eccentricity_um * np.cos(2 * np.pi * k / self.knives)
-        return np.asarray(self.runout_um) + ecc
+        out = np.asarray(self.runout_um) + ecc
+        if self.drift is not None:
+            out = out + self.drift.drift_um(t_s)
+        return out
 
 
 @dataclass(frozen=True)
@@ -147,6 +244,15 @@ class Passes:
 
     def select(self, mask: np.ndarray) -> Passes:
         """The passes where the boolean (or index) ``mask`` selects."""
+        if isinstance(mask, np.ndarray) and mask.ndim == 1:
+            # 1-D parts of arrays __post_init__ has checked need no second check (this runs
+            # several times per simulated pair)
+            out = object.__new__(Passes)
+            object.__setattr__(out, "x_mm", self.x_mm[mask])
+            object.__setattr__(out, "bottom_um", self.bottom_um[mask])
+            object.__setattr__(out, "knife", self.knife[mask])
+            object.__setattr__(out, "radius_mm", self.radius_mm)
+            return out
         return Passes(self.x_mm[mask], self.bottom_um[mask], self.knife[mask], self.radius_mm)
 
     def slice(self, x_lo_mm: float, x_hi_mm: float, *, margin_mm: float = 0.0) -> Passes:
@@ -338,6 +444,9 @@ class Surface:
         The envelope passes (sorted by ``x_mm``), for exact evaluation by :meth:`height_at`.
     cusp_heights_um : ndarray, shape (H-1,)
         Height at each cusp, micrometres.
+    source : Passes or None
+        The passes given to :func:`envelope` (``mark_pass`` indexes them), envelope or not:
+        :meth:`metrics` counts the passes that left no mark from them.
     """
 
     x_mm: np.ndarray
@@ -351,6 +460,7 @@ class Surface:
     mark_pass: np.ndarray
     passes: Passes
     cusp_heights_um: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    source: Passes | None = None
 
     @property
     def x_range_mm(self) -> tuple[float, float]:
@@ -396,7 +506,13 @@ class Surface:
             ``pitch_mm`` (mean width), ``uniformity_cv`` (population std / mean of the widths),
             ``depth_um`` (mean depth), ``mark_widths_mm`` (list), ``mark_depths_um`` (list),
             ``cusps_mm`` (list, the cusps bounding those marks), ``knife`` (list), ``n_marks``.
-            With no complete mark the numbers are NaN and the lists empty.
+            With no complete mark the numbers are NaN and the lists empty. From the knife
+            passes between the first and the last of those marks (when the surface knows its
+            ``source`` passes): ``knife_widths_mm`` (list, width sum of each knife's marks per
+            pass of that knife; 0 for a knife whose passes left no mark, NaN for one without
+            a pass there), ``vanished_knives`` (list of those with passes and no mark),
+            ``pass_pitch_mm`` (the marks' width sum per pass) and ``kinematic_cv`` (population
+            std / mean of ``knife_widths_mm``, NaN ones left out).
         """
         sel = self.marks_between(x_lo_mm, x_hi_mm)
         w = self.widths_mm[sel]
@@ -418,6 +534,33 @@ class Surface:
             "cusps_mm": [float(v) for v in cusps],
             "knife": [int(v) for v in self.knife[sel]],
             "n_marks": int(w.size),
+            **self._kinematics(sel),
+        }
+
+    def _kinematics(self, sel: np.ndarray) -> dict[str, object]:
+        """Widths per knife and pass over the selected marks' passes (see :meth:`metrics`)."""
+        src = self.source
+        if src is None or not np.any(sel) or len(src) == 0:
+            return {"knife_widths_mm": [], "vanished_knives": [], "pass_pitch_mm": math.nan,
+                    "kinematic_cv": math.nan}
+        knives = int(src.knife.max()) + 1
+        x_marks = src.x_mm[self.mark_pass[sel]]
+        inside = (src.x_mm >= x_marks.min()) & (src.x_mm <= x_marks.max())
+        _, first = np.unique(src.x_mm[inside], return_index=True)  # one pass per position
+        per_knife = np.bincount(src.knife[inside][first], minlength=knives)
+        w = self.widths_mm[sel]
+        sums = np.bincount(self.knife[sel], weights=w, minlength=knives)
+        marked = np.bincount(self.knife[sel], minlength=knives) > 0
+        widths = np.full(knives, math.nan)
+        has = per_knife > 0
+        widths[has] = sums[has] / per_knife[has]
+        finite = widths[has]
+        mean = float(finite.mean())
+        return {
+            "knife_widths_mm": [float(v) for v in widths],
+            "vanished_knives": [int(k) for k in np.flatnonzero(has & ~marked)],
+            "pass_pitch_mm": float(w.sum() / per_knife.sum()),
+            "kinematic_cv": float(finite.std() / mean) if mean > 0 else math.nan,
         }
 
 
@@ -493,4 +636,5 @@ def envelope(x_mm: np.ndarray, passes: Passes) -> Surface:
         mark_pass=env_idx[1:-1],
         passes=env,
         cusp_heights_um=cusp_h,
+        source=passes,
     )

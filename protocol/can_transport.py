@@ -152,17 +152,37 @@ def bus_from_config(can_cfg: Any) -> Any:
 
 
 # ---------------------------------------------------------------------- private network namespace
+@lru_cache(maxsize=1)
+def _unshare_flag() -> str:
+    """``unshare``'s flag: ``-n`` for root with the right to, else ``-rn``.
+
+    Inside a user namespace (``-r``) a process loses the right to real-time scheduling that the
+    simulated PLC and the service's bus thread ask for (issue 14, :mod:`core.realtime`).
+    """
+    if hasattr(os, "geteuid") and os.geteuid() == 0 and shutil.which("unshare"):
+        try:
+            res = subprocess.run(["unshare", "-n", "true"], capture_output=True, timeout=10,
+                                 check=False)
+        except (OSError, subprocess.SubprocessError):
+            return "-rn"
+        if res.returncode == 0:
+            return "-n"
+    return "-rn"
+
+
 def netns_argv(argv: Sequence[str]) -> list[str]:
     """Command line running ``argv`` in a new private network namespace with lo and multicast.
 
-    ``unshare -rn`` (an unprivileged user and network namespace), ``ip link set lo up``,
-    ``ip route add 224.0.0.0/4 dev lo``, then ``exec argv`` with ``PLANER_PRIVATE_NETNS=1``.
-    Every process ``argv`` starts shares that namespace (and can reach only loopback).
+    ``unshare -rn`` (an unprivileged user and network namespace; ``unshare -n`` when run as
+    root with the right to, so real-time scheduling stays permitted inside), ``ip link set lo
+    up``, ``ip route add 224.0.0.0/4 dev lo``, then ``exec argv`` with
+    ``PLANER_PRIVATE_NETNS=1``. Every process ``argv`` starts shares that namespace (and can
+    reach only loopback).
     """
     if not argv:
         raise ValueError("argv must not be empty")
     script = f'{_NETNS_SETUP} && export {NETNS_ENV}=1 && exec "$@"'
-    return ["unshare", "-rn", "sh", "-c", script, "planer-netns", *map(str, argv)]
+    return ["unshare", _unshare_flag(), "sh", "-c", script, "planer-netns", *map(str, argv)]
 
 
 @lru_cache(maxsize=1)

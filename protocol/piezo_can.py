@@ -9,6 +9,7 @@ PIEZO_COMMAND       0x200  SERVICE  enable, number of knives, the service's aliv
 PIEZO_OFFSETS_0_3   0x210  SERVICE  per-knife offsets of knives 0-3, 0.001 um per bit, signed
 PIEZO_OFFSETS_4_7   0x211  SERVICE  knives 4-7
 PIEZO_STATUS        0x280  AMP      displacement, temperature, fault bits, state, alive counter
+PIEZO_LIMITS        0x281  AMP      stroke, accepted offset range, slew limit, setpoint timeout
 AMP_HEARTBEAT       0x702  AMP      NMT state (5 operational)
 ==================  =====  =======  ===========================================================
 
@@ -33,6 +34,7 @@ COMMAND = "PIEZO_COMMAND"
 OFFSETS = ("PIEZO_OFFSETS_0_3", "PIEZO_OFFSETS_4_7")
 STATUS = "PIEZO_STATUS"
 HEARTBEAT = "AMP_HEARTBEAT"
+LIMITS = "PIEZO_LIMITS"
 
 MAX_KNIVES = 8
 KNIVES_PER_FRAME = 4
@@ -41,6 +43,8 @@ STATUS_PERIOD_S = 0.010
 """The amplifier sends PIEZO_STATUS every 10 ms."""
 HEARTBEAT_PERIOD_S = 0.100
 """The amplifier sends AMP_HEARTBEAT every 100 ms."""
+LIMITS_PERIOD_S = HEARTBEAT_PERIOD_S
+"""The amplifier sends PIEZO_LIMITS with every heartbeat (the first at start)."""
 COMMAND_PERIOD_MAX_S = 0.050
 """The service sends PIEZO_COMMAND at least every 50 ms."""
 
@@ -60,6 +64,9 @@ _REQUIRED = {
     OFFSETS[1]: tuple(f"offset_knife_{k}" for k in range(4, 8)),
     STATUS: ("displacement_um", "temperature_c", "fault", "state", "alive_counter"),
     HEARTBEAT: ("nmt_state",),
+    LIMITS: (
+        "stroke_um", "offset_min_um", "offset_max_um", "slew_max_um_ms", "setpoint_timeout_ms",
+    ),
 }
 
 
@@ -103,7 +110,7 @@ class PiezoCodec:
     Parameters
     ----------
     db : cantools.database.can.Database
-        The loaded DBC database; must define the five messages and their signals.
+        The loaded DBC database; must define the six messages and their signals.
     """
 
     def __init__(self, db: Any) -> None:
@@ -131,6 +138,7 @@ class PiezoCodec:
         self.command_id: int = self.ids[COMMAND]
         self.status_id: int = self.ids[STATUS]
         self.heartbeat_id: int = self.ids[HEARTBEAT]
+        self.limits_id: int = self.ids[LIMITS]
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> PiezoCodec:
@@ -267,6 +275,56 @@ class PiezoCodec:
     def encode_heartbeat(self, *, nmt_state: int = NMT_OPERATIONAL) -> Frame:
         """AMP_HEARTBEAT with the NMT state (5 operational, 127 pre-operational, 4 stopped)."""
         return self._encode(HEARTBEAT, {"nmt_state": nmt_state})
+
+    def encode_limits(
+        self,
+        *,
+        stroke_um: float,
+        offset_min_um: float,
+        offset_max_um: float,
+        slew_max_um_ms: float = 0,
+        setpoint_timeout_ms: float,
+    ) -> Frame:
+        """PIEZO_LIMITS: the limits the amplifier enforces.
+
+        Parameters
+        ----------
+        stroke_um : float
+            The actuator's stroke, um (0..65.535, 1 nm per bit).
+        offset_min_um, offset_max_um : float
+            The offsets it accepts in a table, um (a table with one outside is refused).
+        slew_max_um_ms : float
+            Largest output slew rate, um/ms (0..255, whole numbers; 0: not limited).
+        setpoint_timeout_ms : float
+            Its setpoint timeout, ms (0..510, sent in steps of 2 ms: rounded to the nearest).
+
+        Returns
+        -------
+        (arbitration_id, data) : tuple of int and bytes (8 bytes)
+
+        Raises
+        ------
+        ValueError
+            A value outside its signal's range, not a number, or a slew that is not whole.
+        """
+        try:
+            timeout = float(setpoint_timeout_ms)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"{LIMITS}.setpoint_timeout_ms must be a number, got {setpoint_timeout_ms!r}"
+            ) from None
+        if math.isfinite(timeout):
+            timeout = 2.0 * round(timeout / 2.0)  # the wire's step
+        return self._encode(
+            LIMITS,
+            {
+                "stroke_um": stroke_um,
+                "offset_min_um": offset_min_um,
+                "offset_max_um": offset_max_um,
+                "slew_max_um_ms": slew_max_um_ms,
+                "setpoint_timeout_ms": timeout,
+            },
+        )
 
     # ------------------------------------------------------------------ decoding
     def decode(self, arbitration_id: int, data: bytes) -> tuple[str, dict[str, float | int]]:

@@ -7,6 +7,8 @@ import math
 import control as ct
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from controller.design import (
     DESIGN_FEEDS_MM_S,
@@ -22,8 +24,10 @@ from controller.design import (
     margins,
     mode_eigenvalues,
     settling_time_s,
-    uniformity_margins,
-    uniformity_mode_loop,
+    uniformity_closed_loop_radius,
+    uniformity_delay_samples,
+    uniformity_loop_margins,
+    uniformity_loop_model,
 )
 from controller.feed_loop import FeedLoop, FeedLoopConfig
 from controller.uniformity_loop import UniformityLoopConfig
@@ -163,28 +167,82 @@ def test_mode_eigenvalues():
         assert np.allclose(lam, np.sort(-4 * np.sin(np.pi * np.arange(z) / z) ** 2))
 
 
-@pytest.mark.parametrize("alpha", [0.5, 1.0])
-@pytest.mark.parametrize("delay", [1, 2])
-def test_uniformity_margins(alpha, delay):
-    cfg = UniformityLoopConfig()
-    (row,) = uniformity_margins(cfg, mode_gains=(alpha,), delays=(delay,))
-    assert row.margins.gain_margin_db >= MIN_GAIN_MARGIN_DB
-    assert row.margins.phase_margin_deg >= MIN_PHASE_MARGIN_DEG
-    assert row.contraction < 1.0
-    if delay == 1:  # L = g a / (z - 1): GM = 2 / (g a), error factor |1 - g a|
-        assert row.margins.gain_margin_db == pytest.approx(20 * math.log10(2 / (cfg.gain * alpha)))
-        assert row.contraction == pytest.approx(abs(1 - cfg.gain * alpha))
+CAMERAS = (300.0, 1000.0, 2000.0)
+UCFG = UniformityLoopConfig()
 
 
-@pytest.mark.parametrize(("ga", "stable"), [(0.1, True), (1.0, True), (1.95, True), (2.05, False)])
-def test_learning_converges_iff_gain_times_mode_gain_below_two(ga, stable):
-    loop = uniformity_mode_loop(ga)
-    poles = ct.poles(ct.feedback(loop, 1))
-    assert (np.max(np.abs(poles)) < 1.0) == stable
+def test_uniformity_delay_follows_the_feed_and_the_camera():
+    d, m = uniformity_delay_samples(600.0, UCFG, cutter_to_camera_mm=300.0)
+    assert (d, m) == (math.ceil((0.05 + 0.5) / 0.1) + 1, 1)
+    d2, m2 = uniformity_delay_samples(50.0, UCFG, cutter_to_camera_mm=2000.0)
+    assert d2 == math.ceil((0.05 + 40.0) / 0.1) + 1 and m2 == 8
+    with pytest.raises(ValueError, match="cutter_to_camera_mm"):
+        uniformity_delay_samples(600.0, UCFG, cutter_to_camera_mm=0.0)
 
 
-def test_mode_loop_rejects_bad_arguments():
-    with pytest.raises(ValueError, match="gain"):
-        uniformity_mode_loop(0.0)
-    with pytest.raises(ValueError, match="delay_iterations"):
-        uniformity_mode_loop(0.4, delay_iterations=0)
+def test_uniformity_margins_hold_over_the_feed_range_at_every_camera_distance():
+    rows = uniformity_loop_margins(UCFG, DESIGN_FEEDS_MM_S, CAMERAS)
+    assert len(rows) == len(DESIGN_FEEDS_MM_S) * len(CAMERAS)
+    for r in rows:
+        assert r.margins.gain_margin_db >= MIN_GAIN_MARGIN_DB, r
+        assert r.margins.phase_margin_deg >= MIN_PHASE_MARGIN_DEG, r
+    # the schedule keeps the margins alike: the crossover follows the delay
+    gms = [r.margins.gain_margin_db for r in rows]
+    assert max(gms) - min(gms) < 0.6
+
+
+@settings(max_examples=12, deadline=None)
+@given(feed=st.floats(50.0, 1000.0), camera=st.floats(300.0, 2000.0))
+def test_uniformity_margins_at_any_feed_and_camera(feed, camera):
+    mdl = uniformity_loop_model(UCFG, feed, cutter_to_camera_mm=camera)
+    m = margins(feed_loop_frd(mdl))
+    assert m.gain_margin_db >= MIN_GAIN_MARGIN_DB
+    assert m.phase_margin_deg >= MIN_PHASE_MARGIN_DEG
+
+
+@pytest.mark.parametrize(
+    ("feed", "camera"), [(50.0, 300.0), (300.0, 1000.0), (300.0, 2000.0), (1000.0, 2000.0)]
+)
+def test_uniformity_margins_agree_with_the_closed_loop_poles(feed, camera):
+    """GM and PM from the frequency response against the exact characteristic polynomial.
+
+    A gain error of the identified actuator gain is a real ``alpha``, a phase error a complex
+    one: the loop must be stable just inside each margin and unstable just outside it.
+    """
+    mdl = uniformity_loop_model(UCFG, feed, cutter_to_camera_mm=camera)
+    m = margins(feed_loop_frd(mdl))
+    gm = 10 ** (m.gain_margin_db / 20)
+    assert uniformity_closed_loop_radius(mdl, 1.0) < 1.0
+    assert uniformity_closed_loop_radius(mdl, 0.95 * gm) < 1.0
+    assert uniformity_closed_loop_radius(mdl, 1.05 * gm) > 1.0
+    pm = math.radians(m.phase_margin_deg)
+    for sign in (1, -1):
+        assert uniformity_closed_loop_radius(mdl, np.exp(sign * 1j * (pm - 0.03))) < 1.0
+        assert uniformity_closed_loop_radius(mdl, np.exp(sign * 1j * (pm + 0.03))) > 1.0
+    # an actuator weaker than identified only slows the loop down
+    for alpha in (0.05, 0.2, 0.5):
+        assert uniformity_closed_loop_radius(mdl, alpha) < 1.0
+
+
+def test_uniformity_closed_loop_radius_matches_the_state_space_interconnection():
+    mdl = uniformity_loop_model(UCFG, 300.0, cutter_to_camera_mm=300.0, mode_gain=1.7)
+    c = ct.feedback(ct.ss(mdl.filter), ct.ss(mdl.model), sign=+1)
+    cl = ct.feedback(c * ct.ss(mdl.plant), 1)
+    ss_radius = float(np.max(np.abs(np.linalg.eigvals(cl.A))))
+    assert uniformity_closed_loop_radius(mdl, 1.7) == pytest.approx(ss_radius, rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("case", "gm_min", "pm_min"),
+    [
+        ({"mode_gain": 0.5}, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG),  # weaker than identified
+        ({"mode_gain": 1.5}, 3.0, MIN_PHASE_MARGIN_DEG),  # stronger: GM >= 7.7 dB = x2.4 nominal
+        ({"model_delay_error_samples": 1}, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG),
+        ({"model_delay_error_samples": -1}, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG),
+        ({"latency_samples": 2}, MIN_GAIN_MARGIN_DB, MIN_PHASE_MARGIN_DEG),
+    ],
+)
+def test_uniformity_robustness_cases_stay_stable(case, gm_min, pm_min):
+    rows = uniformity_loop_margins(UCFG, DESIGN_FEEDS_MM_S, CAMERAS, **case)
+    assert min(r.margins.gain_margin_db for r in rows) >= gm_min
+    assert min(r.margins.phase_margin_deg for r in rows) >= pm_min

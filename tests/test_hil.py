@@ -438,3 +438,14 @@ def test_planer_hil_cross_process_with_faults(tmp_path):
     assert summary["quality_log"]["ok"]
     assert summary["done"]["setpoints_within_limits"]
     assert summary["final"]["uniformity_cv"] <= 0.05
+
+
+def test_the_stroke_mismatch_scenario_passes_at_its_reachable_cv(tmp_path):
+    sc = load_scenario("stroke_mismatch")
+    assert sc.amp_stroke_um == 10.0 and sc.stroke_um == 20.0
+    assert load_scenario("default").final_cv_max == 0.05 < sc.final_cv_max <= 0.15
+    p = tmp_path / "s.toml"
+    for bad in ("0", "-0.1", "2", "'x'"):
+        p.write_text(f"[a]\nfinal_cv_max = {bad}\n")
+        with pytest.raises(ConfigError, match=r"a\.final_cv_max"):
+            load_scenario(str(p))

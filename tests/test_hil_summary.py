@@ -148,3 +148,18 @@ def test_the_text_summary_shows_missing_values_and_reasons():
     text = _human(s)
     assert "feed - mm/s within [-, -]" in text and "nan" not in text
     assert "NOT OK: no setpoint was written" in text and text.endswith("NOT PASSED")
+
+
+@pytest.mark.parametrize(("bound", "cv", "passes"), [
+    (0.05, 0.04, True), (0.05, 0.08, False), (0.12, 0.108, True), (0.12, 0.13, False),
+])
+def test_the_final_cv_check_uses_the_scenarios_bound_and_names_it(bound, cv, passes):
+    # A plant whose best reachable CV is above 0.05 (a stroke too small for its runout) passes
+    # at its own bound; the done key says which bound was applied.
+    res = [_result(i, cv=0.3 if i == 0 else cv) for i in range(60)]
+    s = summarize(res, target_pitch_mm=1.5, counts_per_mm=20.0, feed_limits_mm_s=(50.0, 1e3),
+                  stroke_um=20.0, safety=SafetyConfig(), final_cv_max=bound)
+    key = f"final_uniformity_le_{bound:g}"
+    assert set(k for k in s["done"] if k.startswith("final_uniformity")) == {key}
+    assert s["done"][key] is passes
+    assert (s["converged"]["uniformity_settled_after_mm"] is not None) is passes

@@ -127,6 +127,8 @@ def test_warning_on_log_trouble_and_failed_pairs():
     (EventKind.RECOVERED, WwEventCategory.INFORMATION),
     (EventKind.AMPLIFIER_PROBLEM, WwEventCategory.ALARM),
     (EventKind.LOG_FAILED, WwEventCategory.WARNING),
+    (EventKind.OFFSETS_REFUSED, WwEventCategory.WARNING),
+    (EventKind.PIEZO_LIMITS, WwEventCategory.INFORMATION),
 ])
 def test_events_get_a_category_and_keep_the_text(kind, category):
     ev = MachineView().event(ServiceEvent(4.0, kind, "some text"))

@@ -117,7 +117,7 @@ def test_two_knives_without_marks_feed_is_judged_per_knife_pass(tmp_path):
     assert passes["missing_passes"] > 0
     assert abs(passes["pass_pitch_mm"] - 1.0) < 0.03
     widths = np.asarray(first.knife_widths_mm)
-    assert np.isnan(widths[0]) and np.isnan(widths[2])  # no mark of knives 0 and 2
+    assert widths[0] == 0 and widths[2] == 0 and first.vanished_knives == (0, 2)  # no marks
     assert np.all(np.isfinite(widths[[1, 3]]))
     target_feed = 1.0 * snap.spindle_rpm / 60.0 * snap.knives
     feeds = np.array([r.feed_setpoint_mm_s for r in res])

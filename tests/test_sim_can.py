@@ -220,7 +220,7 @@ def test_open_bus_errors():
         with pytest.raises(FieldbusError, match="namespace"):
             can_transport.open_bus("udp_multicast")
     argv = can_transport.netns_argv(["echo", "a b"])
-    assert argv[:2] == ["unshare", "-rn"] and argv[-2:] == ["echo", "a b"]
+    assert argv[0] == "unshare" and argv[1] in ("-rn", "-n") and argv[-2:] == ["echo", "a b"]
     with pytest.raises(ValueError):
         can_transport.netns_argv([])
 

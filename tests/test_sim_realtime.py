@@ -7,6 +7,7 @@ import asyncio
 import dataclasses
 import socket
 import struct
+import threading
 
 import numpy as np
 import pytest
@@ -415,3 +416,119 @@ def test_render_workers_run_at_the_nice_value_asked():
         assert pool._pool.submit(os.nice, 0).result(timeout=60) == min(base + 3, 19)
     finally:
         pool.close()
+
+
+# ------------------------------------------------------------------ bounded catch-up (issue 14)
+class StallMachine(FakeMachine):
+    """Steps are free, except that the host stalls ``stall_s`` of (fake) wall time at each of
+    ``stall_at`` (machine times): a stepping thread starved by CPU hogs."""
+
+    def __init__(self, clock: FakeClock, stall_at: tuple[float, ...], stall_s: float) -> None:
+        super().__init__()
+        self.clock = clock
+        self.stalls = sorted(stall_at)
+        self.stall_s = stall_s
+
+    def advance(self, dt_s: float):
+        if self.stalls and self.t_s >= self.stalls[0]:
+            self.stalls.pop(0)
+            self.clock.now += self.stall_s
+        return super().advance(dt_s)
+
+    def register_values(self):
+        return {}
+
+
+@pytest.mark.parametrize("stall_s", [0.3, 0.9])
+def test_after_a_stall_the_clock_slows_instead_of_bursting_and_faults_last_on_the_wall(stall_s):
+    """A stall shorter than the old one-second catch-up: machine time never runs ahead of
+    the wall clock by more than MAX_LAG_S, below the smallest timeout of the interfaces (the
+    amplifier's 0.1 s), so a modbus_restart lasts its duration on the wall clock instead of
+    being squeezed below the service's timeout."""
+    from plant_sim import runner as runner_mod
+
+    smallest_timeout_s = 0.1  # the amplifier's setpoint timeout
+    assert runner_mod.MAX_LAG_S < smallest_timeout_s
+    clock = FakeClock()
+    m = StallMachine(clock, stall_at=(0.6, 1.0, 1.4), stall_s=stall_s)
+    runner = SimRunner(m, clock=clock, sleep=clock.sleep, out=None, progress_every_s=100.0)
+    switched: list[tuple[float, float, bool]] = []
+    runner.set_up = lambda up: switched.append((clock(), m.t_s, up))  # the PLC's switch
+    runner.schedule(0.5, "modbus_restart", duration_s=1.5)
+    marks: list[tuple[float, float]] = []
+    sleep = clock.sleep
+
+    async def marking_sleep(dt: float) -> None:
+        marks.append((clock(), m.t_s))
+        await sleep(dt)
+
+    runner.sleep = marking_sleep
+    summary = asyncio.run(runner.run(duration_s=3.0))
+    (w_down, t_down, down), (w_up, t_up, up) = switched
+    assert (down, up) == (False, True) and t_up - t_down == pytest.approx(1.5, abs=0.002)
+    assert w_up - w_down >= 1.5 + 3 * (stall_s - smallest_timeout_s)  # slowed, not squeezed
+    for (w0, s0), (w1, s1) in zip(marks, marks[1:], strict=False):  # no burst between sleeps
+        assert s1 - s0 <= (w1 - w0) + smallest_timeout_s
+    assert summary.slowed_s > 0 and summary.real_time_factor < 1.0
+
+
+class TruthMachine(FakeMachine):
+    """Frames with a truth table, as the real machine's."""
+
+    def advance(self, dt_s: float):
+        frames = super().advance(dt_s)
+        return [dataclasses.replace(f, truth={"pitch_mm": 1.5}) for f in frames]
+
+
+def test_runner_stamps_each_pair_with_its_clock_at_capture():
+    from plant_sim.runner import CLOCK_KEY
+
+    clock = FakeClock()
+    m = TruthMachine()
+    sink = InProcessSource(maxlen=100)
+    runner = SimRunner(m, sink=sink, clock=clock, sleep=clock.sleep, out=None,
+                       progress_every_s=100.0, time_scale=2.0)
+    assert runner.machine_time_at(clock()) == -np.inf  # no mapping before the run
+    wall0 = clock()
+    asyncio.run(runner.run(duration_s=1.0))
+    frames = [sink.poll() for _ in range(len(sink))]
+    assert len(frames) == 10
+    stamps = [f.truth[CLOCK_KEY] for f in frames]
+    assert stamps == sorted(stamps) and wall0 <= stamps[0] and stamps[-1] <= clock()
+    for f, stamp in zip(frames, stamps, strict=True):  # machine time = 2 x wall time from t0
+        assert (stamp - wall0) * 2.0 == pytest.approx(f.t_s, abs=0.01)
+        assert runner.machine_time_at(stamp) == pytest.approx(f.t_s, abs=0.01)
+
+
+def test_amp_node_hands_a_frame_over_only_once_the_machine_reached_its_arrival():
+    """Stamped on arrival: frames received while the machine ran behind reach it at the
+    machine time they arrived, in order (not all at once before a gap)."""
+    import can
+
+    m = FakeMachine()
+    codec = PiezoCodec.load()
+    bus = can_transport.open_bus("virtual", "rt-stamp")
+    svc = can_transport.open_bus("virtual", "rt-stamp")
+    node = AmpNode(bus, AmpNodeCore(m, codec, knives=4), own_bus=True)
+    arrivals = iter([10.010, 10.020, 10.030])
+    node.set_timebase(lambda: next(arrivals), lambda wall: wall - 10.0)
+    node.start_receiving()
+    try:
+        for alive in (5, 6, 7):
+            fid, data = codec.encode_command(enable=True, knives=4, alive_counter=alive)
+            svc.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+        for _ in range(100_000):  # the thread takes them off the bus (no timing asserted)
+            if node._rx.qsize() == 3:
+                break
+            threading.Event().wait(0.001)
+        delivered = []
+        for now in (0.005, 0.015, 0.0199, 0.020, 0.5):
+            m.t_s = now
+            delivered.append(node.receive(now))
+        assert delivered == [0, 1, 0, 1, 1]
+        assert m.alive_counters == [5, 6, 7]
+        assert node.take_command_gap() == pytest.approx(0.010)  # the longest gap, once
+        assert node.take_command_gap() == 0.0
+    finally:
+        node.close()
+        svc.shutdown()

@@ -162,6 +162,28 @@ def test_one_knife_finish_four_knives():
     assert m["pitch_mm"] == pytest.approx(4 * 1.5, rel=1e-9)
 
 
+def test_kinematic_metrics_count_a_vanished_knife_as_width_zero():
+    # knife 2 cuts 25 um shallower than its equal neighbours (> f^2 / (2 R) = 18.75 um): no
+    # mark; by symmetry knives 1 and 3 each take half of its pass, knife 0 keeps one pass
+    p = 1.5
+    surf, _ = _surface(knives=4, runout=(0.0, 0.0, -25.0, 0.0))
+    m = surf.metrics(5, 55)
+    assert 2 not in m["knife"] and m["vanished_knives"] == [2]
+    assert np.allclose(m["knife_widths_mm"], [p, 1.5 * p, 0.0, 1.5 * p], rtol=1e-9)
+    assert m["kinematic_cv"] == pytest.approx(math.sqrt(1.5 / 4), rel=1e-9)
+    assert m["pass_pitch_mm"] == pytest.approx(p, rel=0.04)  # the ends' overhang
+    assert m["pitch_mm"] == pytest.approx(4 / 3 * p, rel=0.02)  # the marks found: biased
+    assert m["uniformity_cv"] < m["kinematic_cv"]
+    # every knife marking: the kinematic CV is the marks' CV (per knife, whole passes)
+    surf, _ = _surface(knives=4, runout=(0.0, 4.0, -2.0, 2.0))
+    m = surf.metrics(5, 55)
+    assert m["vanished_knives"] == [] and min(m["knife_widths_mm"]) > 0
+    assert m["kinematic_cv"] == pytest.approx(m["uniformity_cv"], rel=0.05)
+    assert m["pass_pitch_mm"] == pytest.approx(m["pitch_mm"], rel=1e-12)
+    empty = surf.metrics(10.0, 10.5)
+    assert empty["vanished_knives"] == [] and math.isnan(empty["kinematic_cv"])
+
+
 def test_envelope_equals_brute_force_on_random_passes():
     rng = np.random.default_rng(7)
     n = 200

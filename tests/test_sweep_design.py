@@ -162,3 +162,45 @@ def test_the_robustness_sweep_covers_runout_from_tiny_to_15_um():
     spans = [max(r) - min(r) for r in runouts]
     assert min(spans) <= 1.0 and max(max(abs(x) for x in r) for r in runouts) == 15.0
     assert Path(sw.source) == ROBUSTNESS
+
+
+@pytest.mark.parametrize("path", sorted(default_path("sweeps").glob("*.toml")),
+                         ids=lambda p: p.name)
+def test_every_shipped_sweep_file_is_accepted_by_the_loaders(path):
+    from planer.sweep.point import prepare
+
+    sw = load_sweep(path)
+    jobs, _ = prepare(sw)
+    assert 0 < len(jobs) <= len(expand(sw, None))  # duplicates of the base run once
+    assert {j.point.seed for j in jobs} == set(sw.seeds)
+
+
+def test_the_issue10_sweeps_cover_every_plant_of_its_done_when_table():
+    """Base, cameras 1000/2000 mm, saturated, 150 Hz, hysteresis 0.30, stroke mismatch,
+    vanished knife (issue 10), and the drift plant in its own file, each with 3 seeds."""
+    from planer.sweep.point import build_machine_config, build_sim_config, prepare
+
+    plants = set()
+    for name in ("issue10.toml", "issue10_drift.toml"):
+        sw = load_sweep(default_path(f"sweeps/{name}"))
+        assert len(sw.seeds) == 3
+        for job in prepare(sw)[0]:
+            sim, mach = build_sim_config(job), build_machine_config(job)
+            runout = tuple(job.scenario.runout_um or sim.cutterhead.runout_um)
+            drift = sim.cutterhead.drift
+            plants.add((sim.camera.cutter_to_camera_mm, sim.piezo.resonance_hz,
+                        sim.piezo.hysteresis, sim.piezo.stroke_um, mach.stroke_um,
+                        max(runout) - min(runout) > 20.0,
+                        bool(drift is not None and drift.active)))
+    expected = {
+        (300.0, 800.0, 0.03, 20.0, 20.0, False, False),  # base
+        (1000.0, 800.0, 0.03, 20.0, 20.0, False, False),
+        (2000.0, 800.0, 0.03, 20.0, 20.0, False, False),
+        (300.0, 800.0, 0.03, 10.0, 10.0, True, False),  # saturated
+        (300.0, 150.0, 0.03, 20.0, 20.0, False, False),
+        (300.0, 800.0, 0.30, 20.0, 20.0, False, False),
+        (300.0, 800.0, 0.03, 10.0, 20.0, True, False),  # stroke mismatch
+        (300.0, 800.0, 0.03, 20.0, 20.0, True, False),  # vanished knife
+        (300.0, 800.0, 0.03, 20.0, 20.0, False, True),  # drift
+    }
+    assert plants == expected

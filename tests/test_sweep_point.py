@@ -22,6 +22,7 @@ from planer.sweep.point import (
     outcome_row,
     prepare,
     run_job,
+    settled_after_mm,
 )
 
 BASE = load_scenario("default")
@@ -129,8 +130,26 @@ def test_outcome_row_reduces_the_summary():
     assert float(row["feed_ratio"]) == pytest.approx(505.0 / fastest, rel=1e-5)
     assert float(row["offset_ratio"]) == pytest.approx(5.0 / cfg.stroke_um)
     assert row["cv_settled_after_mm"] == "1200" and row["pitch_settled_after_mm"] == ""
+    assert row["cv_003_settled_after_mm"] == ""  # no reference in this summary
     assert (row["safe_entries"], row["measurements"], row["ok_measurements"]) == ("2", "9", "8")
     assert row["error"] == ""
+
+
+@pytest.mark.parametrize(
+    ("cvs", "expect"),
+    [([0.2, 0.1, 0.02, 0.01], 300.0),      # inside from the third measurement after the ref
+     ([0.01, 0.02], 0.0),                   # always inside
+     ([0.2, 0.02, 0.04, 0.01], 400.0),      # a later excursion counts
+     ([0.2, 0.02, 0.04], None),             # the last one is outside: never settled
+     ([None, 0.2, None, 0.01, None], 400.0)],  # measurements without truth are skipped
+)
+def test_settled_after_is_the_travel_from_which_every_later_cv_is_inside(cvs, expect):
+    meas = [{"board_travel_mm": 50.0 + 100.0 * (i + 1), "true_uniformity_cv": cv}
+            for i, cv in enumerate(cvs)]
+    meas.insert(0, {"board_travel_mm": 0.0, "true_uniformity_cv": 0.5})  # before the reference
+    got = settled_after_mm(meas, 50.0, max_cv=0.03)
+    assert got == expect
+    assert settled_after_mm(meas, None, max_cv=0.03) is None
 
 
 @pytest.fixture(scope="module")

@@ -25,3 +25,22 @@ def test_run_reports_every_size(monkeypatch):
     keys = ("width", "height", "pairs_per_s", "copy_pairs_per_s")  # more may follow
     assert [{k: row[k] for k in keys} for row in out] == [
         {"width": 400, "height": 300, "pairs_per_s": 123.0, "copy_pairs_per_s": 123.0}]
+
+
+def test_floor_ratios_compare_cpu_times_with_the_target():
+    cpu = {"pairs_per_s": 0.5, "selfcal_pairs_per_s": 0.8, "rolled_pairs_per_s": 2.0,
+           "remap_pairs_per_s": 1.0}
+    out = bench._floor_ratios(cpu, 1.0)
+    assert out["remap_ratio"] == pytest.approx(2.0)
+    assert out["selfcal_remap_ratio"] == pytest.approx(1.25)
+    assert out["rolled_remap_ratio"] == pytest.approx(0.5)
+    assert out["target_remap_ratio"] == 1.0 and out["meets_target"] is True
+    assert bench._floor_ratios(cpu, 4.0)["meets_target"] is False
+
+
+def test_rolled_synthetic_pair_is_found_rolled():
+    rig, a, b, ca, cb = bench.synthetic_pair(400, 300, roll_deg=1.0)
+    assert rig.camera.roll_deg == 0.0
+    result = Measurer(rig, a.shape).measure(a, b, counts_a=ca, counts_b=cb)
+    assert result.roll_deg == pytest.approx(1.0, abs=0.05)
+    assert result.shift_px == pytest.approx(18.0, abs=0.3)

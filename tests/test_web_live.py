@@ -108,13 +108,18 @@ def test_result_json_is_strict_json_with_decimated_profile_and_every_mark():
     assert d["pitch_mm"] == pytest.approx(meas.pitch_mm, abs=1e-4)
 
 
-def test_result_json_prefers_the_services_attribution_and_its_pass_pitch():
+def test_result_json_prefers_the_services_attribution_and_its_reported_figures():
+    # The page shows what the quality record holds: the attribution's pitch and CV (the travel
+    # per pass and the kinematic CV when a knife left no mark), not the vision's.
     meas = _measurement(np.random.default_rng(2), marks=3)
     named = [2, 1, 0]
-    d = result_json(_result(1, meas, extra={"passes": {"pass_pitch_mm": 1.55, "knife": named}}))
+    passes = {"pass_pitch_mm": 1.55, "pitch_mm": 1.5, "uniformity_cv": 0.75, "knife": named}
+    d = result_json(_result(1, meas, extra={"passes": passes}))
     assert [m["knife"] for m in d["marks"]] == named
     assert d["knife_source"] == "attribution"
-    assert d["pitch_mm"] == pytest.approx(1.55)
+    assert d["pitch_mm"] == pytest.approx(1.5)
+    assert d["uniformity_cv"] == pytest.approx(0.75)
+    assert d["uniformity_cv"] != pytest.approx(meas.uniformity_cv)
 
 
 def test_failed_pair_has_no_metrics_profile_or_marks():

@@ -87,6 +87,7 @@ class Detrender:
         self.degree = check_int("degree", degree, lo=0, hi=8)
         x = np.linspace(-1.0, 1.0, self.width)
         self._basis = np.polynomial.legendre.legvander(x, self.degree)
+        self._plain: dict[tuple[int, int], np.ndarray] = {}  # (start, n) -> (B'B)^-1 B'
 
     def trend(
         self, values: np.ndarray, *, start: int = 0, period_px: float | None = None
@@ -119,15 +120,24 @@ class Detrender:
         if n <= self.degree:
             raise ValueError(f"need more than {self.degree} samples to detrend, got {n}")
         basis = self._basis[start : start + n]
-        fit_basis, fit_values = basis, v
         if period_px is not None and math.isfinite(period_px) and period_px >= 2.0:
             if n - period_px >= 4 * (self.degree + 1):
-                fit_basis = running_mean(basis, period_px)
-                fit_values = running_mean(v, period_px)
-        # small products through einsum: BLAS threads cost more than they save here
-        gram = np.einsum("ij,ik->jk", fit_basis, fit_basis)
-        coef = np.linalg.solve(gram, np.einsum("ij,i->j", fit_basis, fit_values))
-        return np.einsum("ij,j->i", basis, coef)
+                both = np.empty((n, self.degree + 2))  # values and basis: one running mean
+                both[:, 0] = v
+                both[:, 1:] = basis
+                smooth = running_mean(both, period_px)
+                fit_basis, fit_values = smooth[:, 1:], smooth[:, 0]
+                # products of n x (degree + 1): far below BLAS's threading sizes
+                gram = fit_basis.T @ fit_basis
+                coef = np.linalg.solve(gram, fit_values @ fit_basis)
+                return basis @ coef
+        # The plain fit's pseudo-inverse depends on the columns only: set up once per range.
+        pinv = self._plain.get((start, n))
+        if pinv is None:
+            if len(self._plain) > 64:
+                self._plain.clear()
+            pinv = self._plain[(start, n)] = np.linalg.solve(basis.T @ basis, basis.T)
+        return basis @ (pinv @ v)
 
     def __call__(
         self, values: np.ndarray, *, start: int = 0, period_px: float | None = None
@@ -164,14 +174,51 @@ def running_mean(values: np.ndarray, length: float) -> np.ndarray:
     m0 = math.ceil(half - 0.5)
     centres = np.arange(m0, n - m0, dtype=np.float64)
     knots = np.arange(n + 1, dtype=np.float64) - 0.5
-    cum = np.concatenate((np.zeros((1,) + v.shape[1:]), np.cumsum(v, axis=0)))
-    hi = centres + half
-    lo = centres - half
-    if v.ndim == 1:
-        return (np.interp(hi, knots, cum) - np.interp(lo, knots, cum)) / length
-    out = np.empty((centres.size,) + v.shape[1:])
-    for j in range(v.shape[1]):
-        out[:, j] = (np.interp(hi, knots, cum[:, j]) - np.interp(lo, knots, cum[:, j])) / length
+    cum = np.zeros((n + 1,) + v.shape[1:])
+    np.cumsum(v, axis=0, out=cum[1:])
+    hi = _interp_knots(centres + half, knots, cum)
+    hi -= _interp_knots(centres - half, knots, cum)
+    hi /= length
+    return hi
+
+
+def _interp_run(x: np.ndarray, knots: np.ndarray, values: np.ndarray) -> np.ndarray | None:
+    """:func:`_interp_knots` for ``x`` one knot apart each (one knot interval per sample).
+
+    The samples then fall into consecutive intervals: slices instead of gathers.  ``None``
+    when they do not (the caller gathers).
+    """
+    last = knots.size - 1
+    m = x.size
+    j0 = int(np.searchsorted(knots, x[0], side="right")) - 1
+    if j0 < 0 or j0 + m > last or knots[j0 + m - 1] > x[-1] or x[-1] >= knots[j0 + m]:
+        return None
+    base = values[j0 : j0 + m]
+    slope = values[j0 + 1 : j0 + m + 1] - base
+    t = x - knots[j0 : j0 + m]
+    out = slope * (t if values.ndim == 1 else t[:, None])
+    out += base
+    return out
+
+
+def _interp_knots(x: np.ndarray, knots: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``np.interp(x, knots, values)`` along axis 0 of ``values`` (1-D or 2-D), same arithmetic.
+
+    ``knots`` evenly spaced by exactly 1 and ``x`` inside them.
+    """
+    if x.size > 1:
+        run = _interp_run(x, knots, values)
+        if run is not None:
+            return run
+    j = np.searchsorted(knots, x, side="right") - 1
+    last = knots.size - 1
+    np.minimum(j, last - 1, out=j)
+    slope = values[j + 1] - values[j]  # / (knots[j + 1] - knots[j]) == / 1.0
+    t = x - knots[j]
+    out = slope * (t if values.ndim == 1 else t[:, None]) + values[j]
+    at_end = x == knots[last]
+    if np.any(at_end):
+        out[at_end] = values[last]
     return out
 
 

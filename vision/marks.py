@@ -120,6 +120,19 @@ def knife_means(values: np.ndarray, *, knives: int, phase: int) -> np.ndarray:
     return out
 
 
+_HANNING: dict[int, np.ndarray] = {}
+
+
+def _hanning(n: int) -> np.ndarray:
+    """``np.hanning(n)``, cached (a measurer's profiles have few lengths)."""
+    w = _HANNING.get(n)
+    if w is None:
+        if len(_HANNING) > 64:
+            _HANNING.clear()
+        w = _HANNING[n] = np.hanning(n)
+    return w
+
+
 def dominant_period_px(signal: np.ndarray, *, min_period_px: float = 4.0) -> float:
     """Strongest period of a profile (periodogram peak, refined by a parabola).
 
@@ -139,9 +152,10 @@ def dominant_period_px(signal: np.ndarray, *, min_period_px: float = 4.0) -> flo
     n = s.size
     if n < 8:
         return math.nan
-    s = (s - s.mean()) * np.hanning(n)
+    s = (s - s.mean()) * _hanning(n)
     nfft = scipy.fft.next_fast_len(4 * n, real=True)
-    power = np.abs(scipy.fft.rfft(s, n=nfft)) ** 2
+    spec = scipy.fft.rfft(s, n=nfft)
+    power = spec.real**2 + spec.imag**2
     k_lo = max(1, int(math.ceil(2.0 * nfft / n)))  # at least two periods in the profile
     k_hi = min(power.size - 2, int(nfft / min_period_px))
     if k_hi <= k_lo:
@@ -187,11 +201,20 @@ def repeat_period_px(
     # Lightly smoothed, so that the sharp cusp steps do not make the score depend on where
     # the (fractional) period falls between samples.
     s = np.convolve(s, np.ones(5) / 5.0, mode="same")
+    ks = [k for k in range(1, max_multiple + 1) if k * t <= n / 3.0]
+    if not ks:
+        return t
+    # Every lag's dot product from one FFT, the energies of both stretches from cumulative
+    # sums (instead of three dot products per lag tried).
+    nfft = scipy.fft.next_fast_len(2 * n, real=True)
+    spec = scipy.fft.rfft(s, n=nfft)
+    dots = scipy.fft.irfft(spec.real**2 + spec.imag**2, n=nfft)[:n]
+    cum = np.concatenate(([0.0], np.cumsum(s * s)))
+    total = float(cum[-1])
 
     def self_corr(lag: int) -> float:
-        a, b = s[:-lag], s[lag:]
-        den = math.sqrt(float(np.dot(a, a)) * float(np.dot(b, b)))
-        return float(np.dot(a, b)) / den if den > 0 else 0.0
+        den = math.sqrt(float(cum[n - lag]) * (total - float(cum[lag])))
+        return float(dots[lag]) / den if den > 0 else 0.0
 
     def refined(period: float) -> tuple[float, float]:
         """Lag and value of the self-correlation peak near ``period`` (parabola)."""
@@ -202,15 +225,27 @@ def repeat_period_px(
         curv = y0 - 2 * y1 + y2
         if curv >= 0:
             return float(c), y1
-        frac = float(np.clip(0.5 * (y0 - y2) / curv, -0.5, 0.5))
+        frac = min(0.5, max(-0.5, 0.5 * (y0 - y2) / curv))
         return c + frac, y1 - 0.25 * (y0 - y2) * frac
 
-    ks = [k for k in range(1, max_multiple + 1) if k * t <= n / 3.0]
-    if not ks:
-        return t
-    found = [refined(k * t) for k in ks]
-    best = max(v for _, v in found)
-    return next(lag for lag, v in found if v >= best - tolerance)
+    centre = np.rint(t * np.asarray(ks, dtype=np.float64))  # round() per multiple
+    if centre[0] < 2 or centre[-1] + 1 >= n - 8:  # a multiple at the ends: one at a time
+        found = [refined(k * t) for k in ks]
+        best = max(v for _, v in found)
+        return next(lag for lag, v in found if v >= best - tolerance)
+    # Every multiple's three lags at once (the same arithmetic as refined()).
+    lags = (centre[:, None] + np.array([-1.0, 0.0, 1.0])[None, :]).astype(np.intp)
+    den = np.sqrt(cum[n - lags] * (total - cum[lags]))
+    y = np.divide(dots[lags], den, out=np.zeros(den.shape), where=den > 0)
+    y0, y1, y2 = y[:, 0], y[:, 1], y[:, 2]
+    curv = y0 - 2 * y1 + y2
+    peaked = curv < 0
+    frac = np.divide(0.5 * (y0 - y2), curv, out=np.zeros(curv.shape), where=peaked)
+    np.clip(frac, -0.5, 0.5, out=frac)
+    value = np.where(peaked, y1 - 0.25 * (y0 - y2) * frac, y1)
+    lag = centre + frac
+    best = float(value.max())
+    return float(lag[int(np.argmax(value >= best - tolerance))])
 
 
 def cusp_steps(slope: np.ndarray, *, baseline: int = 2) -> np.ndarray:
@@ -224,15 +259,71 @@ def cusp_steps(slope: np.ndarray, *, baseline: int = 2) -> np.ndarray:
     uneven the widths are.
     """
     p = np.asarray(slope, dtype=np.float64)
-    n = p.size
-    k = int(baseline)
+    return _steps_from_cumsum(_cumsum0(p), int(baseline))
+
+
+def _cumsum0(values: np.ndarray) -> np.ndarray:
+    """``[0, cumsum(values)]``."""
+    c = np.empty(values.size + 1)
+    c[0] = 0.0
+    np.cumsum(values, out=c[1:])
+    return c
+
+
+def _steps_from_cumsum(c: np.ndarray, k: int) -> np.ndarray:
+    """:func:`cusp_steps` from the slope's :func:`_cumsum0`."""
+    n = c.size - 1
     out = np.zeros(n)
     if n < 2 * k + 1:
         return out
-    c = np.concatenate(([0.0], np.cumsum(p)))
-    i = np.arange(k - 1, n - k)
-    out[i] = ((c[i + 1 + k] - c[i + 1]) - (c[i + 1] - c[i + 1 - k])) / k
+    mid = c[k : n - k + 1]  # c[i + 1] for i = k - 1 .. n - k - 1
+    out[k - 1 : n - k] = ((c[2 * k :] - mid) - (mid - c[: n - 2 * k + 1])) / k
     return out
+
+
+def _median(values: np.ndarray) -> float:
+    """``np.median`` of a 1-D float array, by one partition (numpy's own costs ~5x more)."""
+    n = values.size
+    if n == 0:
+        return math.nan
+    lo, hi = (n - 1) // 2, n // 2
+    part = np.partition(values, (lo, hi))
+    return float((part[lo] + part[hi]) / 2.0)
+
+
+def _quantile(values: np.ndarray, q: float) -> float:
+    """``np.quantile(values, q)`` (numpy's default linear method) by one partition."""
+    n = values.size
+    pos = (n - 1) * q
+    lo = int(math.floor(pos))
+    hi = min(lo + 1, n - 1)
+    part = np.partition(values, (lo, hi))
+    a, b = float(part[lo]), float(part[hi])
+    t = pos - lo
+    return b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
+
+
+def _peaks(values: np.ndarray, *, distance: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """``scipy.signal.find_peaks(values, height=0.0, distance=distance)``: indices, heights.
+
+    Strict local maxima, vectorised; scipy itself decides the rare cases it defines by a
+    sequential rule (a plateau inside the signal, two candidates closer than ``distance``).
+    """
+    x = values
+    mid = x[1:-1]
+    rise = x[:-2] < mid
+    tie = rise & (mid == x[2:])
+    if np.any(tie[:-1]):  # a plateau that does not run to the end: scipy's midpoint rule
+        cand, props = scipy.signal.find_peaks(x, height=0.0, distance=distance)
+        return cand, props["peak_heights"]
+    cand = np.flatnonzero(rise & (mid > x[2:])) + 1
+    heights = x[cand]
+    keep = heights >= 0.0
+    cand, heights = cand[keep], heights[keep]
+    if cand.size > 1 and np.any(np.diff(cand) < distance):  # scipy's priority rule
+        cand, props = scipy.signal.find_peaks(x, height=0.0, distance=distance)
+        return cand, props["peak_heights"]
+    return cand, heights
 
 
 def find_marks(
@@ -305,15 +396,15 @@ def find_marks(
     p = np.gradient(h, dx * 1000.0) if slope is None else np.asarray(slope, dtype=np.float64)
     if p.shape != h.shape:
         raise ValueError(f"slope must have the profile's length {n}, got {p.shape}")
-    steps = cusp_steps(p)
-    cand, props = scipy.signal.find_peaks(-steps, height=0.0, distance=3)
+    cum_p = _cumsum0(p)
+    steps = _steps_from_cumsum(cum_p, 2)
+    cand, size = _peaks(-steps)
     if cand.size:
-        size = props["peak_heights"]
         # Noise floor of the slope from its sample-to-sample differences (robust: the cusps
         # are few, and inside a mark the slope changes by only dx / R per sample).
-        d = np.diff(p)
-        noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2.0)
-        typical = float(np.quantile(size, 0.9))
+        d = p[1:] - p[:-1]
+        noise = 1.4826 * _median(np.abs(d - _median(d))) / math.sqrt(2.0)
+        typical = _quantile(size, 0.9)
         if typical < min_snr * noise:  # the steps are noise: no cuttermarks to be seen
             cand = cand[:0]
         else:
@@ -322,7 +413,8 @@ def find_marks(
     if gaps.size < min_marks + 1:
         _too_few(gaps.size - 1, x, min_marks)
     if refine:
-        cusps_s, cusp_h, bottoms_s, bottom_h = _arc_refine(x, h, p, gaps, dx, guard)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cusps_s, cusp_h, bottoms_s, bottom_h = _arc_model(h, p, gaps, dx, guard, cum_p)
     else:
         cusps_s, cusp_h, bottoms_s, bottom_h = _sample_marks(h, gaps)
     if cusps_s.size < min_marks + 1:
@@ -368,8 +460,28 @@ def _arc_refine(
     x: np.ndarray, h: np.ndarray, p: np.ndarray, gaps: np.ndarray, dx: float, guard: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Cusps, cusp heights, bottoms (in samples) and bottom heights from the arc model."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return _arc_model(h, p, gaps, dx, guard, _cumsum0(p))
+
+
+_SAMPLES: dict[int, np.ndarray] = {}
+
+
+def _samples(n: int) -> np.ndarray:
+    """``np.arange(n, dtype=float)`` (cached)."""
+    s = _SAMPLES.get(n)
+    if s is None:
+        if len(_SAMPLES) > 64:
+            _SAMPLES.clear()
+        s = _SAMPLES[n] = np.arange(n, dtype=np.float64)
+    return s
+
+
+def _arc_model(
+    h: np.ndarray, p: np.ndarray, gaps: np.ndarray, dx: float, guard: int, cum_p: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     n = h.size
-    s = np.arange(n, dtype=np.float64)  # sample coordinate
+    s = _samples(n)  # sample coordinate
     # Segments: partial arc before the first cusp, complete marks, partial arc after the last.
     left = np.concatenate(([-np.inf], gaps))
     right = np.concatenate((gaps, [np.inf]))
@@ -377,61 +489,68 @@ def _arc_refine(
     hi = np.minimum(np.floor(right - guard + 0.5), n - 2).astype(int) + 1  # exclusive
     count = np.maximum(hi - lo, 0)
     ok = count >= 2
-    if not np.any(ok):
+    if not ok.any():
         return _sample_marks(h, gaps)
     lo_ok, hi_ok = lo[ok], hi[ok]
-
-    def seg_sum(v: np.ndarray) -> np.ndarray:
-        c = np.concatenate(([0.0], np.cumsum(v)))
-        return c[hi_ok] - c[lo_ok]
+    # Segment sums: of the sample index and its square in closed form (exact integers), of
+    # the slope, slope x index and height from cumulative sums.
+    lo_f, hi_f = lo_ok.astype(np.float64), hi_ok.astype(np.float64)
+    sx = (hi_f * (hi_f - 1) - lo_f * (lo_f - 1)) / 2
+    sxx = ((hi_f - 1) * hi_f * (2 * hi_f - 1) - (lo_f - 1) * lo_f * (2 * lo_f - 1)) / 6
+    sp = cum_p[hi_ok] - cum_p[lo_ok]
+    cum_xp = _cumsum0(s * p)
+    sxp = cum_xp[hi_ok] - cum_xp[lo_ok]
+    cum_h = _cumsum0(h)
+    sh = cum_h[hi_ok] - cum_h[lo_ok]
 
     cnt = count[ok].astype(np.float64)
-    sx, sp = seg_sum(s), seg_sum(p)
-    sxx, sxp = seg_sum(s * s), seg_sum(s * p)
     sxx_c = sxx - sx * sx / cnt
     sxp_c = sxp - sx * sp / cnt
-    kappa = float(sxp_c.sum() / sxx_c.sum()) if sxx_c.sum() > 0 else 0.0  # slope per sample
+    den = sxx_c.sum()
+    kappa = float(sxp_c.sum() / den) if den > 0 else 0.0  # slope per sample
     if not kappa > 0:
         return _sample_marks(h, gaps)
     b = np.full(left.size, np.nan)
     e = np.full(left.size, np.nan)
-    b[ok] = (sx - sp / kappa) / cnt  # p = kappa (s - b)
+    b_ok = (sx - sp / kappa) / cnt  # p = kappa (s - b)
+    b[ok] = b_ok
     scale = 1000.0 * dx  # um per (slope x sample)
     # h = e + scale * kappa / 2 * (s - b)^2 ; e from the mean residual
-    quad = seg_sum(s * s) - 2 * b[ok] * sx + b[ok] ** 2 * cnt
-    e[ok] = (seg_sum(h) - 0.5 * scale * kappa * quad) / cnt
+    quad = sxx - 2 * b_ok * sx + b_ok**2 * cnt
+    e[ok] = (sh - 0.5 * scale * kappa * quad) / cnt
     half = 0.5 * scale * kappa
 
     # Cusps where neighbouring arcs meet.
     bl, br, el, er = b[:-1], b[1:], e[:-1], e[1:]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        xc = 0.5 * (bl + br) + (er - el) / (2.0 * half * (br - bl))
-        good = np.isfinite(xc) & (br > bl) & (np.abs(xc - gaps) <= 1.5)
+    xc = 0.5 * (bl + br) + (er - el) / (2.0 * half * (br - bl))
+    good = np.isfinite(xc) & (br > bl) & (np.abs(xc - gaps) <= 1.5)
     idx = np.flatnonzero(good)
     if idx.size < 2:
         return _sample_marks(h, gaps)
     # Drop unrefined cusps at the ends; inner ones keep the sample position.
     j0, j1 = int(idx[0]), int(idx[-1]) + 1
     good = good[j0:j1]
-    cusp = np.where(good, xc[j0:j1], gaps[j0:j1])
-    seg_l, seg_r = np.arange(j0, j1), np.arange(j0 + 1, j1 + 1)
-    with np.errstate(invalid="ignore"):
-        hl = e[seg_l] + half * (cusp - b[seg_l]) ** 2
-        hr = e[seg_r] + half * (cusp - b[seg_r]) ** 2
-    cusp_h = np.where(np.isfinite(hl) & np.isfinite(hr), 0.5 * (hl + hr),
-                      np.where(np.isfinite(hl), hl, hr))
-    lost = ~np.isfinite(cusp_h)
-    if np.any(lost):
-        cusp_h[lost] = np.interp(cusp[lost], s, h)
+    cusp = xc[j0:j1] if good.all() else np.where(good, xc[j0:j1], gaps[j0:j1])
+    hl = e[j0:j1] + half * (cusp - b[j0:j1]) ** 2
+    hr = e[j0 + 1 : j1 + 1] + half * (cusp - b[j0 + 1 : j1 + 1]) ** 2
+    fl, fr = np.isfinite(hl), np.isfinite(hr)
+    if fl.all() and fr.all():
+        cusp_h = 0.5 * (hl + hr)
+    else:
+        cusp_h = np.where(fl & fr, 0.5 * (hl + hr), np.where(fl, hl, hr))
+        lost = ~np.isfinite(cusp_h)
+        if lost.any():
+            cusp_h[lost] = np.interp(cusp[lost], s, h)
     # Bottoms: each complete mark's arc vertex, kept inside the mark.
-    q = seg_r[:-1]
-    bq = b[q]
-    bottoms = np.clip(np.where(np.isfinite(bq), bq, 0.5 * (cusp[:-1] + cusp[1:])),
-                      cusp[:-1], cusp[1:])
-    with np.errstate(invalid="ignore"):
-        bottom_h = e[q] + half * (bottoms - bq) ** 2
-    for k in np.flatnonzero(~np.isfinite(bottom_h)):
-        a, z = int(math.ceil(cusp[k])), int(math.floor(cusp[k + 1]))
-        i = a + int(np.argmin(h[a : z + 1])) if z >= a else int(round(cusp[k]))
-        bottoms[k], bottom_h[k] = float(i), float(h[i])
+    bq = b[j0 + 1 : j1]
+    vertex = bq if np.isfinite(bq).all() else np.where(np.isfinite(bq), bq,
+                                                        0.5 * (cusp[:-1] + cusp[1:]))
+    bottoms = np.minimum(np.maximum(vertex, cusp[:-1]), cusp[1:])
+    bottom_h = e[j0 + 1 : j1] + half * (bottoms - bq) ** 2
+    bad = ~np.isfinite(bottom_h)
+    if bad.any():
+        for k in np.flatnonzero(bad):
+            a, z = int(math.ceil(cusp[k])), int(math.floor(cusp[k + 1]))
+            i = a + int(np.argmin(h[a : z + 1])) if z >= a else int(round(cusp[k]))
+            bottoms[k], bottom_h[k] = float(i), float(h[i])
     return cusp, cusp_h, bottoms, bottom_h

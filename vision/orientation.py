@@ -62,10 +62,17 @@ def _highpassed_log_rows(rows: np.ndarray, highpass_px: int) -> np.ndarray:
 class RollEstimator:
     """Estimates the roll of a pair from its binned rows (set up once per row layout).
 
+    The rows are averaged into ``groups`` groups of equally many adjacent rows (evenly spaced,
+    so that the alignment power needs only the groups' lag products): with ``S_g(f)`` the
+    spectrum of group ``g`` and ``R_l(f) = sum_g S_(g+l)(f) conj(S_g(f))`` (summed over the
+    images), the power of the sum sheared by ``tan(a)`` is
+    ``sum_f R_0 + 2 sum_(l>0) Re(R_l exp(-2 pi i f tan(a) D l))`` (``D``: the groups' spacing),
+    one matrix-vector product over all angles (its matrix set up once).
+
     Parameters
     ----------
     row_v_px : ndarray, shape (n_rows,)
-        Undistorted image row (pixels) at the centre of each binned row.
+        Undistorted image row (pixels) at the centre of each binned row (evenly spaced).
     width : int
         Columns of the binned rows.
     cy : float
@@ -78,7 +85,8 @@ class RollEstimator:
     step_deg : float, optional
         Grid of the search, degrees (parabolic peak between).
     groups : int, optional
-        Adjacent binned rows are averaged into at most this many groups.
+        Adjacent binned rows are averaged into at most this many groups (of equally many rows;
+        the remainder, fewer than ``groups`` rows, is left out evenly at both ends).
     highpass_px : int, optional
         Running mean removed from the log rows (illumination, albedo trends), pixels.
     max_frequency : float, optional
@@ -106,10 +114,14 @@ class RollEstimator:
         check_positive("step_deg", step_deg)
         self.highpass_px = check_int("highpass_px", highpass_px, lo=3)
         g = min(check_int("groups", groups, lo=2), v.size)
-        edges = np.linspace(0, v.size, g + 1).round().astype(int)
-        self._edges = edges
-        self._group_v = np.array([v[a:b].mean() for a, b in zip(edges[:-1], edges[1:],
-                                                                 strict=True)]) - cy
+        size = v.size // g
+        first = (v.size - g * size) // 2
+        self._rows = slice(first, first + g * size)
+        self._groups, self._size = g, size
+        self._group_v = v[self._rows].reshape(g, size).mean(axis=1) - cy
+        spacing = np.diff(self._group_v)
+        if not np.allclose(spacing, spacing[0], rtol=1e-6, atol=1e-6 * abs(spacing[0]) + 1e-9):
+            raise ValueError("row_v_px must be evenly spaced")
         n_steps = int(math.ceil(max_roll_deg / step_deg)) + 1
         self.angles_deg = centre_deg + step_deg * np.arange(-n_steps, n_steps + 1)
         tan = np.tan(np.radians(self.angles_deg))
@@ -119,12 +131,47 @@ class RollEstimator:
         k0 = max(1, int(self.nfft / self.highpass_px))
         freq = np.arange(k0, k) / self.nfft
         self._k = (k0, k)
-        shifts = tan[:, None] * self._group_v[None, :]  # (angles, groups), px
-        # sheared row: r(u' - s)  <->  R(f) exp(-2 pi i f s)
-        self._phase = np.exp(-2j * np.pi * shifts[:, :, None] * freq[None, None, :]).astype(
-            np.complex64
-        )
+        # Power(angle) = sum over (lag, f) of w_l [Re R_l cos(theta) + Im R_l sin(theta)],
+        # theta = 2 pi f tan(angle) D l: the matrix of both parts, set up once.
+        lag = np.arange(g, dtype=np.float64)
+        theta = (2.0 * np.pi * float(spacing[0]) * tan[:, None, None] * lag[None, :, None]
+                 * freq[None, None, :])
+        weight = np.where(lag == 0, 1.0, 2.0)[None, :, None]
+        self._lag_nfft = n_lag = scipy.fft.next_fast_len(2 * g - 1)
+        # R_l = ifft over the groups of |X_k|^2 (X: the spectra's FFT along the groups), so
+        # the power is also one product with |X_k(f)|^2 directly: the inverse FFT folded in,
+        # W[a, k, f] = (1 / L) sum_l w_l cos(theta[a, l, f] - 2 pi k l / L).
+        phase = 2.0 * np.pi * np.outer(np.arange(n_lag), lag) / n_lag  # (L, lags)
+        w_cos = np.einsum("alf,kl->akf", weight * np.cos(theta), np.cos(phase))
+        w_sin = np.einsum("alf,kl->akf", weight * np.sin(theta), np.sin(phase))
+        self._matrix = ((w_cos + w_sin) / n_lag).reshape(tan.size, -1).astype(np.float32)
         self._taper = np.hanning(self.width).astype(np.float32)
+
+    def _group_means(self, rows: np.ndarray) -> np.ndarray:
+        src = np.asarray(rows)
+        if src.ndim != 2 or src.shape[1] != self.width or src.shape[0] < self._rows.stop:
+            raise ValueError(f"rows must have shape (>= {self._rows.stop}, {self.width}), "
+                             f"got {src.shape}")
+        part = src[self._rows].reshape(self._groups, self._size, self.width)
+        return part.sum(axis=1, dtype=np.float32) * np.float32(1.0 / self._size)
+
+    def _group_power(self, grouped: np.ndarray) -> np.ndarray:
+        """``|X_k(f)|^2`` summed over the images (``X``: FFT along the groups of the spectra).
+
+        ``grouped`` has shape (images, groups, width).
+        """
+        n_img = grouped.shape[0]
+        hp = _highpassed_log_rows(grouped.reshape(-1, self.width), self.highpass_px)
+        hp *= self._taper[None, :]
+        k0, k = self._k
+        spec = scipy.fft.rfft(hp, n=self.nfft, axis=1)[:, k0:k]
+        spec = spec.reshape(n_img, self._groups, k - k0)
+        # Lag products along the groups by one FFT each way (zero-padded: no wrap-around).
+        over_g = scipy.fft.fft(spec, n=self._lag_nfft, axis=1)
+        return (over_g.real**2 + over_g.imag**2).sum(axis=0, dtype=np.float32)
+
+    def _power(self, group_power: np.ndarray) -> np.ndarray:
+        return np.einsum("tk,k->t", self._matrix, group_power.ravel()).astype(np.float64)
 
     def power(self, rows: np.ndarray) -> np.ndarray:
         """Alignment power of one image's binned rows at every searched angle.
@@ -139,18 +186,25 @@ class RollEstimator:
         ndarray, shape (n_angles,)
             Power of the sheared sum of the high-passed log rows.
         """
-        e = self._edges
-        src = np.asarray(rows)
-        if src.dtype not in (np.uint8, np.uint16, np.float32):
-            src = src.astype(np.float32)
-        sums = cv2.reduce  # group means first (cheap), then the log of a few rows
-        grouped = np.stack([sums(src[a:b], 0, cv2.REDUCE_AVG, dtype=cv2.CV_32F)[0]
-                            for a, b in zip(e[:-1], e[1:], strict=True)])
-        grouped = _highpassed_log_rows(grouped, self.highpass_px) * self._taper[None, :]
-        k0, k = self._k
-        spec = scipy.fft.rfft(grouped, n=self.nfft, axis=1)[:, k0:k].astype(np.complex64)
-        total = np.einsum("tgf,gf->tf", self._phase, spec)
-        return (total.real**2 + total.imag**2).sum(axis=1).astype(np.float64)
+        return self._power(self._group_power(self._group_means(rows)[None]))
+
+    def estimate(self, grouped: np.ndarray) -> Orientation:
+        """Roll from the group means already formed (e.g. by :class:`vision.front_end.FrontEnd`).
+
+        Parameters
+        ----------
+        grouped : ndarray, shape (n_images, groups, width)
+            Positive mean of each group's rows, per image (the groups of this estimator).
+
+        Returns
+        -------
+        Orientation
+        """
+        g = np.asarray(grouped, dtype=np.float32)
+        if g.ndim != 3 or g.shape[1:] != (self._groups, self.width):
+            raise ValueError(f"grouped must have shape (n, {self._groups}, {self.width}), "
+                             f"got {g.shape}")
+        return orientation_from_power(self._power(self._group_power(g)), self.angles_deg)
 
     def __call__(self, *rows: np.ndarray) -> Orientation:
         """Roll from one or more images' binned rows (their powers add).
@@ -161,8 +215,9 @@ class RollEstimator:
         """
         if not rows:
             raise ValueError("at least one image's rows are needed")
-        power = sum(self.power(r) for r in rows)
-        return orientation_from_power(np.asarray(power), self.angles_deg)
+        grouped = np.stack([self._group_means(r) for r in rows])
+        power = self._power(self._group_power(grouped))
+        return orientation_from_power(power, self.angles_deg)
 
 
 def orientation_from_power(power: np.ndarray, angles_deg: np.ndarray) -> Orientation:

@@ -2,8 +2,11 @@
 
 Steps (all set-up done once per rig and image shape in :class:`Measurer`):
 
-1. undistort both images straight into vertically binned rows (:mod:`vision.undistort`);
-2. column profiles (:mod:`vision.profile`) and shading-free textures;
+1. bin both images' rows once, estimate the marks' direction from a few row groups, and
+   resample only what is needed -- the profile's bins undistorted and sheared along the marks,
+   the texture rows undistorted (rotated to the feed), each in one remap
+   (:mod:`vision.front_end`, :mod:`vision.orientation`);
+2. column profiles (:mod:`vision.profile`) and shading-free textures (made on demand);
 3. registration: encoder shift (seed Eq. 5-6), refined from the images -- coarse on the albedo
    (2-D texture, or the 1-D column profiles), fine on the column profiles
    (:mod:`vision.registration`);
@@ -27,27 +30,23 @@ from config.rig import Rig
 from core.checks import check_image, check_int, check_positive
 from core.errors import MeasurementError
 from vision.deblur import Deblurrer, blur_length_px
+from vision.front_end import Binned, FrontEnd
 from vision.illumination import Detrender, flat_field_correct, running_mean
 from vision.integrate import Integrator
-from vision.marks import find_marks, knife_means, repeat_period_px
-from vision.orientation import Orientation, RollEstimator, Rotator, Shearer
-from vision.profile import column_profile, overlap, shift_profile
-from vision.registration import (
-    Registrar,
-    Registration,
-    encoder_shift_px,
-    shading_free_texture,
-)
+from vision.marks import Marks, find_marks, knife_means, repeat_period_px
+from vision.orientation import Orientation, RollEstimator
+from vision.profile import overlap, shift_profile
+from vision.registration import Registrar, Registration, encoder_shift_px
 from vision.selfcal import (
     Calibration,
     SelfCalibrator,
     apply_calibration,
+    deblurs,
     fit_calibration,
     kinematic_depths_um,
     kinematic_slope,
 )
-from vision.slope import slope_from_ratio
-from vision.undistort import Undistorter
+from vision.slope import RatioSlope
 
 
 @dataclass(frozen=True)
@@ -175,21 +174,6 @@ def _calibration_json(cal: Calibration | None) -> dict[str, Any]:
     }
 
 
-def _full_scale(dtype: np.dtype, peak: float) -> float:
-    """Full-scale value of an image.
-
-    255 for 8 bits; for 16-bit containers the smallest of 10, 12, 14 or 16 bits that holds
-    ``peak`` (cameras store 10-14-bit data in them); 1.0 for float images in [0, 1].
-    """
-    if dtype == np.uint8:
-        return 255.0
-    if np.issubdtype(dtype, np.integer) or peak > 1.0:
-        for bits in (10, 12, 14, 16):
-            if peak <= (1 << bits) - 1:
-                return float((1 << bits) - 1)
-        return max(65535.0, peak)
-    return 1.0
-
 
 def remove_slow(height_um: np.ndarray, period_px: float) -> np.ndarray:
     """Height minus its running mean over one repeat period (held constant near the ends).
@@ -216,9 +200,12 @@ def remove_slow(height_um: np.ndarray, period_px: float) -> np.ndarray:
         return h
     slow = running_mean(h, period_px)
     m0 = (n - slow.size) // 2
-    slow = np.pad(slow, (m0, n - slow.size - m0), mode="edge")
-    out = h - slow
-    return out - out.mean()
+    out = h.copy()
+    out[m0 : m0 + slow.size] -= slow
+    out[:m0] -= slow[0]
+    out[m0 + slow.size :] -= slow[-1]
+    out -= out.mean()
+    return out
 
 
 def vertical_shift(rows: np.ndarray, shift_rows: float) -> np.ndarray:
@@ -312,6 +299,11 @@ class Measurer:
         Wiener constant of the deblurring.
     texture_rows : int, optional
         Binned rows (evenly spread) whose texture registers the pair.
+    texture_width_px : int, optional
+        Images at least twice this wide register their texture on windows this many columns
+        wide (A's centred, B's ``round(encoder shift)`` columns further, so the windows hold
+        the same wood; at 1920 px a third of the cost); the fine fit still uses the whole
+        profiles.  0: always the whole width.
     register : bool, optional
         Refine the encoder shift from the images (default).  ``False`` uses the encoder's shift
         as it is (the seed's method; for experiments), with confidence NaN.
@@ -348,6 +340,7 @@ class Measurer:
         deblur_min_px: float = 1.0,
         regularisation: float = 0.003,
         texture_rows: int = 96,
+        texture_width_px: int = 640,
         register: bool = True,
         max_roll_deg: float = 5.0,
         roll_smear_px: float = 0.5,
@@ -363,15 +356,14 @@ class Measurer:
         self.radius_mm = None if radius_mm is None else check_positive("radius_mm", radius_mm)
         self.knives = None if knives is None else check_int("knives", knives, lo=1)
         self.remove_slow = bool(remove_slow)
-        worst = math.tan(math.radians(abs(rig.camera.roll_deg) + self.max_roll_deg))
-        max_bins = 16
-        if worst > 0:
-            max_bins = max(1, min(16, int(check_positive("roll_smear_px", roll_smear_px) / worst)))
-        self.undistort = Undistorter(rig.camera, shape, max_bin_rows=max_bins)
-        self.shape = self.undistort.shape
-        c0, c1 = self.undistort.columns
+        self.front = FrontEnd(rig.camera, shape, max_roll_deg=self.max_roll_deg,
+                              roll_smear_px=check_positive("roll_smear_px", roll_smear_px),
+                              texture_rows=texture_rows)
+        self.undistort = self.front.undistort
+        self.shape = self.front.shape
+        c0, _ = self.front.columns
         self._c0 = c0
-        self.width = c1 - c0
+        self.width = self.front.width
         self.px_per_mm = rig.camera.px_per_mm
         self.min_marks = check_int("min_marks", min_marks, lo=1)
         self.register = bool(register)
@@ -379,24 +371,18 @@ class Measurer:
             raise ValueError(f"min_overlap must be in (0, 1), got {min_overlap!r}")
         self.min_overlap_px = max(32, int(round(min_overlap * self.width)))
         self.deblur_min_px = check_positive("deblur_min_px", deblur_min_px, allow_zero=True)
+        self.texture_width_px = check_int("texture_width_px", texture_width_px, lo=0)
         self.registrar = Registrar(
             self.width, search_px=search_px, min_overlap_px=min(self.min_overlap_px, self.width - 1)
         )
-        band = self.undistort.row_band
-        n_rows = band.stop - band.start
-        k = self.undistort.bin_rows
-        row_v = self.undistort.first_row_px + k * np.arange(band.start, band.stop)
-        cy = rig.camera.cy
+        row_v = self.front.row_v_px
         self._cx = rig.camera.cx
+        step = self.front.group_step  # the groups come every step-th column: scale to them
         self.roll_estimator = (
-            RollEstimator(row_v, self.width, cy=cy, centre_deg=rig.camera.roll_deg,
-                          max_roll_deg=self.max_roll_deg)
-            if self.max_roll_deg > 0 and n_rows >= 2 else None
-        )
-        self.shearer = Shearer(row_v, self.width, cy=cy)
-        self.rotator = Rotator(row_v, self.width, cx=rig.camera.cx - c0, cy=cy)
-        self._texture_rows = np.unique(
-            np.linspace(0, n_rows - 1, min(n_rows, texture_rows)).round().astype(int)
+            RollEstimator(row_v / step, self.width // step, cy=rig.camera.cy / step,
+                          centre_deg=rig.camera.roll_deg, max_roll_deg=self.max_roll_deg,
+                          highpass_px=int(round(41 / step)), max_frequency=0.25 * step)
+            if self.max_roll_deg > 0 and row_v.size >= 2 else None
         )
         if detrend_degree is None:
             detrend_degree = 1 if flat_field is not None else 3
@@ -411,38 +397,44 @@ class Measurer:
             "azimuth_b_deg": lights.azimuth_b_deg,
             "slant_b_deg": None if slant_b == slant_a else slant_b,
         }
-        slope_from_ratio(np.ones(1), **self._angles)  # validates the light geometry once
+        self._slope = RatioSlope(**self._angles)  # validates the light geometry once
         self._flat: tuple[np.ndarray, np.ndarray] | None = None
         if flat_field is not None:
             if len(flat_field) != 2:
                 raise ValueError("flat_field must be a pair of images (A, B)")
-            _, ref_a = self._rows_and_profile(flat_field[0], "flat_a")
-            _, ref_b = self._rows_and_profile(flat_field[1], "flat_b")
+            ref_a = self.front.profile(self._binned(flat_field[0], "flat_a"), 0.0)
+            ref_b = self.front.profile(self._binned(flat_field[1], "flat_b"), 0.0)
             if np.any(ref_a <= 0) or np.any(ref_b <= 0):
                 raise MeasurementError("flat-field images have dark columns")
             self._flat = (ref_a, ref_b)
 
     # -- pieces -------------------------------------------------------------------------------
 
-    def _rows_and_profile(self, image: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
-        img = check_image(name, image)
-        if img.shape != self.shape:
-            raise ValueError(
-                f"{name} has shape {img.shape}, the measurer was set up for {self.shape}"
-            )
-        c0, c1 = self.undistort.columns
-        rows = self.undistort.binned_rows(img)[self.undistort.row_band, c0:c1]
-        profile = column_profile(rows)
-        k = self.undistort.bin_rows
-        full = _full_scale(img.dtype, float(profile.max()) / k) * k
-        level = float(profile.mean()) / full
-        if level < 0.01:
+    def _binned(self, image: np.ndarray, name: str) -> Binned:
+        binned = self.front.bin(image, name)
+        if binned.level < 0.01:
             raise MeasurementError(
-                f"{name} is black (mean level {100 * level:.2f} % of full scale)"
+                f"{name} is black (mean level {100 * binned.level:.2f} % of full scale)"
             )
-        if np.count_nonzero(profile >= 0.98 * full) > 0.5 * profile.size:
+        if binned.saturated:
             raise MeasurementError(f"{name} is saturated (most pixels at full scale)")
-        return rows, profile
+        return binned
+
+    def _texture_windows(self, shift_px: float) -> tuple[slice | None, slice | None, int]:
+        """Texture columns of A and B and B's offset (``None, None, 0``: the whole width).
+
+        Windows ``texture_width_px`` wide, A's as central as the shift allows, B's
+        ``round(shift_px)`` columns further: the same wood in both, the residual shift small.
+        """
+        tw, w = self.texture_width_px, self.width
+        s = int(round(shift_px))
+        reg = self.registrar
+        lags = 2 * (math.ceil(reg.search_px + reg.margin_px) + 1)
+        if not 0 < 2 * tw <= w or abs(s) > w - tw or tw - lags < reg.min_overlap_px:
+            return None, None, 0
+        lo, hi = max(0, -s), min(w - tw, w - tw - s)
+        ca = min(hi, max(lo, (w - tw - s) // 2))
+        return slice(ca, ca + tw), slice(ca + s, ca + s + tw), s
 
     def blur_px(self, speed_mm_s: float | None) -> float:
         """Motion blur length for a feed speed (0 when the speed or exposure is unknown)."""
@@ -455,11 +447,56 @@ class Measurer:
         height = self.integrator(slope) * cos_roll
         return remove_slow(height, period_px) if self.remove_slow else height
 
-    def orientation(self, rows_a: np.ndarray, rows_b: np.ndarray) -> Orientation:
-        """Direction of the marks from both images' binned rows (the rig's roll when off)."""
+    def orientation(self, binned_a: Binned, binned_b: Binned) -> Orientation:
+        """Direction of the marks from both images' row groups (the rig's roll when off)."""
         if self.roll_estimator is None:
             return Orientation(self.rig.camera.roll_deg, math.nan)
-        return self.roll_estimator(rows_a, rows_b)
+        return self.roll_estimator.estimate(self.front.group_means(binned_a, binned_b))
+
+    def _self_calibrated(
+        self, slope: np.ndarray, height: np.ndarray, marks: Marks, x_mm: np.ndarray,
+        cos_roll: float, period: float, calibrator: SelfCalibrator | None,
+    ) -> tuple[Calibration, np.ndarray, np.ndarray, Marks, float]:
+        """The self-calibration from the kinematics and the profile it calibrates.
+
+        Returns the calibration (smoothed by ``calibrator`` when given), the slope, height and
+        marks (calibrated when the calibration is trusted) and the uncalibrated depth, um.
+        """
+        assert self.radius_mm is not None
+        dx_mm = cos_roll / self.px_per_mm
+        model = kinematic_slope(x_mm, marks.cusps_mm, marks.bottoms_mm, radius_mm=self.radius_mm)
+        cal = fit_calibration(slope, model, dx_mm=dx_mm, marks=len(marks.widths_mm))
+        if calibrator is not None:
+            cal = calibrator.update(cal)
+        raw_depth = marks.depth_um
+        if not cal.trusted:
+            return cal, slope, height, marks, raw_depth
+        if not deblurs(cal, pitch_mm=marks.pitch_mm):
+            # The gain alone: integration, slow-part removal and the marks' depths are linear
+            # in the slope and the cusps do not move, so all of it scales.
+            marks = replace(marks, depths_um=marks.depths_um / cal.gain,
+                            cusp_heights_um=marks.cusp_heights_um / cal.gain,
+                            depth_um=marks.depth_um / cal.gain)
+            return (replace(cal, deblurred=False), slope / cal.gain, height / cal.gain, marks,
+                    raw_depth)
+        slope_raw = slope
+        for deblur in (True, False):  # the deconvolution may raise the noise too much
+            s_cal = apply_calibration(slope, cal, dx_mm=dx_mm, pitch_mm=marks.pitch_mm,
+                                      deblur=deblur)
+            h_cal = self._heights(s_cal, cos_roll, period)
+            try:
+                # the marks are known to be there: a lower noise floor is safe, and the
+                # calibrated profile must show about as many
+                m_cal = find_marks(x_mm, h_cal, slope=s_cal, min_marks=self.min_marks,
+                                   min_snr=2.0)
+            except MeasurementError:
+                continue
+            if abs(len(m_cal.widths_mm) - len(marks.widths_mm)) > max(
+                    1, len(marks.widths_mm) // 10):
+                continue
+            pays = cal.scatter_fraction > 0 and not np.array_equal(s_cal, slope_raw / cal.gain)
+            return replace(cal, deblurred=bool(deblur and pays)), s_cal, h_cal, m_cal, raw_depth
+        return cal, slope, height, marks, raw_depth
 
     # -- the measurement ----------------------------------------------------------------------
 
@@ -485,8 +522,9 @@ class Measurer:
             Feed speed at capture, mm/s (for motion deblurring).
         calibrator : vision.selfcal.SelfCalibrator, optional
             The board's calibrator (kept by the caller per board): this pair's estimate is
-            folded in and the smoothed calibration applied.  Without it, this pair's own
-            estimate is used.  Ignored without ``radius_mm``.
+            folded in and the smoothed calibration applied (without ``radius_mm``, not); and
+            the board's roll, searched for only every ``calibrator.roll_every`` pairs, the last
+            confident estimate used in between.  Without it, this pair's own estimates.
 
         Returns
         -------
@@ -514,35 +552,43 @@ class Measurer:
             speed_mm_s = float(speed_mm_s)
             if not math.isfinite(speed_mm_s):
                 raise ValueError(f"speed_mm_s must be finite, got {speed_mm_s!r}")
-        rows_a, prof_a = self._rows_and_profile(a, "image_a")
-        rows_b, prof_b = self._rows_and_profile(b, "image_b")
+        binned_a = self._binned(a, "image_a")
+        binned_b = self._binned(b, "image_b")
 
-        rows_a_raw, rows_b_raw, prof_a_raw, prof_b_raw = rows_a, rows_b, prof_a, prof_b
-        orient = self.orientation(rows_a, rows_b)
+        known = None
+        if calibrator is not None and self.roll_estimator is not None:
+            known = calibrator.known_roll()  # the board's roll, searched for a few pairs ago
+        if known is not None:
+            orient = Orientation(*known)
+        else:
+            orient = self.orientation(binned_a, binned_b)
+            if calibrator is not None and self.roll_estimator is not None:
+                calibrator.note_roll(orient.roll_deg, orient.confidence,
+                                     min_confidence=self.min_roll_confidence)
         roll = orient.roll_deg if orient.confidence >= self.min_roll_confidence else (
             self.rig.camera.roll_deg)
         cos_roll = math.cos(math.radians(roll))
-        margin = self.shearer.margin_px(roll)
-        if margin:
-            rows_a, _ = self.shearer(rows_a, roll)
-            rows_b, _ = self.shearer(rows_b, roll)
-            prof_a, prof_b = column_profile(rows_a), column_profile(rows_b)
+        margin = self.front.margin_px(roll)
+        prof_a = self.front.profile(binned_a, roll)
+        prof_b = self.front.profile(binned_b, roll)
         d_enc_sheared = d_enc / cos_roll
 
         if self.register:
             # Texture in rows along the feed (fibres and motion along the rows), profiles
             # along the marks.
-            rot_a = self.rotator(rows_a_raw, roll, normalise=True)
-            rot_b = self.rotator(rows_b_raw, roll, normalise=True)
-            pick = self._texture_rows[self._texture_rows < rot_a.shape[0]]
-            tex_a = shading_free_texture(rot_a[pick], column_profile(rot_a)
-                                         if rot_a is not rows_a_raw else prof_a_raw)
-            tex_b = shading_free_texture(rot_b[pick], column_profile(rot_b)
-                                         if rot_b is not rows_b_raw else prof_b_raw)
-            reg = self.registrar(
-                tex_a, tex_b, encoder_shift_px=d_enc_sheared, profile_a=prof_a,
-                profile_b=prof_b,
-            )
+            cols_a, cols_b, offset = self._texture_windows(d_enc_sheared)
+            whole = (self.front.texture(binned_a, roll, prof_a),
+                     self.front.texture(binned_b, roll, prof_b))  # resampled only if used
+            if cols_a is None:
+                reg = self.registrar(*whole, encoder_shift_px=d_enc_sheared,
+                                     profile_a=prof_a, profile_b=prof_b)
+            else:
+                reg = self.registrar(
+                    self.front.texture(binned_a, roll, prof_a, columns=cols_a),
+                    self.front.texture(binned_b, roll, prof_b, columns=cols_b),
+                    encoder_shift_px=d_enc_sheared, profile_a=prof_a, profile_b=prof_b,
+                    texture_offset_px=offset, whole_textures=whole,
+                )
         else:
             reg = Registration(shift_px=d_enc_sheared, confidence=math.nan,
                                encoder_shift_px=d_enc_sheared)
@@ -574,7 +620,7 @@ class Measurer:
         raw = np.log(ib / ia)
         period = repeat_period_px(self.detrender(raw, start=u0))
         log_ratio = self.detrender(raw, start=u0, period_px=period)
-        slope = slope_from_ratio(np.exp(log_ratio), **self._angles)
+        slope = self._slope(np.exp(log_ratio))
         if not np.all(np.isfinite(slope)):
             raise MeasurementError("slope is not finite (intensity ratio out of the lights' range)")
         height = self._heights(slope, cos_roll, period)
@@ -584,34 +630,8 @@ class Measurer:
         cal: Calibration | None = None
         kin_depth = raw_depth = math.nan
         if self.radius_mm is not None:
-            dx_mm = cos_roll / self.px_per_mm
-            model = kinematic_slope(x_mm, marks.cusps_mm, marks.bottoms_mm,
-                                    radius_mm=self.radius_mm)
-            cal = fit_calibration(slope, model, dx_mm=dx_mm, marks=len(marks.widths_mm))
-            if calibrator is not None:
-                cal = calibrator.update(cal)
-            raw_depth = marks.depth_um
-            if cal.trusted:
-                slope_raw = slope
-                for deblur in (True, False):  # the deconvolution may raise the noise too much
-                    s_cal = apply_calibration(slope, cal, dx_mm=dx_mm, pitch_mm=marks.pitch_mm,
-                                              deblur=deblur)
-                    h_cal = self._heights(s_cal, cos_roll, period)
-                    try:
-                        # the marks are known to be there: a lower noise floor is safe, and
-                        # the calibrated profile must show about as many
-                        m_cal = find_marks(x_mm, h_cal, slope=s_cal, min_marks=self.min_marks,
-                                           min_snr=2.0)
-                    except MeasurementError:
-                        continue
-                    if abs(len(m_cal.widths_mm) - len(marks.widths_mm)) > max(
-                            1, len(marks.widths_mm) // 10):
-                        continue
-                    slope, height, marks = s_cal, h_cal, m_cal
-                    pays = cal.scatter_fraction > 0 and not np.array_equal(
-                        s_cal, slope_raw / cal.gain)
-                    cal = replace(cal, deblurred=bool(deblur and pays))
-                    break
+            cal, slope, height, marks, raw_depth = self._self_calibrated(
+                slope, height, marks, x_mm, cos_roll, period, calibrator)
             kin_depth = float(np.mean(kinematic_depths_um(
                 marks.cusps_mm, marks.bottoms_mm, radius_mm=self.radius_mm)))
         knife_widths = None

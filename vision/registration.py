@@ -125,7 +125,8 @@ def encoder_shift_px(
     return diff * scale
 
 
-def shading_free_texture(rows: np.ndarray, profile: np.ndarray) -> np.ndarray:
+def shading_free_texture(rows: np.ndarray, profile: np.ndarray, *,
+                         centre: bool = True) -> np.ndarray:
     """Albedo texture of an image with the column shading divided out.
 
     Parameters
@@ -134,16 +135,23 @@ def shading_free_texture(rows: np.ndarray, profile: np.ndarray) -> np.ndarray:
         Undistorted image rows (or binned rows).
     profile : ndarray, shape (width,)
         Column profile of the same image (mean over rows, same scale as ``rows``).
+    centre : bool, optional
+        Remove each row's mean (default).  The registrar's band-pass removes any constant
+        per row by itself, so the measurement skips this pass.
 
     Returns
     -------
     ndarray, shape (n_rows, width), float32
-        ``rows / profile - 1`` with each row's mean removed.
+        ``rows / profile - 1``, with each row's mean removed when ``centre``.
     """
     prof = np.asarray(profile, dtype=np.float32)
-    inv = np.where(prof > 0, np.float32(1.0) / np.where(prof > 0, prof, 1.0), np.float32(0.0))
-    tex = np.asarray(rows, dtype=np.float32) * inv.astype(np.float32)[None, :]
-    tex -= tex.mean(axis=1, keepdims=True)
+    safe = np.where(prof > 0, prof, np.float32(1.0))
+    inv = np.where(prof > 0, np.float32(1.0) / safe, np.float32(0.0)).astype(np.float32)
+    tex = np.multiply(rows, inv[None, :], dtype=np.float32)
+    if centre:
+        tex -= tex.mean(axis=1, keepdims=True)
+    else:
+        tex -= np.float32(1.0)
     return tex
 
 
@@ -168,7 +176,7 @@ def _parabolic_peak(values: np.ndarray, i: int) -> tuple[float, float]:
     y0, y1, y2 = float(values[i - 1]), float(values[i]), float(values[i + 1])
     curv = y0 - 2.0 * y1 + y2
     frac = 0.5 * (y0 - y2) / curv if curv < 0 else 0.0
-    frac = float(np.clip(frac, -0.5, 0.5))
+    frac = min(0.5, max(-0.5, frac))
     return frac, y1 - 0.25 * (y0 - y2) * frac
 
 
@@ -261,11 +269,12 @@ def _robust_standardise(values: np.ndarray) -> np.ndarray:
 def _second_peak(values: np.ndarray, i: int) -> float:
     """Best local maximum of ``values`` outside the main lobe (contiguous stretch > half peak)."""
     half = 0.5 * float(values[i])
+    v = values.tolist()  # the lobe's walk on Python floats, not numpy scalars
     left = i
-    while left > 0 and values[left - 1] > half:
+    while left > 0 and v[left - 1] > half:
         left -= 1
     right = i
-    while right < len(values) - 1 and values[right + 1] > half:
+    while right < len(v) - 1 and v[right + 1] > half:
         right += 1
     inner = values[1:-1]
     is_max = (inner >= values[:-2]) & (inner >= values[2:])
@@ -277,7 +286,7 @@ def _confidence(peak: float, second: float) -> float:
     """Peak correlation times its uniqueness ``1 - second / peak``, in [0, 1]."""
     if not peak > 0:
         return 0.0
-    uniqueness = float(np.clip(1.0 - max(second, 0.0) / peak, 0.0, 1.0))
+    uniqueness = min(1.0, max(0.0, 1.0 - max(second, 0.0) / peak))
     return min(peak, 1.0) * uniqueness
 
 
@@ -317,6 +326,25 @@ def mark_period_px(profile: np.ndarray) -> float:
     return math.nan
 
 
+def _robust_correlation(a: np.ndarray, b: np.ndarray, starts: np.ndarray, trim: float
+                        ) -> np.ndarray:
+    """Gnanadesikan-Kettenring correlation of ``a`` with ``b[k:k + len(a)]`` for each start.
+
+    ``(S(a + b) - S(b - a)) / (S(a + b) + S(b - a))``, ``S`` the sum of the smallest ``trim``
+    fraction of the squares (module docstring); shape ``(len(starts),)``.
+    """
+    n = a.size
+    keep = max(1, int(trim * n))
+    windows = np.lib.stride_tricks.sliding_window_view(b, n)[starts]
+    squares = np.empty((2, *windows.shape), dtype=np.float32)  # (a + b)^2, (b - a)^2
+    np.add(windows, a, out=squares[0])
+    np.subtract(windows, a, out=squares[1])
+    squares *= squares
+    squares.partition(keep - 1, axis=2)
+    s_both, s_diff = squares[:, :, :keep].sum(axis=2, dtype=np.float64)
+    return (s_both - s_diff) / np.maximum(s_both + s_diff, 1e-300)
+
+
 def _window_peak(
     scores: np.ndarray, lags: np.ndarray, what: str, guess: float, reach: float
 ) -> tuple[float, float, float]:
@@ -332,6 +360,171 @@ def _window_peak(
         )
     frac, peak = _parabolic_peak(scores, i)
     return float(lags[i]) + frac, peak, _confidence(peak, _second_peak(scores, i))
+
+
+class FineShiftFit:
+    """The fine stage: the sign-free cross-spectrum delay fit (set up once per width).
+
+    Parameters
+    ----------
+    width : int
+        Length of the column profiles, pixels.
+    fine_px : int
+        Half-width of the window of delays searched around the coarse shift, pixels.
+    max_frequency : float
+        Highest frequency used, cycles per pixel.
+    min_overlap_px : int
+        Smallest overlap of the two profiles, pixels.
+    """
+
+    _FINE_STEP_PX = 0.1  # grid of the fine fit before its parabolic peak
+
+    def __init__(self, width: int, *, fine_px: int, max_frequency: float,
+                 min_overlap_px: int) -> None:
+        self.fine_px = int(fine_px)
+        self.min_overlap_px = int(min_overlap_px)
+        self.nfft = _fast_len_5(2 * int(width))
+        # Frequencies used, the grid of delays, and their doubled-phase phasors.
+        self._kmax = int(max_frequency * self.nfft) + 1
+        freq = np.arange(self._kmax) / self.nfft
+        steps = int(round(self.fine_px / self._FINE_STEP_PX))
+        self._fine_grid = np.arange(-steps, steps + 1) * self._FINE_STEP_PX
+        phasor = np.exp(4j * np.pi * self._fine_grid[:, None] * freq[None, :])
+        # float32: half the memory a pair streams through (the sums hold ~1e-6 relative)
+        self._fine_real = np.ascontiguousarray(
+            np.concatenate([phasor.real, -phasor.imag], axis=1), dtype=np.float32)
+        self._tapers: dict[int, np.ndarray] = {}
+
+    def _taper(self, n: int) -> np.ndarray:
+        taper = self._tapers.get(n)
+        if taper is None:
+            if len(self._tapers) > 64:
+                self._tapers.clear()
+            taper = self._tapers[n] = np.hanning(n)
+        return taper
+
+    def __call__(self, la: np.ndarray, lb: np.ndarray, guess: float) -> tuple[float, float]:
+        """Fine shift within ``+-fine_px`` of ``round(guess)`` (:meth:`Registrar.fine`).
+
+        Parameters
+        ----------
+        la, lb : ndarray, shape (width - 1,)
+            First differences of the log column profiles of A and B.
+        guess : float
+            Coarse shift, pixels.
+
+        Returns
+        -------
+        shift_px, score : float
+            As :meth:`Registrar.fine`.
+        """
+        w = la.size
+        i0 = int(round(guess))
+        m = self.fine_px + 2
+        u0 = max(0, -i0) + m
+        u1 = min(w, w - i0) - m
+        n = u1 - u0
+        if n < self.min_overlap_px:
+            raise RegistrationError(f"shift {guess:.1f} px leaves too little overlap to refine")
+        taper = self._taper(n)
+        both = np.empty((2, n))
+        both[0] = la[u0:u1]
+        both[1] = lb[u0 + i0 : u1 + i0]
+        both -= both.mean(axis=1, keepdims=True)
+        both *= taper
+        k = self._kmax
+        spec = scipy.fft.rfft(both, n=self.nfft, axis=1)[:, :k]
+        cross = spec[0].conj() * spec[1]
+        mag = np.abs(cross)
+        total = float(mag.sum())
+        if not total > 0:
+            return math.nan, 0.0
+        # |X| e^(2i arg X): the phase doubled, so frequencies where the mirrored shading
+        # dominates (X < 0 at the true delay) vote with the albedo's (X > 0).
+        doubled = cross * cross / np.where(mag > 0, mag, 1.0)
+        # Re(P @ D) as one real product (no BLAS threads, no complex einsum)
+        parts = np.concatenate([doubled.real, doubled.imag]).astype(np.float32)
+        score = np.einsum("ij,j->i", self._fine_real, parts).astype(np.float64)
+        j = int(np.argmax(score))
+        if j == 0 or j == score.size - 1:
+            return math.nan, float(score[j]) / total
+        frac, peak = _parabolic_peak(score, j)
+        return i0 + float(self._fine_grid[j]) + frac * self._FINE_STEP_PX, peak / total
+
+
+class TextureCorrelator:
+    """The texture stage's correlation: band-pass and normalised cross-correlation of the rows.
+
+    Parameters
+    ----------
+    width : int
+        Number of columns of the textures.
+    band_px : tuple of int
+        Default ``(short, long)`` band-pass lengths (:class:`Registrar`).
+    """
+
+    def __init__(self, width: int, *, band_px: tuple[int, int]) -> None:
+        self.width = int(width)
+        self.band_px = band_px
+        self._boxes: dict[int, np.ndarray] = {}
+        # A fixed stretch of A slides over B without ever leaving it, so a circular
+        # correlation of length >= width is exact (no zero-padding to 2 x width);
+        # a multiple of 16 with small factors suits OpenCV's DFT best.
+        self.nfft = 16 * cv2.getOptimalDFTSize((self.width + 15) // 16)
+
+    def band_pass(self, texture: np.ndarray, band_px: tuple[int, int] | None = None
+                  ) -> np.ndarray:
+        """Difference of running means along x (lengths ``band_px``), edges reflected.
+
+        The short mean goes through ``cv2.filter2D`` (a 1 x short kernel, vectorised), which
+        on this OpenCV runs several times faster than ``cv2.blur`` for short boxes.
+        """
+        t = np.asarray(texture, dtype=np.float32)
+        short, long = self.band_px if band_px is None else band_px
+        smooth = cv2.blur(t, (long, 1), borderType=cv2.BORDER_REFLECT)
+        if short <= 1:
+            return t - smooth
+        kernel = self._boxes.get(short)
+        if kernel is None:
+            kernel = self._boxes[short] = np.full((1, short), 1.0 / short, dtype=np.float32)
+        out = cv2.filter2D(t, -1, kernel, borderType=cv2.BORDER_REFLECT)
+        return cv2.subtract(out, smooth, dst=out)
+
+    def __call__(self, ta: np.ndarray, tb: np.ndarray, lags: np.ndarray, u0: int, u1: int,
+                 band: tuple[int, int]) -> np.ndarray:
+        """Normalised correlation of the band-passed textures at ``lags``, shape (len(lags),).
+
+        ``ta``, ``tb`` (float32, shape (n_rows, width)); the stretch ``u0:u1`` of A slides
+        over B.  Raises :class:`~core.errors.RegistrationError` when A has no texture.
+        """
+        w = self.width
+        r = ta.shape[0]
+        # A's rows over B's: every step below works row by row, so one call does both.
+        both = self.band_pass(np.concatenate((ta, tb)), band)
+        ta, tb = both[:r], both[r:]
+        n = self.nfft
+        # cc[m] = sum_rows sum_i a[i] b[i + m]: lag L sits at m = u0 + L, and i + m never
+        # passes the end of B (u1 + hi <= width <= n), so the circular correlation is exact.
+        # OpenCV's row DFTs (packed real spectra) run ~3x faster than scipy's here.
+        pad = np.zeros((2 * r, n), dtype=np.float32)
+        pad[:r, : u1 - u0] = ta[:, u0:u1]
+        pad[r:, :w] = tb
+        spec = cv2.dft(pad, flags=cv2.DFT_ROWS)
+        pad_a = pad[:r]
+        cross = cv2.mulSpectrums(spec[r:], spec[:r], cv2.DFT_ROWS, conjB=True)
+        total = cv2.reduce(cross, 0, cv2.REDUCE_SUM, dtype=cv2.CV_64F)
+        cc = cv2.idft(total, flags=cv2.DFT_SCALE | cv2.DFT_REAL_OUTPUT).ravel()
+        col_b = cv2.reduce(cv2.multiply(tb, tb), 0, cv2.REDUCE_SUM, dtype=cv2.CV_64F).ravel()
+        cum_b = np.empty(col_b.size + 1)
+        cum_b[0] = 0.0
+        np.cumsum(col_b, out=cum_b[1:])
+        energy_a = float(cv2.reduce(cv2.multiply(pad_a, pad_a), 0, cv2.REDUCE_SUM,
+                                    dtype=cv2.CV_64F).sum())
+        energy_b = cum_b[u1 + lags] - cum_b[u0 + lags]
+        den = np.sqrt(np.maximum(energy_a * energy_b, 1e-300))
+        if not energy_a > 0:
+            raise RegistrationError("the images have no texture to register on")
+        return cc[u0 + lags] / den
 
 
 class Registrar:
@@ -384,10 +577,12 @@ class Registrar:
     noisy_short_px : int, optional
         When the texture does not register with ``band_px``, it is tried once more with this
         short length (noisy images).
+    quick_rows : int, optional
+        The texture stage first correlates about this many evenly spread rows and stops there
+        when that is already ``strong_confidence`` confident (0: always all rows).
     """
 
     _TRIM = 0.75  # fraction of the smallest squares kept by the robust profile correlation
-    _FINE_STEP_PX = 0.1  # grid of the fine fit before its parabolic peak
 
     def __init__(
         self,
@@ -408,6 +603,7 @@ class Registrar:
         max_frequency: float = 0.35,
         min_significance: float = 5.0,
         noisy_short_px: int = 15,
+        quick_rows: int = 16,
     ) -> None:
         self.width = check_int("width", width, lo=16)
         self.search_px = check_positive("search_px", search_px, allow_zero=True)
@@ -426,19 +622,19 @@ class Registrar:
         self.max_frequency = check_range("max_frequency", max_frequency, 0.05, 0.5)
         self.min_significance = check_positive("min_significance", min_significance)
         self.noisy_short_px = check_int("noisy_short_px", noisy_short_px, lo=1)
+        self.quick_rows = check_int("quick_rows", quick_rows, lo=0)
         short, long = (int(band_px[0]), int(band_px[1]))
         if not 1 <= short < long < self.width:
             raise ValueError(f"band_px must be (short, long) with 1 <= short < long < width, "
                              f"got {band_px}")
         self.band_px = (short, long)
-        self.nfft = _fast_len_5(2 * self.width)
-        # Fine fit: frequencies used, the grid of delays, and their doubled-phase phasors.
-        self._kmax = int(self.max_frequency * self.nfft) + 1
-        freq = np.arange(self._kmax) / self.nfft
-        steps = int(round(self.fine_px / self._FINE_STEP_PX))
-        self._fine_grid = np.arange(-steps, steps + 1) * self._FINE_STEP_PX
-        self._fine_phasor = np.exp(4j * np.pi * self._fine_grid[:, None] * freq[None, :])
-        self._tapers: dict[int, np.ndarray] = {}
+        self.fine_fit = FineShiftFit(self.width, fine_px=self.fine_px,
+                                     max_frequency=self.max_frequency,
+                                     min_overlap_px=self.min_overlap_px)
+        self.correlator = TextureCorrelator(self.width, band_px=self.band_px)
+        self._windows: dict[int, TextureCorrelator] = {}
+        self.nfft = self.fine_fit.nfft
+        self.coarse_nfft = self.correlator.nfft
 
     # -- helpers --------------------------------------------------------------------------------
 
@@ -469,40 +665,41 @@ class Registrar:
             raise ValueError("profiles must be finite")
         return pa, pb
 
-    def _taper(self, n: int) -> np.ndarray:
-        taper = self._tapers.get(n)
-        if taper is None:
-            if len(self._tapers) > 64:
-                self._tapers.clear()
-            taper = self._tapers[n] = np.hanning(n)
-        return taper
+    def _window_correlator(self, width: int) -> TextureCorrelator:
+        """The texture correlation of windows ``width`` columns wide (set up once)."""
+        hit = self._windows.get(width)
+        if hit is None:
+            if len(self._windows) > 8:
+                self._windows.clear()
+            hit = self._windows[width] = TextureCorrelator(width, band_px=self.band_px)
+        return hit
 
     def band_pass(self, texture: np.ndarray, band_px: tuple[int, int] | None = None
                   ) -> np.ndarray:
-        """Difference of running means along x (lengths ``band_px``), edges reflected."""
-        t = np.asarray(texture, dtype=np.float32)
-        short, long = self.band_px if band_px is None else band_px
-        smooth = cv2.blur(t, (long, 1), borderType=cv2.BORDER_REFLECT)
-        if short > 1:
-            t = cv2.blur(t, (short, 1), borderType=cv2.BORDER_REFLECT)
-        return t - smooth
+        """Difference of running means along x (:meth:`TextureCorrelator.band_pass`)."""
+        return self.correlator.band_pass(texture, band_px)
 
     # -- coarse stages --------------------------------------------------------------------------
 
     def coarse(
         self, texture_a: np.ndarray, texture_b: np.ndarray, *, encoder_shift_px: float,
-        band_px: tuple[int, int] | None = None,
+        band_px: tuple[int, int] | None = None, offset_px: int = 0,
     ) -> Registration:
         """Shift from the 2-D textures alone.
 
         Parameters
         ----------
-        texture_a, texture_b : ndarray, shape (n_rows, width)
-            Shading-free textures of A and B (:func:`shading_free_texture`), same rows.
+        texture_a, texture_b : ndarray, shape (n_rows, width) or (n_rows, w)
+            Shading-free textures of A and B (:func:`shading_free_texture`), same rows: the
+            whole width, or windows of ``w <= width`` columns, B's starting ``offset_px``
+            columns after A's.
         encoder_shift_px : float
             Shift from the encoder, pixels.
         band_px : tuple of int, optional
             Band-pass lengths (default ``band_px`` of the registrar).
+        offset_px : int, optional
+            Column of B's window minus column of A's (0 for whole-width textures); the shift
+            returned is in image columns either way.
 
         Returns
         -------
@@ -515,34 +712,22 @@ class Registrar:
             is too low.
         """
         guess = check_finite("encoder_shift_px", encoder_shift_px)
-        w = self.width
+        off = check_int("offset_px", offset_px)
         ta = np.asarray(texture_a, dtype=np.float32)
         tb = np.asarray(texture_b, dtype=np.float32)
-        if ta.shape != tb.shape or ta.ndim != 2 or ta.shape[1] != w:
+        w = ta.shape[1] if ta.ndim == 2 else -1
+        if ta.shape != tb.shape or ta.ndim != 2 or not 16 <= w <= self.width:
             raise ValueError(
-                f"textures must both have shape (rows, {w}), got {ta.shape} and {tb.shape}"
+                f"textures must both have shape (rows, w), 16 <= w <= {self.width}, got "
+                f"{ta.shape} and {tb.shape}"
             )
-        lo, hi, u0, u1 = self._lag_window(guess, w)
+        correlator = self.correlator if w == self.width else self._window_correlator(w)
+        lo, hi, u0, u1 = self._lag_window(guess - off, w)
         reach = self.search_px + self.margin_px
         band = self.band_px if band_px is None else band_px
-        ta = self.band_pass(ta, band)
-        tb = self.band_pass(tb, band)
-        a = np.zeros_like(ta)
-        a[:, u0:u1] = ta[:, u0:u1]
-        n = self.nfft
-        fa = scipy.fft.rfft(a, n=n, axis=1)
-        fb = scipy.fft.rfft(tb, n=n, axis=1)
-        cc = scipy.fft.irfft(np.einsum("ij,ij->j", fa.conj(), fb), n=n)
         lags = np.arange(lo, hi + 1)
-        col_b = np.einsum("ij,ij->j", tb, tb, dtype=np.float64)
-        cum_b = np.concatenate(([0.0], np.cumsum(col_b)))
-        energy_a = float(np.einsum("ij,ij->", a, a, dtype=np.float64))
-        energy_b = cum_b[u1 + lags] - cum_b[u0 + lags]
-        den = np.sqrt(np.maximum(energy_a * energy_b, 1e-300))
-        if not energy_a > 0:
-            raise RegistrationError("the images have no texture to register on")
-        ncc = cc[lags % n] / den
-        shift, peak_ncc, confidence = _window_peak(ncc, lags, "texture", guess, reach)
+        ncc = correlator(ta, tb, lags, u0, u1, band)
+        shift, peak_ncc, confidence = _window_peak(ncc, lags + off, "texture", guess, reach)
         # Evidence of many rows: the chance level of the correlation falls as 1 / sqrt(N_eff).
         n_eff = ta.shape[0] * (u1 - u0) / (2.0 * band[0])
         z = peak_ncc * math.sqrt(max(n_eff, 1.0))
@@ -594,18 +779,8 @@ class Registrar:
         gb = _robust_standardise(_log_difference(pb)).astype(np.float32)
         lo, hi, u0, u1 = self._lag_window(guess, ga.size)
         reach = self.search_px + self.margin_px
-        a = ga[u0:u1]
-        n = u1 - u0
-        keep = max(1, int(self._TRIM * n))
         lags = np.arange(lo, hi + 1)
-        windows = np.lib.stride_tricks.sliding_window_view(gb, n)[u0 + lags]
-        squares = np.empty((2, *windows.shape), dtype=np.float32)  # (a + b)^2, (b - a)^2
-        np.add(windows, a, out=squares[0])
-        np.subtract(windows, a, out=squares[1])
-        squares *= squares
-        squares.partition(keep - 1, axis=2)
-        s_both, s_diff = squares[:, :, :keep].sum(axis=2, dtype=np.float64)
-        rho = (s_both - s_diff) / np.maximum(s_both + s_diff, 1e-300)
+        rho = _robust_correlation(ga[u0:u1], gb, u0 + lags, self._TRIM)
         shift, peak, confidence = _window_peak(rho, lags, "column-profile", guess, reach)
         if peak < self.min_profile_ncc or confidence < self.min_profile_confidence:
             raise RegistrationError(
@@ -646,38 +821,54 @@ class Registrar:
         """
         guess = check_finite("guess_px", guess_px)
         pa, pb = self._profiles(profile_a, profile_b)
-        la = _log_difference(pa)
-        lb = _log_difference(pb)
-        w = la.size
-        i0 = int(round(guess))
-        m = self.fine_px + 2
-        u0 = max(0, -i0) + m
-        u1 = min(w, w - i0) - m
-        n = u1 - u0
-        if n < self.min_overlap_px:
-            raise RegistrationError(f"shift {guess:.1f} px leaves too little overlap to refine")
-        taper = self._taper(n)
-        a = la[u0:u1]
-        b = lb[u0 + i0 : u1 + i0]
-        a = (a - a.mean()) * taper
-        b = (b - b.mean()) * taper
-        k = self._kmax
-        cross = scipy.fft.rfft(a, n=self.nfft)[:k].conj() * scipy.fft.rfft(b, n=self.nfft)[:k]
-        mag = np.abs(cross)
-        total = float(mag.sum())
-        if not total > 0:
-            return math.nan, 0.0
-        # |X| e^(2i arg X): the phase doubled, so frequencies where the mirrored shading
-        # dominates (X < 0 at the true delay) vote with the albedo's (X > 0).
-        doubled = cross * cross / np.where(mag > 0, mag, 1.0)
-        score = np.einsum("ij,j->i", self._fine_phasor, doubled).real  # no BLAS threads
-        j = int(np.argmax(score))
-        if j == 0 or j == score.size - 1:
-            return math.nan, float(score[j]) / total
-        frac, peak = _parabolic_peak(score, j)
-        return i0 + float(self._fine_grid[j]) + frac * self._FINE_STEP_PX, peak / total
+        return self._fine(_log_difference(pa), _log_difference(pb), guess)
+
+    def _fine(self, la: np.ndarray, lb: np.ndarray, guess: float) -> tuple[float, float]:
+        """:meth:`fine` from the first differences of the log-profiles."""
+        return self.fine_fit(la, lb, guess)
 
     # -- the whole registration -----------------------------------------------------------------
+
+    def _quick_texture(self, texture_a: np.ndarray, texture_b: np.ndarray, guess: float,
+                       offset_px: int = 0) -> Registration | None:
+        """The texture stage on every k-th row first: kept when that alone is strong.
+
+        A clean board's texture registers at a confidence of 0.8-0.98 on a third of the rows;
+        only a weak or noisy texture needs the evidence of all of them (``None``: use all).
+        """
+        rows = np.shape(texture_a)[0]
+        step = -(-rows // self.quick_rows) if self.quick_rows else 0
+        if step < 2:
+            return None
+        try:
+            quick = self.coarse(texture_a[::step], texture_b[::step], encoder_shift_px=guess,
+                                offset_px=offset_px)
+        except RegistrationError:
+            return None
+        return quick if quick.confidence >= self.strong_confidence else None
+
+    def _texture_stage(self, texture_a: np.ndarray, texture_b: np.ndarray, guess: float,
+                       offset_px: int, reasons: list[str]) -> Registration | None:
+        """The texture registration: quick rows, all rows, a wider short band (noisy images).
+
+        ``None`` when none passes; the reasons are appended to ``reasons``.
+        """
+        texture = self._quick_texture(texture_a, texture_b, guess, offset_px)
+        if texture is not None:
+            return texture
+        try:
+            return self.coarse(texture_a, texture_b, encoder_shift_px=guess, offset_px=offset_px)
+        except RegistrationError as exc:
+            reasons.append(str(exc).removeprefix("cannot register the pair: "))
+        # Noisy images: a wider short band keeps the fibres' texture and drops the noise.
+        wide = (max(self.band_px[0], self.noisy_short_px), self.band_px[1])
+        if wide != self.band_px and wide[0] < wide[1]:
+            try:
+                return self.coarse(texture_a, texture_b, encoder_shift_px=guess, band_px=wide,
+                                   offset_px=offset_px)
+            except RegistrationError as exc2:
+                reasons.append(str(exc2).removeprefix("cannot register the pair: "))
+        return None
 
     def _choose(
         self, texture: Registration | None, profile: Registration | None
@@ -698,29 +889,6 @@ class Registrar:
             f"disagree"
         )
 
-    def _shading_only(
-        self, pa: np.ndarray, pb: np.ndarray, guess: float, reasons: list[str]
-    ) -> Registration:
-        """The shading alone when the search window is narrower than half a mark, else an error."""
-        period = mark_period_px(pa)
-        reach = self.search_px
-        if math.isfinite(period) and reach < 0.5 * period:
-            shift, score = shading_shift(
-                pa, pb, guess_px=guess, reach_px=math.ceil(reach) + 1
-            )
-            confidence = score * (1.0 - 2.0 * reach / period)
-            if (math.isfinite(shift) and abs(shift - guess) <= reach
-                    and score >= self.min_shading_score and confidence >= self.min_confidence):
-                return Registration(
-                    shift_px=shift, confidence=confidence, encoder_shift_px=guess,
-                    fine_score=score, source="shading",
-                )
-            reasons.append(f"shading alone {score:.2f} within {reach:.0f} px")
-        raise RegistrationError(
-            f"cannot register the pair within {self.search_px + self.margin_px:.0f} px of the "
-            f"encoder shift {guess:.1f} px: " + "; ".join(reasons)
-        )
-
     def __call__(
         self,
         texture_a: np.ndarray,
@@ -729,18 +897,26 @@ class Registrar:
         encoder_shift_px: float,
         profile_a: np.ndarray | None = None,
         profile_b: np.ndarray | None = None,
+        texture_offset_px: int = 0,
+        whole_textures: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> Registration:
         """Register a pair: coarse from the albedo, then (with the profiles) fine.
 
         Parameters
         ----------
-        texture_a, texture_b : ndarray, shape (n_rows, width)
+        texture_a, texture_b : ndarray, shape (n_rows, width) or (n_rows, w)
             As in :meth:`coarse`.
         encoder_shift_px : float
             Shift from the encoder, pixels.
         profile_a, profile_b : ndarray, shape (width,), optional
             Positive column profiles of A and B (camera frame).  Without them only the texture
             registers the pair and the shift is not refined.
+        texture_offset_px : int, optional
+            Column of B's texture window minus A's (``offset_px`` of :meth:`coarse`).
+        whole_textures : tuple of two ndarray, shape (n_rows, width), optional
+            With windowed textures: the whole-width textures, registered instead when the
+            windows give no strongly confident texture registration (the windows are a fast
+            path for clear textures; a weak one is judged on all the evidence, as without).
 
         Returns
         -------
@@ -754,24 +930,17 @@ class Registrar:
             is coherent but does not line up within ``fine_px`` of the coarse shift.
         """
         guess = check_finite("encoder_shift_px", encoder_shift_px)
+        off = check_int("texture_offset_px", texture_offset_px)
         if profile_a is None or profile_b is None:
-            return self.coarse(texture_a, texture_b, encoder_shift_px=guess)
+            return self.coarse(texture_a, texture_b, encoder_shift_px=guess, offset_px=off)
         pa, pb = self._profiles(profile_a, profile_b)
         self._lag_window(guess, self.width)  # overlap check before anything else
         reasons: list[str] = []
-        texture: Registration | None = None
-        try:
-            texture = self.coarse(texture_a, texture_b, encoder_shift_px=guess)
-        except RegistrationError as exc:
-            reasons.append(str(exc).removeprefix("cannot register the pair: "))
-            # Noisy images: a wider short band keeps the fibres' texture and drops the noise.
-            wide = (max(self.band_px[0], self.noisy_short_px), self.band_px[1])
-            if wide != self.band_px and wide[0] < wide[1]:
-                try:
-                    texture = self.coarse(texture_a, texture_b, encoder_shift_px=guess,
-                                          band_px=wide)
-                except RegistrationError as exc2:
-                    reasons.append(str(exc2).removeprefix("cannot register the pair: "))
+        texture = self._texture_stage(texture_a, texture_b, guess, off, reasons)
+        if whole_textures is not None and (texture is None
+                                           or texture.confidence < self.strong_confidence):
+            reasons = []  # the windows were not enough: the whole width decides, as without
+            texture = self._texture_stage(*whole_textures, guess, 0, reasons)
         profile: Registration | None = None
         profile_tried = False
         disagree: RegistrationError | None = None
@@ -785,22 +954,23 @@ class Registrar:
                 disagree = exc
                 reg = None
         if reg is None and disagree is None:
-            return self._shading_only(pa, pb, guess, reasons)
+            return _shading_only(self, pa, pb, guess, reasons)
         if reg is not None:
             candidates = [reg]
         else:  # the stages disagree: the one the fine fit confirms, if any
             found = [r for r in (texture, profile) if r is not None]
             candidates = sorted(found, key=lambda r: -r.confidence)
         message = ""
+        la, lb = _log_difference(pa), _log_difference(pb)
         while candidates:
             cand = candidates.pop(0)
-            shift, score = self.fine(pa, pb, guess_px=cand.shift_px)
+            shift, score = self._fine(la, lb, cand.shift_px)
             if score < self.min_fine_score:  # featureless profiles: keep the coarse shift
                 if disagree is None:
                     return replace(cand, fine_score=score)
                 continue
             if not math.isfinite(shift):
-                shift, score = _fine_beside(self, pa, pb, cand.shift_px)
+                shift, score = _fine_beside(self, la, lb, cand.shift_px)
             if math.isfinite(shift):
                 return replace(cand, shift_px=shift, fine_score=score,
                                coarse_shift_px=cand.shift_px)
@@ -816,7 +986,30 @@ class Registrar:
             raise disagree
         raise RegistrationError(message)
 
-def _fine_beside(reg: Registrar, pa: np.ndarray, pb: np.ndarray, coarse: float
+def _shading_only(reg: Registrar, pa: np.ndarray, pb: np.ndarray, guess: float,
+                  reasons: list[str]) -> Registration:
+    """The shading alone when the search window is narrower than half a mark, else an error."""
+    period = mark_period_px(pa)
+    reach = reg.search_px
+    if math.isfinite(period) and reach < 0.5 * period:
+        shift, score = shading_shift(
+            pa, pb, guess_px=guess, reach_px=math.ceil(reach) + 1
+        )
+        confidence = score * (1.0 - 2.0 * reach / period)
+        if (math.isfinite(shift) and abs(shift - guess) <= reach
+                and score >= reg.min_shading_score and confidence >= reg.min_confidence):
+            return Registration(
+                shift_px=shift, confidence=confidence, encoder_shift_px=guess,
+                fine_score=score, source="shading",
+            )
+        reasons.append(f"shading alone {score:.2f} within {reach:.0f} px")
+    raise RegistrationError(
+        f"cannot register the pair within {reg.search_px + reg.margin_px:.0f} px of the "
+        f"encoder shift {guess:.1f} px: " + "; ".join(reasons)
+    )
+
+
+def _fine_beside(reg: Registrar, la: np.ndarray, lb: np.ndarray, coarse: float
                  ) -> tuple[float, float]:
     """Fine fit in the windows either side of a coarse shift off by a little over ``fine_px``.
 
@@ -826,7 +1019,7 @@ def _fine_beside(reg: Registrar, pa: np.ndarray, pb: np.ndarray, coarse: float
     """
     best = (math.nan, -1.0)
     for side in (-1, 1):
-        shift, score = reg.fine(pa, pb, guess_px=coarse + side * reg.fine_px)
+        shift, score = reg._fine(la, lb, coarse + side * reg.fine_px)
         if (math.isfinite(shift) and score >= reg.min_fine_score
                 and abs(shift - coarse) <= 1.5 * reg.fine_px and score > best[1]):
             best = (shift, score)

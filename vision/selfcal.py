@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import scipy.fft
 
@@ -131,6 +132,25 @@ def _transfers(n_fft: int, dx_mm: float, ells: tuple[float, ...]) -> np.ndarray:
     return h
 
 
+def _transfers_packed(n_fft: int, dx_mm: float, ells: tuple[float, ...]) -> np.ndarray:
+    """:func:`_transfers` in OpenCV's packed real-spectrum layout (``n_fft`` even).
+
+    The packed spectrum is ``[Re0, Re1, Im1, ..., Re(n/2)]``; a real transfer function scales
+    both parts of each frequency alike.
+    """
+    key = (-n_fft, round(dx_mm, 9), ells)
+    h = _TRANSFERS.get(key)
+    if h is None:
+        full = _transfers(n_fft, dx_mm, ells)
+        h = np.empty((len(ells), n_fft))
+        h[:, 0] = full[:, 0]
+        h[:, 1:-1:2] = full[:, 1:-1]
+        h[:, 2:-1:2] = full[:, 1:-1]
+        h[:, -1] = full[:, -1]
+        _TRANSFERS[key] = h
+    return h
+
+
 def fit_calibration(
     slope: np.ndarray,
     model: np.ndarray,
@@ -165,88 +185,122 @@ def fit_calibration(
     p = np.asarray(slope, dtype=np.float64)
     m = np.asarray(model, dtype=np.float64)
     inside = np.isfinite(m)
-    if np.count_nonzero(inside) < 16 or marks < 2:
-        return Calibration()
     idx = np.flatnonzero(inside)
+    if idx.size < 16 or marks < 2:
+        return Calibration()
     lo, hi = int(idx[0]), int(idx[-1]) + 1
-    mm = np.where(inside, m, 0.0)[lo:hi]
+    mm = m[lo:hi].copy()
+    mm[~inside[lo:hi]] = 0.0
     pm = p[lo:hi]
     n = hi - lo
-    nf = scipy.fft.next_fast_len(2 * n)
-    x = np.linspace(-1.0, 1.0, n)
-    if not float(np.var(pm)) > 0:
+    # Zero-padding for a linear (not circular) blur: 12 lengths of the widest kernel leave a
+    # wrap-around of e^-12 (~6e-6) of it; never more than the profile's own length.
+    pad = min(n, int(math.ceil(12.0 * float(max(scatter_grid_mm)) / dx_mm)))
+    nf = 2 * cv2.getOptimalDFTSize((n + pad + 1) // 2)  # even: OpenCV's packed spectra
+    x = _unit_axis(n)
+    if not pm.max() > pm.min():  # a constant slope: nothing to calibrate on
         return Calibration()
-    ells = np.asarray([e for e in scatter_grid_mm if e > 0], dtype=np.float64)
-    mean = mm.mean()
-    blurred_all = np.empty((0, n))
-    if ells.size:
-        h = _transfers(nf, dx_mm, tuple(ells))
-        spec = scipy.fft.rfft(mm - mean, n=nf)
-        blurred_all = scipy.fft.irfft(spec[None, :] * h, n=nf, axis=1)[:, :n] + mean
+    ells = tuple(e for e in scatter_grid_mm if e > 0)
+    n_l = len(ells)
     # One sample range for every length (the widest guard: the blurred model is wrong within
     # ~2 l of the profile's ends), so that all fits share their sums: normal equations, batched.
     guard = min(n // 4, int(math.ceil(2 * float(max(scatter_grid_mm)) / dx_mm)))
     sel = slice(guard, n - guard)
     y = pm[sel]
-    var = float(np.var(y))
+    dev = y - y.mean()
+    var = float(dev @ dev) / y.size
     if not var > 0:
         return Calibration()
-    common = np.stack([mm[sel], np.ones(y.size), x[sel]])  # (3, m)
-    blurred = blurred_all[:, sel]  # (L, m)
-    cc = np.einsum("im,jm->ij", common, common)
-    cy = np.einsum("im,m->i", common, y)
+    # Rows: the model, each blurred model, ones, x; all their products in one einsum.
+    design = np.empty((n_l + 3, y.size))
+    design[0] = mm[sel]
+    if n_l:
+        mean = mm.mean()
+        padded = np.zeros((1, nf))
+        padded[0, :n] = mm
+        padded -= mean
+        padded[0, n:] = 0.0
+        # OpenCV's real DFTs (packed spectra): every length's blur in one inverse of 9 rows
+        spec = cv2.dft(padded)
+        blurred = cv2.dft(spec * _transfers_packed(nf, dx_mm, ells),
+                          flags=cv2.DFT_INVERSE | cv2.DFT_SCALE | cv2.DFT_ROWS)
+        design[1 : n_l + 1] = blurred[:, sel]
+        design[1 : n_l + 1] += mean
+    design[n_l + 1] = 1.0
+    design[n_l + 2] = x[sel]
+    gram_all = design @ design.T  # 12 x 12 from ~600 samples: below BLAS's threading size
+    rhs_all = np.einsum("im,m->i", design, y)
     yy = float(np.einsum("m,m->", y, y))
-    best: tuple[float, float, float, float] | None = None  # residual, gain, f, l
-    fits: list[tuple[float, float, float, float]] = []
+    common = np.array([0, n_l + 1, n_l + 2])
+    rss = np.full(n_l + 1, np.nan)  # fit 0: no scattering; fit 1 + i: length ells[i]
+    coef_a = np.zeros(n_l + 1)
+    coef_b = np.zeros(n_l + 1)
     if 0.0 in scatter_grid_mm:
         try:
-            coef = np.linalg.solve(cc, cy)
-            rss = yy - float(coef @ cy)
-            fits.append((rss, float(coef[0]), 0.0, 0.0))
+            cy = rhs_all[common]
+            coef = np.linalg.solve(gram_all[common][:, common], cy)
+            rss[0] = yy - float(coef @ cy)
+            coef_a[0] = coef[0]
         except np.linalg.LinAlgError:
             pass
-    if ells.size:
-        bc = np.einsum("lm,jm->lj", blurred, common)  # (L, 3)
-        bb = np.einsum("lm,lm->l", blurred, blurred)
-        by = np.einsum("lm,m->l", blurred, y)
-        gram = np.zeros((ells.size, 4, 4))
-        gram[:, 0, 0] = cc[0, 0]
-        gram[:, 0, 1] = gram[:, 1, 0] = bc[:, 0]
-        gram[:, 1, 1] = bb
-        gram[:, 0, 2:] = cc[0, 1:]
-        gram[:, 2:, 0] = cc[1:, 0]
-        gram[:, 1, 2:] = bc[:, 1:]
-        gram[:, 2:, 1] = bc[:, 1:]
-        gram[:, 2:, 2:] = cc[1:, 1:]
-        rhs = np.concatenate([np.broadcast_to(cy[:1], (ells.size, 1)), by[:, None],
-                              np.broadcast_to(cy[1:], (ells.size, 2))], axis=1)
+    if n_l:
+        rows = np.empty((n_l, 4), dtype=np.intp)
+        rows[:, 0] = 0
+        rows[:, 1] = np.arange(1, n_l + 1)
+        rows[:, 2] = n_l + 1
+        rows[:, 3] = n_l + 2
+        gram = gram_all[rows[:, :, None], rows[:, None, :]]
+        rhs = rhs_all[rows]
         try:
             coefs = np.linalg.solve(gram, rhs[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
-            coefs = np.full((ells.size, 4), np.nan)
-        rss = yy - np.einsum("lk,lk->l", coefs, rhs)
-        for i, ell in enumerate(ells):
-            fits.append((float(rss[i]), float(coefs[i, 0]), float(coefs[i, 1]), float(ell)))
-    m_count = y.size
-    for rss_i, a_, b_, ell in fits:
-        if not np.isfinite(rss_i):
-            continue
-        g = a_ + b_
-        if not g > 0 or a_ < -0.05 * g:
-            continue
-        resid = max(rss_i, 0.0) / m_count / var
-        f = float(np.clip(b_ / g, 0.0, 1.0))
-        if best is None or resid < best[0]:
-            best = (resid, g, f, ell)
-    if best is None:
+            coefs = np.full((n_l, 4), np.nan)
+        rss[1:] = yy - np.einsum("lk,lk->l", coefs, rhs)
+        coef_a[1:] = coefs[:, 0]
+        coef_b[1:] = coefs[:, 1]
+    # The best admissible fit: a positive gain, not mostly a negative unblurred part.
+    g = coef_a + coef_b
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(rss) & (g > 0) & ~(coef_a < -0.05 * g)
+    if not np.any(ok):
         return Calibration()
-    resid, g, f, ell = best
-    explained = float(np.clip(1.0 - resid, 0.0, 1.0))
+    resid_all = np.maximum(rss, 0.0) / y.size / var
+    i = int(np.argmin(np.where(ok, resid_all, np.inf)))
+    resid, gain = float(resid_all[i]), float(g[i])
+    f = min(1.0, max(0.0, float(coef_b[i]) / gain))
+    ell = 0.0 if i == 0 else float(ells[i - 1])
+    explained = min(1.0, max(0.0, 1.0 - resid))
     conf = explained * min(1.0, marks / 4.0)
     scatter_conf = conf if ell > 0 and f > 0.05 else 0.0
-    return Calibration(gain=g, gain_confidence=conf, scatter_mm=ell if f > 0.05 else 0.0,
+    return Calibration(gain=gain, gain_confidence=conf, scatter_mm=ell if f > 0.05 else 0.0,
                        scatter_fraction=f if f > 0.05 else 0.0, scatter_confidence=scatter_conf,
-                       trusted=conf >= min_confidence and 0.25 <= g <= 4.0)
+                       trusted=conf >= min_confidence and 0.25 <= gain <= 4.0)
+
+
+_AXES: dict[int, np.ndarray] = {}
+
+
+def _unit_axis(n: int) -> np.ndarray:
+    """``np.linspace(-1, 1, n)`` (cached: profiles of one measurer have few lengths)."""
+    x = _AXES.get(n)
+    if x is None:
+        if len(_AXES) > 64:
+            _AXES.clear()
+        x = _AXES[n] = np.linspace(-1.0, 1.0, n)
+    return x
+
+
+def deblurs(calibration: Calibration, *, pitch_mm: float, min_gain_loss: float = 0.03) -> bool:
+    """Whether :func:`apply_calibration` undoes a scattering blur (else it divides the gain).
+
+    The blur is undone only when it costs the marks' fundamental more than ``min_gain_loss``
+    of its contrast.
+    """
+    f, ell = calibration.scatter_fraction, calibration.scatter_mm
+    if f <= 0 or ell <= 0:
+        return False
+    loss = f * (1.0 - 1.0 / (1.0 + (2.0 * math.pi * ell / pitch_mm) ** 2))
+    return loss >= min_gain_loss
 
 
 def scatter_transfer(n_fft: int, *, dx_mm: float, scatter_mm: float,
@@ -284,10 +338,7 @@ def apply_calibration(slope: np.ndarray, calibration: Calibration, *, dx_mm: flo
     """
     p = np.asarray(slope, dtype=np.float64) / calibration.gain
     f, ell = calibration.scatter_fraction, calibration.scatter_mm
-    if f <= 0 or ell <= 0 or not deblur:
-        return p
-    loss = f * (1.0 - 1.0 / (1.0 + (2.0 * math.pi * ell / pitch_mm) ** 2))
-    if loss < min_gain_loss:
+    if not deblur or not deblurs(calibration, pitch_mm=pitch_mm, min_gain_loss=min_gain_loss):
         return p
     n = p.size
     ext = np.concatenate([p, p[::-1]])  # even extension: no wrap-around jump
@@ -298,7 +349,12 @@ def apply_calibration(slope: np.ndarray, calibration: Calibration, *, dx_mm: flo
 
 
 class SelfCalibrator:
-    """Smooths the calibration over the pairs of one board (keep one per board).
+    """What the measurement learns over the pairs of one board (keep one per board).
+
+    The photometric calibration is smoothed over the pairs; the camera's roll, a property of
+    the rig that the board's pairs all share, is searched for once and then again only every
+    ``roll_every`` pairs (the pairs between use the last confident estimate: the orientation
+    estimated once per board and re-checked, not on every pair).
 
     Parameters
     ----------
@@ -306,13 +362,19 @@ class SelfCalibrator:
         Weight of a new estimate of full confidence in the running mean (0-1).
     min_confidence : float, optional
         The smoothed calibration is trusted once its accumulated confidence reaches this.
+    roll_every : int, optional
+        The roll is searched for on every this many pairs (1: on every pair).
     """
 
-    def __init__(self, *, weight: float = 0.3, min_confidence: float = 0.5) -> None:
+    def __init__(self, *, weight: float = 0.3, min_confidence: float = 0.5,
+                 roll_every: int = 8) -> None:
         if not 0.0 < weight <= 1.0:
             raise ValueError(f"weight must be in (0, 1], got {weight!r}")
+        if int(roll_every) != roll_every or roll_every < 1:
+            raise ValueError(f"roll_every must be an integer >= 1, got {roll_every!r}")
         self.weight = float(weight)
         self.min_confidence = float(min_confidence)
+        self.roll_every = int(roll_every)
         self.reset()
 
     def reset(self) -> None:
@@ -322,6 +384,24 @@ class SelfCalibrator:
         self._w = 0.0  # exponentially weighted sum of confidences
         self._n = 0.0  # ... of ones
         self.pairs = 0
+        self._roll: tuple[float, float] | None = None  # roll_deg, confidence
+        self._roll_age = 0  # pairs measured with it since it was searched for
+
+    def known_roll(self) -> tuple[float, float] | None:
+        """``(roll_deg, confidence)`` for this pair, or ``None`` when the roll is due a search.
+
+        Every call that returns a roll counts one pair measured with it.
+        """
+        if self._roll is None or self._roll_age + 1 >= self.roll_every:
+            return None
+        self._roll_age += 1
+        return self._roll
+
+    def note_roll(self, roll_deg: float, confidence: float, *, min_confidence: float) -> None:
+        """A searched roll: kept for the next pairs when at least ``min_confidence``."""
+        self._roll_age = 0
+        if math.isfinite(confidence) and confidence >= min_confidence:
+            self._roll = (float(roll_deg), float(confidence))
 
     def update(self, estimate: Calibration) -> Calibration:
         """Fold in one pair's estimate; return the smoothed calibration.

@@ -135,3 +135,30 @@ def lambert_intensity(
     t = math.radians(check_finite("azimuth_deg", azimuth_deg))
     val = (math.cos(s) - p * math.cos(t) * math.sin(s)) / np.sqrt(1.0 + p * p)
     return np.asarray(albedo) * np.clip(val, 0.0, None)
+
+
+class RatioSlope:
+    """:func:`slope_from_ratio` of one light geometry (checked and set up once).
+
+    Parameters
+    ----------
+    slant_deg, azimuth_a_deg, azimuth_b_deg, slant_b_deg : float
+        As in :func:`slope_from_ratio`.
+    """
+
+    def __init__(self, *, slant_deg: float, azimuth_a_deg: float = 0.0,
+                 azimuth_b_deg: float = 180.0, slant_b_deg: float | None = None) -> None:
+        tan_s, ca, cb = _angles(slant_deg, azimuth_a_deg, azimuth_b_deg)
+        tan_b = tan_s
+        if slant_b_deg is not None:
+            tan_b, _, _ = _angles(slant_b_deg, azimuth_a_deg, azimuth_b_deg)
+        self._ca, self._tan_a = ca, tan_s
+        self._b = cb * tan_b
+
+    def __call__(self, ratio_ba: np.ndarray) -> np.ndarray:
+        """Slope ``p`` from ``I_B / I_A`` (NaN where the denominator vanishes)."""
+        r = np.asarray(ratio_ba, dtype=np.float64)
+        den = r * self._ca * self._tan_a - self._b
+        with np.errstate(divide="ignore", invalid="ignore"):
+            p = (r - 1.0) / den
+        return np.where(den != 0, p, np.nan)

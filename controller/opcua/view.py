@@ -107,6 +107,7 @@ _EVENT_CATEGORY = {
     EventKind.LOG_REFUSED_RECORD: WwEventCategory.WARNING,
     EventKind.FEED_REFUSED: WwEventCategory.WARNING,
     EventKind.OFFSETS_NOT_SENT: WwEventCategory.WARNING,
+    EventKind.OFFSETS_REFUSED: WwEventCategory.WARNING,
     EventKind.OFFSETS_NOT_ZEROED: WwEventCategory.WARNING,
     EventKind.PAIRS_MISSED: WwEventCategory.WARNING,
     EventKind.CLOCK_WENT_BACK: WwEventCategory.WARNING,
@@ -115,7 +116,7 @@ _EVENT_CATEGORY = {
     EventKind.RECORDS_SAVED: WwEventCategory.WARNING,
 }
 """Service events that become Woodworking events; the rest (``RECOVERED``, ``*_HEALTHY``,
-``*_VALID``, ``FEED_ACCEPTED``, ``LOG_RECOVERED``) are ``INFORMATION``."""
+``*_VALID``, ``FEED_ACCEPTED``, ``LOG_RECOVERED``, ``PIEZO_LIMITS``) are ``INFORMATION``."""
 
 _SEVERITY = {
     WwEventCategory.ERROR: 800, WwEventCategory.ALARM: 700, WwEventCategory.WARNING: 500,
@@ -310,8 +311,8 @@ class MachineView:
         offsets: Sequence[float] = s.offsets_um if s is not None else (
             r.offsets_um if r is not None else ())
         return {
-            "PitchMm": _num(getattr(m, "pitch_mm", None)),
-            "UniformityCv": _num(getattr(m, "uniformity_cv", None)),
+            "PitchMm": _num(r.reported_pitch_mm if m is not None else None),
+            "UniformityCv": _num(r.reported_uniformity_cv if m is not None else None),
             "DepthUm": _num(getattr(m, "depth_um", None)),
             "KnifeWidthsMm": [_num(w) for w in (r.knife_widths_mm if r is not None else ())],
             "PiezoOffsetsUm": [_num(v) for v in offsets],
@@ -360,8 +361,8 @@ class MachineView:
 
     def _summarise(self, board: Sequence[FrameResult]) -> dict[str, float]:
         ok = [r for r in board if r.ok]
-        pitches = [_num(getattr(r.measurement, "pitch_mm", None)) for r in ok]
-        cvs = [_num(getattr(r.measurement, "uniformity_cv", None)) for r in ok]
+        pitches = [_num(r.reported_pitch_mm) for r in ok]
+        cvs = [_num(r.reported_uniformity_cv) for r in ok]
         judged = [self._judge(r) for r in ok]
         judged = [j for j in judged if j is not None]
 

@@ -167,10 +167,7 @@ def result_json(r: FrameResult, *, max_points: int = PROFILE_MAX_POINTS) -> dict
         when the knives' widths are too alike for that).
     """
     m = r.measurement
-    passes = r.extra.get("passes") or {}
-    pitch = passes.get("pass_pitch_mm") if r.ok else None
-    if pitch is None and r.ok:
-        pitch = getattr(m, "pitch_mm", None)
+    pitch = r.reported_pitch_mm
     out: dict[str, Any] = {
         "seq": int(r.seq),
         "t_s": _num(r.t_s, 4),
@@ -179,7 +176,7 @@ def result_json(r: FrameResult, *, max_points: int = PROFILE_MAX_POINTS) -> dict
         "state": r.state,
         "applied": bool(r.applied),
         "pitch_mm": _num(pitch, 5),
-        "uniformity_cv": _num(getattr(m, "uniformity_cv", None), 5) if r.ok else None,
+        "uniformity_cv": _num(r.reported_uniformity_cv, 5) if r.ok else None,
         "depth_um": _num(getattr(m, "depth_um", None), 3) if r.ok else None,
         "confidence": _num(getattr(m, "confidence", None), 3),
         "roll_deg": _num(getattr(m, "roll_deg", None), 3),
@@ -214,7 +211,7 @@ def result_json(r: FrameResult, *, max_points: int = PROFILE_MAX_POINTS) -> dict
     n = widths.size
     if cusps.size != n + 1 or bottoms.size != n:
         return out
-    named = passes.get("knife")
+    named = r.passes.get("knife")
     if isinstance(named, (list, tuple)) and len(named) == n:
         knives, out["knife_source"] = [int(k) for k in named], "attribution"
     elif len(r.knife_widths_mm):

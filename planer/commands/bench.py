@@ -88,19 +88,29 @@ def vision_row_text(row: dict[str, Any]) -> str:
         One entry of ``planer.benchmarks.vision.run``: ``width``, ``height``, ``pairs_per_s``,
         ``copy_pairs_per_s`` and, when measured, ``no_roll_pairs_per_s``,
         ``selfcal_pairs_per_s``, ``remap_pairs_per_s``, ``cpu_ms``, ``selfcal_cpu_ms``,
-        ``remap_cpu_ms``, ``orientation_ms``, ``selfcal_ms``.
+        ``remap_cpu_ms``, ``orientation_ms``, ``selfcal_ms``, ``rolled_cpu_ms``,
+        ``remap_ratio``, ``selfcal_remap_ratio``, ``rolled_remap_ratio``,
+        ``target_remap_ratio``, ``meets_target``.
 
     Returns
     -------
     str
-        The measurement rate and CPU time, its floors measured in the same run (a copy of the
-        pair, one remap of the pair) as "N x faster" ratios, and the CPU cost of the
-        orientation and self-calibration steps; rows without the step keys give one line.
+        The measurement rate and CPU time with its speed as a multiple of one remap's (plain
+        and as the service runs it, against the issue's target), its floors measured in the
+        same run (a copy of the pair, one remap of the pair) as "N x faster" ratios, and the
+        CPU cost of the orientation and self-calibration steps and of a rolled camera; rows
+        without the step keys give one line.
     """
     rate = row["pairs_per_s"]
     head = f"  {row['width']}x{row['height']}: {rate:.0f} pairs/s"
     if "cpu_ms" in row:
         head += f", {row['cpu_ms']:.2f} ms CPU per pair"
+    if "remap_ratio" in row:
+        head += f" = {_ratio(row['remap_ratio'])} one remap's speed"
+    if "selfcal_remap_ratio" in row:
+        verdict = "meets" if row.get("meets_target") else "MISSES"
+        head += (f"; as the service {_ratio(row['selfcal_remap_ratio'])} ({verdict} the "
+                 f"target {row.get('target_remap_ratio', 1.0):g}x)")
     floors = [f"copy {row['copy_pairs_per_s']:.0f} pairs/s ({_times(row['copy_pairs_per_s'], rate)}"
               " faster)"]
     if "remap_pairs_per_s" in row:
@@ -125,9 +135,22 @@ def vision_row_text(row: dict[str, Any]) -> str:
         if service:
             step += f" (as the service runs it: {', '.join(service)})"
         steps.append(step)
+    if "rolled_cpu_ms" in row:
+        rolled = f"rolled camera {row['rolled_cpu_ms']:.2f} ms"
+        if "rolled_remap_ratio" in row:
+            rolled += f" ({_ratio(row['rolled_remap_ratio'])} one remap's speed)"
+        steps.append(rolled)
     if steps:
         lines.append("    steps, CPU per pair: " + "; ".join(steps))
     return "\n".join(lines)
+
+
+def _ratio(value: Any) -> str:
+    """A speed ratio as ``"1.23x"`` (``"?x"`` when not a number)."""
+    try:
+        return f"{float(value):.2f}x" if float(value) == float(value) else "?x"
+    except (TypeError, ValueError):
+        return "?x"
 
 
 def vision_text(result: Any) -> str:

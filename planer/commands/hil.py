@@ -23,14 +23,24 @@ from typing import Any
 HELP = "hardware-in-the-loop run: simulator + service, scenario, summary and quality log"
 
 
+def _shipped_scenarios() -> str:
+    """The scenario names of ``config/hil.toml``, for the help (the file is the one list)."""
+    from config.loading import default_path, load_toml
+    from core.errors import ConfigError
+
+    try:
+        return ", ".join(load_toml(default_path("hil.toml")))
+    except (ConfigError, OSError) as exc:  # the help still prints; running names the problem
+        return f"unreadable: {exc}"
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""
     parser.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     parser.add_argument(
         "--scenario",
         default="default",
-        help="scenario name in config/hil.toml (default, modbus_restart, can_silence, faults) "
-        "or FILE.toml[:NAME]",
+        help=f"scenario name in config/hil.toml ({_shipped_scenarios()}) or FILE.toml[:NAME]",
     )
     parser.add_argument(
         "--distance-m", type=float, default=None, metavar="D", help="metres of board to run"
@@ -203,7 +213,8 @@ def run(args: argparse.Namespace) -> int:
                 # the same command again, inside a private network namespace (never returns);
                 # the log path is fixed now so both sides agree on it
                 os.environ["PLANER_HIL_LOG"] = str(log_path)
-                progress("planer hil: entering a private network namespace (unshare -rn)")
+                progress("planer hil: entering a private network namespace "
+                         f"({' '.join(can_transport.netns_argv(['-'])[:2])})")
                 can_transport.reexec_in_private_netns(
                     [sys.executable, "-m", "planer.cli", *sys.argv[1:]]
                 )

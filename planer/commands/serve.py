@@ -32,6 +32,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="stop after N image pairs (default: run until stopped)",
     )
     parser.add_argument(
+        "--workers", type=int, default=None, metavar="N",
+        help="measure in N worker processes (overrides [service] workers; 0: in this process; "
+        "more than the cores: a warning and one per core)",
+    )
+    parser.add_argument(
         "--status-every",
         type=float,
         default=5.0,
@@ -153,6 +158,36 @@ def open_source(cfg: Any) -> tuple[Any, Any]:
         raise
 
 
+async def start_workers(service: Any, cfg: Any, requested: int | None) -> Any:
+    """The measurement's worker processes (``--workers``, else ``[service] workers``), or None.
+
+    Started off the event loop (each worker sets up for the configured image size); more than
+    the cores available is one line on stderr and one worker per core. The pool measures for
+    ``service`` from then on; the caller closes it after the service.
+    """
+    import asyncio
+    import sys
+
+    from controller.latency import MEASURE_NICE
+    from controller.measure_workers import open_worker_pool
+
+    workers = cfg.service.workers if requested is None else requested
+    if not workers:
+        return None
+    fr = cfg.frames
+    shape = (fr.image_height, fr.image_width) if fr.image_width > 0 and fr.image_height > 0 \
+        else None
+    pool, warning = await asyncio.get_running_loop().run_in_executor(
+        None, lambda: open_worker_pool(service.measurement.factory, workers, shape=shape,
+                                       timeout_s=cfg.safety.measurement_timeout_s,
+                                       nice=MEASURE_NICE))
+    if warning:
+        print(f"planer serve: {warning}", file=sys.stderr, flush=True)
+    service.pipeline.use_workers(pool)
+    print(f"workers: measuring in {pool.workers} process(es)", flush=True)
+    return pool
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
     import asyncio
@@ -162,14 +197,18 @@ def run(args: argparse.Namespace) -> int:
 
     from config.machine import load_machine
     from controller.events import EventKind
+    from controller.latency import MEASURE_NICE, prioritize, tune_for_latency
     from controller.quality_log import log_target
     from controller.safety import SafetyState
     from controller.service import open_service
     from core.checks import check_int
+    from core.realtime import BUS_RT_PRIORITY, realtime_thread
     from planer.cli import output_file, output_folder
 
     if args.max_frames is not None:
         check_int("--max-frames", args.max_frames, lo=1)
+    if args.workers is not None:
+        check_int("--workers", args.workers, lo=0)
     if not args.status_every > 0:
         raise ValueError(f"--status-every must be > 0, got {args.status_every}")
     cfg = load_machine(args.config)
@@ -207,9 +246,16 @@ def run(args: argparse.Namespace) -> int:
         service = open_service(cfg, log_path=log_path)
         opened.append(service)
         try:
+            pool = await start_workers(service, cfg, args.workers)
+        except BaseException:
+            service.close()
+            raise
+        try:
             source, latch_reader = open_source(cfg)
         except BaseException:
             service.close()
+            if pool is not None:
+                pool.close()
             raise
         t0 = service.clock()
         say(f"plc: {cfg.plc.host}:{cfg.plc.port} unit {cfg.plc.unit_id}")
@@ -281,13 +327,21 @@ def run(args: argparse.Namespace) -> int:
                     say(f"t={service.clock() - t0:9.3f} s  "
                         + waiting_line(tuple(status.missing), **where))
 
-        say("ready")
+        tune_for_latency()  # after the set-up: frozen heap, short lock switch interval
+        prioritize(service)  # the measurement and the records' writer first on a busy host
         watcher = asyncio.create_task(tell_why_waiting())
         try:
-            await service.run(source, stop=stop, max_frames=args.max_frames)
+            # the event loop (PLC and CAN cycles, each pair's control) at real-time priority
+            with realtime_thread(rt_priority=BUS_RT_PRIORITY) as granted:
+                say(f"priority: service bus {granted}; measurement and records asked for "
+                    f"nice {MEASURE_NICE}")
+                say("ready")
+                await service.run(source, stop=stop, max_frames=args.max_frames)
         finally:
             watcher.cancel()
             service.close()
+            if pool is not None:
+                pool.close()
             source.close()
             if latch_reader is not None:  # after the camera's thread that polls it
                 latch_reader.close()

@@ -1,10 +1,24 @@
-"""Cross-process HIL: ``planer sim`` in a private network namespace and the real-time service."""
+"""Cross-process HIL: ``planer sim`` in a private network namespace and the real-time service.
+
+Order of start (issue 14: the machine's clock must not run ahead of a service still starting on
+a busy host): the service is built first (its imports, quality log, CAN bus; nothing contacted
+yet) for a Modbus port chosen here, then ``planer sim`` is started on that port, and the service
+runs as soon as the simulator says ``ready``. While it runs, the service's bus thread (the event
+loop that runs the PLC and CAN cycles) is at real-time priority where permitted
+(:func:`core.realtime.realtime_thread`; its measurement workers and every thread it starts run
+at normal priority); what it and the simulator's interfaces got is said once.
+
+The summary maps machine time (the frames' ``frame_t_s``) onto service time: the simulated
+clock slows itself when the host cannot keep up, so besides the offset the achieved rate
+(``sim_time_factor``: machine seconds per service second) is estimated from the frames.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import enum
 import math
+import socket
 import subprocess
 import sys
 import tempfile
@@ -18,6 +32,7 @@ from typing import Any
 from config.loading import default_path
 from controller.service import FrameResult
 from core.errors import FieldbusError
+from core.realtime import BUS_RT_PRIORITY, realtime_thread
 from planer.hil.scenario import Progress, Scenario, machine_config_for, sim_config_for, sim_document
 from planer.hil.summary import PROGRESS_LEGEND, BoardTravel, _progress_line, _service_summary
 
@@ -75,6 +90,62 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child
         pass
 
 
+SIM_LINES_SAID = ("priority:", "slow host")
+"""Lines of the simulator (besides faults) passed on to the progress: what its interfaces were
+granted, and a clock that slowed itself."""
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` now (for the simulator's Modbus server)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def gap_stats_ms(times_s: Sequence[float]) -> dict[str, float | int] | None:
+    """Gaps between successive times (s), in ms: ``p50``, ``p99``, ``max``, ``n``.
+
+    ``over_100`` counts the gaps longer than the amplifier's 100 ms setpoint timeout; ``None``
+    below two times.
+    """
+    if len(times_s) < 2:
+        return None
+    gaps = sorted((b - a) * 1e3 for a, b in zip(times_s, times_s[1:], strict=False))
+    n = len(gaps)
+    return {"p50": round(gaps[n // 2], 2), "p99": round(gaps[min(n - 1, int(0.99 * n))], 2),
+            "max": round(gaps[-1], 2), "over_100": sum(g > 100.0 for g in gaps), "n": n}
+
+
+def latency_stats_ms(durations_s: Sequence[float]) -> dict[str, float | int] | None:
+    """``p50``, ``p99``, ``max`` (ms) and ``n`` of durations in seconds; ``None`` if none."""
+    if not durations_s:
+        return None
+    ms = sorted(d * 1e3 for d in durations_s)
+    n = len(ms)
+    return {"p50": round(ms[n // 2], 3), "p99": round(ms[min(n - 1, int(0.99 * n))], 3),
+            "max": round(ms[-1], 3), "n": n}
+
+
+def time_factor(results: Sequence[FrameResult]) -> float | None:
+    """Machine seconds per service second over the run, from the frames' times.
+
+    The least-squares slope of the frames' machine time (``frame_t_s``) against their arrival
+    on the service's clock (``t_s``); ``None`` with fewer than two frames or no spread. 1.0: the
+    simulator kept real time; below: its clock slowed itself.
+    """
+    pts = [(r.t_s, r.frame_t_s) for r in results
+           if math.isfinite(r.t_s) and math.isfinite(r.frame_t_s)]
+    if len(pts) < 2:
+        return None
+    n = len(pts)
+    mt = sum(p[0] for p in pts) / n
+    mf = sum(p[1] for p in pts) / n
+    var = sum((p[0] - mt) ** 2 for p in pts)
+    if var <= 0:
+        return None
+    return sum((p[0] - mt) * (p[1] - mf) for p in pts) / var
+
+
 class _SimProcess:
     """``planer sim`` as a child process: banner parsed, output drained in a thread."""
 
@@ -86,6 +157,7 @@ class _SimProcess:
         self.progress = progress
         self.lines: list[str] = []
         self.banner: dict[str, str] = {}
+        self.said: list[str] = []  # the SIM_LINES_SAID lines, in order
         self._ready = threading.Event()
         self._thread = threading.Thread(target=self._drain, daemon=True)
         self._thread.start()
@@ -97,6 +169,10 @@ class _SimProcess:
         for line in self.proc.stdout:
             line = line.rstrip("\n")
             self.lines.append(line)
+            if line.startswith(SIM_LINES_SAID):
+                self.said.append(line)
+                if self.progress is not None:
+                    self.progress(f"sim: {line}")
             if not self._ready.is_set():
                 if line.strip() == "ready":
                     self.banner = parse_banner(self.lines)
@@ -199,41 +275,43 @@ async def _run_cross_process(
     sim_cfg = sim_config_for(scenario, machine_faults=False)
 
     cfg = machine_config_for(scenario, log_path=log_path)
+    host = "127.0.0.1"
+    port = free_port(host)
+    optics = sim_cfg.camera.optics
+    cfg = cfg.with_changes(
+        plc=replace(cfg.plc, host=host, port=port),
+        can=CanConfig(interface="udp_multicast", channel=group,
+                      options={"port": can_port},
+                      command_period_s=cfg.can.command_period_s,
+                      offsets_period_s=cfg.can.offsets_period_s, dbc=cfg.can.dbc),
+        frames=replace(cfg.frames, source="spool", spool_dir=spool,
+                       pairs_per_s=sim_cfg.camera.pairs_per_s,
+                       image_width=optics.width, image_height=optics.height),
+    )
+    # the service first (imports, log, CAN bus; nothing contacted yet): the machine's clock
+    # starts with the simulator, and the service must be there when it does
+    bus = open_bus(cfg.can.interface, cfg.can.channel, dict(cfg.can.options))
+    try:  # the bus is shut down if the service cannot start (log)
+        service = open_service(cfg, threaded=True, log_path=log_path, can_bus=bus)
+    except BaseException:
+        bus.shutdown()
+        raise
     argv = [sys.executable, "-m", "planer.cli", "sim", "--config", str(sim_toml),
-            "--seed", str(scenario.seed), "--port", "0"]
-    say(f"hil (cross-process): starting {' '.join(argv[2:])}")
-    sim = _SimProcess(argv, progress)
-    service = None
+            "--seed", str(scenario.seed), "--port", str(port)]
+    sim: _SimProcess | None = None
+    pool = None
+    granted = "not asked"
     try:
+        pool = _measure_in_workers(service, cfg, say)
+        say(f"hil (cross-process): starting {' '.join(argv[2:])}")
+        sim = _SimProcess(argv, progress)
         banner = sim.wait_ready(60.0)
-        host, _, port = banner["modbus"].rpartition(":")
         say(f"sim ready: modbus {banner['modbus']}, can {banner.get('can')}, "
             f"frames {banner.get('frames')}")
-        optics = sim_cfg.camera.optics
-        cfg = cfg.with_changes(
-            plc=replace(cfg.plc, host=host, port=int(port)),
-            can=CanConfig(interface="udp_multicast", channel=group,
-                          options={"port": can_port},
-                          command_period_s=cfg.can.command_period_s,
-                          offsets_period_s=cfg.can.offsets_period_s, dbc=cfg.can.dbc),
-            frames=replace(cfg.frames, source="spool", spool_dir=spool,
-                           pairs_per_s=sim_cfg.camera.pairs_per_s,
-                           image_width=optics.width, image_height=optics.height),
-        )
-        # the bus is opened here so that it is shut down if the service cannot start (log)
-        bus = open_bus(cfg.can.interface, cfg.can.channel, dict(cfg.can.options))
-        try:
-            service = open_service(cfg, threaded=True, log_path=log_path, can_bus=bus)
-        except BaseException:
-            bus.shutdown()
-            raise
         start_id = service.log.last_id
         service.keep_results = True
         if on_service is not None:  # e.g. the OPC UA server follows it
             on_service(service)
-        t_start = service.clock()
-        service.on_event = lambda e: say(f"t={e.t_s - t_start:7.3f} s  {e.text}")
-        say(PROGRESS_LEGEND)
         source = open_frame_source(cfg.frames)
         stop = asyncio.Event()
         cpm = sim_cfg.encoder.counts_per_mm
@@ -256,16 +334,36 @@ async def _run_cross_process(
             stop.set()
 
         limiter = asyncio.create_task(time_limit())
-        wall0 = time.perf_counter()
-        try:
-            await service.run(source, stop=stop)
-        finally:
-            limiter.cancel()
-        wall = time.perf_counter() - wall0
+        cycles = _timed(service, "can_cycle")  # when the CAN cycle ran (the amplifier's view)
+        reads = _timed_reads(service.plc.bus)  # request to answer of each register read
+        # the measurement runs in worker processes: every other thread here is light I/O that
+        # shares the interpreter lock with the bus thread (spool reader, log writer), raised
+        # with it so that none is descheduled by a hog while holding the lock
+        others = [t for t in threading.enumerate()
+                  if t is not threading.current_thread()] if pool is not None else []
+        with realtime_thread(rt_priority=BUS_RT_PRIORITY, others=others) as granted:
+            t_start = service.clock()
+            service.on_event = lambda e: say(f"t={e.t_s - t_start:7.3f} s  {e.text}")
+            raised = granted.startswith(("SCHED_FIFO", "nice"))
+            say(f"service: bus thread {granted}" + (
+                f" (with {', '.join(t.name for t in others)})" if raised and others else "")
+                + ("" if raised
+                   else "; not permitted to raise it: on a busy host its cycles may run late"))
+            say(PROGRESS_LEGEND)
+            wall0 = time.perf_counter()
+            try:
+                await service.run(source, stop=stop)
+            finally:
+                limiter.cancel()
+            wall = time.perf_counter() - wall0
     finally:
-        if service is not None:
+        try:
             service.close()
-        code = sim.stop()
+        finally:
+            if pool is not None:
+                pool.close()
+            code = sim.stop() if sim is not None else 0
+    factor = time_factor(service.results)
     summary = _service_summary(
         service,
         cfg,
@@ -275,15 +373,108 @@ async def _run_cross_process(
         start_id=start_id,
         time_offset_s=_estimate_offset(service.results),
         t_start_s=t_start,
+        final_cv_max=scenario.final_cv_max,
         extra={
             "mode": "cross-process",
             "scenario": scenario.name,
             "wall_time_s": round(wall, 3),
             "sim_banner": banner,
+            "sim_time_factor": None if factor is None else round(factor, 3),
+            "priority": {"service_bus": granted,
+                         "service_threads": [t.name for t in others],
+                         "sim": next((x.partition(": ")[2] for x in sim.said
+                                      if x.startswith("priority:")), None)},
+            "sim_said": list(sim.said),
+            "can_cycle_gaps_ms": gap_stats_ms(cycles),
+            "sim_command_gaps_ms": _command_gaps(sim.lines),
+            "plc_read_ms": latency_stats_ms(reads),
         },
     )
     summary["sim_exit_code"] = code
     return summary
+
+
+HIL_MEASURE_WORKERS = 1
+"""Worker processes measuring for the service in the cross-process HIL (at least; more if
+``[service] workers`` asks). In the service's own process the measurement thread holds the
+interpreter lock most of the time; descheduled by a CPU hog while holding it, it kept the
+real-time bus thread from sending ``PIEZO_COMMAND`` for up to 90-210 ms (measured under six
+hogs: over the amplifier's 100 ms setpoint timeout). In a process of its own it cannot."""
+
+
+def _measure_in_workers(service: Any, cfg: Any, say: Progress) -> Any:
+    """Start the measurement's worker process(es) for ``service`` and tune its process.
+
+    Returns the pool (the caller closes it after the service). The process's heap is frozen and
+    its interpreter lock's switch interval shortened (:func:`controller.latency.
+    tune_for_latency`), as ``planer serve`` does.
+    """
+    from controller.latency import tune_for_latency
+    from controller.measure_workers import open_worker_pool
+
+    fr = cfg.frames
+    shape = (fr.image_height, fr.image_width) if fr.image_width > 0 and fr.image_height > 0 \
+        else None
+    pool, warning = open_worker_pool(service.measurement.factory,
+                                     max(HIL_MEASURE_WORKERS, cfg.service.workers), shape=shape,
+                                     timeout_s=cfg.safety.measurement_timeout_s)
+    if warning:
+        say(f"hil (cross-process): {warning}")
+    if pool is not None:
+        service.pipeline.use_workers(pool)
+        say(f"service: measuring in {pool.workers} worker process(es)")
+    tune_for_latency()
+    return pool
+
+
+def _command_gaps(lines: Sequence[str]) -> dict[str, float | int] | None:
+    """The service's commands as the simulator received them, from its progress lines.
+
+    ``max``: the longest wall gap between two ``PIEZO_COMMAND`` frames, ms; ``over_100``: the
+    progress lines (one per machine second) with a gap over 100 ms.
+    """
+    gaps = []
+    for line in lines:
+        _, sep, rest = line.partition("command gap max=")
+        if sep:
+            try:
+                gaps.append(float(rest.split()[0]))
+            except (ValueError, IndexError):
+                continue
+    if not gaps:
+        return None
+    return {"max": max(gaps), "over_100": sum(g > 100.0 for g in gaps), "lines": len(gaps)}
+
+
+def _timed(obj: Any, name: str) -> list[float]:
+    """Wrap method ``name`` of ``obj`` (instance attribute) to note each call's clock time."""
+    times: list[float] = []
+    orig = getattr(obj, name)
+
+    def timed(*args: Any, **kwargs: Any) -> Any:
+        times.append(time.monotonic())
+        return orig(*args, **kwargs)
+
+    setattr(obj, name, timed)
+    return times
+
+
+def _timed_reads(bus: Any) -> list[float]:
+    """Note how long each answered read of ``bus`` took, s (wraps its ``read`` coroutine).
+
+    One Modbus request and its answer, without the client's queueing.
+    """
+    took: list[float] = []
+    orig = bus.read
+
+    async def read(*args: Any, **kwargs: Any) -> Any:
+        t0 = time.perf_counter()
+        words = await orig(*args, **kwargs)
+        took.append(time.perf_counter() - t0)  # answered reads only (errors raise)
+        return words
+
+    bus.read = read
+    return took
 
 
 def _estimate_offset(results: Sequence[FrameResult]) -> float:

@@ -303,6 +303,7 @@ class InProcessHil:
             counts_per_mm=snap.counts_per_mm if snap else self.sim_cfg.encoder.counts_per_mm,
             log_path=self.log_path,
             start_id=plant.start_id,
+            final_cv_max=sc.final_cv_max,
             extra={
                 "mode": "in-process",
                 "scenario": sc.name,

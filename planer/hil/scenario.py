@@ -52,6 +52,16 @@ class Scenario:
         Cross-process runs: simulated seconds per wall second.
     faults : tuple of FaultEvent
         Faults to inject.
+    amp_stroke_um : float or None
+        Stroke of the simulated piezo amplifier (overrides ``sim.toml``'s ``[piezo]
+        stroke_um``; the amplifier reports it over CAN), um.
+    stroke_um : float or None
+        The service's stroke (overrides ``machine.toml``'s ``[piezo] stroke_um``), um; with
+        ``amp_stroke_um`` different, the two disagree (the stroke-mismatch scenario).
+    final_cv_max : float
+        The true CV the run must end at or below (and settle to) to pass: the default
+        :data:`UNIFORMITY_MAX_CV`; larger for a plant whose best reachable CV is above it (a
+        stroke too small for its runout: ``planer/sweep/optimum.py`` computes that CV).
     """
 
     name: str = "default"
@@ -65,6 +75,9 @@ class Scenario:
     max_sim_s: float = 60.0
     time_scale: float = 1.0
     faults: tuple[FaultEvent, ...] = ()
+    amp_stroke_um: float | None = None
+    stroke_um: float | None = None
+    final_cv_max: float = UNIFORMITY_MAX_CV
 
 
 def _fault_list(raw: Any, key: str) -> tuple[FaultEvent, ...]:
@@ -118,6 +131,12 @@ def scenario_from_table(
         kw["time_scale"] = s.number("time_scale", lo=0.0, lo_open=True, hi=100.0)
     if s.has("faults"):
         kw["faults"] = _fault_list(s.raw("faults"), f"{name}.faults")
+    if s.has("amp_stroke_um"):
+        kw["amp_stroke_um"] = s.number("amp_stroke_um", lo=0.0, lo_open=True, hi=1000.0)
+    if s.has("stroke_um"):  # machine.toml's bound: what the DBC's offset signals carry
+        kw["stroke_um"] = s.number("stroke_um", lo=0.0, lo_open=True, hi=32.767)
+    if s.has("final_cv_max"):
+        kw["final_cv_max"] = s.number("final_cv_max", lo=0.0, lo_open=True, hi=1.0)
     s.reject_unknown()
     return replace(base, **kw)
 
@@ -193,6 +212,8 @@ def sim_document(scenario: Scenario) -> dict[str, Any]:
         doc["cutterhead"]["knives"] = len(scenario.runout_um)
     if scenario.initial_feed_mm_s is not None:
         doc.setdefault("feed", {})["initial_mm_s"] = scenario.initial_feed_mm_s
+    if scenario.amp_stroke_um is not None:
+        doc.setdefault("piezo", {})["stroke_um"] = scenario.amp_stroke_um
     return doc
 
 
@@ -212,8 +233,10 @@ def sim_config_for(scenario: Scenario, *, machine_faults: bool = True) -> Any:
 
 
 def machine_config_for(scenario: Scenario, *, log_path: Path | None = None) -> MachineConfig:
-    """The service's configuration for a scenario (target pitch and log path applied)."""
+    """The service's configuration for a scenario (target pitch, stroke, log path applied)."""
     cfg = load_machine(scenario.machine_config)
+    if scenario.stroke_um is not None:
+        cfg = cfg.with_changes(stroke_um=scenario.stroke_um)
     if scenario.target_pitch_mm is not None:
         cfg = cfg.with_changes(
             quality=replace(cfg.quality, target_pitch_mm=scenario.target_pitch_mm)

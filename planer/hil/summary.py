@@ -72,6 +72,8 @@ def summarize(
     safety: Any = None,
     time_offset_s: float = 0.0,
     extra: Mapping[str, Any] | None = None,
+    piezo_limits: Mapping[str, Any] | None = None,
+    final_cv_max: float = UNIFORMITY_MAX_CV,
 ) -> dict[str, Any]:
     """The HIL summary (the ``--json`` object of ``planer hil``).
 
@@ -86,7 +88,8 @@ def summarize(
     feed_limits_mm_s : (float, float)
         The machine's feed limits.
     stroke_um : float
-        The piezo stroke (offsets must stay within +-stroke).
+        ``machine.toml``'s piezo stroke (offsets must stay within +-stroke, or within the
+        amplifier's smaller one when ``piezo_limits`` says it reported one).
     faults : sequence of FaultEvent
         Injected faults (machine time).
     events : sequence of ServiceEvent
@@ -97,12 +100,20 @@ def summarize(
         Service time minus machine time.
     extra : mapping, optional
         Added to the summary.
+    piezo_limits : mapping, optional
+        The service's bound on the offsets at the end (``Actuators.limits()``): the stroke it
+        used (``stroke_um``, the smaller of the amplifier's and ``machine.toml``'s) and why.
+    final_cv_max : float
+        The scenario's bound on the final (and settled) true CV; the ``done`` key names it
+        (``final_uniformity_le_0.05`` by default).
 
     Returns
     -------
     dict
         Keys ``measurements``, ``initial``, ``final``, ``target_pitch_mm`` (the contract), and
-        ``converged``, ``limits`` (``ok`` never without a written setpoint; ``reasons``),
+        ``converged``, ``limits`` (see :func:`limits_report`: ``ok`` only with every setpoint
+        inside the limits, no refused table left un-planned and no safe-state entry that an
+        injected fault does not explain; ``reasons``),
         ``faults`` (per fault what it tripped), ``safe_entries`` (every safe-state entry, laid
         to the fault that explains it), ``counts``, ``latency_ms``, ``done`` ... Values may be
         NaN; :func:`json_ready` makes it strict JSON.
@@ -112,7 +123,6 @@ def summarize(
     lo, hi = feed_limits_mm_s
     meas = []
     for r, d in zip(results, pos, strict=True):
-        m = r.measurement
         meas.append(
             {
                 "seq": r.seq,
@@ -122,8 +132,8 @@ def summarize(
                 "error": r.error,
                 "state": r.state,
                 "applied": r.applied,
-                "pitch_mm": _num(getattr(m, "pitch_mm", None)) if r.ok else None,
-                "uniformity_cv": _num(getattr(m, "uniformity_cv", None)) if r.ok else None,
+                "pitch_mm": _num(r.reported_pitch_mm) if r.ok else None,
+                "uniformity_cv": _num(r.reported_uniformity_cv) if r.ok else None,
                 "true_pitch_mm": _truth(r, "pitch_mm"),
                 "true_uniformity_cv": _truth(r, "uniformity_cv"),
                 "feed_setpoint_mm_s": _num(r.feed_setpoint_mm_s),
@@ -164,7 +174,7 @@ def summarize(
     conv: dict[str, Any] = {"loop_closed_at_mm": None}
     ref, ref_name = closed, "loop closed"
     if closed is not None and faults:
-        last_fault = max(f.at_s for f in faults) + time_offset_s
+        last_fault = max(f.at_s + _local_offset(results, f.at_s, time_offset_s) for f in faults)
         recs = [e.t_s for e in events if e.kind is EventKind.RECOVERED and e.t_s >= last_fault]
         if recs:
             ref = next((i for i, r in enumerate(results) if r.t_s > recs[0] and r.applied), None)
@@ -175,7 +185,7 @@ def summarize(
         rel = [pos[i] - c0 for i in after]
         cv_vals = [_truth(results[i], "uniformity_cv") for i in after]
         p_vals = [_truth(results[i], "pitch_mm") for i in after]
-        cv_at = _settled_at(cv_vals, lambda v: v <= UNIFORMITY_MAX_CV, rel)
+        cv_at = _settled_at(cv_vals, lambda v: v <= final_cv_max, rel)
         p_at = _settled_at(
             p_vals, lambda v: abs(v / target_pitch_mm - 1.0) <= PITCH_TOL, rel
         )
@@ -189,7 +199,6 @@ def summarize(
         }
     out["converged"] = conv
 
-    out["limits"] = _limits(results, lo, hi, stroke_um)
     lat = [r.latency_s * 1e3 for r in results if r.ok]
     out["latency_ms"] = (
         {"median": float(np.median(lat)), "p99": float(np.percentile(lat, 99)), "n": len(lat)}
@@ -206,12 +215,14 @@ def summarize(
         _fault_report(f, results, events, safety, time_offset_s) for f in faults
     ]
     out["safe_entries"] = _safe_entries(results, events, faults, safety, time_offset_s)
+    out["limits"] = limits_report(results, lo, hi, stroke_um, events=events,
+                                  safe_entries=out["safe_entries"], piezo_limits=piezo_limits)
     cv0 = out["initial"].get("uniformity_cv")
     cv1 = out["final"].get("uniformity_cv")
     p1 = out["final"].get("pitch_mm")
     done = {
         "initial_uniformity_ge_0.10": cv0 is not None and cv0 >= 0.10,
-        "final_uniformity_le_0.05": cv1 is not None and cv1 <= UNIFORMITY_MAX_CV,
+        f"final_uniformity_le_{final_cv_max:g}": cv1 is not None and cv1 <= final_cv_max,
         "final_pitch_within_2pct": p1 is not None
         and abs(p1 / target_pitch_mm - 1.0) <= PITCH_TOL,
         "settled_within_3m": conv.get("uniformity_settled_after_mm") is not None
@@ -237,16 +248,69 @@ def _num(v: Any) -> float | None:
     return round(f, 6) if math.isfinite(f) else None
 
 
-def _limits(
-    results: Sequence[FrameResult], lo: float, hi: float, stroke_um: float
-) -> dict[str, Any]:
-    """Whether every setpoint stayed in the machine's limits; never ``ok`` without a setpoint.
+def refused_tables(events: Sequence[ServiceEvent]) -> list[dict[str, Any]]:
+    """Every offset table the amplifier refused (``OFFSETS_REFUSED`` events), in order.
 
-    ``reasons`` lists what failed: no setpoint written (no measurement applied), feed limits
-    unknown (no PLC data), setpoints that are not numbers or lie outside the limits, offsets
-    beyond the stroke.
+    Each: ``t_s`` (service time), ``table_um`` (refused), ``limit_um`` and ``replanned_um``
+    (the narrowed bound and the table sent instead; ``None``: nothing smaller existed, the
+    refusal was left un-planned).
+    """
+    out = []
+    for e in events:
+        if e.kind is not EventKind.OFFSETS_REFUSED:
+            continue
+        data = dict(e.data or {})
+        out.append({"t_s": round(e.t_s, 3), "table_um": data.get("table_um"),
+                    "limit_um": data.get("limit_um"), "replanned_um": data.get("replanned_um")})
+    return out
+
+
+def limits_report(
+    results: Sequence[FrameResult],
+    lo: float,
+    hi: float,
+    stroke_um: float,
+    *,
+    events: Sequence[ServiceEvent] = (),
+    safe_entries: Mapping[str, Any] | None = None,
+    piezo_limits: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Whether the run kept to the machine's limits; never ``ok`` without a setpoint.
+
+    The criterion: ``ok`` only when a setpoint was written, every feed setpoint lies within the
+    PLC's limits, every piezo offset within the stroke in force (the smaller of the amplifier's
+    reported stroke and ``machine.toml``'s ``stroke_um``), no refused offset table was left
+    un-planned (re-planned within a narrower bound, never resent unchanged), and every
+    safe-state entry is explained by an injected fault (``safe_entries["unexplained"] == 0``):
+    a run that cycles through the safe state is not "limits OK" whatever its setpoints.
+    ``reasons`` lists what failed.
+
+    Parameters
+    ----------
+    results : sequence of FrameResult
+        The run's measurements.
+    lo, hi : float
+        The PLC's feed limits, mm/s (NaN: unknown).
+    stroke_um : float
+        ``machine.toml``'s stroke, um.
+    events : sequence of ServiceEvent
+        The service's events (the refused tables).
+    safe_entries : mapping, optional
+        :func:`_safe_entries`' report (``count``, ``unexplained``).
+    piezo_limits : mapping, optional
+        ``Actuators.limits()`` at the end of the run (the stroke used and why).
+
+    Returns
+    -------
+    dict
+        ``ok``, ``reasons``, the limits (``stroke_um`` is the one in force), the extremes of
+        the setpoints, ``tables_refused`` / ``tables_unplanned`` / ``refused`` (list),
+        ``safe_entries`` / ``safe_entries_unexplained``, ``stroke_source``.
     """
     reasons: list[str] = []
+    pl = dict(piezo_limits or {})
+    amp_stroke = pl.get("stroke_um")  # min(amplifier, machine.toml) once the amplifier reported
+    in_force = stroke_um if amp_stroke is None else min(float(amp_stroke), stroke_um)
     applied = sum(bool(r.applied) for r in results)
     given = [r.feed_setpoint_mm_s for r in results if r.feed_setpoint_mm_s is not None]
     feeds = [float(f) for f in given if math.isfinite(f)]
@@ -266,25 +330,51 @@ def _limits(
             reasons.append(f"{outside} feed setpoint(s) outside [{lo:g}, {hi:g}] mm/s")
     if any(not math.isfinite(o) for o in offs):
         reasons.append("piezo offsets not a number")
-    beyond = sum(o > stroke_um + 1e-9 for o in offs if math.isfinite(o))
+    beyond = sum(o > in_force + 1e-9 for o in offs if math.isfinite(o))
     if beyond:
-        reasons.append(f"{beyond} piezo offset(s) beyond the stroke {stroke_um:g} um")
+        reasons.append(f"{beyond} piezo offset(s) beyond the stroke {in_force:g} um")
+    refused = refused_tables(events)
+    unplanned = sum(r["replanned_um"] is None for r in refused)
+    if unplanned:
+        reasons.append(f"{unplanned} refused offset table(s) not re-planned")
+    entries = dict(safe_entries or {})
+    unexplained = int(entries.get("unexplained", 0))
+    if unexplained:
+        reasons.append(f"{unexplained} safe-state entr{'y' if unexplained == 1 else 'ies'} "
+                       f"not explained by an injected fault (of {entries.get('count', 0)})")
     finite_offs = [o for o in offs if math.isfinite(o)]
     return {
         "feed_min_mm_s": lo if math.isfinite(lo) else None,
         "feed_max_mm_s": hi if math.isfinite(hi) else None,
-        "stroke_um": stroke_um,
+        "stroke_um": in_force,
+        "stroke_source": pl.get("source", "machine.toml"),
+        "config_stroke_um": stroke_um,
+        "amp_stroke_um": pl.get("amp_stroke_um"),
         "feed_setpoint_range_mm_s": [min(feeds), max(feeds)] if feeds else None,
         "max_abs_offset_um": max(finite_offs) if finite_offs else 0.0,
         "applied": applied,
+        "tables_refused": len(refused),
+        "tables_unplanned": unplanned,
+        "refused": refused,
+        "safe_entries": int(entries.get("count", 0)),
+        "safe_entries_unexplained": unexplained,
         "ok": not reasons,
         "reasons": reasons,
     }
 
 
-def _names_condition(reason: str, condition: str) -> bool:
-    """Whether a safe-state reason (``"plc gone, can gone"``) names ``condition``."""
-    return condition.replace("_", " ") in reason
+def _names_condition(event: ServiceEvent, condition: str | None) -> bool:
+    """Whether a ``SAFE_STATE`` event names ``condition`` among the sources it misses.
+
+    From the event's ``data["missing"]`` (``controller.safety.SOURCES`` names); an event
+    without it (an older service) is read from its ``reason`` (``"plc gone, can gone"``).
+    """
+    if condition is None:
+        return False
+    missing = (event.data or {}).get("missing")
+    if missing is not None:
+        return condition in missing
+    return condition.replace("_", " ") in (event.reason or "")
 
 
 SAFE_ENTRY_SLACK_S = 5.0
@@ -328,11 +418,12 @@ def _safe_entries(
         why = e.reason or "unknown"
         near = [(f, a) for f, a, b in windows if a <= e.t_s <= b]
         # the fault whose condition the reason names, else the one that began last
-        near.sort(key=lambda fa: (_names_condition(why, fa[0].kind.trips), fa[1]))
+        near.sort(key=lambda fa: (_names_condition(e, fa[0].kind.trips), fa[1]))
         by = near[-1][0] if near else None
         listed.append({
             "t_s": round(e.t_s - offset_s, 3),
             "reason": why,
+            "missing": list((e.data or {}).get("missing", ())),
             "fault": None if by is None else f"{by.kind.value}@{by.at_s:g}",
         })
     return {
@@ -371,7 +462,7 @@ def _fault_report(
     reason = None if safe_ev is None else (safe_ev.reason or "")
     rep["safe_after_s"] = None if safe is None else round(safe - t0, 3)
     rep["safe_reason"] = reason
-    rep["tripped"] = reason is not None and _names_condition(reason, kind.trips)
+    rep["tripped"] = safe_ev is not None and _names_condition(safe_ev, kind.trips)
     rec = next(
         (e.t_s for e in events
          if e.kind is EventKind.RECOVERED and safe is not None and e.t_s > safe),
@@ -427,9 +518,9 @@ def safe_periods(
 ) -> list[list[float]]:
     """When the service was in the safe state, in machine time, from its events.
 
-    The service starts in the safe state; ``"safe state: ..."`` enters it, ``"recovered..."``
-    leaves it. Unlike the records' states this also covers safe states between boards, when no
-    pair is measured.
+    The service starts in the safe state; a ``SAFE_STATE`` event enters it, ``RECOVERED``
+    leaves it (by kind; the text is never read). Unlike the records' states this also covers
+    safe states between boards, when no pair is measured.
 
     Parameters
     ----------
@@ -506,6 +597,7 @@ def _service_summary(
     time_offset_s: float = 0.0,
     t_start_s: float = 0.0,
     extra: Mapping[str, Any] | None = None,
+    final_cv_max: float = UNIFORMITY_MAX_CV,
 ) -> dict[str, Any]:
     """:func:`summarize` a finished run of ``service`` and check its quality log."""
     results = service.results
@@ -517,6 +609,8 @@ def _service_summary(
         counts_per_mm=counts_per_mm,
         feed_limits_mm_s=lim,
         stroke_um=cfg.stroke_um,
+        piezo_limits=service.out.limits() if service.piezo is not None else None,
+        final_cv_max=final_cv_max,
         faults=faults,
         events=service.events,
         safety=cfg.safety,
@@ -583,11 +677,11 @@ PROGRESS_LEGEND = ("progress: metres of board measured since the loop closed, st
 
 
 def _progress_line(r: FrameResult, travel: BoardTravel) -> str:
-    m = r.measurement
     tp = _truth(r, "pitch_mm")
     tc = _truth(r, "uniformity_cv")
-    pitch = f"{m.pitch_mm:.3f}" if r.ok and m is not None else "  -  "
-    cv = f"{m.uniformity_cv:.3f}" if r.ok and m is not None else "  -  "
+    pitch = f"{r.reported_pitch_mm:.3f}" if r.ok and r.reported_pitch_mm is not None else "  -  "
+    cv = (f"{r.reported_uniformity_cv:.3f}" if r.ok and r.reported_uniformity_cv is not None
+          else "  -  ")
     feed = f"{r.feed_setpoint_mm_s:6.1f}" if r.feed_setpoint_mm_s is not None else "   -  "
     offs = " ".join(f"{v:+5.2f}" for v in r.offsets_um)
     truth = f" (true {tp:.3f} / {tc:.3f})" if tp is not None and tc is not None else ""
@@ -604,12 +698,27 @@ LOCAL_OFFSET_WINDOW_S = 2.0
 
 
 def _local_offset(results: Sequence[FrameResult], at_s: float, default: float) -> float:
-    """Service time minus machine time just before machine time ``at_s``.
+    """Service time minus machine time at machine time ``at_s``.
 
-    The lowest arrival delay of the pairs taken in the ``LOCAL_OFFSET_WINDOW_S`` before it: a
-    simulator that fell behind real time for a while (a loaded machine) shifts the mapping, and
-    a fault's timing is judged against the mapping in force when it happened.
+    From the pairs taken in the ``LOCAL_OFFSET_WINDOW_S`` before it: a simulator that fell
+    behind real time (a loaded machine) shifts the mapping, and a fault's timing is judged
+    against the mapping in force when it happened. The simulated clock also runs slower than
+    the service's while the host cannot keep up (issue 14: it slows itself), so the rate
+    counts too (realtime helper). Pairs stamped by ``planer sim`` with the host clock at their
+    capture (``truth["sim_clock_s"]``, the service's clock in the cross-process HIL; used when
+    every stamp precedes its pair's arrival) give the mapping directly: the last one before
+    ``at_s``, carried on at the stamps' rate. Otherwise the lowest arrival delay of the pairs
+    (exact in simulated time), carried to ``at_s`` at rate 1.
     """
-    offs = [r.t_s - r.frame_t_s for r in results
-            if at_s - LOCAL_OFFSET_WINDOW_S <= r.frame_t_s <= at_s]
+    win = [r for r in results if at_s - LOCAL_OFFSET_WINDOW_S <= r.frame_t_s <= at_s]
+    stamped = [(r.frame_t_s, float(r.truth["sim_clock_s"]), r.t_s) for r in win
+               if isinstance(r.truth, dict) and "sim_clock_s" in r.truth]
+    if stamped and all(c <= t for _, c, t in stamped):
+        stamped.sort()
+        f1, c1, _ = stamped[-1]
+        rate = 1.0  # service seconds per machine second, from the stamps
+        if len(stamped) >= 2 and f1 - stamped[0][0] > 0:
+            rate = max((c1 - stamped[0][1]) / (f1 - stamped[0][0]), 1e-3)
+        return c1 + (at_s - f1) * rate - at_s
+    offs = [r.t_s - r.frame_t_s for r in win]
     return max(min(offs), default) if offs else default

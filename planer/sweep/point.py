@@ -36,6 +36,7 @@ OUTCOME_COLUMNS = (
     "final_measured_cv",
     "final_pitch_error",
     "cv_settled_after_mm",
+    "cv_003_settled_after_mm",
     "pitch_settled_after_mm",
     "final_feed_mm_s",
     "fastest_feed_mm_s",
@@ -54,11 +55,11 @@ OUTCOME_COLUMNS = (
 
 ``final_*``: the mean of the last ``FINAL_MEASUREMENTS`` measurements (true values from the
 simulator; ``final_pitch_error`` = true pitch / target - 1). ``*_settled_after_mm``: board
-travel after the loop closed from which every true value stayed within CV <= 0.05 / pitch
-within 2 % (empty: never). ``feed_ratio`` = final feed setpoint / the fastest feed the quality
-class allows (target pitch under the depth ceiling times n Z, at most the machine's
-``feed.max_mm_s``). ``offset_ratio`` = largest piezo offset / stroke. ``error``: why the run
-failed (then the outcome cells are empty)."""
+travel after the loop closed from which every true value stayed within CV <= 0.05 / CV <= 0.03
+(``cv_003_``, issue 10's target) / pitch within 2 % (empty: never). ``feed_ratio`` = final feed
+setpoint / the fastest feed the quality class allows (target pitch under the depth ceiling
+times n Z, at most the machine's ``feed.max_mm_s``). ``offset_ratio`` = largest piezo offset /
+stroke. ``error``: why the run failed (then the outcome cells are empty)."""
 
 
 @dataclass(frozen=True)
@@ -259,6 +260,43 @@ def _mean_last(values: Sequence[float | None], n: int = FINAL_MEASUREMENTS) -> f
     return float(sum(vals[-n:]) / len(vals[-n:])) if vals else None
 
 
+TIGHT_CV = 0.03
+"""The uniformity target of issue 10 (``cv_003_settled_after_mm``)."""
+
+
+def settled_after_mm(
+    measurements: Sequence[Mapping[str, Any]], reference_at_mm: float | None, *, max_cv: float
+) -> float | None:
+    """Board travel after the reference from which every later true CV is ``<= max_cv``.
+
+    Parameters
+    ----------
+    measurements : sequence of mapping
+        The HIL summary's measurements (``board_travel_mm``, ``true_uniformity_cv``), in order.
+    reference_at_mm : float or None
+        Board travel of the reference measurement (the loop closed), mm; ``None``: never.
+    max_cv : float
+        The CV limit.
+
+    Returns
+    -------
+    float or None
+        mm after the reference (0 when every value is within), ``None`` when the last value
+        with a truth is above the limit or there is none.
+    """
+    if reference_at_mm is None:
+        return None
+    after = [(float(m["board_travel_mm"]) - reference_at_mm, m.get("true_uniformity_cv"))
+             for m in measurements
+             if m.get("board_travel_mm") is not None
+             and float(m["board_travel_mm"]) >= reference_at_mm]
+    vals = [(d, float(v)) for d, v in after if v is not None and math.isfinite(float(v))]
+    if not vals or vals[-1][1] > max_cv:
+        return None
+    last_bad = max((i for i, (_, v) in enumerate(vals) if v > max_cv), default=None)
+    return 0.0 if last_bad is None else round(vals[last_bad + 1][0], 1)
+
+
 def fastest_feed_mm_s(sim_cfg: Any, machine_cfg: Any) -> float:
     """The fastest feed the quality class allows on this plant, mm/s.
 
@@ -303,6 +341,9 @@ def outcome_row(summary: Mapping[str, Any], sim_cfg: Any, machine_cfg: Any) -> d
         "final_measured_cv": _mean_last([m.get("uniformity_cv") for m in meas]),
         "final_pitch_error": None if pitch is None else pitch / target - 1.0,
         "cv_settled_after_mm": conv.get("uniformity_settled_after_mm"),
+        "cv_003_settled_after_mm": settled_after_mm(
+            meas, conv.get("reference_at_mm"), max_cv=TIGHT_CV
+        ),
         "pitch_settled_after_mm": conv.get("pitch_settled_after_mm"),
         "final_feed_mm_s": feed,
         "fastest_feed_mm_s": fastest,

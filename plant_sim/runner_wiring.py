@@ -1,0 +1,96 @@
+"""Wiring a :class:`~plant_sim.runner.SimRunner` from a ``SimConfig`` (``planer sim``'s way).
+
+The PLC in its own process, the amplifier node on the configured CAN bus, the spool writer and
+the render workers: built here, closed again (our bus) if any later part fails. Kept apart from
+the runner, which only steps and serves what it is given.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from core.realtime import RENDER_NICE
+from plant_sim.amp_node import AmpNode, AmpNodeCore
+from plant_sim.plc_process import PlcProcess
+from protocol.can_transport import bus_from_config, describe_bus
+from protocol.piezo_can import PiezoCodec
+from protocol.registers import RegisterMap
+
+__all__ = ["wire_runner"]
+
+
+def wire_runner(
+    cls: Any,
+    cfg: Any,
+    *,
+    machine: Any = None,
+    seed: int = 0,
+    render_images: bool = True,
+    render_workers: int = 2,
+    render_nice: int | None = RENDER_NICE,
+    realtime_interfaces: bool = True,
+    time_scale: float | None = None,
+    modbus_port: int | None = None,
+    spool_dir: str | Path | None = None,
+    sink: Any = None,
+    can_bus: Any = None,
+    **kwargs: Any,
+) -> Any:
+    """Build ``cls`` (a :class:`~plant_sim.runner.SimRunner`) as ``cfg`` says.
+
+    The parameters are :meth:`plant_sim.runner.SimRunner.from_config`'s, which calls this.
+    """
+    from protocol.frames import SpoolWriter
+
+    render = None
+    if machine is None:
+        from plant_sim.machine import Machine
+        from plant_sim.render_worker import RenderPool
+
+        machine = Machine(cfg, seed=seed, render_images=False)
+        if render_images:
+            machine.assembler.defer_rendering()
+            render = (RenderPool, render_workers)
+    rmap = RegisterMap.load()
+    plc = PlcProcess(
+        machine,
+        register_map=rmap,
+        host=cfg.modbus.host,
+        port=cfg.modbus.port if modbus_port is None else modbus_port,
+        unit_id=cfg.modbus.unit_id,
+        realtime=realtime_interfaces,
+    )
+    own_bus = can_bus is None
+    bus = bus_from_config(cfg.can) if own_bus else can_bus
+    try:  # a failure from here on (unusable spool folder, bad option) closes our bus
+        core = AmpNodeCore(machine, PiezoCodec.load(), knives=cfg.cutterhead.knives,
+                           seed=seed)
+        amp = AmpNode(bus, core, own_bus=own_bus)
+        if sink is None:
+            directory = Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir)
+            sink = SpoolWriter(directory, keep=cfg.frames.keep)
+        if render is not None:  # a spool is written by the one render worker
+            pool_cls, workers = render
+            spool = sink if isinstance(sink, SpoolWriter) else None
+            render = pool_cls(cfg, seed=seed, workers=workers, writer=spool,
+                              nice=render_nice)
+        runner = cls(
+            machine,
+            plc=plc,
+            amp=amp,
+            sink=sink,
+            render=render,
+            threaded_interfaces=True,
+            realtime_interfaces=realtime_interfaces,
+            time_scale=cfg.run.time_scale if time_scale is None else time_scale,
+            step_s=cfg.run.step_s,
+            **kwargs,
+        )
+    except BaseException:
+        if own_bus:
+            bus.shutdown()
+        raise
+    runner.description["can"] = describe_bus(cfg.can.interface, cfg.can.channel)
+    return runner
+

@@ -1,0 +1,179 @@
+"""Online identification of the actuator's gain per knife mode; the table history."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controller.actuator_id import ActuatorIdentifier, circulant_from_mode_gains
+from controller.offset_history import OffsetHistory
+
+# a 150 Hz piezo at 400 Hz knife frequency (plant_sim.piezo, measured at the knives' BDC): a
+# unit offset on knife 0 moves knife 0 by 0.355 um and spills 0.105 um into knife 1
+SLOW_COLUMN = np.array([0.355, 0.105, -0.23, -0.23])
+
+
+def circulant(col):
+    z = len(col)
+    return np.array([[col[(i - j) % z] for j in range(z)] for i in range(z)])
+
+
+def transient(ident, a, runout, target, *, steps=60, noise_um=0.05, seed=0, gain=0.1):
+    """Offsets moving toward ``target`` as a learning loop would; y = A o - s plus noise."""
+    rng = np.random.default_rng(seed)
+    o = np.zeros(len(runout))
+    for _ in range(steps):
+        o = o + gain * (target - o)
+        y = a @ o - runout
+        ident.add(o, y - y.mean() + noise_um * rng.standard_normal(o.size))
+    return o
+
+
+@settings(max_examples=30, deadline=None)
+@given(gains=st.lists(st.complex_numbers(min_magnitude=0.2, max_magnitude=1.8), min_size=1,
+                      max_size=3), knives=st.integers(2, 7))
+def test_circulant_from_mode_gains_has_those_gains(gains, knives):
+    g = np.ones(knives, complex)
+    for m in range(1, knives // 2 + 1):
+        v = gains[(m - 1) % len(gains)]
+        g[m] = v.real if 2 * m == knives else v
+        g[knives - m] = np.conj(g[m])
+    a = circulant_from_mode_gains(g)
+    assert np.all(np.isreal(a))
+    v = np.random.default_rng(knives).normal(size=knives)
+    assert np.allclose(a @ v, np.real(np.fft.ifft(g * np.fft.fft(v))), atol=1e-12)
+
+
+def test_recovers_a_slow_actuator_from_one_learning_transient():
+    a = circulant(SLOW_COLUMN)
+    truth = np.fft.fft(SLOW_COLUMN)
+    ident = ActuatorIdentifier(4)
+    s = np.array([-1.0, 3.0, -3.0, 1.0])
+    transient(ident, a, s, np.array([-8.0, 12.0, -10.0, 6.0]))
+    got = ident.mode_gains
+    assert got[0] == 1.0
+    assert abs(got[2] - truth[2]) < 0.03  # the alternating mode, real
+    assert abs(got[1] - truth[1]) < 0.1 and np.isclose(got[3], np.conj(got[1]))
+    # the matrix predicts the actuator's response to any table (its mean aside)
+    v = np.array([1.0, -2.0, 0.5, 0.5])
+    err = ident.matrix() @ v - a @ v
+    assert np.max(np.abs(err - err.mean())) < 0.15
+
+
+def test_a_hysteretic_actuator_is_a_small_gain():
+    ident = ActuatorIdentifier(4)
+    transient(ident, 0.18 * np.eye(4), np.array([-1.0, 3.0, -3.0, 1.0]),
+              np.array([-6.0, 16.0, -16.0, 6.0]))
+    g = ident.mode_gains[1:]
+    # the prior (gain 1) pulls a little: toward the safe side (a loop gain below 1)
+    assert np.all(np.abs(g - 0.18) < 0.05) and np.all(g.real >= 0.18 - 0.01)
+
+
+def test_nothing_moved_keeps_the_prior():
+    ident = ActuatorIdentifier(4)
+    for _ in range(50):
+        ident.add(np.array([1.0, -1.0, 0.0, 0.0]), np.array([0.2, -0.1, 0.0, -0.1]))
+    assert np.allclose(ident.mode_gains, 1.0)
+    assert np.allclose(ident.excitation_um2, 0.0)
+
+
+def test_a_slow_drift_the_loop_follows_does_not_pass_for_a_small_gain():
+    """In closed loop y stays near 0 while o tracks a drifting runout: no information."""
+    ident = ActuatorIdentifier(4)
+    transient(ident, np.eye(4), np.array([-1.0, 3.0, -3.0, 1.0]), np.array([-1.0, 3.0, -3.0, 1.0]))
+    before = ident.mode_gains
+    rng = np.random.default_rng(2)
+    drift = np.array([0.5, -0.2, 0.3, -0.6])
+    o = np.array([-1.0, 3.0, -3.0, 1.0])
+    for k in range(600):  # 1 min: the runout drifts by 3 um per knife, the loop tracks it
+        s = np.array([-1.0, 3.0, -3.0, 1.0]) + drift * k / 100.0
+        o = s - s.mean()
+        y = o - s
+        ident.add(o, y - y.mean() + 0.05 * rng.standard_normal(4))
+    assert np.allclose(ident.mode_gains, before, atol=0.02)
+
+
+def test_a_step_of_the_runout_does_not_corrupt_the_gain():
+    """A knife changed: the differences across the step imply wild gains and are left out."""
+    ident = ActuatorIdentifier(4)
+    s0 = np.array([-1.0, 3.0, -3.0, 1.0])
+    o = transient(ident, np.eye(4), s0, s0)
+    s1 = np.array([0.0, 40.0, 0.0, 0.0])
+    for _ in range(10):
+        o = o + 0.3 * (np.clip(s1 - s1.mean(), -18, 18) - o)
+        y = o - s1
+        ident.add(o, y - y.mean())
+    assert np.all(np.abs(ident.mode_gains - 1.0) < 0.15)
+
+
+def test_gains_stay_within_their_bounds():
+    ident = ActuatorIdentifier(4, gain_min=0.1, gain_max=2.0, phase_max_deg=60.0)
+    transient(ident, 0.02 * np.eye(4), np.zeros(4), np.array([-10.0, 10.0, -10.0, 10.0]),
+              noise_um=0.0)
+    g = ident.mode_gains[1:]
+    assert np.all(np.abs(g) >= 0.1 - 1e-12) and np.all(np.abs(g) <= 2.0 + 1e-12)
+    assert np.all(np.abs(np.angle(g)) <= math.radians(60.0) + 1e-12)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [({"lag_pairs": 0}, "lag_pairs"), ({"min_step_um": 0.0}, "min_step_um"),
+     ({"memory": 0.5}, "memory"), ({"prior_um2": 0.0}, "prior_um2"),
+     ({"gain_min": 0.0}, "gain_min"), ({"gain_max": 0.5}, "gain_max")],
+)
+def test_bad_parameters_are_refused(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        ActuatorIdentifier(4, **kwargs)
+
+
+def test_bad_samples_are_refused():
+    ident = ActuatorIdentifier(3)
+    with pytest.raises(ValueError, match="offsets_um"):
+        ident.add([0.0, 1.0], [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="finite"):
+        ident.add([0.0, 1.0, math.nan], [0.0, 0.0, 0.0])
+
+
+# -- the table history ---------------------------------------------------------------------------
+def test_history_gives_the_table_in_force_and_time_weighted_means():
+    h = OffsetHistory(2, horizon_s=100.0)
+    h.restart([0.0, 0.0])  # always in force
+    h.append([2.0, -2.0], 10.0)
+    h.append([4.0, -4.0], 11.0)
+    assert np.allclose(h.mean_over(5.0, 6.0), [0.0, 0.0])
+    assert np.allclose(h.mean_over(10.5, 10.5), [2.0, -2.0])
+    assert np.allclose(h.mean_over(9.0, 11.0), [1.0, -1.0])  # half zero, half (2, -2)
+    assert np.allclose(h.mean_over(10.0, 12.0), [3.0, -3.0])
+    assert np.allclose(h.mean_over(12.0, 10.0), [3.0, -3.0])  # order does not matter
+    h.pop()
+    assert np.allclose(h.latest(), [2.0, -2.0])
+
+
+def test_history_before_its_start_is_unknown_and_old_tables_go():
+    h = OffsetHistory(1, horizon_s=5.0)
+    h.restart([1.0], at_s=0.0)
+    assert h.mean_over(-1.0, 0.5) is None
+    for k in range(1, 20):
+        h.append([float(k)], float(k))
+    assert len(h) <= 7 and h.start_s <= 19.0 - 5.0
+    assert np.allclose(h.mean_over(14.5, 14.5), [14.0])  # the one in force at the horizon
+    with pytest.raises(ValueError, match="at_s"):
+        h.append([0.0], 3.0)
+
+
+def test_history_same_instant_replaces_and_pop_puts_it_back():
+    h = OffsetHistory(2, horizon_s=100.0)
+    h.restart([0.0, 0.0])
+    assert h.append([1.0, -1.0], 5.0) is None
+    replaced = h.append([2.0, -2.0], 5.0)
+    assert np.allclose(replaced, [1.0, -1.0]) and len(h) == 2
+    h.pop(replaced)
+    assert np.allclose(h.latest(), [1.0, -1.0]) and len(h) == 2
+    h.pop()
+    assert np.allclose(h.latest(), [0.0, 0.0]) and len(h) == 1
+    h.pop()  # the oldest entry stays
+    assert len(h) == 1
