@@ -27,10 +27,12 @@ import itertools
 import math
 import os
 import signal
+import struct
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 from controller.events import exc_name
@@ -147,6 +149,24 @@ class _RecordingCalibrator:
 # the worker process
 
 
+def _send_whole(conn: Any, obj: Any) -> None:
+    """``conn.send(obj)`` as one write of header and body (what ``conn.recv`` reads).
+
+    ``Connection.send`` writes a message over 16 KB as two writes (header, then body); a
+    worker descheduled between them (normal priority on a busy host) keeps the service's
+    real-time bus thread waiting in ``recv`` for the body: 9-40 ms per pair measured under six
+    CPU hogs (docs/reliability.md). One write of both lands at once.
+    """
+    body = ForkingPickler.dumps(obj)
+    if len(body) > 0x7FFFFFFF:  # the long header form: leave it to the library
+        conn.send(obj)
+        return
+    view = memoryview(struct.pack("!i", len(body)) + bytes(body))
+    fd = conn.fileno()
+    while view:
+        view = view[os.write(fd, view):]
+
+
 def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: int,
                  threads: int = 1, nice: int | None = None) -> None:
     """A worker: set up once, then measure the pairs the pipe brings until told to stop."""
@@ -188,7 +208,7 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
         except BaseException as exc:  # a bug: told to the service, then ends with its traceback
             conn.send(("fault", msg[1], f"{exc_name(exc)}: {exc}"))
             raise
-        conn.send(reply)
+        _send_whole(conn, reply)
     for block in blocks.values():
         block.close()
 

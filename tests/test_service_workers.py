@@ -400,3 +400,25 @@ def test_a_closed_pool_answers_failed_not_never():
     assert out.error == "measurement workers closed" and out.measurement is None
     assert issubclass(MeasurementWorkerError, Exception)
     assert not issubclass(MeasurementWorkerError, (ValueError, RuntimeError))
+
+
+@pytest.mark.parametrize("size", [0, 100, 16_384, 17_300, 60_000])
+def test_a_workers_reply_is_one_write_that_recv_reads_back(size):
+    # The reply goes out as header and body in one write (a worker descheduled between two
+    # writes kept the bus thread waiting); Connection.recv must read it as it reads send().
+    import multiprocessing
+    from unittest import mock
+
+    from controller.measure_workers import _send_whole
+
+    a, b = multiprocessing.Pipe()
+    payload = ("done", 7, bytes(range(256)) * (size // 256), {"k": [1.5, None]})
+    writes = []
+    real = os.write
+    with mock.patch("controller.measure_workers.os.write",
+                    side_effect=lambda fd, data: writes.append(len(data)) or real(fd, data)):
+        _send_whole(a, payload)
+    assert b.recv() == payload
+    assert len(writes) == 1
+    a.close()
+    b.close()

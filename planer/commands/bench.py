@@ -48,19 +48,9 @@ def _format(name: str, result: Any) -> str:
                 _rtf_line("with images ", result["with_images"], t["with_images"]),
             ])
         if name == "service":
-            head = (
-                f"service ({result['width']}x{result['height']}, {result['rate_hz']:g} pairs/s, "
-                f"{result['transport']}): {result['applied']} of {result['pairs']} pairs applied, "
-                f"{result['failed']} failed"
-            )
-            if "p99_ms" not in result:
-                return head + "; no latency (no pair was applied)"
-            ok = "meets" if result["p99_ms"] <= result["target_p99_ms"] else "MISSES"
-            return head + (
-                f"\n  latency frame -> setpoints: median {result['median_ms']:.1f} ms, "
-                f"p99 {result['p99_ms']:.1f} ms, max {result['max_ms']:.1f} ms "
-                f"({ok} the target p99 <= {result['target_p99_ms']:g} ms)"
-            )
+            from planer.benchmarks.service import text as service_text
+
+            return service_text(result)
         if name == "camera":
             return _camera_text(result)
     except (KeyError, TypeError, ValueError):
