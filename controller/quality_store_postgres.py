@@ -243,6 +243,54 @@ class PostgresStore:
 
         return int(self._run(work, what="append"))
 
+    def insert_many(self, rows: Sequence[Sequence[Any]],
+                    uids: Sequence[str | None]) -> list[int]:
+        """Insert rows in one transaction (one commit); their ids (stored ones for known uids).
+
+        All or nothing: on any error none of them is stored. A racing writer that stores one of
+        the uids first rolls the batch back; the rows then go one by one (:meth:`insert`).
+        """
+        if len(rows) != len(uids):
+            raise ValueError(f"uids must match rows: {len(uids)} uid(s) for {len(rows)} row(s)")
+        rid_col, cols = column_names(self.schema_version)
+        prepared = []
+        for row in rows:
+            values = tuple(bool(v) if name in _BOOLEANS and v is not None else v
+                           for name, v in zip(cols, tuple(row)[:len(cols)], strict=True))
+            for i, name in enumerate(cols):
+                if name in _NUL_CHECKED and isinstance(values[i], str) and "\x00" in values[i]:
+                    raise RecordRefusedError(
+                        name, f"{name} holds a NUL character, which PostgreSQL text cannot store")
+            prepared.append(values)
+        sql = (f"INSERT INTO records ({', '.join(cols)}) VALUES "
+               f"({', '.join(['%s'] * len(cols))}) RETURNING {rid_col}")
+
+        def work(conn: Any) -> list[int]:
+            ids: list[int] = []
+            with conn.transaction():
+                for values, uid in zip(prepared, uids, strict=True):
+                    if uid is not None:
+                        known = conn.execute("SELECT record_id FROM record_uids WHERE uid = %s",
+                                             (uid,)).fetchone()
+                        if known is not None:
+                            ids.append(int(known[0]))
+                            continue
+                    rid = int(conn.execute(sql, values).fetchone()[0])
+                    if uid is not None and conn.execute(
+                            "INSERT INTO record_uids (uid, record_id) VALUES (%s, %s) "
+                            "ON CONFLICT (uid) DO NOTHING RETURNING record_id",
+                            (uid, rid)).fetchone() is None:
+                        raise _AlreadyStored
+                    ids.append(rid)
+            return ids
+
+        if not prepared:
+            return []
+        try:
+            return list(self._run(work, what="append"))
+        except _AlreadyStored:  # a racing writer: one by one, each finds its stored id
+            return [self.insert(row, uid=uid) for row, uid in zip(rows, uids, strict=True)]
+
     def has_uid(self, uid: str) -> bool:
         """Whether a record appended with this ``uid`` is in the log."""
         return bool(self._run(lambda c: c.execute(

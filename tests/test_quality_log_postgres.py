@@ -358,3 +358,21 @@ def test_version_3_database_is_read_as_is_and_migrated_by_a_writer(fresh_db):
         back = writer.records()
     assert [_key(r) for r in back] == [_key(r) for r in old + [new]]
     assert back[0].calibration_state is None and back[-1].calibration_state == "applied"
+
+
+def test_append_many_is_one_transaction_on_postgres_too(fresh_db):
+    # Batched commits (the service's record writer) reach PostgreSQL as one transaction: known
+    # uids give their stored ids, and one refused record stores none of the batch.
+    rng = random.Random(11)
+    recs = [_record(i, rng=rng) for i in range(5)]
+    with QualityLog(fresh_db) as log:
+        ids = log.append_many(recs[:3], uids=["a", "b", "c"])
+        assert ids == sorted(ids) and len(set(ids)) == 3
+        again = log.append_many([recs[1], recs[3]], uids=["b", "d"])
+        assert again[0] == ids[1] and again[1] > ids[2]
+        assert [r.seq for r in log.records()] == [r.seq for r in recs[:4]]
+        bad = QualityRecord(t_s=0.0, wall_time=utc_iso(1.7e9), seq=9, board_id=0,
+                            board_position_mm=0.0, ok=False, error="bad\x00text")
+        with pytest.raises(ValueError, match="error"):
+            log.append_many([recs[4], bad], uids=["e", "f"])
+        assert len(log) == 4 and log.append_many([]) == []
