@@ -249,6 +249,10 @@ class QualityLog:
             The database cannot be written (disk full, locked beyond ``timeout_s``, I/O
             error, connection lost).
         """
+        return int(self._call("insert", self._row(record, uid), uid=uid))
+
+    def _row(self, record: QualityRecord, uid: str | None) -> tuple:
+        """The store's row of ``record`` (checked: type, ``uid``, storable values)."""
         if not isinstance(record, QualityRecord):
             raise ValueError(f"record must be a QualityRecord, got {type(record).__name__}")
         if uid is not None and (not isinstance(uid, str) or not uid or not uid.isprintable()):
@@ -256,7 +260,7 @@ class QualityLog:
         if record.machine_id is None:
             record = dataclasses.replace(record, machine_id=self.machine_id)
         check_storable(record)
-        return int(self._call("insert", _to_row(record), uid=uid))
+        return tuple(_to_row(record))
 
     def append_many(self, records: Sequence[QualityRecord], *,
                     uids: Sequence[str | None] | None = None) -> list[int]:
@@ -269,16 +273,7 @@ class QualityLog:
         uids = [None] * len(records) if uids is None else list(uids)
         if len(uids) != len(records):
             raise ValueError(f"uids must be one per record: {len(uids)} for {len(records)}")
-        rows = []
-        for record, uid in zip(records, uids, strict=True):
-            if not isinstance(record, QualityRecord):
-                raise ValueError(f"record must be a QualityRecord, got {type(record).__name__}")
-            if uid is not None and (not isinstance(uid, str) or not uid or not uid.isprintable()):
-                raise ValueError(f"uid must be a non-empty printable string, got {uid!r}")
-            if record.machine_id is None:
-                record = dataclasses.replace(record, machine_id=self.machine_id)
-            check_storable(record)
-            rows.append(_to_row(record))
+        rows = [self._row(record, uid) for record, uid in zip(records, uids, strict=True)]
         if not rows:
             return []
         if hasattr(self._store, "insert_many"):

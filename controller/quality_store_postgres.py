@@ -208,17 +208,25 @@ class PostgresStore:
 
     # -- writing ------------------------------------------------------------------------------
 
-    def insert(self, row: Sequence[Any], *, uid: str | None) -> int:
-        """Commit one row (field order); its id, or the stored one of a known ``uid``."""
-        rid_col, cols = column_names(self.schema_version)  # a reader's v3: what it has
+    def _values(self, row: Sequence[Any]) -> tuple:
+        """``row`` as PostgreSQL takes it (booleans; a NUL in text refused naming the field)."""
+        cols = column_names(self.schema_version)[1]  # a reader's v3: what it has
         values = tuple(bool(v) if name in _BOOLEANS and v is not None else v
                        for name, v in zip(cols, tuple(row)[:len(cols)], strict=True))
         for i, name in enumerate(cols):
             if name in _NUL_CHECKED and isinstance(values[i], str) and "\x00" in values[i]:
                 raise RecordRefusedError(
                     name, f"{name} holds a NUL character, which PostgreSQL text cannot store")
-        sql = (f"INSERT INTO records ({', '.join(cols)}) VALUES "
-               f"({', '.join(['%s'] * len(cols))}) RETURNING {rid_col}")
+        return values
+
+    def _insert_sql(self) -> str:
+        rid_col, cols = column_names(self.schema_version)
+        return (f"INSERT INTO records ({', '.join(cols)}) VALUES "
+                f"({', '.join(['%s'] * len(cols))}) RETURNING {rid_col}")
+
+    def insert(self, row: Sequence[Any], *, uid: str | None) -> int:
+        """Commit one row (field order); its id, or the stored one of a known ``uid``."""
+        values, sql = self._values(row), self._insert_sql()
 
         def work(conn: Any) -> int:
             if uid is not None:
@@ -252,18 +260,7 @@ class PostgresStore:
         """
         if len(rows) != len(uids):
             raise ValueError(f"uids must match rows: {len(uids)} uid(s) for {len(rows)} row(s)")
-        rid_col, cols = column_names(self.schema_version)
-        prepared = []
-        for row in rows:
-            values = tuple(bool(v) if name in _BOOLEANS and v is not None else v
-                           for name, v in zip(cols, tuple(row)[:len(cols)], strict=True))
-            for i, name in enumerate(cols):
-                if name in _NUL_CHECKED and isinstance(values[i], str) and "\x00" in values[i]:
-                    raise RecordRefusedError(
-                        name, f"{name} holds a NUL character, which PostgreSQL text cannot store")
-            prepared.append(values)
-        sql = (f"INSERT INTO records ({', '.join(cols)}) VALUES "
-               f"({', '.join(['%s'] * len(cols))}) RETURNING {rid_col}")
+        prepared, sql = [self._values(row) for row in rows], self._insert_sql()
 
         def work(conn: Any) -> list[int]:
             ids: list[int] = []

@@ -195,33 +195,7 @@ class SqliteStore:
 
     def insert(self, row: Sequence[Any], *, uid: str | None) -> int:
         """Insert one row (field order, current layout); its id, or the stored one of ``uid``."""
-        conn = self._connection()
-        cols = column_names(self.schema_version)[1]
-        sql = f"INSERT INTO records ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})"
-        try:
-            conn.execute("BEGIN IMMEDIATE")
-            try:
-                if uid is not None:
-                    conn.execute(_UIDS_TABLE)
-                    known = conn.execute(
-                        "SELECT record_id FROM record_uids WHERE uid = ?", (uid,)).fetchone()
-                    if known is not None:
-                        conn.execute("ROLLBACK")
-                        return int(known[0])
-                rid = int(conn.execute(sql, tuple(row)[:len(cols)]).lastrowid)
-                if uid is not None:
-                    conn.execute("INSERT INTO record_uids (uid, record_id) VALUES (?, ?)",
-                                 (uid, rid))
-                conn.execute("COMMIT")
-            except BaseException:
-                if conn.in_transaction:
-                    conn.execute("ROLLBACK")
-                raise
-        except OverflowError as exc:  # check_storable should have caught it
-            raise RecordRefusedError("record", f"record refused by the log: {exc}") from None
-        except sqlite3.Error as exc:
-            raise OSError(f"cannot append to quality log {self.path}: {exc}") from None
-        return rid
+        return self.insert_many([row], [uid])[0]
 
     def insert_many(self, rows: Sequence[Sequence[Any]],
                     uids: Sequence[str | None]) -> list[int]:

@@ -44,10 +44,9 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Protocol
 
-from core.realtime import RENDER_NICE, guard_realtime
+from core.realtime import guard_realtime
 from plant_sim.amp_node import AmpNode
 from plant_sim.driver import INTERFACE_FAULTS, PlantDriver
 from plant_sim.interfaces import InterfaceLoop, ServedPlc
@@ -226,63 +225,14 @@ class SimRunner:
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_config(
-        cls,
-        cfg: Any,
-        *,
-        machine: Any = None,
-        seed: int = 0,
-        render_images: bool = True,
-        render_workers: int = 2,
-        render_nice: int | None = RENDER_NICE,
-        realtime_interfaces: bool = True,
-        time_scale: float | None = None,
-        modbus_port: int | None = None,
-        spool_dir: str | Path | None = None,
-        sink: FrameSink | None = None,
-        can_bus: Any = None,
-        **kwargs: Any,
-    ) -> SimRunner:
+    def from_config(cls, cfg: Any, **options: Any) -> SimRunner:
         """A runner wired as a ``SimConfig`` says: ``[modbus]``, ``[can]``, ``[frames]``, ``[run]``.
 
-        Modbus is served from its own process, CAN read on its own thread and, for a machine
-        built here with ``render_images``, the images rendered by ``render_workers`` processes.
-
-        Parameters
-        ----------
-        cfg : config.sim.SimConfig
-            The simulator configuration.
-        machine : Machine, optional
-            Default: ``plant_sim.machine.Machine(cfg, seed=seed)`` with deferred rendering.
-        render_images : bool
-            Render the camera's images (default machine only).
-        render_workers : int
-            Worker processes rendering images and writing the spool (>= 1, in order): two take
-            twice the CPU share of a busy host, so the clock slows less.
-        render_nice : int or None
-            Nice value of the render workers (default
-            :data:`~plant_sim.interfaces.RENDER_NICE`: they yield to the interfaces and the
-            service); ``None``: as this process.
-        realtime_interfaces : bool
-            The PLC process and the CAN receive thread ask for real-time scheduling (a real
-            PLC does not stop answering because a PC is busy); the banner says what they got.
-        time_scale, modbus_port, spool_dir : optional
-            Override ``[run] time_scale``, ``[modbus] port``, ``[frames] spool_dir``.
-        sink : FrameSink, optional
-            Use this sink instead of a spool directory.
-        can_bus : can.BusABC, optional
-            Use this bus instead of opening ``[can]``.
-        **kwargs
-            Passed to the constructor (``clock``, ``sleep``, ``out``...).
+        The options and their defaults: :func:`plant_sim.runner_wiring.wire_runner`.
         """
         from plant_sim.runner_wiring import wire_runner
 
-        return wire_runner(
-            cls, cfg, machine=machine, seed=seed, render_images=render_images,
-            render_workers=render_workers, render_nice=render_nice,
-            realtime_interfaces=realtime_interfaces, time_scale=time_scale,
-            modbus_port=modbus_port, spool_dir=spool_dir, sink=sink, can_bus=can_bus, **kwargs,
-        )
+        return wire_runner(cls, cfg, **options)
 
     # ------------------------------------------------------------------ faults
     def schedule(self, at_s: float, fault: str, **params: Any) -> None:

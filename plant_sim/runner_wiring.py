@@ -37,9 +37,39 @@ def wire_runner(
     can_bus: Any = None,
     **kwargs: Any,
 ) -> Any:
-    """Build ``cls`` (a :class:`~plant_sim.runner.SimRunner`) as ``cfg`` says.
+    """Build ``cls`` (a ``SimRunner``) as ``cfg`` says: ``[modbus]``, ``[can]``, ``[frames]``.
 
-    The parameters are :meth:`plant_sim.runner.SimRunner.from_config`'s, which calls this.
+    Modbus is served from its own process, CAN read on its own thread and, for a machine
+    built here with ``render_images``, the images rendered by ``render_workers`` processes.
+
+    Parameters
+    ----------
+    cls : type
+        The runner class (``SimRunner.from_config`` passes its own).
+    cfg : config.sim.SimConfig
+        The simulator configuration (``[run]`` gives the time scale and step).
+    machine : Machine, optional
+        Default: ``plant_sim.machine.Machine(cfg, seed=seed)`` with deferred rendering.
+    render_images : bool
+        Render the camera's images (default machine only).
+    render_workers : int
+        Worker processes rendering images and writing the spool (>= 1, in order): two take
+        twice the CPU share of a busy host, so the clock slows less.
+    render_nice : int or None
+        Nice value of the render workers (default
+        :data:`~plant_sim.interfaces.RENDER_NICE`: they yield to the interfaces and the
+        service); ``None``: as this process.
+    realtime_interfaces : bool
+        The PLC process and the CAN receive thread ask for real-time scheduling (a real
+        PLC does not stop answering because a PC is busy); the banner says what they got.
+    time_scale, modbus_port, spool_dir : optional
+        Override ``[run] time_scale``, ``[modbus] port``, ``[frames] spool_dir``.
+    sink : FrameSink, optional
+        Use this sink instead of a spool directory.
+    can_bus : can.BusABC, optional
+        Use this bus instead of opening ``[can]``.
+    **kwargs
+        Passed to the constructor (``clock``, ``sleep``, ``out``...).
     """
     from protocol.frames import SpoolWriter
 
