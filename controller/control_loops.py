@@ -206,11 +206,17 @@ class ControlLoops:
     async def apply(
         self, att: Attributed | None, measured_at: float, snap: PlcSnapshot, t: float
     ) -> bool:
-        """Both loops on one valid measurement; the offsets (CAN) go out first, then the feed.
+        """Both loops on one valid measurement; the feed (Modbus) and the offsets (CAN) go out.
 
         Both get the pitch per knife pass (:attr:`Attributed.pass_pitch_mm`), not the mean mark
         width: with a knife that leaves no mark the latter is a multiple of the feed per knife,
         and slowing the feed would not bring the mark back (the uniformity loop does).
+
+        The feed loop's update is cheap and its setpoint goes on the wire first; while the PLC
+        answers the write (a round trip, 0.3-0.6 ms), the uniformity loop's update (0.4 ms)
+        runs and its offsets go out on CAN (:meth:`_feed_write`), so the pair's control costs
+        the longer of the two instead of their sum. It returns when the PLC took the feed and
+        the offsets were sent.
 
         The uniformity loop learns only from board cut while the amplifier played the offsets
         (:meth:`amp_tracked`); a feed setpoint the PLC did not take is taken back from the feed
@@ -234,20 +240,40 @@ class ControlLoops:
                 measured_at_s=measured_at,
             )
             feed = min(max(float(feed), lo), hi)
-            if np.any(np.isfinite(widths)):
-                interval = loop.cut_interval_s(measured_at)
-                cut = None if interval is None else (min(interval[0], t), min(interval[1], t))
-                if self.attribution_trusted(att, measured_at, snap.cutter_to_camera_mm):
-                    applied = self._learn_offsets(widths, pitch, cut, t)
-                else:
-                    self._report.count("uniformity_skipped")
-            if await self.out.write_feed(feed, t):
-                applied = True
-            else:
-                loop.reject()
+            write = await self._feed_write(feed, t)
+            try:
+                if np.any(np.isfinite(widths)):
+                    interval = loop.cut_interval_s(measured_at)
+                    cut = None if interval is None else (min(interval[0], t),
+                                                         min(interval[1], t))
+                    if self.attribution_trusted(att, measured_at, snap.cutter_to_camera_mm):
+                        applied = self._learn_offsets(widths, pitch, cut, t)
+                    else:
+                        self._report.count("uniformity_skipped")
+            finally:
+                if not write.done():  # the PLC's answer; whatever the uniformity loop did
+                    await asyncio.wait({write})
+                failed = None if write.cancelled() else write.exception()
+                taken = not write.cancelled() and failed is None and bool(write.result())
+                if not taken:
+                    loop.reject()  # the feed in force stays the one the PLC has
+            if failed is not None:
+                raise failed
+            applied = applied or taken
         if applied:
             self._report.count("applied")
         return applied
+
+    async def _feed_write(self, feed_mm_s: float, t: float) -> asyncio.Future:
+        """Start writing the feed setpoint; the write's task (its result: whether it was taken).
+
+        The task runs until it waits for the PLC's answer (the request is on the wire, or waits
+        for the bus behind the PLC cycle's request) before this returns: one turn of the event
+        loop. Awaiting it later gives the same result as awaiting the write here.
+        """
+        write = asyncio.ensure_future(self.out.write_feed(feed_mm_s, t))
+        await asyncio.sleep(0)  # the write's task runs up to its first wait
+        return write
 
     def _record_speed(self, t: float, snap: PlcSnapshot) -> None:
         self.board_speed.record(t, snap.feed_actual_mm_s, snap.spindle_rpm / 60.0 * snap.knives)

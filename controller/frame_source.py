@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from config.machine import FramesConfig
+from controller.spool_watch import WATCHED_POLL_S, SpoolWatch
 from core.checks import check_positive
 from protocol.frames import Frame, Skip, SpoolLimits, SpoolReader
 
@@ -58,6 +59,10 @@ class SpoolFrameSource:
     clock : callable, keyword-only
         Monotonic seconds, for the per-pair time limit (``reader.limits.pair_timeout_s``),
         timed from the first :meth:`next` call that finds the reader thread in the pair.
+    watch : bool, keyword-only
+        Wake the reader thread as a pair is committed (inotify:
+        :class:`controller.spool_watch.SpoolWatch`; without it the thread polls every
+        ``poll_s``); ``False``: poll only.
 
     Attributes
     ----------
@@ -70,7 +75,7 @@ class SpoolFrameSource:
     """
 
     def __init__(self, reader: SpoolReader, *, poll_s: float = 0.002, maxsize: int = 4,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, watch: bool = True) -> None:
         if not isinstance(reader, SpoolReader):
             raise ValueError(f"reader must be a SpoolReader, got {type(reader).__name__}")
         self.poll_s = check_positive("poll_s", poll_s)
@@ -82,6 +87,11 @@ class SpoolFrameSource:
         self.abandoned = 0
         self.restarts = 0
         self.maxsize = maxsize
+        self.watch = bool(watch)
+        self.reader_priority: tuple[int, int] | None = None
+        """``(rt_priority, nice)`` the reader threads ask for (:meth:`raise_reader`)."""
+        self.reader_granted = "normal"
+        """What the reader thread was granted (``"SCHED_FIFO 9"``, ``"nice -10"``, ...)."""
         self._frames: deque[Frame] = deque()
         self._skips: list[Skip] = []
         self._lock = threading.Lock()
@@ -106,12 +116,38 @@ class SpoolFrameSource:
         return t
 
     def _run(self, reader: SpoolReader, generation: int) -> None:
+        # woken by the folder's commits (inotify) where possible, else polling every poll_s
+        watch = SpoolWatch(reader.directory, stop=self._stop) if self.watch else None
+        applied: tuple[int, int] | None = None
+        waited = woken = False  # a wait came before this poll; it ended by a commit's event
+        trusted = False  # the events announced the last pair found after a wait
         try:
             while not self._stop.is_set() and generation == self._generation:
-                frame = reader.poll()
+                wanted = self.reader_priority
+                if wanted is not None and wanted != applied:
+                    from core.realtime import raise_priority
+
+                    applied = wanted
+                    self.reader_granted = raise_priority(rt_priority=wanted[0], nice=wanted[1])
+                # after a pair, with events proved and none of the last listing left: wait
+                # for the next commit's event rather than list the folder again at once (a
+                # listing, 0.2-0.5 ms, taking the interpreter lock from a measurement)
+                quiet = (not waited and trusted and watch is not None and watch.active
+                         and getattr(reader, "pending", 1) == 0)
+                frame = None if quiet else reader.poll()
                 if frame is None:
-                    self._stop.wait(self.poll_s)
+                    if watch is not None and not watch.active and watch.retry():
+                        watch = SpoolWatch(reader.directory, stop=self._stop)
+                    if watch is not None:  # a commit wakes it; polls only as a fallback
+                        # once the events proved to come (a pair found after one): rarely
+                        woken = watch.wait(max(self.poll_s, WATCHED_POLL_S)
+                                           if watch.active and trusted else self.poll_s)
+                        waited = True
+                    else:
+                        self._stop.wait(self.poll_s)
                     continue
+                if waited:  # a pair found by a poll the events missed: back to poll_s
+                    trusted, waited = woken, False
                 with self._space:
                     while (not self._stop.is_set() and generation == self._generation
                            and len(self._frames) >= self.maxsize):
@@ -120,10 +156,27 @@ class SpoolFrameSource:
                         self._frames.append(frame)  # else given up meanwhile: delivered
                         self._wake()
         finally:  # an error (a bug) ends the thread; next() reports it and starts another
+            if watch is not None:
+                watch.close()
             exc = sys.exc_info()[1]
             if exc is not None:
                 with self._lock:
                     self._failure = f"{type(exc).__name__}: {exc}"
+
+    def raise_reader(self, *, rt_priority: int | None = None, nice: int | None = None) -> None:
+        """Schedule the reader thread (and any started after it) first: real time if permitted.
+
+        Its work is light (a folder listing, three small files, a raw or PNG decode: well under
+        a millisecond per pair) and a pair waits for it, so on a busy host it runs with the
+        service's bus thread (:func:`core.realtime.raise_priority`: ``SCHED_FIFO`` at
+        ``rt_priority``, default ``BUS_RT_PRIORITY``, else nice ``nice``, default
+        ``INTERFACE_NICE``). Applied by the thread itself at its next turn; granted:
+        :attr:`reader_granted`.
+        """
+        from core.realtime import BUS_RT_PRIORITY, INTERFACE_NICE
+
+        self.reader_priority = (BUS_RT_PRIORITY if rt_priority is None else int(rt_priority),
+                                INTERFACE_NICE if nice is None else int(nice))
 
     def _give_up(self, slot: int | None, meta_frame: Frame | None, text: str) -> None:
         """Deliver the pair being read as failed (or a skip) and read on in a new thread."""

@@ -7,7 +7,10 @@ is given. A pair's two images go through shared memory (one block per worker hol
 ``depth`` slots; the service copies the images into a free slot), its numbers, the machine's
 facts and the board's calibrator state through a pipe; the result (the ``Measurement`` and the
 calibration estimates the pair contributed) comes back through the pipe and is read on the
-service's event loop (``loop.add_reader``: no thread in between).
+service's event loop (``loop.add_reader``: no thread in between; one ``os.read`` per wake-up,
+the whole messages cut out of it). The camera's roll is searched for on the pairs the service
+picks in sequence order (:class:`_RollPlan`: as often as in process, never less), and one
+deadline timer watches all pairs in flight (none per pair).
 
 The pool only measures; the service consumes the results in sequence order
 (:meth:`controller.pair_pipeline.PairPipeline.submit`), so the control loops see the pairs in
@@ -23,17 +26,22 @@ than workers is a one-line warning and the pool uses one process per core
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import math
 import os
+import pickle
 import signal
 import struct
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.reduction import ForkingPickler
-from typing import Any
+from typing import Any, NamedTuple
+
+import numpy as np
 
 from controller.events import exc_name
 from controller.measurement import VISION_ERRORS, MachineFacts, MeasurementStage, failure_reason
@@ -53,6 +61,9 @@ trip)."""
 WAIT_FOR_WORKER_S = 60.0
 """Longest a pair waits for a free worker (one being started again after a crash on a loaded
 machine takes seconds), s."""
+_HEADER = struct.Struct("!i")  # Connection.send's length header ...
+_LONG_HEADER = struct.Struct("!Q")  # ... and its long form after -1
+_READ_BYTES = 1 << 20
 
 
 class MeasurementWorkerError(Exception):
@@ -131,18 +142,115 @@ def plan_workers(requested: int, *, cores: int) -> tuple[int, str | None]:
 
 
 class _RecordingCalibrator:
-    """The board's calibrator as the worker got it, noting each estimate folded in."""
+    """The board's calibrator as the worker got it, noting each estimate folded in.
 
-    def __init__(self, calibrator: Any) -> None:
+    ``roll`` is the service's word on the camera's roll for this pair (:class:`_RollPlan`):
+    ``None`` leaves it to the calibrator, ``()`` has the pair search for it, ``(roll_deg,
+    confidence)`` has it use that; a search's confident result is noted in :attr:`found`.
+    """
+
+    def __init__(self, calibrator: Any, roll: tuple[float, ...] | None = None) -> None:
         self.calibrator = calibrator
         self.estimates: list[Any] = []
+        self.roll = roll
+        self.found: tuple[float, float] | None = None
 
     def update(self, estimate: Any) -> Any:
         self.estimates.append(estimate)
         return self.calibrator.update(estimate)
 
+    def known_roll(self) -> tuple[float, float] | None:
+        if self.roll is None:
+            return self.calibrator.known_roll()
+        return (self.roll[0], self.roll[1]) if self.roll else None
+
+    def note_roll(self, roll_deg: float, confidence: float, *, min_confidence: float) -> None:
+        if math.isfinite(confidence) and confidence >= min_confidence:
+            self.found = (float(roll_deg), float(confidence))
+        if self.roll is None:
+            self.calibrator.note_roll(roll_deg, confidence, min_confidence=min_confidence)
+
     def __getattr__(self, name: str) -> Any:
         return getattr(self.calibrator, name)
+
+
+class _RollPlan:
+    """When a board's pairs search for the camera's roll, decided in sequence order.
+
+    In process the board's calibrator searches on one pair in ``roll_every`` and the pairs
+    between use the last confident roll. A worker's copy of the calibrator cannot count the
+    pairs in flight (without this each pair searched: 8-10 % more work per pair than in
+    process), so the service decides at :meth:`MeasureWorkerPool.submit` (sequence order): a
+    search every ``roll_every`` pairs as in process, and one on every pair while no confident
+    roll came back yet (a new board's first pairs are in flight at once): never less work than
+    in process. The newest confident result by sequence is the one handed out.
+    """
+
+    __slots__ = ("age", "roll", "ticket")
+
+    def __init__(self) -> None:
+        self.age = 0  # pairs handed the roll since the last search was handed out
+        self.roll: tuple[float, float] | None = None
+        self.ticket = 0  # the pair that found it
+
+    def next(self, roll_every: int) -> tuple[float, ...]:
+        """The next pair's directive: ``()`` search, ``(roll_deg, confidence)`` use it."""
+        if self.roll is None or self.age + 1 >= roll_every:
+            self.age = 0
+            return ()
+        self.age += 1
+        return self.roll
+
+    def found(self, ticket: int, roll: tuple[float, float] | None) -> None:
+        """A pair's search came back (any order): keep it if confident and the newest."""
+        if roll is not None and ticket > self.ticket:
+            self.roll, self.ticket = roll, ticket
+
+
+class _Packed(NamedTuple):
+    """A dataclass measurement with its 1-D float arrays in one (:func:`_pack`)."""
+
+    cls: type
+    state: dict[str, Any]  # the instance's fields, the packed arrays as None
+    names: tuple[str, ...]
+    lengths: tuple[int, ...]
+    blob: np.ndarray
+
+    def unpack(self) -> Any:
+        """The measurement as pickle would rebuild it (no ``__init__``), arrays as views."""
+        obj = self.cls.__new__(self.cls)
+        d = obj.__dict__
+        d.update(self.state)
+        start = 0
+        for name, n in zip(self.names, self.lengths, strict=True):
+            d[name] = self.blob[start:start + n]
+            start += n
+        return obj
+
+
+def _pack(meas: Any) -> Any:
+    """A plain dataclass measurement with its 1-D float64 arrays concatenated (else as is).
+
+    Pickling eight small arrays one by one cost a worker 20-50 us per pair (the pickler's
+    path per array, cold after the measurement); one array and a dict of the rest cost a
+    third of that, and the service rebuilds the same fields (:meth:`_Packed.unpack`).
+    """
+    cls = type(meas)
+    state = getattr(meas, "__dict__", None)
+    if (state is None or not dataclasses.is_dataclass(cls) or hasattr(cls, "__setstate__")
+            or cls.__reduce_ex__ is not object.__reduce_ex__
+            or cls.__reduce__ is not object.__reduce__):
+        return meas
+    names = [k for k, v in state.items()
+             if type(v) is np.ndarray and v.ndim == 1 and v.dtype == np.float64]
+    if len(names) < 2:
+        return meas
+    arrays = [state[k] for k in names]
+    rest = dict(state)
+    for k in names:
+        rest[k] = None  # keeps the fields' order
+    return _Packed(cls, rest, tuple(names), tuple(a.size for a in arrays),
+                   np.concatenate(arrays))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -226,11 +334,9 @@ def _attach(blocks: dict[str, Any], name: str) -> Any:
 
 def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple) -> tuple:
     """Measure one pair; the reply for the service."""
-    import numpy as np
-
     from protocol.frames import Frame
 
-    (_, ticket, where, counts_a, counts_b, speed_mm_s, facts, calibrator) = msg
+    (_, ticket, where, counts_a, counts_b, speed_mm_s, facts, calibrator, roll) = msg
     if where[0] == "shm":
         _, name, offset, shape, dtype = where
         buf = _attach(blocks, name).buf
@@ -244,17 +350,20 @@ def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple) -> tup
     kwargs: dict[str, Any] = {}
     recorder = None
     if calibrator is not None:
-        recorder = _RecordingCalibrator(calibrator)
+        recorder = _RecordingCalibrator(calibrator, roll)
         kwargs["calibrator"] = recorder
     t0 = time.perf_counter()
     try:
         meas = stage.measure_now(frame, facts, kwargs)
     except VISION_ERRORS as exc:
-        return ("done", ticket, failure_reason(exc), None, (), time.perf_counter() - t0)
+        found = recorder.found if recorder is not None else None
+        return ("done", ticket, failure_reason(exc), None, (), time.perf_counter() - t0, found)
     finally:
         del image_a, image_b, frame  # no view of the slot outlives the job
-    estimates = tuple(recorder.estimates) if recorder is not None else ()
-    return ("done", ticket, None, meas, estimates, time.perf_counter() - t0)
+    if recorder is None:
+        return ("done", ticket, None, _pack(meas), (), time.perf_counter() - t0, None)
+    return ("done", ticket, None, _pack(meas), tuple(recorder.estimates),
+            time.perf_counter() - t0, recorder.found)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -268,8 +377,66 @@ class _Job:
     frame: Any
     facts: MachineFacts | None
     calibrator: Any
-    timer: asyncio.TimerHandle | None = None
+    deadline: float = math.inf  # event-loop time it fails at (waiting, then measuring)
     slot: int | None = None
+    roll: tuple[float, ...] | None = None  # the roll directive (_RollPlan.next)
+    plan: _RollPlan | None = None
+
+
+def _whole_messages(buf: bytearray) -> list[bytes]:
+    """Take the whole ``Connection.send`` messages off the front of ``buf`` (in place).
+
+    Each is a 4-byte length (or -1 and an 8-byte one) and that many bytes; a message not yet
+    whole stays in ``buf`` for the next read.
+    """
+    pos, end = 0, len(buf)
+    whole: list[bytes] = []
+    while end - pos >= 4:
+        (n,) = _HEADER.unpack_from(buf, pos)
+        head = 4
+        if n == -1:
+            if end - pos < 12:
+                break
+            (n,) = _LONG_HEADER.unpack_from(buf, pos + 4)
+            head = 12
+        if end - pos - head < n:
+            break
+        whole.append(bytes(buf[pos + head:pos + head + n]))
+        pos += head + n
+    del buf[:pos]
+    return whole
+
+
+def _plan_roll(rolls: Any, job: _Job) -> None:
+    """``job``'s roll directive, decided in sequence order (:class:`_RollPlan`).
+
+    ``rolls`` maps each calibrator (weakly) to its plan.
+    """
+    cal = job.calibrator
+    every = getattr(cal, "roll_every", None)
+    if cal is None or isinstance(every, bool) or not isinstance(every, int):
+        return  # a calibrator without a roll schedule: left to it
+    try:
+        plan = rolls.get(cal)
+        if plan is None:
+            plan = rolls[cal] = _RollPlan()
+    except TypeError:  # not weakly referable: left to the calibrator
+        return
+    job.plan, job.roll = plan, plan.next(every)
+
+
+def _settle(job: _Job, outcome: WorkerOutcome | BaseException) -> None:
+    """Give ``job``'s future its outcome (once; not on a closed event loop)."""
+    job.frame = None
+    if job.future.done():
+        return
+    try:
+        if isinstance(outcome, BaseException):
+            job.future.set_exception(outcome)
+        else:
+            job.future.set_result(outcome)
+    except RuntimeError:  # its event loop is closed (closing after the service's loop)
+        pass
 
 
 @dataclass
@@ -283,6 +450,7 @@ class _Worker:
     free: list[int] = field(default_factory=list)
     jobs: dict[int, _Job] = field(default_factory=dict)
     started: int = 0
+    rbuf: bytearray = field(default_factory=bytearray)  # replies read, not yet whole
 
     def place(self, frame: Any, depth: int) -> tuple[tuple, int | None]:
         """Copy the pair into a free slot of the shared memory: where it is, and the slot.
@@ -290,8 +458,6 @@ class _Worker:
         Images that are not a pair of equal 2-D arrays, or that do not fit while the slots are
         in use, go through the pipe instead (no slot).
         """
-        import numpy as np
-
         a, b = frame.image_a, frame.image_b
         if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)
                 and a.shape == b.shape and a.dtype == b.dtype and a.ndim == 2):
@@ -356,8 +522,8 @@ class MeasureWorkerPool:
         ``(height, width)`` of the images: set up in each worker before the first pair.
     timeout_s : float
         A pair not measured this long after a worker took it fails; the worker holding it is
-        killed and started again, s. (A pair waiting for a free worker fails after
-        :data:`WAIT_FOR_WORKER_S`.)
+        killed and started again, s (checked every quarter of it: within 1.25 times it). (A
+        pair waiting for a free worker fails after :data:`WAIT_FOR_WORKER_S`.)
     depth : int
         Pairs one worker holds at once (shared-memory slots).
     start_method : str
@@ -415,6 +581,9 @@ class MeasureWorkerPool:
         self._tickets = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closed = False
+        self._watchdog: asyncio.TimerHandle | None = None
+        self._tick_s = min(self.timeout_s, WAIT_FOR_WORKER_S) / 4.0
+        self._rolls: weakref.WeakKeyDictionary[Any, _RollPlan] = weakref.WeakKeyDictionary()
         self.restarts = 0
         """Workers started again after dying or timing out."""
         self.problems: list[str] = []
@@ -483,7 +652,7 @@ class MeasureWorkerPool:
         )
         proc.start()
         child.close()
-        w.process, w.conn, w.ready, w.jobs = proc, parent, False, {}
+        w.process, w.conn, w.ready, w.jobs, w.rbuf = proc, parent, False, {}, bytearray()
         w.free = list(range(self.depth))
         w.started += 1
         if self._loop is not None:
@@ -497,10 +666,13 @@ class MeasureWorkerPool:
         if self._closed:
             return
         self._closed = True
+        if self._watchdog is not None:
+            self._watchdog.cancel()
+            self._watchdog = None
         for w in self._workers:
             self._fail_jobs(w, "measurement workers closed")
         while self._backlog:
-            self._finish(self._backlog.popleft(), WorkerOutcome("measurement workers closed"))
+            _settle(self._backlog.popleft(), WorkerOutcome("measurement workers closed"))
         for w in self._workers:
             self._detach(w)
             if w.conn is not None:
@@ -558,14 +730,16 @@ class MeasureWorkerPool:
         self._attach_loop(loop)
         job = _Job(next(self._tickets), loop.create_future(), frame, facts, calibrator)
         if self._closed:
-            self._finish(job, WorkerOutcome("measurement workers closed"))
+            _settle(job, WorkerOutcome("measurement workers closed"))
             return job.future
         if not any(w.conn is not None for w in self._workers):
-            self._finish(job, WorkerOutcome(f"measurement failed: {self._gone()}"))
+            _settle(job, WorkerOutcome(f"measurement failed: {self._gone()}"))
             return job.future
-        job.timer = loop.call_later(WAIT_FOR_WORKER_S, self._timed_out, job)
+        _plan_roll(self._rolls, job)
+        job.deadline = loop.time() + WAIT_FOR_WORKER_S
         self._backlog.append(job)
         self._pump()
+        self._watch()
         return job.future
 
     def _gone(self) -> str:
@@ -577,6 +751,7 @@ class MeasureWorkerPool:
         for w in self._workers:
             self._detach(w)
         self._loop = loop
+        self._watchdog = None  # a timer of the loop before never fires
         for w in self._workers:
             if w.conn is not None:
                 loop.add_reader(w.conn.fileno(), self._on_readable, w)
@@ -587,24 +762,25 @@ class MeasureWorkerPool:
 
     def _pump(self) -> None:
         """Hand waiting pairs to free workers (the least busy first, then the lowest index)."""
+        depth = self.depth
         while self._backlog:
-            free = [w for w in self._workers if w.ready and len(w.jobs) < self.depth]
-            if not free:
+            best = None
+            for w in self._workers:
+                if w.ready and len(w.jobs) < depth and (best is None
+                                                        or len(w.jobs) < len(best.jobs)):
+                    best = w
+            if best is None:
                 return
-            w = min(free, key=lambda x: (len(x.jobs), x.index))
-            job = self._backlog.popleft()
-            self._send(w, job)
+            self._send(best, self._backlog.popleft())
 
     def _send(self, w: _Worker, job: _Job) -> None:
         frame = job.frame
         where, job.slot = w.place(frame, self.depth)
         msg = ("job", job.ticket, where, frame.counts_a, frame.counts_b, frame.speed_mm_s,
-               job.facts, job.calibrator)
+               job.facts, job.calibrator, job.roll)
         job.frame = None  # the images are in the slot (or the message) now
-        if job.timer is not None:
-            job.timer.cancel()  # from now on the measurement's own time limit
         assert self._loop is not None
-        job.timer = self._loop.call_later(self.timeout_s, self._timed_out, job)
+        job.deadline = self._loop.time() + self.timeout_s  # the measurement's own limit
         w.jobs[job.ticket] = job
         try:
             w.conn.send(msg)
@@ -613,13 +789,34 @@ class MeasureWorkerPool:
 
     # ------------------------------------------------------------------ answers
     def _on_readable(self, w: _Worker) -> None:
+        """Read what the worker wrote (one read), handle each whole message in it.
+
+        The messages are ``Connection.send``'s (a 4-byte length, or -1 and an 8-byte one, then
+        the pickle): one ``os.read`` of all there is instead of ``poll`` (a new selector each
+        call) and two reads per message; a message split over reads waits in ``rbuf``.
+        """
         conn = w.conn
+        if conn is None:
+            return
         try:
-            while conn is not None and conn.poll():
-                self._handle(w, conn.recv())
-                conn = w.conn
-        except (EOFError, OSError):
+            data = os.read(conn.fileno(), _READ_BYTES)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:  # the worker is gone
             self._died(w, w.reap())
+            return
+        w.rbuf += data
+        for raw in _whole_messages(w.rbuf):
+            try:
+                msg = pickle.loads(raw)
+            except Exception as exc:  # noqa: BLE001 - unpickling raises anything
+                self._died(w, f"sent a reply that cannot be read ({exc_name(exc)}: {exc})")
+                return
+            self._handle(w, msg)
+            if w.conn is not conn:  # it died or was stopped meanwhile: the rest is moot
+                return
 
     def _handle(self, w: _Worker, msg: tuple) -> None:
         kind = msg[0]
@@ -630,52 +827,50 @@ class MeasureWorkerPool:
         job = w.jobs.pop(msg[1], None)
         if job is None:
             return  # answered after it was given up
-        self._release_slot(w, job)
-        if kind == "done":
-            _, _, error, meas, estimates, measure_s = msg
-            self._finish(job, WorkerOutcome(error, meas, estimates, w.index, measure_s))
-        else:
-            self._finish(job, MeasurementWorkerError(f"measurement worker {w.index}: {msg[2]}"))
-        self._pump()
-
-    def _release_slot(self, w: _Worker, job: _Job) -> None:
         if job.slot is not None:
             w.free.append(job.slot)
+        if kind == "done":
+            _, _, error, meas, estimates, measure_s, found = msg
+            if type(meas) is _Packed:
+                meas = meas.unpack()
+            if job.plan is not None:
+                job.plan.found(job.ticket, found)
+            _settle(job, WorkerOutcome(error, meas, estimates, w.index, measure_s))
+        else:
+            _settle(job, MeasurementWorkerError(f"measurement worker {w.index}: {msg[2]}"))
+        self._pump()
 
-    def _finish(self, job: _Job, outcome: WorkerOutcome | BaseException) -> None:
-        if job.timer is not None:
-            job.timer.cancel()
-            job.timer = None
-        job.frame = None
-        if job.future.done():
-            return
-        try:
-            if isinstance(outcome, BaseException):
-                job.future.set_exception(outcome)
-            else:
-                job.future.set_result(outcome)
-        except RuntimeError:  # its event loop is closed (closing after the service's loop)
-            pass
+    def _watch(self) -> None:
+        """Arm the one deadline timer (while pairs are in flight; none per pair)."""
+        if self._watchdog is None and self._loop is not None and not self._closed:
+            self._watchdog = self._loop.call_later(self._tick_s, self._check_deadlines)
 
-    def _timed_out(self, job: _Job) -> None:
-        job.timer = None
-        if job in self._backlog:
+    def _check_deadlines(self) -> None:
+        """Fail the pairs past their deadline: a worker holding one is killed (and restarted).
+
+        Checked every :attr:`_tick_s` while pairs are in flight: a pair fails between its
+        limit and a quarter of it later.
+        """
+        self._watchdog = None
+        assert self._loop is not None
+        now = self._loop.time()
+        for job in [j for j in self._backlog if j.deadline <= now]:
             self._backlog.remove(job)
-            self._finish(job, WorkerOutcome(
+            _settle(job, WorkerOutcome(
                 f"measurement failed: no measurement worker free for {WAIT_FOR_WORKER_S:g} s"))
-            return
         for w in self._workers:
-            if job.ticket in w.jobs:
+            if any(j.deadline <= now for j in w.jobs.values()):
                 if w.process is not None:
                     w.process.kill()
                 self._died(w, f"took longer than {self.timeout_s:g} s for a pair (killed)")
-                return
+        if self.in_flight:
+            self._watch()
 
     def _fail_jobs(self, w: _Worker, reason: str) -> int:
         jobs = list(w.jobs.values())
         w.jobs = {}
         for job in jobs:
-            self._finish(job, WorkerOutcome(reason, worker=w.index))
+            _settle(job, WorkerOutcome(reason, worker=w.index))
         return len(jobs)
 
     def _died(self, w: _Worker, why: str) -> None:
@@ -707,7 +902,7 @@ class MeasureWorkerPool:
             self._spawn(w)
         elif not any(x.conn is not None for x in self._workers):
             while self._backlog:  # nobody left to measure them
-                self._finish(self._backlog.popleft(),
+                _settle(self._backlog.popleft(),
                              WorkerOutcome(f"measurement failed: {self._gone()}"))
 
 

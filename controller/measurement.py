@@ -24,6 +24,7 @@ import asyncio
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -33,6 +34,7 @@ import numpy as np
 
 from config.machine import PlausibilityConfig
 from controller.events import exc_name
+from controller.latency import fair_scheduling
 from controller.plc_client import PlcSnapshot
 from core.errors import RegistrationError
 from protocol.frames import Frame
@@ -52,6 +54,15 @@ VISION_ERRORS: tuple[type[BaseException], ...] = (
 
 
 _THREAD = threading.local()  # the nice value a measuring thread was given
+
+INLINE_MAX_S = 0.005
+"""In real time a pair is measured on the event loop's own thread (no hand-off to a worker
+thread and back: two thread wake-ups, 0.2-0.5 ms on a virtual machine) while the last
+:data:`INLINE_WINDOW` measurements each took at most this long, s; the bus cycles then wait at
+most about this long for a pair. Slower ones (large images, a loaded host), a measurer not yet
+built and the first pairs go to the worker thread."""
+INLINE_WINDOW = 8
+"""Measurements whose wall times decide whether the next is measured inline."""
 
 
 def failure_reason(exc: BaseException) -> str:
@@ -170,6 +181,8 @@ class PendingMeasurement:
         Wall time of the vision's own work, s (set when finished).
     worker : int
         The worker process that measured it (-1: this process).
+    finished_at : float
+        ``time.perf_counter()`` when its result was back on the event loop (0: not yet).
     """
 
     frame: Frame
@@ -178,6 +191,7 @@ class PendingMeasurement:
     which: tuple[Any, ...] | None = None
     measure_s: float = 0.0
     worker: int = -1
+    finished_at: float = 0.0
 
 
 class MeasurementStage:
@@ -224,6 +238,14 @@ class MeasurementStage:
         self.thread_nice: int | None = None
         """Nice value of the thread measuring in real time (``None``: as started); a busy host
         then shares its cores with the pairs first (:func:`controller.latency.prioritize`)."""
+        self.inline_max_s: float = INLINE_MAX_S
+        """Measure on the event loop's thread while the recent measurements took at most this
+        long (:data:`INLINE_MAX_S`; 0: always in the worker thread). Under the fair scheduler
+        at :attr:`thread_nice` for the measurement (:func:`controller.latency.fair_scheduling`).
+        """
+        self._recent_s: deque[float] = deque(maxlen=INLINE_WINDOW)
+        self.inline_count = 0
+        """Pairs measured on the event loop's thread."""
 
     @property
     def takes_facts(self) -> bool:
@@ -348,10 +370,45 @@ class MeasurementStage:
             kwargs["calibrator"] = self.calibrator(_board_of(frame), facts)
         self.last_measure_s = 0.0
         try:
-            meas = await call_blocking(self.threaded, self._timed, frame, facts, kwargs)
+            ready = self._inline_measurer(frame, facts) if self.threaded else None
+            if ready is not None:
+                meas = self._inline(ready, frame, kwargs)
+            else:
+                meas = await call_blocking(self.threaded, self._timed, frame, facts, kwargs)
         except VISION_ERRORS as exc:
             return failure_reason(exc), None
+        finally:
+            if self.threaded:
+                self._recent_s.append(self.last_measure_s)
         return None, meas
+
+    def _inline_measurer(self, frame: Frame, facts: MachineFacts | None) -> Any:
+        """The measurer to run on the event loop's thread now, or ``None`` (worker thread).
+
+        Only one already built (no set-up under way: the build lock is free), and only while
+        each of the last :data:`INLINE_WINDOW` measurements took at most :attr:`inline_max_s`.
+        """
+        recent = self._recent_s
+        if (self.inline_max_s <= 0 or len(recent) < INLINE_WINDOW
+                or max(recent) > self.inline_max_s):
+            return None
+        if not self._build_lock.acquire(blocking=False):
+            return None  # a set-up under way (prepare): never wait for it on the loop
+        try:
+            shape = tuple(np.shape(frame.image_a))
+            key = (shape, facts.key if (self.takes_facts and facts is not None) else None)
+            return self._measurers.get(key)
+        finally:
+            self._build_lock.release()
+
+    def _inline(self, measurer: Any, frame: Frame, kwargs: dict[str, Any]) -> Any:
+        self.inline_count += 1
+        with fair_scheduling(self.thread_nice):
+            t0 = time.perf_counter()
+            try:
+                return self._run_measurer(measurer, frame, kwargs)
+            finally:
+                self.last_measure_s = time.perf_counter() - t0
 
     def _timed(self, frame: Frame, facts: MachineFacts | None, kwargs: dict[str, Any]) -> Any:
         nice = self.thread_nice
@@ -437,7 +494,12 @@ class MeasurementStage:
     def measure_now(self, frame: Frame, facts: MachineFacts | None,
                     kwargs: dict[str, Any]) -> Any:
         """Build (if needed) and run the measurer (a worker thread or process in real time)."""
-        return self.measurer(tuple(np.shape(frame.image_a)), facts).measure(
+        return self._run_measurer(self.measurer(tuple(np.shape(frame.image_a)), facts), frame,
+                                  kwargs)
+
+    @staticmethod
+    def _run_measurer(measurer: Any, frame: Frame, kwargs: dict[str, Any]) -> Any:
+        return measurer.measure(
             frame.image_a,
             frame.image_b,
             counts_a=frame.counts_a,

@@ -185,6 +185,7 @@ class PairPipeline:
         att: Attributed | None = None
         error = pair.error
         vision_s = 0.0
+        checks_s = 0.0
         if pair.pending is not None and snap is not None:
             # a vision error of a kind nobody named (VISION_ERRORS) is a failed measurement
             # too, and a fault of the service: the boundary reports it and goes safe
@@ -194,13 +195,14 @@ class PairPipeline:
                 error, meas, att = failure_reason(g.error), None, None
             wall_meas = time.perf_counter()
             vision_s = pair.pending.measure_s
+            if pair.pending.finished_at > 0:
+                checks_s = max(0.0, wall_meas - pair.pending.finished_at)
         ok = error is None
         applied = False
         profile = None
         keeper = self.keeper
         if ok:
             self.report.count("ok")
-            profile = self.records.profile_of(meas, frame)
             keeper.supervisor.measurement_valid(t_arr)
             if keeper.state is SafetyState.RUN and snap is not None:
                 t_ctrl = self.clock.now() if now_s is None else t_arr  # loops need forward time
@@ -208,7 +210,9 @@ class PairPipeline:
                     applied = await self.loops.apply(att, measured_at, snap, t_ctrl)
         else:
             self.report.count("failed")
-        wall1 = time.perf_counter()
+        wall1 = time.perf_counter()  # the setpoints are out: what follows is for the record
+        if ok:
+            profile = self.records.profile_of(meas, frame)  # up to 0.5 ms: after the setpoints
         out = self.loops.out
         plc_feed = None if snap is None else finite_or_none(snap.feed_setpoint_mm_s)
         result = FrameResult(
@@ -231,6 +235,7 @@ class PairPipeline:
                     "plc_read_ms": (wall_plc - wall0) * 1e3,
                     "measure_ms": (wall_meas - wall_plc) * 1e3,
                     "vision_ms": vision_s * 1e3,
+                    "checks_ms": checks_s * 1e3,  # plausibility and attribution (in measure_ms)
                     "control_ms": (wall1 - wall_meas) * 1e3,
                 },
                 "safe_reason": keeper.safe_reason(),
@@ -259,6 +264,7 @@ class PairPipeline:
         marks to knife passes, then the pitch per knife pass against ``V / (n Z)``.
         """
         error, meas = await self.measurement.finish(pending)
+        pending.finished_at = time.perf_counter()
         if error is not None:
             return error, None, None
         error = self.measurement.implausible(meas, frame, snap)

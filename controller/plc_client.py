@@ -7,7 +7,7 @@ Layers
   feed setpoint (``f32``, two registers, function 16) and the heartbeat (``u16``, function 6).
 * :class:`Backoff` — the reconnect policy: capped exponential back-off on an injected clock.
 * :class:`RegisterBus` — the transport interface (``connect``, ``read``, ``write``, ``close``).
-  :class:`ModbusTcpBus` is the real one (pymodbus ``AsyncModbusTcpClient``);
+  The real one: :class:`ModbusTcpBus` (pymodbus ``AsyncModbusTcpClient``);
   :class:`MachineRegisterBus` talks to a :class:`plant_sim.machine.Machine` in the same process
   (simulated-time tests and the in-process HIL), applying the same rules as the PLC server.
 * :class:`PlcClient` — what the service uses: ``read()``, ``write_feed()``,
@@ -378,7 +378,7 @@ class ModbusTcpBus:
             self.close()
             raise FieldbusError(f"PLC {self.host}:{self.port}: not connected ({what})")
         try:
-            resp = await asyncio.wait_for(coro_fn(), timeout=self.timeout_s * 1.5)
+            resp = await _within(coro_fn, self.timeout_s * 1.5)
         except (ModbusException, asyncio.TimeoutError, OSError) as exc:
             self.close()
             raise FieldbusError(f"PLC {self.host}:{self.port}: {what}: {exc}") from None
@@ -421,6 +421,20 @@ class ModbusTcpBus:
                 self._client.close()
             finally:
                 self._client = None
+
+
+async def _within(coro_fn: Callable[[], Any], timeout_s: float) -> Any:
+    """``await coro_fn()`` bounded by ``timeout_s`` (``asyncio.TimeoutError`` beyond it).
+
+    On Python 3.11+ in the calling task (``asyncio.timeout``): the request goes on the wire in
+    the same turn of the event loop as the call, which lets a caller overlap its own work with
+    the PLC's answer (``ControlLoops.apply``); ``asyncio.wait_for`` would start a task first.
+    """
+    timeout = getattr(asyncio, "timeout", None)
+    if timeout is None:  # pragma: no cover - Python 3.10
+        return await asyncio.wait_for(coro_fn(), timeout=timeout_s)
+    async with timeout(timeout_s):
+        return await coro_fn()
 
 
 class MachineRegisterBus:
@@ -555,7 +569,7 @@ class PlcClient:
         backoff: Backoff | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> PlcClient:
-        """A client over Modbus TCP (``ModbusTcpBus``)."""
+        """A client over Modbus TCP (pymodbus, :class:`ModbusTcpBus`)."""
         rm = regmap or RegisterMap.load()
         bus = ModbusTcpBus(host, port, unit_id=unit_id, timeout_s=timeout_s)
         return cls(bus, rm, backoff=backoff, clock=clock)

@@ -127,14 +127,14 @@ def _png_params() -> list[int]:
     return [cv2.IMWRITE_PNG_COMPRESSION, 0, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
 
 
-def _encode_image(name: str, image: np.ndarray) -> tuple[str, bytes]:
-    """Lossless file bytes of an image: PNG for uint8/uint16, ``.npy`` otherwise."""
+def _encode_image(name: str, image: np.ndarray, fmt: str = "png") -> tuple[str, bytes]:
+    """Lossless file bytes of an image: PNG for uint8/uint16 (``fmt="png"``), ``.npy`` otherwise."""
     import cv2
 
     img = np.asarray(image)
     if img.ndim != 2:
         raise ValueError(f"{name} must be a 2-D grayscale image, got shape {img.shape}")
-    if img.dtype in (np.uint8, np.uint16):
+    if fmt == "png" and img.dtype in (np.uint8, np.uint16):
         ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), _png_params())
         if not ok:  # pragma: no cover - cv2 failure
             raise ValueError(f"{name}: PNG encoding failed")
@@ -175,11 +175,18 @@ class SpoolWriter:
         How many committed pairs to keep; older ones are deleted (metadata first).
     fsync : bool
         fsync files and the directory (crash safety); tests may turn it off for speed.
+    image_format : {"png", "npy"}
+        ``"npy"`` writes raw ``.npy`` images: no PNG decode for the reader (about 0.5 ms less
+        per pair at 659x493), twice the bytes.
     """
 
-    def __init__(self, directory: str | Path, *, keep: int = 100, fsync: bool = True) -> None:
+    def __init__(self, directory: str | Path, *, keep: int = 100, fsync: bool = True,
+                 image_format: str = "png") -> None:
         if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
             raise ValueError(f"keep must be an integer >= 1, got {keep!r}")
+        if image_format not in ("png", "npy"):
+            raise ValueError(f"image_format must be 'png' or 'npy', got {image_format!r}")
+        self.image_format = image_format
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.keep = keep
@@ -216,7 +223,7 @@ class SpoolWriter:
             if img is None:  # a machine run without rendering: metadata only
                 meta[key] = None
                 continue
-            suffix, data = _encode_image(key, img)
+            suffix, data = _encode_image(key, img, self.image_format)
             final = f"{stem}.{key[-1]}{suffix}"
             atomic_write_bytes(d / final, data, durable=self.fsync, tmp_prefix=_TMP_PREFIX)
             meta[key] = final
@@ -551,6 +558,20 @@ def read_spool_file(directory: Path, name: str, *, max_bytes: int) -> tuple[byte
         os.close(fd)
 
 
+def _c_order_npy(data: bytes, head: Any) -> np.ndarray | None:
+    """A C-ordered ``.npy`` image from its bytes, or ``None`` (``np.load`` reads the file).
+
+    ``npy_header`` checked the header and the size (the data are the file's last bytes): this
+    does not parse the header again (issue 11, spool latency).
+    """
+    if b"'fortran_order': False" not in data[:4096]:
+        return None
+    dtype = np.dtype(head.dtype)
+    count = head.width * head.height
+    flat = np.frombuffer(data, dtype=dtype, count=count, offset=len(data) - count * dtype.itemsize)
+    return flat.reshape(head.height, head.width).copy()  # writable, its own memory
+
+
 def decode_spool_image(data: bytes, name: str, *, limits: SpoolLimits) -> np.ndarray:
     """Check an image's header against ``limits``, then decode it (PNG or ``.npy``).
 
@@ -577,8 +598,10 @@ def decode_spool_image(data: bytes, name: str, *, limits: SpoolLimits) -> np.nda
         h, w = limits.image_shape
         raise SpoolFileError(f"{head.width}x{head.height} px, the camera's images are {w}x{h}")
     if is_npy:
-        try:
-            img = np.load(io.BytesIO(data), allow_pickle=False)
+        try:  # a C-ordered array straight from its bytes (the header was checked), else np.load
+            img = _c_order_npy(data, head)
+            if img is None:
+                img = np.load(io.BytesIO(data), allow_pickle=False)
         except (ValueError, OSError, EOFError, TypeError, MemoryError) as exc:
             raise SpoolFileError(f"not a readable .npy file: {type(exc).__name__}") from None
     else:
@@ -670,8 +693,8 @@ class SpoolReader:
         return out
 
     def _identity(self, slot: int) -> tuple[int, int] | None:
-        try:
-            st = os.lstat(self.directory / f"{_PREFIX}{slot:012d}{_META_SUFFIX}")
+        try:  # a str path: no Path object per handled file and scan (issue 11, latency)
+            st = os.lstat(os.path.join(self.directory, f"{_PREFIX}{slot:012d}{_META_SUFFIX}"))
         except OSError:
             return None
         return (st.st_ino, st.st_mtime_ns)
@@ -707,6 +730,11 @@ class SpoolReader:
     def _skip(self, skip: Skip) -> None:
         self._skips.append(skip)
         self.skipped += 1
+
+    @property
+    def pending(self) -> int:
+        """Pairs the last listing found, not read yet (``poll`` returns them without a listing)."""
+        return len(self._pending)
 
     def take_skips(self) -> list[Skip]:
         """The skips reported since the last call (thread-safe), oldest first."""

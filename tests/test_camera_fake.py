@@ -168,3 +168,20 @@ def test_acquire_writes_committed_pairs_of_the_rigs_size(tmp_path, capsys):
     meta = json.loads((spool / "acquire.json").read_text())
     assert meta["counts"].startswith("not latched") and meta["pairs_written"] == 20
     assert "wrote 20 pairs" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("fmt", ["png", "npy"])
+def test_acquire_writes_the_spool_images_in_the_format_asked(tmp_path, fmt):
+    from planer.cli import main
+    from protocol.frames import SpoolReader
+
+    spool = tmp_path / "spool"
+    argv = ["acquire", "--camera", "Fake_1", "--pairs", "3", "--spool", str(spool),
+            "--image-format", fmt]
+    assert main(argv) == 0
+    images = sorted(p.suffix for p in spool.iterdir() if p.name.startswith("pair-")
+                    and p.suffix != ".json")
+    assert images == ["." + fmt] * 6
+    reader = SpoolReader(spool, start="all")
+    frames = [reader.poll() for _ in range(3)]
+    assert all(f is not None and f.error is None and f.image_a.shape == (H, W) for f in frames)

@@ -297,11 +297,13 @@ def test_bench_figures_break_the_latency_down_from_the_results():
 
     frames = [SimpleNamespace(image_a=np.zeros((4, 6), np.uint8), seq=i) for i in range(3)]
     res = []
-    for i, (vision, measure) in enumerate([(2.0, 2.5), (3.0, 4.0), (2.5, 3.0)]):
+    for i, (vision, measure, checks) in enumerate([(2.0, 2.5, 0.0), (3.0, 4.0, 0.25),
+                                                    (2.5, 3.0, 0.0)]):
         res.append(SimpleNamespace(
             seq=i, ok=True, applied=True, t_s=10.0 + i, latency_s=0.004,
             extra={"timing_ms": {"plc_read_ms": 0.1, "measure_ms": measure,
-                                 "vision_ms": vision, "control_ms": 1.0}}))
+                                 "vision_ms": vision, "checks_ms": checks,
+                                 "control_ms": 1.0}}))
     service = SimpleNamespace(results=res, records=SimpleNamespace(batches=2))
     put = {i: 10.0 + i - 0.001 for i in range(3)}  # 1 ms in the source
     stored = {i: 10.0 + i + 0.004 + 0.002 for i in range(3)}  # durable 2 ms after
@@ -309,7 +311,8 @@ def test_bench_figures_break_the_latency_down_from_the_results():
                                  rate_hz=100.0, workers=0)
     assert out["median_ms"] == pytest.approx(5.0) and out["max_ms"] == pytest.approx(5.0)
     assert out["breakdown_ms"]["queue"]["median"] == pytest.approx(1.0)
-    assert out["breakdown_ms"]["handoff"]["max"] == pytest.approx(1.0)
+    assert out["breakdown_ms"]["handoff"]["max"] == pytest.approx(0.75)  # checks apart
+    assert out["breakdown_ms"]["checks"]["max"] == pytest.approx(0.25)
     assert out["breakdown_ms"]["vision"]["median"] == pytest.approx(2.5)
     assert out["record_after_setpoint_ms"]["median"] == pytest.approx(2.0)
     assert out["pairs_per_commit"] == pytest.approx(1.5)

@@ -31,6 +31,7 @@ import math
 import numpy as np
 
 from core.checks import check_1d, check_int
+from vision import kernels
 
 
 def flat_field_correct(
@@ -86,7 +87,7 @@ class Detrender:
         self.width = check_int("width", width, lo=2)
         self.degree = check_int("degree", degree, lo=0, hi=8)
         x = np.linspace(-1.0, 1.0, self.width)
-        self._basis = np.polynomial.legendre.legvander(x, self.degree)
+        self._basis = np.ascontiguousarray(np.polynomial.legendre.legvander(x, self.degree))
         self._plain: dict[tuple[int, int], np.ndarray] = {}  # (start, n) -> (B'B)^-1 B'
 
     def trend(
@@ -122,15 +123,13 @@ class Detrender:
         basis = self._basis[start : start + n]
         if period_px is not None and math.isfinite(period_px) and period_px >= 2.0:
             if n - period_px >= 4 * (self.degree + 1):
-                both = np.empty((n, self.degree + 2))  # values and basis: one running mean
-                both[:, 0] = v
-                both[:, 1:] = basis
-                smooth = running_mean(both, period_px)
-                fit_basis, fit_values = smooth[:, 1:], smooth[:, 0]
-                # products of n x (degree + 1): far below BLAS's threading sizes
-                gram = fit_basis.T @ fit_basis
-                coef = np.linalg.solve(gram, fit_values @ fit_basis)
-                return basis @ coef
+                # the running means of values and basis, the normal equations and the
+                # polynomial in one compiled call
+                ok, trend = kernels.smooth_trend(np.ascontiguousarray(v), basis,
+                                                 float(period_px))
+                if not ok:
+                    raise np.linalg.LinAlgError("Singular matrix")
+                return trend
         # The plain fit's pseudo-inverse depends on the columns only: set up once per range.
         pinv = self._plain.get((start, n))
         if pinv is None:
@@ -170,6 +169,8 @@ def running_mean(values: np.ndarray, length: float) -> np.ndarray:
     n = v.shape[0]
     if not 1.0 <= length <= n:
         raise ValueError(f"length must be in [1, {n}], got {length!r}")
+    if v.ndim == 1:  # the compiled loop: the same sums and interpolation, one call
+        return kernels.running_mean_1d(np.ascontiguousarray(v), float(length))
     half = 0.5 * length
     m0 = math.ceil(half - 0.5)
     centres = np.arange(m0, n - m0, dtype=np.float64)

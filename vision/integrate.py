@@ -68,7 +68,7 @@ class Integrator:
         dct[0] = 0.0
         dct[1:] = coef[:-1] * self._factor[1:]
         h = scipy.fft.idct(dct, type=2)[:n]
-        return h - h.mean()
+        return h - h.sum() / h.size
 
 
 def integrate_slope(slope: np.ndarray, *, dx_mm: float) -> np.ndarray:

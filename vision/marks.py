@@ -26,6 +26,7 @@ import scipy.signal
 
 from core.checks import check_int
 from core.errors import MeasurementError
+from vision import kernels
 
 
 @dataclass(frozen=True)
@@ -152,19 +153,14 @@ def dominant_period_px(signal: np.ndarray, *, min_period_px: float = 4.0) -> flo
     n = s.size
     if n < 8:
         return math.nan
-    s = (s - s.mean()) * _hanning(n)
+    s = (s - s.sum() / n) * _hanning(n)
     nfft = scipy.fft.next_fast_len(4 * n, real=True)
-    spec = scipy.fft.rfft(s, n=nfft)
-    power = spec.real**2 + spec.imag**2
+    spec = np.fft.rfft(s, n=nfft)  # numpy's pocketfft: scipy's numbers, less overhead
     k_lo = max(1, int(math.ceil(2.0 * nfft / n)))  # at least two periods in the profile
-    k_hi = min(power.size - 2, int(nfft / min_period_px))
+    k_hi = min(spec.size - 2, int(nfft / min_period_px))
     if k_hi <= k_lo:
         return math.nan
-    k = k_lo + int(np.argmax(power[k_lo : k_hi + 1]))
-    y0, y1, y2 = power[k - 1], power[k], power[k + 1]
-    curv = y0 - 2 * y1 + y2
-    frac = 0.5 * (y0 - y2) / curv if curv < 0 else 0.0
-    return nfft / (k + frac)
+    return nfft / kernels.spectrum_peak(spec, k_lo, k_hi)
 
 
 def repeat_period_px(
@@ -192,7 +188,7 @@ def repeat_period_px(
         Period, samples; NaN when no period is found.
     """
     s = np.asarray(signal, dtype=np.float64)
-    s = s - s.mean()
+    s = s - s.sum() / s.size
     n = s.size
     t = dominant_period_px(s)
     if not math.isfinite(t):
@@ -200,52 +196,17 @@ def repeat_period_px(
 
     # Lightly smoothed, so that the sharp cusp steps do not make the score depend on where
     # the (fractional) period falls between samples.
-    s = np.convolve(s, np.ones(5) / 5.0, mode="same")
+    s = kernels.smooth5(s)
     ks = [k for k in range(1, max_multiple + 1) if k * t <= n / 3.0]
     if not ks:
         return t
-    # Every lag's dot product from one FFT, the energies of both stretches from cumulative
-    # sums (instead of three dot products per lag tried).
+    # Every lag's dot product from one FFT; the energies, the three lags around each multiple
+    # and their parabolas in one compiled loop.
     nfft = scipy.fft.next_fast_len(2 * n, real=True)
-    spec = scipy.fft.rfft(s, n=nfft)
-    dots = scipy.fft.irfft(spec.real**2 + spec.imag**2, n=nfft)[:n]
-    cum = np.concatenate(([0.0], np.cumsum(s * s)))
-    total = float(cum[-1])
-
-    def self_corr(lag: int) -> float:
-        den = math.sqrt(float(cum[n - lag]) * (total - float(cum[lag])))
-        return float(dots[lag]) / den if den > 0 else 0.0
-
-    def refined(period: float) -> tuple[float, float]:
-        """Lag and value of the self-correlation peak near ``period`` (parabola)."""
-        c = int(round(period))
-        if c < 2 or c + 1 >= n - 8:
-            return period, self_corr(max(1, min(c, n - 9)))
-        y0, y1, y2 = self_corr(c - 1), self_corr(c), self_corr(c + 1)
-        curv = y0 - 2 * y1 + y2
-        if curv >= 0:
-            return float(c), y1
-        frac = min(0.5, max(-0.5, 0.5 * (y0 - y2) / curv))
-        return c + frac, y1 - 0.25 * (y0 - y2) * frac
-
-    centre = np.rint(t * np.asarray(ks, dtype=np.float64))  # round() per multiple
-    if centre[0] < 2 or centre[-1] + 1 >= n - 8:  # a multiple at the ends: one at a time
-        found = [refined(k * t) for k in ks]
-        best = max(v for _, v in found)
-        return next(lag for lag, v in found if v >= best - tolerance)
-    # Every multiple's three lags at once (the same arithmetic as refined()).
-    lags = (centre[:, None] + np.array([-1.0, 0.0, 1.0])[None, :]).astype(np.intp)
-    den = np.sqrt(cum[n - lags] * (total - cum[lags]))
-    y = np.divide(dots[lags], den, out=np.zeros(den.shape), where=den > 0)
-    y0, y1, y2 = y[:, 0], y[:, 1], y[:, 2]
-    curv = y0 - 2 * y1 + y2
-    peaked = curv < 0
-    frac = np.divide(0.5 * (y0 - y2), curv, out=np.zeros(curv.shape), where=peaked)
-    np.clip(frac, -0.5, 0.5, out=frac)
-    value = np.where(peaked, y1 - 0.25 * (y0 - y2) * frac, y1)
-    lag = centre + frac
-    best = float(value.max())
-    return float(lag[int(np.argmax(value >= best - tolerance))])
+    spec = np.fft.rfft(s, n=nfft)
+    dots = np.fft.irfft(spec.real**2 + spec.imag**2, n=nfft)[:n]
+    return float(kernels.repeat_lag(s, np.ascontiguousarray(dots), t,
+                                     np.asarray(ks, dtype=np.float64), tolerance))
 
 
 def cusp_steps(slope: np.ndarray, *, baseline: int = 2) -> np.ndarray:
@@ -396,15 +357,18 @@ def find_marks(
     p = np.gradient(h, dx * 1000.0) if slope is None else np.asarray(slope, dtype=np.float64)
     if p.shape != h.shape:
         raise ValueError(f"slope must have the profile's length {n}, got {p.shape}")
-    cum_p = _cumsum0(p)
-    steps = _steps_from_cumsum(cum_p, 2)
-    cand, size = _peaks(-steps)
+    # Candidates, the slope's noise floor (robust, from its sample-to-sample differences: the
+    # cusps are few, and inside a mark the slope changes by only dx / R per sample) and the
+    # typical step in one compiled call; scipy's rules where peaks tie or crowd.
+    cum_p, cand, size, noise, typical, simple = kernels.cusp_candidates(
+        np.ascontiguousarray(p))
+    if not simple:
+        cand, size = _peaks(-_steps_from_cumsum(cum_p, 2))
+        if cand.size:
+            d = p[1:] - p[:-1]
+            noise = 1.4826 * _median(np.abs(d - _median(d))) / math.sqrt(2.0)
+            typical = _quantile(size, 0.9)
     if cand.size:
-        # Noise floor of the slope from its sample-to-sample differences (robust: the cusps
-        # are few, and inside a mark the slope changes by only dx / R per sample).
-        d = p[1:] - p[:-1]
-        noise = 1.4826 * _median(np.abs(d - _median(d))) / math.sqrt(2.0)
-        typical = _quantile(size, 0.9)
         if typical < min_snr * noise:  # the steps are noise: no cuttermarks to be seen
             cand = cand[:0]
         else:
@@ -423,7 +387,7 @@ def find_marks(
     bottoms = x[0] + bottoms_s * dx
     widths = np.diff(cusps)
     depths = 0.5 * (cusp_h[:-1] + cusp_h[1:]) - bottom_h
-    pitch = float(widths.mean())
+    pitch = float(widths.sum() / widths.size)
     return Marks(
         cusps_mm=cusps,
         bottoms_mm=bottoms,
@@ -432,7 +396,7 @@ def find_marks(
         cusp_heights_um=cusp_h,
         pitch_mm=pitch,
         uniformity_cv=float(widths.std() / pitch),
-        depth_um=float(depths.mean()),
+        depth_um=float(depths.sum() / depths.size),
     )
 
 
@@ -480,77 +444,15 @@ def _samples(n: int) -> np.ndarray:
 def _arc_model(
     h: np.ndarray, p: np.ndarray, gaps: np.ndarray, dx: float, guard: int, cum_p: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    n = h.size
-    s = _samples(n)  # sample coordinate
-    # Segments: partial arc before the first cusp, complete marks, partial arc after the last.
-    left = np.concatenate(([-np.inf], gaps))
-    right = np.concatenate((gaps, [np.inf]))
-    lo = np.maximum(np.ceil(left + guard - 0.5), 1).astype(int)
-    hi = np.minimum(np.floor(right - guard + 0.5), n - 2).astype(int) + 1  # exclusive
-    count = np.maximum(hi - lo, 0)
-    ok = count >= 2
-    if not ok.any():
-        return _sample_marks(h, gaps)
-    lo_ok, hi_ok = lo[ok], hi[ok]
-    # Segment sums: of the sample index and its square in closed form (exact integers), of
-    # the slope, slope x index and height from cumulative sums.
-    lo_f, hi_f = lo_ok.astype(np.float64), hi_ok.astype(np.float64)
-    sx = (hi_f * (hi_f - 1) - lo_f * (lo_f - 1)) / 2
-    sxx = ((hi_f - 1) * hi_f * (2 * hi_f - 1) - (lo_f - 1) * lo_f * (2 * lo_f - 1)) / 6
-    sp = cum_p[hi_ok] - cum_p[lo_ok]
-    cum_xp = _cumsum0(s * p)
-    sxp = cum_xp[hi_ok] - cum_xp[lo_ok]
-    cum_h = _cumsum0(h)
-    sh = cum_h[hi_ok] - cum_h[lo_ok]
+    """Cusps, cusp heights, bottoms (in samples) and bottom heights of the arc model.
 
-    cnt = count[ok].astype(np.float64)
-    sxx_c = sxx - sx * sx / cnt
-    sxp_c = sxp - sx * sp / cnt
-    den = sxx_c.sum()
-    kappa = float(sxp_c.sum() / den) if den > 0 else 0.0  # slope per sample
-    if not kappa > 0:
+    Compiled (:func:`vision.kernels.arc_model`); the samples themselves
+    (:func:`_sample_marks`) where the model does not apply.
+    """
+    ok, cusp, cusp_h, bottoms, bottom_h = kernels.arc_model(
+        np.ascontiguousarray(h), np.ascontiguousarray(p),
+        np.ascontiguousarray(gaps, dtype=np.float64), float(dx), int(guard),
+        np.ascontiguousarray(cum_p))
+    if not ok:
         return _sample_marks(h, gaps)
-    b = np.full(left.size, np.nan)
-    e = np.full(left.size, np.nan)
-    b_ok = (sx - sp / kappa) / cnt  # p = kappa (s - b)
-    b[ok] = b_ok
-    scale = 1000.0 * dx  # um per (slope x sample)
-    # h = e + scale * kappa / 2 * (s - b)^2 ; e from the mean residual
-    quad = sxx - 2 * b_ok * sx + b_ok**2 * cnt
-    e[ok] = (sh - 0.5 * scale * kappa * quad) / cnt
-    half = 0.5 * scale * kappa
-
-    # Cusps where neighbouring arcs meet.
-    bl, br, el, er = b[:-1], b[1:], e[:-1], e[1:]
-    xc = 0.5 * (bl + br) + (er - el) / (2.0 * half * (br - bl))
-    good = np.isfinite(xc) & (br > bl) & (np.abs(xc - gaps) <= 1.5)
-    idx = np.flatnonzero(good)
-    if idx.size < 2:
-        return _sample_marks(h, gaps)
-    # Drop unrefined cusps at the ends; inner ones keep the sample position.
-    j0, j1 = int(idx[0]), int(idx[-1]) + 1
-    good = good[j0:j1]
-    cusp = xc[j0:j1] if good.all() else np.where(good, xc[j0:j1], gaps[j0:j1])
-    hl = e[j0:j1] + half * (cusp - b[j0:j1]) ** 2
-    hr = e[j0 + 1 : j1 + 1] + half * (cusp - b[j0 + 1 : j1 + 1]) ** 2
-    fl, fr = np.isfinite(hl), np.isfinite(hr)
-    if fl.all() and fr.all():
-        cusp_h = 0.5 * (hl + hr)
-    else:
-        cusp_h = np.where(fl & fr, 0.5 * (hl + hr), np.where(fl, hl, hr))
-        lost = ~np.isfinite(cusp_h)
-        if lost.any():
-            cusp_h[lost] = np.interp(cusp[lost], s, h)
-    # Bottoms: each complete mark's arc vertex, kept inside the mark.
-    bq = b[j0 + 1 : j1]
-    vertex = bq if np.isfinite(bq).all() else np.where(np.isfinite(bq), bq,
-                                                        0.5 * (cusp[:-1] + cusp[1:]))
-    bottoms = np.minimum(np.maximum(vertex, cusp[:-1]), cusp[1:])
-    bottom_h = e[j0 + 1 : j1] + half * (bottoms - bq) ** 2
-    bad = ~np.isfinite(bottom_h)
-    if bad.any():
-        for k in np.flatnonzero(bad):
-            a, z = int(math.ceil(cusp[k])), int(math.floor(cusp[k + 1]))
-            i = a + int(np.argmin(h[a : z + 1])) if z >= a else int(round(cusp[k]))
-            bottoms[k], bottom_h[k] = float(i), float(h[i])
     return cusp, cusp_h, bottoms, bottom_h

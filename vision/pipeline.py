@@ -204,7 +204,7 @@ def remove_slow(height_um: np.ndarray, period_px: float) -> np.ndarray:
     out[m0 : m0 + slow.size] -= slow
     out[:m0] -= slow[0]
     out[m0 + slow.size :] -= slow[-1]
-    out -= out.mean()
+    out -= out.sum() / n
     return out
 
 

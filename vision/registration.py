@@ -56,6 +56,7 @@ import scipy.fft
 from core.checks import check_finite, check_int, check_positive, check_range
 from core.errors import RegistrationError
 from core.units import counter_difference
+from vision import kernels
 
 
 @dataclass(frozen=True)
@@ -433,18 +434,14 @@ class FineShiftFit:
         both -= both.mean(axis=1, keepdims=True)
         both *= taper
         k = self._kmax
-        spec = scipy.fft.rfft(both, n=self.nfft, axis=1)[:, :k]
-        cross = spec[0].conj() * spec[1]
-        mag = np.abs(cross)
-        total = float(mag.sum())
+        spec = np.fft.rfft(both, n=self.nfft, axis=1)[:, :k]
+        # |X| e^(2i arg X): the phase doubled, so frequencies where the mirrored shading
+        # dominates (X < 0 at the true delay) vote with the albedo's (X > 0); Re(P @ D) as
+        # one real product -- all in one compiled loop (no BLAS threads, no temporaries).
+        score = np.empty(self._fine_real.shape[0])
+        total = kernels.delay_scores(spec[0], spec[1], self._fine_real, score)
         if not total > 0:
             return math.nan, 0.0
-        # |X| e^(2i arg X): the phase doubled, so frequencies where the mirrored shading
-        # dominates (X < 0 at the true delay) vote with the albedo's (X > 0).
-        doubled = cross * cross / np.where(mag > 0, mag, 1.0)
-        # Re(P @ D) as one real product (no BLAS threads, no complex einsum)
-        parts = np.concatenate([doubled.real, doubled.imag]).astype(np.float32)
-        score = np.einsum("ij,j->i", self._fine_real, parts).astype(np.float64)
         j = int(np.argmax(score))
         if j == 0 or j == score.size - 1:
             return math.nan, float(score[j]) / total

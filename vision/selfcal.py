@@ -31,6 +31,7 @@ import numpy as np
 import scipy.fft
 
 from core.checks import check_positive
+from vision import kernels
 
 SCATTER_GRID_MM = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8)
 
@@ -90,11 +91,11 @@ def kinematic_slope(x_mm: np.ndarray, cusps_mm: np.ndarray, bottoms_mm: np.ndarr
     x = np.asarray(x_mm, dtype=np.float64)
     c = np.asarray(cusps_mm, dtype=np.float64)
     b = np.asarray(bottoms_mm, dtype=np.float64)
-    k = np.searchsorted(c, x, side="right") - 1
-    inside = (k >= 0) & (k < b.size)
-    out = np.full(x.shape, np.nan)
-    out[inside] = (x[inside] - b[k[inside]]) / r
-    return out
+    if c.ndim != 1 or b.ndim != 1:
+        raise ValueError("cusps_mm and bottoms_mm must be 1-D")
+    out = kernels.arc_slopes(np.ascontiguousarray(x).ravel(), np.ascontiguousarray(c),
+                             np.ascontiguousarray(b), float(r))
+    return out.reshape(x.shape)
 
 
 def kinematic_depths_um(cusps_mm: np.ndarray, bottoms_mm: np.ndarray, *,
@@ -207,7 +208,7 @@ def fit_calibration(
     guard = min(n // 4, int(math.ceil(2 * float(max(scatter_grid_mm)) / dx_mm)))
     sel = slice(guard, n - guard)
     y = pm[sel]
-    dev = y - y.mean()
+    dev = y - y.sum() / y.size
     var = float(dev @ dev) / y.size
     if not var > 0:
         return Calibration()
@@ -215,7 +216,7 @@ def fit_calibration(
     design = np.empty((n_l + 3, y.size))
     design[0] = mm[sel]
     if n_l:
-        mean = mm.mean()
+        mean = mm.sum() / mm.size
         padded = np.zeros((1, nf))
         padded[0, :n] = mm
         padded -= mean
@@ -228,45 +229,18 @@ def fit_calibration(
         design[1 : n_l + 1] += mean
     design[n_l + 1] = 1.0
     design[n_l + 2] = x[sel]
-    gram_all = design @ design.T  # 12 x 12 from ~600 samples: below BLAS's threading size
-    rhs_all = np.einsum("im,m->i", design, y)
-    yy = float(np.einsum("m,m->", y, y))
-    common = np.array([0, n_l + 1, n_l + 2])
     rss = np.full(n_l + 1, np.nan)  # fit 0: no scattering; fit 1 + i: length ells[i]
     coef_a = np.zeros(n_l + 1)
     coef_b = np.zeros(n_l + 1)
-    if 0.0 in scatter_grid_mm:
-        try:
-            cy = rhs_all[common]
-            coef = np.linalg.solve(gram_all[common][:, common], cy)
-            rss[0] = yy - float(coef @ cy)
-            coef_a[0] = coef[0]
-        except np.linalg.LinAlgError:
-            pass
-    if n_l:
-        rows = np.empty((n_l, 4), dtype=np.intp)
-        rows[:, 0] = 0
-        rows[:, 1] = np.arange(1, n_l + 1)
-        rows[:, 2] = n_l + 1
-        rows[:, 3] = n_l + 2
-        gram = gram_all[rows[:, :, None], rows[:, None, :]]
-        rhs = rhs_all[rows]
-        try:
-            coefs = np.linalg.solve(gram, rhs[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            coefs = np.full((n_l, 4), np.nan)
-        rss[1:] = yy - np.einsum("lk,lk->l", coefs, rhs)
-        coef_a[1:] = coefs[:, 0]
-        coef_b[1:] = coefs[:, 1]
-    # The best admissible fit: a positive gain, not mostly a negative unblurred part.
-    g = coef_a + coef_b
-    with np.errstate(invalid="ignore"):
-        ok = np.isfinite(rss) & (g > 0) & ~(coef_a < -0.05 * g)
-    if not np.any(ok):
+    gram_all = design @ design.T  # 12 x 12 from ~600 samples: below BLAS's threading size
+    rhs_all = design @ y
+    # every fit's small solve, and the best admissible one (a positive gain, not mostly a
+    # negative unblurred part), in one compiled call
+    i, resid = kernels.blur_fits(gram_all, rhs_all, float(y @ y), 0.0 in scatter_grid_mm, rss,
+                                 coef_a, coef_b, y.size, var)
+    if i < 0:
         return Calibration()
-    resid_all = np.maximum(rss, 0.0) / y.size / var
-    i = int(np.argmin(np.where(ok, resid_all, np.inf)))
-    resid, gain = float(resid_all[i]), float(g[i])
+    gain = float(coef_a[i] + coef_b[i])
     f = min(1.0, max(0.0, float(coef_b[i]) / gain))
     ell = 0.0 if i == 0 else float(ells[i - 1])
     explained = min(1.0, max(0.0, 1.0 - resid))

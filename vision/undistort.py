@@ -58,6 +58,8 @@ class Undistorter:
         ``first_row_px + j * bin_rows``).
     bins : int
         Binned rows of :meth:`bin_image` (``height // bin_rows``).
+    first_image_row : int
+        Image row where the first bin starts.
     """
 
     def __init__(
@@ -93,6 +95,7 @@ class Undistorter:
         self._r0 = (h - hb * bins) // 2
         self._hb = hb
         self.bins = hb
+        self.first_image_row = self._r0  # first image row of the bins
 
         # Tables from the binned output grid (u, j) to binned-source coordinates.
         centre = self._r0 + (bins - 1) / 2.0

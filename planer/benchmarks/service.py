@@ -16,8 +16,10 @@ measurement and back, the vision, plausibility, knife phase, both loops and both
 record is written after that, off the control path; how long after is reported too
 (``record_after_setpoint``). The breakdown says where the time goes, per pair: ``queue``
 (waiting in the source), ``plc_read``, ``vision`` (the measurement's own work), ``handoff`` (to
-the thread or worker process and back), ``control`` (knife phase, loops, writes); plus the
-collector's pauses and the commits.
+the thread or worker process and back; near 0 for a pair measured on the event loop's own
+thread, counted in ``measured_inline``), ``checks`` (plausibility, attribution of the marks to
+knife passes), ``control`` (knife phase, loops, writes); plus the collector's pauses and the
+commits. Through a spool the camera writes raw ``.npy`` images (:data:`SPOOL_IMAGE_FORMAT`).
 
 **Workers** (item 3): :mod:`planer.benchmarks.scaling`.
 
@@ -41,6 +43,9 @@ from planer.benchmarks.scaling import scaling
 
 READY_TIMEOUT_S = 60.0
 """Deadline for the service to reach RUN before the pairs go in (a loaded machine), s."""
+DRAIN_TIMEOUT_S = 30.0
+"""After the last pair went in, the run ends when every pair was handled or dropped, or after
+this long (a pair lost without a count: reported as ``unfinished``), s."""
 RATE_HZ = 100.0
 """Camera rate of the latency runs, pairs per second."""
 TARGETS = {"p99_ms": 5.0, "max_ms": 20.0, "p99_over_median": 3.0}
@@ -48,6 +53,9 @@ TARGETS = {"p99_ms": 5.0, "max_ms": 20.0, "p99_over_median": 3.0}
 SPOOL_KEEP = 32
 """Pairs the camera keeps in the spool folder (``SpoolWriter(keep=...)``; it deletes older ones,
 as a camera does: the reader scans the folder, so its size counts)."""
+SPOOL_IMAGE_FORMAT = "npy"
+"""How the benchmark's camera writes the images into the spool (``SpoolWriter(image_format=...)``):
+raw ``.npy``, the fast hand-off (``"png"``: the default format, a PNG decode per image more)."""
 QUEUE_PAIRS = 8
 """Pairs the frame source holds; a camera does not wait: when full the oldest pair is dropped
 (counted in ``dropped``), so a service slower than the camera shows as drops, not as an ever
@@ -180,14 +188,15 @@ async def _run(
         camera = await asyncio.get_running_loop().run_in_executor(
             None, _SpoolCamera, spool_dir, len(frames), rate_hz)
 
-        def dropped() -> int:
-            return int(getattr(source, "abandoned", 0))
+        def dropped() -> int:  # given up, or pruned by the camera before the reader got them
+            return int(getattr(source, "abandoned", 0)) + int(getattr(source, "missed", 0))
     else:
         source = QueueFrameSource(maxsize=min(QUEUE_PAIRS, len(frames)))
 
         def dropped() -> int:
             return int(source.dropped)
     stop = asyncio.Event()
+    unfinished: list[int] = []
     put_at: dict[int, float] = {}
     handled = asyncio.Event()
     n_results = 0
@@ -202,7 +211,7 @@ async def _run(
     if tune:
         tune_for_latency()
     if priority:
-        prioritize(service)
+        prioritize(service, source=source)
 
     async def pump_plant() -> None:
         t0 = time.monotonic()
@@ -232,7 +241,10 @@ async def _run(
                 source.put(f)
                 t_next += 1.0 / rate_hz
                 await asyncio.sleep(max(0.0, t_next - loop.time()))
-        await handled.wait()  # every pair handled or dropped by the source
+        try:  # every pair handled or dropped by the source (a backstop: never hang)
+            await asyncio.wait_for(handled.wait(), DRAIN_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            unfinished.append(len(frames) - n_results - dropped())
         stop.set()
 
     pump = asyncio.create_task(pump_plant())
@@ -262,20 +274,42 @@ async def _run(
     out = _latency_figures(service, put_at, stored_at, gc_pauses, frames=frames,
                            rate_hz=rate_hz, workers=workers)
     out["dropped"] = dropped()
+    if unfinished:
+        out["unfinished"] = unfinished[0]  # neither handled nor dropped after DRAIN_TIMEOUT_S
     out["via"] = via
     out["priority"] = {"service_bus": granted,
                        "measurement_nice": MEASURE_NICE if priority else None}
     if via == "spool":
         out["latency_from"] = "pair committed to the spool (its metadata file renamed)"
+        out["spool_image_format"] = SPOOL_IMAGE_FORMAT
     return out
 
 
-def _camera_main(conn: Any, spool_dir: str, n: int, rate_hz: float) -> None:
-    """The camera process: render the pairs, then on "go" write them at ``rate_hz``."""
+def _camera_main(conn: Any, spool_dir: str, n: int, rate_hz: float,
+                 image_format: str = SPOOL_IMAGE_FORMAT) -> None:
+    """The camera process: render the pairs, then on "go" write them at ``rate_hz``.
+
+    A pair's time is taken just before its commit (the metadata file's write and rename, the
+    last step of ``SpoolWriter.write``): a clock read after the commit could come late, as the
+    commit wakes the service's reader thread (real-time priority where permitted), which may
+    take this process's core at once and read the pair before this process reads its clock.
+    """
+    import protocol.frames as spool
     from protocol.frames import SpoolWriter
 
     frames, _ = _frames(n)
-    writer = SpoolWriter(Path(spool_dir), keep=SPOOL_KEEP, fsync=False)
+    commit_at: list[float] = []
+    write_file = spool.atomic_write_bytes
+
+    def timed_write(path: Path, data: bytes, **kw: Any) -> None:
+        if str(path).endswith(".json"):  # the commit marker: the pair is there once renamed
+            commit_at.append(time.monotonic())
+        write_file(path, data, **kw)
+
+    spool.atomic_write_bytes = timed_write  # this process only
+    # the writer keeps every pair: the camera prunes to SPOOL_KEEP itself, after the commit
+    # (the writer's own pruning would follow the commit inside ``write``)
+    writer = SpoolWriter(Path(spool_dir), keep=n + 1, fsync=False, image_format=image_format)
     conn.send("ready")
     if conn.recv() != "go":
         return
@@ -283,10 +317,21 @@ def _camera_main(conn: Any, spool_dir: str, n: int, rate_hz: float) -> None:
     t_next = time.monotonic()
     for f in frames:
         writer.write(f)  # committed: its metadata file renamed
-        times.append((int(f.seq), time.monotonic()))
+        times.append((int(f.seq), commit_at[-1]))
+        _prune_slot(Path(spool_dir), writer.next_slot - 1 - SPOOL_KEEP)
         t_next += 1.0 / rate_hz
         time.sleep(max(0.0, t_next - time.monotonic()))
     conn.send(times)
+
+
+def _prune_slot(spool_dir: Path, slot: int) -> None:
+    """Delete one pair's files as ``SpoolWriter`` prunes (its metadata file first)."""
+    if slot < 0:
+        return
+    stem = f"pair-{slot:012d}"
+    for path in [spool_dir / f"{stem}.json", *sorted(spool_dir.glob(f"{stem}.*"))]:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
 
 
 class _SpoolCamera:
@@ -297,7 +342,8 @@ class _SpoolCamera:
 
         ctx = multiprocessing.get_context("spawn")
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_camera_main, args=(child, str(spool_dir), n, rate_hz),
+        self.proc = ctx.Process(target=_camera_main, args=(child, str(spool_dir), n, rate_hz,
+                                                     SPOOL_IMAGE_FORMAT),
                                 daemon=True, name="planer-bench-camera")
         self.proc.start()
         child.close()
@@ -342,7 +388,8 @@ def _latency_figures(service: Any, put_at: dict[int, float], stored_at: dict[int
         "latency_to": "feed setpoint written (Modbus) and offsets sent (CAN)",
     }
     e2e, handle, parts = [], [], {k: [] for k in
-                                  ("queue", "plc_read", "handoff", "vision", "control")}
+                                  ("queue", "plc_read", "handoff", "vision", "checks",
+                                   "control")}
     after = []
     for r in applied:
         done = r.t_s + r.latency_s  # service clock = time.monotonic
@@ -355,7 +402,9 @@ def _latency_figures(service: Any, put_at: dict[int, float], stored_at: dict[int
         vision = float(tm.get("vision_ms", 0.0))
         parts["plc_read"].append(float(tm.get("plc_read_ms", 0.0)))
         parts["vision"].append(vision)
-        parts["handoff"].append(max(0.0, float(tm.get("measure_ms", 0.0)) - vision))
+        checks = float(tm.get("checks_ms", 0.0))
+        parts["checks"].append(checks)
+        parts["handoff"].append(max(0.0, float(tm.get("measure_ms", 0.0)) - vision - checks))
         parts["control"].append(float(tm.get("control_ms", 0.0)))
         if int(r.seq) in stored_at:
             after.append((stored_at[int(r.seq)] - done) * 1e3)
@@ -381,6 +430,7 @@ def _latency_figures(service: Any, put_at: dict[int, float], stored_at: dict[int
     out["commits"] = batches
     out["pairs_per_commit"] = len(res) / batches if batches else None
     out["gc"] = gc_pauses.summary()
+    out["measured_inline"] = int(getattr(getattr(service, "measurement", None), "inline_count", 0))
     if failed:
         out["failed_reasons"] = sorted({str(r.error).split(":")[0] for r in failed})[:5]
     return out
@@ -473,7 +523,8 @@ def text(result: dict[str, Any]) -> str:
     for mode in result.get("modes", [result]):
         where = (f"{mode['workers']} worker process(es)" if mode.get("workers")
                  else "in process") + f" at {mode['rate_hz']:g} pairs/s" + (
-                     ", through a spool" if mode.get("via") == "spool" else "")
+                     f", through a spool ({mode.get('spool_image_format', 'png')})"
+            if mode.get("via") == "spool" else "")
         if "p99_ms" not in mode:
             lines.append(f"  {where}: no pair applied ({mode['failed']} failed)")
             continue
@@ -485,7 +536,8 @@ def text(result: dict[str, Any]) -> str:
             f"{mode['p99_over_median']:.2f} ({verdict}; targets p99 <= "
             f"{mode['target_p99_ms']:g}, max <= {mode['target_max_ms']:g}, p99/median <= "
             f"{mode['target_p99_over_median']:g}); {mode['applied']}/{mode['pairs']} applied"
-            f", {mode.get('dropped', 0)} dropped by the source")
+            f", {mode.get('dropped', 0)} dropped by the source"
+            + (f", {mode['unfinished']} UNFINISHED" if mode.get("unfinished") else ""))
         parts = "; ".join(f"{k} {trio(v)}" for k, v in mode.get("breakdown_ms", {}).items())
         lines.append(f"    where it goes (median / p99 / max ms): {parts}")
         gc_ = mode.get("gc", {})
@@ -493,11 +545,19 @@ def text(result: dict[str, Any]) -> str:
             f"    record after the setpoint {trio(mode.get('record_after_setpoint_ms', {}))} ms,"
             f" {mode.get('commits')} commits ({(mode.get('pairs_per_commit') or 0):.1f} pairs "
             f"each); gc {gc_.get('collections')} collections, longest "
-            f"{gc_.get('max_pause_ms', 0):.2f} ms")
+            f"{gc_.get('max_pause_ms', 0):.2f} ms; {mode.get('measured_inline', 0)} pairs "
+            "measured on the event loop's thread")
     sc = result.get("scaling")
     if sc:
-        rows = ", ".join(f"{r['workers']}: {r['pairs_per_s']:.0f} pairs/s (x{r['ratio']:.2f})"
-                         for r in sc["rows"])
+        def row(r: dict[str, Any]) -> str:
+            here = r.get("ratio_to_in_process")
+            vs_here = f", x{here:.2f} in process" if here is not None else ""
+            return (f"{r['workers']}: {r['pairs_per_s']:.0f} pairs/s (x{r['ratio']:.2f} one "
+                    f"worker, {r['per_worker']:.2f} per worker{vs_here})")
+
+        rows = ", ".join(row(r) for r in sc["rows"])
+        target = sc.get("target_per_worker", 0.8)
         lines.append(f"  workers ({sc['cores']} cores; in process, one thread: "
-                     f"{sc['in_process_pairs_per_s']:.0f} pairs/s): {rows}")
+                     f"{sc['in_process_pairs_per_s']:.0f} pairs/s): {rows}; target "
+                     f"{target:g} per worker")
     return "\n".join(lines)

@@ -25,6 +25,10 @@ averaged along their lean, the texture rotated to the feed).  The ratios to the 
 659 x 493, 4 at 1920 x 1200) and ``meets_target`` says whether the service's measurement
 reaches it.
 
+The measurers are built before anything is timed, so the compiled loops of
+:mod:`vision.kernels` are compiled (or loaded from numba's cache) outside the timing, as a
+service does at start-up.
+
 One core: OpenCV is set to one thread for the run.  numpy/scipy use no BLAS threads on this path
 (every array product in it is tiny); run with ``OPENBLAS_NUM_THREADS=1`` to be certain.
 """

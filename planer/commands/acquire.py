@@ -25,6 +25,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plc", default=None, metavar="HOST:PORT",
                         help="PLC Modbus TCP server for the trigger latches (default: none)")
     parser.add_argument("--spool", required=True, metavar="DIR", help="spool directory to fill")
+    parser.add_argument("--image-format", choices=("png", "npy"), default="png",
+                        help="spool image files: png (compact, the default) or npy (raw: "
+                             "about 0.5 ms less per pair for the service to read)")
     parser.add_argument("--config", default=None,
                         help="machine file for [frames] camera settings (default: shipped)")
     parser.add_argument("--rig", default=None, help="rig file (default: the machine file's)")
@@ -68,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
                                else cfg.frames.trigger_source)
     settings = settings.with_changes(trigger_source=trigger)
     spool = Path(output_folder("--spool", args.spool))
-    writer = SpoolWriter(spool, keep=max(pairs, 100))
+    writer = SpoolWriter(spool, keep=max(pairs, 100), image_format=args.image_format)
     camera = AravisCamera(args.camera, settings)
     reader = ModbusLatchReader(plc[0], plc[1], unit_id=cfg.plc.unit_id,
                                registers=cfg.plc.registers) if plc else None

@@ -328,7 +328,7 @@ def run(args: argparse.Namespace) -> int:
                         + waiting_line(tuple(status.missing), **where))
 
         tune_for_latency()  # after the set-up: frozen heap, short lock switch interval
-        prioritize(service)  # the measurement and the records' writer first on a busy host
+        prioritize(service, source=source)  # measurement, records' writer, spool reader first
         watcher = asyncio.create_task(tell_why_waiting())
         try:
             # the event loop (PLC and CAN cycles, each pair's control) at real-time priority

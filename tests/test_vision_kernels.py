@@ -1,0 +1,92 @@
+"""The compiled loops of vision.kernels against the plain numpy they replace."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vision import kernels
+
+
+@pytest.mark.parametrize("k, m, plain_dtype", [(5, 5, np.uint16), (3, 1, np.uint16),
+                                               (4, 5, np.float32)])
+def test_bin_rows_are_the_integer_sums(k, m, plain_dtype):
+    rng = np.random.default_rng(k)
+    h, w = 131, 37
+    image = rng.integers(0, 256, (h, w), dtype=np.uint8)
+    hb, r0 = h // k, (h - (h // k) * k) // 2
+    start = 1
+    n_plain = (hb - start) // m
+    v0, v1, c0, c1 = 0, max(1, n_plain - 1), 3, w - 2
+    bins = np.empty((hb, w), dtype=np.uint16)
+    plain = np.empty((n_plain, w), dtype=plain_dtype)
+    cols = np.empty(c1 - c0)
+    scratch = np.empty(c1 - c0, dtype=np.uint32 if plain_dtype == np.uint16 else np.float64)
+    kernels.bin_rows(image, r0, k, bins, start, m, plain, v0, v1, c0, c1, scratch, cols)
+    want_bins = image[r0:r0 + hb * k].reshape(hb, k, w).sum(axis=1, dtype=np.int64)
+    assert np.array_equal(bins, want_bins)
+    want_plain = want_bins[start:start + n_plain * m].reshape(n_plain, m, w).sum(axis=1)
+    assert np.array_equal(plain, want_plain)
+    assert np.array_equal(cols, want_plain[v0:v1, c0:c1].sum(axis=0).astype(np.float64))
+
+
+def _running_mean_reference(values: np.ndarray, length: float) -> np.ndarray:
+    """The window mean of the piecewise-constant signal, by np.interp of its integral."""
+    n = values.shape[0]
+    half = 0.5 * length
+    m0 = int(np.ceil(half - 0.5))
+    centres = np.arange(m0, n - m0, dtype=np.float64)
+    knots = np.arange(n + 1) - 0.5
+    cum = np.concatenate([np.zeros((1,) + values.shape[1:]), np.cumsum(values, axis=0)])
+    cols = cum.reshape(n + 1, -1)
+    out = [(np.interp(centres + half, knots, c) - np.interp(centres - half, knots, c)) / length
+           for c in cols.T]
+    return np.stack(out, axis=-1).reshape((centres.size,) + values.shape[1:])
+
+
+@pytest.mark.parametrize("n, length", [(50, 1.0), (50, 7.0), (64, 12.37), (9, 9.0),
+                                       (200, 33.5)])
+def test_running_means_match_the_interpolated_integral(n, length):
+    rng = np.random.default_rng(n)
+    v = rng.standard_normal(n)
+    np.testing.assert_allclose(kernels.running_mean_1d(v, length),
+                               _running_mean_reference(v, length), rtol=0, atol=1e-12)
+    both = rng.standard_normal((n, 4))
+    np.testing.assert_allclose(kernels.running_mean_2d(both, length),
+                               _running_mean_reference(both, length), rtol=0, atol=1e-12)
+
+
+def test_smooth5_is_the_same_mode_box_convolution():
+    v = np.random.default_rng(1).standard_normal(40)
+    np.testing.assert_allclose(kernels.smooth5(v), np.convolve(v, np.ones(5) / 5.0, "same"),
+                               rtol=0, atol=1e-15)
+
+
+def test_solve_small_solves_and_reports_singular_systems():
+    rng = np.random.default_rng(2)
+    a = rng.standard_normal((6, 4, 4)) + 4 * np.eye(4)
+    b = rng.standard_normal((6, 4))
+    want = np.linalg.solve(a, b[:, :, None])[:, :, 0]
+    aa, bb = a.copy(), b.copy()
+    assert kernels.solve_small(aa, bb)
+    np.testing.assert_allclose(bb, want, rtol=1e-12, atol=1e-12)
+    singular = np.ones((1, 3, 3))
+    assert not kernels.solve_small(singular, np.ones((1, 3)))
+
+
+def test_arc_slopes_are_the_kinematic_sawtooth():
+    cusps = np.array([0.0, 1.5, 3.1, 4.5])
+    bottoms = np.array([0.7, 2.2, 3.9])
+    x = np.linspace(-1.0, 6.0, 141)
+    got = kernels.arc_slopes(x, cusps, bottoms, 60.0)
+    k = np.searchsorted(cusps, x, side="right") - 1
+    inside = (k >= 0) & (k < bottoms.size)
+    assert np.array_equal(np.isnan(got), ~inside)
+    np.testing.assert_allclose(got[inside], (x[inside] - bottoms[k[inside]]) / 60.0,
+                               rtol=0, atol=1e-15)
+
+
+def test_warm_up_is_idempotent():
+    kernels.warm_up()
+    kernels.warm_up()
+    assert kernels._WARM[0]

@@ -1,0 +1,680 @@
+"""Compiled loops (numba) for the per-pair steps that are many small numpy calls otherwise.
+
+A pair's measurement at 659 x 493 is about a millisecond, and most of it was Python and numpy
+call overhead on short 1-D arrays, not arithmetic.  The loops here fuse such chains into one
+call each, with the arithmetic of the numpy code they replace (same order of the sums where
+the result must not move, e.g. integer sums and sequential cumulative sums):
+
+* :func:`bin_rows` -- an 8-bit image summed into ``k``-row bins, those summed ``m`` at a time
+  over a band, and that band's column sums, in one pass over the image;
+* :func:`running_mean_1d`, :func:`running_mean_2d` -- running means of fractional length
+  (cumulative sums and linear interpolation, as :func:`vision.illumination.running_mean`);
+* :func:`cusp_candidates` -- the candidate cusps of :func:`vision.marks.find_marks` and the
+  slope's noise;
+* :func:`smooth_trend` -- the illumination polynomial fitted to running means;
+* :func:`arc_model` -- the arc model of :mod:`vision.marks` (cusps and bottoms refined);
+* :func:`spectrum_peak`, :func:`smooth5`, :func:`repeat_lag` -- the steps of
+  :func:`vision.marks.repeat_period_px` between its FFTs;
+* :func:`arc_slopes` -- the kinematic slope of a chain of arcs;
+* :func:`delay_scores` -- the fine registration's scores of its grid of delays;
+* :func:`solve_small` -- a batch of small dense linear systems (partial pivoting);
+* :func:`blur_fits` -- the self-calibration's normal equations and their fits.
+
+All are compiled with ``cache=True`` (the machine code is kept in ``__pycache__`` beside this
+file, reused by later processes) and on first use; :func:`warm_up` compiles every one with the
+argument types the measurement passes, so a :class:`vision.pipeline.Measurer` does that at
+set-up, never on a frame.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
+
+
+@njit(**_JIT)
+def bin_rows(image: np.ndarray, r0: int, k: int, bins: np.ndarray, start: int, m: int,
+             plain: np.ndarray, v0: int, v1: int, c0: int, c1: int, acc: np.ndarray,
+             columns: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Row bins, coarse bins and column sums of an 8-bit image in one pass.
+
+    Parameters
+    ----------
+    image : ndarray, shape (height, width), uint8
+        Distorted image.
+    r0, k : int
+        First image row and rows per bin.
+    bins : ndarray, shape (n_bins, width), uint16
+        Out: ``bins[j] = sum(image[r0 + j k : r0 + (j + 1) k])``.
+    start, m : int
+        First bin and bins per coarse bin of ``plain``.
+    plain : ndarray, shape (n_plain, width), uint16 or float32
+        Out: ``plain[i] = sum(bins[start + i m : start + (i + 1) m])``.
+    v0, v1, c0, c1 : int
+        Rows of ``plain`` and columns summed into ``columns``.
+    acc : ndarray, shape (c1 - c0,), uint32 (``plain`` uint16) or float64
+        Scratch: the column sums as they are added up (integers: exact, and vectorised).
+    columns : ndarray, shape (c1 - c0,), float64
+        Out: column sums of ``plain[v0:v1, c0:c1]``.
+    """
+    n_bins, w = bins.shape
+    n_plain = plain.shape[0]
+    for c in range(c1 - c0):
+        acc[c] = 0
+    # Integer sums (exact in any order): each bin row is added to its coarse bin, and each
+    # finished coarse bin to the column sums, while it is still in the cache.
+    for j in range(n_bins):
+        out = bins[j]
+        row = image[r0 + j * k]
+        for c in range(w):
+            out[c] = row[c]
+        for i in range(1, k):
+            row = image[r0 + j * k + i]
+            for c in range(w):
+                out[c] += row[c]
+        q = j - start
+        if q < 0 or q >= n_plain * m:
+            continue
+        dest = plain[q // m]
+        if q % m == 0:
+            for c in range(w):
+                dest[c] = out[c]
+        else:
+            for c in range(w):
+                dest[c] += out[c]
+        if q % m == m - 1 and v0 <= q // m < v1:
+            part = dest[c0:c1]
+            for c in range(c1 - c0):
+                acc[c] += part[c]
+    for c in range(c1 - c0):
+        columns[c] = acc[c]
+
+
+@njit(**_JIT)
+def _interp_at(x: float, cum: np.ndarray, col: int) -> float:  # pragma: no cover - compiled
+    """``np.interp(x, knots, cum[:, col])`` with knots ``-0.5, 0.5, ..., n + 0.5``."""
+    last = cum.shape[0] - 1
+    j = int(math.floor(x + 0.5))  # knots[j] = j - 0.5 <= x
+    if j >= last:
+        return cum[last, col]
+    j = max(j, 0)
+    t = x - (j - 0.5)
+    return (cum[j + 1, col] - cum[j, col]) * t + cum[j, col]
+
+
+@njit(**_JIT)
+def running_mean_2d(values: np.ndarray, length: float) -> np.ndarray:  # pragma: no cover
+    """:func:`vision.illumination.running_mean` of an ``(n, k)`` array along axis 0.
+
+    Returns
+    -------
+    ndarray, shape (n - 2 m0, k)
+        ``m0 = ceil(length / 2 - 1/2)``.
+    """
+    n, kk = values.shape
+    cum = np.zeros((n + 1, kk))
+    for c in range(kk):
+        acc = 0.0
+        for i in range(n):
+            acc += values[i, c]
+            cum[i + 1, c] = acc
+    half = 0.5 * length
+    m0 = int(math.ceil(half - 0.5))
+    out = np.empty((n - 2 * m0, kk))
+    for i in range(n - 2 * m0):
+        x = float(m0 + i)
+        for c in range(kk):
+            hi = _interp_at(x + half, cum, c)
+            hi -= _interp_at(x - half, cum, c)
+            out[i, c] = hi / length
+    return out
+
+
+@njit(**_JIT)
+def running_mean_1d(values: np.ndarray, length: float) -> np.ndarray:  # pragma: no cover
+    """:func:`vision.illumination.running_mean` of a 1-D array."""
+    return running_mean_2d(values.reshape(values.size, 1), length)[:, 0]
+
+
+@njit(**_JIT)
+def smooth_trend(values: np.ndarray, basis: np.ndarray,
+                 length: float) -> tuple[bool, np.ndarray]:  # pragma: no cover - compiled
+    """The polynomial fitted to the running means of ``values`` and of its ``basis``.
+
+    As :meth:`vision.illumination.Detrender.trend` with a period: the running mean over
+    ``length`` samples of the values and of each basis column, the normal equations of those,
+    and the fitted polynomial ``basis @ coef`` over all samples.
+
+    Returns
+    -------
+    ok : bool
+        False when the normal equations are singular.
+    trend : ndarray, shape (n,)
+    """
+    n, d = basis.shape
+    both = np.empty((n, d + 1))
+    for i in range(n):
+        both[i, 0] = values[i]
+        for j in range(d):
+            both[i, j + 1] = basis[i, j]
+    smooth = running_mean_2d(both, length)
+    m = smooth.shape[0]
+    gram = np.zeros((1, d, d))
+    rhs = np.zeros((1, d))
+    for i in range(m):
+        for a in range(d):
+            ba = smooth[i, a + 1]
+            rhs[0, a] += smooth[i, 0] * ba
+            for b in range(a, d):
+                gram[0, a, b] += ba * smooth[i, b + 1]
+    for a in range(d):
+        for b in range(a):
+            gram[0, a, b] = gram[0, b, a]
+    out = np.zeros(n)
+    if not solve_small(gram, rhs):
+        return False, out
+    for i in range(n):
+        acc = 0.0
+        for j in range(d):
+            acc += basis[i, j] * rhs[0, j]
+        out[i] = acc
+    return True, out
+
+
+@njit(**_JIT)
+def arc_model(h: np.ndarray, p: np.ndarray, gaps: np.ndarray, dx: float, guard: int,
+              cum_p: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray,
+                                          np.ndarray]:  # pragma: no cover - compiled
+    """The arc model of :func:`vision.marks.find_marks` (the loops of its numpy version).
+
+    Parameters
+    ----------
+    h, p : ndarray, shape (n,)
+        Height (um) and slope.
+    gaps : ndarray, shape (g,)
+        Cusps to a sample (between samples ``i`` and ``i + 1``: ``i + 0.5``).
+    dx : float
+        Sample spacing, mm.
+    guard : int
+        Samples left out either side of a cusp.
+    cum_p : ndarray, shape (n + 1,)
+        ``[0, cumsum(p)]``.
+
+    Returns
+    -------
+    ok : bool
+        False: the model does not apply (the caller takes the samples instead).
+    cusps, cusp_heights, bottoms, bottom_heights : ndarray
+        In samples and um, as :func:`vision.marks._arc_model`.
+    """
+    n = h.size
+    g = gaps.size
+    segs = g + 1
+    empty = np.empty(0)
+    b = np.full(segs, np.nan)
+    e = np.full(segs, np.nan)
+    sx_a = np.zeros(segs)
+    sxx_a = np.zeros(segs)
+    sp_a = np.zeros(segs)
+    sh_a = np.zeros(segs)
+    cnt_a = np.zeros(segs)
+    ok = np.zeros(segs, dtype=np.bool_)
+    cum_xp = np.empty(n + 1)
+    cum_h = np.empty(n + 1)
+    cum_xp[0] = cum_h[0] = 0.0
+    acc_xp = acc_h = 0.0
+    for i in range(n):
+        acc_xp += float(i) * p[i]
+        acc_h += h[i]
+        cum_xp[i + 1] = acc_xp
+        cum_h[i + 1] = acc_h
+    den = 0.0
+    num = 0.0
+    any_ok = False
+    for k in range(segs):
+        lo = 1 if k == 0 else max(int(math.ceil(gaps[k - 1] + guard - 0.5)), 1)
+        hi = (n - 2 if k == g else min(int(math.floor(gaps[k] - guard + 0.5)), n - 2)) + 1
+        if hi - lo < 2:
+            continue
+        any_ok = True
+        ok[k] = True
+        lo_f, hi_f = float(lo), float(hi)
+        sx = (hi_f * (hi_f - 1) - lo_f * (lo_f - 1)) / 2
+        sxx = ((hi_f - 1) * hi_f * (2 * hi_f - 1) - (lo_f - 1) * lo_f * (2 * lo_f - 1)) / 6
+        sp = cum_p[hi] - cum_p[lo]
+        sxp = cum_xp[hi] - cum_xp[lo]
+        cnt = float(hi - lo)
+        sx_a[k], sxx_a[k], sp_a[k], cnt_a[k] = sx, sxx, sp, cnt
+        sh_a[k] = cum_h[hi] - cum_h[lo]
+        den += sxx - sx * sx / cnt
+        num += sxp - sx * sp / cnt
+    if not any_ok:
+        return False, empty, empty, empty, empty
+    kappa = num / den if den > 0 else 0.0  # slope per sample
+    if not kappa > 0:
+        return False, empty, empty, empty, empty
+    scale = 1000.0 * dx  # um per (slope x sample)
+    for k in range(segs):
+        if ok[k]:
+            cnt = cnt_a[k]
+            bk = (sx_a[k] - sp_a[k] / kappa) / cnt  # p = kappa (s - b)
+            b[k] = bk
+            quad = sxx_a[k] - 2 * bk * sx_a[k] + bk * bk * cnt
+            e[k] = (sh_a[k] - 0.5 * scale * kappa * quad) / cnt
+    half = 0.5 * scale * kappa
+    # Cusps where neighbouring arcs meet.
+    xc = np.empty(g)
+    good = np.zeros(g, dtype=np.bool_)
+    j0 = -1
+    j1 = -1
+    found = 0
+    for k in range(g):
+        bl, br = b[k], b[k + 1]
+        xc[k] = 0.5 * (bl + br) + (e[k + 1] - e[k]) / (2.0 * half * (br - bl))
+        good[k] = np.isfinite(xc[k]) and br > bl and abs(xc[k] - gaps[k]) <= 1.5
+        if good[k]:
+            found += 1
+            if j0 < 0:
+                j0 = k
+            j1 = k + 1
+    if found < 2:
+        return False, empty, empty, empty, empty
+    # Drop unrefined cusps at the ends; inner ones keep the sample position.
+    nc = j1 - j0
+    cusp = np.empty(nc)
+    cusp_h = np.empty(nc)
+    for q in range(nc):
+        k = j0 + q
+        c = xc[k] if good[k] else gaps[k]
+        cusp[q] = c
+        dl = c - b[k]
+        dr = c - b[k + 1]
+        hl = e[k] + half * (dl * dl)
+        hr = e[k + 1] + half * (dr * dr)
+        fl, fr = np.isfinite(hl), np.isfinite(hr)
+        if fl and fr:
+            cusp_h[q] = 0.5 * (hl + hr)
+        elif fl:
+            cusp_h[q] = hl
+        elif fr:
+            cusp_h[q] = hr
+        else:
+            cusp_h[q] = np.interp(c, np.arange(n, dtype=np.float64), h)
+    # Bottoms: each complete mark's arc vertex, kept inside the mark.
+    bottoms = np.empty(nc - 1)
+    bottom_h = np.empty(nc - 1)
+    for q in range(nc - 1):
+        bq = b[j0 + 1 + q]
+        vertex = bq if np.isfinite(bq) else 0.5 * (cusp[q] + cusp[q + 1])
+        bot = min(max(vertex, cusp[q]), cusp[q + 1])
+        d = bot - bq
+        bh = e[j0 + 1 + q] + half * (d * d)
+        if not np.isfinite(bh):
+            a_, z_ = int(math.ceil(cusp[q])), int(math.floor(cusp[q + 1]))
+            if z_ >= a_:
+                i = a_ + int(np.argmin(h[a_ : z_ + 1]))
+            else:
+                i = int(round(cusp[q]))
+            bot, bh = float(i), h[i]
+        bottoms[q] = bot
+        bottom_h[q] = bh
+    return True, cusp, cusp_h, bottoms, bottom_h
+
+
+@njit(**_JIT)
+def spectrum_peak(spec: np.ndarray, k_lo: int, k_hi: int) -> float:  # pragma: no cover
+    """Bin of the largest power ``|spec|^2`` in ``k_lo..k_hi``, refined by a parabola.
+
+    The first of equal maxima (as ``np.argmax``); no refinement where the power is not
+    curved downwards.
+    """
+    best = -1.0
+    k = k_lo
+    for i in range(k_lo, k_hi + 1):
+        v = spec[i].real ** 2 + spec[i].imag ** 2
+        if v > best:
+            best, k = v, i
+    y0 = spec[k - 1].real ** 2 + spec[k - 1].imag ** 2
+    y2 = spec[k + 1].real ** 2 + spec[k + 1].imag ** 2
+    curv = y0 - 2 * best + y2
+    frac = 0.5 * (y0 - y2) / curv if curv < 0 else 0.0
+    return k + frac
+
+
+@njit(**_JIT)
+def smooth5(values: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """``np.convolve(values, np.ones(5) / 5, mode="same")`` (zeros beyond the ends)."""
+    n = values.size
+    out = np.empty(n)
+    w = 1.0 / 5.0
+    for i in range(n):
+        acc = 0.0
+        for j in range(i - 2, i + 3):
+            if 0 <= j < n:
+                acc += values[j] * w
+        out[i] = acc
+    return out
+
+
+@njit(**_JIT)
+def repeat_lag(s: np.ndarray, dots: np.ndarray, period: float, ks: np.ndarray,
+               tolerance: float) -> float:  # pragma: no cover - compiled
+    """The repeat period from the self-correlation at multiples of ``period``.
+
+    ``dots[lag] = sum s[u] s[u + lag]``; the self-correlation at a lag is that over the
+    energies of both stretches.  For each multiple ``k period`` the parabola through the three
+    integer lags around it gives the peak's lag and value; the smallest multiple whose value is
+    within ``tolerance`` of the best is returned (as :func:`vision.marks.repeat_period_px`).
+    """
+    n = s.size
+    cum = np.empty(n + 1)
+    cum[0] = 0.0
+    acc = 0.0
+    for i in range(n):
+        acc += s[i] * s[i]
+        cum[i + 1] = acc
+    total = cum[n]
+    m = ks.size
+    lag = np.empty(m)
+    value = np.empty(m)
+    for q in range(m):
+        target = period * ks[q]
+        edge = False
+        c = int(np.rint(target))
+        if c < 2 or c + 1 >= n - 8:
+            edge = True
+        y = np.zeros(3)
+        if edge:
+            cc = max(1, min(c, n - 9))
+            den = math.sqrt(cum[n - cc] * (total - cum[cc]))
+            lag[q] = target
+            value[q] = dots[cc] / den if den > 0 else 0.0
+            continue
+        for r in range(3):
+            ll = c - 1 + r
+            den = math.sqrt(cum[n - ll] * (total - cum[ll]))
+            y[r] = dots[ll] / den if den > 0 else 0.0
+        curv = y[0] - 2 * y[1] + y[2]
+        if curv < 0:
+            frac = min(0.5, max(-0.5, 0.5 * (y[0] - y[2]) / curv))
+            lag[q] = c + frac
+            value[q] = y[1] - 0.25 * (y[0] - y[2]) * frac
+        else:
+            lag[q] = float(c)
+            value[q] = y[1]
+    best = value.max()
+    for q in range(m):
+        if value[q] >= best - tolerance:
+            return lag[q]
+    return lag[0]
+
+
+@njit(**_JIT)
+def cusp_candidates(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float,
+                                            bool]:  # pragma: no cover - compiled
+    """The first step of :func:`vision.marks.find_marks`: candidate cusps and their scale.
+
+    Returns
+    -------
+    cum_p : ndarray, shape (n + 1,)
+        ``[0, cumsum(p)]``.
+    cand, size : ndarray
+        Strict local maxima ``i`` of ``-steps`` (the slope's fall across the gap after
+        sample ``i``, two samples either side) that are ``>= 0``, and their heights.
+    noise : float
+        Robust standard deviation of one slope sample (from the differences).
+    typical : float
+        90th percentile of ``size`` (NaN without candidates).
+    simple : bool
+        False when a plateau or two maxima closer than 3 samples need scipy's rules (the
+        caller then finds the peaks itself).
+    """
+    n = p.size
+    cum = np.empty(n + 1)
+    cum[0] = 0.0
+    acc = 0.0
+    for i in range(n):
+        acc += p[i]
+        cum[i + 1] = acc
+    k = 2
+    neg = np.zeros(n)  # -steps
+    if n >= 2 * k + 1:
+        for i in range(k - 1, n - k):
+            mid = cum[i + 1]
+            neg[i] = -(((cum[i + 1 + k] - mid) - (mid - cum[i + 1 - k])) / k)
+    cand = np.empty(n, dtype=np.intp)
+    size = np.empty(n)
+    count = 0
+    simple = True
+    for i in range(1, n - 1):
+        v = neg[i]
+        if neg[i - 1] < v:
+            if v == neg[i + 1] and i < n - 2:
+                simple = False  # a plateau inside the signal
+            elif v > neg[i + 1] and v >= 0.0:
+                if count and i - cand[count - 1] < 3:
+                    simple = False
+                cand[count] = i
+                size[count] = v
+                count += 1
+    cand = cand[:count]
+    size = size[:count]
+    noise = math.nan
+    typical = math.nan
+    if count:
+        d = np.empty(n - 1)
+        for i in range(n - 1):
+            d[i] = p[i + 1] - p[i]
+        med = _median(d)
+        for i in range(n - 1):
+            d[i] = abs(d[i] - med)
+        noise = 1.4826 * _median(d) / math.sqrt(2.0)
+        srt = np.sort(size)
+        pos = (count - 1) * 0.9
+        lo = int(math.floor(pos))
+        hi = min(lo + 1, count - 1)
+        a, b = srt[lo], srt[hi]
+        t = pos - lo
+        typical = b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
+    return cum, cand, size, noise, typical, simple
+
+
+@njit(**_JIT)
+def _median(values: np.ndarray) -> float:  # pragma: no cover - compiled
+    """Median of a non-empty 1-D array (the mean of the two middle values; quickselect)."""
+    return np.median(values)
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def delay_scores(spec_a: np.ndarray, spec_b: np.ndarray, phasors: np.ndarray,
+                 score: np.ndarray) -> float:  # pragma: no cover - compiled
+    """The fine registration's scores of a grid of delays from two spectra.
+
+    The cross-spectrum ``X = conj(A) B``, its phase doubled (``X^2 / |X|``, so a frequency
+    whose shading is mirrored votes as the albedo does), in ``float32`` as the phasors; then
+    ``score[j] = Re sum_k P[j, k] X2[k]`` with ``phasors = [Re P, -Im P]`` (shape
+    ``(delays, 2 k)``).  Sums in ``float32``, vectorised (reordered as a BLAS product would).
+
+    Returns
+    -------
+    float
+        ``sum |X|`` (0: no signal; the scores are then not computed).
+    """
+    k = spec_a.size
+    parts = np.empty(2 * k, dtype=np.float32)
+    total = 0.0
+    for i in range(k):
+        x = spec_a[i].conjugate() * spec_b[i]
+        mag = abs(x)
+        total += mag
+        d = x * x / (mag if mag > 0 else 1.0)
+        parts[i] = np.float32(d.real)
+        parts[k + i] = np.float32(d.imag)
+    if not total > 0:
+        return total
+    for j in range(phasors.shape[0]):
+        row = phasors[j]
+        acc = np.float32(0.0)
+        for i in range(2 * k):
+            acc += row[i] * parts[i]
+        score[j] = acc
+    return total
+
+
+@njit(**_JIT)
+def arc_slopes(x: np.ndarray, cusps: np.ndarray, bottoms: np.ndarray,
+               radius: float) -> np.ndarray:  # pragma: no cover - compiled
+    """``(x - b_k) / R`` inside mark ``k`` (between cusps ``k`` and ``k + 1``), NaN outside.
+
+    As :func:`vision.selfcal.kinematic_slope` (a position on a cusp belongs to the mark after
+    it).
+    """
+    k = np.searchsorted(cusps, x, side="right") - 1
+    out = np.empty(x.size)
+    for i in range(x.size):
+        j = k[i]
+        out[i] = (x[i] - bottoms[j]) / radius if 0 <= j < bottoms.size else np.nan
+    return out
+
+
+@njit(**_JIT)
+def solve_small(a: np.ndarray, b: np.ndarray) -> bool:  # pragma: no cover - compiled
+    """Solve ``a[i] x = b[i]`` in place for every ``i`` (Gaussian elimination, partial pivots).
+
+    Parameters
+    ----------
+    a : ndarray, shape (batch, n, n), float64
+        Matrices; overwritten.
+    b : ndarray, shape (batch, n), float64
+        Right-hand sides; overwritten by the solutions.
+
+    Returns
+    -------
+    bool
+        False when a matrix is singular (``b`` then undefined).
+    """
+    batch, n, _ = a.shape
+    for q in range(batch):
+        m = a[q]
+        r = b[q]
+        for col in range(n):
+            piv = col
+            best = abs(m[col, col])
+            for row in range(col + 1, n):
+                v = abs(m[row, col])
+                if v > best:
+                    best, piv = v, row
+            if best == 0.0:
+                return False
+            if piv != col:
+                for j in range(n):
+                    m[col, j], m[piv, j] = m[piv, j], m[col, j]
+                r[col], r[piv] = r[piv], r[col]
+            d = m[col, col]
+            for row in range(col + 1, n):
+                f = m[row, col] / d
+                if f != 0.0:
+                    for j in range(col, n):
+                        m[row, j] -= f * m[col, j]
+                    r[row] -= f * r[col]
+        for col in range(n - 1, -1, -1):
+            acc = r[col]
+            for j in range(col + 1, n):
+                acc -= m[col, j] * r[j]
+            r[col] = acc / m[col, col]
+    return True
+
+
+@njit(**_JIT)
+def blur_fits(gram: np.ndarray, rhs: np.ndarray, yy: float, plain: bool, rss: np.ndarray,
+              coef_a: np.ndarray, coef_b: np.ndarray, count: int,
+              var: float) -> tuple[int, float]:  # pragma: no cover - compiled
+    """The self-calibration's least-squares fits from its normal equations.
+
+    ``gram = D D'`` and ``rhs = D y`` of a design ``D`` whose rows are the model (row 0),
+    ``L`` blurred models (rows ``1..L``), ones and x (the last two rows); ``yy = y'y``.  Fit 0
+    (``plain``) uses rows ``0, L+1, L+2``; fit ``1 + l`` rows ``0, 1 + l, L+1, L+2``.  Out: the
+    residual sums of squares ``rss`` (left as they are for a singular fit), the model's
+    coefficient ``coef_a`` and the blurred model's ``coef_b`` of each fit.
+
+    Returns the best admissible fit -- a positive gain ``coef_a + coef_b``, not mostly a
+    negative unblurred part -- and its residual variance over ``var`` (``count`` samples):
+    ``(-1, nan)`` when none is admissible.
+    """
+    n_l = gram.shape[0] - 3
+    for q in range(n_l + 1):
+        if q == 0:
+            if not plain:
+                continue
+            idx = np.array([0, n_l + 1, n_l + 2])
+        else:
+            idx = np.array([0, q, n_l + 1, n_l + 2])
+        k = idx.size
+        a = np.empty((1, k, k))
+        b = np.empty((1, k))
+        for i in range(k):
+            b[0, i] = rhs[idx[i]]
+            for j in range(k):
+                a[0, i, j] = gram[idx[i], idx[j]]
+        if not solve_small(a, b):
+            continue
+        fit = 0.0
+        for i in range(k):
+            fit += b[0, i] * rhs[idx[i]]
+        rss[q] = yy - fit
+        coef_a[q] = b[0, 0]
+        coef_b[q] = b[0, 1] if q > 0 else 0.0
+    best = -1
+    best_resid = np.inf
+    for q in range(n_l + 1):
+        g = coef_a[q] + coef_b[q]
+        if not (np.isfinite(rss[q]) and g > 0 and not coef_a[q] < -0.05 * g):
+            continue
+        resid = max(rss[q], 0.0) / count / var
+        if best < 0 or resid < best_resid:
+            best, best_resid = q, resid
+    if best < 0:
+        return -1, np.nan
+    return best, best_resid
+
+
+_WARM = [False]
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel for the types the measurement uses.
+
+    Called by set-up code (:class:`vision.pipeline.Measurer`); idempotent and cheap after the
+    first call in a process.
+    """
+    if _WARM[0]:
+        return
+    img = np.zeros((4, 8), dtype=np.uint8)
+    bins = np.empty((2, 8), dtype=np.uint16)
+    cols = np.empty(8)
+    bin_rows(img, 0, 2, bins, 0, 1, np.empty((2, 8), dtype=np.uint16), 0, 2, 0, 8,
+             np.empty(8, dtype=np.uint32), cols)
+    bin_rows(img, 0, 2, bins, 0, 1, np.empty((2, 8), dtype=np.float32), 0, 2, 0, 8, cols,
+             cols)
+    v = np.arange(8.0)
+    running_mean_1d(v, 2.5)
+    running_mean_2d(np.ones((8, 3)), 2.5)
+    smooth_trend(v, np.vander(v, 3), 2.5)
+    cum = np.zeros(9)
+    np.cumsum(v, out=cum[1:])
+    arc_model(v, v, np.array([2.5, 5.5]), 0.1, 1, cum)
+    solve_small(np.eye(3)[None].copy(), np.ones((1, 3)))
+    cusp_candidates(np.sin(v))
+    arc_slopes(v, np.array([1.0, 3.0, 5.0]), np.array([2.0, 4.0]), 60.0)
+    spec = np.ones(4, dtype=np.complex128)
+    delay_scores(spec, spec, np.ones((3, 8), dtype=np.float32), np.empty(3))
+    spectrum_peak(np.ones(8, dtype=np.complex128), 1, 5)
+    smooth5(v)
+    repeat_lag(v, v, 2.5, np.array([1.0, 2.0]), 0.02)
+    blur_fits(np.eye(5), np.ones(5), 1.0, True, np.empty(3), np.empty(3), np.empty(3), 8,
+              1.0)
+    _WARM[0] = True
