@@ -1,0 +1,256 @@
+"""What crosses between the service and a worker per pair: the calibrator, the reply's arrays.
+
+The board's calibrator goes to the worker as its fields' values (the class and field names
+pickled once): the worker's copy must behave exactly as a pickled copy would. The reply's
+float arrays come back in the pair's shared-memory slot instead of the pipe: the service must
+rebuild the same measurement, and a reply that says its arrays are in a slot it has no slot for
+fails its pair instead of reading garbage.
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+from dataclasses import dataclass
+from multiprocessing import shared_memory
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controller.measure_workers import (
+    _blob_into_slot,
+    _cal_from,
+    _cal_state,
+    _pack,
+    _Packed,
+    _Worker,
+)
+from vision.selfcal import Calibration, SelfCalibrator
+
+# ---------------------------------------------------------------------------------------------
+# the calibrator as values
+
+_estimates = st.lists(st.builds(
+    Calibration,
+    gain=st.floats(0.05, 20.0),
+    gain_confidence=st.floats(0.0, 1.0),
+    scatter_mm=st.floats(0.0, 2.0),
+    scatter_fraction=st.floats(0.0, 1.0),
+), max_size=12)
+
+
+def _through_the_pipe(cal):
+    return _cal_from(*pickle.loads(pickle.dumps(_cal_state(cal))))
+
+
+@settings(max_examples=60, deadline=None)
+@given(before=_estimates, after=_estimates, weight=st.floats(0.05, 1.0),
+       every=st.integers(1, 10), roll=st.none() | st.tuples(st.floats(-5, 5), st.floats(0, 1)))
+def test_a_calibrator_sent_as_values_behaves_as_a_pickled_copy(before, after, weight, every,
+                                                                roll):
+    cal = SelfCalibrator(weight=weight, roll_every=every)
+    for est in before:
+        cal.update(est)
+    if roll is not None:
+        cal.note_roll(*roll, min_confidence=0.5)
+    sent = _through_the_pipe(cal)
+    copy = pickle.loads(pickle.dumps(cal))
+    assert type(sent) is SelfCalibrator and sent is not cal
+    assert list(vars(sent)) == list(vars(copy))
+    for est in after:  # the worker's copy folds in and answers as the pickled one would
+        a, b = sent.update(est), copy.update(est)
+        assert a == b or (math.isnan(a.gain) and math.isnan(b.gain))
+        assert sent.known_roll() == copy.known_roll()
+    assert cal.pairs == len(before)  # the service's own calibrator is untouched
+
+
+def test_the_calibrators_class_and_fields_are_pickled_once_and_its_array_comes_back():
+    cal = SelfCalibrator()
+    schema, values = _cal_state(cal)
+    cal.update(Calibration(gain=1.5, gain_confidence=0.8, scatter_mm=0.2,
+                           scatter_fraction=0.3))
+    schema2, values2 = _cal_state(cal)
+    assert schema2 is schema and values2 != values  # the same bytes, new values
+    sent = _cal_from(schema2, values2)
+    assert type(sent._scatter) is np.ndarray and sent._scatter.dtype == np.float64
+    np.testing.assert_array_equal(sent._scatter, cal._scatter)
+    assert sent._scatter is not cal._scatter
+
+
+class _Slotted:
+    __slots__ = ("gain",)
+
+    def __init__(self) -> None:
+        self.gain = 1.0
+
+
+class _Reducing:
+    def __init__(self) -> None:
+        self.gain = 1.0
+
+    def __reduce__(self):
+        return (_Reducing, ())
+
+
+class _Holder:
+    def __init__(self, value) -> None:
+        self.value = value
+
+
+@pytest.mark.parametrize("cal", [
+    None,
+    _Slotted(),  # no __dict__
+    _Reducing(),  # pickled its own way
+    _Holder([1.0, 2.0]),  # a list: not plain
+    _Holder({"a": 1.0}),
+    _Holder(np.zeros((2, 2))),  # a 2-D array
+    _Holder(np.zeros(2, np.float32)),  # not float64
+    _Holder((1.0, [2.0])),  # a tuple holding a list
+])
+def test_what_is_not_a_plain_calibrator_goes_as_it_is(cal):
+    schema, values = _cal_state(cal)
+    assert schema is cal and values is None
+    assert _cal_from(schema, values) is cal
+
+
+# ---------------------------------------------------------------------------------------------
+# the reply's arrays through the pair's slot
+
+
+@dataclass(frozen=True)
+class _Meas:
+    x_mm: np.ndarray
+    pitch_mm: float
+    widths_mm: np.ndarray
+    counts: np.ndarray
+    knife_mm: np.ndarray | None = None
+
+
+_floats = st.lists(st.floats(allow_nan=False, width=64), max_size=40).map(
+    lambda v: np.asarray(v, dtype=np.float64))
+
+
+@pytest.fixture(scope="module")
+def block():
+    shm = shared_memory.SharedMemory(create=True, size=3 * 1024)
+    yield shm
+    shm.close()
+    shm.unlink()
+
+
+def _worker_with(block, slot_bytes: int) -> _Worker:
+    w = _Worker(3)
+    w.block, w.slot_bytes = block, slot_bytes
+    return w
+
+
+@settings(max_examples=80, deadline=None)
+@given(x=_floats, widths=_floats, knife=st.none() | _floats, pitch=st.floats(allow_nan=False),
+       slot=st.integers(0, 2), estimates=st.lists(st.floats(0.1, 3.0), max_size=2))
+def test_arrays_back_through_the_slot_rebuild_the_measurement(block, x, widths, knife, pitch,
+                                                              slot, estimates):
+    slot_bytes = 1024
+    meas = _Meas(x, pitch, widths, np.arange(3, dtype=np.int32), knife_mm=knife)
+    ests = tuple(Calibration(gain=g) for g in estimates)
+    packed = _blob_into_slot(_pack(meas), block.buf, slot * slot_bytes, slot_bytes)
+    assert type(packed) is _Packed
+    fits = 8 * sum(packed.lengths) <= slot_bytes
+    assert (packed.blob is None) == fits  # in the slot when it fits, else in the reply
+    reply = pickle.loads(pickle.dumps(("done", 7, None, packed, ests, 0.25, None)))
+    out = _worker_with(block, slot_bytes).outcome(reply, slot)
+    assert out.error is None and out.worker == 3 and out.measure_s == 0.25
+    assert out.estimates == ests
+    back = out.measurement
+    assert type(back) is _Meas and list(vars(back)) == list(vars(meas))
+    for name, value in vars(meas).items():
+        got = getattr(back, name)
+        if isinstance(value, np.ndarray):
+            assert got.dtype == value.dtype and got.shape == value.shape
+            np.testing.assert_array_equal(got, value)
+        else:
+            assert got == value
+    if fits and x.size:  # a copy: the slot's next pair does not change it
+        before = back.x_mm.copy()
+        block.buf[slot * slot_bytes:(slot + 1) * slot_bytes] = b"\xff" * slot_bytes
+        np.testing.assert_array_equal(back.x_mm, before)
+
+
+def test_a_reply_whose_arrays_are_in_a_slot_it_was_not_given_fails_its_pair(block):
+    meas = _Meas(np.ones(4), 1.0, np.ones(3), np.zeros(1, np.int32))
+    packed = _blob_into_slot(_pack(meas), block.buf, 0, 1024)
+    assert packed.blob is None
+    reply = ("done", 1, None, packed, (), 0.0, None)
+    no_slot = _worker_with(block, 1024).outcome(reply, None)
+    too_big = _worker_with(block, 16).outcome(reply, 0)  # more arrays than the slot holds
+    for out in (no_slot, too_big):
+        assert out.measurement is None and out.worker == 3
+        assert out.error == ("measurement failed: measurement worker 3 sent a reply without "
+                             "its arrays")
+
+
+def test_arrays_that_do_not_fit_the_slot_stay_in_the_reply(block):
+    meas = _Meas(np.ones(100), 1.0, np.ones(100), np.zeros(1, np.int32))
+    packed = _pack(meas)
+    assert _blob_into_slot(packed, block.buf, 0, 8 * 200 - 1) is packed
+    assert _blob_into_slot(meas, block.buf, 0, 4096) is meas  # not packed: as it is
+
+
+# ---------------------------------------------------------------------------------------------
+# end to end: real workers, the slots used over and over
+
+
+@dataclass(frozen=True)
+class _Profile:
+    x_mm: np.ndarray
+    height_um: np.ndarray
+    widths_mm: np.ndarray
+    image_sum: float
+    pair: int
+
+
+class _ProfileOfImages:
+    takes_facts = False
+
+    def __call__(self, shape):
+        return self
+
+    def measure(self, image_a, image_b, *, counts_a, counts_b, speed_mm_s=None,
+                calibrator=None):
+        rows = image_a.astype(np.float64).mean(axis=1)  # from the slot's images
+        return _Profile(x_mm=np.arange(counts_a + 2, dtype=np.float64) * 0.5 + counts_a,
+                        height_um=rows - image_b.astype(np.float64).mean(axis=1),
+                        widths_mm=np.full(counts_a % 5 + 2, float(counts_b)),
+                        image_sum=float(image_a.sum()) + float(image_b.sum()), pair=counts_a)
+
+
+def test_workers_give_back_each_pairs_own_arrays_through_the_slots():
+    import asyncio
+    from types import SimpleNamespace
+
+    from controller.measure_workers import MeasureWorkerPool
+
+    rng = np.random.default_rng(5)
+    n = 24
+    images = [(rng.integers(0, 255, (9, 16), np.uint8), rng.integers(0, 255, (9, 16), np.uint8))
+              for _ in range(n)]
+
+    async def main(pool):
+        futures = [pool.submit(SimpleNamespace(image_a=a, image_b=b, counts_a=i,
+                                               counts_b=2 * i, speed_mm_s=1.0))
+                   for i, (a, b) in enumerate(images)]  # more than the slots: reused
+        return [await asyncio.wait_for(f, 30.0) for f in futures]
+
+    factory = _ProfileOfImages()
+    with MeasureWorkerPool(factory, workers=2, timeout_s=30.0) as pool:
+        pool.start()
+        out = asyncio.run(main(pool))
+    assert {o.worker for o in out} == {0, 1}
+    for i, ((a, b), o) in enumerate(zip(images, out, strict=True)):
+        want = factory.measure(a, b, counts_a=i, counts_b=2 * i)
+        got = o.measurement
+        assert o.error is None and type(got) is _Profile and got.pair == i
+        assert got.image_sum == want.image_sum  # measured before the slot took the arrays
+        for name in ("x_mm", "height_um", "widths_mm"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
