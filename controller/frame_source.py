@@ -44,6 +44,23 @@ class FrameSource(Protocol):
         """Files that gave no frame since the last call (file and reason)."""
 
 
+def _resolve(future: asyncio.Future) -> None:
+    """Wake a waiting :meth:`SpoolFrameSource.next` (once; on its event loop)."""
+    if not future.done():
+        future.set_result(None)
+
+
+def _note_committed(watch: Any, reader: Any) -> None:
+    """Tell ``reader`` the pairs ``watch``'s events named (it then reads them unlisted)."""
+    take = getattr(watch, "take_committed", None)
+    note = getattr(reader, "note_committed", None)
+    if take is None or note is None:
+        return
+    slots = take()
+    if slots:
+        note(slots)
+
+
 class SpoolFrameSource:
     """A spool directory read in a reader thread; the service awaits :meth:`next`.
 
@@ -62,7 +79,9 @@ class SpoolFrameSource:
     watch : bool, keyword-only
         Wake the reader thread as a pair is committed (inotify:
         :class:`controller.spool_watch.SpoolWatch`; without it the thread polls every
-        ``poll_s``); ``False``: poll only.
+        ``poll_s``) and read the pairs the events name without listing the folder
+        (``SpoolReader.note_committed``; listed about once a second still); ``False``: poll
+        only.
 
     Attributes
     ----------
@@ -101,7 +120,7 @@ class SpoolFrameSource:
         self._reader = reader
         self._watch: tuple[int, float] | None = None  # (reader.serial, first seen busy)
         self._failure: str | None = None
-        self._arrived: tuple[asyncio.AbstractEventLoop, asyncio.Event] | None = None  # next()'s
+        self._arrived: tuple[asyncio.AbstractEventLoop, asyncio.Future] | None = None  # next()'s
         self._thread = self._start(reader, 0)
 
     @property
@@ -143,6 +162,8 @@ class SpoolFrameSource:
                         woken = watch.wait(max(self.poll_s, WATCHED_POLL_S)
                                            if watch.active and trusted else self.poll_s)
                         waited = True
+                        if woken:  # the events name the pairs: read them without a listing
+                            _note_committed(watch, reader)
                     else:
                         self._stop.wait(self.poll_s)
                     continue
@@ -226,7 +247,7 @@ class SpoolFrameSource:
         arrived = self._arrived
         if arrived is not None:
             try:
-                arrived[0].call_soon_threadsafe(arrived[1].set)
+                arrived[0].call_soon_threadsafe(_resolve, arrived[1])
             except RuntimeError:  # its loop is closed: nobody waits
                 pass
 
@@ -241,12 +262,8 @@ class SpoolFrameSource:
     async def next(self, timeout_s: float | None = None) -> Frame | None:
         """The next frame (``None`` after ``timeout_s`` seconds without one)."""
         loop = asyncio.get_running_loop()
-        if self._arrived is None or self._arrived[0] is not loop:
-            self._arrived = (loop, asyncio.Event())
-        arrived = self._arrived[1]
         deadline = None if timeout_s is None else loop.time() + timeout_s
         while True:
-            arrived.clear()
             self._check_reader()
             self._check_time_limit()
             frame = self._take()
@@ -258,10 +275,19 @@ class SpoolFrameSource:
             wait = self.poll_s
             if deadline is not None:
                 wait = max(0.0, min(wait, deadline - loop.time()))
-            try:  # woken by the reader thread as a pair arrives, else after poll_s
-                await asyncio.wait_for(arrived.wait(), wait)
-            except asyncio.TimeoutError:
-                pass
+            # woken by the reader thread as a pair arrives (one future, resolved from there
+            # with one call_soon_threadsafe), else after poll_s
+            arrived = loop.create_future()
+            self._arrived = (loop, arrived)
+            if self._frames:  # appended before the reader could see this future
+                self._arrived = None
+                continue
+            timer = loop.call_later(wait, _resolve, arrived)
+            try:
+                await arrived
+            finally:
+                timer.cancel()
+                self._arrived = None
 
     def take_skips(self) -> list[Skip]:
         """Spool files that gave no frame since the last call (file and reason), oldest first.

@@ -10,8 +10,11 @@ images renamed in before it and the writer's temporary files do not wake it.
 
 Where inotify is missing (not Linux, no ``libc``, the folder not there, the watch limit reached)
 :attr:`SpoolWatch.active` is false and :meth:`wait` just sleeps its timeout: the reader polls as
-before. Events are only a wake-up: the reader still lists the folder, so a lost or merged event
-(queue overflow) costs at most one poll interval (:data:`WATCHED_POLL_S`).
+before. The events also name the committed pairs (:func:`committed_slots`,
+:meth:`SpoolWatch.take_committed`): the reader reads those without listing the folder
+(``SpoolReader.note_committed``), and still lists it about once a second and whenever the events
+cannot say which pairs came (a queue overflow, another commit name), so a lost or merged event
+costs at most one poll interval (:data:`WATCHED_POLL_S`).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import ctypes
 import ctypes.util
 import functools
 import os
+import re
 import select
 import struct
 import threading
@@ -45,6 +49,7 @@ WATCHED_POLL_S = 0.05
 second instead of every ``frames.poll_s`` (500 times), each wake a turn of the interpreter lock
 taken from a measurement on the event loop's thread. A pair that a poll finds first (a file
 system whose events do not come, e.g. a network share) brings ``frames.poll_s`` back."""
+_COMMIT_NAME = re.compile(rb"pair-([0-9]{1,18})\.json")
 TMP_PREFIX = b"."
 """The writer's temporary names start so (never a commit)."""
 
@@ -89,6 +94,28 @@ def commits_in(buffer: bytes) -> bool:
     return False
 
 
+def committed_slots(buffer: bytes) -> list[int] | None:
+    """The pairs (slot numbers) whose commit the events in ``buffer`` name, in event order.
+
+    ``None`` when the events cannot say which (an overflowed queue, a commit name that is not
+    ``pair-<digits>.json``): the reader must list the folder then.
+    """
+    out: list[int] = []
+    pos, n = 0, len(buffer)
+    while pos + _EVENT.size <= n:
+        _wd, mask, _cookie, length = _EVENT.unpack_from(buffer, pos)
+        name = buffer[pos + _EVENT.size: pos + _EVENT.size + length].rstrip(b"\0")
+        pos += _EVENT.size + length
+        if mask & IN_Q_OVERFLOW:
+            return None
+        if is_commit(name):
+            m = _COMMIT_NAME.fullmatch(name)
+            if m is None:
+                return None
+            out.append(int(m.group(1)))
+    return out
+
+
 def watch_gone(buffer: bytes) -> bool:
     """Whether the events in ``buffer`` say the folder itself went (deleted, moved, unwatched)."""
     pos, n = 0, len(buffer)
@@ -115,6 +142,7 @@ class SpoolWatch:
         self.directory = Path(directory)
         self._stop = stop if stop is not None else threading.Event()
         self._fd: int | None = None
+        self._committed: list[int] | None = []  # slots the events named; None: unknown
         lib = _libc()
         if lib is None:
             return
@@ -179,9 +207,23 @@ class SpoolWatch:
                 break
             found = commits_in(buf) or found
             gone = watch_gone(buf) or gone
+            slots = committed_slots(buf)
+            if slots is None or self._committed is None:
+                self._committed = None
+            else:
+                self._committed.extend(slots)
         if gone:
             self.close()
         return found or gone
+
+    def take_committed(self) -> list[int] | None:
+        """The pairs (slots) the events named since the last call, in order, or ``None``.
+
+        ``None`` when some event could not say which (overflow, another commit name): list
+        the folder then. Lets the reader read a committed pair without listing the folder.
+        """
+        out, self._committed = self._committed, []
+        return out
 
     def close(self) -> None:
         """Stop watching (idempotent)."""

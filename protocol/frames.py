@@ -572,6 +572,33 @@ def _c_order_npy(data: bytes, head: Any) -> np.ndarray | None:
     return flat.reshape(head.height, head.width).copy()  # writable, its own memory
 
 
+_NPY_HEADS: dict[tuple[bytes, int], Any] = {}
+
+
+def _npy_header_once(data: bytes) -> Any:
+    """``core.imageio.npy_header``, remembered per header bytes and file size.
+
+    Its result depends on nothing else, and a camera writes the same header every time: the
+    header's parse (``ast.literal_eval``, about 0.1 ms) once (issue 11, spool latency).
+    """
+    from core.imageio import npy_header
+
+    key = None
+    if len(data) >= 12 and data[:6] == b"\x93NUMPY" and data[6] in (1, 2, 3):
+        size = (10 + int.from_bytes(data[8:10], "little") if data[6] == 1
+                else 12 + int.from_bytes(data[8:12], "little"))
+        if size <= 4096 and len(data) >= size:
+            key = (bytes(data[:size]), len(data))
+    head = _NPY_HEADS.get(key) if key is not None else None
+    if head is None:
+        head = npy_header(data)  # raises on a bad header: nothing remembered
+        if key is not None:
+            if len(_NPY_HEADS) >= 16:
+                _NPY_HEADS.clear()
+            _NPY_HEADS[key] = head
+    return head
+
+
 def decode_spool_image(data: bytes, name: str, *, limits: SpoolLimits) -> np.ndarray:
     """Check an image's header against ``limits``, then decode it (PNG or ``.npy``).
 
@@ -582,11 +609,11 @@ def decode_spool_image(data: bytes, name: str, *, limits: SpoolLimits) -> np.nda
         ``limits.image_shape``; the message says which.
     """
     from core.errors import MeasurementError
-    from core.imageio import npy_header, png_header
+    from core.imageio import png_header
 
     is_npy = name.endswith(".npy")
     try:
-        head = npy_header(data) if is_npy else png_header(data)
+        head = _npy_header_once(data) if is_npy else png_header(data)
     except MeasurementError as exc:
         raise SpoolFileError(str(exc)) from None
     if head.pixels > limits.max_pixels:
@@ -735,6 +762,29 @@ class SpoolReader:
     def pending(self) -> int:
         """Pairs the last listing found, not read yet (``poll`` returns them without a listing)."""
         return len(self._pending)
+
+    def note_committed(self, slots: list[int], *, max_age_s: float = 1.0) -> bool:
+        """Read these committed pairs next without listing the folder; whether it was taken.
+
+        For a reader told of each commit (inotify: ``controller.spool_watch``): a listing
+        costs 0.2-2 ms with the interpreter lock held. Slots already handled are left out unless
+        their file was replaced (a new identity). Not taken (``False``: the next ``poll``
+        lists) when the last listing is older than ``max_age_s``: the listing forgets
+        pruned pairs and finds what no event named.
+        """
+        if time.monotonic() - self._listed_at > max_age_s:
+            return False
+        with self._lock:
+            pending = set(self._pending)
+            for slot in slots:
+                if slot in self._done:
+                    ident = self._done[slot]
+                    if ident is None or self._identity(slot) in (ident, None):
+                        continue
+                    del self._done[slot]  # replaced: a new pair there
+                pending.add(slot)
+            self._pending = sorted(pending)
+        return True
 
     def take_skips(self) -> list[Skip]:
         """The skips reported since the last call (thread-safe), oldest first."""

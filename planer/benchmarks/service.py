@@ -53,6 +53,12 @@ TARGETS = {"p99_ms": 5.0, "max_ms": 20.0, "p99_over_median": 3.0}
 SPOOL_KEEP = 32
 """Pairs the camera keeps in the spool folder (``SpoolWriter(keep=...)``; it deletes older ones,
 as a camera does: the reader scans the folder, so its size counts)."""
+ONLY_VIA_ENV = "PLANER_BENCH_SERVICE_VIA"
+"""Set to ``spool`` or ``queue``: :func:`run` makes only the latency runs that come so (the top
+level then holds the first of them); unset: all of them."""
+COMMIT_CLOCK_AT_RENAME = True
+"""The bench's camera reads a pair's commit time just before the rename of its metadata file
+(``False``: before that file is written, counting the camera's own write in the latency)."""
 SPOOL_IMAGE_FORMAT = "npy"
 """How the benchmark's camera writes the images into the spool (``SpoolWriter(image_format=...)``):
 raw ``.npy``, the fast hand-off (``"png"``: the default format, a PNG decode per image more)."""
@@ -286,13 +292,15 @@ async def _run(
 
 
 def _camera_main(conn: Any, spool_dir: str, n: int, rate_hz: float,
-                 image_format: str = SPOOL_IMAGE_FORMAT) -> None:
+                 image_format: str = SPOOL_IMAGE_FORMAT, clock_at_rename: bool = True) -> None:
     """The camera process: render the pairs, then on "go" write them at ``rate_hz``.
 
-    A pair's time is taken just before its commit (the metadata file's write and rename, the
-    last step of ``SpoolWriter.write``): a clock read after the commit could come late, as the
-    commit wakes the service's reader thread (real-time priority where permitted), which may
-    take this process's core at once and read the pair before this process reads its clock.
+    A pair's time is taken just before its commit, the rename of its metadata file (the last
+    step of ``SpoolWriter.write``; ``clock_at_rename=False``: before that file is written, as
+    until 2026-11-25 evening, which counted the camera's own write of it, 0.1-0.2 ms, more when
+    this process is preempted): a clock read after the rename could come late, as the commit
+    wakes the service's reader thread (real-time priority where permitted), which may take
+    this process's core at once and read the pair before this process reads its clock.
     """
     import protocol.frames as spool
     from protocol.frames import SpoolWriter
@@ -302,9 +310,17 @@ def _camera_main(conn: Any, spool_dir: str, n: int, rate_hz: float,
     write_file = spool.atomic_write_bytes
 
     def timed_write(path: Path, data: bytes, **kw: Any) -> None:
-        if str(path).endswith(".json"):  # the commit marker: the pair is there once renamed
+        if not str(path).endswith(".json"):  # an image
+            write_file(path, data, **kw)
+        elif clock_at_rename:  # the commit marker: written aside, the pair is there once renamed
+            tmp = os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.bench.tmp")
+            with open(tmp, "wb") as fh:
+                fh.write(data)
             commit_at.append(time.monotonic())
-        write_file(path, data, **kw)
+            os.replace(tmp, path)
+        else:
+            commit_at.append(time.monotonic())
+            write_file(path, data, **kw)
 
     spool.atomic_write_bytes = timed_write  # this process only
     # the writer keeps every pair: the camera prunes to SPOOL_KEEP itself, after the commit
@@ -318,20 +334,25 @@ def _camera_main(conn: Any, spool_dir: str, n: int, rate_hz: float,
     for f in frames:
         writer.write(f)  # committed: its metadata file renamed
         times.append((int(f.seq), commit_at[-1]))
-        _prune_slot(Path(spool_dir), writer.next_slot - 1 - SPOOL_KEEP)
+        _prune_slot(Path(spool_dir), writer.next_slot - 1 - SPOOL_KEEP, image_format)
         t_next += 1.0 / rate_hz
         time.sleep(max(0.0, t_next - time.monotonic()))
     conn.send(times)
 
 
-def _prune_slot(spool_dir: Path, slot: int) -> None:
-    """Delete one pair's files as ``SpoolWriter`` prunes (its metadata file first)."""
+def _prune_slot(spool_dir: Path, slot: int, image_format: str = SPOOL_IMAGE_FORMAT) -> None:
+    """Delete one pair's files as ``SpoolWriter`` prunes (its metadata file first).
+
+    By their names (the camera wrote them): no listing of the folder, which would take the
+    CPU just after the commit, when the service's reader and event loop need it.
+    """
     if slot < 0:
         return
     stem = f"pair-{slot:012d}"
-    for path in [spool_dir / f"{stem}.json", *sorted(spool_dir.glob(f"{stem}.*"))]:
+    suffix = ".npy" if image_format == "npy" else ".png"
+    for name in (f"{stem}.json", f"{stem}.a{suffix}", f"{stem}.b{suffix}"):
         with contextlib.suppress(FileNotFoundError):
-            path.unlink()
+            os.unlink(os.path.join(spool_dir, name))
 
 
 class _SpoolCamera:
@@ -343,7 +364,8 @@ class _SpoolCamera:
         ctx = multiprocessing.get_context("spawn")
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_camera_main, args=(child, str(spool_dir), n, rate_hz,
-                                                     SPOOL_IMAGE_FORMAT),
+                                                     SPOOL_IMAGE_FORMAT,
+                                                     COMMIT_CLOCK_AT_RENAME),
                                 daemon=True, name="planer-bench-camera")
         self.proc.start()
         child.close()
@@ -491,6 +513,11 @@ def run(quick: bool = False) -> dict[str, Any]:
     runs = [(0, RATE_HZ, "queue")] if quick else [
         (0, RATE_HZ, "queue"), (0, RATE_HZ, "spool"), (1, RATE_HZ, "queue"),
         (2, RATE_HZ, "queue"), (2, RATE_HZ, "spool")]
+    only_via = os.environ.get(ONLY_VIA_ENV, "").strip()
+    if only_via:  # e.g. repeated spool runs while working on the spool (not the CLI's contract)
+        if only_via not in ("queue", "spool"):
+            raise ValueError(f"{ONLY_VIA_ENV} must be 'queue' or 'spool', got {only_via!r}")
+        runs = [r for r in runs if r[2] == only_via] or [(0, RATE_HZ, only_via)]
     for workers, rate, via in runs:
         frames, machine = _frames(n if rate == RATE_HZ else n // 2)
         with tempfile.TemporaryDirectory(prefix="planer-bench-") as d:
