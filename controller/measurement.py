@@ -34,9 +34,9 @@ import numpy as np
 
 from config.machine import PlausibilityConfig
 from controller.events import exc_name
-from controller.latency import fair_scheduling
 from controller.plc_client import PlcSnapshot
 from core.errors import RegistrationError
+from core.realtime import fair_scheduling
 from protocol.frames import Frame
 from vision.selfcal import SelfCalibrator
 
@@ -241,7 +241,7 @@ class MeasurementStage:
         self.inline_max_s: float = INLINE_MAX_S
         """Measure on the event loop's thread while the recent measurements took at most this
         long (:data:`INLINE_MAX_S`; 0: always in the worker thread). Under the fair scheduler
-        at :attr:`thread_nice` for the measurement (:func:`controller.latency.fair_scheduling`).
+        at :attr:`thread_nice` for the measurement (:func:`core.realtime.fair_scheduling`).
         """
         self._recent_s: deque[float] = deque(maxlen=INLINE_WINDOW)
         self.inline_count = 0

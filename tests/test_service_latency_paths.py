@@ -218,7 +218,7 @@ def test_no_measurement_on_the_loop_while_a_set_up_holds_the_build_lock():
 
 
 def test_fair_scheduling_leaves_a_normal_thread_as_it_is():
-    from controller.latency import fair_scheduling
+    from core.realtime import fair_scheduling
 
     if not hasattr(os, "sched_getscheduler"):
         pytest.skip("no scheduling policies here")
@@ -229,7 +229,7 @@ def test_fair_scheduling_leaves_a_normal_thread_as_it_is():
 
 
 def test_fair_scheduling_takes_a_real_time_thread_off_real_time_for_the_block():
-    from controller.latency import fair_scheduling
+    from core.realtime import fair_scheduling
 
     if not hasattr(os, "SCHED_FIFO"):
         pytest.skip("no SCHED_FIFO here")

@@ -409,13 +409,13 @@ def test_a_workers_reply_is_one_write_that_recv_reads_back(size):
     import multiprocessing
     from unittest import mock
 
-    from controller.measure_workers import _send_whole
+    from controller.measure_worker_process import _send_whole
 
     a, b = multiprocessing.Pipe()
     payload = ("done", 7, bytes(range(256)) * (size // 256), {"k": [1.5, None]})
     writes = []
     real = os.write
-    with mock.patch("controller.measure_workers.os.write",
+    with mock.patch("controller.measure_worker_process.os.write",
                     side_effect=lambda fd, data: writes.append(len(data)) or real(fd, data)):
         _send_whole(a, payload)
     assert b.recv() == payload

@@ -331,7 +331,7 @@ _floats = st.lists(st.floats(allow_nan=False, width=64), max_size=8).map(
 @settings(max_examples=80, deadline=None)
 @given(x=_floats, widths=_floats, knife=st.none() | _floats, pitch=st.floats(allow_nan=False))
 def test_a_packed_measurement_comes_back_field_for_field(x, widths, knife, pitch):
-    from controller.measure_workers import _pack, _Packed
+    from controller.measure_worker_process import _pack, _Packed
 
     meas = _Meas(x, pitch, widths, np.arange(3, dtype=np.int32), knife_mm=knife)
     packed = _pack(meas)
@@ -355,6 +355,6 @@ def test_a_packed_measurement_comes_back_field_for_field(x, widths, knife, pitch
     None,
 ])
 def test_what_is_not_a_plain_dataclass_of_float_arrays_goes_as_it_is(meas):
-    from controller.measure_workers import _pack
+    from controller.measure_worker_process import _pack
 
     assert _pack(meas) is meas

@@ -19,14 +19,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.measure_workers import (
+from controller.measure_worker_process import (
     _blob_into_slot,
     _cal_from,
     _cal_state,
     _pack,
     _Packed,
-    _Worker,
 )
+from controller.measure_workers import _Worker
 from vision.selfcal import Calibration, SelfCalibrator
 
 # ---------------------------------------------------------------------------------------------

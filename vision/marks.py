@@ -420,27 +420,6 @@ def _sample_marks(
     return idx.astype(np.float64), h[idx], bot.astype(np.float64), h[bot]
 
 
-def _arc_refine(
-    x: np.ndarray, h: np.ndarray, p: np.ndarray, gaps: np.ndarray, dx: float, guard: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Cusps, cusp heights, bottoms (in samples) and bottom heights from the arc model."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return _arc_model(h, p, gaps, dx, guard, _cumsum0(p))
-
-
-_SAMPLES: dict[int, np.ndarray] = {}
-
-
-def _samples(n: int) -> np.ndarray:
-    """``np.arange(n, dtype=float)`` (cached)."""
-    s = _SAMPLES.get(n)
-    if s is None:
-        if len(_SAMPLES) > 64:
-            _SAMPLES.clear()
-        s = _SAMPLES[n] = np.arange(n, dtype=np.float64)
-    return s
-
-
 def _arc_model(
     h: np.ndarray, p: np.ndarray, gaps: np.ndarray, dx: float, guard: int, cum_p: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -1,0 +1,325 @@
+"""The measurement worker process and the messages it exchanges with its pool.
+
+:class:`controller.measure_workers.MeasureWorkerPool` starts :func:`_worker_main` in each worker
+process. A job message carries the pair's place in the pool's shared memory (or the images),
+its numbers, the machine's facts and the board's calibrator as its fields' values
+(:func:`_cal_state` / :func:`_cal_from`: the class and field names pickled once); the reply
+carries the ``Measurement`` with its float arrays written back into the pair's slot
+(:func:`_pack`, :func:`_blob_into_slot`, :meth:`_Packed.unpack`) and the calibration estimates
+the pair contributed (:class:`_RecordingCalibrator`). Replies go as one write
+(:func:`_send_whole`) and are cut out of what the pool reads with :func:`_whole_messages`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import pickle
+import signal
+import struct
+import time
+from multiprocessing.reduction import ForkingPickler
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from controller.events import exc_name
+from controller.measurement import VISION_ERRORS, MeasurementStage, failure_reason
+
+_HEADER = struct.Struct("!i")  # Connection.send's length header ...
+_LONG_HEADER = struct.Struct("!Q")  # ... and its long form after -1
+
+
+class _RecordingCalibrator:
+    """The board's calibrator as the worker got it, noting each estimate folded in.
+
+    ``roll`` is the service's word on the camera's roll for this pair
+    (:class:`controller.measure_workers._RollPlan`): ``None`` leaves it to the calibrator,
+    ``()`` has the pair search for it, ``(roll_deg, confidence)`` has it use that; a search's
+    confident result is noted in :attr:`found`.
+    """
+
+    def __init__(self, calibrator: Any, roll: tuple[float, ...] | None = None) -> None:
+        self.calibrator = calibrator
+        self.estimates: list[Any] = []
+        self.roll = roll
+        self.found: tuple[float, float] | None = None
+
+    def update(self, estimate: Any) -> Any:
+        self.estimates.append(estimate)
+        return self.calibrator.update(estimate)
+
+    def known_roll(self) -> tuple[float, float] | None:
+        if self.roll is None:
+            return self.calibrator.known_roll()
+        return (self.roll[0], self.roll[1]) if self.roll else None
+
+    def note_roll(self, roll_deg: float, confidence: float, *, min_confidence: float) -> None:
+        if math.isfinite(confidence) and confidence >= min_confidence:
+            self.found = (float(roll_deg), float(confidence))
+        if self.roll is None:
+            self.calibrator.note_roll(roll_deg, confidence, min_confidence=min_confidence)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.calibrator, name)
+
+
+class _Packed(NamedTuple):
+    """A dataclass measurement with its 1-D float arrays in one (:func:`_pack`)."""
+
+    cls: type
+    state: dict[str, Any]  # the instance's fields, the packed arrays as None
+    names: tuple[str, ...]
+    lengths: tuple[int, ...]
+    blob: np.ndarray | None  # None: in the pair's slot (:func:`_blob_into_slot`)
+
+    def unpack(self) -> Any:
+        """The measurement as pickle would rebuild it (no ``__init__``), arrays as views."""
+        obj = self.cls.__new__(self.cls)
+        d = obj.__dict__
+        d.update(self.state)
+        start = 0
+        for name, n in zip(self.names, self.lengths, strict=True):
+            d[name] = self.blob[start:start + n]
+            start += n
+        return obj
+
+
+def _pack(meas: Any) -> Any:
+    """A plain dataclass measurement with its 1-D float64 arrays concatenated (else as is).
+
+    Pickling eight small arrays one by one cost a worker 20-50 us per pair (the pickler's
+    path per array, cold after the measurement); one array and a dict of the rest cost a
+    third of that, and the service rebuilds the same fields (:meth:`_Packed.unpack`).
+    """
+    cls = type(meas)
+    state = getattr(meas, "__dict__", None)
+    if (state is None or not dataclasses.is_dataclass(cls) or hasattr(cls, "__setstate__")
+            or cls.__reduce_ex__ is not object.__reduce_ex__
+            or cls.__reduce__ is not object.__reduce__):
+        return meas
+    names = [k for k, v in state.items()
+             if type(v) is np.ndarray and v.ndim == 1 and v.dtype == np.float64]
+    if len(names) < 2:
+        return meas
+    arrays = [state[k] for k in names]
+    rest = dict(state)
+    for k in names:
+        rest[k] = None  # keeps the fields' order
+    return _Packed(cls, rest, tuple(names), tuple(a.size for a in arrays),
+                   np.concatenate(arrays))
+
+
+def _blob_into_slot(packed: Any, buf: Any, offset: int, room: int) -> Any:
+    """``packed`` with its float array written into the pair's slot (``blob=None``) if it fits.
+
+    The slot's images are no longer needed once measured: the service copies the array out
+    of the slot (:meth:`_Worker.unpacked`) instead of both sides pickling, writing and reading
+    it (16 KB at 659 px a row: 15-40 us a pair over both processes).
+    """
+    if type(packed) is not _Packed or packed.blob.nbytes > room:
+        return packed
+    np.ndarray(packed.blob.shape, np.float64, buffer=buf, offset=offset)[:] = packed.blob
+    return packed._replace(blob=None)
+
+
+_PLAIN = (float, int, bool, str, type(None))
+
+
+_SCHEMAS: dict[tuple, bytes] = {}  # the service's side: (class, fields, arrays) -> its pickle
+_BUILT: dict[bytes, tuple] = {}  # the worker's side: that pickle -> (class, fields, arrays)
+
+
+def _cal_state(cal: Any) -> tuple[Any, tuple | None]:
+    """A calibrator as ``(schema, values)`` when it is a plain object of numbers (else as is).
+
+    Pickling a ``SelfCalibrator`` (its object, a 2-element array) cost the service 7-8 us per
+    pair, most of the job's pickle; its fields' values as a tuple and its class and field names
+    pickled once (``schema``: the same bytes each time) cost a third of it. Plain: the fields in
+    ``__dict__``, pickled the default way, each a number, string, ``None``, a tuple of those or
+    a 1-D float64 array (sent as a tuple). Anything else: ``(cal, None)``.
+    """
+    cls = type(cal)
+    state = getattr(cal, "__dict__", None)
+    if (state is None or hasattr(cls, "__setstate__") or hasattr(cls, "__slots__")
+            or cls.__reduce_ex__ is not object.__reduce_ex__
+            or cls.__reduce__ is not object.__reduce__):
+        return cal, None
+    values: list[Any] = []
+    arrays: list[int] = []
+    for v in state.values():
+        t = type(v)
+        if t is np.ndarray and v.ndim == 1 and v.dtype == np.float64:
+            arrays.append(len(values))
+            v = tuple(v.tolist())
+        elif not (t in _PLAIN or (t is tuple and all(type(x) in _PLAIN for x in v))):
+            return cal, None
+        values.append(v)
+    key = (cls, tuple(state), tuple(arrays))
+    schema = _SCHEMAS.get(key)
+    if schema is None:
+        schema = _SCHEMAS[key] = pickle.dumps(key)
+    return schema, tuple(values)
+
+
+def _cal_from(schema: Any, values: tuple | None) -> Any:
+    """The worker's calibrator from :func:`_cal_state` (a new object, no ``__init__``)."""
+    if values is None:
+        return schema
+    built = _BUILT.get(schema)
+    if built is None:
+        built = _BUILT[schema] = pickle.loads(schema)
+    cls, names, arrays = built
+    obj = cls.__new__(cls)
+    vals = list(values)
+    for i in arrays:
+        vals[i] = np.array(vals[i], dtype=np.float64)
+    obj.__dict__.update(zip(names, vals, strict=True))
+    return obj
+
+
+# ---------------------------------------------------------------------------------------------
+# the worker process
+
+
+def _send_whole(conn: Any, obj: Any) -> None:
+    """``conn.send(obj)`` as one write of header and body (what ``conn.recv`` reads).
+
+    ``Connection.send`` writes a message over 16 KB as two writes (header, then body); a
+    worker descheduled between them (normal priority on a busy host) keeps the service's
+    real-time bus thread waiting in ``recv`` for the body: 9-40 ms per pair measured under six
+    CPU hogs (docs/reliability.md). One write of both lands at once.
+    """
+    body = ForkingPickler.dumps(obj)
+    if len(body) > 0x7FFFFFFF:  # the long header form: leave it to the library
+        conn.send(obj)
+        return
+    view = memoryview(struct.pack("!i", len(body)) + bytes(body))
+    fd = conn.fileno()
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: int,
+                 threads: int = 1, nice: int | None = None) -> None:
+    """A worker: set up once, then measure the pairs the pipe brings until told to stop."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the service's to handle
+    if nice is not None:
+        from core.realtime import lower_priority
+
+        lower_priority(nice)
+    import gc
+
+    import cv2
+
+    cv2.setNumThreads(threads)  # the cores shared out: the pool spreads the pairs over them
+    stage = MeasurementStage(None, factory, threaded=False)
+    if shape is not None:
+        try:  # set-up once: imports, undistortion maps, FFT plans
+            stage.measurer(shape)
+        except VISION_ERRORS:
+            pass  # the first pair says why, as a failed measurement
+    gc.collect()
+    gc.freeze()  # the set-up's objects never need collecting
+    blocks: dict[str, Any] = {}
+    conn.send(("ready", index, os.getpid()))
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):  # the service is gone
+            break
+        if msg is None:
+            break
+        if msg[0] == "prepare":
+            try:
+                stage.measurer(msg[1], msg[2])
+            except VISION_ERRORS:
+                pass
+            continue
+        try:
+            reply = _run_job(stage, blocks, msg)
+        except BaseException as exc:  # a bug: told to the service, then ends with its traceback
+            conn.send(("fault", msg[1], f"{exc_name(exc)}: {exc}"))
+            raise
+        _send_whole(conn, reply)
+    for block in blocks.values():
+        block.close()
+
+
+def _attach(blocks: dict[str, Any], name: str) -> Any:
+    from multiprocessing import shared_memory
+
+    block = blocks.get(name)
+    if block is None:
+        for old in list(blocks):  # the service replaced the block: the old one goes
+            blocks.pop(old).close()
+        block = blocks[name] = shared_memory.SharedMemory(name=name)
+    return block
+
+
+def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple) -> tuple:
+    """Measure one pair; the reply for the service."""
+    from protocol.frames import Frame
+
+    (_, ticket, where, counts_a, counts_b, speed_mm_s, facts, cal, cal_values, roll) = msg
+    calibrator = _cal_from(cal, cal_values)
+    buf, offset, nbytes = None, 0, 0
+    if where[0] == "shm":
+        _, name, offset, shape, dtype = where
+        buf = _attach(blocks, name).buf
+        nbytes = math.prod(shape) * np.dtype(dtype).itemsize
+        image_a = np.ndarray(shape, dtype, buffer=buf, offset=offset)
+        image_b = np.ndarray(shape, dtype, buffer=buf, offset=offset + nbytes)
+    else:  # images that did not fit a slot came through the pipe
+        image_a, image_b = where[1], where[2]
+    frame = Frame(seq=0, t_s=0.0, image_a=image_a, image_b=image_b, counts_a=counts_a,
+                  counts_b=counts_b, speed_mm_s=speed_mm_s)
+    kwargs: dict[str, Any] = {}
+    recorder = None
+    if calibrator is not None:
+        recorder = _RecordingCalibrator(calibrator, roll)
+        kwargs["calibrator"] = recorder
+    t0 = time.perf_counter()
+    try:
+        meas = stage.measure_now(frame, facts, kwargs)
+    except VISION_ERRORS as exc:
+        found = recorder.found if recorder is not None else None
+        return ("done", ticket, failure_reason(exc), None, (), time.perf_counter() - t0, found)
+    finally:
+        del image_a, image_b, frame  # no view of the slot outlives the job
+    packed = _pack(meas)
+    if buf is not None:  # the slot's images are done with: the arrays go back in it
+        packed = _blob_into_slot(packed, buf, offset, 2 * nbytes)
+    if recorder is None:
+        return ("done", ticket, None, packed, (), time.perf_counter() - t0, None)
+    return ("done", ticket, None, packed, tuple(recorder.estimates),
+            time.perf_counter() - t0, recorder.found)
+
+
+# ---------------------------------------------------------------------------------------------
+# the service's side
+
+
+def _whole_messages(buf: bytearray) -> list[bytes]:
+    """Take the whole ``Connection.send`` messages off the front of ``buf`` (in place).
+
+    Each is a 4-byte length (or -1 and an 8-byte one) and that many bytes; a message not yet
+    whole stays in ``buf`` for the next read.
+    """
+    pos, end = 0, len(buf)
+    whole: list[bytes] = []
+    while end - pos >= 4:
+        (n,) = _HEADER.unpack_from(buf, pos)
+        head = 4
+        if n == -1:
+            if end - pos < 12:
+                break
+            (n,) = _LONG_HEADER.unpack_from(buf, pos + 4)
+            head = 12
+        if end - pos - head < n:
+            break
+        whole.append(bytes(buf[pos + head:pos + head + n]))
+        pos += head + n
+    del buf[:pos]
+    return whole
