@@ -141,12 +141,18 @@ class ImageHeader:
         Sample type after decoding (``"uint8"``, ``"uint16"``; for ``.npy`` the stored one).
     channels : int
         Samples per pixel (1 = grayscale).
+    fortran_order : bool
+        ``.npy`` only: the samples stored column by column.
+    data_offset : int
+        ``.npy`` only: where the samples start in the file, bytes.
     """
 
     width: int
     height: int
     dtype: str
     channels: int = 1
+    fortran_order: bool = False
+    data_offset: int = 0
 
     @property
     def pixels(self) -> int:
@@ -203,8 +209,25 @@ _NPY_HEADER_ERRORS = (ValueError, SyntaxError, TypeError, KeyError, IndexError, 
                       RecursionError, MemoryError, tokenize.TokenError)
 
 
+_NPY_HEADS: dict[tuple[bytes, int], ImageHeader] = {}
+"""Headers already parsed, by header bytes and file size (a camera writes the same one)."""
+_NPY_HEADS_MAX = 16
+
+
+def _npy_header_key(data: bytes) -> tuple[bytes, int] | None:
+    """The header's bytes (magic, version, length, dictionary) and the file size, if well-formed."""
+    if len(data) < 12 or data[:6] != b"\x93NUMPY" or data[6] not in (1, 2, 3):
+        return None
+    size = (10 + int.from_bytes(data[8:10], "little") if data[6] == 1
+            else 12 + int.from_bytes(data[8:12], "little"))
+    return (bytes(data[:size]), len(data)) if size <= 4096 and len(data) >= size else None
+
+
 def npy_header(data: bytes) -> ImageHeader:
-    """Size and sample type of a ``.npy`` file from its header (no array is built).
+    """Size, sample type and layout of a ``.npy`` file from its header (no array is built).
+
+    The header's parse (``ast.literal_eval``, about 0.1 ms) is remembered per header bytes and
+    file size: the result depends on nothing else.
 
     Raises
     ------
@@ -213,6 +236,18 @@ def npy_header(data: bytes) -> ImageHeader:
     """
     if len(data) == 0:
         raise MeasurementError("empty file (0 bytes)")
+    key = _npy_header_key(data)
+    head = _NPY_HEADS.get(key) if key is not None else None
+    if head is None:
+        head = _parse_npy_header(data)  # raises on a bad header: nothing remembered
+        if key is not None:
+            if len(_NPY_HEADS) >= _NPY_HEADS_MAX:
+                _NPY_HEADS.clear()
+            _NPY_HEADS[key] = head
+    return head
+
+
+def _parse_npy_header(data: bytes) -> ImageHeader:
     bio = io.BytesIO(data)
     try:
         major, _minor = np.lib.format.read_magic(bio)
@@ -229,7 +264,9 @@ def npy_header(data: bytes) -> ImageHeader:
         raise MeasurementError(f".npy array of type {dtype} is not a numeric image")
     if len(shape) != 2 or min(shape) < 1:
         raise MeasurementError(f".npy array of shape {shape} is not a 2-D image")
-    need = bio.tell() + shape[0] * shape[1] * dtype.itemsize
+    offset = bio.tell()
+    need = offset + shape[0] * shape[1] * dtype.itemsize
     if len(data) != need:
         raise MeasurementError(f"truncated .npy file: {len(data)} bytes, its header says {need}")
-    return ImageHeader(width=int(shape[1]), height=int(shape[0]), dtype=str(dtype))
+    return ImageHeader(width=int(shape[1]), height=int(shape[0]), dtype=str(dtype),
+                       fortran_order=bool(fortran), data_offset=offset)

@@ -559,44 +559,15 @@ def read_spool_file(directory: Path, name: str, *, max_bytes: int) -> tuple[byte
 
 
 def _c_order_npy(data: bytes, head: Any) -> np.ndarray | None:
-    """A C-ordered ``.npy`` image from its bytes, or ``None`` (``np.load`` reads the file).
+    """A C-ordered ``.npy`` image straight from its bytes, or ``None`` (``np.load`` reads it).
 
-    ``npy_header`` checked the header and the size (the data are the file's last bytes): this
-    does not parse the header again (issue 11, spool latency).
+    ``head`` is ``npy_header``'s (it checked the header and the size): no second parse.
     """
-    if b"'fortran_order': False" not in data[:4096]:
+    if head.fortran_order:
         return None
-    dtype = np.dtype(head.dtype)
-    count = head.width * head.height
-    flat = np.frombuffer(data, dtype=dtype, count=count, offset=len(data) - count * dtype.itemsize)
+    flat = np.frombuffer(data, dtype=np.dtype(head.dtype), count=head.pixels,
+                         offset=head.data_offset)
     return flat.reshape(head.height, head.width).copy()  # writable, its own memory
-
-
-_NPY_HEADS: dict[tuple[bytes, int], Any] = {}
-
-
-def _npy_header_once(data: bytes) -> Any:
-    """``core.imageio.npy_header``, remembered per header bytes and file size.
-
-    Its result depends on nothing else, and a camera writes the same header every time: the
-    header's parse (``ast.literal_eval``, about 0.1 ms) once (issue 11, spool latency).
-    """
-    from core.imageio import npy_header
-
-    key = None
-    if len(data) >= 12 and data[:6] == b"\x93NUMPY" and data[6] in (1, 2, 3):
-        size = (10 + int.from_bytes(data[8:10], "little") if data[6] == 1
-                else 12 + int.from_bytes(data[8:12], "little"))
-        if size <= 4096 and len(data) >= size:
-            key = (bytes(data[:size]), len(data))
-    head = _NPY_HEADS.get(key) if key is not None else None
-    if head is None:
-        head = npy_header(data)  # raises on a bad header: nothing remembered
-        if key is not None:
-            if len(_NPY_HEADS) >= 16:
-                _NPY_HEADS.clear()
-            _NPY_HEADS[key] = head
-    return head
 
 
 def decode_spool_image(data: bytes, name: str, *, limits: SpoolLimits) -> np.ndarray:
@@ -609,11 +580,11 @@ def decode_spool_image(data: bytes, name: str, *, limits: SpoolLimits) -> np.nda
         ``limits.image_shape``; the message says which.
     """
     from core.errors import MeasurementError
-    from core.imageio import png_header
+    from core.imageio import npy_header, png_header
 
     is_npy = name.endswith(".npy")
     try:
-        head = _npy_header_once(data) if is_npy else png_header(data)
+        head = npy_header(data) if is_npy else png_header(data)
     except MeasurementError as exc:
         raise SpoolFileError(str(exc)) from None
     if head.pixels > limits.max_pixels:

@@ -136,22 +136,24 @@ def _npy(array: np.ndarray) -> bytes:
     np.asfortranarray(np.arange(12, dtype=np.uint16).reshape(3, 4)),
 ])
 def test_the_remembered_npy_header_is_the_header(array):
-    from core.imageio import npy_header
-    from protocol.frames import _npy_header_once
+    from core.imageio import _parse_npy_header, npy_header
 
     data = _npy(array)
     for _ in range(2):  # parsed, then remembered
-        assert _npy_header_once(data) == npy_header(data)
+        assert npy_header(data) == _parse_npy_header(data)
+    head = npy_header(data)
+    assert head.fortran_order == (array.flags.f_contiguous and not array.flags.c_contiguous)
+    assert data[head.data_offset:] == array.tobytes(order="F" if head.fortran_order else "C")
 
 
 def test_a_truncated_npy_file_is_refused_after_a_good_one_with_its_header():
     from core.errors import MeasurementError
-    from protocol.frames import _npy_header_once
+    from core.imageio import npy_header
 
     data = _npy(np.zeros((3, 5), np.uint8))
-    _npy_header_once(data)
+    npy_header(data)
     with pytest.raises(MeasurementError, match="truncated"):
-        _npy_header_once(data[:-1])
+        npy_header(data[:-1])
 
 
 def test_the_bench_camera_prunes_a_pair_by_its_names(tmp_path):
