@@ -1,4 +1,4 @@
-"""A spool folder's commits as they happen: Linux inotify, so the reader wakes without polling.
+"""A spool folder's commits as they happen: Linux inotify (``inotify_simple``), no polling.
 
 A :class:`~protocol.frames.SpoolWriter` commits a pair by renaming its metadata file
 (``pair-<slot>.json``) into the folder, last (``docs/frames.md``). :class:`SpoolWatch` asks the
@@ -10,7 +10,7 @@ images renamed in before it and the writer's temporary files do not wake it.
 
 Where inotify is missing (not Linux, no ``libc``, the folder not there, the watch limit reached)
 :attr:`SpoolWatch.active` is false and :meth:`wait` just sleeps its timeout: the reader polls as
-before. The events also name the committed pairs (:func:`committed_slots`,
+before. The events also name the committed pairs (:func:`summarize`,
 :meth:`SpoolWatch.take_committed`): the reader reads those without listing the folder
 (``SpoolReader.note_committed``), and still lists it about once a second and whenever the events
 cannot say which pairs came (a queue overflow, another commit name), so a lost or merged event
@@ -19,26 +19,24 @@ costs at most one poll interval (:data:`WATCHED_POLL_S`).
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import functools
 import os
 import re
 import select
-import struct
 import threading
 import time
 from pathlib import Path
+from typing import NamedTuple
 
-IN_CLOSE_WRITE = 0x00000008
-IN_MOVED_TO = 0x00000080
-IN_Q_OVERFLOW = 0x00004000
-IN_IGNORED = 0x00008000
-IN_DELETE_SELF = 0x00000400
-IN_MOVE_SELF = 0x00000800
-IN_NONBLOCK = 0o4000
-IN_CLOEXEC = 0o2000000
-_EVENT = struct.Struct("iIII")  # wd, mask, cookie, len (then len bytes of name)
+try:  # Linux only (a dependency there, pyproject.toml)
+    import inotify_simple
+except ImportError:  # pragma: no cover - not Linux
+    inotify_simple = None
+
+if inotify_simple is not None:
+    _F = inotify_simple.flags
+    IN_CLOSE_WRITE, IN_MOVED_TO = int(_F.CLOSE_WRITE), int(_F.MOVED_TO)
+    IN_Q_OVERFLOW, IN_IGNORED = int(_F.Q_OVERFLOW), int(_F.IGNORED)
+    IN_DELETE_SELF, IN_MOVE_SELF = int(_F.DELETE_SELF), int(_F.MOVE_SELF)
 COMMIT_SUFFIX = b".json"
 """Names ending so are a pair's metadata: its commit marker."""
 STOP_CHECK_S = 0.05
@@ -49,82 +47,55 @@ WATCHED_POLL_S = 0.05
 second instead of every ``frames.poll_s`` (500 times), each wake a turn of the interpreter lock
 taken from a measurement on the event loop's thread. A pair that a poll finds first (a file
 system whose events do not come, e.g. a network share) brings ``frames.poll_s`` back."""
-_COMMIT_NAME = re.compile(rb"pair-([0-9]{1,18})\.json")
-TMP_PREFIX = b"."
+_COMMIT_NAME = re.compile(r"pair-([0-9]{1,18})\.json")
+TMP_PREFIX = "."
 """The writer's temporary names start so (never a commit)."""
 
 
-@functools.lru_cache(maxsize=1)
-def _libc() -> ctypes.CDLL | None:
-    """The C library if it offers inotify (this process's symbols first, then ``libc``)."""
-    for name in (None, "find"):
-        if name == "find":  # only if needed: it may run ldconfig
-            name = ctypes.util.find_library("c")
-        try:
-            lib = ctypes.CDLL(name, use_errno=True)
-            lib.inotify_init1  # noqa: B018 - present?
-            lib.inotify_add_watch  # noqa: B018
-        except (OSError, AttributeError, TypeError):
-            continue
-        return lib
-    return None
-
-
-def is_commit(name: bytes) -> bool:
+def is_commit(name: str) -> bool:
     """Whether a file name a folder event carries is a pair's commit (its metadata file)."""
-    return name.endswith(COMMIT_SUFFIX) and not name.startswith(TMP_PREFIX)
+    return name.endswith(".json") and not name.startswith(TMP_PREFIX)
 
 
-def commits_in(buffer: bytes) -> bool:
-    """Whether the inotify events in ``buffer`` name a commit (or overflowed: maybe one).
+class EventSummary(NamedTuple):
+    """What one read of a folder's events says (:func:`summarize`)."""
+
+    commit: bool
+    """A commit came (or events were lost: maybe one)."""
+    gone: bool
+    """The folder itself went (deleted, moved, unwatched)."""
+    slots: list[int] | None
+    """The committed pairs (slot numbers) in event order; ``None`` when the events cannot say
+    which (an overflowed queue, a commit name that is not ``pair-<digits>.json``): the reader
+    must list the folder then."""
+
+
+def summarize(buffer: bytes) -> EventSummary:
+    """One pass over what one ``read`` of an inotify descriptor returned.
 
     Parameters
     ----------
     buffer : bytes
-        What one ``read`` of an inotify descriptor returned: whole ``struct inotify_event``
-        records, each followed by its NUL-padded name.
+        Whole ``struct inotify_event`` records, each followed by its NUL-padded name
+        (parsed by ``inotify_simple.parse_events``).
     """
-    pos, n = 0, len(buffer)
-    while pos + _EVENT.size <= n:
-        _wd, mask, _cookie, length = _EVENT.unpack_from(buffer, pos)
-        name = buffer[pos + _EVENT.size: pos + _EVENT.size + length].rstrip(b"\0")
-        pos += _EVENT.size + length
-        if mask & (IN_Q_OVERFLOW | IN_IGNORED) or is_commit(name):
-            return True
-    return False
-
-
-def committed_slots(buffer: bytes) -> list[int] | None:
-    """The pairs (slot numbers) whose commit the events in ``buffer`` name, in event order.
-
-    ``None`` when the events cannot say which (an overflowed queue, a commit name that is not
-    ``pair-<digits>.json``): the reader must list the folder then.
-    """
-    out: list[int] = []
-    pos, n = 0, len(buffer)
-    while pos + _EVENT.size <= n:
-        _wd, mask, _cookie, length = _EVENT.unpack_from(buffer, pos)
-        name = buffer[pos + _EVENT.size: pos + _EVENT.size + length].rstrip(b"\0")
-        pos += _EVENT.size + length
+    commit = gone = False
+    slots: list[int] | None = []
+    for event in inotify_simple.parse_events(buffer):
+        mask, name = event.mask, event.name
         if mask & IN_Q_OVERFLOW:
-            return None
+            commit, slots = True, None
+        if mask & (IN_IGNORED | IN_DELETE_SELF | IN_MOVE_SELF):
+            gone = True
+            commit = commit or bool(mask & IN_IGNORED)
         if is_commit(name):
+            commit = True
             m = _COMMIT_NAME.fullmatch(name)
             if m is None:
-                return None
-            out.append(int(m.group(1)))
-    return out
-
-
-def watch_gone(buffer: bytes) -> bool:
-    """Whether the events in ``buffer`` say the folder itself went (deleted, moved, unwatched)."""
-    pos, n = 0, len(buffer)
-    while pos + _EVENT.size <= n:
-        _wd, mask, _cookie, length = _EVENT.unpack_from(buffer, pos)
-        pos += _EVENT.size + length
-        if mask & (IN_IGNORED | IN_DELETE_SELF | IN_MOVE_SELF):
-            return True
-    return False
+                slots = None
+            elif slots is not None:
+                slots.append(int(m.group(1)))
+    return EventSummary(commit, gone, slots)
 
 
 class SpoolWatch:
@@ -142,24 +113,26 @@ class SpoolWatch:
         self.directory = Path(directory)
         self._stop = stop if stop is not None else threading.Event()
         self._fd: int | None = None
+        self._inotify = None
         self._committed: list[int] | None = []  # slots the events named; None: unknown
-        lib = _libc()
-        if lib is None:
+        if inotify_simple is None:
             return
-        fd = int(lib.inotify_init1(IN_NONBLOCK | IN_CLOEXEC))
-        if fd < 0:
+        try:
+            ino = inotify_simple.INotify(nonblocking=True)
+        except OSError:
             return
-        wd = int(lib.inotify_add_watch(fd, os.fsencode(self.directory),
-                                       IN_MOVED_TO | IN_CLOSE_WRITE | IN_DELETE_SELF
-                                       | IN_MOVE_SELF))
-        if wd < 0:
-            os.close(fd)
+        try:
+            ino.add_watch(self.directory, IN_MOVED_TO | IN_CLOSE_WRITE | IN_DELETE_SELF
+                          | IN_MOVE_SELF)
+        except OSError:  # the folder is not there, the watch limit reached
+            ino.close()
             return
-        self._fd = fd
+        self._fd = ino.fileno()
+        self._inotify = ino
 
     def retry(self) -> bool:
         """Whether a new watch may succeed where this one failed (inotify, and the folder now)."""
-        return _libc() is not None and self.directory.is_dir()
+        return inotify_simple is not None and self.directory.is_dir()
 
     @property
     def active(self) -> bool:
@@ -205,13 +178,12 @@ class SpoolWatch:
                 break
             if not buf:
                 break
-            found = commits_in(buf) or found
-            gone = watch_gone(buf) or gone
-            slots = committed_slots(buf)
-            if slots is None or self._committed is None:
+            events = summarize(buf)
+            found, gone = found or events.commit, gone or events.gone
+            if events.slots is None or self._committed is None:
                 self._committed = None
             else:
-                self._committed.extend(slots)
+                self._committed.extend(events.slots)
         if gone:
             self.close()
         return found or gone
@@ -227,7 +199,7 @@ class SpoolWatch:
 
     def close(self) -> None:
         """Stop watching (idempotent)."""
-        fd, self._fd = self._fd, None
-        if fd is not None:
-            os.close(fd)
+        ino, self._inotify, self._fd = self._inotify, None, None
+        if ino is not None:
+            ino.close()
 

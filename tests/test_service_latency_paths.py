@@ -20,12 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from controller.spool_watch import (
-    IN_MOVED_TO,
-    IN_Q_OVERFLOW,
-    SpoolWatch,
-    commits_in,
-)
+from controller.spool_watch import IN_MOVED_TO, IN_Q_OVERFLOW, SpoolWatch, summarize
 from protocol.frames import Frame
 
 BACKSTOP_S = 60.0
@@ -44,12 +39,12 @@ def _event(name: bytes, mask: int = IN_MOVED_TO) -> bytes:
     ([], False),
 ])
 def test_only_a_metadata_file_is_a_commit(names, commit):
-    assert commits_in(b"".join(_event(n) for n in names)) is commit
+    assert summarize(b"".join(_event(n) for n in names)).commit is commit
 
 
 def test_an_overflowed_event_queue_counts_as_a_commit():
     # events were lost: the reader must look at the folder
-    assert commits_in(_event(b"", IN_Q_OVERFLOW))
+    assert summarize(_event(b"", IN_Q_OVERFLOW)).commit
 
 
 def test_a_watch_wakes_for_a_commit_and_not_for_images(tmp_path):

@@ -17,7 +17,7 @@ import struct
 import numpy as np
 import pytest
 
-from controller.spool_watch import IN_CLOSE_WRITE, IN_MOVED_TO, IN_Q_OVERFLOW, committed_slots
+from controller.spool_watch import IN_CLOSE_WRITE, IN_MOVED_TO, IN_Q_OVERFLOW, summarize
 from protocol.frames import Frame, SpoolReader, SpoolWriter
 
 BACKSTOP_S = 60.0
@@ -45,7 +45,7 @@ def _frame(seq: int) -> Frame:
     ([], []),
 ])
 def test_the_events_name_the_committed_slots_or_say_they_cannot(events, slots):
-    assert committed_slots(b"".join(_event(n, m) for n, m in events)) == slots
+    assert summarize(b"".join(_event(n, m) for n, m in events)).slots == slots
 
 
 def _writer_and_reader(tmp_path, n_before: int = 2):
