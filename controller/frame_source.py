@@ -50,17 +50,6 @@ def _resolve(future: asyncio.Future) -> None:
         future.set_result(None)
 
 
-def _note_committed(watch: Any, reader: Any) -> None:
-    """Tell ``reader`` the pairs ``watch``'s events named (it then reads them unlisted)."""
-    take = getattr(watch, "take_committed", None)
-    note = getattr(reader, "note_committed", None)
-    if take is None or note is None:
-        return
-    slots = take()
-    if slots:
-        note(slots)
-
-
 class SpoolFrameSource:
     """A spool directory read in a reader thread; the service awaits :meth:`next`.
 
@@ -152,7 +141,7 @@ class SpoolFrameSource:
                 # for the next commit's event rather than list the folder again at once (a
                 # listing, 0.2-0.5 ms, taking the interpreter lock from a measurement)
                 quiet = (not waited and trusted and watch is not None and watch.active
-                         and getattr(reader, "pending", 1) == 0)
+                         and reader.pending == 0)
                 frame = None if quiet else reader.poll()
                 if frame is None:
                     if watch is not None and not watch.active and watch.retry():
@@ -162,8 +151,9 @@ class SpoolFrameSource:
                         woken = watch.wait(max(self.poll_s, WATCHED_POLL_S)
                                            if watch.active and trusted else self.poll_s)
                         waited = True
-                        if woken:  # the events name the pairs: read them without a listing
-                            _note_committed(watch, reader)
+                        slots = watch.take_committed() if woken else None
+                        if slots:  # the events name the pairs: read them without a listing
+                            reader.note_committed(slots)
                     else:
                         self._stop.wait(self.poll_s)
                     continue

@@ -493,6 +493,9 @@ def test_the_reader_polls_rarely_only_once_the_events_announced_a_pair(tmp_path,
                 self.stop.wait(BACKSTOP_S)
             return events_come
 
+        def take_committed(self):
+            return []
+
         def close(self):
             pass
 
@@ -542,6 +545,9 @@ def test_after_a_pair_the_reader_waits_for_the_next_event_unless_pairs_are_pendi
                 done.set()
                 self.stop.wait(BACKSTOP_S)
             return True  # every wait ended by a commit's event
+
+        def take_committed(self):
+            return []
 
         def close(self):
             pass
