@@ -468,6 +468,24 @@ def test_the_bench_camera_prunes_one_pair_after_taking_its_commit_time(tmp_path)
         "pair-000000000004.a.npy", "pair-000000000004.b.npy", "pair-000000000004.json"]
 
 
+class _QuietWatch:
+    """A stand-in for ``SpoolWatch`` whose events name no slots; tests give it ``wait``."""
+
+    active = True
+
+    def __init__(self, directory, *, stop=None):
+        self.stop = stop
+
+    def retry(self):
+        return True
+
+    def take_committed(self):
+        return []
+
+    def close(self):
+        pass
+
+
 @pytest.mark.parametrize("events_come", [True, False])
 def test_the_reader_polls_rarely_only_once_the_events_announced_a_pair(tmp_path, monkeypatch,
                                                                        events_come):
@@ -477,27 +495,13 @@ def test_the_reader_polls_rarely_only_once_the_events_announced_a_pair(tmp_path,
     timeouts: list = []
     done = threading.Event()
 
-    class FakeWatch:
-        def __init__(self, directory, *, stop=None):
-            self.stop = stop
-
-        active = True
-
-        def retry(self):
-            return True
-
+    class FakeWatch(_QuietWatch):
         def wait(self, timeout_s):
             timeouts.append(timeout_s)
             if len(timeouts) >= 6:
                 done.set()
                 self.stop.wait(BACKSTOP_S)
             return events_come
-
-        def take_committed(self):
-            return []
-
-        def close(self):
-            pass
 
     class Pairs(SpoolReader):
         calls = 0
@@ -530,27 +534,13 @@ def test_after_a_pair_the_reader_waits_for_the_next_event_unless_pairs_are_pendi
     calls: list = []
     done = threading.Event()
 
-    class FakeWatch:
-        active = True
-
-        def __init__(self, directory, *, stop=None):
-            self.stop = stop
-
-        def retry(self):
-            return True
-
+    class FakeWatch(_QuietWatch):
         def wait(self, timeout_s):
             calls.append("wait")
             if calls.count("wait") >= 4:
                 done.set()
                 self.stop.wait(BACKSTOP_S)
             return True  # every wait ended by a commit's event
-
-        def take_committed(self):
-            return []
-
-        def close(self):
-            pass
 
     class Pairs(SpoolReader):
         n = 0
