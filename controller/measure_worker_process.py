@@ -25,6 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from controller.events import exc_name
+from controller.latency import IdleCollector
 from controller.measurement import VISION_ERRORS, MeasurementStage, failure_reason
 
 _HEADER = struct.Struct("!i")  # Connection.send's length header ...
@@ -222,6 +223,7 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
             pass  # the first pair says why, as a failed measurement
     gc.collect()
     gc.freeze()  # the set-up's objects never need collecting
+    collector = IdleCollector().install()  # the collections after a reply, not inside a pair
     blocks: dict[str, Any] = {}
     conn.send(("ready", index, os.getpid()))
     while True:
@@ -243,6 +245,7 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
             conn.send(("fault", msg[1], f"{exc_name(exc)}: {exc}"))
             raise
         _send_whole(conn, reply)
+        collector.collect_due()
     for block in blocks.values():
         block.close()
 

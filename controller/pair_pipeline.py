@@ -36,6 +36,7 @@ from controller.control_loops import ControlLoops
 from controller.events import EventKind, EventLog, exc_name
 from controller.frame_intake import FrameIntake, finite_or_none, int_or
 from controller.frame_result import FrameResult
+from controller.latency import collect_between_pairs
 from controller.mark_attribution import Attributed, attribute_or_reason
 from controller.measurement import MeasurementStage, PendingMeasurement, failure_reason
 from controller.plc_client import PlcSnapshot
@@ -253,6 +254,8 @@ class PairPipeline:
             self.results.append(result)
         if self.on_result is not None:
             self.on_result(result)
+        if len(self._in_flight) <= 1:  # no later pair waits for this one: a pause costs nothing
+            collect_between_pairs()
         return result
 
     async def _measured(

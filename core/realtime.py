@@ -211,45 +211,6 @@ def lower_priority(nice: int = RENDER_NICE, *, os_module: Any = None) -> str:
         return f"normal (nice {int(nice)}: {_why(exc)})"
 
 
-@contextlib.contextmanager
-def fair_scheduling(nice: int | None = None) -> Iterator[str]:
-    """Run the block under the fair scheduler if the calling thread is real time.
-
-    The service's event loop runs at ``SCHED_FIFO`` where permitted; a measurement it runs
-    itself (:attr:`controller.measurement.MeasurementStage.inline_max_s`) is heavy work, which
-    stays under the fair scheduler: the thread goes to ``SCHED_OTHER`` at ``nice`` for the
-    block and back to its policy, priority and nice value afterwards (four system calls, a few
-    microseconds). A thread not real time is left as it is. Never raises for scheduling.
-
-    Yields
-    ------
-    str
-        ``"fair"`` (switched for the block) or ``"as is"``.
-    """
-    saved: tuple[int, Any, int] | None = None
-    try:
-        policy = os.sched_getscheduler(0)
-        reset = int(getattr(os, "SCHED_RESET_ON_FORK", 0))
-        if policy & ~reset in (os.SCHED_FIFO, os.SCHED_RR):
-            before = (policy, os.sched_getparam(0), os.getpriority(os.PRIO_PROCESS, 0))
-            os.sched_setscheduler(0, os.SCHED_OTHER | (policy & reset), os.sched_param(0))
-            saved = before
-            if nice is not None:
-                with contextlib.suppress(OSError):
-                    os.setpriority(os.PRIO_PROCESS, 0, int(nice))
-    except (AttributeError, OSError):
-        saved = None
-    try:
-        yield "as is" if saved is None else "fair"
-    finally:
-        if saved is not None:
-            policy, param, nice_before = saved
-            with contextlib.suppress(OSError):
-                os.setpriority(os.PRIO_PROCESS, 0, nice_before)
-            with contextlib.suppress(OSError):
-                os.sched_setscheduler(0, policy, param)
-
-
 def _demote_all(signum: int = 0, frame: Any = None) -> None:  # pragma: no cover - on a spin
     """``SIGXCPU``: every thread raised here back to normal scheduling."""
     with _lock:

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from config.machine import load_machine
-from controller import quality_records
+from controller import latency, quality_records
 from controller.events import EventLog
 from controller.frame_result import FrameResult
 from controller.latency import GcPauses, tune_for_latency
@@ -28,7 +28,7 @@ from controller.record_journal import RecordSink
 from controller.safety import SafetyState
 from planer.hil import Scenario, sim_config_for
 from protocol.frames import Frame
-from tests.plant_support import record_frames, run_for
+from tests.plant_support import record_frames, run_for, truth_measurer
 
 SCENARIO = Scenario(runout_um=(0.0, 4.0, -2.0, 2.0), initial_feed_mm_s=800.0)
 BACKSTOP_S = 60.0
@@ -57,20 +57,6 @@ class GatedLog:
         return getattr(self.log, name)
 
 
-def _truth(frames):
-    class Truth:
-        def measure(self, image_a, image_b, *, counts_a, counts_b, speed_mm_s=None):
-            tr = frames[(counts_a, counts_b)].truth
-            return SimpleNamespace(
-                pitch_mm=float(tr["pitch_mm"]),
-                mark_widths_mm=np.asarray(tr["mark_widths_mm"], float),
-                bottoms_mm=np.asarray(tr["bottoms_mm"], float),
-                uniformity_cv=float(tr["uniformity_cv"]), depth_um=float(tr["depth_um"]),
-                shift_px=float(tr["shift_px"]), confidence=1.0)
-
-    return Truth()
-
-
 def _real_time_plant(tmp_path, log):
     """The in-process plant with the service as ``planer serve`` runs it (threaded)."""
     from controller.service import Service
@@ -80,11 +66,11 @@ def _real_time_plant(tmp_path, log):
     cfg = cfg.with_changes(log=replace(cfg.log, path=tmp_path / "q.sqlite"))
     frames: dict = {}
     plant = InProcessPlant(cfg, sim_config_for(SCENARIO), render_images=False,
-                           measurer_factory=lambda shape: _truth(frames), log=None)
+                           measurer_factory=lambda shape: truth_measurer(frames), log=None)
     record_frames(plant, frames)
     plant.service = Service(cfg, plc=plant.plc, piezo=plant.piezo, rig=plant.rig, log=log,
                             clock=plant.clock, threaded=True,
-                            measurer_factory=lambda shape: _truth(frames),
+                            measurer_factory=lambda shape: truth_measurer(frames),
                             pairs_per_s=plant.sim_cfg.camera.pairs_per_s)
     plant.service.keep_results = True
     return plant
@@ -276,6 +262,8 @@ def test_tune_for_latency_freezes_the_heap_and_shortens_the_switch_interval():
         with pytest.raises(ValueError, match="switch_interval_s"):
             tune_for_latency(switch_interval_s=0.0)
     finally:
+        if (idle := latency.idle_collector()) is not None:
+            idle.uninstall()
         gc.unfreeze()
         sys.setswitchinterval(before)
 
@@ -319,6 +307,28 @@ def test_bench_figures_break_the_latency_down_from_the_results():
     assert out["meets"] == {"p99": True, "max": True, "p99_over_median": True}
     text = bench.text({**out, "modes": [out], "machine": {"cores": 2, "load_avg": [1.0]}})
     assert "median 5.00 ms" in text and "vision" in text
+
+
+def test_bench_leaves_the_first_pairs_out_of_the_p99_but_not_out_of_the_max(monkeypatch):
+    from planer.benchmarks import service as bench
+
+    monkeypatch.setattr(bench, "WARMUP_PAIRS", 2)
+    n = 12
+    frames = [SimpleNamespace(image_a=np.zeros((4, 6), np.uint8), seq=i) for i in range(n)]
+    lat_ms = [15.0, 9.0] + [3.0] * (n - 2)  # two cold first pairs, then the steady state
+    res = [SimpleNamespace(seq=i, ok=True, applied=True, t_s=10.0 + i,
+                           latency_s=lat_ms[i] * 1e-3, extra={}) for i in range(n)]
+    service = SimpleNamespace(results=res, records=SimpleNamespace(batches=1))
+    out = bench._latency_figures(service, {i: 10.0 + i for i in range(n)}, {}, GcPauses(),
+                                 frames=frames, rate_hz=100.0, workers=0)
+    assert out["p99_ms"] == pytest.approx(3.0) and out["median_ms"] == pytest.approx(3.0)
+    assert out["max_ms"] == pytest.approx(15.0) and out["warmup_max_ms"] == pytest.approx(15.0)
+    assert out["warmup_pairs"] == 2 and out["p99_all_ms"] > 9.0
+    assert out["meets"]["p99"] and out["meets"]["max"]
+    monkeypatch.setattr(bench, "WARMUP_PAIRS", 0)  # none apart: the first pairs count
+    out = bench._latency_figures(service, {i: 10.0 + i for i in range(n)}, {}, GcPauses(),
+                                 frames=frames, rate_hz=100.0, workers=0)
+    assert out["p99_ms"] > 9.0 and not out["meets"]["p99"]
 
 
 def test_a_pair_in_the_spool_wakes_the_service_without_a_poll_interval(tmp_path):

@@ -20,6 +20,9 @@ the thread or worker process and back; near 0 for a pair measured on the event l
 thread, counted in ``measured_inline``), ``checks`` (plausibility, attribution of the marks to
 knife passes), ``control`` (knife phase, loops, writes); plus the collector's pauses and the
 commits. Through a spool the camera writes raw ``.npy`` images (:data:`SPOOL_IMAGE_FORMAT`).
+The median and p99 are the steady state's: the first :data:`WARMUP_PAIRS` pairs (the first
+after the idle start-up) are reported apart (``warmup_max_ms``, ``p99_all_ms``); the max counts
+every pair.
 
 **Workers** (item 3): :mod:`planer.benchmarks.scaling`.
 
@@ -62,6 +65,10 @@ COMMIT_CLOCK_AT_RENAME = True
 SPOOL_IMAGE_FORMAT = "npy"
 """How the benchmark's camera writes the images into the spool (``SpoolWriter(image_format=...)``):
 raw ``.npy``, the fast hand-off (``"png"``: the default format, a PNG decode per image more)."""
+WARMUP_PAIRS = 3
+"""The run's first pairs, measured after the service idled while it came up (cold caches, the
+first calls of each path: 6-13 ms): left out of the median and p99 (``warmup_pairs``,
+``warmup_max_ms``; ``p99_all_ms`` counts them), never out of the max."""
 QUEUE_PAIRS = 8
 """Pairs the frame source holds; a camera does not wait: when full the oldest pair is dropped
 (counted in ``dropped``), so a service slower than the camera shows as drops, not as an ever
@@ -96,12 +103,17 @@ def machine_description() -> dict[str, Any]:
     return {"cores": available_cores(), "cpus": os.cpu_count(), "load_avg": load, "cpu": model}
 
 
-async def _plc_for(machine: Any) -> tuple[Any, Any]:
-    """The simulated PLC's Modbus server (its own process if possible) and its pump."""
+async def _plc_for(machine: Any, *, realtime: bool = False) -> tuple[Any, Any]:
+    """The simulated PLC's Modbus server (its own process if possible) and its pump.
+
+    ``realtime``: its process at real-time priority where permitted, as a PLC is a device of
+    its own that answers within its cycle however busy the PC is (the latency measured is the
+    service's, not the stand-in PLC's wait for a core).
+    """
     try:
         from plant_sim.plc_process import PlcProcess
 
-        plc = PlcProcess(machine, port=0)
+        plc = PlcProcess(machine, port=0, realtime=realtime)
 
         def pump() -> None:
             plc.apply_writes()
@@ -153,7 +165,7 @@ async def _run(
     from plant_sim.amp_node import AmpNode, AmpNodeCore
     from protocol.piezo_can import PiezoCodec
 
-    plc, plc_pump = await _plc_for(machine)
+    plc, plc_pump = await _plc_for(machine, realtime=priority)
     host, port = await plc.start()
     cfg = load_machine()
     cfg = cfg.with_changes(
@@ -284,7 +296,8 @@ async def _run(
         out["unfinished"] = unfinished[0]  # neither handled nor dropped after DRAIN_TIMEOUT_S
     out["via"] = via
     out["priority"] = {"service_bus": granted,
-                       "measurement_nice": MEASURE_NICE if priority else None}
+                       "measurement_nice": MEASURE_NICE if priority else None,
+                       "plc_process": getattr(plc, "priority", None)}
     if via == "spool":
         out["latency_from"] = "pair committed to the spool (its metadata file renamed)"
         out["spool_image_format"] = SPOOL_IMAGE_FORMAT
@@ -390,6 +403,8 @@ class _SpoolCamera:
 def _latency_figures(service: Any, put_at: dict[int, float], stored_at: dict[int, float],
                      gc_pauses: Any, *, frames: list, rate_hz: float,
                      workers: int) -> dict[str, Any]:
+    from controller.latency import idle_collector
+
     res = service.results
     applied = [r for r in res if r.applied]
     failed = [r for r in res if not r.ok]
@@ -436,11 +451,17 @@ def _latency_figures(service: Any, put_at: dict[int, float], stored_at: dict[int
         out["served_pairs_per_s"] = len(res) / (last - first) if last > first else None
     lat = e2e or handle
     if lat:
-        s = _stats(lat)
-        out.update(median_ms=s["median"], p99_ms=s["p99"], max_ms=s["max"])
+        # the first pairs after the idle start-up (cold caches, first calls) are not the
+        # steady state the p99 describes: reported apart; the max counts every pair
+        warm = min(WARMUP_PAIRS, len(lat) - 1)
+        s = _stats(lat[warm:])
+        every = _stats(lat)
+        out.update(median_ms=s["median"], p99_ms=s["p99"], max_ms=every["max"],
+                   warmup_pairs=warm, warmup_max_ms=max(lat[:warm], default=None),
+                   p99_all_ms=every["p99"])
         out["p99_over_median"] = s["p99"] / s["median"] if s["median"] > 0 else None
         out["meets"] = {
-            "p99": s["p99"] <= TARGETS["p99_ms"], "max": s["max"] <= TARGETS["max_ms"],
+            "p99": s["p99"] <= TARGETS["p99_ms"], "max": every["max"] <= TARGETS["max_ms"],
             "p99_over_median": out["p99_over_median"] is not None
             and out["p99_over_median"] <= TARGETS["p99_over_median"],
         }
@@ -452,6 +473,7 @@ def _latency_figures(service: Any, put_at: dict[int, float], stored_at: dict[int
     out["commits"] = batches
     out["pairs_per_commit"] = len(res) / batches if batches else None
     out["gc"] = gc_pauses.summary()
+    out["gc"]["between_pairs"] = idle_collector() is not None  # run after a pair's record
     out["measured_inline"] = int(getattr(getattr(service, "measurement", None), "inline_count", 0))
     if failed:
         out["failed_reasons"] = sorted({str(r.error).split(":")[0] for r in failed})[:5]
@@ -562,7 +584,9 @@ def text(result: dict[str, Any]) -> str:
             f"{mode['p99_ms']:.2f} ms, max {mode['max_ms']:.2f} ms, p99/median "
             f"{mode['p99_over_median']:.2f} ({verdict}; targets p99 <= "
             f"{mode['target_p99_ms']:g}, max <= {mode['target_max_ms']:g}, p99/median <= "
-            f"{mode['target_p99_over_median']:g}); {mode['applied']}/{mode['pairs']} applied"
+            f"{mode['target_p99_over_median']:g}; first {mode.get('warmup_pairs', 0)} pairs "
+            f"apart, max {(mode.get('warmup_max_ms') or 0):.2f} ms); "
+            f"{mode['applied']}/{mode['pairs']} applied"
             f", {mode.get('dropped', 0)} dropped by the source"
             + (f", {mode['unfinished']} UNFINISHED" if mode.get("unfinished") else ""))
         parts = "; ".join(f"{k} {trio(v)}" for k, v in mode.get("breakdown_ms", {}).items())
@@ -572,7 +596,9 @@ def text(result: dict[str, Any]) -> str:
             f"    record after the setpoint {trio(mode.get('record_after_setpoint_ms', {}))} ms,"
             f" {mode.get('commits')} commits ({(mode.get('pairs_per_commit') or 0):.1f} pairs "
             f"each); gc {gc_.get('collections')} collections, longest "
-            f"{gc_.get('max_pause_ms', 0):.2f} ms; {mode.get('measured_inline', 0)} pairs "
+            f"{gc_.get('max_pause_ms', 0):.2f} ms"
+            f"{' (between pairs)' if gc_.get('between_pairs') else ''}; "
+            f"{mode.get('measured_inline', 0)} pairs "
             "measured on the event loop's thread")
     sc = result.get("scaling")
     if sc:
