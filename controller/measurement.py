@@ -417,12 +417,7 @@ class MeasurementStage:
         # at the event loop's own scheduling (real time where granted): the pair's own path,
         # a few ms at most (the rule above); under the fair scheduler a busy host took the core
         # from it mid-measurement (p99 5.96-9.53 ms against 4.73-4.94 kept, load 1.6)
-        t0, c0 = time.perf_counter(), time.thread_time()
-        try:
-            return self._run_measurer(measurer, frame, kwargs)
-        finally:
-            self.last_measure_s = time.perf_counter() - t0
-            self._last_cpu_s = time.thread_time() - c0
+        return self._clocked(self._run_measurer, measurer, frame, kwargs)
 
     def _timed(self, frame: Frame, facts: MachineFacts | None, kwargs: dict[str, Any]) -> Any:
         nice = self.thread_nice
@@ -431,9 +426,13 @@ class MeasurementStage:
 
             lower_priority(nice)  # this worker thread, once
             _THREAD.nice = nice
+        return self._clocked(self.measure_now, frame, facts, kwargs)
+
+    def _clocked(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """``fn(*args)``, its wall time in :attr:`last_measure_s`, its CPU time noted."""
         t0, c0 = time.perf_counter(), time.thread_time()
         try:
-            return self.measure_now(frame, facts, kwargs)
+            return fn(*args)
         finally:
             self.last_measure_s = time.perf_counter() - t0
             self._last_cpu_s = time.thread_time() - c0
