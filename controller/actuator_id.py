@@ -24,13 +24,16 @@ closed loop ``y`` stays near zero while ``o`` tracks ``s``). The fit is exponent
 least squares over the accepted differences (forgetting only when something new is learnt, so a
 settled loop keeps its estimate) with a prior ``a_m = 1`` of weight ``prior_um2``, and ``|a_m|``
 bounded to ``[gain_min, gain_max]`` and its phase to ``+-phase_max_deg`` (inside the loop's phase
-margin) so that the loop never divides by nearly nothing nor turns a mode around. Pure; O(Z)
-per measurement.
+margin) so that the loop never divides by nearly nothing nor turns a mode around. Pure; per
+measurement a DFT of ``Z`` values in plain numbers (``Z <= 8``: cheaper than numpy's FFT calls)
+and ``O(Z)`` updates; the circulant matrix is built once per new estimate.
 """
 
 from __future__ import annotations
 
+import cmath
 import math
+import operator
 from collections import deque
 from collections.abc import Sequence
 
@@ -110,16 +113,30 @@ class ActuatorIdentifier:
         self.gain_max = check_range("gain_max", gain_max, 1.0, 100.0)
         self.phase_max = math.radians(check_range("phase_max_deg", phase_max_deg, 0.0, 90.0))
         self.gate_phase = math.radians(check_range("gate_phase_deg", gate_phase_deg, 0.0, 180.0))
+        z = self.knives
+        twiddles = np.exp(-2j * np.pi * np.outer(np.arange(z), np.arange(z)) / z) / math.sqrt(z)
+        # exact 0, +-1, +-i where they are (the unit roots' rounding set aside)
+        twiddles.real[np.abs(twiddles.real) < 1e-15] = 0.0
+        twiddles.imag[np.abs(twiddles.imag) < 1e-15] = 0.0
+        self._twiddles = tuple(tuple(complex(v) for v in row) for row in twiddles)
+        self.version = 0
+        """Counts the changes of the estimate (a new :meth:`matrix` after each)."""
+        self._matrix: np.ndarray | None = None
         self.reset()
 
     def reset(self) -> None:
         """Forget every measurement (back to the prior: every gain 1)."""
         z = self.knives
-        self._past: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.lag)
-        self._soo = np.zeros(z)
-        self._soy = np.zeros(z, complex)
+        self._past: deque[tuple[list[complex], list[complex]]] = deque(maxlen=self.lag)
+        self._soo = [0.0] * z  # per mode (plain numbers: updated per measurement)
+        self._soy = [0j] * z
         self.samples = 0
-        self._gains = np.ones(z, complex)
+        self._set_gains(np.ones(z, complex))
+
+    def _set_gains(self, gains: np.ndarray) -> None:
+        self._gains = gains
+        self._matrix = None  # built again when asked for
+        self.version += 1
 
     def add(self, offsets_um: Sequence[float], equivalent_um: Sequence[float]) -> None:
         """Take one complete measurement.
@@ -132,31 +149,42 @@ class ActuatorIdentifier:
         equivalent_um : sequence of float, shape (Z,)
             ``y = D^+ (w - mean(w)) / G``: the width errors in um of offset.
         """
-        o = np.asarray(offsets_um, dtype=float)
-        y = np.asarray(equivalent_um, dtype=float)
-        if o.shape != (self.knives,) or y.shape != (self.knives,):
-            raise ValueError(f"offsets_um and equivalent_um must have {self.knives} values")
-        if not (np.all(np.isfinite(o)) and np.all(np.isfinite(y))):
+        z = self.knives
+        o_arr = np.asarray(offsets_um, dtype=float)
+        y_arr = np.asarray(equivalent_um, dtype=float)
+        if o_arr.shape != (z,) or y_arr.shape != (z,):
+            raise ValueError(f"offsets_um and equivalent_um must have {z} values")
+        o, y = o_arr.tolist(), y_arr.tolist()
+        if not all(map(math.isfinite, o + y)):
             raise ValueError("offsets_um and equivalent_um must be finite")
-        om = np.fft.fft(o, norm="ortho")
-        ym = np.fft.fft(y, norm="ortho")
+        om = self._dft(o)
+        ym = self._dft(y)
         self.samples += 1
         if len(self._past) == self.lag:
             o0, y0 = self._past[0]
-            do, dy = om - o0, ym - y0
-            moved = np.abs(do) >= self.min_step_um
-            ratio = np.where(moved, dy / np.where(moved, do, 1.0), 0.0)
-            moved &= (np.abs(ratio) >= 0.5 * self.gain_min) & (np.abs(ratio) <= 1.5 * self.gain_max)
-            moved &= np.abs(np.angle(ratio)) <= self.gate_phase
-            lam = np.where(moved, self.forget, 1.0)
-            self._soo = lam * self._soo + np.where(moved, np.abs(do) ** 2, 0.0)
-            self._soy = lam * self._soy + np.where(moved, np.conj(do) * dy, 0.0)
-            if np.any(moved):
-                self._gains = self._fit()
+            soo, soy = self._soo, self._soy
+            any_moved = False
+            for m in range(z):  # per mode, in plain complex numbers (Z is small)
+                do, dy = om[m] - o0[m], ym[m] - y0[m]
+                if abs(do) < self.min_step_um:
+                    continue
+                ratio = dy / do
+                if not (0.5 * self.gain_min <= abs(ratio) <= 1.5 * self.gain_max
+                        and abs(cmath.phase(ratio)) <= self.gate_phase):
+                    continue
+                soo[m] = self.forget * soo[m] + abs(do) ** 2
+                soy[m] = self.forget * soy[m] + do.conjugate() * dy
+                any_moved = True
+            if any_moved:
+                self._set_gains(self._fit())
         self._past.append((om, ym))
 
+    def _dft(self, v: list[float]) -> list[complex]:
+        """``np.fft.fft(v, norm="ortho")`` with the twiddles set up once."""
+        return [sum(map(operator.mul, row, v)) for row in self._twiddles]
+
     def _fit(self) -> np.ndarray:
-        a = (self._soy + self.prior_um2) / (self._soo + self.prior_um2)
+        a = (np.array(self._soy) + self.prior_um2) / (np.array(self._soo) + self.prior_um2)
         z = self.knives
         if z % 2 == 0:
             a[z // 2] = a[z // 2].real  # the alternating mode is real
@@ -177,8 +205,14 @@ class ActuatorIdentifier:
     @property
     def excitation_um2(self) -> np.ndarray:
         """Weighted sum of the accepted squared differences per mode (what the fit knows), um^2."""
-        return self._soo.copy()
+        return np.array(self._soo)
 
     def matrix(self) -> np.ndarray:
-        """The estimated effective gain as a real circulant matrix, shape (Z, Z)."""
-        return circulant_from_mode_gains(self._gains)
+        """The estimated effective gain as a real circulant matrix, shape (Z, Z) (a copy)."""
+        return self.shared_matrix().copy()
+
+    def shared_matrix(self) -> np.ndarray:
+        """:meth:`matrix` built once per estimate (:attr:`version`); not to be changed."""
+        if self._matrix is None:
+            self._matrix = circulant_from_mode_gains(self._gains)
+        return self._matrix

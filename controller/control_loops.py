@@ -213,7 +213,7 @@ class ControlLoops:
         and slowing the feed would not bring the mark back (the uniformity loop does).
 
         The feed loop's update is cheap and its setpoint goes on the wire first; while the PLC
-        answers the write (a round trip, 0.3-0.6 ms), the uniformity loop's update (0.4 ms)
+        answers the write (a round trip, 0.3-0.6 ms), the uniformity loop's update (0.05 ms)
         runs and its offsets go out on CAN (:meth:`_feed_write`), so the pair's control costs
         the longer of the two instead of their sum. It returns when the PLC took the feed and
         the offsets were sent.

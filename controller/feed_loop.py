@@ -463,13 +463,15 @@ class FeedLoop:
         if i0 < 0:
             return None
         vals = self._hist_p[i0 : i1 + 1]
-        if any(math.isnan(v) for v in vals):
+        if any(map(math.isnan, vals)):
             return None
         if t1 <= t0 or i0 == i1:
             return vals[0], vals[0], vals[0]
-        total = 0.0
-        for i in range(i0, i1 + 1):
-            a = max(t0, self._hist_t[i])
-            b = t1 if i == i1 else min(t1, self._hist_t[i + 1])
-            total += self._hist_p[i] * max(b - a, 0.0)
+        # entry i holds on [t_i, t_{i+1}): clipped to [t0, t1] only at both ends (t_{i0} <= t0
+        # < t_{i0+1}, t_{i1} <= t1), so the pieces are the gaps between the times in between
+        ts = self._hist_t
+        total = vals[0] * max(ts[i0 + 1] - t0, 0.0)
+        for i in range(i0 + 1, i1):
+            total += vals[i - i0] * (ts[i + 1] - ts[i])
+        total += vals[-1] * max(t1 - ts[i1], 0.0)
         return min(vals), max(vals), total / (t1 - t0)

@@ -23,6 +23,9 @@ the first and the last mark that got no mark are the knives that left none.
 
 from __future__ import annotations
 
+import itertools
+import math
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -140,8 +143,26 @@ def phase_offset(passes: np.ndarray) -> float:
     n = np.asarray(passes, dtype=float)
     if n.size == 0:
         return 0.0
-    angle = float(np.angle(np.mean(np.exp(2j * np.pi * n))))
-    return angle / (2.0 * np.pi)
+    return _phase_of(_mean_resultant(n))
+
+
+def _mean_resultant(n: np.ndarray) -> complex:
+    """``mean(exp(2 pi i n))`` of a non-empty float array of pass numbers."""
+    return complex(_mean(np.exp(2j * np.pi * n)))
+
+
+def _mean(a: np.ndarray) -> np.floating | np.complexfloating:
+    """``a.mean()`` of a non-empty 1-D array, without its wrapper: the same sum and division."""
+    return np.add.reduce(a) / a.size
+
+
+def _phase_of(resultant: complex) -> float:
+    return float(np.angle(resultant)) / (2.0 * np.pi)
+
+
+def _spread_of(resultant: complex) -> float:
+    r = float(np.abs(resultant))
+    return float(np.sqrt(-2.0 * np.log(max(r, 1e-300))) / (2.0 * np.pi))
 
 
 def phase_spread(passes: np.ndarray) -> float:
@@ -154,8 +175,7 @@ def phase_spread(passes: np.ndarray) -> float:
     n = np.asarray(passes, dtype=float)
     if n.size == 0:
         return float("nan")
-    r = float(np.abs(np.mean(np.exp(2j * np.pi * n))))
-    return float(np.sqrt(-2.0 * np.log(max(r, 1e-300))) / (2.0 * np.pi))
+    return _spread_of(_mean_resultant(n))
 
 
 @dataclass(frozen=True)
@@ -215,8 +235,17 @@ class PassAttribution:
         """
         z = self.passes_per_knife.size
         w = np.asarray(widths_mm, dtype=float)
-        if w.shape != self.knife.shape or not np.all(np.isfinite(w)):
+        if w.shape != self.knife.shape or not np.isfinite(w).all():
             raise ValueError(f"widths_mm must be {self.knife.size} finite values")
+        per = self.passes_per_knife.tolist()
+        if min(per, default=0) > 0:  # plain floats: the sums in mark order, as bincount adds
+            sums = [0.0] * z
+            marks = [0] * z
+            for k, v in zip(self.knife.tolist(), w.tolist(), strict=True):
+                sums[k] += v
+                marks[k] += 1
+            return np.array([s / p if m else math.nan
+                             for s, p, m in zip(sums, per, marks, strict=True)])
         sums = np.bincount(self.knife, weights=w, minlength=z)
         counts = np.bincount(self.knife, minlength=z)
         out = np.full(z, np.nan)
@@ -283,70 +312,78 @@ def attribute_marks(
     guide = check_positive("pass_guide_mm", pass_guide_mm)
     inset = check_positive("min_inset_mm", min_inset_mm, allow_zero=True)
     b = np.asarray(bottom_x_mm, dtype=float)
-    if b.ndim != 1 or not np.all(np.isfinite(b)):
+    if b.ndim != 1 or not np.isfinite(b).all():
         raise ValueError("bottom_x_mm must be a finite 1-D sequence")
     if cusps_x_mm is None:
         centre = b
         reliable = np.ones(b.size, dtype=bool)
     else:
         c = np.asarray(cusps_x_mm, dtype=float)
-        if c.shape != (b.size + 1,) or not np.all(np.isfinite(c)):
+        if c.shape != (b.size + 1,) or not np.isfinite(c).all():
             raise ValueError(f"cusps_x_mm must be {b.size + 1} finite values, got {c.shape}")
-        if np.any(np.diff(c) <= 0):
+        left, right = c[:-1], c[1:]
+        if (right <= left).any():  # (np.diff(c) <= 0 for finite values)
             raise ValueError("cusps_x_mm must increase")
-        centre = 0.5 * (c[:-1] + c[1:])
-        reliable = np.minimum(b - c[:-1], c[1:] - b) >= inset
-    if np.any(np.diff(b) < 0):
+        centre = 0.5 * (left + right)
+        reliable = np.minimum(b - left, right - b) >= inset
+    if (b[1:] < b[:-1]).any():
         raise ValueError("bottom_x_mm must not decrease")
-    if int(reliable.sum()) < 2:
-        raise ValueError(f"{int(reliable.sum())} mark bottoms inside their marks, need 2")
-    kw = {
-        "counts_a": counts_a,
-        "index_latch_counts": index_latch_counts,
-        "cutter_to_camera_mm": cutter_to_camera_mm,
-        "counts_per_mm": counts_per_mm,
-        "px_per_mm": px_per_mm,
-        "cx_px": cx_px,
-        "pitch_mm": 1.0,
-        "counter_bits": counter_bits,
-    }
-    travel = pass_numbers(b, **kw)  # board travel after the index pulse, mm (falls with x)
-    travel_c = pass_numbers(centre, **kw)
+    n_reliable = int(np.count_nonzero(reliable))
+    if n_reliable < 2:
+        raise ValueError(f"{n_reliable} mark bottoms inside their marks, need 2")
+    # board travel after the index pulse, mm (falls with x): pass_numbers with a pitch of 1 mm
+    length = check_finite("cutter_to_camera_mm", cutter_to_camera_mm)
+    cpm = check_positive("counts_per_mm", counts_per_mm)
+    ppm = check_positive("px_per_mm", px_per_mm)
+    cx = check_finite("cx_px", cx_px)
+    base = wrapped_difference(counts_a, index_latch_counts, counter_bits=counter_bits)
+    travel = (base - (length + b - cx / ppm) * cpm) / (1.0 * cpm)
+    travel_c = travel if centre is b else (base - (length + centre - cx / ppm) * cpm) / (1.0 * cpm)
     t_rel = travel[reliable][::-1]  # increasing
-    gaps = np.diff(t_rel)
+    gaps = t_rel[1:] - t_rel[:-1]
+    t_dev = t_rel - _mean(t_rel)
     pitch = guide
+    last_steps = None
     for _ in range(3):
         steps = np.rint(gaps / pitch)
-        if np.any(steps < 1):
+        if (steps < 1).any():
             j = int(np.argmin(steps))
             raise ValueError(
                 f"two mark bottoms {gaps[j]:.3f} mm apart on one pass of {pitch:.3f} mm"
             )
-        count = np.concatenate(([0.0], np.cumsum(steps)))
-        dc = count - count.mean()
-        pitch = float(dc @ (t_rel - t_rel.mean()) / (dc @ dc))
+        if last_steps is not None and (steps == last_steps).all():
+            break  # the same counts give the same slope again
+        last_steps = steps
+        count = np.zeros(steps.size + 1)
+        np.cumsum(steps, out=count[1:])
+        dc = count - _mean(count)
+        pitch = float(dc @ t_dev / (dc @ dc))
         if not pitch > 0:
             raise ValueError("mark bottoms do not advance along the board")
     n_rel = travel[reliable] / pitch
-    phase = phase_offset(n_rel)
-    spread = phase_spread(n_rel)
+    resultant = _mean_resultant(n_rel)
+    phase = _phase_of(resultant)
+    spread = _spread_of(resultant)
     # order along the image: q = -(pass number) increases with x
     q_real = -(np.where(reliable, travel, travel_c) / pitch - phase)
-    q = np.rint(q_real).astype(np.int64)
-    if np.any(np.diff(q[reliable]) < 1):
+    q = np.rint(q_real).astype(np.int64).tolist()
+    rel = reliable.tolist()
+    q_rel = list(itertools.compress(q, rel))
+    if min(map(operator.sub, q_rel[1:], q_rel), default=1) < 1:
         raise ValueError("two mark bottoms on one knife pass")
-    for i in range(1, q.size):  # forward: after the previous mark
-        if not reliable[i]:
+    for i in range(1, len(q)):  # forward: after the previous mark
+        if not rel[i]:
             q[i] = max(q[i], q[i - 1] + 1)
-    for i in range(q.size - 2, -1, -1):  # backward: before the next mark
-        if not reliable[i]:
+    for i in range(len(q) - 2, -1, -1):  # backward: before the next mark
+        if not rel[i]:
             q[i] = min(q[i], q[i + 1] - 1)
-    if np.any(np.diff(q) < 1):
+    if min(map(operator.sub, q[1:], q), default=1) < 1:
         raise ValueError("marks do not fit one per knife pass between the reliable bottoms")
-    passes = -q
-    knife = np.mod(passes, z)
-    span = -np.arange(int(q.min()), int(q.max()) + 1)
-    per_knife = np.bincount(np.mod(span, z), minlength=z)
+    passes = np.array([-v for v in q], dtype=np.int64)
+    knife = np.array([(-v) % z for v in q], dtype=np.int64)
+    first, span = -max(q), max(q) - min(q) + 1  # passes first .. first + span - 1, by knife
+    per_knife = np.array([span // z + ((k - first) % z < span % z) for k in range(z)],
+                         dtype=np.intp)
     return PassAttribution(
         passes=passes,
         knife=knife,

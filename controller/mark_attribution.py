@@ -58,13 +58,15 @@ def vanished_knives(passes_per_knife: Sequence[int], mark_knife: Sequence[int]) 
         The vanished knives, ascending (empty when every knife with a pass left a mark).
     """
     per = np.asarray(passes_per_knife)
-    if per.ndim != 1 or per.size < 1 or np.any(per < 0):
+    counts = per.tolist() if per.ndim == 1 else []
+    if not counts or min(counts) < 0:
         raise ValueError(f"passes_per_knife must be counts >= 0, one per knife, got {per!r}")
     knife = np.asarray(mark_knife)
-    if knife.ndim != 1 or (knife.size and (knife.min() < 0 or knife.max() >= per.size)):
+    marks = knife.tolist() if knife.ndim == 1 else None
+    if marks is None or (marks and (min(marks) < 0 or max(marks) >= len(counts))):
         raise ValueError(f"mark_knife must hold knives in [0, {per.size}), got {knife!r}")
-    marked = np.bincount(knife.astype(np.int64), minlength=per.size) > 0
-    return tuple(int(k) for k in np.flatnonzero((per > 0) & ~marked))
+    marked = {int(k) for k in marks}
+    return tuple(k for k, n in enumerate(counts) if n > 0 and k not in marked)
 
 
 def kinematic_cv(knife_widths_mm: Sequence[float]) -> float:
@@ -83,11 +85,47 @@ def kinematic_cv(knife_widths_mm: Sequence[float]) -> float:
         With one of Z knives vanished and the others equal: ``1 / sqrt(Z - 1)``.
     """
     w = np.asarray(knife_widths_mm, dtype=float)
-    if w.ndim != 1 or np.any(np.isinf(w)) or np.any(w[np.isfinite(w)] < 0):
+    if w.ndim != 1:
         raise ValueError("knife_widths_mm must be a 1-D sequence of widths >= 0 (or NaN)")
-    w = w[np.isfinite(w)]
-    mean = float(w.mean()) if w.size else math.nan
-    return float(w.std() / mean) if mean > 0 else math.nan
+    values = w.tolist()
+    if any(math.isinf(v) or v < 0 for v in values):  # (NaN < 0 is false)
+        raise ValueError("knife_widths_mm must be a 1-D sequence of widths >= 0 (or NaN)")
+    mean, std = mean_std([v for v in values if not math.isnan(v)])
+    return std / mean if mean > 0 else math.nan
+
+
+SEQUENTIAL_SUM_MAX = 7
+"""Up to this many values numpy's float64 sum adds them one after the other (its pairwise
+summation unrolls from 8 on): :func:`mean_std` then gives numpy's bits in plain floats."""
+
+
+def mean_std(values: list[float]) -> tuple[float, float]:
+    """``(np.mean(v), np.std(v))`` of a few finite floats, bit for bit; ``(nan, nan)`` for none.
+
+    Parameters
+    ----------
+    values : list of float, shape (n,)
+        The values (finite).
+
+    Returns
+    -------
+    (float, float)
+        Mean and population standard deviation.
+    """
+    n = len(values)
+    if n == 0:
+        return math.nan, math.nan
+    if n > SEQUENTIAL_SUM_MAX:
+        a = np.asarray(values, dtype=float)
+        return float(a.mean()), float(a.std())
+    total = 0.0
+    for v in values:
+        total += v
+    mean = total / n
+    sq = 0.0
+    for v in values:
+        sq += (v - mean) * (v - mean)
+    return mean, math.sqrt(sq / n)
 
 
 @dataclass(frozen=True)
@@ -245,14 +283,15 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any) -> Attribute
         pitch = float(pa.pass_mm)  # spanned is off by the widened end marks' overhang
     per_knife = pa.knife_widths(widths)
     gone = vanished_knives(pa.passes_per_knife, pa.knife)
-    per_knife[list(gone)] = 0.0  # no mark in any of its passes: width 0, not "unknown"
+    if gone:
+        per_knife[list(gone)] = 0.0  # no mark in any of its passes: width 0, not "unknown"
     return Attributed(
         knife_widths_mm=per_knife,
         pass_pitch_mm=pitch,
         missing_passes=pa.missing,
         spread=float(pa.spread),
-        reliable_marks=int(pa.reliable.sum()),
-        mark_knife=tuple(int(k) for k in pa.knife),
+        reliable_marks=int(np.count_nonzero(pa.reliable)),
+        mark_knife=tuple(pa.knife.tolist()),
         vanished_knives=gone,
         kinematic_cv=kinematic_cv(per_knife),
         feed_per_pass_mm=guide,

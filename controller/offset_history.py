@@ -37,11 +37,13 @@ class OffsetHistory:
         self.horizon_s = check_positive("horizon_s", horizon_s)
         self._t: list[float] = []
         self._v: list[np.ndarray] = []
+        self._vl: list[tuple[float, ...]] = []  # the same tables in plain floats (mean_over)
 
     def restart(self, offsets_um: Sequence[float], at_s: float = -math.inf) -> None:
         """Forget everything: ``offsets_um`` in force from ``at_s`` (-inf: always were)."""
         self._t = [float(at_s)]
         self._v = [np.array(offsets_um, dtype=float)]
+        self._vl = [tuple(self._v[0].tolist())]
 
     @property
     def start_s(self) -> float:
@@ -72,13 +74,15 @@ class OffsetHistory:
         if self._t and t == self._t[-1]:
             replaced = self._v[-1]
             self._v[-1] = v  # same instant: the newer table replaces the older
+            self._vl[-1] = tuple(v.tolist())
             return replaced
         else:
             self._t.append(t)
             self._v.append(v)
+            self._vl.append(tuple(v.tolist()))
         k = bisect.bisect_right(self._t, t - self.horizon_s) - 1
         if k > 0:  # keep the entry in force at the horizon
-            del self._t[:k], self._v[:k]
+            del self._t[:k], self._v[:k], self._vl[:k]
         return None
 
     def pop(self, replaced: np.ndarray | None = None) -> None:
@@ -89,9 +93,11 @@ class OffsetHistory:
         """
         if replaced is not None:
             self._v[-1] = np.array(replaced, dtype=float)
+            self._vl[-1] = tuple(self._v[-1].tolist())
         elif len(self._t) > 1:
             self._t.pop()
             self._v.pop()
+            self._vl.pop()
 
     def latest(self) -> np.ndarray:
         """The table in force now (a copy)."""
@@ -112,9 +118,15 @@ class OffsetHistory:
         i1 = bisect.bisect_right(self._t, t1) - 1
         if i0 == i1 or t1 <= t0:
             return self._v[i0].copy()
-        acc = np.zeros(self.knives)
-        for i in range(i0, i1 + 1):
-            a = max(t0, self._t[i])
-            b = t1 if i == i1 else min(t1, self._t[i + 1])
-            acc += self._v[i] * max(b - a, 0.0)
-        return acc / (t1 - t0)
+        # plain floats, the same products and sums as ``acc += v_i * max(b - a, 0)`` in numpy;
+        # table i holds on [t_i, t_{i+1}), clipped to [t0, t1] only at both ends (t_{i0} <= t0
+        # < t_{i0+1}, t_{i1} <= t1)
+        ts, vl = self._t, self._vl
+        w = max(ts[i0 + 1] - t0, 0.0)
+        acc = [v * w for v in vl[i0]]  # (0 + x is x)
+        for i in range(i0 + 1, i1):
+            w = ts[i + 1] - ts[i]
+            acc = [s + v * w for s, v in zip(acc, vl[i], strict=True)]
+        w = max(t1 - ts[i1], 0.0)
+        span = t1 - t0
+        return np.array([(s + v * w) / span for s, v in zip(acc, vl[i1], strict=True)])

@@ -10,11 +10,18 @@ second difference, ``controller.uniformity_loop``), so the best offsets the stro
 solution (which minimises ``||o - A^-1 s||``, a different norm: it leaves ``D``'s largest mode
 uncorrected first). The problem is a convex QP in ``Z <= 8`` variables with one equality and a
 box; :func:`box_qp` solves it exactly with a primal active-set method (finite, a few iterations,
-each one solve of at most ``Z + 1`` equations) started from a feasible point. Pure: arrays in,
-arrays out.
+each one solve of at most ``Z + 1`` equations) started from a feasible point. When the
+unconstrained zero-sum minimiser lies inside the box (checked exactly) it is the answer and no
+iteration runs. :class:`OffsetPlanner` sets the problem up once for one width operator and
+actuator (the uniformity loop's, rebuilt when the identified actuator changes), so a pair costs
+one ``Z x Z`` product in plain floats when no bound is active. Pure: arrays in, arrays out.
 """
 
 from __future__ import annotations
+
+import math
+import operator
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -45,10 +52,31 @@ def _equality_multiplier(grad: np.ndarray, free: np.ndarray, lower: np.ndarray,
     return lo if np.isfinite(lo) else hi
 
 
+def _kkt(h: np.ndarray) -> np.ndarray:
+    """``[[H, 1], [1', 0]]``: the equality-constrained system of the free variables."""
+    n = h.shape[0]
+    kkt = np.zeros((n + 1, n + 1))
+    kkt[:n, :n] = h
+    kkt[:n, n] = 1.0
+    kkt[n, :n] = 1.0
+    return kkt
+
+
+def _inside(o: np.ndarray, b: float) -> np.ndarray | None:
+    """``o`` with its sum carried back to zero if then every entry is within ``+-b``, else None."""
+    o = o - o.sum() / o.size
+    return o if bool(np.all(np.abs(o) <= b)) else None
+
+
 def box_qp(
     hessian: np.ndarray, linear: np.ndarray, *, bound: float, start: np.ndarray | None = None
 ) -> np.ndarray:
     """Minimise ``0.5 o' H o - c' o`` subject to ``sum(o) = 0`` and ``|o_k| <= bound``.
+
+    The unconstrained zero-sum minimiser (one solve of the ``n + 1`` KKT equations), its sum
+    carried back to zero, is returned at once when every entry lies within the box (checked
+    exactly: it then satisfies the KKT conditions with no active bound); otherwise the active
+    set iterates from ``start``.
 
     Parameters
     ----------
@@ -75,10 +103,16 @@ def box_qp(
     if not (np.all(np.isfinite(h)) and np.all(np.isfinite(c))):
         raise ValueError("hessian and linear must be finite")
     b = check_positive("bound", bound)
-    ones = np.ones(n)
-    if start is None:
-        kkt = np.block([[h, ones[:, None]], [ones[None, :], np.zeros((1, 1))]])
-        start = _solve(kkt, np.concatenate([c, [0.0]]))[:n]
+    unconstrained = _solve(_kkt(h), np.append(c, 0.0))[:n]
+    fast = _inside(unconstrained, b)
+    if fast is not None:
+        return fast
+    return _active_set(h, c, b, unconstrained if start is None else start)
+
+
+def _active_set(h: np.ndarray, c: np.ndarray, b: float, start: np.ndarray) -> np.ndarray:
+    """:func:`box_qp`'s iteration from ``start`` (projected into the feasible set)."""
+    n = c.size
     o = project_zero_mean_box(np.asarray(start, dtype=float), bound=b)
     tol = 1e-12 * max(1.0, b)
     upper = o >= b - tol
@@ -91,8 +125,7 @@ def box_qp(
         p = np.zeros(n)
         if nf > 1:
             hf = h[np.ix_(free, free)]
-            kkt = np.block([[hf, np.ones((nf, 1))], [np.ones((1, nf)), np.zeros((1, 1))]])
-            p[free] = _solve(kkt, np.concatenate([-grad[free], [0.0]]))[:nf]
+            p[free] = _solve(_kkt(hf), np.append(-grad[free], 0.0))[:nf]
         if np.max(np.abs(p)) <= 1e-12 * max(1.0, float(np.max(np.abs(o)))):
             nu = _equality_multiplier(grad, free, lower, upper)
             mu = np.where(upper, -(grad + nu), np.where(lower, grad + nu, 0.0))
@@ -142,16 +175,98 @@ def best_offsets_um(
     bound_um : float
         Largest magnitude of an offset, um.
     start_um : ndarray, shape (Z,), optional
-        Warm start (e.g. the offsets in force).
+        Warm start of the iteration (e.g. the offsets in force) when a bound is active.
 
     Returns
     -------
     ndarray, shape (Z,)
         The constrained optimum, um.
     """
-    s = np.asarray(disturbance_um, dtype=float)
-    wa = np.asarray(width_operator, dtype=float) @ np.asarray(actuator, dtype=float)
-    h = wa.T @ wa
-    c = wa.T @ (np.asarray(width_operator, dtype=float) @ s)
-    scale = float(np.max(np.abs(np.diag(h)))) or 1.0  # keep the tolerances scale-free
-    return box_qp(h / scale, c / scale, bound=bound_um, start=start_um)
+    planner = OffsetPlanner(width_operator=width_operator, actuator=actuator)
+    return planner.best_offsets_um(disturbance_um, bound_um=bound_um, start_um=start_um)
+
+
+class OffsetPlanner:
+    """:func:`best_offsets_um` set up once for one width operator and one actuator.
+
+    The Hessian ``H = (W A)' (W A)``, the map ``s -> c = (W A)' W s`` (both scaled so that the
+    tolerances are scale-free) and the map from ``s`` to the unconstrained zero-sum minimiser
+    are computed here; :meth:`best_offsets_um` then costs one ``Z x Z`` product in plain floats
+    when that minimiser lies inside the box (checked exactly), else the active set of
+    :func:`box_qp`.
+
+    Parameters
+    ----------
+    width_operator : ndarray, shape (Z, Z)
+        ``W`` (the second difference ``D``).
+    actuator : ndarray, shape (Z, Z)
+        ``A`` (identity for an ideal actuator).
+    """
+
+    def __init__(self, *, width_operator: np.ndarray, actuator: np.ndarray) -> None:
+        w = np.asarray(width_operator, dtype=float)
+        a = np.asarray(actuator, dtype=float)
+        n = w.shape[0]
+        if w.shape != (n, n) or a.shape != (n, n):
+            raise ValueError(f"width_operator and actuator must be square and alike, got "
+                             f"{w.shape} and {a.shape}")
+        if not (np.all(np.isfinite(w)) and np.all(np.isfinite(a))):
+            raise ValueError("width_operator and actuator must be finite")
+        wa = w @ a
+        h = wa.T @ wa
+        self._w = w
+        self._wa = wa
+        self._scale = float(np.max(np.abs(np.diag(h)))) or 1.0  # scale-free tolerances
+        self.hessian = h / self._scale
+        """``H`` over its largest diagonal entry, shape (Z, Z)."""
+        # unconstrained zero-sum minimiser: o = K c (K the top-left block of the KKT inverse)
+        kinv = np.linalg.pinv(_kkt(self.hessian))[:n, :n]
+        gain = kinv @ ((wa.T @ w) / self._scale)
+        self._rows = tuple(tuple(float(v) for v in row) for row in gain)
+
+    @property
+    def knives(self) -> int:
+        """``Z``."""
+        return len(self._rows)
+
+    def linear(self, disturbance_um: np.ndarray) -> np.ndarray:
+        """``c = (W A)' W s`` over the scale, shape (Z,)."""
+        s = np.asarray(disturbance_um, dtype=float)
+        return self._wa.T @ (self._w @ s) / self._scale
+
+    def best_offsets_um(
+        self,
+        disturbance_um: Sequence[float] | np.ndarray,
+        *,
+        bound_um: float,
+        start_um: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The zero-mean offsets within ``bound_um`` that minimise ``|| W (A o - s) ||``.
+
+        Parameters
+        ----------
+        disturbance_um : sequence of float, shape (Z,)
+            ``s``, um (finite).
+        bound_um : float
+            Largest magnitude of an offset, um (> 0).
+        start_um : ndarray, shape (Z,), optional
+            Warm start of the iteration when a bound is active.
+
+        Returns
+        -------
+        ndarray, shape (Z,)
+            The constrained optimum, um (the unconstrained one when it fits the box).
+        """
+        b = check_positive("bound_um", bound_um)
+        s_arr = np.asarray(disturbance_um, dtype=float)
+        n = len(self._rows)
+        s = s_arr.tolist()
+        if s_arr.shape != (n,) or not all(map(math.isfinite, s)):
+            raise ValueError(f"disturbance_um must be {n} finite values, got {disturbance_um!r}")
+        o = [sum(map(operator.mul, row, s)) for row in self._rows]
+        mean = sum(o) / n
+        o = [v - mean for v in o]
+        if max(map(abs, o)) <= b:
+            return np.array(o)
+        return _active_set(self.hessian, self.linear(s), b,
+                           o if start_um is None else start_um)

@@ -42,6 +42,7 @@ it the right way; such pairs do not enter the identification.
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -52,7 +53,7 @@ from controller.actuator_id import ActuatorIdentifier
 from controller.feed_loop import config_from_mapping, integral_gain
 from controller.limits import check_time_forward, project_zero_mean_box
 from controller.offset_history import OffsetHistory
-from controller.offset_qp import best_offsets_um
+from controller.offset_qp import OffsetPlanner, best_offsets_um
 from core.checks import check_finite, check_int, check_positive, check_range
 
 #: Values of :attr:`UniformityLoop.status` after an update.
@@ -231,6 +232,8 @@ class UniformityLoop:
         z = cfg.knives
         self._d = second_difference(z)
         self._d_pinv = np.linalg.pinv(self._d)
+        self._d_pinv_rows = _rows(self._d_pinv)
+        self._plan: tuple[int, OffsetPlanner, tuple[tuple[float, ...], ...]] | None = None
         self._stroke = cfg.stroke_um
         self._ident = ActuatorIdentifier(
             z,
@@ -244,7 +247,7 @@ class UniformityLoop:
         self._history = OffsetHistory(z, horizon_s=cfg.history_s)
         self._disturbance: np.ndarray | None = None
         self._estimates = 0  # open-loop estimates (board cut with the starting table)
-        self._open_table: np.ndarray | None = np.zeros(z)
+        self._open_table: list[float] | None = [0.0] * z
         self.reset()
 
     # -- state ------------------------------------------------------------------------------
@@ -283,7 +286,7 @@ class UniformityLoop:
         if forget:
             self._disturbance = None
             self._estimates = 0
-            self._open_table = start.copy()
+            self._open_table = start.tolist()
             self._ident.reset()
         self.status = "idle"
         self.steps = 0
@@ -374,7 +377,7 @@ class UniformityLoop:
         prev = self._offsets
         self._offsets = new
         appended, replaced = False, None
-        if not np.array_equal(new, prev):
+        if new.tolist() != prev.tolist():  # (np.array_equal: same shape, finite values)
             if math.isfinite(t):  # never before the newest entry (a re-plan stamped ahead)
                 n0 = len(self._history)
                 replaced = self._history.append(new, max(t, self._history.last_change_s))
@@ -422,7 +425,8 @@ class UniformityLoop:
         w = np.asarray(knife_widths_mm, dtype=float)
         if w.shape != (cfg.knives,):
             raise ValueError(f"knife_widths_mm must have {cfg.knives} values, got shape {w.shape}")
-        if np.any(np.isinf(w)) or np.any(w[np.isfinite(w)] < 0):
+        ws = w.tolist()  # plain floats from here: Z is small, numpy calls cost more than they do
+        if any(math.isinf(v) or v < 0 for v in ws):  # (nan < 0 is false)
             raise ValueError("knife_widths_mm must be >= 0, finite or nan")
         if cut_at_s is not None:
             check_finite("cut_at_s", cut_at_s)
@@ -430,7 +434,7 @@ class UniformityLoop:
             check_finite("cut_until_s", cut_until_s)
         self._undo = None
         self.last_gain = 0.0
-        if np.all(np.isnan(w)) or cfg.knives == 1:
+        if all(math.isnan(v) for v in ws) or cfg.knives == 1:
             self.status = "no_marks"
             return self.offsets_um
         if cut_at_s is not None:
@@ -445,34 +449,46 @@ class UniformityLoop:
         if o_cut is None:
             self.status = "waiting"
             return self.offsets_um
-        err = np.nan_to_num(w, nan=0.0)  # a vanished mark has width 0
-        err = err - err.mean()
-        y = self._d_pinv @ err / width_sensitivity_mm_per_um(f, cfg.radius_mm)
-        if cfg.identify and np.all(np.isfinite(w)):
-            self._ident.add(o_cut, y)
-        a_hat = self._ident.matrix()
-        s_est = a_hat @ o_cut - y
-        s_est -= s_est.mean()
+        o_c = o_cut.tolist()
+        err = [0.0 if math.isnan(v) else v for v in ws]  # a vanished mark has width 0
+        err_mean = _mean(err)
+        err = [v - err_mean for v in err]
+        gain_g = width_sensitivity_mm_per_um(f, cfg.radius_mm)
+        y = [v / gain_g for v in _matvec(self._d_pinv_rows, err)]
+        if cfg.identify and not any(math.isnan(v) for v in ws):
+            self._ident.add(o_c, y)
+        planner, a_rows = self._planner()
+        s_est = [v - e for v, e in zip(_matvec(a_rows, o_c), y, strict=True)]
+        s_mean = _mean(s_est)
+        s_est = [v - s_mean for v in s_est]
         g = min(integral_gain(cfg.ki, cfg.sample_time_s, delay_s), 1.0)
-        if self._open_table is not None and np.allclose(o_cut, self._open_table, atol=1e-9):
+        if self._open_table is not None and _allclose(o_c, self._open_table):
             # board cut with the table the loop started from: open-loop estimates of the same
             # runout, so the first one is taken whole and the next ones averaged in
             g = max(g, 1.0 / (self._estimates + 1))
             self._estimates += 1
         else:
             self._open_table = None  # the loop's own tables show: the scheduled gain from now
-        prev = s_est if self._disturbance is None else self._disturbance
-        self._disturbance = prev + g * (s_est - prev)
+        prev = s_est if self._disturbance is None else self._disturbance.tolist()
+        self._disturbance = np.array([p + g * (v - p) for p, v in zip(prev, s_est, strict=True)])
         bound = self.limit_um
-        best = best_offsets_um(
-            s_est, width_operator=self._d, actuator=a_hat, bound_um=bound, start_um=self._offsets
-        )
-        new = project_zero_mean_box(self._offsets + g * (best - self._offsets), bound=bound)
-        self._set(new, t)
+        best = planner.best_offsets_um(s_est, bound_um=bound, start_um=self._offsets).tolist()
+        now = self._offsets.tolist()
+        self._set(_zero_mean_in_box([o + g * (b - o) for o, b in zip(now, best, strict=True)],
+                                    bound), t)
         self.last_gain = g
         self.steps += 1
         self.status = "stepped"
         return self.offsets_um
+
+    def _planner(self) -> tuple[OffsetPlanner, tuple[tuple[float, ...], ...]]:
+        """The QP set up for the identified actuator, and its matrix by rows (once per estimate)."""
+        ident = self._ident
+        if self._plan is None or self._plan[0] != ident.version:
+            a_hat = ident.shared_matrix()
+            planner = OffsetPlanner(width_operator=self._d, actuator=a_hat)
+            self._plan = (ident.version, planner, _rows(a_hat))
+        return self._plan[1], self._plan[2]
 
     def predicted_widths_mm(self, pitch_mm: float) -> np.ndarray | None:
         """Widths the offsets in force will cut by the loop's model (``None`` before a pair)."""
@@ -480,6 +496,35 @@ class UniformityLoop:
             return None
         z = self._ident.matrix() @ self._offsets - self._disturbance
         return linear_widths_mm(z, pitch_mm=pitch_mm, radius_mm=self.cfg.radius_mm)
+
+
+def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    return tuple(tuple(float(v) for v in row) for row in matrix)
+
+
+def _matvec(rows: tuple[tuple[float, ...], ...], v: list[float]) -> list[float]:
+    return [sum(map(operator.mul, row, v)) for row in rows]
+
+
+def _mean(v: list[float]) -> float:
+    return sum(v) / len(v)
+
+
+def _allclose(a: list[float], b: list[float]) -> bool:
+    """``np.allclose(a, b, atol=1e-9)`` (rtol 1e-5) on plain floats."""
+    return all(abs(x - y) <= 1e-9 + 1e-5 * abs(y) for x, y in zip(a, b, strict=True))
+
+
+def _zero_mean_in_box(values: list[float], bound: float) -> np.ndarray:
+    """:func:`project_zero_mean_box`, the mean subtracted directly when that fits the box.
+
+    A convex combination of two feasible tables needs only its rounding removed.
+    """
+    m = _mean(values)
+    shifted = [v - m for v in values]
+    if max(map(abs, shifted)) <= bound:
+        return np.array(shifted)
+    return project_zero_mean_box(np.array(values), bound=bound)
 
 
 def width_cv(widths_mm: Sequence[float]) -> float:
