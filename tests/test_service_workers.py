@@ -422,3 +422,51 @@ def test_a_workers_reply_is_one_write_that_recv_reads_back(size):
     assert len(writes) == 1
     a.close()
     b.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# each worker on cores of its own
+
+
+@pytest.mark.parametrize("workers, cores, expected", [
+    (1, [0, 1], [(0, 1)]),
+    (2, [0, 1], [(0,), (1,)]),
+    (2, [0, 1, 2, 3], [(0, 1), (2, 3)]),
+    (3, [0, 1, 2, 3], [(0,), (1,), (2,)]),
+    (2, [3, 1], [(1,), (3,)]),  # in order, whatever order the mask came in
+    (3, [5, 7], None),  # more workers than cores: not pinned (they share them)
+])
+def test_worker_cores_gives_each_worker_cores_of_its_own(workers, cores, expected):
+    from controller.measure_workers import worker_cores
+
+    got = worker_cores(workers, cores)
+    assert got == expected
+    if got is not None:
+        flat = [c for part in got for c in part]
+        assert len(flat) == len(set(flat)) and set(flat) <= set(cores)  # never shared
+
+
+@pytest.mark.parametrize("workers", [0, -1, True, 1.5])
+def test_worker_cores_refuses_nonsense_naming_it(workers):
+    from controller.measure_workers import worker_cores
+
+    with pytest.raises(ValueError, match="workers"):
+        worker_cores(workers, [0, 1])
+
+
+@pytest.mark.parametrize("pin", [True, False])
+def test_started_workers_run_on_the_cores_planned_for_them(pin):
+    if not hasattr(os, "sched_getaffinity"):
+        pytest.skip("no CPU affinity here")
+    mine = os.sched_getaffinity(0)
+    workers = 2 if len(mine) >= 2 else 1
+    pool = MeasureWorkerPool(TableMeasurers({}, {}), workers=workers, pin=pin).start()
+    try:
+        got = [os.sched_getaffinity(pid) for pid in pool.pids]
+    finally:
+        pool.close()
+    if pin:
+        assert got == [set(c) for c in pool.cores]
+        assert len(set().union(*got)) == sum(len(g) for g in got)  # none shares a core
+    else:
+        assert pool.cores is None and got == [mine] * workers
