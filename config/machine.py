@@ -178,9 +178,13 @@ class ServiceConfig:
 
     ``workers``: measure in this many worker processes (0: in the service's own process, a
     worker thread); more than the cores available is a warning and one process per core.
+    ``cpu_latency_us``: while ``planer serve`` runs, no core takes longer than this to wake
+    (PM QoS, :func:`core.realtime.cpu_wakeup_latency`; 0: idle cores poll; -1: as the system
+    has it). Needs root; otherwise the service says so and runs as the system has it.
     """
 
     workers: int = 0
+    cpu_latency_us: int = 0
 
 
 @dataclass(frozen=True)
@@ -443,7 +447,10 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
         raise ConfigError(f"{ht.key('listen')} must look like 127.0.0.1:8080, got {listen!r:.80}")
     ht.reject_unknown()
     sv = root.section("service", required=False)
-    service_cfg = ServiceConfig(workers=sv.integer("workers", d.service.workers, lo=0, hi=256))
+    service_cfg = ServiceConfig(
+        workers=sv.integer("workers", d.service.workers, lo=0, hi=256),
+        cpu_latency_us=sv.integer("cpu_latency_us", d.service.cpu_latency_us, lo=-1,
+                                  hi=1_000_000))
     sv.reject_unknown()
 
     root.reject_unknown()

@@ -15,6 +15,13 @@ A real PLC does not stop answering because a PC is busy, and a service must send
   a real-time thread that runs ``limit_s`` of CPU without blocking, and the handler drops every
   thread raised here back to normal scheduling, so a bug that spins cannot lock the host (the
   kernel's real-time throttling, 95 % of each second by default, is the last net).
+* :func:`cpu_wakeup_latency`: while a block runs, ask the kernel (PM QoS,
+  ``/dev/cpu_dma_latency``) to keep every core's wake-up latency at most so many
+  microseconds: an idle core then polls instead of halting (on a virtual machine: instead of
+  leaving the CPU to the host), so a pair that arrives, a Modbus answer and the thread that
+  waits for them are on a core at once. Costs power and, on a shared host, CPU time of the
+  host while idle; the setting real-time Linux deployments use (``tuned``'s
+  latency-performance profile).
 * :func:`realtime_thread`: the three together around a block (the service's bus thread while
   the service runs), restoring normal priority and the previous guard afterwards. Threads that
   share the interpreter lock with the raised one (``others``) are raised with it: a thread at
@@ -42,6 +49,7 @@ __all__ = [
     "INTERFACE_RT_PRIORITY",
     "RENDER_NICE",
     "RT_CPU_LIMIT_S",
+    "cpu_wakeup_latency",
     "guard_realtime",
     "lower_priority",
     "raise_priority",
@@ -79,6 +87,50 @@ def realtime_threads() -> dict[int, str]:
 
 def _why(exc: BaseException) -> str:
     return str(getattr(exc, "strerror", None) or exc)
+
+
+CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
+"""The kernel's PM QoS request for the CPUs' wake-up latency (held while the file is open)."""
+
+
+@contextlib.contextmanager
+def cpu_wakeup_latency(max_us: int | None, *,
+                       device: str = CPU_LATENCY_DEVICE) -> Iterator[str]:
+    """Keep every core's wake-up latency at most ``max_us`` while the block runs (PM QoS).
+
+    The request holds while the device file is open and ends when it is closed (also when the
+    process dies). Never raises for the request: without the device or the permission (it
+    needs root) the block runs as the system has it, and the yielded text says why.
+
+    Parameters
+    ----------
+    max_us : int or None
+        Largest wake-up latency, us (0: idle cores poll); ``None`` or negative: leave it.
+    device : str
+        The PM QoS device.
+
+    Yields
+    ------
+    str
+        ``"cores wake within N us"`` or ``"as the system has it (reason)"``.
+    """
+    if max_us is None or isinstance(max_us, bool) or int(max_us) < 0:
+        yield "as the system has it (not asked)"
+        return
+    try:
+        fd = os.open(device, os.O_WRONLY | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        yield f"as the system has it ({device}: {_why(exc)})"
+        return
+    try:
+        try:
+            os.write(fd, int(max_us).to_bytes(4, "little", signed=True))
+        except OSError as exc:
+            yield f"as the system has it ({device}: {_why(exc)})"
+            return
+        yield f"cores wake within {int(max_us)} us"
+    finally:
+        os.close(fd)
 
 
 def _set_normal(o: Any) -> None:

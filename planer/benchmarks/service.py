@@ -152,7 +152,8 @@ async def _run(
     reads as ``planer serve`` does (its spool reader thread); the latency then starts when a
     pair's metadata file is committed.
     ``priority`` runs the service as ``planer serve`` does: its event loop at real-time
-    priority, the measurement and the records' writer at a raised nice value.
+    priority, the measurement and the records' writer at a raised nice value, the cores' wake-up
+    latency as ``[service] cpu_latency_us`` asks (:func:`core.realtime.cpu_wakeup_latency`).
     """
     from dataclasses import replace
 
@@ -162,7 +163,7 @@ async def _run(
     from controller.frame_source import QueueFrameSource
     from controller.latency import MEASURE_NICE, GcPauses, prioritize, tune_for_latency
     from controller.service import open_service
-    from core.realtime import BUS_RT_PRIORITY, realtime_thread
+    from core.realtime import BUS_RT_PRIORITY, cpu_wakeup_latency, realtime_thread
     from plant_sim.amp_node import AmpNode, AmpNodeCore
     from protocol.piezo_can import PiezoCodec
 
@@ -276,10 +277,12 @@ async def _run(
     feeder = asyncio.create_task(feed_frames())
     gc_pauses = GcPauses()
     granted = "normal"
+    wakeup = "as the system has it (not asked)"
     try:
         with gc_pauses, contextlib.ExitStack() as stack:
             if priority:
                 granted = stack.enter_context(realtime_thread(rt_priority=BUS_RT_PRIORITY))
+                wakeup = stack.enter_context(cpu_wakeup_latency(cfg.service.cpu_latency_us))
             await service.run(source, stop=stop)
         await feeder  # re-raises the deadline
     finally:
@@ -306,7 +309,8 @@ async def _run(
     out["via"] = via
     out["priority"] = {"service_bus": granted,
                        "measurement_nice": MEASURE_NICE if priority else None,
-                       "plc_process": getattr(plc, "priority", None)}
+                       "plc_process": getattr(plc, "priority", None),
+                       "cpu_wakeup": wakeup}
     if via == "spool":
         out["latency_from"] = "pair committed to the spool (its metadata file renamed)"
         out["spool_image_format"] = SPOOL_IMAGE_FORMAT

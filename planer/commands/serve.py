@@ -204,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
     from controller.safety import SafetyState
     from controller.service import open_service
     from core.checks import check_int
-    from core.realtime import BUS_RT_PRIORITY, realtime_thread
+    from core.realtime import BUS_RT_PRIORITY, cpu_wakeup_latency, realtime_thread
     from planer.cli import output_file, output_folder
 
     if args.max_frames is not None:
@@ -334,9 +334,10 @@ def run(args: argparse.Namespace) -> int:
         watcher = asyncio.create_task(tell_why_waiting())
         try:
             # the event loop (PLC and CAN cycles, each pair's control) at real-time priority
-            with realtime_thread(rt_priority=BUS_RT_PRIORITY) as granted:
+            with realtime_thread(rt_priority=BUS_RT_PRIORITY) as granted, \
+                    cpu_wakeup_latency(cfg.service.cpu_latency_us) as wakeup:
                 say(f"priority: service bus {granted}; measurement and records asked for "
-                    f"nice {MEASURE_NICE}")
+                    f"nice {MEASURE_NICE}; CPU wake-up: {wakeup}")
                 say("ready")
                 await service.run(source, stop=stop, max_frames=args.max_frames)
         finally:
