@@ -203,18 +203,9 @@ def _send_whole(conn: Any, obj: Any) -> None:
 
 
 def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: int,
-                 threads: int = 1, nice: int | None = None,
-                 cores: tuple[int, ...] | None = None) -> None:
-    """A worker: set up once, then measure the pairs the pipe brings until told to stop.
-
-    ``cores``: the cores it is pinned to (its threads too; ``None``: as started).
-    """
+                 threads: int = 1, nice: int | None = None) -> None:
+    """A worker: set up once, then measure the pairs the pipe brings until told to stop."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the service's to handle
-    if cores:
-        try:
-            os.sched_setaffinity(0, cores)
-        except (AttributeError, OSError, ValueError):
-            pass  # not permitted or not there: the scheduler places it
     if nice is not None:
         from core.realtime import lower_priority
 

@@ -35,7 +35,7 @@ import signal
 import time
 import weakref
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -106,15 +106,10 @@ class WorkerOutcome:
 
 def available_cores() -> int:
     """CPU cores this process may run on (its affinity mask), at least 1."""
-    return max(1, len(_affinity()))
-
-
-def _affinity() -> list[int]:
-    """The cores this process may run on (all of them where affinity is not known)."""
     try:
-        return sorted(os.sched_getaffinity(0))
+        return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
-        return list(range(max(1, os.cpu_count() or 1)))
+        return max(1, os.cpu_count() or 1)
 
 
 def plan_workers(requested: int, *, cores: int) -> tuple[int, str | None]:
@@ -309,35 +304,6 @@ class _Worker:
         return f"died (exit code {code})"
 
 
-def worker_cores(workers: int, cores: Sequence[int]) -> list[tuple[int, ...]] | None:
-    """The cores each of ``workers`` processes is pinned to, or ``None`` (not pinned).
-
-    Each worker gets ``len(cores) // workers`` of the cores, in order, its own: the scheduler
-    then never moves a worker's measurement (its caches) to another core, nor puts two on one
-    while another idles. More workers than cores: ``None`` (they share them as the scheduler
-    sees fit; :func:`plan_workers` warns of that).
-
-    Parameters
-    ----------
-    workers : int
-        Worker processes, >= 1.
-    cores : sequence of int
-        The cores this process may run on (its affinity mask).
-
-    Raises
-    ------
-    ValueError
-        ``workers`` < 1.
-    """
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
-    cores = sorted(int(c) for c in cores)
-    if workers > len(cores):
-        return None
-    k = len(cores) // workers
-    return [tuple(cores[i * k:(i + 1) * k]) for i in range(workers)]
-
-
 class MeasureWorkerPool:
     """N processes measuring image pairs with the service's measurer factory.
 
@@ -367,9 +333,6 @@ class MeasureWorkerPool:
         least 1).
     nice : int, optional
         Nice value of the workers (``None``: as started; :func:`controller.latency.prioritize`).
-    pin : bool
-        Pin each worker to cores of its own (:func:`worker_cores`, :attr:`cores`; see
-        docs/service.md, "Workers": 2 workers on 2 cores 1.49-1.66x one, 1.34-1.46x free).
 
     Notes
     -----
@@ -389,7 +352,6 @@ class MeasureWorkerPool:
         on_problem: Callable[[str], None] | None = None,
         threads_per_worker: int | None = None,
         nice: int | None = None,
-        pin: bool = True,
     ) -> None:
         import multiprocessing
 
@@ -412,7 +374,6 @@ class MeasureWorkerPool:
                                    if threads_per_worker is None else int(threads_per_worker))
         """OpenCV threads of each worker (default: the cores shared out among the workers)."""
         self._workers = [_Worker(i) for i in range(workers)]
-        self.cores = worker_cores(workers, _affinity()) if pin else None  # None: not pinned
         self._backlog: deque[_Job] = deque()
         self._tickets = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -483,8 +444,7 @@ class MeasureWorkerPool:
         parent, child = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(
             target=_worker_main,
-            args=(child, self.factory, self.shape, w.index, self.threads_per_worker, self.nice,
-                  None if self.cores is None else self.cores[w.index]),
+            args=(child, self.factory, self.shape, w.index, self.threads_per_worker, self.nice),
             name=f"planer-measure-{w.index}", daemon=True,
         )
         proc.start()

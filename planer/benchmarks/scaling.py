@@ -92,9 +92,7 @@ def scaling(frames: list, rig: Any, facts: Any, *, max_workers: int | None = Non
         ``cores``, ``in_process_pairs_per_s`` (one thread, OpenCV on one thread),
         ``in_process_cpu_us_per_pair``, ``rows`` (``workers``, ``pairs_per_s``, ``ratio`` to
         one worker, ``per_worker`` = ratio / N, ``ratio_to_in_process``,
-        ``rounds_pairs_per_s``, ``cores_pinned`` (each worker's cores,
-        :func:`controller.measure_workers.worker_cores`), ``service_cpu_us_per_pair`` this
-        process's CPU time per pair,
+        ``rounds_pairs_per_s``, ``service_cpu_us_per_pair`` this process's CPU time per pair,
         ``worker_cpu_us_per_pair`` all workers' together, ``None`` where not readable),
         ``load_avg`` at the end; every worker runs OpenCV on one thread here, so the ratio is
         the processes' own.
@@ -156,7 +154,6 @@ def scaling(frames: list, rig: Any, facts: Any, *, max_workers: int | None = Non
         for pool in pools:
             pool.close()
     rows = [{"workers": n, "pairs_per_s": statistics.median(got), "rounds_pairs_per_s": got,
-             "cores_pinned": pools[n - 1].cores,  # each worker's cores (None: not pinned)
              "service_cpu_us_per_pair": _median_us(cpu[n - 1][0]),
              "worker_cpu_us_per_pair": _median_us(cpu[n - 1][1])}
             for n, got in enumerate(rates, start=1)]

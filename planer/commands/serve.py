@@ -184,9 +184,7 @@ async def start_workers(service: Any, cfg: Any, requested: int | None) -> Any:
     if warning:
         print(f"planer serve: {warning}", file=sys.stderr, flush=True)
     service.pipeline.use_workers(pool)
-    pinned = ("" if pool.cores is None else ", on cores "
-              + " | ".join(",".join(str(c) for c in part) for part in pool.cores))
-    print(f"workers: measuring in {pool.workers} process(es){pinned}", flush=True)
+    print(f"workers: measuring in {pool.workers} process(es)", flush=True)
     return pool
 
 
