@@ -28,7 +28,9 @@ from typing import Any, Protocol
 from config.machine import FramesConfig
 from controller.spool_watch import WATCHED_POLL_S, SpoolWatch
 from core.checks import check_positive
-from protocol.frames import Frame, Skip, SpoolLimits, SpoolReader
+from protocol.frames import Frame
+from protocol.spool import SpoolReader
+from protocol.spool_files import Skip, SpoolLimits
 
 
 class FrameSource(Protocol):

@@ -1,6 +1,6 @@
 """A spool folder's commits as they happen: Linux inotify (``inotify_simple``), no polling.
 
-A :class:`~protocol.frames.SpoolWriter` commits a pair by renaming its metadata file
+A :class:`~protocol.spool.SpoolWriter` commits a pair by renaming its metadata file
 (``pair-<slot>.json``) into the folder, last (``docs/frames.md``). :class:`SpoolWatch` asks the
 kernel for the folder's renames-in and closed writes (``IN_MOVED_TO``, ``IN_CLOSE_WRITE``) and
 :meth:`SpoolWatch.wait` returns as soon as one of them names a metadata file: the spool reader

@@ -97,7 +97,7 @@ def _spool() -> Any:  # pragma: no cover - worker
     """The spool writer to write with now (several workers: opened afresh on this turn)."""
     if not _seeded:  # one worker: the only writer, its state is the spool's
         return _writer
-    from protocol.frames import SpoolWriter
+    from protocol.spool import SpoolWriter
 
     return SpoolWriter(_writer.directory, keep=_writer.keep, fsync=_writer.fsync)
 
@@ -132,7 +132,7 @@ class RenderPool:
         The machine's seed (the wood texture and image noise derive from it).
     workers : int
         Worker processes (1 keeps the images identical to in-process rendering).
-    writer : protocol.frames.SpoolWriter, optional
+    writer : protocol.spool.SpoolWriter, optional
         The workers write every frame submitted to this spool, in order, taking turns; the
         caller must not write to it meanwhile.
     nice : int, optional

@@ -71,7 +71,7 @@ def wire_runner(
     **kwargs
         Passed to the constructor (``clock``, ``sleep``, ``out``...).
     """
-    from protocol.frames import SpoolWriter
+    from protocol.spool import SpoolWriter
 
     render = None
     if machine is None:

@@ -151,7 +151,7 @@ def test_open_frame_source_dispatches_camera():
 
 def test_acquire_writes_committed_pairs_of_the_rigs_size(tmp_path, capsys):
     from planer.cli import main
-    from protocol.frames import SpoolReader
+    from protocol.spool import SpoolReader
 
     spool = tmp_path / "spool"
     assert main(["acquire", "--camera", "Fake_1", "--pairs", "20", "--spool", str(spool)]) == 0
@@ -173,7 +173,7 @@ def test_acquire_writes_committed_pairs_of_the_rigs_size(tmp_path, capsys):
 @pytest.mark.parametrize("fmt", ["png", "npy"])
 def test_acquire_writes_the_spool_images_in_the_format_asked(tmp_path, fmt):
     from planer.cli import main
-    from protocol.frames import SpoolReader
+    from protocol.spool import SpoolReader
 
     spool = tmp_path / "spool"
     argv = ["acquire", "--camera", "Fake_1", "--pairs", "3", "--spool", str(spool),

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from controller.camera.pairing import CameraImage, PairAssembler, TriggerLatch
-from protocol.frames import Frame, SpoolReader, SpoolWriter
+from protocol.frames import Frame
+from protocol.spool import SpoolReader, SpoolWriter
 
 
 @pytest.fixture(scope="module")

@@ -17,16 +17,10 @@ from config.machine import FramesConfig
 from controller.frame_source import SpoolFrameSource, open_frame_source
 from core.errors import MeasurementError
 from core.imageio import png_header
-from protocol import frames as frames_mod
-from protocol.frames import (
-    SEQ_MAX,
-    Frame,
-    SpoolLimits,
-    SpoolReader,
-    SpoolWriter,
-    decode_metadata,
-    read_spool_file,
-)
+from protocol import spool as spool_mod
+from protocol.frames import Frame
+from protocol.spool import SpoolReader, SpoolWriter
+from protocol.spool_files import SEQ_MAX, SpoolLimits, decode_metadata, read_spool_file
 
 SHAPE = (12, 20)
 
@@ -185,10 +179,10 @@ def test_image_names_outside_the_pair_are_refused(tmp_path):
 
 def test_read_spool_file_limits(tmp_path):
     (tmp_path / "big").write_bytes(b"x" * 101)
-    with pytest.raises(frames_mod.SpoolFileError, match="too large"):
+    with pytest.raises(spool_mod.SpoolFileError, match="too large"):
         read_spool_file(tmp_path, "big", max_bytes=100)
     for name in ("../big", "a/b", "..", ""):
-        with pytest.raises(frames_mod.SpoolFileError, match="plain file name"):
+        with pytest.raises(spool_mod.SpoolFileError, match="plain file name"):
             read_spool_file(tmp_path, name, max_bytes=100)
     with pytest.raises(FileNotFoundError):
         read_spool_file(tmp_path, "gone", max_bytes=100)
@@ -365,7 +359,7 @@ def test_threaded_source_delivers_in_order_with_skips(tmp_path):
 def test_a_pair_that_takes_too_long_is_given_up(tmp_path, monkeypatch):
     _spool(tmp_path, 3)
     entered, release = threading.Event(), threading.Event()
-    real = frames_mod.decode_spool_image
+    real = spool_mod.decode_spool_image
 
     def slow(data, name, *, limits):
         if name.startswith("pair-000000000001."):
@@ -373,7 +367,7 @@ def test_a_pair_that_takes_too_long_is_given_up(tmp_path, monkeypatch):
             release.wait(20)
         return real(data, name, limits=limits)
 
-    monkeypatch.setattr(frames_mod, "decode_spool_image", slow)
+    monkeypatch.setattr(spool_mod, "decode_spool_image", slow)
     now = [0.0]
 
     async def main():
@@ -399,14 +393,14 @@ def test_a_pair_that_takes_too_long_is_given_up(tmp_path, monkeypatch):
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
 def test_a_reader_thread_killed_by_a_bug_is_restarted_past_the_pair(tmp_path, monkeypatch):
     _spool(tmp_path, 3)
-    real = frames_mod.decode_metadata
+    real = spool_mod.decode_metadata
 
     def buggy(data, *, slot):
         if slot == 1:
             raise RuntimeError("boom")
         return real(data, slot=slot)
 
-    monkeypatch.setattr(frames_mod, "decode_metadata", buggy)
+    monkeypatch.setattr(spool_mod, "decode_metadata", buggy)
     monkeypatch.setattr("threading.excepthook", lambda args: None)  # keep the output clean
 
     async def main():
@@ -452,7 +446,7 @@ def test_a_change_hidden_by_a_coarse_folder_mtime_is_found_by_the_rescan(tmp_pat
     clock = {"mono": 100.0, "wall_ns": 0}
     stub = types.SimpleNamespace(monotonic=lambda: clock["mono"],
                                  time_ns=lambda: clock["wall_ns"])
-    monkeypatch.setattr(frames_mod, "time", stub)
+    monkeypatch.setattr(spool_mod, "time", stub)
     r = SpoolReader(tmp_path, start="all")
     clock["wall_ns"] = os.stat(tmp_path).st_mtime_ns + 10**12  # the folder looks quiet
     assert r.poll().seq == 1 and r.poll() is None
@@ -460,5 +454,5 @@ def test_a_change_hidden_by_a_coarse_folder_mtime_is_found_by_the_rescan(tmp_pat
     w.write(_frame(2))
     os.utime(tmp_path, ns=(before.st_atime_ns, before.st_mtime_ns))  # same clock tick
     assert r.poll() is None  # unchanged and quiet: not listed (saves CPU)
-    clock["mono"] += frames_mod.RESCAN_S * 1.01
+    clock["mono"] += spool_mod.RESCAN_S * 1.01
     assert r.poll().seq == 2  # the periodic listing finds it

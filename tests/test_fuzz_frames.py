@@ -17,14 +17,13 @@ from hypothesis import strategies as st
 
 from core.errors import MeasurementError
 from core.imageio import ImageHeader, npy_header, png_header
-from protocol.frames import (
-    Frame,
+from protocol.frames import Frame
+from protocol.spool import SpoolReader, SpoolWriter
+from protocol.spool_files import (
     MetadataRefused,
     PairMetadata,
     SpoolFileError,
     SpoolLimits,
-    SpoolReader,
-    SpoolWriter,
     decode_metadata,
     decode_spool_image,
 )

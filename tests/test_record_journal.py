@@ -28,7 +28,8 @@ from controller.quality_log import (
     utc_iso,
 )
 from controller.record_journal import RETRY_EVERY_APPENDS, RecordSink, default_journal_path
-from protocol.frames import Frame, SpoolWriter
+from protocol.frames import Frame
+from protocol.spool import SpoolWriter
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -304,7 +305,7 @@ _CHILD = textwrap.dedent("""
     from pathlib import Path
     from controller.quality_log import QualityLog, QualityRecord, utc_iso
     from controller.record_journal import RecordSink
-    from protocol.frames import SpoolReader
+    from protocol.spool import SpoolReader
 
     db, journal, spool = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
 

@@ -23,7 +23,8 @@ import pytest
 from controller.events import EventKind
 from controller.quality_log import QualityLog
 from controller.safety import SafetyState
-from protocol.frames import Frame, SpoolReader, SpoolWriter
+from protocol.frames import Frame
+from protocol.spool import SpoolReader, SpoolWriter
 from tests.plant_support import run_for
 from tests.test_service_loop import SCENARIO, TruthMeasurer, make_plant
 

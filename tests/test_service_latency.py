@@ -335,7 +335,7 @@ def test_a_pair_in_the_spool_wakes_the_service_without_a_poll_interval(tmp_path)
     # the asyncio side waits for the reader thread's word, not for its poll interval: with an
     # interval of an hour, next() returns the pair the reader thread delivers while it waits
     from controller.frame_source import SpoolFrameSource
-    from protocol.frames import SpoolReader
+    from protocol.spool import SpoolReader
 
     image = np.full((8, 12), 100, np.uint8)
     go = threading.Event()

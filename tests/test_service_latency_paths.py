@@ -84,7 +84,7 @@ def _frame(seq: int, image: np.ndarray) -> Frame:
 def test_a_committed_pair_wakes_the_reader_thread_without_its_poll_interval(tmp_path):
     # poll interval one hour: only the commit's wake-up can deliver the pair in time
     from controller.frame_source import SpoolFrameSource
-    from protocol.frames import SpoolReader, SpoolWriter
+    from protocol.spool import SpoolReader, SpoolWriter
 
     spool = tmp_path / "spool"
     spool.mkdir()
@@ -111,7 +111,7 @@ def test_a_committed_pair_wakes_the_reader_thread_without_its_poll_interval(tmp_
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_raw_spool_images_read_back_the_same_pixels(tmp_path, dtype):
-    from protocol.frames import SpoolReader, SpoolWriter
+    from protocol.spool import SpoolReader, SpoolWriter
 
     rng = np.random.default_rng(3)
     image = rng.integers(0, np.iinfo(dtype).max, size=(9, 13)).astype(dtype)
@@ -126,7 +126,7 @@ def test_raw_spool_images_read_back_the_same_pixels(tmp_path, dtype):
 
 
 def test_an_unknown_spool_image_format_is_refused(tmp_path):
-    from protocol.frames import SpoolWriter
+    from protocol.spool import SpoolWriter
 
     with pytest.raises(ValueError, match="image_format"):
         SpoolWriter(tmp_path, image_format="jpeg")
@@ -420,7 +420,7 @@ def test_prioritize_schedules_the_spool_reader_thread_with_the_bus_thread(tmp_pa
     from controller.frame_source import SpoolFrameSource
     from controller.latency import MEASURE_NICE, prioritize
     from core.realtime import BUS_RT_PRIORITY
-    from protocol.frames import SpoolReader, SpoolWriter
+    from protocol.spool import SpoolReader, SpoolWriter
 
     spool = tmp_path / "spool"
     spool.mkdir()
@@ -515,7 +515,7 @@ class _QuietWatch:
 def test_the_reader_polls_rarely_only_once_the_events_announced_a_pair(tmp_path, monkeypatch,
                                                                        events_come):
     import controller.frame_source as fs
-    from protocol.frames import SpoolReader
+    from protocol.spool import SpoolReader
 
     timeouts: list = []
     done = threading.Event()
@@ -554,7 +554,7 @@ def test_the_reader_polls_rarely_only_once_the_events_announced_a_pair(tmp_path,
 def test_after_a_pair_the_reader_waits_for_the_next_event_unless_pairs_are_pending(
         tmp_path, monkeypatch, pending, after_a_pair):
     import controller.frame_source as fs
-    from protocol.frames import SpoolReader
+    from protocol.spool import SpoolReader
 
     calls: list = []
     done = threading.Event()
@@ -594,7 +594,7 @@ def test_after_a_pair_the_reader_waits_for_the_next_event_unless_pairs_are_pendi
 def test_a_raw_spool_image_reads_back_whatever_its_layout(layout):
     import io
 
-    from protocol.frames import SpoolLimits, decode_spool_image
+    from protocol.spool_files import SpoolLimits, decode_spool_image
 
     rng = np.random.default_rng(5)
     image = rng.integers(0, 65535, size=(7, 11)).astype(np.uint16)

@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 
 from controller.spool_watch import IN_CLOSE_WRITE, IN_MOVED_TO, IN_Q_OVERFLOW, summarize
-from protocol.frames import Frame, SpoolReader, SpoolWriter
+from protocol.frames import Frame
+from protocol.spool import SpoolReader, SpoolWriter
 
 BACKSTOP_S = 60.0
 

@@ -128,7 +128,7 @@ def test_worker_images_equal_the_machines_own(tmp_path, workers, to_spool):
     from plant_sim.camera import render_images
     from plant_sim.machine import Machine
     from plant_sim.render_worker import RenderPool, noise_seed
-    from protocol.frames import SpoolReader, SpoolWriter
+    from protocol.spool import SpoolReader, SpoolWriter
 
     cfg = default_sim()
     own = Machine(cfg, seed=3, render_images=True)

@@ -21,9 +21,10 @@ from plant_sim.amp_node import AmpNode, AmpNodeCore
 from plant_sim.plc_server import PlcServer
 from plant_sim.runner import SimRunner, parse_banner
 from protocol import can_transport
-from protocol.frames import Frame, InProcessSource, SpoolReader, SpoolWriter
+from protocol.frames import Frame, InProcessSource
 from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
+from protocol.spool import SpoolReader, SpoolWriter
 from tests.test_sim_plc import FakeMachine
 
 REPO = Path(__file__).resolve().parents[1]
@@ -275,7 +276,8 @@ def test_half_written_pair_is_never_returned(tmp_path, monkeypatch, crash_after_
 WRITER_SCRIPT = textwrap.dedent(
     """
     import sys, numpy as np
-    from protocol.frames import Frame, SpoolWriter
+    from protocol.frames import Frame
+    from protocol.spool import SpoolWriter
     w = SpoolWriter(sys.argv[1], keep=1000, fsync=True)
     rng = np.random.default_rng(0)
     seq = 0

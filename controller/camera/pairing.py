@@ -13,7 +13,7 @@ only with the latch of its own ``seq``:
 * a pair without its latch (the PLC poll missed it, the PLC is gone) -> failed frame;
 * a pair whose A/B interval on the camera clock contradicts its latches (a trigger the camera
   missed would swap A and B) -> failed frame;
-* pairs of which no image arrived -> one :class:`~protocol.frames.Skip` per run of them;
+* pairs of which no image arrived -> one :class:`~protocol.spool_files.Skip` per run of them;
 * frame ids and timestamps that disagree on the order (a camera restart) -> the open pairs
   fail, the assembler waits for the next :meth:`PairAssembler.sync`; images until then are
   skipped.
@@ -30,7 +30,8 @@ import numpy as np
 
 from core.checks import check_int, check_positive
 from core.units import counter_difference, wrap_counter
-from protocol.frames import Frame, Skip
+from protocol.frames import Frame
+from protocol.spool_files import Skip
 
 __all__ = ["AB_TOLERANCE", "CameraImage", "PairAssembler", "TriggerLatch"]
 

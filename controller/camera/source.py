@@ -25,7 +25,8 @@ from controller.camera import device
 from controller.camera.device import AravisCamera, CameraError, CameraSettings
 from controller.camera.pairing import PairAssembler, TriggerLatch
 from core.checks import check_int, check_positive
-from protocol.frames import Frame, Skip
+from protocol.frames import Frame
+from protocol.spool_files import Skip
 
 __all__ = ["CameraFrameSource", "LatchReader", "open_camera_source", "settings_from_config"]
 

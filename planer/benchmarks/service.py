@@ -328,8 +328,8 @@ def _camera_main(conn: Any, spool_dir: str, n: int, rate_hz: float,
     wakes the service's reader thread (real-time priority where permitted), which may take
     this process's core at once and read the pair before this process reads its clock.
     """
-    import protocol.frames as spool
-    from protocol.frames import SpoolWriter
+    import protocol.spool as spool
+    from protocol.spool import SpoolWriter
 
     frames, _ = _frames(n)
     commit_at: list[float] = []

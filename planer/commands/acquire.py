@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from core.checks import check_int, check_positive
     from core.fileio import atomic_write_text
     from planer.cli import output_folder
-    from protocol.frames import SpoolWriter
+    from protocol.spool import SpoolWriter
 
     pairs = check_int("--pairs", args.pairs, lo=1, hi=10**9)
     check_positive("--timeout", args.timeout)

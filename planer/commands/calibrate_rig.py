@@ -74,7 +74,7 @@ def _pairs_from_files(args: argparse.Namespace) -> list[tuple]:
 
 
 def _pairs_from_spool(directory: str) -> tuple[list[tuple], float | None]:
-    from protocol.frames import SpoolReader
+    from protocol.spool import SpoolReader
 
     reader = SpoolReader(directory, start="all")
     pairs = []
