@@ -36,14 +36,12 @@ class OffsetHistory:
         self.knives = int(knives)
         self.horizon_s = check_positive("horizon_s", horizon_s)
         self._t: list[float] = []
-        self._v: list[np.ndarray] = []
-        self._vl: list[tuple[float, ...]] = []  # the same tables in plain floats (mean_over)
+        self._v: list[tuple[float, ...]] = []  # the tables, plain floats
 
     def restart(self, offsets_um: Sequence[float], at_s: float = -math.inf) -> None:
         """Forget everything: ``offsets_um`` in force from ``at_s`` (-inf: always were)."""
         self._t = [float(at_s)]
-        self._v = [np.array(offsets_um, dtype=float)]
-        self._vl = [tuple(self._v[0].tolist())]
+        self._v = [_table(offsets_um)]
 
     @property
     def start_s(self) -> float:
@@ -68,21 +66,19 @@ class OffsetHistory:
             replaces the older one), else ``None``.
         """
         t = check_finite("at_s", at_s)
-        v = np.array(offsets_um, dtype=float)
+        v = _table(offsets_um)
         if self._t and t < self._t[-1]:
             raise ValueError(f"at_s must not go back: {t!r} < {self._t[-1]!r}")
         if self._t and t == self._t[-1]:
-            replaced = self._v[-1]
+            replaced = np.array(self._v[-1])
             self._v[-1] = v  # same instant: the newer table replaces the older
-            self._vl[-1] = tuple(v.tolist())
             return replaced
         else:
             self._t.append(t)
             self._v.append(v)
-            self._vl.append(tuple(v.tolist()))
         k = bisect.bisect_right(self._t, t - self.horizon_s) - 1
         if k > 0:  # keep the entry in force at the horizon
-            del self._t[:k], self._v[:k], self._vl[:k]
+            del self._t[:k], self._v[:k]
         return None
 
     def pop(self, replaced: np.ndarray | None = None) -> None:
@@ -92,16 +88,14 @@ class OffsetHistory:
         Otherwise the entry goes (the oldest one always stays).
         """
         if replaced is not None:
-            self._v[-1] = np.array(replaced, dtype=float)
-            self._vl[-1] = tuple(self._v[-1].tolist())
+            self._v[-1] = _table(replaced)
         elif len(self._t) > 1:
             self._t.pop()
             self._v.pop()
-            self._vl.pop()
 
     def latest(self) -> np.ndarray:
         """The table in force now (a copy)."""
-        return self._v[-1].copy()
+        return np.array(self._v[-1])
 
     def mean_over(self, t0_s: float, t1_s: float) -> np.ndarray | None:
         """Time-weighted mean of the tables in force over ``[t0_s, t1_s]``.
@@ -117,11 +111,11 @@ class OffsetHistory:
         i0 = bisect.bisect_right(self._t, t0) - 1
         i1 = bisect.bisect_right(self._t, t1) - 1
         if i0 == i1 or t1 <= t0:
-            return self._v[i0].copy()
+            return np.array(self._v[i0])
         # plain floats, the same products and sums as ``acc += v_i * max(b - a, 0)`` in numpy;
         # table i holds on [t_i, t_{i+1}), clipped to [t0, t1] only at both ends (t_{i0} <= t0
         # < t_{i0+1}, t_{i1} <= t1)
-        ts, vl = self._t, self._vl
+        ts, vl = self._t, self._v
         w = max(ts[i0 + 1] - t0, 0.0)
         acc = [v * w for v in vl[i0]]  # (0 + x is x)
         for i in range(i0 + 1, i1):
@@ -130,3 +124,8 @@ class OffsetHistory:
         w = max(t1 - ts[i1], 0.0)
         span = t1 - t0
         return np.array([(s + v * w) / span for s, v in zip(acc, vl[i1], strict=True)])
+
+
+def _table(offsets_um: Sequence[float]) -> tuple[float, ...]:
+    """An offset table as plain floats (what the history keeps)."""
+    return tuple(np.asarray(offsets_um, dtype=float).tolist())

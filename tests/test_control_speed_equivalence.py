@@ -407,7 +407,7 @@ def test_the_offset_history_mean_is_the_numpy_sum(seed, knives):
         for i in range(i0, i1 + 1):
             a = max(t0, hist._t[i])
             b = t1 if i == i1 else min(t1, hist._t[i + 1])
-            acc += hist._v[i] * max(b - a, 0.0)
+            acc += np.asarray(hist._v[i]) * max(b - a, 0.0)
         np.testing.assert_array_equal(got, acc / (t1 - t0))
 
 
