@@ -72,7 +72,8 @@ def project_zero_mean_box(values: np.ndarray, *, bound: float, mean: float = 0.0
     The projection of ``values`` onto the intersection of the hyperplane and the box is
     ``clip(values - c, -bound, bound)`` with the scalar ``c`` that gives the mean (the KKT
     conditions of the problem); the sum is piecewise linear and monotone in ``c``, so ``c`` is
-    found exactly from its values at the breakpoints ``values -+ bound``.
+    found exactly from its values at the breakpoints ``values -+ bound``. When ``values``
+    shifted to the mean lies inside the box, that shift is the projection (no breakpoints).
 
     Parameters
     ----------
@@ -95,6 +96,9 @@ def project_zero_mean_box(values: np.ndarray, *, bound: float, mean: float = 0.0
         raise ValueError("values contains NaN or infinite values")
     check_positive("bound", bound)
     target = v.size * check_range("mean", mean, -bound, bound)
+    shifted = v - (float(v.mean()) - float(mean))  # the projection when no entry meets the box
+    if float(np.max(np.abs(shifted))) <= bound:
+        return shifted
     # s(c) = sum(clip(v - c, -bound, bound)) is continuous, non-increasing and piecewise linear
     # in c with breakpoints at v_k -+ bound: evaluate it there and interpolate the target.
     knots = np.sort(np.concatenate([v - bound, v + bound]))

@@ -474,8 +474,8 @@ class UniformityLoop:
         bound = self.limit_um
         best = planner.best_offsets_um(s_est, bound_um=bound, start_um=self._offsets).tolist()
         now = self._offsets.tolist()
-        self._set(_zero_mean_in_box([o + g * (b - o) for o, b in zip(now, best, strict=True)],
-                                    bound), t)
+        self._set(project_zero_mean_box(
+            np.array([o + g * (b - o) for o, b in zip(now, best, strict=True)]), bound=bound), t)
         self.last_gain = g
         self.steps += 1
         self.status = "stepped"
@@ -513,18 +513,6 @@ def _mean(v: list[float]) -> float:
 def _allclose(a: list[float], b: list[float]) -> bool:
     """``np.allclose(a, b, atol=1e-9)`` (rtol 1e-5) on plain floats."""
     return all(abs(x - y) <= 1e-9 + 1e-5 * abs(y) for x, y in zip(a, b, strict=True))
-
-
-def _zero_mean_in_box(values: list[float], bound: float) -> np.ndarray:
-    """:func:`project_zero_mean_box`, the mean subtracted directly when that fits the box.
-
-    A convex combination of two feasible tables needs only its rounding removed.
-    """
-    m = _mean(values)
-    shifted = [v - m for v in values]
-    if max(map(abs, shifted)) <= bound:
-        return np.array(shifted)
-    return project_zero_mean_box(np.array(values), bound=bound)
 
 
 def width_cv(widths_mm: Sequence[float]) -> float:

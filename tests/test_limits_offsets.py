@@ -54,6 +54,8 @@ def test_the_replanned_table_is_the_nearest_one_with_that_mean(table, limit):
         ([5.0, 5.0], 3.0, 3.0, [3.0, 3.0]),
         ([0.0, 0.0, 0.0], 2.0, -2.0, [-2.0, -2.0, -2.0]),
         ([4.0, 0.0], 3.0, 1.0, [3.0, -1.0]),
+        ([1.0, 2.0, 3.0], 5.0, 0.5, [-0.5, 0.5, 1.5]),  # shifted to the mean: inside the box
+        ([1.0, 2.0, 12.0], 5.0, 0.0, [-3.0, -2.0, 5.0]),  # ... an entry beyond it: not a shift
     ],
 )
 def test_projection_with_a_mean_table(values, bound, mean, expected):
