@@ -352,15 +352,24 @@ def test_the_feed_request_goes_out_before_the_uniformity_loop_computes():
     assert applied and loops.out.feed_setpoint_mm_s is not None
 
 
+_UNMARKED = SimpleNamespace(pass_pitch_mm=1.5, knife_widths_mm=np.full(4, np.nan),
+                            bdc_pitch_mm=1.5)  # a pair whose knives left no mark: feed only
+
+
+def _loops_noting_rejects(out):
+    """The loops on ``out``, set up; the list the feed loop's take-backs are noted in."""
+    loops = _loops(out)
+    loops.ensure(_snap())
+    rejected: list = []
+    loops.feed_loop.reject = lambda: rejected.append(True)
+    return loops, rejected
+
+
 def test_a_refused_feed_write_is_taken_back_after_the_overlap():
     events: list = []
     out = _OrderedActuators(events, taken=False)
-    loops = _loops(out)
-    loops.ensure(_snap())
-    rejected = []
-    loops.feed_loop.reject = lambda: rejected.append(True)
-    att = SimpleNamespace(pass_pitch_mm=1.5, knife_widths_mm=np.full(4, np.nan),
-                          bdc_pitch_mm=1.5)
+    loops, rejected = _loops_noting_rejects(out)
+    att = _UNMARKED
     assert asyncio.run(loops.apply(att, 5.0, _snap(), 5.0)) is False
     assert rejected == [True] and events[-1] == "feed write returned"
 
@@ -470,12 +479,8 @@ def test_an_error_of_the_feed_write_itself_reaches_the_caller_and_is_taken_back(
         raise RuntimeError("a bug in the write")
 
     out.write_feed = broken_write
-    loops = _loops(out)
-    loops.ensure(_snap())
-    rejected = []
-    loops.feed_loop.reject = lambda: rejected.append(True)
-    att = SimpleNamespace(pass_pitch_mm=1.5, knife_widths_mm=np.full(4, np.nan),
-                          bdc_pitch_mm=1.5)
+    loops, rejected = _loops_noting_rejects(out)
+    att = _UNMARKED
     with pytest.raises(RuntimeError, match="a bug"):
         asyncio.run(loops.apply(att, 5.0, _snap(), 5.0))
     assert rejected == [True]

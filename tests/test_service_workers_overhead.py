@@ -226,15 +226,18 @@ def test_replies_split_or_joined_in_any_way_reach_their_own_pairs_in_order(n, wo
             assert isinstance(got, MeasurementWorkerError) and f"bug in pair {pair}" in str(got)
 
 
-def test_several_replies_in_one_read_all_reach_their_pairs():
+def _submit_pairs(pool, n: int) -> list:
+    """``n`` small pairs submitted to ``pool`` (counts 0..n-1); their futures."""
     image = np.zeros((4, 5), np.uint8)
+    return [pool.submit(SimpleNamespace(image_a=image, image_b=image, counts_a=i, counts_b=i,
+                                        speed_mm_s=1.0)) for i in range(n)]
 
+
+def test_several_replies_in_one_read_all_reach_their_pairs():
     async def main():
         pool, (far,) = _fake_pool(1)
         try:
-            futures = [pool.submit(SimpleNamespace(image_a=image, image_b=image, counts_a=i,
-                                                   counts_b=i, speed_mm_s=1.0))
-                       for i in range(2)]
+            futures = _submit_pairs(pool, 2)
             jobs = [far.recv(), far.recv()]
             blob = b"".join(_message(("done", j[1], None, ("m", j[3]), (), 0.0, None))
                             for j in reversed(jobs))  # the later pair first, one write
@@ -250,14 +253,10 @@ def test_several_replies_in_one_read_all_reach_their_pairs():
 
 
 def test_a_reply_that_cannot_be_read_fails_its_pairs_and_the_worker_is_started_again():
-    image = np.zeros((4, 5), np.uint8)
-
     async def main():
         pool, (far,) = _fake_pool(1)
         try:
-            futures = [pool.submit(SimpleNamespace(image_a=image, image_b=image, counts_a=i,
-                                                   counts_b=i, speed_mm_s=1.0))
-                       for i in range(2)]
+            futures = _submit_pairs(pool, 2)
             far.recv()
             os.write(far.fileno(), struct.pack("!i", 5) + b"\x80\x05junk")  # not a pickle
             out = [await asyncio.wait_for(f, BACKSTOP_S) for f in futures]
