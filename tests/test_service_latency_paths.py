@@ -516,6 +516,19 @@ class _QuietWatch:
         pass
 
 
+
+def _run_reader(monkeypatch, watch_cls, reader, done: threading.Event) -> None:
+    """A spool source's reader thread on ``reader`` with ``watch_cls`` as its watch, until
+    ``done``."""
+    import controller.frame_source as fs
+
+    monkeypatch.setattr(fs, "SpoolWatch", watch_cls)
+    source = fs.SpoolFrameSource(reader, poll_s=0.002)
+    try:
+        assert done.wait(BACKSTOP_S)
+    finally:
+        source.close()
+
 @pytest.mark.parametrize("events_come", [True, False])
 def test_the_reader_polls_rarely_only_once_the_events_announced_a_pair(tmp_path, monkeypatch,
                                                                        events_come):
@@ -542,12 +555,7 @@ def test_the_reader_polls_rarely_only_once_the_events_announced_a_pair(tmp_path,
                 return _frame(self.calls, np.zeros((4, 6), np.uint8))
             return None
 
-    monkeypatch.setattr(fs, "SpoolWatch", FakeWatch)
-    source = fs.SpoolFrameSource(Pairs(tmp_path), poll_s=0.002)
-    try:
-        assert done.wait(BACKSTOP_S)
-    finally:
-        source.close()
+    _run_reader(monkeypatch, FakeWatch, Pairs(tmp_path), done)
     assert timeouts[0] == 0.002  # nothing proved yet
     if events_come:  # announced: the fallback polls are rare from then on
         assert timeouts[1:] == [fs.WATCHED_POLL_S] * (len(timeouts) - 1)
@@ -558,7 +566,6 @@ def test_the_reader_polls_rarely_only_once_the_events_announced_a_pair(tmp_path,
 @pytest.mark.parametrize(("pending", "after_a_pair"), [(0, "wait"), (1, "poll")])
 def test_after_a_pair_the_reader_waits_for_the_next_event_unless_pairs_are_pending(
         tmp_path, monkeypatch, pending, after_a_pair):
-    import controller.frame_source as fs
     from protocol.spool import SpoolReader
 
     calls: list = []
@@ -584,12 +591,7 @@ def test_after_a_pair_the_reader_waits_for_the_next_event_unless_pairs_are_pendi
             self.n += 1
             return _frame(self.n, np.zeros((4, 6), np.uint8)) if self.n in (2, 4) else None
 
-    monkeypatch.setattr(fs, "SpoolWatch", FakeWatch)
-    source = fs.SpoolFrameSource(Pairs(tmp_path), poll_s=0.002)
-    try:
-        assert done.wait(BACKSTOP_S)
-    finally:
-        source.close()
+    _run_reader(monkeypatch, FakeWatch, Pairs(tmp_path), done)
     # poll (none), wait (an event), poll (pair 2: the events proved), then: wait for the next
     # event, or read the pairs the listing left pending first
     assert calls[:4] == ["poll", "wait", "poll", after_a_pair]
