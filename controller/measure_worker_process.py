@@ -4,10 +4,15 @@
 process. A job message carries the pair's place in the pool's shared memory (or the images),
 its numbers, the machine's facts and the board's calibrator as its fields' values
 (:func:`_cal_state` / :func:`_cal_from`: the class and field names pickled once); the reply
-carries the ``Measurement`` with its float arrays written back into the pair's slot
-(:func:`_pack`, :func:`_blob_into_slot`, :meth:`_Packed.unpack`) and the calibration estimates
-the pair contributed (:class:`_RecordingCalibrator`). Replies go as one write
-(:func:`_send_whole`) and are cut out of what the pool reads with :func:`_whole_messages`.
+carries the ``Measurement`` with its float arrays (:func:`_pack`, :meth:`_Packed.unpack`) and
+the calibration estimates the pair contributed (:class:`_RecordingCalibrator`). The worker
+reads all that has come at once (:class:`_Inbox`: it knows how many jobs wait behind the pair
+it finished). It writes each reply into the pair's slot, whose images are done with (layout:
+a record of :data:`SLOT_HEAD` bytes, the float arrays, the pickled reply:
+:func:`_blob_into_slot`, :func:`_reply_into_slot`, read back by :func:`_reply_from_slot`), and
+tells the service which slots hold replies in ``("slotted", tickets)`` messages, several in one
+while it is saturated (:class:`_Replies`). Messages go as one write each (:func:`_send_whole`)
+and are cut out of what the other side reads with :func:`_whole_messages`.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import pickle
 import signal
 import struct
 import time
+from collections import deque
 from multiprocessing.reduction import ForkingPickler
 from typing import Any, NamedTuple
 
@@ -125,6 +131,58 @@ def _blob_into_slot(packed: Any, buf: Any, offset: int, room: int) -> Any:
     return packed._replace(blob=None)
 
 
+SLOT_HEAD = 64
+"""Bytes at the start of a pair's slot for its reply's record (:func:`_reply_into_slot`); the
+reply's float arrays follow it, then the reply itself."""
+SLOT_MAGIC = 0x31307265_6E616C70  # b"planer01" little-endian: a record, not image bytes
+_SLOT_MAGIC = struct.Struct("=Q")
+_SLOT_PLACE = struct.Struct("=QQQ")  # ticket, where the reply starts, its length
+_SLOT_RECORD = struct.Struct("=QQQQ")
+
+
+def _reply_into_slot(reply: tuple, buf: Any, offset: int, room: int) -> bool:
+    """Write a ``done`` reply into its pair's slot (after its arrays); whether it fitted.
+
+    Once written the reply outlives the worker: the service reads it from the slot when told
+    (a ``("slotted", tickets)`` message) or, when the worker died holding it, on its own
+    (:func:`_reply_from_slot`). The record's magic is written last.
+    """
+    meas = reply[3]
+    used = 8 * sum(meas.lengths) if type(meas) is _Packed and meas.blob is None else 0
+    at = SLOT_HEAD + -(-used // 8) * 8
+    body = ForkingPickler.dumps(reply)
+    n = len(body)
+    if at + n > room:
+        return False
+    buf[offset + at:offset + at + n] = body
+    _SLOT_PLACE.pack_into(buf, offset + 8, reply[1], at, n)
+    _SLOT_MAGIC.pack_into(buf, offset, SLOT_MAGIC)
+    return True
+
+
+def _reply_from_slot(buf: Any, offset: int, room: int, ticket: int) -> tuple | None:
+    """The reply for pair ``ticket`` written into its slot, or ``None`` when there is none.
+
+    ``None`` also for a record of another pair, one that does not fit ``room`` and one that
+    cannot be read (a worker killed while writing it).
+    """
+    if room < SLOT_HEAD:
+        return None
+    magic, got, at, n = _SLOT_RECORD.unpack_from(buf, offset)
+    if magic != SLOT_MAGIC or got != ticket or at < SLOT_HEAD or at + n > room:
+        return None
+    reply, _ = _unpickled(buf[offset + at:offset + at + n])
+    return reply if type(reply) is tuple and reply[:2] == ("done", ticket) else None
+
+
+def _unpickled(raw: Any) -> tuple[Any, str | None]:
+    """``(pickle.loads(raw), None)``, or ``(None, why)`` when it cannot be read."""
+    try:
+        return pickle.loads(raw), None
+    except Exception as exc:  # noqa: BLE001 - unpickling raises anything
+        return None, f"{exc_name(exc)}: {exc}"
+
+
 _PLAIN = (float, int, bool, str, type(None))
 
 
@@ -184,6 +242,23 @@ def _cal_from(schema: Any, values: tuple | None) -> Any:
 # the worker process
 
 
+HOLD_BEHIND = 2
+"""Jobs waiting behind a finished pair for the worker to count as saturated (and hold its
+reply, :class:`_Replies`)."""
+READ_BYTES = 1 << 16
+"""Most bytes one read of a pool's pipe takes (either end). Not more: ``os.read`` allocates
+what it may take before the read (1 MB: 10-12 us a read on this machine, 64 KB: 1-2 us), and a
+longer message comes in several reads."""
+
+
+def _framed(obj: Any) -> bytes:
+    """``obj`` as ``Connection.send`` frames it (a 4-byte length, then the pickle)."""
+    body = ForkingPickler.dumps(obj)
+    if len(body) > 0x7FFFFFFF:
+        return struct.pack("!i", -1) + _LONG_HEADER.pack(len(body)) + bytes(body)
+    return _HEADER.pack(len(body)) + bytes(body)
+
+
 def _send_whole(conn: Any, obj: Any) -> None:
     """``conn.send(obj)`` as one write of header and body (what ``conn.recv`` reads).
 
@@ -192,19 +267,110 @@ def _send_whole(conn: Any, obj: Any) -> None:
     real-time bus thread waiting in ``recv`` for the body: 9-40 ms per pair measured under six
     CPU hogs (docs/reliability.md). One write of both lands at once.
     """
-    body = ForkingPickler.dumps(obj)
-    if len(body) > 0x7FFFFFFF:  # the long header form: leave it to the library
-        conn.send(obj)
-        return
-    view = memoryview(struct.pack("!i", len(body)) + bytes(body))
+    view = memoryview(_framed(obj))
     fd = conn.fileno()
     while view:
         view = view[os.write(fd, view):]
 
 
+class _Inbox:
+    """The pool's messages to this worker, read as they come (all there is in one read).
+
+    The worker knows how many jobs wait behind the one it finished without blocking
+    (:meth:`poll`), which :class:`_Replies` uses to hold a reply while it is saturated.
+    """
+
+    def __init__(self, conn: Any) -> None:
+        import select
+
+        self.fd = conn.fileno()
+        self.pending: deque[Any] = deque()
+        self._buf = bytearray()
+        self._poller = select.poll()
+        self._poller.register(self.fd, select.POLLIN)
+
+    def _read(self, timeout_ms: int | None) -> None:
+        if not self._poller.poll(timeout_ms):
+            return
+        data = os.read(self.fd, READ_BYTES)
+        if not data:
+            raise EOFError("the service closed the pipe")
+        self._buf += data
+        self.pending.extend(pickle.loads(raw) for raw in _whole_messages(self._buf))
+
+    def poll(self) -> None:
+        """Take what has come, without waiting."""
+        self._read(0)
+
+    def next(self) -> Any:
+        """The next message (waits for one when none is here)."""
+        while not self.pending:
+            self._read(None)
+        return self.pending.popleft()
+
+
+class _Replies:
+    """The worker's replies, held while it is saturated and announced together.
+
+    A ``done`` reply is written into its pair's slot at once (:func:`_reply_into_slot`: a
+    worker that dies after it loses no result); the service is told in a ``("slotted",
+    tickets)`` message, held while at least :data:`HOLD_BEHIND` jobs wait behind the pair and
+    fewer than ``hold`` are held: a saturated worker wakes the service once per ``hold`` pairs
+    (one write) instead of once per pair. Each wake-up takes a core from a measuring worker
+    when the workers use all cores, and costs that worker its caches: with 2 workers on 2 cores,
+    replies in fours (depth 8) measured 1.48-1.78x the pairs/s of one worker against
+    1.38-1.54x one by one (docs/service.md, "Workers"). A worker with fewer jobs waiting (the
+    service at its pace: the latency path) announces every reply as it is made. A reply
+    without a slot (the images came through the pipe) goes through the pipe, at once.
+
+    Parameters
+    ----------
+    conn : multiprocessing.connection.Connection
+        The worker's end of its pipe.
+    hold : int
+        Most replies held (1: none held).
+    """
+
+    def __init__(self, conn: Any, *, hold: int = 1) -> None:
+        self.conn = conn
+        self.hold = max(1, int(hold))
+        self.held: list[int] = []  # tickets whose replies are in their slots, not yet told
+
+    def add(self, reply: tuple, *, waiting: int,
+            slot: tuple[Any, int, int] | None = None) -> None:
+        """Give the service ``reply``, now or with the next ones.
+
+        Parameters
+        ----------
+        reply : tuple
+            The reply (:func:`_run_job`).
+        waiting : int
+            Jobs here behind its pair.
+        slot : tuple, optional
+            ``(buffer, offset, room)`` of the pair's slot.
+        """
+        if reply[0] == "done" and slot is not None and _reply_into_slot(reply, *slot):
+            self.held.append(reply[1])
+            if waiting < HOLD_BEHIND or len(self.held) >= self.hold:
+                self.flush()
+            return
+        self.flush()
+        _send_whole(self.conn, reply)
+
+    def flush(self) -> None:
+        """Tell the service about the held replies (one write)."""
+        if self.held:
+            tickets = tuple(self.held)
+            self.held.clear()
+            _send_whole(self.conn, ("slotted", tickets))
+
+
 def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: int,
-                 threads: int = 1, nice: int | None = None) -> None:
-    """A worker: set up once, then measure the pairs the pipe brings until told to stop."""
+                 threads: int = 1, nice: int | None = None, hold: int = 1) -> None:
+    """A worker: set up once, then measure the pairs the pipe brings until told to stop.
+
+    ``hold``: most replies held while the worker is saturated (:class:`_Replies`).
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the service's to handle
     if nice is not None:
         from core.realtime import lower_priority
@@ -226,26 +392,35 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
     collector = IdleCollector().install()  # the collections after a reply, not inside a pair
     blocks: dict[str, Any] = {}
     conn.send(("ready", index, os.getpid()))
-    while True:
-        try:
-            msg = conn.recv()
-        except (EOFError, OSError):  # the service is gone
-            break
-        if msg is None:
-            break
-        if msg[0] == "prepare":
+    inbox, replies = _Inbox(conn), _Replies(conn, hold=hold)
+    try:
+        while True:
+            if not inbox.pending:
+                replies.flush()  # about to wait: nothing stays held
             try:
-                stage.measurer(msg[1], msg[2])
-            except VISION_ERRORS:
-                pass
-            continue
-        try:
-            reply = _run_job(stage, blocks, msg)
-        except BaseException as exc:  # a bug: told to the service, then ends with its traceback
-            conn.send(("fault", msg[1], f"{exc_name(exc)}: {exc}"))
-            raise
-        _send_whole(conn, reply)
-        collector.collect_due()
+                msg = inbox.next()
+            except (EOFError, OSError):  # the service is gone
+                break
+            if msg is None:
+                break
+            if msg[0] == "prepare":
+                try:
+                    stage.measurer(msg[1], msg[2])
+                except VISION_ERRORS:
+                    pass
+                continue
+            try:
+                reply, slot = _run_job(stage, blocks, msg)
+            except BaseException as exc:  # a bug: told to the service, then ends with it
+                replies.flush()
+                conn.send(("fault", msg[1], f"{exc_name(exc)}: {exc}"))
+                raise
+            inbox.poll()
+            replies.add(reply, waiting=len(inbox.pending), slot=slot)
+            collector.collect_due()
+        replies.flush()
+    except (BrokenPipeError, ConnectionResetError):  # the service is gone
+        pass
     for block in blocks.values():
         block.close()
 
@@ -261,8 +436,9 @@ def _attach(blocks: dict[str, Any], name: str) -> Any:
     return block
 
 
-def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple) -> tuple:
-    """Measure one pair; the reply for the service."""
+def _run_job(stage: MeasurementStage, blocks: dict[str, Any],
+             msg: tuple) -> tuple[tuple, tuple[Any, int, int] | None]:
+    """Measure one pair: the reply for the service, and the pair's slot (``None``: none)."""
     from protocol.frames import Frame
 
     (_, ticket, where, counts_a, counts_b, speed_mm_s, facts, cal, cal_values, roll) = msg
@@ -283,21 +459,23 @@ def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple) -> tup
     if calibrator is not None:
         recorder = _RecordingCalibrator(calibrator, roll)
         kwargs["calibrator"] = recorder
+    slot = None if buf is None else (buf, offset, 2 * nbytes)
     t0 = time.perf_counter()
     try:
         meas = stage.measure_now(frame, facts, kwargs)
     except VISION_ERRORS as exc:
         found = recorder.found if recorder is not None else None
-        return ("done", ticket, failure_reason(exc), None, (), time.perf_counter() - t0, found)
+        return ("done", ticket, failure_reason(exc), None, (), time.perf_counter() - t0,
+                found), slot
     finally:
         del image_a, image_b, frame  # no view of the slot outlives the job
     packed = _pack(meas)
     if buf is not None:  # the slot's images are done with: the arrays go back in it
-        packed = _blob_into_slot(packed, buf, offset, 2 * nbytes)
+        packed = _blob_into_slot(packed, buf, offset + SLOT_HEAD, 2 * nbytes - SLOT_HEAD)
     if recorder is None:
-        return ("done", ticket, None, packed, (), time.perf_counter() - t0, None)
+        return ("done", ticket, None, packed, (), time.perf_counter() - t0, None), slot
     return ("done", ticket, None, packed, tuple(recorder.estimates),
-            time.perf_counter() - t0, recorder.found)
+            time.perf_counter() - t0, recorder.found), slot
 
 
 # ---------------------------------------------------------------------------------------------

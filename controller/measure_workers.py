@@ -5,23 +5,27 @@ up once (its initializer builds the measurer for the configured image shape: und
 maps, FFT plans; and once more per change of the machine's facts), then measures the pairs it
 is given. A pair's two images go through shared memory (one block per worker holding
 ``depth`` slots; the service copies the images into a free slot), its numbers, the machine's
-facts and the board's calibrator (its fields' values: :func:`_cal_state`) through a pipe; the
-result (the ``Measurement``, its float arrays written back into the pair's slot, and the
-calibration estimates the pair contributed) comes back through the pipe and is read on the
-service's event loop (``loop.add_reader``: no thread in between; one ``os.read`` per wake-up,
-the whole messages cut out of it). The camera's roll is searched for on the pairs the service
-picks in sequence order (:class:`_RollPlan`: as often as in process, never less), and one
-deadline timer watches all pairs in flight (none per pair).
+facts and the board's calibrator (its fields' values: :func:`_cal_state`) through a pipe. The
+worker writes the result (the ``Measurement``, its float arrays, and the calibration estimates
+the pair contributed) into the pair's slot as soon as it is made, and tells the service which
+slots hold results through the pipe: at once when fewer than 2 pairs wait behind (the latency
+path), in batches of ``depth // 2`` while it is saturated (one wake-up of the service for
+several pairs: what lets two workers on two cores scale). The service reads the pipe on its
+event loop (``loop.add_reader``: no thread in between; one ``os.read`` per wake-up, the whole
+messages cut out of it). The camera's roll is searched for on the pairs the service picks in
+sequence order (:class:`_RollPlan`: as often as in process, never less), and one deadline
+timer watches all pairs in flight (none per pair).
 
 The pool only measures; the service consumes the results in sequence order
 (:meth:`controller.pair_pipeline.PairPipeline.submit`), so the control loops see the pairs in
 order even when workers finish out of order. A worker that dies (crash, ``SIGKILL``) or takes
-longer than ``timeout_s`` for a pair is killed and started again; its pairs come back as failed
-measurements naming the reason (never a hang); a measurer that raises what the vision never
-raises (a bug) is reported to the service (its supervisor boundary: the safe state, as in
-process) and the worker ends with the traceback on stderr and is started again. Fewer cores
-than workers is a one-line warning and the pool uses one process per core
-(:func:`plan_workers`): more processes than cores would only share them.
+longer than ``timeout_s`` for a pair is killed and started again: the pair it was measuring
+comes back as a failed measurement naming the reason (never a hang), the results it had made
+count (they are in their slots), and the pairs waiting behind go to the next free worker. A
+measurer that raises what the vision never raises (a bug) is reported to the service (its
+supervisor boundary: the safe state, as in process) and the worker ends with the traceback on
+stderr and is started again. Fewer cores than workers is a one-line warning and the pool uses
+one process per core (:func:`plan_workers`): more processes than cores would only share them.
 """
 
 from __future__ import annotations
@@ -30,7 +34,6 @@ import asyncio
 import itertools
 import math
 import os
-import pickle
 import signal
 import time
 import weakref
@@ -43,8 +46,12 @@ import numpy as np
 
 from controller.events import exc_name
 from controller.measure_worker_process import (
+    READ_BYTES,
+    SLOT_HEAD,
     _cal_state,
     _Packed,
+    _reply_from_slot,
+    _unpickled,
     _whole_messages,
     _worker_main,
 )
@@ -59,14 +66,14 @@ __all__ = [
     "plan_workers",
 ]
 
-DEFAULT_DEPTH = 2
-"""Pairs a worker holds at once (one measured, one waiting: the worker never idles for a round
-trip)."""
+DEFAULT_DEPTH = 8
+"""Pairs a worker holds at once (one measured, the rest waiting: the worker never idles for a
+round trip). A saturated worker answers in batches of ``depth // 2`` (one wake-up of the
+service for them, :class:`controller.measure_worker_process._Replies`) and still has half its
+pairs to measure while the service refills the other half."""
 WAIT_FOR_WORKER_S = 60.0
 """Longest a pair waits for a free worker (one being started again after a crash on a loaded
 machine takes seconds), s."""
-_READ_BYTES = 1 << 20
-"""Most bytes one read of a worker's pipe takes."""
 
 
 class MeasurementWorkerError(Exception):
@@ -254,7 +261,7 @@ class _Worker:
 
             self.slot_bytes = need
             self.block = shared_memory.SharedMemory(create=True, size=need * depth)
-        slot = self.free.pop()
+        slot = self.free.pop(0)  # freed longest ago: the worker's caches hold least of it
         offset = slot * self.slot_bytes
         buf = self.block.buf
         np.copyto(np.ndarray(a.shape, a.dtype, buffer=buf, offset=offset), a)
@@ -265,15 +272,77 @@ class _Worker:
         """The :class:`WorkerOutcome` of a ``done`` reply (arrays copied out of ``slot``)."""
         _, _, error, meas, estimates, measure_s, _ = msg
         if type(meas) is _Packed:
-            if meas.blob is None:  # in the pair's slot (_blob_into_slot)
+            if meas.blob is None:  # in the pair's slot, after its record (_blob_into_slot)
                 n = sum(meas.lengths)
-                if slot is None or self.block is None or 8 * n > self.slot_bytes:
+                if slot is None or self.block is None or 8 * n > self.slot_bytes - SLOT_HEAD:
                     return WorkerOutcome(f"measurement failed: measurement worker {self.index} "
                                          "sent a reply without its arrays", worker=self.index)
                 meas = meas._replace(blob=np.ndarray(
-                    (n,), np.float64, buffer=self.block.buf, offset=slot * self.slot_bytes).copy())
+                    (n,), np.float64, buffer=self.block.buf,
+                    offset=slot * self.slot_bytes + SLOT_HEAD).copy())
             meas = meas.unpack()
         return WorkerOutcome(error, meas, estimates, self.index, measure_s)
+
+    def slotted(self, job: _Job) -> tuple | None:
+        """``job``'s reply as the worker wrote it into the pair's slot (``None``: not there)."""
+        if job.slot is None or self.block is None:
+            return None
+        return _reply_from_slot(self.block.buf, job.slot * self.slot_bytes, self.slot_bytes,
+                                job.ticket)
+
+    def told(self, tickets: tuple[int, ...]) -> list[tuple]:
+        """The replies a ``("slotted", tickets)`` message announces, read from their slots.
+
+        A pair given up meanwhile is skipped; one whose slot holds no reply fails.
+        """
+        out = []
+        for ticket in tickets:
+            job = self.jobs.get(ticket)
+            if job is not None:
+                out.append(self.slotted(job) or (
+                    "done", ticket, f"measurement failed: measurement worker {self.index} "
+                    "said its reply was in the pair's slot; it was not", None, (), 0.0, None))
+        return out
+
+    def salvage(self) -> list[tuple]:
+        """The replies in the slots of the pairs still open (a worker that died holding them)."""
+        return [r for r in map(self.slotted, list(self.jobs.values())) if r is not None]
+
+    def take(self, ticket: int) -> _Job | None:
+        """The open pair ``ticket``, no longer open (its slot free); ``None``: given up."""
+        job = self.jobs.pop(ticket, None)
+        if job is not None and job.slot is not None:
+            self.free.append(job.slot)
+        return job
+
+    def drop_jobs(self) -> list[_Job]:
+        """The open pairs, in the order they were sent; none open after."""
+        jobs, self.jobs = list(self.jobs.values()), {}
+        return jobs
+
+    def messages(self) -> tuple[list[tuple], str | None]:
+        """The whole messages one read of the pipe brought, and why the worker is gone if it is.
+
+        The messages are ``Connection.send``'s (a 4-byte length, or -1 and an 8-byte one, then
+        the pickle): one ``os.read`` of all there is instead of ``poll`` (a new selector each
+        call) and two reads per message; a message split over reads waits in ``rbuf``.
+        """
+        try:
+            data = os.read(self.conn.fileno(), READ_BYTES)
+        except BlockingIOError:
+            return [], None
+        except OSError:
+            data = b""
+        if not data:
+            return [], self.reap()
+        self.rbuf += data
+        out = []
+        for raw in _whole_messages(self.rbuf):
+            msg, why = _unpickled(raw)
+            if why is not None:
+                return out, f"sent a reply that cannot be read ({why})"
+            out.append(msg)
+        return out, None
 
     def free_block(self) -> None:
         if self.block is not None:
@@ -284,6 +353,30 @@ class _Worker:
                 pass
             self.block = None
             self.slot_bytes = 0
+
+    def spawn(self, ctx: Any, args: tuple, *, depth: int) -> None:
+        """Start the worker's process (:func:`_worker_main` with the pipe's end and ``args``)."""
+        parent, child = ctx.Pipe(duplex=True)
+        proc = ctx.Process(target=_worker_main, args=(child, *args),
+                           name=f"planer-measure-{self.index}", daemon=True)
+        proc.start()
+        child.close()
+        self.process, self.conn, self.ready, self.jobs = proc, parent, False, {}
+        self.rbuf, self.free = bytearray(), list(range(depth))
+        self.started += 1
+
+    def end(self, *, wait_s: float) -> None:
+        """Close the pipe and end the process: waits ``wait_s`` for it to stop, then kills it."""
+        if self.conn is not None:
+            self.conn.close()
+            self.conn = None
+        proc, self.process = self.process, None
+        if proc is not None:
+            if wait_s > 0:
+                proc.join(wait_s)
+            if proc.is_alive():
+                proc.kill()
+            proc.join(0.5 if wait_s <= 0 else wait_s)
 
     def reap(self) -> str:
         """How the worker ended (waits a moment for it to be gone)."""
@@ -322,7 +415,8 @@ class MeasureWorkerPool:
         killed and started again, s (checked every quarter of it: within 1.25 times it). (A
         pair waiting for a free worker fails after :data:`WAIT_FOR_WORKER_S`.)
     depth : int
-        Pairs one worker holds at once (shared-memory slots).
+        Pairs one worker holds at once (shared-memory slots); a saturated worker answers in
+        batches of ``depth // 2``.
     start_method : str
         ``multiprocessing`` start method (``spawn``: nothing of the service's threads or
         sockets is inherited).
@@ -367,6 +461,8 @@ class MeasureWorkerPool:
         self.shape = None if shape is None else (int(shape[0]), int(shape[1]))
         self.timeout_s = float(timeout_s)
         self.depth = depth
+        self.hold = max(1, depth // 2)
+        """Most replies a saturated worker holds to send together (``depth // 2``)."""
         self.on_problem = on_problem
         self.nice = nice
         self._ctx = multiprocessing.get_context(start_method)
@@ -441,19 +537,10 @@ class MeasureWorkerPool:
         return self
 
     def _spawn(self, w: _Worker) -> None:
-        parent, child = self._ctx.Pipe(duplex=True)
-        proc = self._ctx.Process(
-            target=_worker_main,
-            args=(child, self.factory, self.shape, w.index, self.threads_per_worker, self.nice),
-            name=f"planer-measure-{w.index}", daemon=True,
-        )
-        proc.start()
-        child.close()
-        w.process, w.conn, w.ready, w.jobs, w.rbuf = proc, parent, False, {}, bytearray()
-        w.free = list(range(self.depth))
-        w.started += 1
+        w.spawn(self._ctx, (self.factory, self.shape, w.index, self.threads_per_worker,
+                            self.nice, self.hold), depth=self.depth)
         if self._loop is not None:
-            self._loop.add_reader(parent.fileno(), self._on_readable, w)
+            self._loop.add_reader(w.conn.fileno(), self._on_readable, w)
 
     def close(self) -> None:
         """Stop the workers (at most about a second), free the shared memory; idempotent.
@@ -467,7 +554,8 @@ class MeasureWorkerPool:
             self._watchdog.cancel()
             self._watchdog = None
         for w in self._workers:
-            self._fail_jobs(w, "measurement workers closed")
+            for job in w.drop_jobs():
+                _settle(job, WorkerOutcome("measurement workers closed", worker=w.index))
         while self._backlog:
             _settle(self._backlog.popleft(), WorkerOutcome("measurement workers closed"))
         for w in self._workers:
@@ -478,14 +566,7 @@ class MeasureWorkerPool:
                 except (OSError, ValueError):
                     pass
         for w in self._workers:
-            if w.process is not None:
-                w.process.join(1.0)
-                if w.process.is_alive():
-                    w.process.kill()
-                    w.process.join(1.0)
-            if w.conn is not None:
-                w.conn.close()
-                w.conn = None
+            w.end(wait_s=1.0)
             w.free_block()
 
     def __enter__(self) -> MeasureWorkerPool:
@@ -575,7 +656,6 @@ class MeasureWorkerPool:
         where, job.slot = w.place(frame, self.depth)
         msg = ("job", job.ticket, where, frame.counts_a, frame.counts_b, frame.speed_mm_s,
                job.facts, *_cal_state(job.calibrator), job.roll)
-        job.frame = None  # the images are in the slot (or the message) now
         assert self._loop is not None
         job.deadline = self._loop.time() + self.timeout_s  # the measurement's own limit
         w.jobs[job.ticket] = job
@@ -586,47 +666,34 @@ class MeasureWorkerPool:
 
     # ------------------------------------------------------------------ answers
     def _on_readable(self, w: _Worker) -> None:
-        """Read what the worker wrote (one read), handle each whole message in it.
-
-        The messages are ``Connection.send``'s (a 4-byte length, or -1 and an 8-byte one, then
-        the pickle): one ``os.read`` of all there is instead of ``poll`` (a new selector each
-        call) and two reads per message; a message split over reads waits in ``rbuf``.
-        """
+        """Handle what the worker wrote (:meth:`_Worker.messages`), then its end if it ended."""
         conn = w.conn
         if conn is None:
             return
-        try:
-            data = os.read(conn.fileno(), _READ_BYTES)
-        except BlockingIOError:
-            return
-        except OSError:
-            data = b""
-        if not data:  # the worker is gone
-            self._died(w, w.reap())
-            return
-        w.rbuf += data
-        for raw in _whole_messages(w.rbuf):
-            try:
-                msg = pickle.loads(raw)
-            except Exception as exc:  # noqa: BLE001 - unpickling raises anything
-                self._died(w, f"sent a reply that cannot be read ({exc_name(exc)}: {exc})")
-                return
+        msgs, gone = w.messages()
+        for msg in msgs:
             self._handle(w, msg)
             if w.conn is not conn:  # it died or was stopped meanwhile: the rest is moot
                 return
+        if gone is not None:
+            self._died(w, gone)
 
     def _handle(self, w: _Worker, msg: tuple) -> None:
-        kind = msg[0]
-        if kind == "ready":
+        if msg[0] == "ready":
             w.ready = True
             self._pump()
-            return
-        job = w.jobs.pop(msg[1], None)
+        elif msg[0] == "slotted":  # replies the worker wrote into their pairs' slots
+            for reply in w.told(msg[1]):
+                self._answer(w, reply)
+        else:
+            self._answer(w, msg)
+
+    def _answer(self, w: _Worker, msg: tuple) -> None:
+        """Settle the pair a ``done`` or ``fault`` reply is for; hand out the next pairs."""
+        job = w.take(msg[1])
         if job is None:
             return  # answered after it was given up
-        if job.slot is not None:
-            w.free.append(job.slot)
-        if kind == "done":
+        if msg[0] == "done":
             if job.plan is not None:
                 job.plan.found(job.ticket, msg[6])
             _settle(job, w.outcome(msg, job.slot))
@@ -660,28 +727,41 @@ class MeasureWorkerPool:
         if self.in_flight:
             self._watch()
 
-    def _fail_jobs(self, w: _Worker, reason: str) -> int:
-        jobs = list(w.jobs.values())
-        w.jobs = {}
-        for job in jobs:
+    def _hand_on(self, w: _Worker, reason: str) -> int:
+        """A dead worker's pairs: the one it was measuring fails, the rest wait for another.
+
+        The worker measured its pairs in the order they were sent, so the first unanswered one
+        is the pair it died on (or hung on); those behind it were never started and go back to
+        the front of the queue, in order (all fail once the pool is closed). Returns the pairs
+        failed.
+        """
+        jobs = w.drop_jobs()
+        failed = jobs if self._closed or self._loop is None else jobs[:1]
+        for job in failed:
             _settle(job, WorkerOutcome(reason, worker=w.index))
-        return len(jobs)
+        if len(failed) < len(jobs):
+            deadline = self._loop.time() + WAIT_FOR_WORKER_S
+            for job in reversed(jobs[1:]):
+                job.slot, job.deadline = None, deadline
+                self._backlog.appendleft(job)
+        return len(failed)
 
     def _died(self, w: _Worker, why: str) -> None:
-        """A worker is gone: its pairs fail with the reason, another one starts."""
+        """A worker is gone: another one starts; what it held is answered or handed on.
+
+        Replies it had written into their slots count (:meth:`_Worker.slotted`); the pair it
+        was measuring fails with the reason; the pairs behind it go to the next free worker
+        (:meth:`_hand_on`).
+        """
         if w.conn is None:
             return
         self._detach(w)
-        w.conn.close()
-        w.conn = None
-        if w.process is not None and w.process.is_alive():
-            w.process.kill()
-        if w.process is not None:
-            w.process.join(0.5)
-        w.process = None
+        w.end(wait_s=0.0)
         was_ready, w.ready = w.ready, False
+        for reply in w.salvage():  # measured, held, not yet told: not lost
+            self._answer(w, reply)
         text = f"measurement worker {w.index} {why}"
-        n = self._fail_jobs(w, f"measurement failed: {text}")
+        n = self._hand_on(w, f"measurement failed: {text}")
         if self._closed:
             return
         if was_ready:
@@ -697,7 +777,9 @@ class MeasureWorkerPool:
         elif not any(x.conn is not None for x in self._workers):
             while self._backlog:  # nobody left to measure them
                 _settle(self._backlog.popleft(),
-                             WorkerOutcome(f"measurement failed: {self._gone()}"))
+                        WorkerOutcome(f"measurement failed: {self._gone()}"))
+        if self._backlog and self._loop is not None:
+            self._loop.call_soon(self._pump)  # the pairs handed on, to the workers still up
 
 
 def open_worker_pool(
