@@ -317,9 +317,8 @@ class _Replies:
     tickets)`` message, held while at least :data:`HOLD_BEHIND` jobs wait behind the pair and
     fewer than ``hold`` are held: a saturated worker wakes the service once per ``hold`` pairs
     (one write) instead of once per pair. Each wake-up takes a core from a measuring worker
-    when the workers use all cores, and costs that worker its caches: with 2 workers on 2 cores,
-    replies in fours (depth 8) measured 1.48-1.78x the pairs/s of one worker against
-    1.38-1.54x one by one (docs/service.md, "Workers"). A worker with fewer jobs waiting (the
+    when the workers use all cores, and costs that worker its caches (2 workers on 2 cores:
+    :data:`controller.measure_workers.DEFAULT_DEPTH`). A worker with fewer jobs waiting (the
     service at its pace: the latency path) announces every reply as it is made. A reply
     without a slot (the images came through the pipe) goes through the pipe, at once.
 

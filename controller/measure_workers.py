@@ -66,11 +66,14 @@ __all__ = [
     "plan_workers",
 ]
 
-DEFAULT_DEPTH = 8
+DEFAULT_DEPTH = 12
 """Pairs a worker holds at once (one measured, the rest waiting: the worker never idles for a
 round trip). A saturated worker answers in batches of ``depth // 2`` (one wake-up of the
 service for them, :class:`controller.measure_worker_process._Replies`) and still has half its
-pairs to measure while the service refills the other half."""
+pairs to measure while the service refills the other half. 2 workers on 2 cores, pairs/s over
+one worker's, alternating runs: depth 2 (no batches) 1.44-1.62, median 1.55; 8: 1.44-1.76,
+1.57; 12: 1.54-1.78, 1.61-1.70 (docs/service.md, "Workers"). The slots cost ``depth`` pairs of
+shared memory per worker (8 MB at 659 x 493, 55 MB at 1920 x 1200)."""
 WAIT_FOR_WORKER_S = 60.0
 """Longest a pair waits for a free worker (one being started again after a crash on a loaded
 machine takes seconds), s."""
