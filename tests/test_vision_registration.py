@@ -12,11 +12,9 @@ from vision.registration import (
     Registrar,
     Registration,
     encoder_shift_px,
-    mark_period_px,
     refine_shift,
-    shading_free_texture,
-    shading_shift,
 )
+from vision.shift_estimators import mark_period_px, shading_free_texture, shading_shift
 
 # -- encoder shift ---------------------------------------------------------------------------
 
