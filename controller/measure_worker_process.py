@@ -122,8 +122,9 @@ def _blob_into_slot(packed: Any, buf: Any, offset: int, room: int) -> Any:
     """``packed`` with its float array written into the pair's slot (``blob=None``) if it fits.
 
     The slot's images are no longer needed once measured: the service copies the array out
-    of the slot (:meth:`_Worker.unpacked`) instead of both sides pickling, writing and reading
-    it (16 KB at 659 px a row: 15-40 us a pair over both processes).
+    of the slot (:meth:`controller.measure_worker_link.WorkerLink.outcome`) instead of both
+    sides pickling, writing and reading it (16 KB at 659 px a row: 15-40 us a pair over both
+    processes).
     """
     if type(packed) is not _Packed or packed.blob.nbytes > room:
         return packed

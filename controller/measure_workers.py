@@ -26,6 +26,9 @@ measurer that raises what the vision never raises (a bug) is reported to the ser
 supervisor boundary: the safe state, as in process) and the worker ends with the traceback on
 stderr and is started again. Fewer cores than workers is a one-line warning and the pool uses
 one process per core (:func:`plan_workers`): more processes than cores would only share them.
+
+One worker's process, pipe and slots as the service sees them:
+:mod:`controller.measure_worker_link`; the worker's side: :mod:`controller.measure_worker_process`.
 """
 
 from __future__ import annotations
@@ -34,27 +37,16 @@ import asyncio
 import itertools
 import math
 import os
-import signal
 import time
 import weakref
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from controller.events import exc_name
-from controller.measure_worker_process import (
-    READ_BYTES,
-    SLOT_HEAD,
-    _cal_state,
-    _Packed,
-    _reply_from_slot,
-    _unpickled,
-    _whole_messages,
-    _worker_main,
-)
+from controller.measure_worker_link import WorkerLink, WorkerOutcome
+from controller.measure_worker_process import _cal_state
 from controller.measurement import MachineFacts
 
 __all__ = [
@@ -85,33 +77,6 @@ class MeasurementWorkerError(Exception):
     Deliberately not one of :data:`controller.measurement.VISION_ERRORS`: the service's
     supervisor boundary reports it and goes to the safe state, as for the same error in process.
     """
-
-
-@dataclass(frozen=True)
-class WorkerOutcome:
-    """What a worker made of one pair.
-
-    Attributes
-    ----------
-    error : str or None
-        Why there is no measurement (``measurement failed: ...``, ``registration failed: ...``,
-        ``measurement worker 1 died (killed by SIGKILL) ...``); ``None`` when measured.
-    measurement : object or None
-        The vision's ``Measurement``.
-    estimates : tuple
-        The calibration estimates the pair folded into the board's calibrator (for the
-        service's own calibrator, folded in sequence order).
-    worker : int
-        Which worker (0-based; -1: none took it).
-    measure_s : float
-        Wall time of the measurement inside the worker, s (0 when it did not run).
-    """
-
-    error: str | None
-    measurement: Any = None
-    estimates: tuple[Any, ...] = ()
-    worker: int = -1
-    measure_s: float = 0.0
 
 
 def available_cores() -> int:
@@ -232,174 +197,6 @@ def _settle(job: _Job, outcome: WorkerOutcome | BaseException) -> None:
         pass
 
 
-@dataclass
-class _Worker:
-    index: int
-    process: Any = None
-    conn: Any = None
-    ready: bool = False
-    block: Any = None  # SharedMemory of `depth` slots
-    slot_bytes: int = 0
-    free: list[int] = field(default_factory=list)
-    jobs: dict[int, _Job] = field(default_factory=dict)
-    started: int = 0
-    rbuf: bytearray = field(default_factory=bytearray)  # replies read, not yet whole
-
-    def place(self, frame: Any, depth: int) -> tuple[tuple, int | None]:
-        """Copy the pair into a free slot of the shared memory: where it is, and the slot.
-
-        Images that are not a pair of equal 2-D arrays, or that do not fit while the slots are
-        in use, go through the pipe instead (no slot).
-        """
-        a, b = frame.image_a, frame.image_b
-        if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)
-                and a.shape == b.shape and a.dtype == b.dtype and a.ndim == 2):
-            return ("pickled", a, b), None  # the worker's measurer says what is wrong
-        need = 2 * a.nbytes
-        if need > self.slot_bytes:
-            if self.jobs:  # slots in use: this pair goes through the pipe, later ones fit
-                return ("pickled", a, b), None
-            self.free_block()
-            from multiprocessing import shared_memory
-
-            self.slot_bytes = need
-            self.block = shared_memory.SharedMemory(create=True, size=need * depth)
-        slot = self.free.pop(0)  # freed longest ago: the worker's caches hold least of it
-        offset = slot * self.slot_bytes
-        buf = self.block.buf
-        np.copyto(np.ndarray(a.shape, a.dtype, buffer=buf, offset=offset), a)
-        np.copyto(np.ndarray(b.shape, b.dtype, buffer=buf, offset=offset + a.nbytes), b)
-        return ("shm", self.block.name, offset, a.shape, a.dtype.str), slot
-
-    def outcome(self, msg: tuple, slot: int | None) -> WorkerOutcome:
-        """The :class:`WorkerOutcome` of a ``done`` reply (arrays copied out of ``slot``)."""
-        _, _, error, meas, estimates, measure_s, _ = msg
-        if type(meas) is _Packed:
-            if meas.blob is None:  # in the pair's slot, after its record (_blob_into_slot)
-                n = sum(meas.lengths)
-                if slot is None or self.block is None or 8 * n > self.slot_bytes - SLOT_HEAD:
-                    return WorkerOutcome(f"measurement failed: measurement worker {self.index} "
-                                         "sent a reply without its arrays", worker=self.index)
-                meas = meas._replace(blob=np.ndarray(
-                    (n,), np.float64, buffer=self.block.buf,
-                    offset=slot * self.slot_bytes + SLOT_HEAD).copy())
-            meas = meas.unpack()
-        return WorkerOutcome(error, meas, estimates, self.index, measure_s)
-
-    def slotted(self, job: _Job) -> tuple | None:
-        """``job``'s reply as the worker wrote it into the pair's slot (``None``: not there)."""
-        if job.slot is None or self.block is None:
-            return None
-        return _reply_from_slot(self.block.buf, job.slot * self.slot_bytes, self.slot_bytes,
-                                job.ticket)
-
-    def told(self, tickets: tuple[int, ...]) -> list[tuple]:
-        """The replies a ``("slotted", tickets)`` message announces, read from their slots.
-
-        A pair given up meanwhile is skipped; one whose slot holds no reply fails.
-        """
-        out = []
-        for ticket in tickets:
-            job = self.jobs.get(ticket)
-            if job is not None:
-                out.append(self.slotted(job) or (
-                    "done", ticket, f"measurement failed: measurement worker {self.index} "
-                    "said its reply was in the pair's slot; it was not", None, (), 0.0, None))
-        return out
-
-    def salvage(self) -> list[tuple]:
-        """The replies in the slots of the pairs still open (a worker that died holding them)."""
-        return [r for r in map(self.slotted, list(self.jobs.values())) if r is not None]
-
-    def take(self, ticket: int) -> _Job | None:
-        """The open pair ``ticket``, no longer open (its slot free); ``None``: given up."""
-        job = self.jobs.pop(ticket, None)
-        if job is not None and job.slot is not None:
-            self.free.append(job.slot)
-        return job
-
-    def drop_jobs(self) -> list[_Job]:
-        """The open pairs, in the order they were sent; none open after."""
-        jobs, self.jobs = list(self.jobs.values()), {}
-        return jobs
-
-    def messages(self) -> tuple[list[tuple], str | None]:
-        """The whole messages one read of the pipe brought, and why the worker is gone if it is.
-
-        The messages are ``Connection.send``'s (a 4-byte length, or -1 and an 8-byte one, then
-        the pickle): one ``os.read`` of all there is instead of ``poll`` (a new selector each
-        call) and two reads per message; a message split over reads waits in ``rbuf``.
-        """
-        try:
-            data = os.read(self.conn.fileno(), READ_BYTES)
-        except BlockingIOError:
-            return [], None
-        except OSError:
-            data = b""
-        if not data:
-            return [], self.reap()
-        self.rbuf += data
-        out = []
-        for raw in _whole_messages(self.rbuf):
-            msg, why = _unpickled(raw)
-            if why is not None:
-                return out, f"sent a reply that cannot be read ({why})"
-            out.append(msg)
-        return out, None
-
-    def free_block(self) -> None:
-        if self.block is not None:
-            try:
-                self.block.close()
-                self.block.unlink()
-            except (OSError, BufferError):
-                pass
-            self.block = None
-            self.slot_bytes = 0
-
-    def spawn(self, ctx: Any, args: tuple, *, depth: int) -> None:
-        """Start the worker's process (:func:`_worker_main` with the pipe's end and ``args``)."""
-        parent, child = ctx.Pipe(duplex=True)
-        proc = ctx.Process(target=_worker_main, args=(child, *args),
-                           name=f"planer-measure-{self.index}", daemon=True)
-        proc.start()
-        child.close()
-        self.process, self.conn, self.ready, self.jobs = proc, parent, False, {}
-        self.rbuf, self.free = bytearray(), list(range(depth))
-        self.started += 1
-
-    def end(self, *, wait_s: float) -> None:
-        """Close the pipe and end the process: waits ``wait_s`` for it to stop, then kills it."""
-        if self.conn is not None:
-            self.conn.close()
-            self.conn = None
-        proc, self.process = self.process, None
-        if proc is not None:
-            if wait_s > 0:
-                proc.join(wait_s)
-            if proc.is_alive():
-                proc.kill()
-            proc.join(0.5 if wait_s <= 0 else wait_s)
-
-    def reap(self) -> str:
-        """How the worker ended (waits a moment for it to be gone)."""
-        proc = self.process
-        if proc is None:
-            return "gone"
-        proc.join(0.5)
-        code = proc.exitcode
-        if code is None:
-            proc.kill()
-            proc.join(0.5)
-            return "stopped answering (killed)"
-        if code < 0:
-            try:
-                return f"died (killed by {signal.Signals(-code).name})"
-            except ValueError:
-                return f"died (killed by signal {-code})"
-        return f"died (exit code {code})"
-
-
 class MeasureWorkerPool:
     """N processes measuring image pairs with the service's measurer factory.
 
@@ -472,7 +269,7 @@ class MeasureWorkerPool:
         self.threads_per_worker = (max(1, available_cores() // workers)
                                    if threads_per_worker is None else int(threads_per_worker))
         """OpenCV threads of each worker (default: the cores shared out among the workers)."""
-        self._workers = [_Worker(i) for i in range(workers)]
+        self._workers = [WorkerLink(i) for i in range(workers)]
         self._backlog: deque[_Job] = deque()
         self._tickets = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -539,7 +336,7 @@ class MeasureWorkerPool:
                 w.ready = msg[0] == "ready"
         return self
 
-    def _spawn(self, w: _Worker) -> None:
+    def _spawn(self, w: WorkerLink) -> None:
         w.spawn(self._ctx, (self.factory, self.shape, w.index, self.threads_per_worker,
                             self.nice, self.hold), depth=self.depth)
         if self._loop is not None:
@@ -637,7 +434,7 @@ class MeasureWorkerPool:
             if w.conn is not None:
                 loop.add_reader(w.conn.fileno(), self._on_readable, w)
 
-    def _detach(self, w: _Worker) -> None:
+    def _detach(self, w: WorkerLink) -> None:
         if self._loop is not None and w.conn is not None and not self._loop.is_closed():
             self._loop.remove_reader(w.conn.fileno())
 
@@ -654,7 +451,7 @@ class MeasureWorkerPool:
                 return
             self._send(best, self._backlog.popleft())
 
-    def _send(self, w: _Worker, job: _Job) -> None:
+    def _send(self, w: WorkerLink, job: _Job) -> None:
         frame = job.frame
         where, job.slot = w.place(frame, self.depth)
         msg = ("job", job.ticket, where, frame.counts_a, frame.counts_b, frame.speed_mm_s,
@@ -668,8 +465,8 @@ class MeasureWorkerPool:
             self._died(w, f"not reachable ({exc_name(exc)})")
 
     # ------------------------------------------------------------------ answers
-    def _on_readable(self, w: _Worker) -> None:
-        """Handle what the worker wrote (:meth:`_Worker.messages`), then its end if it ended."""
+    def _on_readable(self, w: WorkerLink) -> None:
+        """Handle what the worker wrote (:meth:`WorkerLink.messages`), then its end if it ended."""
         conn = w.conn
         if conn is None:
             return
@@ -681,7 +478,7 @@ class MeasureWorkerPool:
         if gone is not None:
             self._died(w, gone)
 
-    def _handle(self, w: _Worker, msg: tuple) -> None:
+    def _handle(self, w: WorkerLink, msg: tuple) -> None:
         if msg[0] == "ready":
             w.ready = True
             self._pump()
@@ -691,7 +488,7 @@ class MeasureWorkerPool:
         else:
             self._answer(w, msg)
 
-    def _answer(self, w: _Worker, msg: tuple) -> None:
+    def _answer(self, w: WorkerLink, msg: tuple) -> None:
         """Settle the pair a ``done`` or ``fault`` reply is for; hand out the next pairs."""
         job = w.take(msg[1])
         if job is None:
@@ -730,7 +527,7 @@ class MeasureWorkerPool:
         if self.in_flight:
             self._watch()
 
-    def _hand_on(self, w: _Worker, reason: str) -> int:
+    def _hand_on(self, w: WorkerLink, reason: str) -> int:
         """A dead worker's pairs: the one it was measuring fails, the rest wait for another.
 
         The worker measured its pairs in the order they were sent, so the first unanswered one
@@ -749,10 +546,10 @@ class MeasureWorkerPool:
                 self._backlog.appendleft(job)
         return len(failed)
 
-    def _died(self, w: _Worker, why: str) -> None:
+    def _died(self, w: WorkerLink, why: str) -> None:
         """A worker is gone: another one starts; what it held is answered or handed on.
 
-        Replies it had written into their slots count (:meth:`_Worker.slotted`); the pair it
+        Replies it had written into their slots count (:meth:`WorkerLink.slotted`); the pair it
         was measuring fails with the reason; the pairs behind it go to the next free worker
         (:meth:`_hand_on`).
         """

@@ -20,6 +20,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from controller.measure_worker_link import WorkerLink
 from controller.measure_worker_process import (
     SLOT_HEAD,
     _blob_into_slot,
@@ -30,7 +31,6 @@ from controller.measure_worker_process import (
     _reply_from_slot,
     _reply_into_slot,
 )
-from controller.measure_workers import _Worker
 from vision.selfcal import Calibration, SelfCalibrator
 
 # ---------------------------------------------------------------------------------------------
@@ -144,8 +144,8 @@ def block():
     shm.unlink()
 
 
-def _worker_with(block, slot_bytes: int) -> _Worker:
-    w = _Worker(3)
+def _worker_with(block, slot_bytes: int) -> WorkerLink:
+    w = WorkerLink(3)
     w.block, w.slot_bytes = block, slot_bytes
     return w
 
