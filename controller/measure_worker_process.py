@@ -256,7 +256,7 @@ def _framed(obj: Any) -> bytes:
     """``obj`` as ``Connection.send`` frames it (a 4-byte length, then the pickle)."""
     body = ForkingPickler.dumps(obj)
     if len(body) > 0x7FFFFFFF:
-        return struct.pack("!i", -1) + _LONG_HEADER.pack(len(body)) + bytes(body)
+        return _HEADER.pack(-1) + _LONG_HEADER.pack(len(body)) + bytes(body)
     return _HEADER.pack(len(body)) + bytes(body)
 
 
@@ -413,7 +413,7 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
                 reply, slot = _run_job(stage, blocks, msg)
             except BaseException as exc:  # a bug: told to the service, then ends with it
                 replies.flush()
-                conn.send(("fault", msg[1], f"{exc_name(exc)}: {exc}"))
+                _send_whole(conn, ("fault", msg[1], f"{exc_name(exc)}: {exc}"))
                 raise
             inbox.poll()
             replies.add(reply, waiting=len(inbox.pending), slot=slot)
