@@ -350,6 +350,12 @@ class PairAssembler:
         if not self._synced:
             return
         last = max(self._open, default=self._next_p - 1)
+        latched = (None if not self.use_latches or self._max_latch_seq is None
+                   else self._max_latch_seq - self._seq0)
+        if latched is not None and latched - self._next_p <= self.max_jump_pairs:
+            # pairs the PLC latched but of which no image arrived (the last ones of a run
+            # included) are reported as dropped, never lost without a word
+            last = max(last, latched)
         while self._next_p <= last:
             self._hand_out(self._next_p, incomplete=reason)
         self._open.clear()
