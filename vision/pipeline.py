@@ -27,8 +27,9 @@ from typing import Any
 import numpy as np
 
 from config.rig import Rig
-from core.checks import check_image, check_int, check_positive
-from core.errors import MeasurementError
+from core.checks import check_image, check_int, check_positive, check_range
+from core.errors import MeasurementError, RegistrationError
+from vision.consistency import Agreement, honest_confidence, marks_shading_agreement
 from vision.deblur import Deblurrer, blur_length_px
 from vision.front_end import Binned, FrontEnd
 from vision.illumination import Detrender, flat_field_correct, running_mean
@@ -96,6 +97,16 @@ class Measurement:
     knife_widths_mm : ndarray, shape (knives,), or None
         Mean width per knife, marks attributed in turn from the first complete mark (relative
         phase; ``None`` without the number of knives).
+    flag_reason : str or None
+        Why the measurement's own checks disagree (``None``: they agree); a flagged measurement
+        reports a ``confidence`` of at most the measurer's ``flagged_confidence`` (0.3).
+    marks_agreement : float
+        How well the marks found explain each image's own column profile
+        (:func:`vision.consistency.marks_shading_agreement`, the worse of A and B; 0.76-0.92 on
+        good pairs, <= 0.68 on misregistered ones).
+    registration_source : str
+        The coarse registration used: ``"texture"``, ``"profile"``, ``"shading"`` (or
+        ``"encoder"`` when not registered).
     """
 
     x_mm: np.ndarray
@@ -118,6 +129,14 @@ class Measurement:
     kinematic_depth_um: float = math.nan
     uncalibrated_depth_um: float = math.nan
     knife_widths_mm: np.ndarray | None = None
+    flag_reason: str | None = None
+    marks_agreement: float = math.nan
+    registration_source: str = "texture"
+
+    @property
+    def flagged(self) -> bool:
+        """Whether one of the measurement's own checks failed (``flag_reason`` says which)."""
+        return self.flag_reason is not None
 
     def to_json(self) -> dict[str, Any]:
         """Plain-JSON dict of the measurement.
@@ -151,6 +170,9 @@ class Measurement:
             "calibration": _calibration_json(self.calibration),
             "knife_widths_mm": (None if self.knife_widths_mm is None else
                                 [_finite_or_none(v, 5) for v in self.knife_widths_mm]),
+            "flag_reason": self.flag_reason,
+            "marks_agreement": _finite_or_none(self.marks_agreement, 3),
+            "registration_source": self.registration_source,
         }
 
 
@@ -272,6 +294,18 @@ def check_rig_size(rig: Rig, shape: tuple[int, int]) -> None:
         )
 
 
+@dataclass(frozen=True)
+class _Profile:
+    """The pair registered at one shift: slope, height, marks and the marks' agreement."""
+
+    slope: np.ndarray
+    height: np.ndarray
+    marks: Marks
+    x_mm: np.ndarray
+    period: float
+    agreement: Agreement
+
+
 class Measurer:
     """Measures image pairs of one rig and one image shape (all set-up done here, once).
 
@@ -320,6 +354,16 @@ class Measurer:
         (:mod:`vision.selfcal`) and gives the kinematic depth.
     knives : int, optional
         Number of knives: per-knife mean widths (relative phase).
+    min_agreement : float, optional
+        The marks found must explain each image's own column profile at least this well
+        (:func:`vision.consistency.marks_shading_agreement`); below it the pair is registered
+        once more without its texture (the column profiles alone), and when that does not
+        explain the images either, the measurement is flagged.
+    max_slip_px : float, optional
+        Largest difference between the registered and the encoder's shift the belt allows,
+        pixels (default ``search_px``); beyond it the measurement is flagged.
+    flagged_confidence : float, optional
+        The most confidence a flagged measurement reports.
     remove_slow : bool, optional
         Subtract from the height its running mean over one cutterhead revolution (the marks'
         repeat period, which the mean annihilates): what varies more slowly is the integrated
@@ -348,6 +392,9 @@ class Measurer:
         radius_mm: float | None = None,
         knives: int | None = None,
         remove_slow: bool = True,
+        min_agreement: float = 0.7,
+        max_slip_px: float | None = None,
+        flagged_confidence: float = 0.3,
     ) -> None:
         self.rig = rig
         check_rig_size(rig, shape)
@@ -356,6 +403,10 @@ class Measurer:
         self.radius_mm = None if radius_mm is None else check_positive("radius_mm", radius_mm)
         self.knives = None if knives is None else check_int("knives", knives, lo=1)
         self.remove_slow = bool(remove_slow)
+        self.min_agreement = check_range("min_agreement", min_agreement, -1.0, 1.0)
+        self.flagged_confidence = check_range("flagged_confidence", flagged_confidence, 0.0, 1.0)
+        self.max_slip_px = float(search_px) if max_slip_px is None else check_positive(
+            "max_slip_px", max_slip_px, allow_zero=True)
         self.front = FrontEnd(rig.camera, shape, max_roll_deg=self.max_roll_deg,
                               roll_smear_px=check_positive("roll_smear_px", roll_smear_px),
                               texture_rows=texture_rows)
@@ -498,6 +549,81 @@ class Measurer:
             return replace(cal, deblurred=bool(deblur and pays)), s_cal, h_cal, m_cal, raw_depth
         return cal, slope, height, marks, raw_depth
 
+    def _registered_profile(self, prof_a: np.ndarray, prof_b: np.ndarray, d: float,
+                            margin: int, cos_roll: float) -> _Profile:
+        """Slope, height and marks of the pair registered at ``d`` px, and their agreement."""
+        u0, u1 = overlap(self.width, d, columns=(margin, self.width - margin))
+        count = u1 - u0
+        if count < self.min_overlap_px:
+            raise MeasurementError(
+                f"registered shift {d:.1f} px leaves only {max(count, 0)} px of overlap"
+            )
+        ia = prof_a[u0:u1]
+        ib = shift_profile(prof_b, shift_px=d, start=u0, count=count)
+        if np.any(ia <= 0) or np.any(ib <= 0):
+            raise MeasurementError(
+                "non-positive intensities in the overlap (dark or clipped images)"
+            )
+        log_a, log_b = np.log(ia), np.log(ib)
+        raw = log_b - log_a
+        period = repeat_period_px(self.detrender(raw, start=u0))
+        log_ratio = self.detrender(raw, start=u0, period_px=period)
+        slope = self._slope(np.exp(log_ratio))
+        if not np.all(np.isfinite(slope)):
+            raise MeasurementError("slope is not finite (intensity ratio out of the lights' range)")
+        height = self._heights(slope, cos_roll, period)
+        cols = self._c0 + u0 + np.arange(count)
+        x_mm = (self._cx + (cols - self._cx) * cos_roll) / self.px_per_mm
+        marks = find_marks(x_mm, height, slope=slope, min_marks=self.min_marks)
+        agreement = marks_shading_agreement(log_a, log_b, x_mm, marks.cusps_mm, marks.bottoms_mm)
+        return _Profile(slope, height, marks, x_mm, period, agreement)
+
+    def _checked(self, raw: tuple[np.ndarray, np.ndarray], profiles: tuple[np.ndarray, np.ndarray],
+                 reg: Registration, profile: _Profile, margin: int, cos_roll: float,
+                 ) -> tuple[Registration, _Profile, str | None]:
+        """The measurement's own checks; a second registration when the marks disagree.
+
+        Returns the registration and profile kept and the reason the checks still fail
+        (``None``: they pass).  When the marks found do not explain the images' own shading
+        and the registration came from the texture, the pair is registered again from the
+        column profiles alone (the texture is what light-dependent defects fool); the one whose
+        marks explain the images better is kept.
+        """
+        score = profile.agreement.score
+        reasons: list[str] = []
+        if self.register and not score >= self.min_agreement and reg.source == "texture":
+            second: Registration | None = None
+            try:
+                second = self.registrar.without_texture(*raw, encoder_shift_px=reg.encoder_shift_px)
+            except RegistrationError as exc:
+                reasons.append(f"no second registration ({exc})")
+            if second is not None and abs(second.shift_px - reg.shift_px) > 0.5:
+                try:
+                    other = self._registered_profile(*profiles, second.shift_px, margin, cos_roll)
+                except MeasurementError as exc:
+                    reasons.append(f"the column profiles' registration gives no marks ({exc})")
+                else:
+                    if other.agreement.score > score or not math.isfinite(score):
+                        reasons.append(
+                            f"texture registration {reg.shift_px:.1f} px rejected: its marks "
+                            f"explain the images at {score:.2f}, the column profiles' "
+                            f"({second.shift_px:.1f} px) at {other.agreement.score:.2f}")
+                        reg, profile, score = second, other, other.agreement.score
+                    else:
+                        reasons.append(
+                            f"texture ({reg.shift_px:.1f} px) and column profiles "
+                            f"({second.shift_px:.1f} px) disagree")
+        failed: list[str] = []
+        if self.register and not score >= self.min_agreement:
+            failed.append(f"the marks found explain the images' own shading at {score:.2f} < "
+                          f"{self.min_agreement:.2f} (misregistered pair or no knife marks)")
+            failed.extend(reasons)
+        if self.register and abs(reg.shift_px - reg.encoder_shift_px) > self.max_slip_px:
+            failed.append(f"registered shift {reg.shift_px:.1f} px is more than the slip bound "
+                          f"{self.max_slip_px:.1f} px from the encoder's "
+                          f"{reg.encoder_shift_px:.1f} px")
+        return reg, profile, "; ".join(failed) if failed else None
+
     # -- the measurement ----------------------------------------------------------------------
 
     def measure(
@@ -573,6 +699,7 @@ class Measurer:
         prof_b = self.front.profile(binned_b, roll)
         d_enc_sheared = d_enc / cos_roll
 
+        raw_profiles = (prof_a, prof_b)  # as registered: the second opinion sees the same
         if self.register:
             # Texture in rows along the feed (fibres and motion along the rows), profiles
             # along the marks.
@@ -591,9 +718,7 @@ class Measurer:
                 )
         else:
             reg = Registration(shift_px=d_enc_sheared, confidence=math.nan,
-                               encoder_shift_px=d_enc_sheared)
-        d = reg.shift_px
-
+                               encoder_shift_px=d_enc_sheared, source="encoder")
         if self._flat is not None:
             prof_a, prof_b = flat_field_correct(
                 prof_a, prof_b, reference_a=self._flat[0], reference_b=self._flat[1]
@@ -605,28 +730,15 @@ class Measurer:
         else:
             blur = 0.0
 
-        u0, u1 = overlap(self.width, d, columns=(margin, self.width - margin))
-        count = u1 - u0
-        if count < self.min_overlap_px:
-            raise MeasurementError(
-                f"registered shift {d:.1f} px leaves only {max(count, 0)} px of overlap"
-            )
-        ia = prof_a[u0:u1]
-        ib = shift_profile(prof_b, shift_px=d, start=u0, count=count)
-        if np.any(ia <= 0) or np.any(ib <= 0):
-            raise MeasurementError(
-                "non-positive intensities in the overlap (dark or clipped images)"
-            )
-        raw = np.log(ib / ia)
-        period = repeat_period_px(self.detrender(raw, start=u0))
-        log_ratio = self.detrender(raw, start=u0, period_px=period)
-        slope = self._slope(np.exp(log_ratio))
-        if not np.all(np.isfinite(slope)):
-            raise MeasurementError("slope is not finite (intensity ratio out of the lights' range)")
-        height = self._heights(slope, cos_roll, period)
-        cols = self._c0 + u0 + np.arange(count)
-        x_mm = (self._cx + (cols - self._cx) * cos_roll) / self.px_per_mm
-        marks = find_marks(x_mm, height, slope=slope, min_marks=self.min_marks)
+        profile = self._registered_profile(prof_a, prof_b, reg.shift_px, margin, cos_roll)
+        reg, profile, reason = self._checked(raw_profiles, (prof_a, prof_b), reg, profile,
+                                             margin, cos_roll)
+        slope, height, marks, x_mm, period = (profile.slope, profile.height, profile.marks,
+                                              profile.x_mm, profile.period)
+        d = reg.shift_px
+        confidence, reason = honest_confidence(
+            reg.confidence, [reason] if reason else [],
+            flagged_confidence=self.flagged_confidence)
         cal: Calibration | None = None
         kin_depth = raw_depth = math.nan
         if self.radius_mm is not None:
@@ -650,7 +762,7 @@ class Measurer:
             depth_um=marks.depth_um,
             shift_px=d * cos_roll,
             encoder_shift_px=d_enc,
-            confidence=reg.confidence,
+            confidence=confidence,
             blur_px=blur,
             roll_deg=roll,
             roll_confidence=orient.confidence,
@@ -658,6 +770,9 @@ class Measurer:
             kinematic_depth_um=kin_depth,
             uncalibrated_depth_um=raw_depth,
             knife_widths_mm=knife_widths,
+            flag_reason=reason,
+            marks_agreement=profile.agreement.score,
+            registration_source=reg.source,
         )
 
 

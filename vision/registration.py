@@ -606,6 +606,51 @@ class Registrar(ShiftStages):
         raise RegistrationError(message)
 
 
+    def without_texture(self, profile_a: np.ndarray, profile_b: np.ndarray, *,
+                        encoder_shift_px: float) -> Registration:
+        """A second registration from the column profiles alone (coarse, then fine).
+
+        The texture stage is what light-dependent defects fool: a pit, a ridge or a tuft of
+        fibres shades differently under the two lights, so its texture in A is not its texture
+        in B, and strong shading can outvote the albedo at a wrong shift.  The column profiles
+        average every column along the marks, where a defect covers only a few rows, and their
+        robust correlation discards the largest quarter of the squares; the fine fit is
+        sign-free.  The measurement asks for this estimate when its marks check fails.
+
+        Parameters
+        ----------
+        profile_a, profile_b : ndarray, shape (width,)
+            Positive column profiles of A and B (camera frame).
+        encoder_shift_px : float
+            Shift from the encoder, pixels.
+
+        Returns
+        -------
+        Registration
+            With ``source == "profile"``, refined by the fine fit when it is coherent.
+
+        Raises
+        ------
+        RegistrationError
+            The column profiles do not register the pair, or the fine fit is coherent but
+            lies on the edge of its window.
+        """
+        guess = check_finite("encoder_shift_px", encoder_shift_px)
+        pa, pb = self._profiles(profile_a, profile_b)
+        coarse = self.coarse_profile(pa, pb, encoder_shift_px=guess)
+        la, lb = log_difference(pa), log_difference(pb)
+        shift, score = self._fine(la, lb, coarse.shift_px)
+        if score < self.min_fine_score:
+            return replace(coarse, fine_score=score)
+        if not math.isfinite(shift):
+            shift, score = _fine_beside(self, la, lb, coarse.shift_px)
+        if not math.isfinite(shift):
+            raise RegistrationError(
+                f"the column profiles do not line up within {self.fine_px} px of their own "
+                f"coarse registration ({coarse.shift_px:.1f} px)")
+        return replace(coarse, shift_px=shift, fine_score=score, coarse_shift_px=coarse.shift_px)
+
+
 def _shading_only(reg: Registrar, pa: np.ndarray, pb: np.ndarray, guess: float,
                   reasons: list[str]) -> Registration:
     """The shading alone when the search window is narrower than half a mark, else an error."""

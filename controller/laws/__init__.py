@@ -1,0 +1,1 @@
+"""The control laws: feed and uniformity loops, QP, limits, identification, knife phase, offset history, design checks (pure: no asyncio, threads or buses)."""

@@ -1,0 +1,1 @@
+"""The service: the pipeline's stages, supervisor and safe state, status, events, clock."""

@@ -1,0 +1,1 @@
+"""Image formation: optics, wood, the camera downstream of the cutter, render workers, one-call boards."""

@@ -1,0 +1,166 @@
+"""The measurement's own checks, and the confidence they leave it.
+
+A pair can go wrong without any single step noticing: a defect whose shading depends on the
+light (a pit lit from the left is not a pit lit from the right) can pull the texture
+registration onto a wrong shift at high confidence, after which the slope shows *half-marks*
+and the pitch comes out halved.  The checks here compare what independent parts of the
+measurement say; a measurement whose checks disagree is never reported at high confidence.
+
+- **Marks against each image** (:func:`marks_shading_agreement`).  Inside a knife mark the slope
+  grows linearly, ``p = (x - b_k) / R``, and resets at every cusp; each image's log-intensity
+  follows it with the light's sign (``log I_A ~ -tan(sigma) p``, ``log I_B ~ +tan(sigma) p``).
+  The marks found from the registered pair therefore predict each image's own column profile up
+  to a scale: A's alone (registration-free: are these the marks the camera sees?) and B's as
+  registered (is B where the registration put it?).  Half-marks from a misregistered pair
+  explain about a quarter of the sawtooth; true marks most of it.
+- **Shift against the encoder** (:func:`shift_within_slip`): the registered shift may differ
+  from the encoder's by at most the slip the belt is known to allow.
+- **Two shift estimates** (:func:`shifts_agree`): when the registration had two coarse
+  estimates, they must agree.
+
+:func:`honest_confidence` folds the checks into the confidence reported and names the first
+that failed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.checks import check_finite, check_positive, check_range
+from vision.selfcal import kinematic_slope
+
+
+@dataclass(frozen=True)
+class Agreement:
+    """How well the marks found explain each image's own column profile.
+
+    Attributes
+    ----------
+    score_a, score_b : float
+        Correlation in [-1, 1] of A's (with sign -1) and registered B's (sign +1) log-profile
+        with the marks' kinematic slope, a cubic removed from both (NaN: too few samples).
+    """
+
+    score_a: float
+    score_b: float
+
+    @property
+    def score(self) -> float:
+        """The worse of the two (NaN when either is)."""
+        if not (math.isfinite(self.score_a) and math.isfinite(self.score_b)):
+            return math.nan
+        return min(self.score_a, self.score_b)
+
+
+def marks_shading_agreement(
+    log_a: np.ndarray,
+    log_b: np.ndarray,
+    x_mm: np.ndarray,
+    cusps_mm: np.ndarray,
+    bottoms_mm: np.ndarray,
+) -> Agreement:
+    """Correlation of each image's log-profile with the slope the found marks predict.
+
+    Parameters
+    ----------
+    log_a, log_b : ndarray, shape (n,)
+        Log column profiles of A and of B resampled onto A's columns (registered), over the
+        samples ``x_mm``.
+    x_mm : ndarray, shape (n,)
+        Positions of the samples, mm (increasing).
+    cusps_mm : ndarray, shape (m + 1,)
+        Cusps bounding the ``m >= 1`` complete marks found, mm.
+    bottoms_mm : ndarray, shape (m,)
+        Lowest point of each mark, mm.
+
+    Returns
+    -------
+    Agreement
+        ``-corr(log_a, p)`` and ``+corr(log_b, p)`` over the samples inside the marks, with a
+        cubic in ``x`` removed from each (illumination, board shape); ``p = x - b_k`` in mark
+        ``k`` (the kinematic slope up to the scale ``1 / R``, which the correlation ignores).
+    """
+    la = np.asarray(log_a, dtype=np.float64)
+    lb = np.asarray(log_b, dtype=np.float64)
+    x = np.asarray(x_mm, dtype=np.float64)
+    if la.ndim != 1 or la.shape != lb.shape or la.shape != x.shape:
+        raise ValueError(f"log_a, log_b and x_mm must be 1-D of one length, got {la.shape}, "
+                         f"{lb.shape}, {x.shape}")
+    c = np.asarray(cusps_mm, dtype=np.float64)
+    b = np.asarray(bottoms_mm, dtype=np.float64)
+    if c.ndim != 1 or b.ndim != 1 or c.size != b.size + 1:
+        raise ValueError(f"cusps_mm must hold one more value than bottoms_mm, got {c.shape} "
+                         f"and {b.shape}")
+    if b.size < 1:
+        return Agreement(math.nan, math.nan)
+    inside = (x >= c[0]) & (x <= c[-1])
+    if np.count_nonzero(inside) < 16:
+        return Agreement(math.nan, math.nan)
+    xs = x[inside]
+    p = kinematic_slope(xs, c, b, radius_mm=1.0)
+    ok = np.isfinite(p)
+    if np.count_nonzero(ok) < 16:
+        return Agreement(math.nan, math.nan)
+    xs, p = xs[ok], p[ok]
+    t = (xs - 0.5 * (xs[0] + xs[-1])) / max(0.5 * (xs[-1] - xs[0]), 1e-9)
+    basis, _ = np.linalg.qr(np.vander(t, 4))  # orthonormal cubic
+    cols = np.stack([p, la[inside][ok], lb[inside][ok]], axis=1)
+    resid = cols - basis @ (basis.T @ cols)
+    norms = np.sqrt(np.sum(resid * resid, axis=0))
+    if not np.all(norms > 0):
+        return Agreement(math.nan, math.nan)
+    corr = (resid[:, 0] @ resid[:, 1:]) / (norms[0] * norms[1:])
+    return Agreement(float(-corr[0]), float(corr[1]))
+
+
+def shift_within_slip(shift_px: float, encoder_shift_px: float, *, max_slip_px: float) -> bool:
+    """Whether the registered shift lies within the slip bound of the encoder's.
+
+    Parameters
+    ----------
+    shift_px, encoder_shift_px : float
+        Registered and encoder shift, pixels.
+    max_slip_px : float
+        Largest difference the belt's slip and the counts' resolution allow, pixels.
+    """
+    bound = check_positive("max_slip_px", max_slip_px, allow_zero=True)
+    return abs(check_finite("shift_px", shift_px)
+               - check_finite("encoder_shift_px", encoder_shift_px)) <= bound
+
+
+def shifts_agree(first_px: float, second_px: float, *, tolerance_px: float) -> bool:
+    """Whether two shift estimates agree within ``tolerance_px`` (NaN: no second estimate)."""
+    tol = check_positive("tolerance_px", tolerance_px)
+    if not (math.isfinite(first_px) and math.isfinite(second_px)):
+        return True
+    return abs(first_px - second_px) <= tol
+
+
+def honest_confidence(confidence: float, failed: list[str], *, flagged_confidence: float = 0.3
+                      ) -> tuple[float, str | None]:
+    """The confidence a measurement may report, and why it was lowered.
+
+    Parameters
+    ----------
+    confidence : float
+        The registration's confidence (NaN: not registered).
+    failed : list of str
+        The checks that failed, each as a reason a person can read (empty: all passed).
+    flagged_confidence : float, optional
+        The most a measurement with a failed check may report, in [0, 1].
+
+    Returns
+    -------
+    confidence : float
+        ``confidence`` when every check passed, else at most ``flagged_confidence``.
+    reason : str or None
+        The failed checks joined by ``"; "`` (``None``: none failed).
+    """
+    cap = check_range("flagged_confidence", flagged_confidence, 0.0, 1.0)
+    if not failed:
+        return confidence, None
+    conf = min(confidence, cap) if math.isfinite(confidence) else confidence
+    return conf, "; ".join(failed)
