@@ -106,9 +106,9 @@ def marks_shading_agreement(
         return Agreement(math.nan, math.nan)
     xs, p = xs[ok], p[ok]
     t = (xs - 0.5 * (xs[0] + xs[-1])) / max(0.5 * (xs[-1] - xs[0]), 1e-9)
-    basis, _ = np.linalg.qr(np.vander(t, 4))  # orthonormal cubic
+    vander = np.vander(t, 4)  # a cubic, by its normal equations (t in [-1, 1]: well posed)
     cols = np.stack([p, la[inside][ok], lb[inside][ok]], axis=1)
-    resid = cols - basis @ (basis.T @ cols)
+    resid = cols - vander @ np.linalg.solve(vander.T @ vander, vander.T @ cols)
     norms = np.sqrt(np.sum(resid * resid, axis=0))
     if not np.all(norms > 0):
         return Agreement(math.nan, math.nan)
