@@ -4,10 +4,11 @@ One :class:`FaultKind` per fault, each with
 
 * its parameters (:class:`FaultParam`: unit, range, required or with a default);
 * whether it is an **interface** fault (the Modbus server or the CAN node misbehave; played by
-  whoever drives the interfaces: ``plant_sim.runner`` or the in-process HIL plant) or a
-  **machine** fault (the :class:`plant_sim.machine.Machine` model applies it);
+  whoever drives the interfaces: ``plant_sim.run.runner`` or the in-process HIL plant) or a
+  **machine** fault (the :class:`plant_sim.model.machine.Machine` model applies it);
 * the service condition it should trip (``modbus_restart`` -> ``plc``; names of
-  ``controller.safety.SOURCES``), ``None`` when the service should ride it out (a belt slip, a
+  ``controller.service.supervisor.SOURCES``), ``None`` when the service should ride it out (a belt
+  slip, a
   knot: one odd measurement, no safe state). The HIL summary's fault report judges against it.
 
 Parsing and validation of a fault table (``[faults] inject`` of ``config/sim.toml``,

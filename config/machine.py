@@ -150,7 +150,10 @@ class PlausibilityConfig:
 
 @dataclass(frozen=True)
 class SafetyConfig:
-    """Timeouts and the safe-state action of :mod:`controller.safety` (seconds, mm/s)."""
+    """Timeouts and the safe-state action of the supervisor (seconds, mm/s).
+
+    See :mod:`controller.service.supervisor`.
+    """
 
     cycle_s: float = 0.02
     plc_timeout_s: float = 0.5
@@ -246,7 +249,8 @@ class MachineConfig:
     """The whole ``machine.toml``.
 
     ``feed_loop`` and ``uniformity_loop`` hold the raw (validated numeric) keys of those tables;
-    :mod:`controller.service` passes them to the control laws' own configuration classes, whose
+    :mod:`controller.service.service` passes them to the control laws' own configuration classes,
+    whose
     defaults apply to missing keys.
     """
 

@@ -2,7 +2,7 @@
 
 Tables: ``[spindle]``, ``[cutterhead]``, ``[piezo]``, ``[feed]``, ``[encoder]``, ``[camera]``
 (with ``[camera.optics]``), ``[board]``, ``[plc]``, ``[faults]`` describe the machine model
-(:mod:`plant_sim.machine`); ``[modbus]``, ``[can]``, ``[frames]``, ``[run]`` its interfaces
+(:mod:`plant_sim.model.machine`); ``[modbus]``, ``[can]``, ``[frames]``, ``[run]`` its interfaces
 (the Modbus server, the CAN node, the frame spool and the ``planer sim`` runner). Every value is
 checked on load and an error names its key (``piezo.stroke_um must be > 0.0, got -1``).
 Missing keys take the defaults below; unknown keys are refused (typos). A file may start from
@@ -250,7 +250,7 @@ class EncoderConfig:
 
 @dataclass(frozen=True)
 class OpticsConfig:
-    """Image rendering knobs passed to :class:`plant_sim.optics.Optics`.
+    """Image rendering knobs passed to :class:`plant_sim.rendering.optics.Optics`.
 
     Attributes
     ----------

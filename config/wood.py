@@ -1,7 +1,7 @@
 """Wood species presets: the optical and micro-geometric appearance of planed wood, by species.
 
 A data table (no I/O): the simulator's configuration names a species from it, and
-:mod:`plant_sim.wood` turns a preset into sampled texture fields for the renderer.
+:mod:`plant_sim.rendering.wood` turns a preset into sampled texture fields for the renderer.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ class Wood:
         Correlation lengths of the roughness along x and y, millimetres.
     translucency : float
         Fraction (0..1) of the reflected light that leaves the wood after subsurface scattering
-        (spread by the rig's scattering length, see :class:`plant_sim.optics.RigEffects`)
+        (spread by the rig's scattering length, see :class:`plant_sim.rendering.optics.RigEffects`)
         instead of at the point where it entered; softwoods (spruce, pine) are the most
         translucent.
     scattering_anisotropy : float

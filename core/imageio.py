@@ -204,7 +204,8 @@ def png_header(data: bytes) -> ImageHeader:
 
 
 _NPY_KINDS = "biuf"  # bool, signed, unsigned, float: no objects, strings or structures
-#: What numpy's header parser raises on a damaged header (found by tests/test_fuzz_frames.py).
+#: What numpy's header parser raises on a damaged header (found by
+#: tests/protocol/test_fuzz_frames.py).
 _NPY_HEADER_ERRORS = (ValueError, SyntaxError, TypeError, KeyError, IndexError, OverflowError,
                       RecursionError, MemoryError, tokenize.TokenError)
 

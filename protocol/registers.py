@@ -4,8 +4,9 @@ The map lists holding registers; ``u16`` values take one register, ``u32``/``i32
 in the word order the TOML file names (``"big"``: the register at ``address`` holds the high
 16 bits). This module turns values into register words and back, resolves the limits of
 writable registers (a limit may name another register) and decides whether a write is allowed.
-It imports no Modbus library; the PLC server (``plant_sim/plc_server.py``) and the service's
-client (``controller/plc_client.py``) both build on it.
+It imports no Modbus library; the PLC server (``plant_sim/interfaces/plc_server.py``) and the
+service's
+client (``controller/fieldbus/plc_client.py``) both build on it.
 
 Errors
 ------
@@ -681,7 +682,7 @@ class RegisterMap:
 
 
 class WriteTarget(Protocol):
-    """What a PLC applies accepted writes to (``plant_sim.machine.Machine`` is one)."""
+    """What a PLC applies accepted writes to (``plant_sim.model.machine.Machine`` is one)."""
 
     def set_feed_setpoint(self, feed_mm_s: float) -> None:
         """New feed setpoint, mm/s; ``ValueError`` when the machine refuses it."""

@@ -265,7 +265,7 @@ class SpoolReader:
     def note_committed(self, slots: list[int], *, max_age_s: float = 1.0) -> bool:
         """Read these committed pairs next without listing the folder; whether it was taken.
 
-        For a reader told of each commit (inotify: ``controller.spool_watch``): a listing
+        For a reader told of each commit (inotify: ``controller.frames.spool_watch``): a listing
         costs 0.2-2 ms with the interpreter lock held. Slots already handled are left out unless
         their file was replaced (a new identity). Not taken (``False``: the next ``poll``
         lists) when the last listing is older than ``max_age_s``: the listing forgets

@@ -11,7 +11,7 @@ from core.errors import MeasurementError
 from vision.marks import corr2
 from vision.pipeline import Measurement, Measurer, measure_pair
 
-scenarios = pytest.importorskip("plant_sim.scenarios")
+scenarios = pytest.importorskip("plant_sim.rendering.scenarios")
 
 
 def _measure(rig, pair, **kwargs) -> Measurement:

@@ -1,1 +1,5 @@
-"""The machine's buses: the PLC's Modbus TCP client and the piezo amplifier's CAN client, with their pure protocol types."""
+"""The machine's buses.
+
+The PLC's Modbus TCP client and the piezo amplifier's CAN client, with their pure protocol
+types.
+"""

@@ -7,7 +7,7 @@ with its heartbeat: ``PIEZO_COMMAND`` (enable, knives, alive counter) goes out e
 the last ``PIEZO_STATUS`` / ``AMP_HEARTBEAT`` and the time the amplifier was last heard; when it
 falls silent, :meth:`PiezoClient.silent_for` grows and the supervisor declares CAN gone.
 
-Limits (``controller/limits.py``'s :class:`~controller.limits.OffsetLimit`): the amplifier
+Limits (``controller/laws/limits.py``'s :class:`~controller.laws.limits.OffsetLimit`): the amplifier
 reports its stroke and accepted offsets in ``PIEZO_LIMITS`` (with every heartbeat); the client
 sends offsets within the smaller of that and ``machine.toml``'s stroke, and zeros until the
 amplifier has reported (at start, and again after every reconnect: silent for longer than
@@ -30,7 +30,7 @@ from typing import Any
 
 import can
 
-from controller.limits import AmpLimits, OffsetLimit
+from controller.laws.limits import AmpLimits, OffsetLimit
 from core.checks import check_finite, check_int, check_positive
 from core.errors import FieldbusError
 from protocol.piezo_can import (
@@ -251,7 +251,7 @@ class PiezoClient:
         """Offsets within the bound in force, rounded to the bus resolution (0.001 um).
 
         A table inside the bound is only rounded; one outside is re-planned
-        (:func:`controller.limits.replan_offsets`: nearest table with the same mean).
+        (:func:`controller.laws.limits.replan_offsets`: nearest table with the same mean).
         """
         return self._planned(self._checked(offsets_um))
 

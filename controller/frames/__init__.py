@@ -1,1 +1,4 @@
-"""Where image pairs come from: frame sources, the spool watch, the GenICam camera path."""
+"""Where image pairs come from.
+
+Frame sources, the spool watch, the GenICam camera path.
+"""

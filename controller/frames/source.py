@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from config.machine import FramesConfig
-from controller.spool_watch import WATCHED_POLL_S, SpoolWatch
+from controller.frames.spool_watch import WATCHED_POLL_S, SpoolWatch
 from core.checks import check_positive
 from protocol.frames import Frame
 from protocol.spool import SpoolReader
@@ -69,7 +69,7 @@ class SpoolFrameSource:
         timed from the first :meth:`next` call that finds the reader thread in the pair.
     watch : bool, keyword-only
         Wake the reader thread as a pair is committed (inotify:
-        :class:`controller.spool_watch.SpoolWatch`; without it the thread polls every
+        :class:`controller.frames.spool_watch.SpoolWatch`; without it the thread polls every
         ``poll_s``) and read the pairs the events name without listing the folder
         (``SpoolReader.note_committed``; listed about once a second still); ``False``: poll
         only.
@@ -405,7 +405,7 @@ def open_frame_source(cfg: FramesConfig, *, inprocess: Any = None,
         For ``"inprocess"``: a :class:`QueueFrameSource`, or anything with ``poll()``.
     latch_reader : callable, optional
         For ``"camera"`` (Aravis camera, ``docs/camera.md``): the PLC's trigger latches, e.g.
-        ``controller.camera.latches.ModbusLatchReader``; ``None``: pairs carry counts 0.
+        ``controller.frames.camera.latches.ModbusLatchReader``; ``None``: pairs carry counts 0.
 
     Raises
     ------
@@ -413,7 +413,7 @@ def open_frame_source(cfg: FramesConfig, *, inprocess: Any = None,
         ``"inprocess"`` without an in-process source.
     """
     if cfg.source == "camera":  # Aravis loads only here (optional extra "camera")
-        from controller.camera.source import open_camera_source
+        from controller.frames.camera.source import open_camera_source
 
         return open_camera_source(cfg, latch_reader=latch_reader)  # docs/camera.md
     if cfg.source == "spool":

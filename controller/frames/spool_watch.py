@@ -4,7 +4,7 @@ A :class:`~protocol.spool.SpoolWriter` commits a pair by renaming its metadata f
 (``pair-<slot>.json``) into the folder, last (``docs/frames.md``). :class:`SpoolWatch` asks the
 kernel for the folder's renames-in and closed writes (``IN_MOVED_TO``, ``IN_CLOSE_WRITE``) and
 :meth:`SpoolWatch.wait` returns as soon as one of them names a metadata file: the spool reader
-thread (:class:`controller.frame_source.SpoolFrameSource`) reads the pair at once instead of at
+thread (:class:`controller.frames.source.SpoolFrameSource`) reads the pair at once instead of at
 its next poll (``frames.poll_s``, 2 ms: 1 ms on average lost per pair, 2 ms at worst). The
 images renamed in before it and the writer's temporary files do not wake it.
 

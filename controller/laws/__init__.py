@@ -1,1 +1,5 @@
-"""The control laws: feed and uniformity loops, QP, limits, identification, knife phase, offset history, design checks (pure: no asyncio, threads or buses)."""
+"""The control laws.
+
+Feed and uniformity loops, QP, limits, identification, knife phase, offset history, design
+checks (pure: no asyncio, threads or buses).
+"""

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import control as ct
 import numpy as np
 
-from controller.feed_loop import FeedLoopConfig, integral_gain
-from controller.uniformity_loop import UniformityLoopConfig, second_difference
+from controller.laws.feed_loop import FeedLoopConfig, integral_gain
+from controller.laws.uniformity_loop import UniformityLoopConfig, second_difference
 from core.checks import check_int, check_positive
 
 #: Feeds (mm/s) at which the margins are computed and documented.

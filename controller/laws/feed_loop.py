@@ -3,7 +3,7 @@
 Pure and clock-injected: :meth:`FeedLoop.update` takes the measurement, the spindle speed and
 the time, and returns the feed setpoint; nothing here sleeps or reads a clock.
 
-Law (the design and its margins are in ``docs/control_design.md`` and `controller.design`)::
+Law (the design and its margins are in ``docs/control_design.md`` and `controller.laws.design`)::
 
     p*      = min(target_pitch, sqrt(8 R depth_max))          # depth = p^2 / (8 R)
     V_des   = clamp(exp(x) * p* * n * Z, feed_min, feed_max)   # feed-forward times correction
@@ -40,7 +40,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
-from controller.limits import check_time_forward, clamp, rate_limit
+from controller.laws.limits import check_time_forward, clamp, rate_limit
 from core.checks import check_finite, check_int, check_positive, check_range
 from core.errors import ConfigError
 
@@ -115,7 +115,7 @@ class FeedLoopConfig:
         Largest change of the setpoint per second, mm/s^2.
     ki : float
         Integral gain per loop delay (see :func:`integral_gain`); 0.5 gives about 13.7 dB and
-        74 deg at every feed (``controller.design``).
+        74 deg at every feed (``controller.laws.design``).
     cutter_to_camera_mm : float
         Distance ``L`` from the cutter to the image centre along the board, mm.
     window_mm : float

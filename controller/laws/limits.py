@@ -1,7 +1,7 @@
 """Limits of the setpoints: clamp, rate limit, box projections, and the piezo offsets' bound.
 
-The functions are stateless; the loops in `controller.feed_loop` and
-`controller.uniformity_loop` keep their own state and call them.
+The functions are stateless; the loops in `controller.laws.feed_loop` and
+`controller.laws.uniformity_loop` keep their own state and call them.
 
 The piezo offsets' bound (:class:`OffsetLimit`, pure, no I/O) is the smaller of the stroke in
 ``machine.toml`` and what the amplifier reports over CAN (``PIEZO_LIMITS``: :class:`AmpLimits`),

@@ -3,7 +3,8 @@
 The camera sees board that was cut ``L / V`` seconds earlier (``L`` cutter to camera, ``V`` the
 feed): 0.3-40 s on the machines of issue 9. The uniformity loop learns on every image pair, so it
 must know the table the measured board was cut with, not the one in force now. The feed loop
-gives the cut times of a measurement's window (:meth:`controller.feed_loop.FeedLoop.cut_interval_s`,
+gives the cut times of a measurement's window
+(:meth:`controller.laws.feed_loop.FeedLoop.cut_interval_s`,
 its own setpoint history integrated back over ``L``); :class:`OffsetHistory` gives the table in
 force over that interval (time-weighted mean when it changed inside the window). A table sent at
 ``t`` is in force at the cutter from ``t + settle_s`` (CAN, the amplifier's next switch, the

@@ -2,7 +2,7 @@
 
 With relative depths ``z = A o - s`` (``A`` the actuator's effective gain matrix, ``s`` the
 runout as the loop estimates it, both in um) the width errors are ``G D z`` (``D`` the circulant
-second difference, ``controller.uniformity_loop``), so the best offsets the stroke allows are::
+second difference, ``controller.laws.uniformity_loop``), so the best offsets the stroke allows are::
 
     minimise  || D (A o - s) ||^2    subject to  sum(o) = 0,  |o_k| <= bound
 
@@ -25,7 +25,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from controller.limits import project_zero_mean_box
+from controller.laws.limits import project_zero_mean_box
 from core.checks import check_positive
 
 MAX_ITERATIONS = 200

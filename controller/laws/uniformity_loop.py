@@ -14,13 +14,14 @@ thickness) changes no width.
 
 Law: a learning update on every image pair against the surface the loop predicts (the Smith
 predictor form, as the feed loop's). The measured board was cut ``L / V`` seconds ago with the
-table in force then, ``o_cut`` (:class:`controller.offset_history.OffsetHistory`, cut times
-from :meth:`controller.feed_loop.FeedLoop.cut_interval_s`), so each pair is a direct estimate of
+table in force then, ``o_cut`` (:class:`controller.laws.offset_history.OffsetHistory`, cut times
+from :meth:`controller.laws.feed_loop.FeedLoop.cut_interval_s`), so each pair is a direct estimate
+of
 the runout as the loop sees it::
 
     y     = D^+ (w - mean(w)) / G              width errors in um of offset (= A o_cut - s)
     s_est = A_hat o_cut - y                    the runout; no integrator, nothing to wind up
-    o*    = argmin_{sum o = 0, |o| <= b} || D (A_hat o - s_est) ||      (controller.offset_qp)
+    o*    = argmin_{sum o = 0, |o| <= b} || D (A_hat o - s_est) ||      (controller.laws.offset_qp)
     o    += g (o* - o),   g = ki Ts / (T_delay + Ts)
 
 Before any table the loop sent shows at the camera every pair is an open-loop estimate of the
@@ -28,11 +29,11 @@ same runout: those are averaged (``g = 1 / n``, the first one taken whole), so t
 goes out with the first pair and the measured board follows one transport delay later.
 
 ``A_hat`` is the actuator's effective gain per knife mode, identified online from the same pairs
-(:class:`controller.actuator_id.ActuatorIdentifier`: a slow or hysteretic piezo). With an exact
+(:class:`controller.laws.actuator_id.ActuatorIdentifier`: a slow or hysteretic piezo). With an exact
 model each pair moves the offsets a fraction ``g`` of the way to the constrained optimum and the
 measured board follows one transport delay later; for a true/model gain ratio ``alpha`` per mode
 the loop is the feed loop's ``C = g / (z - 1 + g - g z^-d)`` around ``alpha z^-d``: the margins
-are the same at every feed (``controller.design``). The stored offsets are always a convex
+are the same at every feed (``controller.laws.design``). The stored offsets are always a convex
 combination of feasible tables: zero mean, inside the stroke, no windup.
 
 A knife that left no mark (``nan``) is taken as width 0, which under-states its error but pushes
@@ -49,11 +50,11 @@ from typing import Any
 
 import numpy as np
 
-from controller.actuator_id import ActuatorIdentifier
-from controller.feed_loop import config_from_mapping, integral_gain
-from controller.limits import check_time_forward, project_zero_mean_box
-from controller.offset_history import OffsetHistory
-from controller.offset_qp import OffsetPlanner, best_offsets_um
+from controller.laws.actuator_id import ActuatorIdentifier
+from controller.laws.feed_loop import config_from_mapping, integral_gain
+from controller.laws.limits import check_time_forward, project_zero_mean_box
+from controller.laws.offset_history import OffsetHistory
+from controller.laws.offset_qp import OffsetPlanner, best_offsets_um
 from core.checks import check_finite, check_int, check_positive, check_range
 
 #: Values of :attr:`UniformityLoop.status` after an update.
@@ -139,7 +140,7 @@ class UniformityLoopConfig:
         needs a larger one.
     ki : float
         Learning gain per loop delay (the per-pair gain is ``ki Ts / (T_delay + Ts)``); 2.0
-        keeps >= 7 dB and >= 62 deg at every feed and camera distance (``controller.design``).
+        keeps >= 7 dB and >= 62 deg at every feed and camera distance (``controller.laws.design``).
     sample_time_s : float
         Nominal interval between measurements, seconds.
     settle_s : float
@@ -152,7 +153,7 @@ class UniformityLoopConfig:
     identify : bool
         Identify the actuator's gain per knife mode online (else it is taken as ideal).
     id_lag_pairs, id_min_step_um, id_memory, id_prior_um2, gain_min, gain_max
-        The identification's parameters (:class:`controller.actuator_id.ActuatorIdentifier`).
+        The identification's parameters (:class:`controller.laws.actuator_id.ActuatorIdentifier`).
     """
 
     knives: int = 4
@@ -409,7 +410,7 @@ class UniformityLoop:
             Current time, seconds (never decreasing).
         cut_at_s, cut_until_s : float, optional
             When the first and the last mark of the measured window were cut, seconds (from
-            :meth:`controller.feed_loop.FeedLoop.cut_interval_s`); ``cut_until_s`` defaults to
+            :meth:`controller.laws.feed_loop.FeedLoop.cut_interval_s`); ``cut_until_s`` defaults to
             ``cut_at_s``. Without them the table in force counts as the measured board's once
             it has been in force for ``holdoff_s``.
 

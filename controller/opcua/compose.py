@@ -40,7 +40,7 @@ def server_for(cfg: MachineConfig, endpoint: str | None = None) -> Any:
     except ImportError as exc:
         raise ValueError(f"opcua endpoint {endpoint}: the OPC UA server needs asyncua "
                          f"(pip install 'smart-planer[opcua]'): {exc}") from None
-    from controller.quality_records import quality_class_of
+    from controller.service.records import quality_class_of
 
     op = cfg.opcua
     return OpcUaServer(

@@ -5,7 +5,8 @@ BrowseNames, TypeDefinitions and DataTypes of the published nodesets (DI 1.05, M
 Woodworking 1.02); the machine is a ``WwMachineType`` instance under ``Objects/Machines``.
 
 asyncua's ``import_xml`` of the full chain fails (Machinery/Jobs), and the nodesets are not part
-of the product: the few types are declared here and ``tests/test_opcua_conformance.py`` checks
+of the product: the few types are declared here and
+``tests/controller/opcua/test_opcua_conformance.py`` checks
 every node against the official XML files.
 """
 

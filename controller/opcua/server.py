@@ -32,12 +32,12 @@ from urllib.parse import urlparse
 from asyncua import Server, ua
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
 
-from controller.events import ServiceEvent
-from controller.frame_result import FrameResult
 from controller.opcua.nodes import MachineNodes, build_address_space
 from controller.opcua.view import MachineView, WwEvent
-from controller.quality_log import QualityClass
-from controller.service_status import ServiceStatus
+from controller.quality.log import QualityClass
+from controller.service.events import ServiceEvent
+from controller.service.frame_result import FrameResult
+from controller.service.status import ServiceStatus
 
 __all__ = [
     "DEFAULT_ENDPOINT",

@@ -1,8 +1,9 @@
 """What the machine shows over OPC UA, computed from the service (pure, no I/O, no asyncua).
 
 :class:`MachineView` follows the service through the three things the composition root hands
-it -- ``ServiceStatus`` snapshots (``controller.service_status``), ``ServiceEvent`` events
-(``controller.events``) and ``FrameResult`` results (``controller.frame_result``) -- and
+it -- ``ServiceStatus`` snapshots (``controller.service.status``), ``ServiceEvent`` events
+(``controller.service.events``) and ``FrameResult`` results (``controller.service.frame_result``)
+-- and
 answers with the values of the OPC 40550 (Woodworking) variables and the events to fire. The server
 (:mod:`controller.opcua.server`) only writes what this module computes.
 
@@ -23,10 +24,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from controller.events import EventKind, ServiceEvent
-from controller.frame_result import FrameResult
-from controller.quality_log import QualityClass, judge
-from controller.service_status import ServiceStatus
+from controller.quality.log import QualityClass, judge
+from controller.service.events import EventKind, ServiceEvent
+from controller.service.frame_result import FrameResult
+from controller.service.status import ServiceStatus
 
 __all__ = [
     "FLAG_NAMES",

@@ -1,1 +1,4 @@
-"""The quality log: record schema, SQLite and PostgreSQL stores, the durable journal, the report."""
+"""The quality log.
+
+Record schema, SQLite and PostgreSQL stores, the durable journal, the report.
+"""

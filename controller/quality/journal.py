@@ -1,6 +1,6 @@
 """Nothing lost: a durable local journal for the quality records the log cannot take.
 
-:class:`RecordSink` stands between the service and the :class:`~controller.quality_log.QualityLog`.
+:class:`RecordSink` stands between the service and the :class:`~controller.quality.log.QualityLog`.
 ``append`` returns only when the record is durable: committed to the log, or written and
 fsync'ed to a local append-only journal (JSON lines) when the log cannot take it (database
 error, disk full, file locked, log closed). Journalled records are written to the log in their
@@ -11,7 +11,7 @@ journal replays it.
 
 A record holding a value the log's schema refuses (``seq`` = 10**20, text that is not Unicode,
 an ``extra`` that is not JSON) is never dropped: it is rewritten as a failed record naming the
-field (:func:`controller.quality_log.storable_record`).
+field (:func:`controller.quality.log.storable_record`).
 
 Exactly once: each record gets a UUID when it is appended to the sink; the log stores it in
 the same transaction as the record (``QualityLog.append(record, uid=...)``) and skips a
@@ -33,7 +33,7 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
-from controller.quality_log import (
+from controller.quality.log import (
     QualityLog,
     QualityRecord,
     RecordRefusedError,

@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-from controller.quality_schema import (
+from controller.quality.schema import (
     _FIELD_NAMES,
     _NAMES,
     _TUPLES,
@@ -181,8 +181,8 @@ class QualityLog:
     Notes
     -----
     One instance may be shared by threads (calls are serialised by a lock); separate
-    processes open their own instances. Backends: :mod:`controller.quality_store_sqlite`,
-    :mod:`controller.quality_store_postgres`.
+    processes open their own instances. Backends: :mod:`controller.quality.store_sqlite`,
+    :mod:`controller.quality.store_postgres`.
     """
 
     def __init__(self, target: str | Path, *, create: bool = True, timeout_s: float = 10.0,
@@ -195,12 +195,12 @@ class QualityLog:
         self._lock = threading.RLock()
         self._store: QualityStore
         if is_database_url(target):
-            from controller.quality_store_postgres import PostgresStore
+            from controller.quality.store_postgres import PostgresStore
 
             self._store = PostgresStore(database_url(target), create=create,
                                         connect_timeout_s=timeout_s)
         else:
-            from controller.quality_store_sqlite import SqliteStore
+            from controller.quality.store_sqlite import SqliteStore
 
             self._store = SqliteStore(target, create=create, timeout_s=timeout_s)
 

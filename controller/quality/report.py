@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from controller.quality_log import QualityClass, QualityRecord
+from controller.quality.log import QualityClass, QualityRecord
 
 __all__ = [
     "DEFAULT_PITCH_TOLERANCE",

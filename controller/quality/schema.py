@@ -1,7 +1,7 @@
 """The quality record and its table: fields, checks, the quality class, columns per schema version.
 
-Pure (no database): :mod:`controller.quality_log` (the log), its two stores
-(:mod:`controller.quality_store_sqlite`, :mod:`controller.quality_store_postgres`) and the journal
+Pure (no database): :mod:`controller.quality.log` (the log), its two stores
+(:mod:`controller.quality.store_sqlite`, :mod:`controller.quality.store_postgres`) and the journal
 all take the record, its checks and the table layout from here. Field meanings and units:
 ``docs/quality_log.md``.
 """

@@ -1,13 +1,13 @@
 """The quality log's fleet store: a PostgreSQL database shared by several machines (psycopg 3).
 
 :class:`PostgresStore` keeps the same tables and columns as the SQLite file
-(:func:`controller.quality_schema.create_statements`), with PostgreSQL's types (``DOUBLE
+(:func:`controller.quality.schema.create_statements`), with PostgreSQL's types (``DOUBLE
 PRECISION``, ``BIGINT``, ``BOOLEAN``). Each insert is one transaction, committed before it
 returns; the record's ``uid`` goes into ``record_uids`` (primary key) in the same transaction,
 so a record replayed from the journal after a lost connection is stored once
 (``ON CONFLICT DO NOTHING``), even when two writers race. A lost connection is re-opened by the
 next call; until then calls raise ``OSError`` naming ``host:port/db``, and the
-:class:`~controller.record_journal.RecordSink` keeps the records on local disk.
+:class:`~controller.quality.journal.RecordSink` keeps the records on local disk.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from controller.quality_schema import (
+from controller.quality.schema import (
     ADDED_IN_V4,
     SCHEMA_VERSION,
     QualityLogError,

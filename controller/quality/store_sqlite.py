@@ -1,6 +1,6 @@
 """The quality log's embedded store: one SQLite file (WAL, ``synchronous=FULL``).
 
-:class:`SqliteStore` is the default backend of :class:`controller.quality_log.QualityLog`: the
+:class:`SqliteStore` is the default backend of :class:`controller.quality.log.QualityLog`: the
 log validates and converts records, the store keeps rows. ``insert`` returns only after its
 transaction is committed, so a killed process leaves no torn record and loses none it
 acknowledged. Several processes may append and read at once (one writer at a time, readers
@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from controller.quality_schema import (
+from controller.quality.schema import (
     ADDED_IN_V4,
     APPLICATION_ID,
     SCHEMA_VERSION,
@@ -66,7 +66,7 @@ class SqliteStore:
 
     Notes
     -----
-    Not thread-safe by itself: :class:`~controller.quality_log.QualityLog` serialises calls.
+    Not thread-safe by itself: :class:`~controller.quality.log.QualityLog` serialises calls.
     """
 
     def __init__(self, path: str | Path, *, create: bool = True, timeout_s: float = 10.0) -> None:

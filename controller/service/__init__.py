@@ -1,1 +1,4 @@
-"""The service: the pipeline's stages, supervisor and safe state, status, events, clock."""
+"""The service.
+
+The pipeline's stages, supervisor and safe state, status, events, clock.
+"""

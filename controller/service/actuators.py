@@ -5,7 +5,7 @@ force: the feed setpoint the PLC took, the offsets the amplifier got, the heartb
 counters. Bus trouble is counted (``plc_errors``, ``can_errors``) and a refused feed setpoint
 reported once (``FEED_REFUSED`` ... ``FEED_ACCEPTED``); nothing here decides *what* to send.
 
-The piezo offsets stay within the bound the CAN client holds (``controller/limits.py``: the
+The piezo offsets stay within the bound the CAN client holds (``controller/laws/limits.py``: the
 smaller of the amplifier's reported stroke and ``machine.toml``'s, narrowed by refused tables,
 zero until the amplifier has reported). Each change of that bound is reported once
 (``PIEZO_LIMITS``, one line saying which stroke is used and why), each refused table too
@@ -21,13 +21,13 @@ from typing import Any
 
 import numpy as np
 
-from controller.events import EventKind, EventLog, exc_name
-from controller.piezo_client import PiezoClient
-from controller.plc_client import PlcClient
-from controller.safety import AmplifierMonitor
+from controller.fieldbus.piezo_client import PiezoClient
+from controller.fieldbus.plc_client import PlcClient
+from controller.service.events import EventKind, EventLog, exc_name
+from controller.service.supervisor import AmplifierMonitor
 from core.errors import FieldbusError, ModbusRefused
 
-_LOG = logging.getLogger("controller.service")
+_LOG = logging.getLogger("controller.service.service")
 
 
 class Actuators:

@@ -1,7 +1,7 @@
 """Mark-to-knife attribution stage: which knife pass cut each mark of a valid measurement.
 
 The phase and the travel per pass come from the mark bottoms that lie inside their marks
-(:func:`controller.knife_phase.attribute_marks`, guided by the feed per pass ``V / (n Z)``
+(:func:`controller.laws.knife_phase.attribute_marks`, guided by the feed per pass ``V / (n Z)``
 from the encoder speed and the PLC's spindle speed and knives); a narrow mark whose bottom sits
 on its cusp and a knife that left no mark do not spoil them. The result (:class:`Attributed`)
 is what the loops get: widths per knife and the pitch per knife pass.
@@ -28,10 +28,10 @@ from typing import Any
 
 import numpy as np
 
-from controller import knife_phase
-from controller.events import exc_name
-from controller.measurement import expected_pitch_mm
-from controller.plc_client import PlcSnapshot
+from controller.fieldbus.plc_protocol import PlcSnapshot
+from controller.laws import knife_phase
+from controller.service.events import exc_name
+from controller.service.measurement import expected_pitch_mm
 from protocol.frames import Frame
 
 MAX_PHASE_SPREAD = 0.15
@@ -48,7 +48,7 @@ def vanished_knives(passes_per_knife: Sequence[int], mark_knife: Sequence[int]) 
     ----------
     passes_per_knife : sequence of int, shape (Z,)
         Passes of each knife from the first mark's pass to the last mark's
-        (:attr:`controller.knife_phase.PassAttribution.passes_per_knife`).
+        (:attr:`controller.laws.knife_phase.PassAttribution.passes_per_knife`).
     mark_knife : sequence of int, shape (n,)
         Knife of each mark, in ``[0, Z)``.
 

@@ -6,19 +6,20 @@
 * CAN cycle (never waits): drain the amplifier's frames, judge its status, step the supervisor,
   enable or zero offsets and disable, ``PIEZO_COMMAND`` with a new alive counter.
 
-The composition root (:class:`controller.service.Service`) runs them inside the supervisor
+The composition root (:class:`controller.service.service.Service`) runs them inside the supervisor
 boundary, in one task each in real time or one after the other on simulated time.
 """
 
 from __future__ import annotations
 
 from config.machine import MachineConfig
-from controller.actuators import Actuators
-from controller.control_loops import ControlLoops
-from controller.events import EventLog
-from controller.plc_client import PlcClient, PlcSnapshot
-from controller.safety import SafetyState, SafetyStatus
-from controller.supervision import SafeStateKeeper
+from controller.fieldbus.plc_client import PlcClient
+from controller.fieldbus.plc_protocol import PlcSnapshot
+from controller.service.actuators import Actuators
+from controller.service.events import EventLog
+from controller.service.loops import ControlLoops
+from controller.service.safe_state import SafeStateKeeper
+from controller.service.supervisor import SafetyState, SafetyStatus
 from core.errors import FieldbusError
 
 PLC_SNAPSHOT_MAX_AGE_CYCLES = 2.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from controller.events import EventKind, EventLog
+from controller.service.events import EventKind, EventLog
 
 CLOCK_JITTER_S = 1e-9
 """A step back smaller than this is rounding, not a clock that went back (held, not reported)."""

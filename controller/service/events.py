@@ -41,7 +41,7 @@ class EventKind(enum.Enum):
 
     SAFE_STATE = "safe_state"
     """The supervisor entered the safe state; ``reason`` names what is missing, ``data`` holds
-    ``missing`` (the sources and conditions, ``controller.safety.SOURCES`` names) and
+    ``missing`` (the sources and conditions, ``controller.service.supervisor.SOURCES`` names) and
     ``recovery_s`` (how long everything must hold before RUN: the back-off)."""
     RECOVERED = "recovered"
     """Everything held for the recovery time: control resumed (``data``: ``safe_s``)."""

@@ -46,7 +46,7 @@ class FrameResult:
         Id of the quality record (``None`` while it waits in the journal).
     extra : dict
         ``timing_ms`` (``plc_read_ms``, ``measure_ms``, ``control_ms``), ``safe_reason``,
-        ``passes`` (the attribution's summary, :meth:`controller.mark_attribution.Attributed.
+        ``passes`` (the attribution's summary, :meth:`controller.service.attribution.Attributed.
         to_json`: ``vanished_knives``, ``kinematic_cv``, ``pitch_mm``, ``uniformity_cv``, ...),
         ``profile`` (a decimated profile, some pairs),
         ``plc_feed_setpoint_mm_s`` (the PLC's setpoint in force, for the record while the

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from controller.events import EventKind, EventLog
+from controller.service.events import EventKind, EventLog
 from protocol.frames import Frame
 
 

@@ -4,7 +4,7 @@ Where the tail of the latency came from (``planer bench``, ``docs/service.md``, 
 what takes it out of the control path:
 
 * database commits (an fsync each, 7-35 ms on a virtual disk): the record is written after the
-  setpoints by a writer thread, in batches (:mod:`controller.quality_records`);
+  setpoints by a writer thread, in batches (:mod:`controller.service.records`);
 * the garbage collector: a full collection walks every object the imports made (numpy, scipy,
   OpenCV, the vision's set-up), several ms; :func:`tune_for_latency` freezes what exists after
   the set-up (``gc.freeze``), so a collection only walks what the pairs made; and the

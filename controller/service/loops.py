@@ -3,9 +3,9 @@
 :class:`ControlLoops` builds both loops for the machine the PLC describes (and rebuilds them when
 its geometry or limits change), runs them on each valid, attributed measurement
 (:meth:`ControlLoops.apply`) and between measurements lets the feed-forward follow the spindle
-(:meth:`ControlLoops.feed_forward`). The laws themselves are in ``controller/feed_loop.py`` and
-``controller/uniformity_loop.py`` (pure); what goes on the wire goes through
-:class:`~controller.actuators.Actuators`.
+(:meth:`ControlLoops.feed_forward`). The laws themselves are in ``controller/laws/feed_loop.py`` and
+``controller/laws/uniformity_loop.py`` (pure); what goes on the wire goes through
+:class:`~controller.service.actuators.Actuators`.
 """
 
 from __future__ import annotations
@@ -18,15 +18,15 @@ import numpy as np
 
 from config.loading import naming_file
 from config.machine import MachineConfig
-from controller.actuators import Actuators
-from controller.board_speed import BoardSpeedHistory
-from controller.events import EventKind, EventLog
-from controller.feed_loop import FeedLoop, FeedLoopConfig
-from controller.limits import project_zero_mean_box
-from controller.mark_attribution import Attributed
-from controller.plc_client import PlcSnapshot
-from controller.safety import AmplifierMonitor
-from controller.uniformity_loop import UniformityLoop, UniformityLoopConfig
+from controller.fieldbus.plc_protocol import PlcSnapshot
+from controller.laws.board_speed import BoardSpeedHistory
+from controller.laws.feed_loop import FeedLoop, FeedLoopConfig
+from controller.laws.limits import project_zero_mean_box
+from controller.laws.uniformity_loop import UniformityLoop, UniformityLoopConfig
+from controller.service.actuators import Actuators
+from controller.service.attribution import Attributed
+from controller.service.events import EventKind, EventLog
+from controller.service.supervisor import AmplifierMonitor
 from core.errors import FieldbusError
 
 FEED_WRITE_DEADBAND_MM_S = 0.5

@@ -9,7 +9,7 @@ a measurer in a worker process plugs in as another factory. A factory that says
 measurers get ``calibrator=`` too: one :class:`vision.selfcal.SelfCalibrator` per board, reset
 when the board changes (the self-calibration from the knife kinematics, ``docs/vision.md``).
 In real time the call (and a build) runs in a worker thread (the heartbeats go on meanwhile), or
-in worker processes (:meth:`MeasurementStage.use_workers`, :mod:`controller.measure_workers`):
+in worker processes (:meth:`MeasurementStage.use_workers`, :mod:`controller.workers.pool`):
 then :meth:`MeasurementStage.start` hands the pair over at once and
 :meth:`MeasurementStage.finish` takes the results in sequence order, folding each pair's
 calibration estimates into the board's calibrator in that order. Whatever the vision raises
@@ -33,8 +33,8 @@ import cv2
 import numpy as np
 
 from config.machine import PlausibilityConfig
-from controller.events import exc_name
-from controller.plc_client import PlcSnapshot
+from controller.fieldbus.plc_protocol import PlcSnapshot
+from controller.service.events import exc_name
 from core.errors import RegistrationError
 from protocol.frames import Frame
 from vision.selfcal import SelfCalibrator
@@ -181,7 +181,7 @@ class PendingMeasurement:
     snap : PlcSnapshot or None
         The registers in force at its arrival.
     future : asyncio.Future or None
-        The worker's :class:`~controller.measure_workers.WorkerOutcome` (``None``: measured
+        The worker's :class:`~controller.workers.pool.WorkerOutcome` (``None``: measured
         in this process when finished).
     which : tuple or None
         ``(board, facts key)`` of the calibrator it was measured with (worker processes).
@@ -245,7 +245,8 @@ class MeasurementStage:
         """Wall time of the vision's own work on the last pair measured in this process, s."""
         self.thread_nice: int | None = None
         """Nice value of the thread measuring in real time (``None``: as started); a busy host
-        then shares its cores with the pairs first (:func:`controller.latency.prioritize`)."""
+        then shares its cores with the pairs first
+        (:func:`controller.service.latency.prioritize`)."""
         self.inline_max_s: float = INLINE_MAX_S
         """Measure on the event loop's thread while the recent measurements took at most this
         much CPU time (:data:`INLINE_MAX_S`; 0: always in the worker thread), at the loop's own

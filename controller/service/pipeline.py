@@ -1,15 +1,16 @@
 """One image pair through the service's stages, in order.
 
-1. :mod:`controller.frame_intake` — sequence gaps, the camera clock mapped to service time;
+1. :mod:`controller.service.intake` — sequence gaps, the camera clock mapped to service time;
 2. the PLC's registers in force (:meth:`BusCycles.snapshot_for`: the cycle's read, or a fresh
    one when it is stale);
-3. :mod:`controller.measurement` — the vision's Measurer (a worker thread in real time) and the
+3. :mod:`controller.service.measurement` — the vision's Measurer (a worker thread in real time)
+and the
    basic plausibility of its result;
-4. :mod:`controller.mark_attribution` — which knife pass cut each mark, the pitch per pass
+4. :mod:`controller.service.attribution` — which knife pass cut each mark, the pitch per pass
    (checked against ``V / (n Z)``);
-5. :mod:`controller.control_loops` — in RUN, both loops on the valid measurement, the offsets
-   (CAN) and the feed (Modbus) out through :mod:`controller.actuators`;
-6. :mod:`controller.quality_records` — the pair's record, durable (log or journal).
+5. :mod:`controller.service.loops` — in RUN, both loops on the valid measurement, the offsets
+   (CAN) and the feed (Modbus) out through :mod:`controller.service.actuators`;
+6. :mod:`controller.service.records` — the pair's record, durable (log or journal).
 
 Every pair gets exactly one record, whatever happens: a pair that cannot be measured changes
 no setpoint and is logged with ``ok = false`` and the reason; an unexpected error of the
@@ -31,19 +32,19 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
-from controller.bus_cycles import BusCycles
-from controller.control_loops import ControlLoops
-from controller.events import EventKind, EventLog, exc_name
-from controller.frame_intake import FrameIntake, finite_or_none, int_or
-from controller.frame_result import FrameResult
-from controller.latency import collect_between_pairs
-from controller.mark_attribution import Attributed, attribute_or_reason
-from controller.measurement import MeasurementStage, PendingMeasurement, failure_reason
-from controller.plc_client import PlcSnapshot
-from controller.quality_records import QualityRecords
-from controller.safety import SafetyState
-from controller.service_clock import ServiceClock
-from controller.supervision import SafeStateKeeper
+from controller.fieldbus.plc_protocol import PlcSnapshot
+from controller.service.attribution import Attributed, attribute_or_reason
+from controller.service.bus_cycles import BusCycles
+from controller.service.clock import ServiceClock
+from controller.service.events import EventKind, EventLog, exc_name
+from controller.service.frame_result import FrameResult
+from controller.service.intake import FrameIntake, finite_or_none, int_or
+from controller.service.latency import collect_between_pairs
+from controller.service.loops import ControlLoops
+from controller.service.measurement import MeasurementStage, PendingMeasurement, failure_reason
+from controller.service.records import QualityRecords
+from controller.service.safe_state import SafeStateKeeper
+from controller.service.supervisor import SafetyState
 from protocol.frames import Frame
 
 

@@ -1,9 +1,9 @@
 """Quality records stage: one record per pair, durable, whatever happens to the log.
 
-:class:`QualityRecords` turns each :class:`~controller.frame_result.FrameResult` into a
-:class:`~controller.quality_log.QualityRecord` (failed pairs included, with their reason and the
+:class:`QualityRecords` turns each :class:`~controller.service.frame_result.FrameResult` into a
+:class:`~controller.quality.log.QualityRecord` (failed pairs included, with their reason and the
 setpoints in force; every ``PROFILE_EVERY``-th successful one and the first of each board with a
-decimated profile) and hands it to a :class:`~controller.record_journal.RecordSink`: the record
+decimated profile) and hands it to a :class:`~controller.quality.journal.RecordSink`: the record
 is in the log, or in the local journal beside it when the log cannot take it (disk full, file
 locked, a value the schema refuses), and the journal is written to the log as soon as it takes
 records again. Log trouble is reported once (``LOG_FAILED`` ... ``LOG_RECOVERED``) and fails the
@@ -33,11 +33,11 @@ from typing import Any
 import numpy as np
 
 from config.machine import MachineConfig
-from controller.events import EventKind, EventLog
-from controller.frame_intake import finite_or_none, frame_metadata, int_or
-from controller.frame_result import FrameResult
-from controller.quality_log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
-from controller.record_journal import RecordSink, default_journal_path
+from controller.quality.journal import RecordSink, default_journal_path
+from controller.quality.log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
+from controller.service.events import EventKind, EventLog
+from controller.service.frame_result import FrameResult
+from controller.service.intake import finite_or_none, frame_metadata, int_or
 from protocol.frames import Frame
 
 PROFILE_EVERY = 10

@@ -1,7 +1,9 @@
 """Supervisor stage and safe state: what the service watches, and what it does when it must stop.
 
-:class:`SafeStateKeeper` wraps the pure :class:`~controller.safety.Supervisor` (timeouts and
-conditions) and the :class:`~controller.safety.AmplifierMonitor` with the service's side of
+:class:`SafeStateKeeper` wraps the pure :class:`~controller.service.supervisor.Supervisor`
+(timeouts and
+conditions) and the :class:`~controller.service.supervisor.AmplifierMonitor` with the service's
+side of
 them: it judges the PLC's registers and the amplifier's status, steps the supervisor, reports
 safe-state entries (``SAFE_STATE`` with its ``reason`` and, in ``data``, the sources ``missing``
 and the recovery time of the back-off) and recoveries, and puts the piezo in its safe state at
@@ -23,13 +25,13 @@ from dataclasses import dataclass
 from typing import Any
 
 from config.machine import SafetyConfig
-from controller.actuators import Actuators
-from controller.events import EventKind, EventLog, exc_name
-from controller.plc_client import PlcSnapshot
-from controller.safety import AmplifierMonitor, SafetyState, SafetyStatus, Supervisor
+from controller.fieldbus.plc_protocol import PlcSnapshot
+from controller.service.actuators import Actuators
+from controller.service.events import EventKind, EventLog, exc_name
+from controller.service.supervisor import AmplifierMonitor, SafetyState, SafetyStatus, Supervisor
 from core.errors import FieldbusError
 
-_LOG = logging.getLogger("controller.service")
+_LOG = logging.getLogger("controller.service.service")
 
 REASONS = {
     "plc": "plc gone",

@@ -3,16 +3,18 @@
 This module is the composition root: :class:`Service` wires the parts, each with one job and
 its own module, and owns nothing else (``docs/service.md``):
 
-* :mod:`controller.service_clock` — service time (never backwards);
-* :mod:`controller.frame_intake` — sequence gaps, camera clock, frame metadata;
-* :mod:`controller.measurement` — the vision's Measurer, failures and plausibility;
-* :mod:`controller.mark_attribution` — which knife cut which mark;
-* :mod:`controller.control_loops` — the feed and uniformity loops;
-* :mod:`controller.actuators` — feed setpoint and heartbeat (Modbus), offsets and commands (CAN);
-* :mod:`controller.supervision` — the supervisor, the safe state, the one supervisor boundary;
-* :mod:`controller.bus_cycles` — the PLC's and the amplifier's cyclic work;
-* :mod:`controller.quality_records` — one durable record per pair (log or journal);
-* :mod:`controller.pair_pipeline` — a pair through those stages, in order.
+* :mod:`controller.service.clock` — service time (never backwards);
+* :mod:`controller.service.intake` — sequence gaps, camera clock, frame metadata;
+* :mod:`controller.service.measurement` — the vision's Measurer, failures and plausibility;
+* :mod:`controller.service.attribution` — which knife cut which mark;
+* :mod:`controller.service.loops` — the feed and uniformity loops;
+* :mod:`controller.service.actuators` — feed setpoint and heartbeat (Modbus), offsets and commands
+(CAN);
+* :mod:`controller.service.safe_state` — the supervisor, the safe state, the one supervisor
+boundary;
+* :mod:`controller.service.bus_cycles` — the PLC's and the amplifier's cyclic work;
+* :mod:`controller.service.records` — one durable record per pair (log or journal);
+* :mod:`controller.service.pipeline` — a pair through those stages, in order.
 
 The entry points, all with the time passed in: :meth:`Service.plc_cycle` (every
 ``safety.cycle_s``), :meth:`Service.can_cycle` (every ``can.command_period_s``, never waits),
@@ -32,21 +34,21 @@ from pathlib import Path
 from typing import Any
 
 from config.machine import MachineConfig
-from controller.actuators import Actuators
-from controller.bus_cycles import BusCycles
-from controller.control_loops import ControlLoops
-from controller.events import EventKind, EventLog, ServiceEvent, exc_name
-from controller.frame_intake import FrameIntake
-from controller.frame_result import FrameResult
-from controller.measurement import MeasurementStage, VisionMeasurers
-from controller.pair_pipeline import PairPipeline
-from controller.piezo_client import PiezoClient
-from controller.plc_client import PlcClient
-from controller.quality_records import QualityRecords
-from controller.safety import AmplifierMonitor, SafetyState, SafetyStatus
-from controller.service_clock import ServiceClock
-from controller.service_status import MeasurementSummary, ServiceStatus
-from controller.supervision import SafeStateKeeper
+from controller.fieldbus.piezo_client import PiezoClient
+from controller.fieldbus.plc_client import PlcClient
+from controller.service.actuators import Actuators
+from controller.service.bus_cycles import BusCycles
+from controller.service.clock import ServiceClock
+from controller.service.events import EventKind, EventLog, ServiceEvent, exc_name
+from controller.service.frame_result import FrameResult
+from controller.service.intake import FrameIntake
+from controller.service.loops import ControlLoops
+from controller.service.measurement import MeasurementStage, VisionMeasurers
+from controller.service.pipeline import PairPipeline
+from controller.service.records import QualityRecords
+from controller.service.safe_state import SafeStateKeeper
+from controller.service.status import MeasurementSummary, ServiceStatus
+from controller.service.supervisor import AmplifierMonitor, SafetyState, SafetyStatus
 from protocol.frames import Frame
 
 __all__ = ["FrameResult", "Service", "ServiceStatus", "default_log_path", "open_service"]
@@ -66,7 +68,8 @@ class Service:
     measurer_factory : callable, optional
         ``factory(shape) -> measurer`` with ``measurer.measure(image_a, image_b, *, counts_a,
         counts_b, speed_mm_s) -> Measurement``; called once per image shape. Default
-        (``None``): :class:`~controller.measurement.VisionMeasurers` of ``rig`` -- the vision's
+        (``None``): :class:`~controller.service.measurement.VisionMeasurers` of ``rig`` -- the
+        vision's
         ``Measurer`` with the PLC's cutting radius and knives, self-calibrating per board.
     rig : Rig
         The rig (``px_per_mm``, ``cx`` for the mark-to-knife phase; field of view).
@@ -302,7 +305,7 @@ class Service:
         return status
 
     async def handle_frame(self, frame: Frame, *, now_s: float | None = None) -> FrameResult:
-        """Measure one pair, control, write setpoints, log it (:mod:`controller.pair_pipeline`).
+        """Measure one pair, control, write setpoints, log it (:mod:`controller.service.pipeline`).
 
         Every pair gets exactly one quality record, whatever happens: a pair that cannot be
         measured (unreadable, registration failed, any exception of the vision, implausible
@@ -427,7 +430,7 @@ class Service:
 
 def default_log_path(cfg: MachineConfig) -> Path | str:
     """The quality log of a configuration: a file (its folder is created) or a database URL."""
-    from controller.quality_log import database_url, is_database_url
+    from controller.quality.log import database_url, is_database_url
 
     if is_database_url(cfg.log.path):
         return database_url(cfg.log.path)
@@ -464,9 +467,9 @@ def open_service(
     """
     from config.machine import dbc_path, registers_path, rig_path
     from config.rig import load_rig
-    from controller.piezo_client import open_bus
-    from controller.plc_client import Backoff
-    from controller.quality_log import database_url, is_database_url, open_quality_log
+    from controller.fieldbus.piezo_client import open_bus
+    from controller.fieldbus.plc_protocol import Backoff
+    from controller.quality.log import database_url, is_database_url, open_quality_log
     from protocol.piezo_can import PiezoCodec
     from protocol.registers import RegisterMap
 

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
-from controller.frame_result import FrameResult
-from controller.quality_log import vision_fields
+from controller.quality.log import vision_fields
+from controller.service.frame_result import FrameResult
 
 
 def _json_float(v: float | None) -> float | None:
@@ -110,7 +110,7 @@ class ServiceStatus:
     safe_reason : str or None
         Why it is safe (``"plc gone, can gone"``, ``"confirming recovery"``); ``None`` in RUN.
     missing : tuple of str
-        Sources gone and conditions failing (``controller.safety.SOURCES`` names).
+        Sources gone and conditions failing (``controller.service.supervisor.SOURCES`` names).
     feed_setpoint_mm_s : float or None
         Feed setpoint in force, mm/s.
     feed_actual_mm_s : float or None
@@ -129,7 +129,7 @@ class ServiceStatus:
         Quality records kept aside (journal or memory) waiting for the log.
     piezo_limits : Mapping or None
         The bound on the piezo offsets in force and where it comes from (the amplifier's
-        reported stroke or ``machine.toml``'s, ``controller.actuators.Actuators.limits``).
+        reported stroke or ``machine.toml``'s, ``controller.service.actuators.Actuators.limits``).
     """
 
     t_s: float | None

@@ -65,7 +65,8 @@ as failed, s: a few status periods (10 ms) and command cycles (20 ms), well insi
 timeout, so the latency of an enable or disable is never mistaken for a failure."""
 AMP_REFUSAL_CONFIRM_S = 0.3
 """Confirmation time of a stroke-limit bit alone while the amplifier tracks, s: long enough for
-the CAN client to re-plan the refused table (``controller.piezo_client.REFUSAL_GRACE_S``) and the
+the CAN client to re-plan the refused table (``controller.fieldbus.piezo_client.REFUSAL_GRACE_S``)
+and the
 amplifier to take the new one, short enough that an amplifier refusing everything goes safe."""
 RECOVERY_FRESH_FRACTION = 0.5
 """In SAFE a timed source counts as back only when heard within this fraction of its timeout."""

@@ -82,7 +82,7 @@ async def serving(
         return
     import threading
 
-    from controller.quality_records import quality_class_of
+    from controller.service.records import quality_class_of
     from controller.web.app import make_app
     from controller.web.live import LiveView
     from controller.web.quality import QualityBrowser

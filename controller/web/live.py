@@ -20,10 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from controller.events import ServiceEvent
-from controller.frame_result import FrameResult
-from controller.quality_log import QualityClass
-from controller.service_status import ServiceStatus
+from controller.quality.log import QualityClass
+from controller.service.events import ServiceEvent
+from controller.service.frame_result import FrameResult
+from controller.service.status import ServiceStatus
 
 __all__ = [
     "PROFILE_MAX_POINTS",

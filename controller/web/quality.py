@@ -1,9 +1,10 @@
 """The quality staff page's data: boards of a quality log, their records, figures and CSV.
 
 :class:`QualityBrowser` opens a quality log read-only (an SQLite file or a PostgreSQL URL,
-:func:`controller.quality_log.open_quality_log`), reads new records incrementally (``after_id``)
+:func:`controller.quality.log.open_quality_log`), reads new records incrementally (``after_id``)
 and answers the page: the board list, one board's records, its figures as PNG
-(:func:`controller.report.build_figures`) and CSV (:data:`~controller.quality_log.CSV_COLUMNS`).
+(:func:`controller.quality.report.build_figures`) and CSV
+(:data:`~controller.quality.log.CSV_COLUMNS`).
 Thread-safe (the server calls it from its worker threads).
 """
 
@@ -16,7 +17,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from controller.quality_log import (
+from controller.quality.log import (
     CSV_COLUMNS,
     QualityClass,
     QualityLog,
@@ -28,7 +29,7 @@ from controller.quality_log import (
 __all__ = ["FIGURE_NAMES", "QualityBrowser"]
 
 FIGURE_NAMES = ("pitch_uniformity", "setpoints", "profile")
-"""Figures a board may have (``controller.report.build_figures``)."""
+"""Figures a board may have (``controller.quality.report.build_figures``)."""
 
 
 def _mean(values: list[float | None]) -> float | None:
@@ -173,7 +174,7 @@ class QualityBrowser:
         KeyError
             No record of that board, or the board has no such figure (e.g. no profile).
         """
-        from controller.report import build_figures
+        from controller.quality.report import build_figures
 
         if name not in FIGURE_NAMES:
             raise KeyError(name)

@@ -1,1 +1,4 @@
-"""Measurement in worker processes: the pool, the service's end of a worker, the worker process."""
+"""Measurement in worker processes.
+
+The pool, the service's end of a worker, the worker process.
+"""

@@ -1,12 +1,12 @@
 """The service's end of one measurement worker: its process, pipe, slots and open pairs.
 
-:class:`controller.measure_workers.MeasureWorkerPool` keeps one :class:`WorkerLink` per worker
+:class:`controller.workers.pool.MeasureWorkerPool` keeps one :class:`WorkerLink` per worker
 process: the process (:meth:`WorkerLink.spawn`, :meth:`WorkerLink.end`, :meth:`WorkerLink.reap`),
 the pipe's messages (:meth:`WorkerLink.messages`), the shared-memory block of ``depth`` slots
 the pairs' images go into (:meth:`WorkerLink.place`) and the replies come back in
 (:meth:`WorkerLink.outcome`, :meth:`WorkerLink.told`, :meth:`WorkerLink.salvage`), and the pairs
 it holds (``jobs``, by ticket, in the order they were sent). The worker's side of the wire is
-:mod:`controller.measure_worker_process`.
+:mod:`controller.workers.process`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from controller.measure_worker_process import (
+from controller.workers.process import (
     READ_BYTES,
     SLOT_HEAD,
     _Packed,

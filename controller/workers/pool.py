@@ -17,7 +17,7 @@ sequence order (:class:`_RollPlan`: as often as in process, never less), and one
 timer watches all pairs in flight (none per pair).
 
 The pool only measures; the service consumes the results in sequence order
-(:meth:`controller.pair_pipeline.PairPipeline.submit`), so the control loops see the pairs in
+(:meth:`controller.service.pipeline.PairPipeline.submit`), so the control loops see the pairs in
 order even when workers finish out of order. A worker that dies (crash, ``SIGKILL``) or takes
 longer than ``timeout_s`` for a pair is killed and started again: the pair it was measuring
 comes back as a failed measurement naming the reason (never a hang), the results it had made
@@ -28,7 +28,7 @@ stderr and is started again. Fewer cores than workers is a one-line warning and 
 one process per core (:func:`plan_workers`): more processes than cores would only share them.
 
 One worker's process, pipe and slots as the service sees them:
-:mod:`controller.measure_worker_link`; the worker's side: :mod:`controller.measure_worker_process`.
+:mod:`controller.workers.link`; the worker's side: :mod:`controller.workers.process`.
 """
 
 from __future__ import annotations
@@ -44,10 +44,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from controller.events import exc_name
-from controller.measure_worker_link import WorkerLink, WorkerOutcome
-from controller.measure_worker_process import _cal_state
-from controller.measurement import MachineFacts
+from controller.service.events import exc_name
+from controller.service.measurement import MachineFacts
+from controller.workers.link import WorkerLink, WorkerOutcome
+from controller.workers.process import _cal_state
 
 __all__ = [
     "MeasureWorkerPool",
@@ -61,7 +61,7 @@ __all__ = [
 DEFAULT_DEPTH = 12
 """Pairs a worker holds at once (one measured, the rest waiting: the worker never idles for a
 round trip). A saturated worker answers in batches of ``depth // 2`` (one wake-up of the
-service for them, :class:`controller.measure_worker_process._Replies`) and still has half its
+service for them, :class:`controller.workers.process._Replies`) and still has half its
 pairs to measure while the service refills the other half. 2 workers on 2 cores, pairs/s over
 one worker's, alternating runs: depth 2 (no batches) 1.44-1.62, median 1.55; 8: 1.44-1.76,
 1.57; 12: 1.54-1.78, 1.61-1.70 (docs/service.md, "Workers"). The slots cost ``depth`` pairs of
@@ -74,7 +74,7 @@ machine takes seconds), s."""
 class MeasurementWorkerError(Exception):
     """A worker's measurement raised something the vision never raises (a bug, not a pair).
 
-    Deliberately not one of :data:`controller.measurement.VISION_ERRORS`: the service's
+    Deliberately not one of :data:`controller.service.measurement.VISION_ERRORS`: the service's
     supervisor boundary reports it and goes to the safe state, as for the same error in process.
     """
 
@@ -204,7 +204,8 @@ class MeasureWorkerPool:
     ----------
     factory : callable
         The service's measurer factory (picklable: e.g.
-        :class:`controller.measurement.VisionMeasurers`); each worker builds its measurers with
+        :class:`controller.service.measurement.VisionMeasurers`); each worker builds its measurers
+        with
         it, once per image shape and machine facts.
     workers : int
         Worker processes (see :func:`plan_workers` for more than the cores).
@@ -226,7 +227,8 @@ class MeasureWorkerPool:
         OpenCV threads in each worker; default: the cores available over ``workers`` (at
         least 1).
     nice : int, optional
-        Nice value of the workers (``None``: as started; :func:`controller.latency.prioritize`).
+        Nice value of the workers (``None``: as started;
+        :func:`controller.service.latency.prioritize`).
 
     Notes
     -----

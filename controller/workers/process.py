@@ -1,6 +1,6 @@
 """The measurement worker process and the messages it exchanges with its pool.
 
-:class:`controller.measure_workers.MeasureWorkerPool` starts :func:`_worker_main` in each worker
+:class:`controller.workers.pool.MeasureWorkerPool` starts :func:`_worker_main` in each worker
 process. A job message carries the pair's place in the pool's shared memory (or the images),
 its numbers, the machine's facts and the board's calibrator as its fields' values
 (:func:`_cal_state` / :func:`_cal_from`: the class and field names pickled once); the reply
@@ -30,9 +30,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from controller.events import exc_name
-from controller.latency import IdleCollector
-from controller.measurement import VISION_ERRORS, MeasurementStage, failure_reason
+from controller.service.events import exc_name
+from controller.service.latency import IdleCollector
+from controller.service.measurement import VISION_ERRORS, MeasurementStage, failure_reason
 
 _HEADER = struct.Struct("!i")  # Connection.send's length header ...
 _LONG_HEADER = struct.Struct("!Q")  # ... and its long form after -1
@@ -42,7 +42,7 @@ class _RecordingCalibrator:
     """The board's calibrator as the worker got it, noting each estimate folded in.
 
     ``roll`` is the service's word on the camera's roll for this pair
-    (:class:`controller.measure_workers._RollPlan`): ``None`` leaves it to the calibrator,
+    (:class:`controller.workers.pool._RollPlan`): ``None`` leaves it to the calibrator,
     ``()`` has the pair search for it, ``(roll_deg, confidence)`` has it use that; a search's
     confident result is noted in :attr:`found`.
     """
@@ -122,7 +122,7 @@ def _blob_into_slot(packed: Any, buf: Any, offset: int, room: int) -> Any:
     """``packed`` with its float array written into the pair's slot (``blob=None``) if it fits.
 
     The slot's images are no longer needed once measured: the service copies the array out
-    of the slot (:meth:`controller.measure_worker_link.WorkerLink.outcome`) instead of both
+    of the slot (:meth:`controller.workers.link.WorkerLink.outcome`) instead of both
     sides pickling, writing and reading it (16 KB at 659 px a row: 15-40 us a pair over both
     processes).
     """
@@ -319,7 +319,7 @@ class _Replies:
     fewer than ``hold`` are held: a saturated worker wakes the service once per ``hold`` pairs
     (one write) instead of once per pair. Each wake-up takes a core from a measuring worker
     when the workers use all cores, and costs that worker its caches (2 workers on 2 cores:
-    :data:`controller.measure_workers.DEFAULT_DEPTH`). A worker with fewer jobs waiting (the
+    :data:`controller.workers.pool.DEFAULT_DEPTH`). A worker with fewer jobs waiting (the
     service at its pace: the latency path) announces every reply as it is made. A reply
     without a slot (the images came through the pipe) goes through the pipe, at once.
 

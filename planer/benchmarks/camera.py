@@ -20,8 +20,8 @@ WIDTH, HEIGHT = 659, 493
 
 
 def _measure(pairs_per_s: float, duration_s: float) -> dict[str, Any]:
-    from controller.camera.device import AravisCamera, CameraSettings
-    from controller.camera.source import CameraFrameSource
+    from controller.frames.camera.device import AravisCamera, CameraSettings
+    from controller.frames.camera.source import CameraFrameSource
 
     settings = CameraSettings(width=WIDTH, height=HEIGHT, exposure_us=1000.0, gain_db=0.0,
                               trigger_source="Software", pairs_per_s=pairs_per_s,
@@ -59,7 +59,7 @@ def _measure(pairs_per_s: float, duration_s: float) -> dict[str, Any]:
 
 def run(quick: bool) -> dict[str, Any]:
     """Throughput of the camera path; ``{"available": False, "reason": ...}`` without Aravis."""
-    from controller.camera.device import aravis_unavailable
+    from controller.frames.camera.device import aravis_unavailable
 
     why = aravis_unavailable()
     if why is not None:

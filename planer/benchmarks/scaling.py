@@ -99,8 +99,8 @@ def scaling(frames: list, rig: Any, facts: Any, *, max_workers: int | None = Non
     """
     import cv2
 
-    from controller.measure_workers import MeasureWorkerPool, available_cores
-    from controller.measurement import MeasurementStage, VisionMeasurers
+    from controller.service.measurement import MeasurementStage, VisionMeasurers
+    from controller.workers.pool import MeasureWorkerPool, available_cores
     from vision.selfcal import SelfCalibrator
 
     cores = available_cores()

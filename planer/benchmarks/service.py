@@ -1,10 +1,11 @@
 """Service latency and measurement workers (``planer bench``, ``service`` part).
 
 **Latency** (issue 11, item 2). The simulated machine renders 659x493 pairs once (before
-timing); its PLC's Modbus server runs in a process of its own (``plant_sim.plc_process``) on an
+timing); its PLC's Modbus server runs in a process of its own
+(``plant_sim.interfaces.plc_process``) on an
 ephemeral 127.0.0.1 port and its piezo amplifier node answers on a virtual CAN bus, pumped every
 5 ms. The service runs as ``planer serve`` does (real time, the PLC and CAN cycle tasks, the
-quality log on disk, the process tuned by :func:`controller.latency.tune_for_latency`, its
+quality log on disk, the process tuned by :func:`controller.service.latency.tune_for_latency`, its
 event loop at real-time priority and the measurement at a raised nice value where permitted);
 once it reported RUN the pairs are handed to its frame source at ``rate_hz`` (100 pairs/s: a
 queue of :data:`QUEUE_PAIRS` that drops the oldest, or a spool folder a camera process writes)
@@ -42,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from controller.events import EventKind
+from controller.service.events import EventKind
 from planer.benchmarks.scaling import scaling
 
 READY_TIMEOUT_S = 60.0
@@ -87,7 +88,7 @@ def _stats(values: list[float]) -> dict[str, float]:
 
 def machine_description() -> dict[str, Any]:
     """Cores available, load averages (1, 5, 15 min) and the CPU model, for the figures."""
-    from controller.measure_workers import available_cores
+    from controller.workers.pool import available_cores
 
     model = ""
     try:
@@ -112,7 +113,7 @@ async def _plc_for(machine: Any, *, realtime: bool = False) -> tuple[Any, Any]:
     service's, not the stand-in PLC's wait for a core).
     """
     try:
-        from plant_sim.plc_process import PlcProcess
+        from plant_sim.interfaces.plc_process import PlcProcess
 
         plc = PlcProcess(machine, port=0, realtime=realtime)
 
@@ -120,7 +121,7 @@ async def _plc_for(machine: Any, *, realtime: bool = False) -> tuple[Any, Any]:
             plc.apply_writes()
             plc.refresh()
     except ImportError:  # pragma: no cover - an older simulator
-        from plant_sim.plc_server import PlcServer
+        from plant_sim.interfaces.plc_server import PlcServer
 
         plc = PlcServer(machine, host="127.0.0.1", port=0)
 
@@ -146,7 +147,8 @@ async def _run(
     Nothing waits a fixed time: the pairs go in when the service reports its recovery to RUN
     (``RuntimeError`` naming what it waits for if that takes longer than ``ready_timeout_s``),
     and ``Service.run`` returns as soon as it handled the last pair. ``workers`` > 0 measures
-    in that many worker processes; ``tune`` calls :func:`controller.latency.tune_for_latency`
+    in that many worker processes; ``tune`` calls
+    :func:`controller.service.latency.tune_for_latency`
     before the first pair. ``via = "spool"`` has a camera process (:class:`_SpoolCamera`: the
     same pairs, rendered there) write the pairs into a spool folder (PNG files) that the service
     reads as ``planer serve`` does (its spool reader thread); the latency then starts when a
@@ -160,11 +162,11 @@ async def _run(
     import can
 
     from config.machine import load_machine
-    from controller.frame_source import QueueFrameSource
-    from controller.latency import MEASURE_NICE, GcPauses, prioritize, tune_for_latency
-    from controller.service import open_service
+    from controller.frames.source import QueueFrameSource
+    from controller.service.latency import MEASURE_NICE, GcPauses, prioritize, tune_for_latency
+    from controller.service.service import open_service
     from core.realtime import BUS_RT_PRIORITY, cpu_wakeup_latency, realtime_thread
-    from plant_sim.amp_node import AmpNode, AmpNodeCore
+    from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
     from protocol.piezo_can import PiezoCodec
 
     plc, plc_pump = await _plc_for(machine, realtime=priority)
@@ -184,7 +186,7 @@ async def _run(
     service = open_service(cfg, can_bus=svc_bus)
     pool = None
     if workers > 0:
-        from controller.measure_workers import MeasureWorkerPool
+        from controller.workers.pool import MeasureWorkerPool
 
         pool = MeasureWorkerPool(service.measurement.factory, workers=workers,
                                  shape=frames[0].image_a.shape,
@@ -203,7 +205,7 @@ async def _run(
     h, w = frames[0].image_a.shape
     camera = None
     if via == "spool":
-        from controller.frame_source import open_frame_source
+        from controller.frames.source import open_frame_source
 
         spool_dir = workdir / f"spool-{workers}"
         source = open_frame_source(replace(cfg.frames, source="spool", spool_dir=spool_dir,
@@ -416,7 +418,7 @@ class _SpoolCamera:
 def _latency_figures(service: Any, put_at: dict[int, float], stored_at: dict[int, float],
                      gc_pauses: Any, *, frames: list, rate_hz: float,
                      workers: int) -> dict[str, Any]:
-    from controller.latency import idle_collector
+    from controller.service.latency import idle_collector
 
     res = service.results
     applied = [r for r in res if r.applied]
@@ -508,7 +510,7 @@ def _frames(n: int, *, seed: int = 1) -> tuple[list, Any]:
     without waiting for a measurement.
     """
     from config.sim import default_sim
-    from plant_sim.machine import Machine
+    from plant_sim.model.machine import Machine
 
     machine = Machine(default_sim(), seed=seed)
     frames: list = []
@@ -539,7 +541,7 @@ def run(quick: bool = False) -> dict[str, Any]:
 
     from config.machine import load_machine, rig_path
     from config.rig import load_rig
-    from controller.measurement import MachineFacts
+    from controller.service.measurement import MachineFacts
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     n = 60 if quick else 300

@@ -53,7 +53,7 @@ def _measure(render: bool, sim_s: float, *, windows: int = WINDOWS) -> dict[str,
         images ``ms_per_pair`` and ``cpu_ms_per_pair`` (per simulated pair), ``setup_s``.
     """
     from config.sim import load_sim
-    from plant_sim.machine import Machine
+    from plant_sim.model.machine import Machine
 
     cfg = load_sim()
     t0 = time.perf_counter()
@@ -143,7 +143,7 @@ def floors(*, repeat: int = 5) -> dict[str, float]:
 _ECHO_SERVER = """
 import asyncio, os, sys, struct
 if sys.argv[1] == "1":
-    from plant_sim.interfaces import raise_priority
+    from plant_sim.interfaces.thread import raise_priority
     raise_priority()
 REPLY_WORDS = int(sys.argv[2])
 async def handle(r, w):
@@ -268,7 +268,7 @@ def _time_server(argv: list[str], *, duration_s: float, reads_per_s: float,
     import subprocess
     import sys
 
-    from plant_sim.runner import parse_banner
+    from plant_sim.run.runner import parse_banner
 
     proc = popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -280,7 +280,7 @@ def _time_server(argv: list[str], *, duration_s: float, reads_per_s: float,
                 break
         host, port = parse_banner(lines)["modbus"].rsplit(":", 1)
         if client_realtime:  # a client process of its own at the interfaces' priority
-            code = ("import json, sys; from plant_sim.interfaces import raise_priority; "
+            code = ("import json, sys; from plant_sim.interfaces.thread import raise_priority; "
                     "raise_priority(); from planer.benchmarks.sim import _read_loop; "
                     "print(json.dumps(_read_loop(sys.argv[1], int(sys.argv[2]), "
                     "float(sys.argv[3]), float(sys.argv[4]))))")

@@ -53,9 +53,9 @@ def run(args: argparse.Namespace) -> int:
 
     from config.machine import load_machine, rig_path
     from config.rig import load_rig
-    from controller.camera.device import AravisCamera
-    from controller.camera.latches import ModbusLatchReader, parse_host_port
-    from controller.camera.source import CameraFrameSource, settings_from_config
+    from controller.frames.camera.device import AravisCamera
+    from controller.frames.camera.latches import ModbusLatchReader, parse_host_port
+    from controller.frames.camera.source import CameraFrameSource, settings_from_config
     from core.checks import check_int, check_positive
     from core.fileio import atomic_write_text
     from planer.cli import output_folder

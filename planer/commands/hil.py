@@ -7,7 +7,7 @@ possible (no unprivileged namespaces, no ``msgpack``), or with ``--in-process``,
 and the service run in one process on simulated time with the virtual CAN bus; the reason is
 printed. Progress goes to stderr; the summary (or with ``--json`` one strict JSON object: no
 NaN, a missing number is ``null`` with its reason in ``null_reasons``) to stdout.
-The report's figures of the run (``controller/report.py``: pitch and uniformity along the
+The report's figures of the run (``controller/quality/report.py``: pitch and uniformity along the
 boards, setpoints, a profile) are written next to the quality log and their paths printed
 (``figures`` in the JSON object). Exit code 0 when every check of the summary's ``done`` table
 passed, 1 otherwise.
@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
     import time
     from dataclasses import replace
 
-    from controller.quality_log import log_target
+    from controller.quality.log import log_target
     from core.errors import FieldbusError
     from planer import hil
     from planer.cli import output_file
@@ -249,8 +249,8 @@ def _write_figures(summary: dict, progress: Callable[[str], None]) -> dict[str, 
     """
     import time
 
-    from controller.quality_log import QualityLog, is_database_url
-    from controller.report import build_figures, save_figures
+    from controller.quality.log import QualityLog, is_database_url
+    from controller.quality.report import build_figures, save_figures
 
     qlog = summary["quality_log"]
     path = Path(qlog["path"])

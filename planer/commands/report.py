@@ -35,9 +35,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    from controller.quality_log import is_database_url, log_target, open_quality_log
-    from controller.record_journal import default_journal_path, read_journal
-    from controller.report import build_figures, format_summary, save_figures, summarise
+    from controller.quality.journal import default_journal_path, read_journal
+    from controller.quality.log import is_database_url, log_target, open_quality_log
+    from controller.quality.report import build_figures, format_summary, save_figures, summarise
     from planer.cli import output_file, output_folder
 
     log_path = log_target(args.log)

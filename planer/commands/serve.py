@@ -73,7 +73,7 @@ def waiting_line(missing: tuple[str, ...], *, plc: str, can: str, frames: str) -
     Parameters
     ----------
     missing : tuple of str
-        The supervisor's missing sources (``controller.safety.SOURCES``).
+        The supervisor's missing sources (``controller.service.supervisor.SOURCES``).
     plc, can, frames : str
         Where the PLC, the CAN bus and the frames are expected, for the message.
     """
@@ -113,7 +113,7 @@ def source_text(counts: Mapping[str, int]) -> str:
 
 def vision_text(measurement: Any) -> str:
     """``"roll +0.42 deg, calibration applied (gain 0.897)"`` of a measurement (``""``: none)."""
-    from controller.quality_log import vision_fields
+    from controller.quality.log import vision_fields
 
     if measurement is None:
         return ""
@@ -141,11 +141,11 @@ def open_source(cfg: Any) -> tuple[Any, Any]:
         ``latch_reader`` is ``None`` for a spool.
     """
     from config.machine import registers_path
-    from controller.frame_source import open_frame_source
+    from controller.frames.source import open_frame_source
 
     latch_reader = None
     if cfg.frames.source == "camera":
-        from controller.camera.latches import ModbusLatchReader
+        from controller.frames.camera.latches import ModbusLatchReader
 
         latch_reader = ModbusLatchReader(cfg.plc.host, cfg.plc.port, unit_id=cfg.plc.unit_id,
                                          registers=registers_path(cfg),
@@ -168,8 +168,8 @@ async def start_workers(service: Any, cfg: Any, requested: int | None) -> Any:
     import asyncio
     import sys
 
-    from controller.latency import MEASURE_NICE
-    from controller.measure_workers import open_worker_pool
+    from controller.service.latency import MEASURE_NICE
+    from controller.workers.pool import open_worker_pool
 
     workers = cfg.service.workers if requested is None else requested
     if not workers:
@@ -196,11 +196,11 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from config.machine import load_machine
-    from controller.events import EventKind
-    from controller.latency import MEASURE_NICE, prioritize, tune_for_latency
-    from controller.quality_log import log_target
-    from controller.safety import SafetyState
-    from controller.service import open_service
+    from controller.quality.log import log_target
+    from controller.service.events import EventKind
+    from controller.service.latency import MEASURE_NICE, prioritize, tune_for_latency
+    from controller.service.service import open_service
+    from controller.service.supervisor import SafetyState
     from core.checks import check_int
     from core.realtime import BUS_RT_PRIORITY, cpu_wakeup_latency, realtime_thread
     from planer.cli import output_file, output_folder

@@ -128,8 +128,8 @@ def run(args: argparse.Namespace) -> int:
     from config.sim import load_sim
     from core.checks import check_int
     from planer.cli import output_folder
-    from plant_sim.interfaces import RENDER_NICE
-    from plant_sim.runner import SimRunner
+    from plant_sim.interfaces.thread import RENDER_NICE
+    from plant_sim.run.runner import SimRunner
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration >= 0):
         raise ValueError(f"--duration must be a finite number >= 0, got {args.duration}")

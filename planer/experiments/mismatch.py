@@ -41,7 +41,7 @@ def run_experiment(
         ``result[mode][str(error_px)]`` is the list of correlations (one per board) of the
         profile measured with that encoder error against the correctly registered profile.
     """
-    from plant_sim.scenarios import board_pair
+    from plant_sim.rendering.scenarios import board_pair
     from vision.marks import corr2
     from vision.pipeline import Measurer
 

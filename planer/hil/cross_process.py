@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from config.loading import default_path
-from controller.service import FrameResult
+from controller.service.service import FrameResult
 from core.errors import FieldbusError
 from core.realtime import BUS_RT_PRIORITY, realtime_thread
 from planer.hil.scenario import Progress, Scenario, machine_config_for, sim_config_for, sim_document
@@ -163,7 +163,7 @@ class _SimProcess:
         self._thread.start()
 
     def _drain(self) -> None:
-        from plant_sim.runner import parse_banner
+        from plant_sim.run.runner import parse_banner
 
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
@@ -251,9 +251,9 @@ async def _run_cross_process(
     on_service: Callable[[Any], None] | None = None,
 ) -> dict[str, Any]:
     from config.machine import CanConfig
-    from controller.frame_source import open_frame_source
-    from controller.piezo_client import open_bus
-    from controller.service import open_service
+    from controller.fieldbus.piezo_client import open_bus
+    from controller.frames.source import open_frame_source
+    from controller.service.service import open_service
 
     say = progress or (lambda _line: None)
     spool = tmp / "spool"
@@ -406,11 +406,11 @@ def _measure_in_workers(service: Any, cfg: Any, say: Progress) -> Any:
     """Start the measurement's worker process(es) for ``service`` and tune its process.
 
     Returns the pool (the caller closes it after the service). The process's heap is frozen and
-    its interpreter lock's switch interval shortened (:func:`controller.latency.
+    its interpreter lock's switch interval shortened (:func:`controller.service.latency.
     tune_for_latency`), as ``planer serve`` does.
     """
-    from controller.latency import tune_for_latency
-    from controller.measure_workers import open_worker_pool
+    from controller.service.latency import tune_for_latency
+    from controller.workers.pool import open_worker_pool
 
     fr = cfg.frames
     shape = (fr.image_height, fr.image_width) if fr.image_width > 0 and fr.image_height > 0 \

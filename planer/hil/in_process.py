@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from config.machine import MachineConfig
-from controller.service import FrameResult, Service
+from controller.service.service import FrameResult, Service
 from planer.hil.scenario import Progress, Scenario, machine_config_for, sim_config_for
 from planer.hil.summary import PROGRESS_LEGEND, BoardTravel, _progress_line, _service_summary
 
@@ -23,7 +23,7 @@ class InProcessPlant:
     """The simulated machine and the service wired together in one process (simulated time).
 
     Every :meth:`step` advances the plant by one control cycle through the simulator's one
-    :class:`~plant_sim.driver.PlantDriver` (amplifier node, queued PLC writes, machine, PLC
+    :class:`~plant_sim.run.driver.PlantDriver` (amplifier node, queued PLC writes, machine, PLC
     registers, interface faults), runs one :meth:`Service.tick` and hands the pairs captured in
     that cycle to :meth:`Service.handle_frame` -- all at the machine's time, so a run is
     deterministic and as fast as the CPU allows.
@@ -63,12 +63,14 @@ class InProcessPlant:
 
         from config.machine import registers_path, rig_path
         from config.rig import load_rig
-        from controller.piezo_client import PiezoClient
-        from controller.plc_client import Backoff, MachineRegisterBus, PlcClient
-        from controller.quality_log import is_database_url, open_quality_log
-        from plant_sim.amp_node import AmpNode, AmpNodeCore
-        from plant_sim.driver import PlantDriver
-        from plant_sim.machine import Machine
+        from controller.fieldbus.piezo_client import PiezoClient
+        from controller.fieldbus.plc_client import PlcClient
+        from controller.fieldbus.plc_protocol import Backoff
+        from controller.quality.log import is_database_url, open_quality_log
+        from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
+        from plant_sim.interfaces.register_bus import MachineRegisterBus
+        from plant_sim.model.machine import Machine
+        from plant_sim.run.driver import PlantDriver
         from protocol.piezo_can import PiezoCodec
         from protocol.registers import RegisterMap
 
@@ -86,7 +88,7 @@ class InProcessPlant:
             self.direct_bus = MachineRegisterBus(self.machine, self.regmap)
             self.plc = PlcClient(self.direct_bus, self.regmap, backoff=backoff, clock=self.clock)
         else:
-            from plant_sim.plc_server import PlcServer
+            from plant_sim.interfaces.plc_server import PlcServer
 
             self.server = PlcServer(self.machine, register_map=self.regmap, host="127.0.0.1",
                                     port=0, queue_writes=True)
@@ -95,7 +97,7 @@ class InProcessPlant:
         codec = PiezoCodec.load()
         self.rig = load_rig(rig_path(cfg))
         if measurer_factory is None:  # the vision with the PLC's R and Z, self-calibrating
-            from controller.measurement import VisionMeasurers
+            from controller.service.measurement import VisionMeasurers
 
             measurer_factory = VisionMeasurers(self.rig)
         self._measurer_factory = measurer_factory
@@ -152,8 +154,8 @@ class InProcessPlant:
 
     async def start(self) -> None:
         """Start the Modbus server (``tcp``) and connect the service's client to it."""
-        from controller.plc_client import PlcClient
-        from plant_sim.interfaces import InterfaceLoop
+        from controller.fieldbus.plc_client import PlcClient
+        from plant_sim.interfaces.thread import InterfaceLoop
 
         if self.server is not None and self.service is None:
             self._io = InterfaceLoop("hil-plc")

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from config.faults import Fault, FaultKind
-from controller.events import EventKind
+from controller.service.events import EventKind
 from planer.hil.scenario import Scenario, load_scenario, machine_config_for, sim_config_for
 
 __all__ = [

@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 
 from config.machine import MachineConfig
-from controller.events import EventKind, ServiceEvent
-from controller.service import FrameResult, Service
+from controller.service.events import EventKind, ServiceEvent
+from controller.service.service import FrameResult, Service
 from core.units import counter_difference
 from planer.hil.scenario import (
     CONVERGE_WITHIN_MM,
@@ -366,7 +366,7 @@ def limits_report(
 def _names_condition(event: ServiceEvent, condition: str | None) -> bool:
     """Whether a ``SAFE_STATE`` event names ``condition`` among the sources it misses.
 
-    From the event's ``data["missing"]`` (``controller.safety.SOURCES`` names); an event
+    From the event's ``data["missing"]`` (``controller.service.supervisor.SOURCES`` names); an event
     without it (an older service) is read from its ``reason`` (``"plc gone, can gone"``).
     """
     if condition is None:
@@ -570,7 +570,7 @@ def check_log(path: Path, n_expected: int, *, after_id: int = 0) -> dict[str, An
         ``path``, ``after_id`` (the run's records have larger ids), ``records`` (count),
         ``expected``, ``ids_consecutive``, ``ok``.
     """
-    from controller.quality_log import QualityLog
+    from controller.quality.log import QualityLog
 
     with QualityLog(path, create=False) as log:
         entries = log.entries(after_id=after_id)

@@ -3,9 +3,9 @@
 Issue 10 asks that a saturated plant (stroke 10 um, 15 um of runout) ends within 5 % of the CV
 of the best zero-mean offsets within the stroke. :func:`constrained_optimum_cv` finds that CV on
 the simulated plant itself, not on the loop's model: the commanded table is played by the
-simulated amplifier and actuator (:class:`plant_sim.piezo.PiezoAmplifier`, steady state at the
+simulated amplifier and actuator (:class:`plant_sim.model.piezo.PiezoAmplifier`, steady state at the
 knives' bottom dead centres), the knives cut the exact tip circles
-(:func:`plant_sim.surface.envelope`, marks that vanish included), and the CV is the true CV of
+(:func:`plant_sim.model.surface.envelope`, marks that vanish included), and the CV is the true CV of
 the marks, averaged over where the camera's window falls. The table is limited like the loop's
 (``stroke - margin``, at most half the stroke kept back). The search starts from the width
 model's exact QP and refines it with Nelder-Mead.
@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controller.limits import project_zero_mean_box
-from controller.offset_qp import best_offsets_um
-from controller.uniformity_loop import UniformityLoopConfig, offset_limit_um, second_difference
+from controller.laws.limits import project_zero_mean_box
+from controller.laws.offset_qp import best_offsets_um
+from controller.laws.uniformity_loop import UniformityLoopConfig, offset_limit_um, second_difference
 
 
 @dataclass(frozen=True)
@@ -48,7 +48,7 @@ class Optimum:
 def actuator_response_um(piezo_cfg, table_um: Sequence[float], *, spindle_rpm: float,
                          revolutions: int = 30) -> np.ndarray:
     """Displacement at each knife's BDC once the amplifier plays ``table_um`` in steady state."""
-    from plant_sim.piezo import PiezoAmplifier
+    from plant_sim.model.piezo import PiezoAmplifier
 
     z = len(table_um)
     amp = PiezoAmplifier(piezo_cfg, z, np.random.default_rng(0))
@@ -105,7 +105,7 @@ def true_cv(
     float
         The mean true CV of the windows.
     """
-    from plant_sim import surface
+    from plant_sim.model import surface
 
     ch = sim_cfg.cutterhead
     head = surface.Cutterhead(knives=ch.knives, radius_mm=ch.radius_mm,

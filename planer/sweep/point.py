@@ -303,7 +303,7 @@ def fastest_feed_mm_s(sim_cfg: Any, machine_cfg: Any) -> float:
     ``min(target, sqrt(8 R depth_max)) * n * Z`` at the nominal spindle speed, at most the
     machine's ``feed.max_mm_s``.
     """
-    from controller.feed_loop import pitch_ceiling_mm
+    from controller.laws.feed_loop import pitch_ceiling_mm
 
     head = sim_cfg.cutterhead
     q = machine_cfg.quality

@@ -1,1 +1,4 @@
-"""The machine's interfaces: PLC Modbus server and logic, the amplifier's CAN node, the serving thread."""
+"""The machine's interfaces.
+
+PLC Modbus server and logic, the amplifier's CAN node, the serving thread.
+"""

@@ -56,7 +56,7 @@ ARRIVAL_TOLERANCE_S = 1e-9
 
 
 class AmpMachine(Protocol):
-    """What the node needs of the machine (see ``plant_sim/machine.py``)."""
+    """What the node needs of the machine (see ``plant_sim/model/machine.py``)."""
 
     def piezo_command(self, *, enable: bool, alive_counter: int) -> None: ...  # noqa: D102
     def set_piezo_offsets(self, offsets_um: Sequence[float]) -> None: ...  # noqa: D102
@@ -264,7 +264,7 @@ class AmpNodeCore:
         """PIEZO_LIMITS from the amplifier's own limits (none if its machine reports none).
 
         The machine's ``piezo_limits()``, else its amplifier's ``limits()``
-        (``plant_sim/piezo.py``): stroke, accepted offsets, slew limit, setpoint timeout.
+        (``plant_sim/model/piezo.py``): stroke, accepted offsets, slew limit, setpoint timeout.
         """
         report = getattr(self.machine, "piezo_limits", None) or getattr(
             getattr(self.machine, "amp", None), "limits", None)

@@ -125,7 +125,7 @@ def _serve(shm_name: str, rmap: RegisterMap, host: str, port: int, unit_id: int,
     import signal
 
     from core.realtime import guard_realtime, raise_priority
-    from plant_sim.plc_server import PlcServer
+    from plant_sim.interfaces.plc_server import PlcServer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     priority = "normal (not asked)"
@@ -215,7 +215,8 @@ def _reply(control: Any, msg: tuple[str, Any]) -> None:  # pragma: no cover - ch
 class PlcProcess:
     """The PLC's Modbus TCP server in its own process; the machine stays here.
 
-    Same surface as :class:`~plant_sim.plc_server.PlcServer` for the runner and the driver:
+    Same surface as :class:`~plant_sim.interfaces.plc_server.PlcServer` for the runner and the
+    driver:
     :meth:`refresh` (publish), :meth:`apply_writes` (queued writes, in order), async
     :meth:`start` / :meth:`stop`, :meth:`set_up`, :attr:`values`, :attr:`requests`,
     :attr:`refused`; plus :meth:`close` (ends the process).

@@ -1,6 +1,6 @@
 """The PLC's own logic and its register view: fault bits, e-stop, heartbeats, watchdog, interlock.
 
-What the Modbus server (:mod:`plant_sim.plc_server`) exposes comes from here:
+What the Modbus server (:mod:`plant_sim.interfaces.plc_server`) exposes comes from here:
 :meth:`PlcRegisters.values` gives every register of ``config/registers.toml`` from the drives'
 state, the last camera pair's latches and the PLC's flags. Per PLC cycle
 (:meth:`PlcRegisters.start_cycle`) the PLC increments its heartbeat and checks the service's
@@ -15,9 +15,9 @@ from pathlib import Path
 
 from config.sim import SimConfig
 from core.checks import check_int
-from plant_sim.feed_drive import BoardStream, Encoder, FeedDrive
-from plant_sim.frame_capture import FrameCapture
-from plant_sim.spindle import Spindle
+from plant_sim.model.feed_drive import BoardStream, Encoder, FeedDrive
+from plant_sim.model.spindle import Spindle
+from plant_sim.rendering.frame_capture import FrameCapture
 from protocol.registers import MachineState, PlcFault, RegisterMap
 
 _HEARTBEAT_LOST = int(PlcFault.HEARTBEAT_LOST)
@@ -46,7 +46,7 @@ class PlcRegisters:
         The configuration (``[plc]``, ``[feed]`` limits, ``[encoder]``, ``[cutterhead]``).
     spindle, feed, encoder, boards : the drives, the counter and the boards
         Read for the register values.
-    capture : plant_sim.frame_capture.FrameCapture
+    capture : plant_sim.rendering.frame_capture.FrameCapture
         The camera station (the last pair's latches).
     radius_mm : float
         Cutting radius, mm (a register).

@@ -19,7 +19,8 @@ streams, no Modbus library): like a PLC it offers only what the register map off
 Accepted writes go through the register map's one dispatch
 (:func:`protocol.registers.apply_writes`). Threads: the server may run on its own asyncio loop
 in another thread than the one stepping the machine (``queue_writes=True``, see
-:mod:`plant_sim.interfaces`). Then requests only read the published register snapshot (swapped
+:mod:`plant_sim.interfaces.thread`). Then requests only read the published register snapshot
+(swapped
 under a lock by :meth:`PlcServer.refresh`) and accepted writes are queued; the stepping thread
 applies them, in the order received, with :meth:`PlcServer.apply_writes`. Until then the
 snapshot already shows the written values.
@@ -61,7 +62,7 @@ _MBAP = struct.Struct(">HHHB")
 
 
 class PlcMachine(Protocol):
-    """What the server needs of the machine (see ``plant_sim/machine.py``)."""
+    """What the server needs of the machine (see ``plant_sim/model/machine.py``)."""
 
     def register_values(self) -> dict[str, float | int]: ...  # noqa: D102
     def set_feed_setpoint(self, feed_mm_s: float) -> None: ...  # noqa: D102
@@ -103,7 +104,7 @@ class PlcServer:
         Queued writes the machine refused when they were applied (answered already).
     on_queued : callable or None
         Called with each write queued (``queue_writes``): a server in another process than the
-        machine sends it on (:mod:`plant_sim.plc_process`).
+        machine sends it on (:mod:`plant_sim.interfaces.plc_process`).
     before_request : callable or None
         Called before each request is answered (to load a newer snapshot).
     """
@@ -165,7 +166,9 @@ class PlcServer:
             self._words, self._values = words, values
 
     def load_snapshot(self, values: Mapping[str, float | int], *, applied: int) -> None:
-        """Serve register values published by another process (:mod:`plant_sim.plc_process`).
+        """Serve register values published by another process.
+
+        The publisher is :mod:`plant_sim.interfaces.plc_process`.
 
         Parameters
         ----------

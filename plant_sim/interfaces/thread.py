@@ -1,14 +1,17 @@
 """The simulator's interfaces on their own thread: an asyncio loop that only serves them.
 
-The machine is stepped on one thread; a :class:`~plant_sim.plc_server.PlcServer` in the same
+The machine is stepped on one thread; a :class:`~plant_sim.interfaces.plc_server.PlcServer` in the
+same
 process (the in-process HIL with ``--plc tcp``, a ``SimRunner`` built with
 ``threaded_interfaces`` and a ``PlcServer``) runs on an :class:`InterfaceLoop` so that it
 answers whatever the stepping does. ``planer sim`` goes further and serves Modbus from a process
-of its own (:mod:`plant_sim.plc_process`). :class:`ServedPlc` switches a threaded server off and
+of its own (:mod:`plant_sim.interfaces.plc_process`). :class:`ServedPlc` switches a threaded
+server off and
 on for the ``modbus_restart`` fault (synchronously: the switch has happened when the call
 returns).
 
-Lock/queue discipline (see :mod:`plant_sim.plc_server`): the interface thread reads the register
+Lock/queue discipline (see :mod:`plant_sim.interfaces.plc_server`): the interface thread reads the
+register
 snapshot the stepping thread publishes (under the server's lock) and queues accepted writes; the
 stepping thread applies them in order before it advances the machine.
 
@@ -98,7 +101,7 @@ class InterfaceLoop:
 
 
 class ServedPlc:
-    """A :class:`~plant_sim.plc_server.PlcServer` served from an :class:`InterfaceLoop`.
+    """A :class:`~plant_sim.interfaces.plc_server.PlcServer` served from an :class:`InterfaceLoop`.
 
     Parameters
     ----------

@@ -1,1 +1,4 @@
-"""The machine model: spindle, piezo, feed drive, surface kinematics, the cut's record, faults."""
+"""The machine model.
+
+Spindle, piezo, feed drive, surface kinematics, the cut's record, faults.
+"""

@@ -1,10 +1,12 @@
 """The record of the cut: every knife pass over each board, and the spindle's index pulses.
 
-At every knife's bottom dead centre (BDC) the machine model (:class:`plant_sim.machine.Machine`)
+At every knife's bottom dead centre (BDC) the machine model
+(:class:`plant_sim.model.machine.Machine`)
 calls :meth:`CutRecord.bdc`: the pass is recorded for the board under the cutter (5 mm clear
 of its ends) as the board coordinate of the cutter axis, the cut bottom
 ``-standout_k(t) + x_piezo`` (um; the stand-out drifts with machine time when the head has a
-:class:`plant_sim.surface.RunoutDrift`) and the knife. Knife 0 at BDC is also the index pulse: the
+:class:`plant_sim.model.surface.RunoutDrift`) and the knife. Knife 0 at BDC is also the index
+pulse: the
 encoder's raw count there goes into a ring of the last :data:`INDEX_RING` pulses, from which the
 camera's index latch is taken (:meth:`CutRecord.index_latch`). Only the last few boards are kept.
 """
@@ -16,8 +18,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from core.checks import check_int
-from plant_sim.feed_drive import BoardStream, Encoder
-from plant_sim.surface import Passes, RunoutDrift
+from plant_sim.model.feed_drive import BoardStream, Encoder
+from plant_sim.model.surface import Passes, RunoutDrift
 
 __all__ = ["INDEX_RING", "CutRecord", "PassLog"]
 
@@ -34,7 +36,7 @@ class PassLog:
     Parameters
     ----------
     radius_mm : float
-        Cutting radius of the head, mm (carried into :class:`plant_sim.surface.Passes`).
+        Cutting radius of the head, mm (carried into :class:`plant_sim.model.surface.Passes`).
     """
 
     def __init__(self, radius_mm: float) -> None:
@@ -72,11 +74,11 @@ class CutRecord:
         True radial stand-out of each knife, um (shape ``(Z,)``).
     radius_mm : float
         Cutting radius, mm.
-    boards : plant_sim.feed_drive.BoardStream
+    boards : plant_sim.model.feed_drive.BoardStream
         Where the boards are.
-    encoder : plant_sim.feed_drive.Encoder
+    encoder : plant_sim.model.feed_drive.Encoder
         The feed encoder (raw counts at the index pulses).
-    drift : plant_sim.surface.RunoutDrift, optional
+    drift : plant_sim.model.surface.RunoutDrift, optional
         Warm-up and wear added to the stand-out at each pass's machine time.
     """
 

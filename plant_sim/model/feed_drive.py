@@ -8,7 +8,7 @@ exactly quadratic in time within a cycle.
 Boards: board ``n`` (id ``n + 1``) has its leading end at the cutter axis when
 ``s = first_at_mm + n * (length_mm + gap_mm)``, and at a station ``D`` mm downstream of the
 cutter (the camera: ``D = L``) when ``s`` is ``D`` larger. A board's own coordinate ``x_mm``
-(:mod:`plant_sim.surface`) runs from its trailing end (0) to its leading end (``length_mm``),
+(:mod:`plant_sim.model.surface`) runs from its trailing end (0) to its leading end (``length_mm``),
 increasing in the direction of feed; the PLC's ``board_position_mm`` is measured from the leading
 end, ``length_mm - x_mm``.
 """

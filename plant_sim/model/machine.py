@@ -11,18 +11,21 @@ handled at its exact instant. The result does not depend on how a caller chops t
 
 The machine composes parts with one job each:
 
-- the drives: :mod:`plant_sim.spindle`, :mod:`plant_sim.feed_drive` (feed, encoder, boards),
-  :mod:`plant_sim.piezo` (actuator and amplifier);
-- :class:`plant_sim.cut_record.CutRecord`: the cut. At every knife's BDC the pass is recorded for
+- the drives: :mod:`plant_sim.model.spindle`, :mod:`plant_sim.model.feed_drive` (feed, encoder,
+boards),
+  :mod:`plant_sim.model.piezo` (actuator and amplifier);
+- :class:`plant_sim.model.cut_record.CutRecord`: the cut. At every knife's BDC the pass is
+recorded for
   the board under the cutter: board coordinate of the cutter axis and ``bottom_um =
   -(runout_k + eccentricity term + drift_k(t)) +`` the actual piezo displacement at that
   instant (``drift_k``: the knives' warm-up and wear, ``[cutterhead.drift]``). The surface
-  under the camera is the envelope of those passes (:mod:`plant_sim.surface`), so compensation
+  under the camera is the envelope of those passes (:mod:`plant_sim.model.surface`), so compensation
   genuinely changes the surface;
-- :class:`plant_sim.frame_capture.FrameCapture`: the camera's triggers, latches and frames;
-- :class:`plant_sim.plc_registers.PlcRegisters`: the PLC's flags, heartbeats, watchdog,
+- :class:`plant_sim.rendering.frame_capture.FrameCapture`: the camera's triggers, latches and
+frames;
+- :class:`plant_sim.interfaces.plc_registers.PlcRegisters`: the PLC's flags, heartbeats, watchdog,
   interlock and register values;
-- :class:`plant_sim.fault_injection.FaultInjector`: the faults (kinds and parameters listed
+- :class:`plant_sim.model.fault_injection.FaultInjector`: the faults (kinds and parameters listed
   there), their schedule and timers.
 
 This class steps time through them and keeps the API the PLC server, the CAN node, the runner
@@ -39,16 +42,16 @@ import numpy as np
 
 from config.sim import DriftConfig, SimConfig
 from core.checks import check_finite, check_int, check_positive
-from plant_sim.camera import Knot
-from plant_sim.cut_record import CutRecord
-from plant_sim.fault_injection import FaultInjector
-from plant_sim.feed_drive import BoardStream, Encoder, FeedDrive
-from plant_sim.frame_capture import FrameCapture, build_renderer
-from plant_sim.piezo import FAULT as PIEZO_FAULT
-from plant_sim.piezo import PiezoAmplifier, PiezoStatus
-from plant_sim.plc_registers import PlcRegisters, register_names
-from plant_sim.spindle import Spindle
-from plant_sim.surface import Cutterhead, Passes, RunoutDrift, Surface
+from plant_sim.interfaces.plc_registers import PlcRegisters, register_names
+from plant_sim.model.cut_record import CutRecord
+from plant_sim.model.fault_injection import FaultInjector
+from plant_sim.model.feed_drive import BoardStream, Encoder, FeedDrive
+from plant_sim.model.piezo import FAULT as PIEZO_FAULT
+from plant_sim.model.piezo import PiezoAmplifier, PiezoStatus
+from plant_sim.model.spindle import Spindle
+from plant_sim.model.surface import Cutterhead, Passes, RunoutDrift, Surface
+from plant_sim.rendering.camera import Knot
+from plant_sim.rendering.frame_capture import FrameCapture, build_renderer
 from protocol.frames import Frame
 from protocol.registers import MachineState, PlcFault
 
@@ -82,15 +85,15 @@ class Machine:
     ----------
     cfg : SimConfig
         The configuration.
-    head : plant_sim.surface.Cutterhead
+    head : plant_sim.model.surface.Cutterhead
         Knives, radius, runout, eccentricity and drift (warm-up and wear).
-    cut : plant_sim.cut_record.CutRecord
+    cut : plant_sim.model.cut_record.CutRecord
         The knife passes per board and the index pulses.
-    capture : plant_sim.frame_capture.FrameCapture
+    capture : plant_sim.rendering.frame_capture.FrameCapture
         The camera station (``assembler``, ``knots``, ``frames_dropped``).
-    plc : plant_sim.plc_registers.PlcRegisters
+    plc : plant_sim.interfaces.plc_registers.PlcRegisters
         The PLC's flags, heartbeats and register values.
-    faults : plant_sim.fault_injection.FaultInjector
+    faults : plant_sim.model.fault_injection.FaultInjector
         Injected faults, their schedule and timers.
     """
 
@@ -292,7 +295,9 @@ class Machine:
 
     # ------------------------------------------------------------------ faults
     def inject(self, fault: str, **params: Any) -> None:
-        """Inject a fault now or at ``at_s`` (kinds, parameters: :mod:`plant_sim.fault_injection`).
+        """Inject a fault now or at ``at_s``.
+
+        Kinds and parameters: :mod:`plant_sim.model.fault_injection`.
 
         Raises
         ------
@@ -342,7 +347,7 @@ class Machine:
         Returns
         -------
         dict
-            As :meth:`plant_sim.surface.Surface.metrics`: ``pitch_mm``, ``uniformity_cv``,
+            As :meth:`plant_sim.model.surface.Surface.metrics`: ``pitch_mm``, ``uniformity_cv``,
             ``depth_um``, ``mark_widths_mm``, ``knife``, ... of the complete marks inside.
         """
         surf = self.surface(x_lo_board_mm, x_hi_board_mm, board_id=board_id)

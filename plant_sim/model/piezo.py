@@ -177,7 +177,7 @@ class PiezoActuator:
         if tau <= 0.0:
             return
         # _transition(tau) inlined, the same expressions bit for bit (runs ~2000 times per
-        # simulated second; tests/test_sim_speed_model.py compares the two)
+        # simulated second; tests/plant_sim/test_sim_speed_model.py compares the two)
         ex = math.exp(-self.sigma * tau)
         wd, wn = self.wd, self.wn
         c = math.cos(wd * tau)

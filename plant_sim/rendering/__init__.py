@@ -1,1 +1,4 @@
-"""Image formation: optics, wood, the camera downstream of the cutter, render workers, one-call boards."""
+"""Image formation.
+
+Optics, wood, the camera downstream of the cutter, render workers, one-call boards.
+"""

@@ -5,8 +5,10 @@ of view lies on a board; trigger B ``dt_ab_s`` later. The encoder counts are lat
 triggers, and at A the index latch (the count at the spindle index pulse nearest to the moment
 the board point now at the image centre was under the cutter). When B has fired the pair is
 assembled: the true surface under the camera is the envelope of the knife passes recorded for
-that board (:func:`plant_sim.surface.envelope`), its marks over image A's field of view are the
-truth, and the images are rendered by the optics :class:`~plant_sim.optics.Renderer` (built once).
+that board (:func:`plant_sim.model.surface.envelope`), its marks over image A's field of view are
+the
+truth, and the images are rendered by the optics :class:`~plant_sim.rendering.optics.Renderer`
+(built once).
 
 Knots (a fault) darken an elliptical patch of the board and add a rough height profile there;
 the optics renderer draws one texture per rig, so the dark patch is applied to the rendered
@@ -23,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from core.units import counter_difference
-from plant_sim.surface import Passes, Surface, envelope
+from plant_sim.model.surface import Passes, Surface, envelope
 from protocol.frames import Frame
 
 __all__ = ["FrameAssembler", "Knot", "Latch", "RenderJob", "TriggerClock", "render_images"]
@@ -194,7 +196,7 @@ def render_images(renderer: Any, job: RenderJob, *,
 
     Parameters
     ----------
-    renderer : plant_sim.optics.Renderer
+    renderer : plant_sim.rendering.optics.Renderer
         The renderer (built once per rig and optics).
     job : RenderJob
         What to render.
@@ -242,7 +244,7 @@ class FrameAssembler:
         Image width, pixels (image A's field of view is undistorted columns ``0..width-1``).
     counter_bits : int
         Encoder counter width.
-    renderer : plant_sim.optics.Renderer or None
+    renderer : plant_sim.rendering.optics.Renderer or None
         Renders the images; ``None`` gives frames without images (truth and counts only).
     """
 
@@ -264,7 +266,7 @@ class FrameAssembler:
         """Keep a :class:`RenderJob` per frame (see :meth:`take_job`) instead of rendering.
 
         For a machine built without a renderer whose images are rendered elsewhere (worker
-        processes, :mod:`plant_sim.render_worker`).
+        processes, :mod:`plant_sim.rendering.render_worker`).
         """
         if self.jobs is None:
             self.jobs = {}
@@ -290,7 +292,7 @@ class FrameAssembler:
     ) -> dict[str, Any]:
         """Truth of image A's field: the surface's marks in A's frame (``x_mm = u / px_per_mm``).
 
-        Besides :meth:`plant_sim.surface.Surface.metrics` (``pitch_mm`` = mean width of the
+        Besides :meth:`plant_sim.model.surface.Surface.metrics` (``pitch_mm`` = mean width of the
         complete marks, ``uniformity_cv``, ``depth_um``, ``mark_widths_mm``, ``knife``, ...):
         ``bottoms_mm`` (each mark's BDC in A's frame), ``shift_px`` (true A-to-B shift),
         ``board_x_mm`` (board coordinate at the optical axis), ``board_offset_mm`` (board

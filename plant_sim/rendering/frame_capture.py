@@ -3,9 +3,10 @@
 Trigger A fires on the trigger clock (``[camera] pairs_per_s``) whenever the whole field of view
 lies on a board (5 mm clear of its ends); it latches the encoder count, the index latch (the
 count at the index pulse nearest to the moment the board point at the image centre was under
-the cutter, from :class:`plant_sim.cut_record.CutRecord`) and the board position. Trigger B
+the cutter, from :class:`plant_sim.model.cut_record.CutRecord`) and the board position. Trigger B
 fires ``dt_ab_s`` later and latches the count again; then the frame is assembled
-(:class:`plant_sim.camera.FrameAssembler`, images by the optics renderer built once here). A
+(:class:`plant_sim.rendering.camera.FrameAssembler`, images by the optics renderer built once
+here). A
 pending belt slip (the ``belt_slip`` fault) is applied to the counter between A and B.
 """
 
@@ -15,10 +16,10 @@ import math
 from typing import Any
 
 from config.sim import SimConfig
-from plant_sim.camera import FrameAssembler, Knot, Latch, TriggerClock
-from plant_sim.cut_record import CutRecord, PassLog
-from plant_sim.feed_drive import BoardStream, Encoder, FeedDrive
-from plant_sim.surface import Passes
+from plant_sim.model.cut_record import CutRecord, PassLog
+from plant_sim.model.feed_drive import BoardStream, Encoder, FeedDrive
+from plant_sim.model.surface import Passes
+from plant_sim.rendering.camera import FrameAssembler, Knot, Latch, TriggerClock
 from protocol.frames import Frame
 
 __all__ = ["FrameCapture", "build_renderer"]
@@ -38,11 +39,11 @@ def build_renderer(cfg: SimConfig, *, seed: int) -> Any:
 
     Returns
     -------
-    plant_sim.optics.Renderer
+    plant_sim.rendering.optics.Renderer
         Built once; renders each pair's two images.
     """
     from config.wood import SPECIES
-    from plant_sim.optics import Optics, Renderer, effects_from_config
+    from plant_sim.rendering.optics import Optics, Renderer, effects_from_config
 
     cam = cfg.camera
     o = cam.optics
@@ -66,20 +67,20 @@ class FrameCapture:
     ----------
     cfg : config.sim.SimConfig
         The configuration (``[camera]``, ``[encoder]``).
-    feed, encoder, boards : plant_sim.feed_drive.FeedDrive, Encoder, BoardStream
+    feed, encoder, boards : plant_sim.model.feed_drive.FeedDrive, Encoder, BoardStream
         The table, its counter and the boards on it.
-    cut : plant_sim.cut_record.CutRecord
+    cut : plant_sim.model.cut_record.CutRecord
         The passes (for the truth and the images) and the index pulses.
-    renderer : plant_sim.optics.Renderer or None
+    renderer : plant_sim.rendering.optics.Renderer or None
         Renders the images; ``None``: frames without images.
 
     Attributes
     ----------
-    assembler : plant_sim.camera.FrameAssembler
+    assembler : plant_sim.rendering.camera.FrameAssembler
         Builds each frame (the runner may defer its rendering).
-    knots : list of plant_sim.camera.Knot
+    knots : list of plant_sim.rendering.camera.Knot
         Knots placed on boards (by the ``knot`` fault).
-    last_pair : plant_sim.camera.Latch or None
+    last_pair : plant_sim.rendering.camera.Latch or None
         The last completed pair's latches (the trigger registers show them).
     frames_dropped : int
         Pairs that could not be assembled (no passes under the field of view).
@@ -185,7 +186,7 @@ class FrameCapture:
     def _near_passes(self, log: PassLog, x_centre_mm: float) -> Passes:
         """The passes of ``log`` the assembler keeps for a field centred at ``x_centre_mm``.
 
-        The same selection as :meth:`plant_sim.camera.FrameAssembler.assemble` makes first
+        The same selection as :meth:`plant_sim.rendering.camera.FrameAssembler.assemble` makes first
         (``Passes.slice(lo, hi, margin_mm=MARGIN_MM)``), taken from the log's arrays directly:
         the whole board's passes are not copied and checked for every pair.
         """

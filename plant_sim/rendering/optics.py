@@ -53,7 +53,7 @@ shot and read noise, then quantisation with saturation.
 Cost (issue 11): per image the work is a fixed number of passes over the board grid and the
 image, in float32, with no per-pixel Python; the texture window is interpolated in one
 ``cv2.addWeighted`` and the sensor noise drawn by OpenCV's generator seeded from the
-renderer's stream (:func:`standard_normal_f32`); ``tests/test_sim_speed_optics.py`` holds
+renderer's stream (:func:`standard_normal_f32`); ``tests/plant_sim/test_sim_speed_optics.py`` holds
 the step-by-step reference formulas the images must equal.
 """
 
@@ -72,7 +72,7 @@ from config.rig import Rig
 from config.wood import Wood
 from core.checks import check_finite, check_int, check_positive, check_range
 from core.units import wrap_counter
-from plant_sim.wood import texture_tiles
+from plant_sim.rendering.wood import texture_tiles
 
 __all__ = [
     "ImagePair",
@@ -294,7 +294,7 @@ class Truth:
     shift_px : float
         True shift from A to B in undistorted pixels, ``speed * dt_ab * px_per_mm``.
     surface : Surface or None
-        The surface rendered, when it carries marks (see :mod:`plant_sim.surface`).
+        The surface rendered, when it carries marks (see :mod:`plant_sim.model.surface`).
     board_offset_mm : float
         Board coordinate minus ``x_mm``: board point ``b`` is at ``x_mm = b - board_offset_mm``.
     slope : ndarray, shape (W,)
@@ -317,7 +317,7 @@ class Truth:
         Returns
         -------
         dict
-            As :meth:`plant_sim.surface.Surface.metrics` (``pitch_mm``, ``uniformity_cv``,
+            As :meth:`plant_sim.model.surface.Surface.metrics` (``pitch_mm``, ``uniformity_cv``,
             ``depth_um``, ``mark_widths_mm``, ...) with ``cusps_mm`` in A's frame.
 
         Raises
@@ -561,7 +561,7 @@ class Renderer:
         if frac < 1e-9:
             return win[:, :n]  # a view: the caller must not write into it
         # (1 - f) w[j] + f w[j + 1] in one pass (equal to w[j] + f (w[j + 1] - w[j]) within
-        # float32 rounding; tests/test_sim_speed_optics.py)
+        # float32 rounding; tests/plant_sim/test_sim_speed_optics.py)
         return cv2.addWeighted(win[:, :n], 1.0 - frac, win[:, 1:], frac, 0.0)
 
     def _scatter_tile(self, field_: np.ndarray, length_mm: float, anisotropy: float) -> np.ndarray:
@@ -615,7 +615,7 @@ class Renderer:
         """Board coordinates at which :meth:`render_pair` evaluates the height function.
 
         A surface passed to :meth:`render_pair` with the same arguments must cover this range
-        (e.g. passes from :func:`plant_sim.surface.passes_steady` over it).
+        (e.g. passes from :func:`plant_sim.model.surface.passes_steady` over it).
 
         Returns
         -------
@@ -725,7 +725,8 @@ class Renderer:
         ----------
         height : callable or Surface-like
             ``height_um(b_mm)`` of the board (vectorised), or an object with ``height_at`` (a
-            :class:`plant_sim.surface.Surface`, evaluated exactly), or one with arrays ``x_mm``
+            :class:`plant_sim.model.surface.Surface`, evaluated exactly), or one with arrays
+            ``x_mm``
             and ``height_um`` (linearly interpolated).
         board_x_at_centre_mm : float
             Board coordinate on the optical axis at trigger A, millimetres.
@@ -804,7 +805,8 @@ def standard_normal_f32(rng: np.random.Generator, shape: tuple[int, ...]) -> np.
 
     One integer drawn from ``rng`` seeds OpenCV's generator (thread-local), which fills the
     array: the same distribution as ``rng.standard_normal(shape, dtype=np.float32)`` (i.i.d.
-    N(0, 1); tests/test_sim_speed_optics.py checks it) and deterministic for ``rng``'s state,
+    N(0, 1); tests/plant_sim/test_sim_speed_optics.py checks it) and deterministic for ``rng``'s
+    state,
     at a fifth of the cost (the ziggurat of numpy's generator took 60 % of a rendered pair).
 
     Parameters

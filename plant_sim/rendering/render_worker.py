@@ -1,9 +1,9 @@
 """Camera images rendered in worker processes; frames written to the spool there, in order.
 
 The machine (stepped on the runner's thread) assembles each pair's frame without images and
-keeps a :class:`~plant_sim.camera.RenderJob` for it (``FrameAssembler.defer_rendering``).
+keeps a :class:`~plant_sim.rendering.camera.RenderJob` for it (``FrameAssembler.defer_rendering``).
 :class:`RenderPool` sends frame and job to a worker process -- it builds the optics
-:class:`~plant_sim.optics.Renderer` once -- which renders the images and, given a spool
+:class:`~plant_sim.rendering.optics.Renderer` once -- which renders the images and, given a spool
 writer, writes the pair there itself (PNG encoding and fsync stay out of the process that
 serves the machine's interfaces); without one it hands the images back. Frames are written or
 handed back in the order they were submitted: several workers render at once and take turns
@@ -23,7 +23,7 @@ from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any
 
-from plant_sim.camera import RenderJob, render_images
+from plant_sim.rendering.camera import RenderJob, render_images
 from protocol.frames import Frame
 
 _renderer: Any = None
@@ -37,7 +37,7 @@ TURN_POLL_S = 0.2
 
 def build_renderer(cfg: Any, *, seed: int) -> Any:
     """The optics renderer of a ``SimConfig``'s camera, exactly as the machine builds it."""
-    from plant_sim.machine import Machine
+    from plant_sim.model.machine import Machine
 
     return Machine(cfg, seed=seed, render_images=True).renderer
 
@@ -47,7 +47,7 @@ def _init_worker(cfg: Any, seed: int, writer: Any, turn: Any, seeded: bool,
     import signal
 
     global _renderer, _writer, _turn, _seeded, _seed
-    from plant_sim.interfaces import lower_priority
+    from plant_sim.interfaces.thread import lower_priority
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     _renderer = build_renderer(cfg, seed=seed)  # at the caller's priority: a prompt start
@@ -137,7 +137,7 @@ class RenderPool:
         caller must not write to it meanwhile.
     nice : int, optional
         Nice value of the workers (``planer sim``:
-        :data:`~plant_sim.interfaces.RENDER_NICE`, so they yield to the interfaces and the
+        :data:`~plant_sim.interfaces.thread.RENDER_NICE`, so they yield to the interfaces and the
         service); ``None`` leaves them as the caller runs.
 
     Attributes

@@ -2,7 +2,8 @@
 
 :func:`board_pair` plans a board with a cutterhead at constant speed (:func:`passes_steady`),
 takes the exact lower envelope of the knife circles (:func:`envelope`) and renders the two
-grazing-light images (:class:`plant_sim.optics.Renderer`). :func:`random_board_pair` draws every
+grazing-light images (:class:`plant_sim.rendering.optics.Renderer`). :func:`random_board_pair`
+draws every
 parameter from the ranges of the vision issue's acceptance criteria, for held-out testing.
 """
 
@@ -20,9 +21,9 @@ from config import wood as wood_presets
 from config.rig import Camera, Encoder, Lights, Rig
 from config.wood import SPECIES, Wood
 from core.checks import check_finite, check_int, check_positive, check_range
-from plant_sim.camera import Knot
-from plant_sim.optics import ImagePair, Optics, PencilLine, Renderer, RigEffects
-from plant_sim.surface import Cutterhead, Surface, envelope, passes_steady
+from plant_sim.model.surface import Cutterhead, Surface, envelope, passes_steady
+from plant_sim.rendering.camera import Knot
+from plant_sim.rendering.optics import ImagePair, Optics, PencilLine, Renderer, RigEffects
 
 __all__ = [
     "DEFAULT_RUNOUT_UM",
@@ -190,14 +191,15 @@ def board_pair(
         reference of the vision's illumination correction. Its truth has no surface.
     roll_deg, slant_offset_deg, scattering_mm, reflectance_roughness_deg, bow_mm, cup_mm,
     pencil_lines, board_length_mm
-        Effects of a real rig and real wood (:class:`plant_sim.optics.RigEffects`): camera roll,
+        Effects of a real rig and real wood (:class:`plant_sim.rendering.optics.RigEffects`):
+        camera roll,
         true slant minus the rig file's per light (the rig keeps ``slant_deg``), scattering
         length along the fibres (the species' ``translucency`` sets how much), Oren-Nayar
         roughness, bow and cup sagitta, pencil lines along the feed. All off by default.
     read_noise_dn : float, optional
         Sensor read noise, DN rms; ``None`` gives 0.5 with ``noise`` and 0 without (shot noise
         follows ``noise``).
-    knots : sequence of plant_sim.camera.Knot
+    knots : sequence of plant_sim.rendering.camera.Knot
         Knots (dark rough patches; ``x_mm`` in board coordinates, so give
         ``board_x_at_centre_mm`` to place them in view): their roughness is in the height (and
         the truth profile), their darkness in the images, not in the true marks.
@@ -209,7 +211,7 @@ def board_pair(
     -------
     rig : config.rig.Rig
         ``px_per_mm = 12.5``, K centred with ``fx = fy = 1400``, 20 counts per mm.
-    pair : plant_sim.optics.ImagePair
+    pair : plant_sim.rendering.optics.ImagePair
         Images, counts and truth (``pair.truth.metrics(x_lo, x_hi)`` gives the true marks).
     """
     seed = check_int("seed", seed, lo=0)
@@ -235,7 +237,7 @@ def board_pair(
     knots = tuple(knots)
     for kn in knots:
         if not isinstance(kn, Knot):
-            raise ValueError(f"knots must hold plant_sim.camera.Knot objects, got {kn!r}")
+            raise ValueError(f"knots must hold plant_sim.rendering.camera.Knot objects, got {kn!r}")
     head = Cutterhead(z, radius_mm, runout, eccentricity_um)
     rng = np.random.default_rng([seed, 0xB0A2D])
     rig = make_rig(

@@ -1,1 +1,4 @@
-"""Running the simulated machine: the driver, the runner of planer sim and its wiring."""
+"""Running the simulated machine.
+
+The driver, the runner of planer sim and its wiring.
+"""

@@ -1,6 +1,6 @@
 """The one plant driver: steps the machine with its amplifier node and PLC view, plays faults.
 
-Both ``planer sim`` (:mod:`plant_sim.runner`, scaled real time) and the in-process HIL
+Both ``planer sim`` (:mod:`plant_sim.run.runner`, scaled real time) and the in-process HIL
 (``planer.hil.in_process``, simulated time) drive the plant through :class:`PlantDriver`, so the
 order of things in a step exists once:
 
@@ -14,7 +14,7 @@ order of things in a step exists once:
 5. the amplifier sends the frames due; the PLC view publishes the new register values.
 
 Everything here runs on the thread that steps the machine; the interfaces themselves may live on
-other threads (:mod:`plant_sim.interfaces`).
+other threads (:mod:`plant_sim.interfaces.thread`).
 """
 
 from __future__ import annotations

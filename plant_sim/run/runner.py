@@ -2,17 +2,21 @@
 
 Threads and processes (``SimRunner.from_config``, as ``planer sim`` runs it):
 
-* the **stepping thread** (the runner's asyncio loop) owns the :class:`~plant_sim.machine.Machine`
-  and drives it through the one :class:`~plant_sim.driver.PlantDriver`: so that machine time
+* the **stepping thread** (the runner's asyncio loop) owns the
+:class:`~plant_sim.model.machine.Machine`
+  and drives it through the one :class:`~plant_sim.run.driver.PlantDriver`: so that machine time
   follows ``time_scale`` x wall time (clock and sleep injected: tests run on simulated time);
-* the **PLC process** (:class:`~plant_sim.plc_process.PlcProcess`, at real-time priority where
+* the **PLC process** (:class:`~plant_sim.interfaces.plc_process.PlcProcess`, at real-time
+priority where
   permitted, like the CAN receive thread: :func:`core.realtime.raise_priority`, guarded by
   :func:`core.realtime.guard_realtime`; the banner's ``priority:`` line says what they got)
   serves Modbus TCP: it reads
   the register snapshot the stepping thread publishes every iteration (shared memory, sequence
   lock) and sends accepted writes back, which the driver applies in order before the next step;
-  the amplifier node (:mod:`plant_sim.amp_node`) reads its CAN bus on a thread of its own;
-* the **render worker** (:class:`~plant_sim.render_worker.RenderPool`, a process) renders the
+  the amplifier node (:mod:`plant_sim.interfaces.amp_node`) reads its CAN bus on a thread of its
+  own;
+* the **render worker** (:class:`~plant_sim.rendering.render_worker.RenderPool`, a process)
+renders the
   images of each pair and writes the pairs to the spool directory, in order (PNG encoding and
   fsync stay out of this process); for an in-process sink (:mod:`protocol.frames`) the workers
   hand the images back, in order. Without images, frames go to the sink from a writer thread.
@@ -24,7 +28,7 @@ never runs ahead of ``time_scale`` x wall time by more than :data:`MAX_LAG_S` (t
 after a short stall), so a fault of ``duration_s`` machine seconds (``modbus_restart``,
 ``can_silence``) lasts at least that long on the wall clock (less at most ``MAX_LAG_S``), as a
 real one would, and CAN frames reach the amplifier at the machine time they arrived
-(:meth:`plant_sim.amp_node.AmpNode.set_timebase`).
+(:meth:`plant_sim.interfaces.amp_node.AmpNode.set_timebase`).
 
 Faults: the machine injects every ``[faults] inject`` entry itself (at its ``at_s``), and hands
 the interface faults due to the driver (``machine.take_interface_events()``): ``modbus_restart``
@@ -47,11 +51,11 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from core.realtime import guard_realtime
-from plant_sim.amp_node import AmpNode
-from plant_sim.driver import INTERFACE_FAULTS, PlantDriver
-from plant_sim.interfaces import InterfaceLoop, ServedPlc
-from plant_sim.plc_process import PlcProcess
-from plant_sim.plc_server import PlcServer
+from plant_sim.interfaces.amp_node import AmpNode
+from plant_sim.interfaces.plc_process import PlcProcess
+from plant_sim.interfaces.plc_server import PlcServer
+from plant_sim.interfaces.thread import InterfaceLoop, ServedPlc
+from plant_sim.run.driver import INTERFACE_FAULTS, PlantDriver
 
 log = logging.getLogger(__name__)
 
@@ -154,7 +158,7 @@ class SimRunner:
         ``machine.assembler.defer_rendering()``); started with the runner.
     threaded_interfaces : bool
         Read CAN on the node's own thread and serve a ``PlcServer`` from an
-        :class:`~plant_sim.interfaces.InterfaceLoop` (its own thread; it must queue its
+        :class:`~plant_sim.interfaces.thread.InterfaceLoop` (its own thread; it must queue its
         writes). Default: a ``PlcServer`` listens on the runner's loop.
     realtime_interfaces : bool
         The CAN receive thread asks for real-time scheduling (a ``PlcProcess`` asks for it
@@ -228,9 +232,9 @@ class SimRunner:
     def from_config(cls, cfg: Any, **options: Any) -> SimRunner:
         """A runner wired as a ``SimConfig`` says: ``[modbus]``, ``[can]``, ``[frames]``, ``[run]``.
 
-        The options and their defaults: :func:`plant_sim.runner_wiring.wire_runner`.
+        The options and their defaults: :func:`plant_sim.run.wiring.wire_runner`.
         """
-        from plant_sim.runner_wiring import wire_runner
+        from plant_sim.run.wiring import wire_runner
 
         return wire_runner(cls, cfg, **options)
 
@@ -240,7 +244,7 @@ class SimRunner:
         self.driver.schedule(at_s, fault, **params)
 
     def inject(self, fault: str, **params: Any) -> None:
-        """Inject a fault now (:meth:`plant_sim.driver.PlantDriver.inject`).
+        """Inject a fault now (:meth:`plant_sim.run.driver.PlantDriver.inject`).
 
         ``modbus_restart`` (``duration_s``, default 0: the server is closed, dropping every
         client, and listens again ``duration_s`` machine seconds later); ``can_drop``

@@ -1,4 +1,4 @@
-"""Wiring a :class:`~plant_sim.runner.SimRunner` from a ``SimConfig`` (``planer sim``'s way).
+"""Wiring a :class:`~plant_sim.run.runner.SimRunner` from a ``SimConfig`` (``planer sim``'s way).
 
 The PLC in its own process, the amplifier node on the configured CAN bus, the spool writer and
 the render workers: built here, closed again (our bus) if any later part fails. Kept apart from
@@ -11,8 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from core.realtime import RENDER_NICE
-from plant_sim.amp_node import AmpNode, AmpNodeCore
-from plant_sim.plc_process import PlcProcess
+from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
+from plant_sim.interfaces.plc_process import PlcProcess
 from protocol.can_transport import bus_from_config, describe_bus
 from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
@@ -49,7 +49,7 @@ def wire_runner(
     cfg : config.sim.SimConfig
         The simulator configuration (``[run]`` gives the time scale and step).
     machine : Machine, optional
-        Default: ``plant_sim.machine.Machine(cfg, seed=seed)`` with deferred rendering.
+        Default: ``plant_sim.model.machine.Machine(cfg, seed=seed)`` with deferred rendering.
     render_images : bool
         Render the camera's images (default machine only).
     render_workers : int
@@ -57,7 +57,7 @@ def wire_runner(
         twice the CPU share of a busy host, so the clock slows less.
     render_nice : int or None
         Nice value of the render workers (default
-        :data:`~plant_sim.interfaces.RENDER_NICE`: they yield to the interfaces and the
+        :data:`~plant_sim.interfaces.thread.RENDER_NICE`: they yield to the interfaces and the
         service); ``None``: as this process.
     realtime_interfaces : bool
         The PLC process and the CAN receive thread ask for real-time scheduling (a real
@@ -75,8 +75,8 @@ def wire_runner(
 
     render = None
     if machine is None:
-        from plant_sim.machine import Machine
-        from plant_sim.render_worker import RenderPool
+        from plant_sim.model.machine import Machine
+        from plant_sim.rendering.render_worker import RenderPool
 
         machine = Machine(cfg, seed=seed, render_images=False)
         if render_images:

@@ -10,7 +10,7 @@ from config.loading import load_toml
 from config.machine import load_machine, machine_from_dict
 from core.errors import ConfigError
 
-SHIPPED = Path(__file__).parents[1] / "config" / "machine.toml"
+SHIPPED = Path(__file__).parents[2] / "config" / "machine.toml"
 
 
 def test_shipped_file_loads_and_is_frozen():
@@ -89,7 +89,7 @@ def test_machine_variant_is_a_config_change():
 def test_bad_loop_keys_fail_when_the_service_is_built(table, key):
     from types import SimpleNamespace
 
-    from controller.service import Service
+    from controller.service.service import Service
 
     cfg = machine_from_dict(table)
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
@@ -102,7 +102,7 @@ def test_bad_loop_keys_name_the_file_they_came_from(tmp_path, table):
     """Issue 14: ``unknown key feed_loop.gian`` must say which file holds it."""
     from types import SimpleNamespace
 
-    from controller.service import Service
+    from controller.service.service import Service
 
     p = tmp_path / "mine.toml"
     p.write_text(f"[{table}]\ngian = 0.5\n")

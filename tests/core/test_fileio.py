@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from controller.quality_log import QualityRecord, record_to_json
+from controller.quality.log import QualityRecord, record_to_json
 from core.fileio import atomic_write_bytes, atomic_write_text, atomic_writer
 
 

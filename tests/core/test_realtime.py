@@ -92,7 +92,7 @@ def test_lower_drops_real_time_then_sets_nice(policy, expect_sched):
 
 
 def test_interfaces_reexport_the_one_definition():
-    from plant_sim import interfaces
+    from plant_sim.interfaces import thread as interfaces
 
     for name in ("raise_priority", "lower_priority", "guard_realtime", "RENDER_NICE",
                  "INTERFACE_RT_PRIORITY", "INTERFACE_NICE", "RT_CPU_LIMIT_S"):

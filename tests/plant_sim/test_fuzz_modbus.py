@@ -17,9 +17,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pyModbusTCP.client import ModbusClient
 
-from plant_sim.plc_server import FUNCTION_CODES, PlcServer
+from plant_sim.interfaces.plc_server import FUNCTION_CODES, PlcServer
 from protocol.registers import RegisterMap
-from tests.test_sim_plc import FakeMachine, LoopThread
+from tests.plant_sim.test_sim_plc import FakeMachine, LoopThread
 
 RMAP = RegisterMap.load()
 EXCEPTIONS = {0x01, 0x02, 0x03, 0x0B}

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from core.errors import FieldbusError
-from plant_sim.amp_node import AmpNode, AmpNodeCore
+from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
 from protocol import can_transport, piezo_can
 from protocol.piezo_can import PiezoCodec
-from tests.test_sim_plc import FakeMachine
+from tests.plant_sim.test_sim_plc import FakeMachine
 
 CODEC = PiezoCodec.load()
 _channels = itertools.count()
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 class Rig:
@@ -232,7 +232,7 @@ AMP_SCRIPT = textwrap.dedent(
     from types import SimpleNamespace
     from protocol.can_transport import open_bus, in_private_netns
     from protocol.piezo_can import PiezoCodec
-    from plant_sim.amp_node import AmpNode, AmpNodeCore
+    from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
     assert in_private_netns()
     class M:
         offs = [0.0] * 4

@@ -12,9 +12,14 @@ from scipy.optimize import minimize_scalar
 
 from config.wood import SPECIES, Wood, species
 from core.units import wrap_counter
-from plant_sim.optics import Optics, PencilLine, Renderer, RigEffects
-from plant_sim.scenarios import board_pair, make_rig, random_board_pair, random_board_params
-from plant_sim.surface import Cutterhead, passes_steady
+from plant_sim.model.surface import Cutterhead, passes_steady
+from plant_sim.rendering.optics import Optics, PencilLine, Renderer, RigEffects
+from plant_sim.rendering.scenarios import (
+    board_pair,
+    make_rig,
+    random_board_pair,
+    random_board_params,
+)
 
 W, H = 240, 96
 PPM = 12.5
@@ -28,7 +33,7 @@ def _renderer(wood=SPECIES["beech"], k1=0.0, exposure_ms=0.0, seed=0, w=W, h=H, 
 
 
 def _marks(pitch=1.5, knives=4, runout=(0.0, 1.0, 2.0, 0.5), x0=-60.0, x1=60.0):
-    from plant_sim.surface import envelope
+    from plant_sim.model.surface import envelope
 
     head = Cutterhead(knives, 60.0, runout)
     passes = passes_steady(
@@ -606,7 +611,7 @@ def test_board_pair_passes_the_effects_and_keeps_the_rig_nominal():
 def test_sim_config_effects_defaults_and_errors(tmp_path):
     from config.sim import default_sim, load_sim, sim_from_dict
     from core.errors import ConfigError
-    from plant_sim.optics import effects_from_config
+    from plant_sim.rendering.optics import effects_from_config
 
     # a config without the new keys renders the ideal rig, as before they existed
     assert effects_from_config(default_sim()) == RigEffects()
@@ -655,7 +660,7 @@ def test_sim_config_effects_defaults_and_errors(tmp_path):
 
 
 def test_board_pair_knots_and_pores():
-    from plant_sim.camera import Knot
+    from plant_sim.rendering.camera import Knot
 
     bc = 500.0
     kw = {"seed": 6, "width": W, "height": H, "noise": False, "quantize": False,

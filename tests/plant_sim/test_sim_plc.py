@@ -17,7 +17,7 @@ from pyModbusTCP import constants as mbc
 from pyModbusTCP.client import ModbusClient
 from pyModbusTCP.utils import decode_ieee, encode_ieee, long_list_to_word, word_list_to_long
 
-from plant_sim.plc_server import PlcServer
+from plant_sim.interfaces.plc_server import PlcServer
 from protocol.frames import Frame
 from protocol.registers import RegisterMap
 
@@ -334,7 +334,7 @@ def test_port_in_use_is_a_fieldbus_error(plc):
 
 
 def test_real_machine_register_values_match_the_map():
-    sim = pytest.importorskip("plant_sim.machine")
+    sim = pytest.importorskip("plant_sim.model.machine")
     from config.sim import default_sim
 
     m = sim.Machine(default_sim(), seed=0, render_images=False)

@@ -12,16 +12,16 @@ import threading
 import numpy as np
 import pytest
 
-from plant_sim.amp_node import AmpNode, AmpNodeCore
-from plant_sim.driver import PlantDriver
-from plant_sim.plc_process import PlcProcess
-from plant_sim.runner import SimRunner
+from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
+from plant_sim.interfaces.plc_process import PlcProcess
+from plant_sim.run.driver import PlantDriver
+from plant_sim.run.runner import SimRunner
 from protocol import can_transport
 from protocol.frames import InProcessSource
 from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
-from tests.test_sim_plc import FakeMachine, read_adu
-from tests.test_sim_runner import FakeClock
+from tests.plant_sim.test_sim_plc import FakeMachine, read_adu
+from tests.plant_sim.test_sim_runner import FakeClock
 
 RMAP = RegisterMap.load()
 
@@ -125,9 +125,9 @@ def test_worker_images_equal_the_machines_own(tmp_path, workers, to_spool):
     workers in order: one worker with the machine's own noise stream; several with each pair's
     noise seeded from (seed, seq)."""
     from config.sim import default_sim
-    from plant_sim.camera import render_images
-    from plant_sim.machine import Machine
-    from plant_sim.render_worker import RenderPool, noise_seed
+    from plant_sim.model.machine import Machine
+    from plant_sim.rendering.camera import render_images
+    from plant_sim.rendering.render_worker import RenderPool, noise_seed
     from protocol.spool import SpoolReader, SpoolWriter
 
     cfg = default_sim()
@@ -181,7 +181,7 @@ class SlowHostMachine(FakeMachine):
 
 @pytest.mark.parametrize("cost", [2.0, 4.0])
 def test_slow_host_slows_the_clock_says_so_once_and_never_bursts(cost):
-    from plant_sim import runner as runner_mod
+    from plant_sim.run import runner as runner_mod
 
     clock, lines = FakeClock(), []
     m = SlowHostMachine(clock, cost)
@@ -255,7 +255,7 @@ class SlowRender:
 
 
 def test_render_backlog_slows_the_machine_instead_of_dropping_frames():
-    from plant_sim import runner as runner_mod
+    from plant_sim.run import runner as runner_mod
 
     clock, lines = FakeClock(), []
     m = FakeMachine(pairs_per_s=200.0)  # more pairs than the slow renderer takes
@@ -330,7 +330,7 @@ class _FakeOs:
     (False, False, "normal"),
 ])
 def test_raise_priority_falls_back_fifo_then_nice_then_says_why(fifo_ok, nice_ok, granted):
-    from plant_sim.interfaces import raise_priority
+    from plant_sim.interfaces.thread import raise_priority
 
     fake = _FakeOs(fifo_ok=fifo_ok, nice_ok=nice_ok)
     got = raise_priority(rt_priority=7, nice=-5, os_module=fake)
@@ -345,7 +345,7 @@ def test_raise_priority_falls_back_fifo_then_nice_then_says_why(fifo_ok, nice_ok
 
 
 def test_lower_priority_sets_the_nice_value_or_says_why():
-    from plant_sim.interfaces import lower_priority
+    from plant_sim.interfaces.thread import lower_priority
 
     ok = _FakeOs(fifo_ok=False, nice_ok=True)
     assert lower_priority(12, os_module=ok) == "nice 12"
@@ -358,7 +358,7 @@ def test_shared_block_mid_write_is_never_served_nor_waited_for():
     """The server serves its last snapshot while the stepping side writes (no spinning)."""
     from multiprocessing.shared_memory import SharedMemory
 
-    from plant_sim.plc_process import _Block
+    from plant_sim.interfaces.plc_process import _Block
 
     shm = SharedMemory(create=True, size=_Block.size(3))
     try:
@@ -407,7 +407,7 @@ def test_render_workers_run_at_the_nice_value_asked():
     import os
 
     from config.sim import default_sim
-    from plant_sim.render_worker import RenderPool
+    from plant_sim.rendering.render_worker import RenderPool
 
     base = os.nice(0)
     pool = RenderPool(default_sim(), seed=0, workers=1, nice=min(base + 3, 19))
@@ -445,7 +445,7 @@ def test_after_a_stall_the_clock_slows_instead_of_bursting_and_faults_last_on_th
     the wall clock by more than MAX_LAG_S, below the smallest timeout of the interfaces (the
     amplifier's 0.1 s), so a modbus_restart lasts its duration on the wall clock instead of
     being squeezed below the service's timeout."""
-    from plant_sim import runner as runner_mod
+    from plant_sim.run import runner as runner_mod
 
     smallest_timeout_s = 0.1  # the amplifier's setpoint timeout
     assert runner_mod.MAX_LAG_S < smallest_timeout_s
@@ -481,7 +481,7 @@ class TruthMachine(FakeMachine):
 
 
 def test_runner_stamps_each_pair_with_its_clock_at_capture():
-    from plant_sim.runner import CLOCK_KEY
+    from plant_sim.run.runner import CLOCK_KEY
 
     clock = FakeClock()
     m = TruthMachine()

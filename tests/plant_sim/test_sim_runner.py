@@ -17,19 +17,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plant_sim.amp_node import AmpNode, AmpNodeCore
-from plant_sim.plc_server import PlcServer
-from plant_sim.runner import SimRunner, parse_banner
+from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
+from plant_sim.interfaces.plc_server import PlcServer
+from plant_sim.run.runner import SimRunner, parse_banner
 from protocol import can_transport
 from protocol.frames import Frame, InProcessSource
 from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
 from protocol.spool import SpoolReader, SpoolWriter
-from tests.test_sim_plc import FakeMachine
+from tests.plant_sim.test_sim_plc import FakeMachine
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 RMAP = RegisterMap.load()
-HAVE_MACHINE = importlib.util.find_spec("plant_sim.machine") is not None
+HAVE_MACHINE = importlib.util.find_spec("plant_sim.model.machine") is not None
 
 
 class FakeClock:
@@ -372,7 +372,7 @@ def test_in_process_source_drops_oldest_when_full():
 
 
 # ---------------------------------------------------------------------------------- the CLI
-@pytest.mark.skipif(not HAVE_MACHINE, reason="plant_sim.machine not available yet")
+@pytest.mark.skipif(not HAVE_MACHINE, reason="plant_sim.model.machine not available yet")
 def test_planer_sim_cli_prints_where_it_listens_and_stops_on_sigterm(tmp_path):
     proc = subprocess.Popen(
         [

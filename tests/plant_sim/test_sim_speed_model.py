@@ -19,14 +19,14 @@ from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 
 from config.sim import default_sim
-from plant_sim.cut_record import PassLog
-from plant_sim.feed_drive import FeedDrive
-from plant_sim.frame_capture import FrameCapture
-from plant_sim.machine import Machine
-from plant_sim.piezo import PiezoActuator
-from plant_sim.plc_registers import PlcRegisters
-from plant_sim.spindle import BRAKE, COAST, RUN, Spindle
-from plant_sim.surface import Passes
+from plant_sim.interfaces.plc_registers import PlcRegisters
+from plant_sim.model.cut_record import PassLog
+from plant_sim.model.feed_drive import FeedDrive
+from plant_sim.model.machine import Machine
+from plant_sim.model.piezo import PiezoActuator
+from plant_sim.model.spindle import BRAKE, COAST, RUN, Spindle
+from plant_sim.model.surface import Passes
+from plant_sim.rendering.frame_capture import FrameCapture
 from protocol.registers import MachineState, PlcFault
 
 # -- the reference code ------------------------------------------------------------------------

@@ -18,11 +18,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-import plant_sim.optics as optics_mod
+import plant_sim.rendering.optics as optics_mod
 from config.wood import SPECIES
-from plant_sim.optics import Optics, PencilLine, Renderer, RigEffects, standard_normal_f32
-from plant_sim.scenarios import make_rig
-from plant_sim.surface import Cutterhead, envelope, passes_steady
+from plant_sim.model.surface import Cutterhead, envelope, passes_steady
+from plant_sim.rendering.optics import Optics, PencilLine, Renderer, RigEffects, standard_normal_f32
+from plant_sim.rendering.scenarios import make_rig
 
 W, H = 96, 40
 FX = RigEffects(roll_deg=0.7, slant_offset_deg=(1.5, -1.0), scattering_mm=0.2,

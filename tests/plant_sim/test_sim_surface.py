@@ -9,7 +9,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from plant_sim.surface import (
+from plant_sim.model.surface import (
     Cutterhead,
     Passes,
     concat_passes,

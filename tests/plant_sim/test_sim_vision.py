@@ -1,6 +1,6 @@
 """The simulated planer seen through the vision pipeline (issue 3, "Done when", second bullet).
 
-Every check here measures RENDERED images of the machine model (`plant_sim.machine.Machine`,
+Every check here measures RENDERED images of the machine model (`plant_sim.model.machine.Machine`,
 frames from `Machine.advance`) with the vision pipeline (`vision.pipeline.Measurer`) and compares
 the measurement with the kinematics (feed per knife pass ``V / (n Z)``, mark depth ``p^2 / (8 R)``,
 the one-knife-finish threshold) and with each frame's truth:
@@ -21,9 +21,9 @@ import pytest
 from config.loading import default_path
 from config.rig import load_rig
 from config.sim import SimConfig, load_sim
-from plant_sim.machine import Machine
-from plant_sim.optics import RigEffects, effects_from_config
-from plant_sim.surface import Cutterhead, envelope, passes_steady
+from plant_sim.model.machine import Machine
+from plant_sim.model.surface import Cutterhead, envelope, passes_steady
+from plant_sim.rendering.optics import RigEffects, effects_from_config
 from vision.pipeline import Measurement, Measurer
 
 STEP_S = 0.02  # piezo commands every 20 ms of simulated time (the timeout is 100 ms)
@@ -158,7 +158,7 @@ def test_piezo_off_measured_pitch_and_depth_follow_the_kinematics(
 def one_knife_threshold_um(*, knives: int, radius_mm: float, pitch_mm: float) -> float:
     """Smallest stand-out of one knife (others level) that erases every other knife's marks.
 
-    Found by bisection on the exact envelope of :mod:`plant_sim.surface`.
+    Found by bisection on the exact envelope of :mod:`plant_sim.model.surface`.
     """
     span = 12 * knives * pitch_mm
     xs = np.linspace(0.0, span, 64)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from config.machine import FramesConfig
-from controller.frame_source import SpoolFrameSource, open_frame_source
+from controller.frames.source import SpoolFrameSource, open_frame_source
 from core.errors import MeasurementError
 from core.imageio import png_header
 from protocol import spool as spool_mod

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from controller.plc_client import PlcProtocol, PlcSnapshot
+from controller.fieldbus.plc_protocol import PlcProtocol, PlcSnapshot
 from core.errors import FieldbusError
 from protocol.registers import (
     MachineState,

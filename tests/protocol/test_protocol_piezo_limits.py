@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from config.loading import default_path
-from controller.limits import AmpLimits
+from controller.laws.limits import AmpLimits
 from core.errors import ConfigError
 from protocol import piezo_can
 from protocol.piezo_can import PiezoCodec
@@ -103,8 +103,8 @@ def test_the_simulated_amplifier_reports_its_own_stroke_with_the_heartbeat():
     """The node sends PIEZO_LIMITS from its amplifier's configuration, at start and every 100 ms."""
     from types import SimpleNamespace
 
-    from plant_sim.amp_node import AmpNodeCore
-    from plant_sim.piezo import PiezoAmplifier
+    from plant_sim.interfaces.amp_node import AmpNodeCore
+    from plant_sim.model.piezo import PiezoAmplifier
 
     cfg = SimpleNamespace(stroke_um=7.5, timeout_s=0.1, resonance_hz=800.0, damping=0.2,
                           hysteresis=0.0, input_shaper=False, ambient_c=25.0)

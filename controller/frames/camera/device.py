@@ -6,7 +6,7 @@ for the in-process fake camera, a GigE Vision address such as ``127.0.0.1``, a s
 format, exposure, gain, trigger source and activation, packet size), reads them back and refuses
 a camera that cannot give the rig's image size or format with one :class:`CameraError` naming
 both. :meth:`AravisCamera.pop` turns a buffer into a
-:class:`~controller.camera.pairing.CameraImage`.
+:class:`~controller.frames.camera.pairing.CameraImage`.
 
 PyGObject and the Aravis typelib are optional (``pip install '.[camera]'``, Debian
 ``gir1.2-aravis-0.8``): :func:`aravis_unavailable` says why they cannot be used.
@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from controller.camera.pairing import CameraImage
+from controller.frames.camera.pairing import CameraImage
 from core.checks import check_int, check_positive
 from core.errors import PlanerError
 

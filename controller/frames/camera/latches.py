@@ -13,7 +13,7 @@ from pathlib import Path
 
 from pymodbus.exceptions import ModbusException
 
-from controller.camera.pairing import TriggerLatch
+from controller.frames.camera.pairing import TriggerLatch
 from core.checks import check_int
 from protocol.registers import RegisterMap
 

@@ -1,8 +1,10 @@
 """The camera as the service's frame source: an acquisition thread and the pairing.
 
-:class:`CameraFrameSource` runs the camera (:class:`~controller.camera.device.AravisCamera`) in
+:class:`CameraFrameSource` runs the camera
+(:class:`~controller.frames.camera.device.AravisCamera`) in
 its own thread: it pops buffers, polls the PLC's trigger latches through an injected
-``latch_reader``, feeds both to the pure :class:`~controller.camera.pairing.PairAssembler` and
+``latch_reader``, feeds both to the pure :class:`~controller.frames.camera.pairing.PairAssembler`
+and
 hands the frames (good and failed) to the service, which awaits :meth:`CameraFrameSource.next`
 on its event loop like the spool source's. The event loop never waits on the camera.
 
@@ -21,9 +23,9 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from controller.camera import device
-from controller.camera.device import AravisCamera, CameraError, CameraSettings
-from controller.camera.pairing import PairAssembler, TriggerLatch
+from controller.frames.camera import device
+from controller.frames.camera.device import AravisCamera, CameraError, CameraSettings
+from controller.frames.camera.pairing import PairAssembler, TriggerLatch
 from core.checks import check_int, check_positive
 from protocol.frames import Frame
 from protocol.spool_files import Skip

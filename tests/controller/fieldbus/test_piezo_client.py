@@ -7,7 +7,7 @@ import itertools
 import can
 import pytest
 
-from controller.piezo_client import PiezoClient
+from controller.fieldbus.piezo_client import PiezoClient
 from core.errors import FieldbusError
 from protocol.piezo_can import COMMAND, OFFSETS, STATE_ENABLED, PiezoCodec
 

@@ -7,14 +7,11 @@ import math
 
 import pytest
 
-from controller.plc_client import (
-    Backoff,
-    BusRefused,
-    MachineRegisterBus,
-    PlcClient,
-    PlcProtocol,
-)
+from controller.fieldbus.plc_client import PlcClient
+from controller.fieldbus.plc_protocol import Backoff, PlcProtocol
 from core.errors import FieldbusError, ModbusRefused
+from plant_sim.interfaces.register_bus import MachineRegisterBus
+from protocol.register_bus import BusRefused
 from protocol.registers import MachineState, PlcFault, RegisterMap
 
 RMAP = RegisterMap.load()
@@ -251,9 +248,9 @@ def test_connection_loss_arms_backoff_then_reconnects():
 # ---------------------------------------------------------------------------------- real server
 def _server_cls():
     try:
-        from plant_sim.plc_server import PlcServer
+        from plant_sim.interfaces.plc_server import PlcServer
     except ImportError:  # pragma: no cover - the simulator's server is not there yet
-        pytest.skip("plant_sim.plc_server not available")
+        pytest.skip("plant_sim.interfaces.plc_server not available")
     return PlcServer
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 
 from config.machine import machine_from_dict
-from controller.camera.device import CameraSettings
-from controller.camera.latches import parse_host_port
-from controller.camera.source import settings_from_config
+from controller.frames.camera.device import CameraSettings
+from controller.frames.camera.latches import parse_host_port
+from controller.frames.camera.source import settings_from_config
 from core.errors import ConfigError
 
 
@@ -85,7 +85,7 @@ class _Reply:
 
 
 def test_latch_reader_decodes_the_latch_block(monkeypatch):
-    from controller.camera.latches import ModbusLatchReader
+    from controller.frames.camera.latches import ModbusLatchReader
     from protocol.registers import RegisterMap
 
     values = {"trigger_a_counts": 2**32 - 5, "trigger_b_counts": 27, "trigger_seq": 65535,
@@ -106,7 +106,7 @@ def test_latch_reader_decodes_the_latch_block(monkeypatch):
 
 
 def test_latch_reader_without_plc_gives_none():
-    from controller.camera.latches import ModbusLatchReader
+    from controller.frames.camera.latches import ModbusLatchReader
 
     reader = ModbusLatchReader("127.0.0.1", 1, timeout_s=0.2)  # nothing listens on port 1
     try:

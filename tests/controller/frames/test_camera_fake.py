@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from controller.camera.device import aravis_unavailable
+from controller.frames.camera.device import aravis_unavailable
 
 WHY = aravis_unavailable()
 pytestmark = pytest.mark.skipif(WHY is not None, reason=f"camera tests need Aravis: {WHY}")
@@ -23,7 +23,7 @@ W, H = 659, 493
 
 
 def _settings(**kw):
-    from controller.camera.device import CameraSettings
+    from controller.frames.camera.device import CameraSettings
 
     base = {"width": W, "height": H, "exposure_us": 10_000.0, "gain_db": 0.0,
             "trigger_source": "Software", "pairs_per_s": 200.0}
@@ -49,7 +49,7 @@ def _frame_id(image):
 
 
 def test_setup_reads_back_the_rigs_size_and_format():
-    from controller.camera.device import AravisCamera
+    from controller.frames.camera.device import AravisCamera
 
     cam = AravisCamera("Fake_1", _settings())
     try:
@@ -64,7 +64,7 @@ def test_setup_reads_back_the_rigs_size_and_format():
 @pytest.mark.parametrize(("kw", "gives"), [({"width": 4000}, "at most 2048x2048"),
                                            ({"height": 3000}, "at most 2048x2048")])
 def test_camera_that_cannot_give_the_rig_size_is_one_clear_error(kw, gives):
-    from controller.camera.device import AravisCamera, CameraError
+    from controller.frames.camera.device import AravisCamera, CameraError
 
     s = _settings(**kw)
     with pytest.raises(CameraError) as err:
@@ -74,15 +74,15 @@ def test_camera_that_cannot_give_the_rig_size_is_one_clear_error(kw, gives):
 
 
 def test_unknown_camera_is_an_os_error_naming_it():
-    from controller.camera.device import AravisCamera
+    from controller.frames.camera.device import AravisCamera
 
     with pytest.raises(OSError, match="No_such_camera"):
         AravisCamera("No_such_camera", _settings())
 
 
 def test_source_pairs_consecutive_frames_without_plc():
-    from controller.camera.device import AravisCamera
-    from controller.camera.source import CameraFrameSource
+    from controller.frames.camera.device import AravisCamera
+    from controller.frames.camera.source import CameraFrameSource
 
     src = CameraFrameSource(AravisCamera("Fake_1", _settings()))
     try:
@@ -101,8 +101,8 @@ def test_source_pairs_consecutive_frames_without_plc():
 
 
 def test_plc_gone_gives_failed_pairs_never_good_ones():
-    from controller.camera.device import AravisCamera
-    from controller.camera.source import CameraFrameSource
+    from controller.frames.camera.device import AravisCamera
+    from controller.frames.camera.source import CameraFrameSource
 
     src = CameraFrameSource(AravisCamera("Fake_1", _settings()), latch_reader=lambda: None)
     try:
@@ -114,8 +114,8 @@ def test_plc_gone_gives_failed_pairs_never_good_ones():
 
 
 def test_restart_keeps_pairs_right():
-    from controller.camera.device import AravisCamera
-    from controller.camera.source import CameraFrameSource
+    from controller.frames.camera.device import AravisCamera
+    from controller.frames.camera.source import CameraFrameSource
 
     src = CameraFrameSource(AravisCamera("Fake_1", _settings()))
     try:
@@ -134,8 +134,8 @@ def test_restart_keeps_pairs_right():
 
 def test_open_frame_source_dispatches_camera():
     from config.machine import FramesConfig
-    from controller.camera.source import CameraFrameSource
-    from controller.frame_source import open_frame_source
+    from controller.frames.camera.source import CameraFrameSource
+    from controller.frames.source import open_frame_source
 
     cfg = FramesConfig(source="camera", camera_id="Fake_1", image_width=W, image_height=H,
                        trigger_source="Software", pairs_per_s=100.0)

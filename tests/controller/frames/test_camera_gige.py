@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from controller.camera.device import aravis_unavailable
+from controller.frames.camera.device import aravis_unavailable
 
 WHY = aravis_unavailable()
 TOOL = shutil.which("arv-fake-gv-camera-0.8")
@@ -45,7 +45,7 @@ def gige_camera(request):
 
 def _open(address, proc, settings):
     """Open the camera; the server may need a moment to listen (bounded retries)."""
-    from controller.camera.device import AravisCamera, CameraError
+    from controller.frames.camera.device import AravisCamera, CameraError
 
     last = None
     for _ in range(50):
@@ -60,8 +60,8 @@ def _open(address, proc, settings):
 
 
 def test_gige_vision_acquisition_over_loopback(gige_camera):
-    from controller.camera.device import CameraSettings
-    from controller.camera.source import CameraFrameSource
+    from controller.frames.camera.device import CameraSettings
+    from controller.frames.camera.source import CameraFrameSource
 
     address, proc = gige_camera
     cam = _open(address, proc, CameraSettings(width=W, height=H, exposure_us=10_000.0,
@@ -95,8 +95,8 @@ def test_gige_vision_acquisition_over_loopback(gige_camera):
 @pytest.mark.parametrize("gige_camera", [("--gvsp-lost-ratio", "20")], indirect=True)
 def test_gige_packet_loss_gives_failed_pairs_never_wrong_ones(gige_camera):
     """2 % of the stream packets lost: incomplete buffers fail their pairs, with the reason."""
-    from controller.camera.device import CameraSettings
-    from controller.camera.source import CameraFrameSource
+    from controller.frames.camera.device import CameraSettings
+    from controller.frames.camera.source import CameraFrameSource
 
     address, proc = gige_camera
     cam = _open(address, proc, CameraSettings(width=W, height=H, exposure_us=10_000.0,

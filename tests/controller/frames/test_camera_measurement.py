@@ -10,14 +10,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controller.camera.pairing import CameraImage, PairAssembler, TriggerLatch
+from controller.frames.camera.pairing import CameraImage, PairAssembler, TriggerLatch
 from protocol.frames import Frame
 from protocol.spool import SpoolReader, SpoolWriter
 
 
 @pytest.fixture(scope="module")
 def board():
-    from plant_sim import scenarios
+    from plant_sim.rendering import scenarios
 
     return scenarios.board_pair(seed=3)
 

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.camera.pairing import CameraImage, PairAssembler, TriggerLatch
+from controller.frames.camera.pairing import CameraImage, PairAssembler, TriggerLatch
 from core.units import wrap_counter
 
 COUNTS_PER_MM = 20.0

@@ -10,7 +10,7 @@ import asyncio
 
 import pytest
 
-from controller.camera.device import aravis_unavailable
+from controller.frames.camera.device import aravis_unavailable
 
 WHY = aravis_unavailable()
 pytestmark = pytest.mark.skipif(WHY is not None, reason=f"camera tests need Aravis: {WHY}")
@@ -18,9 +18,9 @@ pytestmark = pytest.mark.skipif(WHY is not None, reason=f"camera tests need Arav
 
 def test_service_logs_one_record_per_camera_pair(tmp_path):
     from config.machine import machine_from_dict
-    from controller.frame_source import open_frame_source
-    from controller.quality_log import QualityLog
-    from controller.service import open_service
+    from controller.frames.source import open_frame_source
+    from controller.quality.log import QualityLog
+    from controller.service.service import open_service
 
     cfg = machine_from_dict({
         "plc": {"host": "127.0.0.1", "port": 1, "timeout_s": 0.05},

@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.actuator_id import ActuatorIdentifier, circulant_from_mode_gains
-from controller.offset_history import OffsetHistory
+from controller.laws.actuator_id import ActuatorIdentifier, circulant_from_mode_gains
+from controller.laws.offset_history import OffsetHistory
 
-# a 150 Hz piezo at 400 Hz knife frequency (plant_sim.piezo, measured at the knives' BDC): a
+# a 150 Hz piezo at 400 Hz knife frequency (plant_sim.model.piezo, measured at the knives' BDC): a
 # unit offset on knife 0 moves knife 0 by 0.355 um and spills 0.105 um into knife 1
 SLOW_COLUMN = np.array([0.355, 0.105, -0.23, -0.23])
 

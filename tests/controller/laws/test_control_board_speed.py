@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.board_speed import BoardSpeedHistory
+from controller.laws.board_speed import BoardSpeedHistory
 
 
 def _ramp(h, t_end=5.0, dt=0.02):

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.design import (
+from controller.laws.design import (
     DESIGN_FEEDS_MM_S,
     MIN_GAIN_MARGIN_DB,
     MIN_PHASE_MARGIN_DEG,
@@ -29,9 +29,9 @@ from controller.design import (
     uniformity_loop_margins,
     uniformity_loop_model,
 )
-from controller.feed_loop import FeedLoop, FeedLoopConfig
-from controller.uniformity_loop import UniformityLoopConfig
-from tests.test_control_feed_loop import BoardPlant
+from controller.laws.feed_loop import FeedLoop, FeedLoopConfig
+from controller.laws.uniformity_loop import UniformityLoopConfig
+from tests.controller.laws.test_control_feed_loop import BoardPlant
 
 CFG = FeedLoopConfig()
 

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.feed_loop import (
+from controller.laws.feed_loop import (
     FeedLoop,
     FeedLoopConfig,
     integral_gain,

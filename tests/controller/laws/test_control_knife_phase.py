@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.knife_phase import (
+from controller.laws.knife_phase import (
     PassAttribution,
     attribute_marks,
     knives_from_passes,

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.limits import project_zero_mean_box
-from controller.offset_qp import best_offsets_um, box_qp
-from controller.uniformity_loop import second_difference
+from controller.laws.limits import project_zero_mean_box
+from controller.laws.offset_qp import best_offsets_um, box_qp
+from controller.laws.uniformity_loop import second_difference
 
 
 def enumerate_faces(h, c, bound):

@@ -17,20 +17,20 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.actuator_id import ActuatorIdentifier, circulant_from_mode_gains
-from controller.feed_loop import FeedLoop, FeedLoopConfig, integral_gain
-from controller.knife_phase import PassAttribution, attribute_marks, pass_numbers
-from controller.limits import project_zero_mean_box
-from controller.mark_attribution import kinematic_cv, mean_std, vanished_knives
-from controller.offset_history import OffsetHistory
-from controller.offset_qp import OffsetPlanner, _active_set, box_qp
-from controller.uniformity_loop import (
+from controller.laws.actuator_id import ActuatorIdentifier, circulant_from_mode_gains
+from controller.laws.feed_loop import FeedLoop, FeedLoopConfig, integral_gain
+from controller.laws.knife_phase import PassAttribution, attribute_marks, pass_numbers
+from controller.laws.limits import project_zero_mean_box
+from controller.laws.offset_history import OffsetHistory
+from controller.laws.offset_qp import OffsetPlanner, _active_set, box_qp
+from controller.laws.uniformity_loop import (
     UniformityLoop,
     UniformityLoopConfig,
     linear_widths_mm,
     second_difference,
     width_sensitivity_mm_per_um,
 )
+from controller.service.attribution import kinematic_cv, mean_std, vanished_knives
 
 # ------------------------------------------------------------------------------ the box QP
 

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from config.sim import default_sim
-from controller.limits import project_zero_mean_box
-from controller.uniformity_loop import DEFAULT_MARGIN_UM, UniformityLoopConfig, offset_limit_um
-from plant_sim.piezo import FAULT_STROKE, PiezoAmplifier
+from controller.laws.limits import project_zero_mean_box
+from controller.laws.uniformity_loop import DEFAULT_MARGIN_UM, UniformityLoopConfig, offset_limit_um
+from plant_sim.model.piezo import FAULT_STROKE, PiezoAmplifier
 from protocol.piezo_can import PiezoCodec
 
 CODEC = PiezoCodec.load()

@@ -13,9 +13,9 @@ import math
 import numpy as np
 import pytest
 
-from controller.design import uniformity_closed_loop_radius, uniformity_loop_model
-from controller.offset_qp import best_offsets_um
-from controller.uniformity_loop import (
+from controller.laws.design import uniformity_closed_loop_radius, uniformity_loop_model
+from controller.laws.offset_qp import best_offsets_um
+from controller.laws.uniformity_loop import (
     UniformityLoop,
     UniformityLoopConfig,
     linear_widths_mm,
@@ -25,7 +25,7 @@ from controller.uniformity_loop import (
 
 R_MM, PITCH_MM, TS_S, WINDOW_MM = 60.0, 1.5, 0.1, 40.0
 RUNOUT = np.array([0.5, 4.0, -2.0, 2.0])  # the default plant (eccentricity in knife 0)
-# a 150 Hz piezo at 400 Hz knife frequency, measured in plant_sim.piezo at the knives' BDC
+# a 150 Hz piezo at 400 Hz knife frequency, measured in plant_sim.model.piezo at the knives' BDC
 SLOW = np.array([[[0.355, 0.105, -0.23, -0.23][(i - j) % 4] for j in range(4)]
                  for i in range(4)])
 
@@ -107,7 +107,7 @@ def test_saturated_plant_ends_at_the_constrained_optimum():
 @pytest.mark.parametrize("alpha", [0.5, 1.5, 2.0])
 def test_the_decay_follows_the_designed_closed_loop_pole(alpha):
     """An actuator stronger or weaker than modelled (no identification): the error decays at
-    the rate of the design model's dominant closed-loop pole (controller.design)."""
+    the rate of the design model's dominant closed-loop pole (controller.laws.design)."""
     cfg = UniformityLoopConfig(identify=False)
     feed, camera = 600.0, 300.0
     out, _ = run(actuator=alpha * np.eye(4), feed_mm_s=feed, camera_mm=camera, noise_mm=0.0,

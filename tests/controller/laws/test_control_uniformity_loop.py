@@ -1,5 +1,6 @@
 """Uniformity loop: width model, the learning law on every pair, stroke, re-planning, against the
-kinematic model (no transport delay here: tests/test_control_uniformity_delay.py has it)."""
+kinematic model (no transport delay here: tests/controller/laws/test_control_uniformity_delay.py
+has it)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,9 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from controller.limits import project_zero_mean_box
-from controller.offset_qp import best_offsets_um
-from controller.uniformity_loop import (
+from controller.laws.limits import project_zero_mean_box
+from controller.laws.offset_qp import best_offsets_um
+from controller.laws.uniformity_loop import (
     UniformityLoop,
     UniformityLoopConfig,
     linear_widths_mm,
@@ -591,12 +592,12 @@ def test_projection_is_zero_mean_in_box_and_idempotent(v, bound):
         assert np.linalg.norm(np.array(v) - p) <= np.linalg.norm(np.array(v) - q) + 1e-9
 
 
-# -- against the simulator's surface (when plant_sim.surface exists) -------------------------
+# -- against the simulator's surface (when plant_sim.model.surface exists) -------------------------
 def test_against_plant_sim_surface():
-    surface = pytest.importorskip("plant_sim.surface")
+    surface = pytest.importorskip("plant_sim.model.surface")
     for name in ("Cutterhead", "passes_steady", "envelope"):
         if not hasattr(surface, name):
-            pytest.skip(f"plant_sim.surface has no {name} yet")
+            pytest.skip(f"plant_sim.model.surface has no {name} yet")
     runout = (0.0, 2.5, -1.5, 1.0)
     head = surface.Cutterhead(knives=4, radius_mm=R_MM, runout_um=runout)
     rpm, feed = 6000.0, 600.0  # pitch 1.5 mm
@@ -629,7 +630,7 @@ def test_against_plant_sim_surface():
 
 
 def test_knife_attribution_off_by_one_makes_learning_diverge():
-    # why controller.knife_phase matters: a shifted attribution turns each mode by 2 pi m / Z,
+    # why controller.laws.knife_phase matters: a shifted attribution turns each mode by 2 pi m / Z,
     # a phase error beyond the loop's phase margin (63 deg): |1 - g exp(j theta)| > 1
     # (the identification does not learn it: a gain turned by 90 deg is outside its bounds)
     runout = np.array([0.0, 2.5, -1.5, 1.0])

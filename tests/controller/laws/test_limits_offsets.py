@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from controller.limits import (
+from controller.laws.limits import (
     MIN_LIMIT_UM,
     REFUSAL_SHRINK,
     AmpLimits,

@@ -8,11 +8,11 @@ from types import SimpleNamespace
 import pytest
 
 from config.machine import IDENTIFICATION_KEYS, load_machine, machine_from_dict
-from controller.events import EventKind, ServiceEvent
-from controller.frame_result import FrameResult
 from controller.opcua.view import MachineView, UnitMode, UnitState, WwEventCategory
-from controller.quality_log import QualityClass
-from controller.service_status import ServiceStatus
+from controller.quality.log import QualityClass
+from controller.service.events import EventKind, ServiceEvent
+from controller.service.frame_result import FrameResult
+from controller.service.status import ServiceStatus
 
 QC = QualityClass(name="fine-1.5", target_pitch_mm=1.5, pitch_tolerance=0.02,
                   uniformity_max_cv=0.05, depth_max_um=20.0)

@@ -29,7 +29,7 @@ from controller.opcua.nodes import DI_URI, MACHINERY_URI, OWN_URI, WW_URI  # noq
 from controller.opcua.server import OpcUaServer  # noqa: E402
 from controller.opcua.view import FLAG_NAMES, VALUE_NAMES  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "opcua"
+DATA = Path(__file__).resolve().parents[4] / "shared" / "data" / "opcua"
 FILES = ("Opc.Ua.Di.NodeSet2.xml", "Opc.Ua.IA.NodeSet2.xml", "Opc.Ua.Machinery.NodeSet2.xml",
          "opc.ua.isa95-jobcontrol.nodeset2.xml", "Opc.Ua.Machinery.Jobs.Nodeset2.xml",
          "Opc.Ua.Woodworking.NodeSet2.xml")

@@ -24,7 +24,7 @@ from asyncua import Client  # noqa: E402
 
 from controller.opcua.nodes import DI_URI, MACHINERY_URI, WW_URI  # noqa: E402
 from controller.opcua.server import OpcUaServer  # noqa: E402
-from controller.service_status import ServiceStatus  # noqa: E402
+from controller.service.status import ServiceStatus  # noqa: E402
 
 BROWSE_JS = r"""
 const { OPCUAClient, AttributeIds, BrowseDirection, makeBrowsePath } =

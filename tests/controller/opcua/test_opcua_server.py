@@ -18,13 +18,13 @@ pytest.importorskip("asyncua")
 
 from asyncua import Client, ua  # noqa: E402
 
-from controller.events import EventKind, ServiceEvent  # noqa: E402
-from controller.frame_result import FrameResult  # noqa: E402
 from controller.opcua.nodes import OWN_URI, WW_URI  # noqa: E402
 from controller.opcua.server import OpcUaServer  # noqa: E402
 from controller.opcua.view import FLAG_NAMES, MANUFACTURER_NAMES, VALUE_NAMES  # noqa: E402
-from controller.quality_log import QualityClass  # noqa: E402
-from controller.service_status import ServiceStatus  # noqa: E402
+from controller.quality.log import QualityClass  # noqa: E402
+from controller.service.events import EventKind, ServiceEvent  # noqa: E402
+from controller.service.frame_result import FrameResult  # noqa: E402
+from controller.service.status import ServiceStatus  # noqa: E402
 
 IDENT = {"Manufacturer": "ACME Planers", "Model": "SP-4", "SerialNumber": "SN-0042",
          "YearOfConstruction": 2026, "ProductInstanceUri": "urn:acme:sp4:0042"}

@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from config.loading import Section
-from controller.quality_log import (
+from controller.quality.log import (
     CSV_COLUMNS,
     CSV_NOISE_ULPS,
     CSV_SIGNIFICANT_DIGITS,
@@ -35,10 +35,10 @@ from controller.quality_log import (
     quality_class_from_section,
     utc_iso,
 )
-from controller.quality_schema import ADDED_IN_V4
+from controller.quality.schema import ADDED_IN_V4
 from core.errors import ConfigError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def _rec(i: int = 0, **kw) -> QualityRecord:
@@ -316,7 +316,7 @@ def test_unreadable_row_names_the_record(tmp_path):
 # The record generator is shared as source so that the child needs no pytest/hypothesis import.
 _GEN = textwrap.dedent("""
     import random
-    from controller.quality_log import QualityRecord, utc_iso
+    from controller.quality.log import QualityRecord, utc_iso
 
     def expected_record(run, i):
         rng = random.Random(run * 1_000_003 + i)
@@ -340,7 +340,7 @@ _GEN = textwrap.dedent("""
 
 _CHILD = _GEN + textwrap.dedent("""
     import sys
-    from controller.quality_log import QualityLog
+    from controller.quality.log import QualityLog
     run, n = int(sys.argv[2]), int(sys.argv[3])
     with QualityLog(sys.argv[1]) as log:
         for i in range(n):
@@ -565,7 +565,7 @@ def test_quality_class_from_config():
 
 
 def test_record_without_machine_id_gets_the_logs_and_filters_by_machine(tmp_path):
-    from controller.quality_log import default_machine_id
+    from controller.quality.log import default_machine_id
 
     with QualityLog(tmp_path / "q.db", machine_id="planer-5") as log:
         log.append(_rec(0, machine_id=None))

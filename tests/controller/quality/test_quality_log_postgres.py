@@ -1,6 +1,7 @@
 """The quality log on a real PostgreSQL server: same records, same report, same CSV as SQLite.
 
-The server is started by the test session (``tests/pg_support.py``); these tests skip with the
+The server is started by the test session (``tests/support/pg_support.py``); these tests skip with
+the
 reason where PostgreSQL or psycopg is missing.
 """
 
@@ -14,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from controller.quality_log import (
+from controller.quality.journal import RecordSink, default_journal_path
+from controller.quality.log import (
     CSV_COLUMNS,
     QualityClass,
     QualityLog,
@@ -25,10 +27,9 @@ from controller.quality_log import (
     open_quality_log,
     utc_iso,
 )
-from controller.record_journal import RecordSink, default_journal_path
-from controller.report import summarise
-from tests import pg_support
-from tests.pg_support import wait_until
+from controller.quality.report import summarise
+from tests.support import pg_support
+from tests.support.pg_support import wait_until
 
 pg_server = pg_support.pg_server  # the fixtures
 fresh_db = pg_support.fresh_db
@@ -174,7 +175,7 @@ def test_reader_of_an_empty_database_and_foreign_tables(fresh_db):
 
 
 def test_unreachable_database_is_one_line_naming_it(pg_server):
-    from tests.pg_support import _free_port
+    from tests.support.pg_support import _free_port
 
     port = _free_port()  # nothing listens there
     url = f"postgresql://postgres:secret@127.0.0.1:{port}/fleet"
@@ -294,7 +295,7 @@ def test_planer_report_on_a_database_matches_the_sqlite_file(fresh_db, tmp_path,
 
 
 def test_planer_report_unreachable_database_is_one_line_exit_2(pg_server, capsys):
-    from tests.pg_support import _free_port
+    from tests.support.pg_support import _free_port
 
     port = _free_port()
     code, out, err = _report([f"postgresql://postgres@127.0.0.1:{port}/fleet"], capsys)
@@ -309,7 +310,7 @@ def test_documented_pass_rate_query_counts_as_python_does(fresh_db):
 
     import psycopg
 
-    doc = (Path(__file__).parents[1] / "docs" / "quality_log.md").read_text()
+    doc = (Path(__file__).parents[3] / "docs" / "quality_log.md").read_text()
     query = re.findall(r"```sql\n(.*?)```", doc[doc.index("### Fleet queries"):], re.S)[0]
     rng = random.Random(3)
     recs = [_record(i, rng=rng, machine_id=f"planer-{i % 3}") for i in range(90)]
@@ -332,8 +333,8 @@ def test_documented_pass_rate_query_counts_as_python_does(fresh_db):
 def test_version_3_database_is_read_as_is_and_migrated_by_a_writer(fresh_db):
     import psycopg
 
-    from controller.quality_log import SCHEMA_VERSION
-    from controller.quality_schema import ADDED_IN_V4
+    from controller.quality.log import SCHEMA_VERSION
+    from controller.quality.schema import ADDED_IN_V4
 
     rng = random.Random(3)
     old = [_record(i, rng=rng, machine_id="planer-1") for i in range(5)]

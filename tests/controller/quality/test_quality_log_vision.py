@@ -16,7 +16,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from controller.quality_log import (
+from controller.quality.log import (
     CALIBRATION_FIELDS,
     CALIBRATION_STATES,
     CSV_COLUMNS,
@@ -30,7 +30,7 @@ from controller.quality_log import (
     utc_iso,
     vision_fields,
 )
-from controller.quality_schema import ADDED_IN_V4
+from controller.quality.schema import ADDED_IN_V4
 
 NEW = ("roll_deg", "roll_confidence", "calibration_state", *CALIBRATION_FIELDS,
        "kinematic_depth_um", "uncalibrated_depth_um")

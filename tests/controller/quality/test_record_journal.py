@@ -17,7 +17,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from controller.quality_log import (
+from controller.quality.journal import RETRY_EVERY_APPENDS, RecordSink, default_journal_path
+from controller.quality.log import (
     SQLITE_INT_MAX,
     QualityLog,
     QualityRecord,
@@ -27,11 +28,10 @@ from controller.quality_log import (
     storable_record,
     utc_iso,
 )
-from controller.record_journal import RETRY_EVERY_APPENDS, RecordSink, default_journal_path
 from protocol.frames import Frame
 from protocol.spool import SpoolWriter
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def _rec(i: int, **kw) -> QualityRecord:
@@ -303,8 +303,8 @@ def test_not_a_record_is_a_programming_error(tmp_path):
 _CHILD = textwrap.dedent("""
     import sys, time
     from pathlib import Path
-    from controller.quality_log import QualityLog, QualityRecord, utc_iso
-    from controller.record_journal import RecordSink
+    from controller.quality.log import QualityLog, QualityRecord, utc_iso
+    from controller.quality.journal import RecordSink
     from protocol.spool import SpoolReader
 
     db, journal, spool = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])

@@ -1,4 +1,4 @@
-"""``planer report`` and controller.report: summary numbers, figures, command line."""
+"""``planer report`` and controller.quality.report: summary numbers, figures, command line."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.quality_log import QualityClass, QualityLog, QualityRecord, judge, utc_iso
-from controller.report import (
+from controller.quality.log import QualityClass, QualityLog, QualityRecord, judge, utc_iso
+from controller.quality.report import (
     DEFAULT_PITCH_TOLERANCE,
     KINEMATIC_LABEL,
     UNTRUSTED_LABEL,
@@ -423,7 +423,7 @@ def test_cli_text_default_out_next_to_log(log_file, capsys):
 
 
 def test_cli_names_a_journal_left_beside_the_log(log_file, tmp_path, capsys):
-    from controller.record_journal import RecordSink, default_journal_path
+    from controller.quality.journal import RecordSink, default_journal_path
 
     assert main(["report", str(log_file), "--json", "--out", str(tmp_path / "f")]) == 0
     assert json.loads(capsys.readouterr().out)["journal"] is None

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from config.machine import machine_from_dict
-from controller.control_loops import ControlLoops
-from controller.events import EventLog
-from controller.plc_client import PlcSnapshot
+from controller.fieldbus.plc_protocol import PlcSnapshot
+from controller.service.events import EventLog
+from controller.service.loops import ControlLoops
 from core.errors import FieldbusError
 
 
@@ -60,7 +60,7 @@ RUNOUT = np.array([0.5, 15.0, -8.5, 5.0])
 
 
 def _widths(offsets):
-    from controller.uniformity_loop import linear_widths_mm
+    from controller.laws.uniformity_loop import linear_widths_mm
 
     w = linear_widths_mm(np.asarray(offsets) - RUNOUT, pitch_mm=1.5, radius_mm=60.0)
     return np.where(w > 0, w, np.nan)

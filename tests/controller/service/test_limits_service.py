@@ -14,13 +14,13 @@ from dataclasses import replace
 import numpy as np
 
 from config.machine import load_machine
-from controller.events import EventKind
-from controller.quality_log import QualityLog
-from controller.safety import SafetyState
+from controller.quality.log import QualityLog
+from controller.service.events import EventKind
+from controller.service.supervisor import SafetyState
 from planer.hil import Scenario, sim_config_for
 from planer.hil.summary import limits_report
-from tests.plant_support import record_frames, run_for
-from tests.test_service_loop import TruthMeasurer
+from tests.controller.service.test_service_loop import TruthMeasurer
+from tests.support.plant_support import record_frames, run_for
 
 AMP_UM, CONFIG_UM = 10.0, 20.0
 SCENARIO = Scenario(runout_um=(0.0, 15.0, -8.0, 5.0), initial_feed_mm_s=800.0,

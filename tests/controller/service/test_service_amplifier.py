@@ -5,7 +5,7 @@ An amplifier that faults, refuses the table (stroke-limit bit) or ramps to zero 
 timeout) while the service commands enable is, after a short confirmation time, a CAN-side
 failure: safe state (offsets 0, disable), reported once, RUN again once it reports healthy. And
 board cut while it was not tracking must not teach the uniformity loop anything. Simulated time,
-the in-process plant of ``tests/test_service_loop.py``.
+the in-process plant of ``tests/controller/service/test_service_loop.py``.
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ import asyncio
 
 import numpy as np
 
-from controller.events import EventKind
-from controller.safety import AMP_CONFIRM_S, SafetyState
-from tests.plant_support import run_for
-from tests.test_service_loop import make_plant
+from controller.service.events import EventKind
+from controller.service.supervisor import AMP_CONFIRM_S, SafetyState
+from tests.controller.service.test_service_loop import make_plant
+from tests.support.plant_support import run_for
 
 
 def _amp_safe(plant) -> bool:

@@ -18,10 +18,10 @@ import pytest
 
 from config.machine import load_machine, rig_path
 from config.rig import load_rig
-from controller.frame_source import QueueFrameSource
-from controller.piezo_client import PiezoClient
-from controller.plc_client import PlcClient
-from controller.service import Service
+from controller.fieldbus.piezo_client import PiezoClient
+from controller.fieldbus.plc_client import PlcClient
+from controller.frames.source import QueueFrameSource
+from controller.service.service import Service
 from protocol.piezo_can import COMMAND, PiezoCodec
 from protocol.registers import RegisterMap
 

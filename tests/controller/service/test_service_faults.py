@@ -1,6 +1,7 @@
 """The service under faults of its own and garbage from its world, on simulated time.
 
-Each test closes the loop with the in-process simulator (``tests/test_service_loop.py``'s
+Each test closes the loop with the in-process simulator
+(``tests/controller/service/test_service_loop.py``'s
 plant: the measurer reads the simulator's truth), brings the service to RUN, then breaks one
 thing: the vision raises an unexpected exception type, the PLC answers nonsense or refuses
 reads, the clock jumps back, the camera's clock restarts, the control code or the tick raises,
@@ -20,13 +21,13 @@ import cv2
 import numpy as np
 import pytest
 
-from controller.events import EventKind
-from controller.quality_log import QualityLog
-from controller.safety import SafetyState
+from controller.quality.log import QualityLog
+from controller.service.events import EventKind
+from controller.service.supervisor import SafetyState
 from protocol.frames import Frame
 from protocol.spool import SpoolReader, SpoolWriter
-from tests.plant_support import run_for
-from tests.test_service_loop import SCENARIO, TruthMeasurer, make_plant
+from tests.controller.service.test_service_loop import SCENARIO, TruthMeasurer, make_plant
+from tests.support.plant_support import run_for
 
 
 def _events(svc, since, kind):
@@ -202,7 +203,7 @@ def test_plc_garbage_goes_safe_writes_nothing_and_recovers(tmp_path, case):
 
 def test_plc_refusing_reads_is_a_plc_gone(tmp_path):
     """A PLC that answers heartbeat writes but refuses every read is not a working PLC."""
-    from controller.plc_client import BusRefused
+    from protocol.register_bus import BusRefused
 
     async def main():
         plant, _ = await _running_plant(tmp_path)
@@ -323,7 +324,8 @@ def test_tick_exception_keeps_heartbeat_goes_safe_and_recovers(tmp_path, caplog)
         errors = _events(svc, t0, EventKind.SERVICE_ERROR)
         assert len(errors) == 1 and "FloatingPointError" in errors[0][1]  # once, not per cycle
         # the supervisor boundary logged the traceback, once
-        logged = [r for r in caplog.records if r.name == "controller.service" and r.exc_info]
+        logged = [r for r in caplog.records
+                  if r.name == "controller.service.service" and r.exc_info]
         assert len(logged) == 1 and logged[0].exc_info[0] is FloatingPointError
         svc.loops.feed_forward = orig
         await run_for(plant, 1.0)

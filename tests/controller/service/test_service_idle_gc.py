@@ -1,7 +1,7 @@
 """The garbage collector runs between pairs, not in the middle of one (issue 11, item 2).
 
 Judged by what the collector reports (``gc.callbacks``) and the order of events, never by time:
-with :class:`controller.latency.IdleCollector` installed, collections happen, as many as the
+with :class:`controller.service.latency.IdleCollector` installed, collections happen, as many as the
 normal thresholds make due, and none starts while a pair's control runs.
 """
 
@@ -14,11 +14,11 @@ from dataclasses import replace
 import pytest
 
 from config.machine import load_machine
-from controller import latency
-from controller.latency import IdleCollector, collect_between_pairs, tune_for_latency
-from controller.safety import SafetyState
+from controller.service import latency
+from controller.service.latency import IdleCollector, collect_between_pairs, tune_for_latency
+from controller.service.supervisor import SafetyState
 from planer.hil import InProcessPlant, Scenario, sim_config_for
-from tests.plant_support import record_frames, run_for, truth_measurer
+from tests.support.plant_support import record_frames, run_for, truth_measurer
 
 
 @pytest.fixture

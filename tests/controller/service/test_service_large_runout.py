@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from planer.hil import InProcessPlant, Scenario, machine_config_for, sim_config_for
-from tests.plant_support import record_frames, run_for
+from tests.support.plant_support import record_frames, run_for
 
 SAMPLE_MM = 0.08  # one profile sample of the shipped rig (12.5 px/mm)
 RUNOUT_UM = (0.0, 15.0, -8.0, 5.0)

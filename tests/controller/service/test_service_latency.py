@@ -19,16 +19,17 @@ import numpy as np
 import pytest
 
 from config.machine import load_machine
-from controller import latency, quality_records
-from controller.events import EventLog
-from controller.frame_result import FrameResult
-from controller.latency import GcPauses, tune_for_latency
-from controller.quality_log import QualityLog, QualityRecord, RecordRefusedError, utc_iso
-from controller.record_journal import RecordSink
-from controller.safety import SafetyState
+from controller.quality.journal import RecordSink
+from controller.quality.log import QualityLog, QualityRecord, RecordRefusedError, utc_iso
+from controller.service import latency
+from controller.service import records as quality_records
+from controller.service.events import EventLog
+from controller.service.frame_result import FrameResult
+from controller.service.latency import GcPauses, tune_for_latency
+from controller.service.supervisor import SafetyState
 from planer.hil import Scenario, sim_config_for
 from protocol.frames import Frame
-from tests.plant_support import record_frames, run_for, truth_measurer
+from tests.support.plant_support import record_frames, run_for, truth_measurer
 
 SCENARIO = Scenario(runout_um=(0.0, 4.0, -2.0, 2.0), initial_feed_mm_s=800.0)
 BACKSTOP_S = 60.0
@@ -59,7 +60,7 @@ class GatedLog:
 
 def _real_time_plant(tmp_path, log):
     """The in-process plant with the service as ``planer serve`` runs it (threaded)."""
-    from controller.service import Service
+    from controller.service.service import Service
     from planer.hil import InProcessPlant
 
     cfg = load_machine()
@@ -334,7 +335,7 @@ def test_bench_leaves_the_first_pairs_out_of_the_p99_but_not_out_of_the_max(monk
 def test_a_pair_in_the_spool_wakes_the_service_without_a_poll_interval(tmp_path):
     # the asyncio side waits for the reader thread's word, not for its poll interval: with an
     # interval of an hour, next() returns the pair the reader thread delivers while it waits
-    from controller.frame_source import SpoolFrameSource
+    from controller.frames.source import SpoolFrameSource
     from protocol.spool import SpoolReader
 
     image = np.full((8, 12), 100, np.uint8)
@@ -382,7 +383,7 @@ class _Snap:
 
 
 def test_the_measurer_is_set_up_for_the_plcs_facts_before_the_first_pair():
-    from controller.measurement import MachineFacts, MeasurementStage
+    from controller.service.measurement import MachineFacts, MeasurementStage
 
     built = []
 

@@ -21,7 +21,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from controller.spool_watch import IN_MOVED_TO, IN_Q_OVERFLOW, SpoolWatch, summarize
+from controller.frames.spool_watch import IN_MOVED_TO, IN_Q_OVERFLOW, SpoolWatch, summarize
 from protocol.frames import Frame
 
 BACKSTOP_S = 60.0
@@ -83,7 +83,7 @@ def _frame(seq: int, image: np.ndarray) -> Frame:
 
 def test_a_committed_pair_wakes_the_reader_thread_without_its_poll_interval(tmp_path):
     # poll interval one hour: only the commit's wake-up can deliver the pair in time
-    from controller.frame_source import SpoolFrameSource
+    from controller.frames.source import SpoolFrameSource
     from protocol.spool import SpoolReader, SpoolWriter
 
     spool = tmp_path / "spool"
@@ -146,7 +146,7 @@ class _Measurer:
 
 def _stage(threads: list, **kw):
     from config.machine import load_machine
-    from controller.measurement import MeasurementStage
+    from controller.service.measurement import MeasurementStage
 
     return MeasurementStage(load_machine().plausibility, lambda shape: _Measurer(threads),
                             threaded=True, **kw)
@@ -165,7 +165,7 @@ def _measure_all(stage, n: int) -> int:
 
 
 def test_after_a_few_short_measurements_the_loop_measures_itself():
-    from controller.measurement import INLINE_START
+    from controller.service.measurement import INLINE_START
 
     threads: list = []
     stage = _stage(threads)
@@ -177,7 +177,7 @@ def test_after_a_few_short_measurements_the_loop_measures_itself():
 
 
 def test_switched_off_every_measurement_goes_to_the_worker_thread():
-    from controller.measurement import INLINE_WINDOW
+    from controller.service.measurement import INLINE_WINDOW
 
     threads: list = []
     stage = _stage(threads)
@@ -189,7 +189,7 @@ def test_switched_off_every_measurement_goes_to_the_worker_thread():
 @pytest.mark.parametrize("long_ones, inline", [(0, True), (1, True), (2, False), (8, False)])
 def test_more_long_measurements_in_the_window_than_the_spare_send_the_next_to_the_thread(
         long_ones, inline):
-    from controller.measurement import INLINE_SPARE, INLINE_WINDOW
+    from controller.service.measurement import INLINE_SPARE, INLINE_WINDOW
 
     assert INLINE_SPARE == 1  # the table below is written for one spare
     threads: list = []
@@ -204,7 +204,7 @@ def test_more_long_measurements_in_the_window_than_the_spare_send_the_next_to_th
 
 def test_the_decision_counts_the_measurements_cpu_time_not_its_wall_time():
     from config.machine import load_machine
-    from controller.measurement import INLINE_WINDOW, MeasurementStage
+    from controller.service.measurement import INLINE_WINDOW, MeasurementStage
 
     class Waiting(_Measurer):
         def measure(self, image_a, image_b, **_kw):
@@ -221,7 +221,7 @@ def test_the_decision_counts_the_measurements_cpu_time_not_its_wall_time():
 
 
 def test_no_measurement_on_the_loop_while_a_set_up_holds_the_build_lock():
-    from controller.measurement import INLINE_WINDOW
+    from controller.service.measurement import INLINE_WINDOW
 
     threads: list = []
     stage = _stage(threads)
@@ -248,7 +248,7 @@ def test_the_loops_own_measurement_keeps_the_loops_real_time_priority():
             return super().measure(image_a, image_b)
 
     from config.machine import load_machine
-    from controller.measurement import INLINE_START, MeasurementStage
+    from controller.service.measurement import INLINE_START, MeasurementStage
 
     threads: list = []
     stage = MeasurementStage(load_machine().plausibility, lambda shape: Noting(threads),
@@ -282,8 +282,8 @@ def test_the_loops_own_measurement_keeps_the_loops_real_time_priority():
 
 def _loops(out):
     from config.machine import machine_from_dict
-    from controller.control_loops import ControlLoops
-    from controller.events import EventLog
+    from controller.service.events import EventLog
+    from controller.service.loops import ControlLoops
 
     cfg = machine_from_dict({"piezo": {"stroke_um": 20.0}})
     rig = SimpleNamespace(camera=SimpleNamespace(cx=320.0, px_per_mm=16.0))
@@ -292,7 +292,7 @@ def _loops(out):
 
 
 def _snap():
-    from controller.plc_client import PlcSnapshot
+    from controller.fieldbus.plc_protocol import PlcSnapshot
 
     return PlcSnapshot(values={
         "knives": 4, "feed_min_mm_s": 50.0, "feed_max_mm_s": 1000.0, "spindle_rpm": 6000.0,
@@ -392,7 +392,7 @@ def test_an_error_of_the_uniformity_loop_still_waits_for_the_feed_write():
 
 
 def test_the_modbus_time_limit_runs_in_the_calling_task():
-    from controller.plc_client import _within
+    from controller.fieldbus.plc_client import _within
 
     if not hasattr(asyncio, "timeout"):
         pytest.skip("Python 3.10: asyncio.wait_for")
@@ -426,8 +426,8 @@ def test_the_bench_names_the_spool_image_format():
 
 
 def test_prioritize_schedules_the_spool_reader_thread_with_the_bus_thread(tmp_path):
-    from controller.frame_source import SpoolFrameSource
-    from controller.latency import MEASURE_NICE, prioritize
+    from controller.frames.source import SpoolFrameSource
+    from controller.service.latency import MEASURE_NICE, prioritize
     from core.realtime import BUS_RT_PRIORITY
     from protocol.spool import SpoolReader, SpoolWriter
 
@@ -520,7 +520,7 @@ class _QuietWatch:
 def _run_reader(monkeypatch, watch_cls, reader, done: threading.Event) -> None:
     """A spool source's reader thread on ``reader`` with ``watch_cls`` as its watch, until
     ``done``."""
-    import controller.frame_source as fs
+    import controller.frames.source as fs
 
     monkeypatch.setattr(fs, "SpoolWatch", watch_cls)
     source = fs.SpoolFrameSource(reader, poll_s=0.002)
@@ -532,7 +532,7 @@ def _run_reader(monkeypatch, watch_cls, reader, done: threading.Event) -> None:
 @pytest.mark.parametrize("events_come", [True, False])
 def test_the_reader_polls_rarely_only_once_the_events_announced_a_pair(tmp_path, monkeypatch,
                                                                        events_come):
-    import controller.frame_source as fs
+    import controller.frames.source as fs
     from protocol.spool import SpoolReader
 
     timeouts: list = []

@@ -17,7 +17,7 @@ import struct
 import numpy as np
 import pytest
 
-from controller.spool_watch import IN_CLOSE_WRITE, IN_MOVED_TO, IN_Q_OVERFLOW, summarize
+from controller.frames.spool_watch import IN_CLOSE_WRITE, IN_MOVED_TO, IN_Q_OVERFLOW, summarize
 from protocol.frames import Frame
 from protocol.spool import SpoolReader, SpoolWriter
 
@@ -103,8 +103,8 @@ def test_a_fresh_reader_lists_before_it_takes_a_note(tmp_path):
 def test_the_spool_source_reads_woken_pairs_in_order(tmp_path):
     import asyncio
 
-    from controller.frame_source import SpoolFrameSource
-    from controller.spool_watch import SpoolWatch
+    from controller.frames.source import SpoolFrameSource
+    from controller.frames.spool_watch import SpoolWatch
 
     if not SpoolWatch(tmp_path).active:
         pytest.skip("no inotify here")

@@ -2,7 +2,7 @@
 
 The measurer here reads the simulator's truth of each pair (no images rendered), so these tests
 exercise the service -- supervisor, loops, buses, log -- independently of the vision pipeline;
-``tests/test_hil.py`` runs the whole chain with the real pipeline.
+``tests/planer/hil/test_hil.py`` runs the whole chain with the real pipeline.
 """
 
 from __future__ import annotations
@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 
 from config.machine import load_machine
-from controller.events import EventKind
-from controller.quality_log import QualityLog
-from controller.safety import SafetyState
+from controller.quality.log import QualityLog
+from controller.service.events import EventKind
+from controller.service.supervisor import SafetyState
 from core.errors import MeasurementError, RegistrationError
 from planer.hil import Scenario, sim_config_for
-from tests.plant_support import record_frames, run_for
+from tests.support.plant_support import record_frames, run_for
 
 SCENARIO = Scenario(runout_um=(0.0, 4.0, -2.0, 2.0), initial_feed_mm_s=800.0)
 

@@ -13,10 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.events import EventKind, EventLog
-from controller.frame_intake import FrameIntake, frame_metadata
-from controller.measurement import VISION_ERRORS, MeasurementStage, failure_reason
-from controller.service_clock import ServiceClock
+from controller.service.clock import ServiceClock
+from controller.service.events import EventKind, EventLog
+from controller.service.intake import FrameIntake, frame_metadata
+from controller.service.measurement import VISION_ERRORS, MeasurementStage, failure_reason
 from core.errors import MeasurementError, RegistrationError
 
 

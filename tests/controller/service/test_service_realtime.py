@@ -11,7 +11,7 @@ import asyncio
 import time
 from dataclasses import replace
 
-from controller.events import EventKind
+from controller.service.events import EventKind
 
 N_PAIRS = 6
 
@@ -20,10 +20,10 @@ async def _run(frames, machine, tmp_path):
     import can
 
     from config.machine import load_machine
-    from controller.frame_source import QueueFrameSource
-    from controller.service import open_service
-    from plant_sim.amp_node import AmpNode, AmpNodeCore
-    from plant_sim.plc_server import PlcServer
+    from controller.frames.source import QueueFrameSource
+    from controller.service.service import open_service
+    from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
+    from plant_sim.interfaces.plc_server import PlcServer
     from protocol.piezo_can import PiezoCodec
 
     server = PlcServer(machine, host="127.0.0.1", port=0)
@@ -76,8 +76,8 @@ async def _run(frames, machine, tmp_path):
 
 def test_run_in_real_time_applies_every_pair(tmp_path):
     from config.sim import default_sim
-    from controller.quality_log import QualityLog
-    from plant_sim.machine import Machine
+    from controller.quality.log import QualityLog
+    from plant_sim.model.machine import Machine
 
     machine = Machine(default_sim(), seed=3)
     frames: list = []

@@ -6,7 +6,7 @@
 * the supervisor's state and the reason of a safe state in every record;
 * a feed setpoint the PLC refused never enters the feed loop's setpoint history.
 
-Simulated time, the in-process plant of ``tests/test_service_loop.py``.
+Simulated time, the in-process plant of ``tests/controller/service/test_service_loop.py``.
 """
 
 from __future__ import annotations
@@ -18,14 +18,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from controller.events import EventKind
-from controller.plc_client import BusRefused
-from controller.quality_log import QualityLog, record_to_json
-from controller.quality_records import PROFILE_EVERY, PROFILE_MAX_POINTS, decimated_profile
-from controller.report import last_profile
-from controller.safety import SafetyState
-from tests.plant_support import run_for
-from tests.test_service_loop import TruthMeasurer, make_plant
+from controller.quality.log import QualityLog, record_to_json
+from controller.quality.report import last_profile
+from controller.service.events import EventKind
+from controller.service.records import PROFILE_EVERY, PROFILE_MAX_POINTS, decimated_profile
+from controller.service.supervisor import SafetyState
+from protocol.register_bus import BusRefused
+from tests.controller.service.test_service_loop import TruthMeasurer, make_plant
+from tests.support.plant_support import run_for
 
 N_COLUMNS = 659
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from config.machine import SafetyConfig
-from controller.safety import (
+from controller.service.supervisor import (
     AMP_CONFIRM_S,
     AmplifierMonitor,
     SafetyState,

@@ -1,6 +1,7 @@
 """The service measures with the machine's facts and calibrates itself per board.
 
-* :class:`controller.measurement.MeasurementStage` builds the vision's measurer with the PLC's
+* :class:`controller.service.measurement.MeasurementStage` builds the vision's measurer with the
+PLC's
   cutting radius and knives (again only when they change) and hands one self-calibrator per
   board to it (a fresh one for every new board);
 * the records carry the roll, the calibration and the kinematic depth: on the in-process
@@ -20,8 +21,8 @@ import numpy as np
 import pytest
 
 from config.machine import load_machine
-from controller.measurement import MachineFacts, MeasurementStage, VisionMeasurers
-from controller.quality_log import QualityLog
+from controller.quality.log import QualityLog
+from controller.service.measurement import MachineFacts, MeasurementStage, VisionMeasurers
 
 SHAPE = (6, 8)
 
@@ -158,7 +159,7 @@ def test_vision_factory_builds_the_measurer_with_radius_and_knives():
 
 def test_records_carry_roll_calibration_and_kinematic_depth_on_the_realistic_rig(tmp_path):
     from planer.hil import InProcessPlant, Scenario, sim_config_for
-    from tests.plant_support import run_for
+    from tests.support.plant_support import run_for
 
     cfg = load_machine()
     cfg = cfg.with_changes(log=replace(cfg.log, path=tmp_path / "q.sqlite"))
@@ -210,7 +211,7 @@ def test_records_carry_roll_calibration_and_kinematic_depth_on_the_realistic_rig
 def _open(cfg, **kw):
     import can
 
-    from controller.service import open_service
+    from controller.service.service import open_service
 
     bus = can.Bus(interface="virtual", channel=f"selfcal-{id(cfg)}")
     try:
@@ -233,7 +234,7 @@ def test_open_service_stamps_the_configured_machine_id(tmp_path):
 
 @pytest.mark.parametrize("where", ["config", "option"])
 def test_a_database_url_creates_no_local_folder(tmp_path, monkeypatch, where):
-    from tests.pg_support import _free_port
+    from tests.support.pg_support import _free_port
 
     monkeypatch.chdir(tmp_path)
     url = f"postgresql://planer@127.0.0.1:{_free_port()}/fleet"  # nothing listens there

@@ -2,7 +2,7 @@
 
 Also the typed events' ``reason`` (safe-state entries name why without text parsing) and the
 feed setpoint in force on failed records (docs/quality_log.md). Simulated time, the in-process
-plant of ``tests/test_service_loop.py``.
+plant of ``tests/controller/service/test_service_loop.py``.
 """
 
 from __future__ import annotations
@@ -13,13 +13,13 @@ import json
 
 import pytest
 
-from controller.events import EventKind
-from controller.quality_log import QualityLog
-from controller.safety import SOURCES, SafetyState
-from controller.service_status import ServiceStatus
+from controller.quality.log import QualityLog
+from controller.service.events import EventKind
+from controller.service.status import ServiceStatus
+from controller.service.supervisor import SOURCES, SafetyState
 from core.errors import MeasurementError
-from tests.plant_support import run_for
-from tests.test_service_loop import make_plant
+from tests.controller.service.test_service_loop import make_plant
+from tests.support.plant_support import run_for
 
 
 def _check_agrees(svc, st: ServiceStatus) -> None:

@@ -18,15 +18,15 @@ import numpy as np
 import pytest
 
 from config.machine import load_machine
-from controller.events import EventLog
-from controller.frame_result import FrameResult
-from controller.mark_attribution import (
+from controller.service.attribution import (
     attribute,
     attribute_or_reason,
     kinematic_cv,
     vanished_knives,
 )
-from controller.quality_records import QualityRecords
+from controller.service.events import EventLog
+from controller.service.frame_result import FrameResult
+from controller.service.records import QualityRecords
 from protocol.frames import Frame
 
 WRAP = 1 << 32

@@ -22,20 +22,20 @@ pytest.importorskip("starlette", reason="the web extra (starlette) is not instal
 pytest.importorskip("uvicorn", reason="the web extra (uvicorn) is not installed")
 httpx = pytest.importorskip("httpx", reason="httpx (the test's HTTP client) is not installed")
 
-from controller.events import EventKind, ServiceEvent  # noqa: E402
-from controller.quality_log import (  # noqa: E402
+from controller.quality.log import (  # noqa: E402
     CSV_COLUMNS,
     QualityClass,
     QualityRecord,
     open_quality_log,
     utc_iso,
 )
+from controller.service.events import EventKind, ServiceEvent  # noqa: E402
 from controller.web.app import CSP, STATIC_DIR, make_app  # noqa: E402
 from controller.web.live import LiveView  # noqa: E402
 from controller.web.quality import QualityBrowser  # noqa: E402
 from controller.web.server import WebServer, bind, parse_listen  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 BOARDS = {1: 5, 2: 3}  # board id -> records
 
 

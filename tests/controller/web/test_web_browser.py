@@ -39,7 +39,7 @@ from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
 BROWSERS = ("/usr/lib/chromium/chromium", "/usr/bin/chromium", "/usr/bin/chromium-browser")
 BROWSER = next((b for b in BROWSERS if Path(b).exists()), None)
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 TIMEOUT_S = 120.0  # generous: the machine is shared and loaded
 
 

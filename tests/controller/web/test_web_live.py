@@ -9,10 +9,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from controller.events import EventKind, ServiceEvent
-from controller.frame_result import FrameResult
-from controller.quality_log import QualityClass
-from controller.service_status import ServiceStatus
+from controller.quality.log import QualityClass
+from controller.service.events import EventKind, ServiceEvent
+from controller.service.frame_result import FrameResult
+from controller.service.status import ServiceStatus
 from controller.web.live import (
     UNAMBIGUOUS_MARGIN,
     LiveView,

@@ -20,19 +20,19 @@ import numpy as np
 import pytest
 
 from config.machine import load_machine, machine_from_dict
-from controller.events import EventKind
-from controller.measure_workers import (
+from controller.quality.log import QualityLog
+from controller.service.events import EventKind
+from controller.service.supervisor import SafetyState
+from controller.workers.pool import (
     MeasurementWorkerError,
     MeasureWorkerPool,
     available_cores,
     open_worker_pool,
     plan_workers,
 )
-from controller.quality_log import QualityLog
-from controller.safety import SafetyState
 from core.errors import ConfigError, MeasurementError
 from planer.hil import Scenario, sim_config_for
-from tests.plant_support import record_frames, run_for
+from tests.support.plant_support import record_frames, run_for
 
 SCENARIO = Scenario(runout_um=(0.0, 4.0, -2.0, 2.0), initial_feed_mm_s=800.0)
 BACKSTOP_S = 60.0  # a worker waiting for a gate gives up after this (a broken test, not a pass)
@@ -277,8 +277,8 @@ def test_workers_measure_as_this_process_does_and_the_calibrator_folds_in_order(
     from config.machine import rig_path
     from config.rig import load_rig
     from config.sim import default_sim
-    from controller.measurement import MachineFacts, MeasurementStage, VisionMeasurers
-    from plant_sim.machine import Machine
+    from controller.service.measurement import MachineFacts, MeasurementStage, VisionMeasurers
+    from plant_sim.model.machine import Machine
 
     machine = Machine(default_sim(), seed=4)
     frames: list = []
@@ -409,13 +409,13 @@ def test_a_workers_reply_is_one_write_that_recv_reads_back(size):
     import multiprocessing
     from unittest import mock
 
-    from controller.measure_worker_process import _send_whole
+    from controller.workers.process import _send_whole
 
     a, b = multiprocessing.Pipe()
     payload = ("done", 7, bytes(range(256)) * (size // 256), {"k": [1.5, None]})
     writes = []
     real = os.write
-    with mock.patch("controller.measure_worker_process.os.write",
+    with mock.patch("controller.workers.process.os.write",
                     side_effect=lambda fd, data: writes.append(len(data)) or real(fd, data)):
         _send_whole(a, payload)
     assert b.recv() == payload

@@ -3,7 +3,7 @@
 The service reads each worker's replies with one ``os.read`` per wake-up and cuts the messages
 out itself: a reply split over reads, or several in one, must reach their own pairs, in any
 order of completion, with failures reported as such. The camera's roll is searched for on the
-pairs the service picks in sequence order (:class:`controller.measure_workers._RollPlan`):
+pairs the service picks in sequence order (:class:`controller.workers.pool._RollPlan`):
 exactly as the board's calibrator in process when each pair comes back before the next, and
 never less often (at most the pairs in flight more) when they overlap.
 """
@@ -23,7 +23,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.measure_workers import MeasurementWorkerError, MeasureWorkerPool, _RollPlan
+from controller.workers.pool import MeasurementWorkerError, MeasureWorkerPool, _RollPlan
 from vision.selfcal import SelfCalibrator
 
 MIN_CONFIDENCE = 0.3
@@ -284,9 +284,9 @@ def test_scaling_reports_both_ratios_and_where_the_time_goes():
     from config.machine import load_machine, rig_path
     from config.rig import load_rig
     from config.sim import default_sim
-    from controller.measurement import MachineFacts
+    from controller.service.measurement import MachineFacts
     from planer.benchmarks.scaling import scaling
-    from plant_sim.machine import Machine
+    from plant_sim.model.machine import Machine
 
     machine = Machine(default_sim(), seed=3)
     frames: list = []
@@ -332,7 +332,7 @@ _floats = st.lists(st.floats(allow_nan=False, width=64), max_size=8).map(
 @settings(max_examples=80, deadline=None)
 @given(x=_floats, widths=_floats, knife=st.none() | _floats, pitch=st.floats(allow_nan=False))
 def test_a_packed_measurement_comes_back_field_for_field(x, widths, knife, pitch):
-    from controller.measure_worker_process import _pack, _Packed
+    from controller.workers.process import _pack, _Packed
 
     meas = _Meas(x, pitch, widths, np.arange(3, dtype=np.int32), knife_mm=knife)
     packed = _pack(meas)
@@ -356,6 +356,6 @@ def test_a_packed_measurement_comes_back_field_for_field(x, widths, knife, pitch
     None,
 ])
 def test_what_is_not_a_plain_dataclass_of_float_arrays_goes_as_it_is(meas):
-    from controller.measure_worker_process import _pack
+    from controller.workers.process import _pack
 
     assert _pack(meas) is meas

@@ -20,8 +20,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.measure_worker_link import WorkerLink
-from controller.measure_worker_process import (
+from controller.workers.link import WorkerLink
+from controller.workers.process import (
     SLOT_HEAD,
     _blob_into_slot,
     _cal_from,
@@ -239,7 +239,7 @@ def test_workers_give_back_each_pairs_own_arrays_through_the_slots():
     import asyncio
     from types import SimpleNamespace
 
-    from controller.measure_workers import MeasureWorkerPool
+    from controller.workers.pool import MeasureWorkerPool
 
     rng = np.random.default_rng(5)
     n = 24
@@ -314,7 +314,7 @@ def _told(far) -> list:
 def test_replies_are_held_while_the_worker_is_saturated_and_told_together(block):
     import multiprocessing
 
-    from controller.measure_worker_process import _Replies
+    from controller.workers.process import _Replies
 
     near, far = multiprocessing.Pipe()
     replies = _Replies(near, hold=3)
@@ -378,7 +378,7 @@ def _run_gated(tmp_path, factory, n: int):
     problems."""
     import asyncio
 
-    from controller.measure_workers import MeasureWorkerPool
+    from controller.workers.pool import MeasureWorkerPool
 
     rng = np.random.default_rng(9)
     images = [(rng.integers(0, 255, (64, 64), np.uint8), rng.integers(0, 255, (64, 64), np.uint8))
@@ -434,7 +434,7 @@ def test_the_inbox_counts_whole_messages_and_assembles_long_ones_over_reads():
     import multiprocessing
     import threading
 
-    from controller.measure_worker_process import READ_BYTES, _Inbox
+    from controller.workers.process import READ_BYTES, _Inbox
 
     near, far = multiprocessing.Pipe()
     big = ("job", 3, ("pickled", np.arange(3 * READ_BYTES, dtype=np.uint8)))  # several reads

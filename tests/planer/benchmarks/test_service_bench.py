@@ -18,7 +18,7 @@ N_PAIRS = 4
 @pytest.fixture(scope="module")
 def frames_and_machine():
     from config.sim import default_sim
-    from plant_sim.machine import Machine
+    from plant_sim.model.machine import Machine
 
     machine = Machine(default_sim(), seed=2)
     frames: list = []
@@ -53,7 +53,7 @@ def test_bench_handles_every_pair_even_when_the_last_one_is_slow(
 def test_bench_fails_clearly_when_the_service_never_runs(tmp_path, monkeypatch,
                                                          frames_and_machine):
     from planer.benchmarks import service as bench
-    from plant_sim.amp_node import AmpNode
+    from plant_sim.interfaces.amp_node import AmpNode
 
     monkeypatch.setattr(AmpNode, "pump", lambda self, now_s: None)  # the amplifier is silent
     frames, machine = frames_and_machine

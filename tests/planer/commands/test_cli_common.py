@@ -13,7 +13,7 @@ import pytest
 
 from planer.cli import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 
 FAKE = textwrap.dedent(
     """

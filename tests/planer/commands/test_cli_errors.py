@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from controller.quality_log import QualityLog
+from controller.quality.log import QualityLog
 from planer import cli
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _run(argv, capsys):

@@ -11,7 +11,7 @@ import pytest
 from config.rig import rig_to_toml
 from planer.cli import main
 
-scenarios = pytest.importorskip("plant_sim.scenarios")
+scenarios = pytest.importorskip("plant_sim.rendering.scenarios")
 
 
 @pytest.fixture(scope="module")

@@ -40,7 +40,7 @@ def test_source_counts_of_every_kind_of_source(source, expected):
 
 
 def _capture(monkeypatch):
-    import controller.frame_source as fs
+    import controller.frames.source as fs
 
     got = {}
 
@@ -53,7 +53,7 @@ def _capture(monkeypatch):
 
 
 def test_a_camera_source_gets_the_plcs_latches(monkeypatch):
-    from controller.camera.latches import ModbusLatchReader
+    from controller.frames.camera.latches import ModbusLatchReader
 
     got = _capture(monkeypatch)
     cfg = load_machine()
@@ -81,8 +81,8 @@ def test_a_spool_source_needs_no_latch_reader(monkeypatch):
 
 
 def test_the_latch_reader_is_closed_when_the_camera_does_not_open(monkeypatch):
-    import controller.camera.latches as latches
-    import controller.frame_source as fs
+    import controller.frames.camera.latches as latches
+    import controller.frames.source as fs
 
     closed = []
 

@@ -16,8 +16,8 @@ import pytest
 import tomllib
 
 from config.loading import load_toml
-from controller.events import EventKind, ServiceEvent
-from controller.service import FrameResult
+from controller.service.events import EventKind, ServiceEvent
+from controller.service.service import FrameResult
 from core.errors import ConfigError, FieldbusError
 from planer.hil import (
     FaultEvent,
@@ -32,7 +32,7 @@ from planer.hil import (
 )
 from planer.hil.summary import _settled_at
 
-REPO = Path(__file__).parents[1]
+REPO = Path(__file__).parents[3]
 
 
 # ---------------------------------------------------------------------------------- scenarios
@@ -403,7 +403,7 @@ def test_in_process_start_failure_leaves_no_bus_open(tmp_path, monkeypatch, capl
     """Modbus cannot listen, or the log path is unusable: every CAN bus is shut down."""
     import gc
 
-    from plant_sim.plc_server import PlcServer
+    from plant_sim.interfaces.plc_server import PlcServer
 
     async def cannot_listen(self):
         raise FieldbusError("cannot listen on 127.0.0.1:0: address in use")

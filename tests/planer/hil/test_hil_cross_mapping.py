@@ -11,10 +11,10 @@ import socket
 import numpy as np
 import pytest
 
-from controller.frame_result import FrameResult
+from controller.service.frame_result import FrameResult
 from planer.hil.cross_process import free_port, time_factor
 from planer.hil.summary import _local_offset
-from plant_sim.runner import CLOCK_KEY
+from plant_sim.run.runner import CLOCK_KEY
 
 
 def _results(rate: float, *, offset: float, delays, stamped: bool, n: int = 60,

@@ -36,7 +36,7 @@ def sim_cfg():
 
 def test_registry_is_the_one_list_of_kinds():
     import config.sim
-    from controller.safety import SOURCES
+    from controller.service.supervisor import SOURCES
 
     assert FAULT_KINDS == tuple(k.value for k in FaultKind) == config.sim.FAULT_KINDS
     assert set(INTERFACE_FAULTS) == {"modbus_restart", "can_silence", "can_drop"}
@@ -56,7 +56,7 @@ def test_registry_is_the_one_list_of_kinds():
 @pytest.mark.parametrize("kind", list(FaultKind), ids=str)
 def test_every_kind_and_parameter_is_understood_by_the_machine(kind, sim_cfg):
     """What the registry accepts the machine model takes (scheduled, so nothing acts yet)."""
-    from plant_sim.machine import Machine
+    from plant_sim.model.machine import Machine
 
     m = Machine(sim_cfg, seed=0, render_images=False)
     params = _valid(kind)
@@ -71,7 +71,7 @@ def test_every_kind_and_parameter_is_understood_by_the_machine(kind, sim_cfg):
 @pytest.mark.parametrize("kind", [k for k in FaultKind if k.required], ids=str)
 def test_a_missing_required_parameter_is_an_error_everywhere(kind, sim_cfg, tmp_path):
     """A fault without ``duration_s`` was once taken as 0 s: now every entry point refuses it."""
-    from plant_sim.machine import Machine
+    from plant_sim.model.machine import Machine
 
     (name,) = kind.required
     with pytest.raises(ConfigError, match=rf"faults\.inject\[0\]\.{name} is required for {kind}"):

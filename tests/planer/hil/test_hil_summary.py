@@ -10,8 +10,8 @@ from types import SimpleNamespace
 import pytest
 
 from config.machine import SafetyConfig
-from controller.events import EventKind, ServiceEvent
-from controller.service import FrameResult
+from controller.service.events import EventKind, ServiceEvent
+from controller.service.service import FrameResult
 from planer.hil import FaultEvent, json_ready, summarize
 
 

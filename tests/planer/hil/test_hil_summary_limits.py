@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import pytest
 
-from controller.events import EventKind, ServiceEvent
+from controller.service.events import EventKind, ServiceEvent
 from planer.hil import FaultEvent
 from planer.hil.summary import limits_report, refused_tables
-from tests.test_hil_summary import _result, _summary
+from tests.planer.hil.test_hil_summary import _result, _summary
 
 AMP = {"stroke_um": 10.0, "source": "amplifier", "amp_stroke_um": 10.0, "limit_um": 10.0}
 

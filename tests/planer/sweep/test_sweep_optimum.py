@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controller.uniformity_loop import UniformityLoopConfig
+from controller.laws.uniformity_loop import UniformityLoopConfig
 from planer.hil.scenario import load_scenario
 from planer.sweep.design import Point
 from planer.sweep.optimum import actuator_response_um, constrained_optimum_cv, true_cv

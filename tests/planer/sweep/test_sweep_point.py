@@ -161,7 +161,8 @@ def tiny_jobs():
 
 
 def test_a_real_run_is_a_full_row(tiny_jobs):
-    # (the same seed giving the same row, here and on Dask workers: tests/test_sweep_driver.py)
+    # (the same seed giving the same row, here and on Dask workers:
+    # tests/planer/sweep/test_sweep_driver.py)
     i1, row, wall = run_job(tiny_jobs[1])
     assert i1 == 1 and wall > 0
     assert row["error"] == "", row["error"]

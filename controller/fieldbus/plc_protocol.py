@@ -1,0 +1,261 @@
+"""The PLC's requests and answers without I/O: the decoded snapshot, the request codec, back-off.
+
+* :class:`PlcSnapshot` — all registers of one read, decoded and checked;
+* :class:`PlcProtocol` — which words to read (the whole span of ``config/registers.toml`` in one
+  request), how to decode them, which words to write for the feed setpoint (``f32``, two
+  registers, function 16) and the heartbeat (``u16``, function 6);
+* :class:`Backoff` — the reconnect policy: capped exponential back-off on an injected clock.
+
+Pure: no asyncio, no pymodbus; :mod:`controller.fieldbus.plc_client` puts them on the bus.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+from core.checks import check_finite, check_positive
+from core.errors import FieldbusError
+from protocol.registers import MachineState, ModbusException, PlcFault, RegisterMap
+
+MODBUS_EXCEPTIONS = {int(code): code.text for code in ModbusException}
+"""Exception code to the spec's name, for messages (``protocol.registers.ModbusException``)."""
+
+
+@dataclass(frozen=True)
+class PlcSnapshot:
+    """All registers of one read, decoded; the fields the service uses are typed attributes.
+
+    Attributes
+    ----------
+    values : mapping
+        Every register by name (``config/registers.toml``).
+    t_s : float
+        Time of the answer on the client's clock, seconds.
+    """
+
+    values: Mapping[str, float | int]
+    t_s: float
+
+    def __getitem__(self, name: str) -> float | int:
+        return self.values[name]
+
+    @property
+    def spindle_rpm(self) -> float:
+        """Measured spindle speed, rpm."""
+        return float(self.values["spindle_rpm"])
+
+    @property
+    def knives(self) -> int:
+        """Number of knives Z."""
+        return int(self.values["knives"])
+
+    @property
+    def feed_min_mm_s(self) -> float:
+        """Lowest accepted feed setpoint, mm/s."""
+        return float(self.values["feed_min_mm_s"])
+
+    @property
+    def feed_max_mm_s(self) -> float:
+        """Highest accepted feed setpoint, mm/s."""
+        return float(self.values["feed_max_mm_s"])
+
+    @property
+    def feed_setpoint_mm_s(self) -> float:
+        """Feed setpoint the PLC holds now, mm/s."""
+        return float(self.values["feed_setpoint_mm_s"])
+
+    @property
+    def feed_actual_mm_s(self) -> float:
+        """Measured feed speed, mm/s."""
+        return float(self.values["feed_actual_mm_s"])
+
+    @property
+    def cutter_to_camera_mm(self) -> float:
+        """Distance L from the cutterhead axis to the camera axis, mm."""
+        return float(self.values["cutter_to_camera_mm"])
+
+    @property
+    def counts_per_mm(self) -> float:
+        """Feed encoder resolution, counts/mm."""
+        return float(self.values["counts_per_mm"])
+
+    @property
+    def index_latch_counts(self) -> int:
+        """Encoder counts at the spindle index pulse of the last pair."""
+        return int(self.values["index_latch_counts"])
+
+    @property
+    def trigger_seq(self) -> int:
+        """Sequence number of the last image pair (mod 2**16)."""
+        return int(self.values["trigger_seq"])
+
+    @property
+    def machine_state(self) -> MachineState:
+        """Machine state bits (running, board present, e-stop, spindle running, feed enabled)."""
+        return MachineState(int(self.values["machine_state"]))
+
+    @property
+    def faults(self) -> PlcFault:
+        """Fault bits (feed drive, spindle stopped, encoder, heartbeat lost, piezo amplifier)."""
+        return PlcFault(int(self.values["faults"]))
+
+    @property
+    def board_present(self) -> bool:
+        """Whether a board is under the camera."""
+        return MachineState.BOARD_PRESENT in self.machine_state
+
+    @property
+    def estop(self) -> bool:
+        """Whether the e-stop is active."""
+        return MachineState.ESTOP in self.machine_state
+
+    @property
+    def spindle_running(self) -> bool:
+        """Whether the spindle runs."""
+        return MachineState.SPINDLE_RUNNING in self.machine_state
+
+    def problem(self) -> str | None:
+        """Why these registers cannot be trusted for control, or ``None`` when they can.
+
+        A PLC that answers nonsense (NaN or infinite floats, no knives, a zero encoder scale,
+        inverted feed limits...) must not drive the loops: the service
+        treats such an answer like a machine that is not fit to run (safe state, no feed write).
+
+        Returns
+        -------
+        str or None
+            The first problem found, naming the register(s).
+        """
+        v = self.values
+        try:
+            knives = int(v["knives"])
+            if not 1 <= knives <= MAX_KNIVES:
+                return f"knives = {knives} (must be 1..{MAX_KNIVES})"
+            for name in _POSITIVE:
+                x = float(v[name])
+                if not (math.isfinite(x) and x > 0):
+                    return f"{name} = {x!r} (must be finite and > 0)"
+            for name in _NON_NEGATIVE:
+                x = float(v[name])
+                if not (math.isfinite(x) and x >= 0):
+                    return f"{name} = {x!r} (must be finite and >= 0)"
+            if not math.isfinite(self.feed_actual_mm_s):
+                return f"feed_actual_mm_s = {self.feed_actual_mm_s!r} (must be finite)"
+            lo, hi = self.feed_min_mm_s, self.feed_max_mm_s
+            if not lo < hi:
+                return f"feed_min_mm_s {lo!r} >= feed_max_mm_s {hi!r}"
+            if not math.isfinite(self.feed_setpoint_mm_s):
+                return f"feed_setpoint_mm_s = {self.feed_setpoint_mm_s!r} (must be finite)"
+        except KeyError as exc:
+            return f"register {exc} missing"
+        except (TypeError, ValueError) as exc:
+            return f"unreadable value: {exc}"
+        return None
+
+
+MAX_KNIVES = 8
+"""Most knives the piezo frames carry."""
+_POSITIVE = (
+    "feed_min_mm_s",
+    "feed_max_mm_s",
+    "counts_per_mm",
+    "cutter_to_camera_mm",
+    "cutterhead_radius_mm",
+)
+_NON_NEGATIVE = ("spindle_rpm", "feed_accel_max_mm_s2")
+
+
+class PlcProtocol:
+    """Sans-I/O Modbus requests and answers over a :class:`RegisterMap` (built once).
+
+    Parameters
+    ----------
+    regmap : RegisterMap
+        The register map.
+    """
+
+    def __init__(self, regmap: RegisterMap) -> None:
+        self.regmap = regmap
+        self.read_address, self.read_count = regmap.span()
+        self._feed = regmap["feed_setpoint_mm_s"]
+        self._hb = regmap["heartbeat_service"]
+
+    def decode_read(self, words: Sequence[int]) -> dict[str, float | int]:
+        """Decode the words of one whole-span read into every register's value."""
+        if len(words) != self.read_count:
+            raise FieldbusError(
+                f"PLC answered {len(words)} registers, expected {self.read_count}"
+            )
+        return self.regmap.decode_block(words, self.read_address)
+
+    def feed_request(
+        self, feed_mm_s: float, current: Mapping[str, float | int] | None = None
+    ) -> tuple[int, list[int]]:
+        """Address and words writing the feed setpoint (checked against the limits if known)."""
+        v = check_finite("feed_mm_s", feed_mm_s)
+        if current is not None:
+            self.regmap.check_write(self._feed.name, v, current)
+        return self._feed.address, self.regmap.encode(self._feed.name, v)
+
+    def heartbeat_request(self, value: int) -> tuple[int, list[int]]:
+        """Address and word writing the service heartbeat (wrapped to 16 bits)."""
+        return self._hb.address, self.regmap.encode(self._hb.name, int(value) & 0xFFFF)
+
+    def names_at(self, address: int, count: int) -> str:
+        """Names of the registers in ``[address, address + count)`` for error messages."""
+        names: list[str] = []
+        for a in range(address, address + count):
+            reg = self.regmap.at(a)
+            if reg is not None and reg.name not in names:
+                names.append(reg.name)
+        if not names:
+            return f"address {address}"
+        if len(names) > 3:
+            return f"{names[0]}..{names[-1]} ({address}..{address + count - 1})"
+        return ", ".join(names)
+
+
+class Backoff:
+    """Capped exponential back-off for reconnect attempts (pure; time passed in).
+
+    Parameters
+    ----------
+    initial_s : float
+        Wait after the first failure, seconds.
+    max_s : float
+        Cap of the wait, seconds.
+    factor : float
+        Growth per consecutive failure.
+    """
+
+    def __init__(self, initial_s: float, max_s: float, *, factor: float = 2.0) -> None:
+        self.initial_s = check_positive("initial_s", initial_s)
+        self.max_s = check_positive("max_s", max_s)
+        if self.max_s < self.initial_s:
+            raise ValueError(f"max_s {max_s} < initial_s {initial_s}")
+        self.factor = check_positive("factor", factor)
+        self.failures = 0
+        self.next_attempt_s = float("-inf")
+
+    def delay_s(self) -> float:
+        """Wait after the current number of consecutive failures."""
+        if self.failures == 0:
+            return 0.0
+        return min(self.max_s, self.initial_s * self.factor ** (self.failures - 1))
+
+    def failed(self, now_s: float) -> float:
+        """Record a failed attempt at ``now_s``; return the time of the next allowed attempt."""
+        self.failures += 1
+        self.next_attempt_s = check_finite("now_s", now_s) + self.delay_s()
+        return self.next_attempt_s
+
+    def succeeded(self) -> None:
+        """Record a success: the next failure starts from ``initial_s`` again."""
+        self.failures = 0
+        self.next_attempt_s = float("-inf")
+
+    def may_attempt(self, now_s: float) -> bool:
+        """Whether an attempt is allowed at ``now_s``."""
+        return now_s >= self.next_attempt_s
