@@ -11,7 +11,7 @@ import pytest
 
 from config.rig import load_rig, rig_to_toml
 from planer.cli import main
-from tests.vision_boards import render_board
+from tests.support.vision_boards import render_board
 from vision.rigcal import estimate_rig, fit_slants, log_ratio_from_slope
 
 RUNOUT = (0.0, 2.0, -1.0, 1.0)

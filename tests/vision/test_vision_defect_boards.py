@@ -1,7 +1,7 @@
 """Boards with wood defects: measured right, or flagged -- never a confident wrong pitch.
 
-Boards from the independent renderer ``tests/defect_boards.py`` (a 2-D height field with cast
-shadows; no ``plant_sim``): torn grain, raised grain, fuzzy grain, chip marks, knife nicks,
+Boards from the independent renderer ``tests/support/defect_boards.py`` (a 2-D height field with
+cast shadows; no ``plant_sim``): torn grain, raised grain, fuzzy grain, chip marks, knife nicks,
 chatter and snipe over the issue's ranges, on pine, oak and beech, at 50 mm/s to 2 m/s, roll
 within +-3 deg, 4 knives at 2.0 mm.  Criteria: profile correlation with the cuttermarks >= 0.95
 (cubic trend removed), pitch within 1 %, uniformity CV within 0.03, depth within 15 %, shift
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from core.errors import MeasurementError
-from tests.defect_boards import Defects, render_defect_board
+from tests.support.defect_boards import Defects, render_defect_board
 from vision.consistency import (
     honest_confidence,
     marks_shading_agreement,

@@ -161,7 +161,7 @@ def test_quick_texture_pass_is_kept_only_when_strong():
 
 
 def test_a_gain_only_calibration_scales_the_profile_and_keeps_the_marks():
-    from tests.vision_boards import render_board
+    from tests.support.vision_boards import render_board
     from vision.pipeline import Measurer
 
     board = render_board(4, slant_a_error_deg=3.0, slant_b_error_deg=3.0,
@@ -180,7 +180,7 @@ def test_a_gain_only_calibration_scales_the_profile_and_keeps_the_marks():
 
 
 def test_the_board_calibrator_searches_the_roll_every_few_pairs(monkeypatch):
-    from tests.vision_boards import render_board
+    from tests.support.vision_boards import render_board
     from vision.pipeline import Measurer
     from vision.selfcal import SelfCalibrator
 

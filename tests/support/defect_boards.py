@@ -1,7 +1,8 @@
 """An independent renderer of boards with wood defects (not plant_sim, not vision).
 
 Shares no code with ``plant_sim/`` or ``vision/``; it takes only the pixel scale and encoder
-resolution of ``tests/vision_boards.py``.  Unlike that renderer (a 1-D height along the feed),
+resolution of ``tests/support/vision_boards.py``.  Unlike that renderer (a 1-D height along the
+feed),
 the surface here is a 2-D height field ``z(x, y)`` on a board grid of 0.02 mm along the feed and
 0.04 mm across it, so that defects whose shading depends on the light are rendered as a camera
 sees them:
@@ -38,7 +39,7 @@ import cv2
 import numpy as np
 
 from config.rig import Camera, Encoder, Lights, Rig
-from tests.vision_boards import COUNTS_PER_MM, PX_PER_MM
+from tests.support.vision_boards import COUNTS_PER_MM, PX_PER_MM
 
 FINE_MM = 0.002  # 1-D grid of the cuttermarks' shading
 DX_MM = 0.02  # 2-D board grid along the feed

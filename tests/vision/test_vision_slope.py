@@ -11,7 +11,7 @@ import pytest
 from vision.marks import corr2
 from vision.slope import lambert_intensity, slope_eq4, slope_from_ratio
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "diligent_ball"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "diligent_ball"
 
 
 def test_light_at_180_gives_plus_p_sin_sigma():

@@ -47,10 +47,10 @@ def test_figure_needs_no_pyplot():
     import sys
 
     code = (
-        "import sys, tests.test_vision_plot as t\n"
+        "import sys, tests.vision.test_vision_plot as t\n"
         "t.profile_figure(t._measurement())\n"
         "assert 'matplotlib.pyplot' not in sys.modules, 'pyplot was imported'\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          cwd=str(__import__("pathlib").Path(__file__).parents[1]), check=False)
+                          cwd=str(__import__("pathlib").Path(__file__).parents[2]), check=False)
     assert proc.returncode == 0, proc.stderr

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.vision_boards import render_board
+from tests.support.vision_boards import render_board
 from vision.pipeline import Measurer
 from vision.registration import Registrar
 

@@ -1,6 +1,6 @@
 """Issue 12: the measurement on boards with the effects of real rigs and real wood.
 
-Boards from the independent renderer ``tests/vision_boards.py`` (not ``plant_sim``): camera
+Boards from the independent renderer ``tests/support/vision_boards.py`` (not ``plant_sim``): camera
 roll, anisotropic subsurface scattering, true light slants off the rig file, rough reflectance,
 knots, pores, a pencil line, bow and cup, read noise, 1 m/s with slip.  Each effect alone, over
 tables of cases; criteria of the issue: profile correlation >= 0.97 (against the truth without
@@ -15,7 +15,7 @@ import math
 import numpy as np
 import pytest
 
-from tests.vision_boards import render_board
+from tests.support.vision_boards import render_board
 from vision.marks import corr2
 from vision.pipeline import Measurer
 
