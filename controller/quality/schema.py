@@ -21,7 +21,7 @@ from core.checks import check_finite, check_int, check_positive
 from core.errors import PlanerError
 
 #: Version of the table layout this code writes; logs with a higher version are refused.
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 #: SQLite ``application_id`` marking a file as a planer quality log ("PLQL").
 APPLICATION_ID = 0x504C514C
 #: Longest machine id (``[machine] id``), characters.
@@ -202,6 +202,12 @@ class QualityRecord:
         ``depth_um`` (photometric), a difference shows spring-back, tear-out or chatter.
     uncalibrated_depth_um : float or None
         ``depth_um`` before the self-calibration, um.
+    flag_reason : str or None
+        Why a measured pair was flagged and kept out of the control loops: the vision's own
+        checks disagreed (``Measurement.flag_reason``) or the pitch disagrees with the feed
+        and spindle the PLC reports beyond slip and ripple. A flagged record is a failed one
+        (``ok=False``; ``error`` says ``flagged: ...``); ``None`` = not flagged (records
+        before schema version 5 hold ``None``).
     """
 
     t_s: float
@@ -235,6 +241,7 @@ class QualityRecord:
     calibration_scatter_confidence: float | None = None
     kinematic_depth_um: float | None = None
     uncalibrated_depth_um: float | None = None
+    flag_reason: str | None = None
 
     def __post_init__(self) -> None:
         def put(name: str, value: Any) -> None:
@@ -257,6 +264,14 @@ class QualityRecord:
         put("machine_id", _check_machine_id("machine_id", self.machine_id))
         if self.error is not None and not isinstance(self.error, str):
             raise ValueError(f"error must be a string or None, got {self.error!r}")
+        if self.flag_reason is not None:
+            if not isinstance(self.flag_reason, str) or not self.flag_reason:
+                raise ValueError(f"flag_reason must be a non-empty string or None, got "
+                                 f"{self.flag_reason!r:.80}")
+            put("flag_reason", str(self.flag_reason))
+            if self.ok:
+                raise ValueError("a flagged pair (flag_reason set) is not a successful "
+                                 "measurement: ok must be false")
         if self.calibration_state not in (None, *CALIBRATION_STATES):
             raise ValueError(f"calibration_state must be one of {', '.join(CALIBRATION_STATES)} "
                              f"or None, got {self.calibration_state!r:.80}")
@@ -299,7 +314,7 @@ _OPT_FLOATS = (
 _TUPLES = ("mark_widths_mm", "piezo_offsets_um")
 _FIELD_NAMES = tuple(f.name for f in fields(QualityRecord))
 _INT_FIELDS = ("seq", "board_id")
-_TEXT_FIELDS = ("wall_time", "error")
+_TEXT_FIELDS = ("wall_time", "error", "flag_reason")
 
 
 def _finite(value: Any) -> float | None:
@@ -408,7 +423,7 @@ def storable_record(record: QualityRecord) -> QualityRecord:
                 changes[name] = 0
             elif name in _TEXT_FIELDS:
                 refused[name] = value.encode("utf-8", "backslashreplace").decode("utf-8")
-                changes[name] = (refused[name] if name == "error"
+                changes[name] = (refused[name] if name in ("error", "flag_reason")
                                  else utc_iso(0.0))
             else:
                 refused[name] = repr(value)[:2000]
@@ -426,7 +441,7 @@ def storable_record(record: QualityRecord) -> QualityRecord:
         "t_s", "wall_time", "seq", "board_id", "board_position_mm", "shift_px", "confidence",
         "feed_setpoint_mm_s", "piezo_offsets_um", "target_pitch_mm", "true_pitch_mm",
         "true_uniformity_cv", "roll_deg", "roll_confidence", "calibration_state",
-        *CALIBRATION_FIELDS)}
+        *CALIBRATION_FIELDS, "flag_reason")}
     out = QualityRecord(**kept, ok=False, error=error, extra=extra)
     check_storable(out)
     return out
@@ -592,6 +607,7 @@ _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("calibration_scatter_confidence", "REAL", "DOUBLE PRECISION"),
     ("kinematic_depth_um", "REAL", "DOUBLE PRECISION"),
     ("uncalibrated_depth_um", "REAL", "DOUBLE PRECISION"),
+    ("flag_reason", "TEXT", "TEXT"),
 )
 assert tuple(c for c, _, _ in _COLUMNS) == _FIELD_NAMES, "schema and record differ"
 
@@ -599,21 +615,27 @@ assert tuple(c for c, _, _ in _COLUMNS) == _FIELD_NAMES, "schema and record diff
 _COLUMN_OF = {"wall_time": "wall_time_utc", "extra": "extra_json"}
 _V3 = _FIELD_NAMES[:_FIELD_NAMES.index("machine_id") + 1]
 _V1 = tuple(n for n in _V3 if n != "machine_id")
+_V4 = _FIELD_NAMES[:_FIELD_NAMES.index("uncalibrated_depth_um") + 1]
 #: Column names by schema version: (id column, record columns in field order). Version 1
 #: used the field names; version 2 the CSV header's (``record_id``, ``wall_time_utc``,
 #: ``extra_json``); version 3 added ``machine_id``; version 4 the orientation, the
-#: self-calibration and the kinematic depth (``roll_deg`` ... ``uncalibrated_depth_um``).
+#: self-calibration and the kinematic depth (``roll_deg`` ... ``uncalibrated_depth_um``);
+#: version 5 ``flag_reason``.
 _NAMES = {
     1: ("id", _V1),
     2: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V1)),
     3: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V3)),
-    4: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
+    4: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V4)),
+    5: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
 }
 assert SCHEMA_VERSION == max(_NAMES)
 
 
 #: The columns version 4 added: (name, SQLite type, PostgreSQL type), for the migrations.
-ADDED_IN_V4: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V3)
+ADDED_IN_V4: tuple[tuple[str, str, str], ...] = tuple(
+    c for c in _COLUMNS if c[0] not in _V3 and c[0] in _V4)
+#: The columns version 5 added (``flag_reason``), for the migrations.
+ADDED_IN_V5: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V4)
 
 
 def column_names(version: int) -> tuple[str, tuple[str, ...]]:

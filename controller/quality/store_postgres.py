@@ -12,12 +12,15 @@ next call; until then calls raise ``OSError`` naming ``host:port/db``, and the
 
 from __future__ import annotations
 
+import socket
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from controller.quality.schema import (
     ADDED_IN_V4,
+    ADDED_IN_V5,
     SCHEMA_VERSION,
     QualityLogError,
     RecordRefusedError,
@@ -31,14 +34,18 @@ __all__ = ["RECONNECT_TIMEOUT_S", "PostgresStore", "describe_url"]
 
 #: Time limit of a re-connection (after a lost connection) and of a send on a dead link, s.
 RECONNECT_TIMEOUT_S = 2.0
+#: A call with a write timeout set is cut off this long after the server's own
+#: ``statement_timeout`` (a server that does not answer at all, e.g. stopped), s.
+CLIENT_MARGIN_S = 2.0
 #: Advisory lock key serialising schema creation by several first writers ("PLQL").
 _SCHEMA_LOCK = 0x504C514C
 #: Text fields PostgreSQL's TEXT cannot hold with a NUL character (SQLite can).
-_NUL_CHECKED = ("error",)
+_NUL_CHECKED = ("error", "flag_reason")
 #: Columns that are BOOLEAN in PostgreSQL (0/1 integers in SQLite).
 _BOOLEANS = ("ok", "passed")
-#: Layout versions read in PostgreSQL (3 is brought to 4 by a writer; a reader reads it as is).
-_READABLE = (3, SCHEMA_VERSION)
+#: Layout versions read in PostgreSQL (3 and 4 are brought to 5 by a writer; a reader reads
+#: them as they are).
+_READABLE = (3, 4, SCHEMA_VERSION)
 
 
 def describe_url(url: str) -> str:
@@ -54,6 +61,16 @@ def describe_url(url: str) -> str:
     host = str(info.get("host") or "localhost")
     port = str(info.get("port") or 5432)
     return f"postgresql://{user}{host}:{port}/{info.get('dbname') or ''}"
+
+
+def _cut(conn: Any) -> None:
+    """Shut the connection's socket down: a call blocked on it fails at once."""
+    try:
+        fd = conn.pgconn.socket
+        with socket.fromfd(fd, socket.AF_INET, socket.SOCK_STREAM) as sock:
+            sock.shutdown(socket.SHUT_RDWR)
+    except Exception:  # noqa: BLE001 - already closed or broken: nothing to cut
+        pass
 
 
 def _one_line(exc: BaseException) -> str:
@@ -105,6 +122,7 @@ class PostgresStore:
         self._failed_at: float | None = None
         self._last_error = ""
         self._opened = False
+        self._write_timeout_s: float | None = None
         self._connect()
         self._opened = True
         try:
@@ -134,7 +152,9 @@ class PostgresStore:
                 self._url, autocommit=True, connect_timeout=max(2, round(limit_s)),
                 application_name="planer quality log", keepalives=1, keepalives_idle=5,
                 keepalives_interval=2, keepalives_count=2,
-                tcp_user_timeout=int(1000 * max(limit_s, RECONNECT_TIMEOUT_S)))
+                tcp_user_timeout=int(1000 * max(limit_s, RECONNECT_TIMEOUT_S)),
+                **({} if self._write_timeout_s is None else {
+                    "options": f"-c statement_timeout={int(self._write_timeout_s * 1000)}"}))
         except self._psycopg.Error as exc:
             self._failed_at = now
             self._last_error = _one_line(exc)
@@ -155,6 +175,11 @@ class PostgresStore:
         """``work(connection)``; a database error becomes ``OSError`` / ``QualityLogError``."""
         conn = self._connect()
         pg = self._psycopg
+        guard = None
+        if self._write_timeout_s is not None:  # a server that never answers: cut the link
+            guard = threading.Timer(self._write_timeout_s + CLIENT_MARGIN_S, _cut, (conn,))
+            guard.daemon = True
+            guard.start()
         try:
             return work(conn)
         except (pg.OperationalError, pg.InterfaceError) as exc:
@@ -167,6 +192,19 @@ class PostgresStore:
         except pg.Error as exc:
             raise QualityLogError(f"quality log database {self.name}: {what} failed: "
                                   f"{_one_line(exc)}") from None
+        finally:
+            if guard is not None:
+                guard.cancel()
+
+    def set_write_timeout(self, timeout_s: float) -> None:
+        """Bound every later call to ``timeout_s`` (``ConnectionError`` beyond).
+
+        ``statement_timeout`` on the server, and on the client ``timeout_s`` +
+        :data:`CLIENT_MARGIN_S`, after which the connection is cut (a server that does not
+        answer at all, e.g. stopped).
+        """
+        self._write_timeout_s = check_positive("timeout_s", timeout_s)
+        self._drop()  # the next call connects with the timeout
 
     # -- the schema ---------------------------------------------------------------------------
 
@@ -196,8 +234,10 @@ class PostgresStore:
                         f"(this planer reads versions {min(_READABLE)}..{SCHEMA_VERSION} in "
                         "PostgreSQL)")
                 version = int(rows[0][0])
-                if version == 3 and create:  # v4: orientation, self-calibration, depths
-                    for name, _, pg_type in ADDED_IN_V4:
+                if version < SCHEMA_VERSION and create:
+                    # v4: orientation, self-calibration, depths; v5: flag_reason
+                    added = (ADDED_IN_V4 if version == 3 else ()) + ADDED_IN_V5
+                    for name, _, pg_type in added:
                         conn.execute(f"ALTER TABLE records ADD COLUMN IF NOT EXISTS {name} "
                                      f"{pg_type}")
                     conn.execute("UPDATE schema_version SET version = %s", (SCHEMA_VERSION,))

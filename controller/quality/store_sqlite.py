@@ -16,6 +16,7 @@ from typing import Any
 
 from controller.quality.schema import (
     ADDED_IN_V4,
+    ADDED_IN_V5,
     APPLICATION_ID,
     SCHEMA_VERSION,
     QualityLogError,
@@ -35,6 +36,18 @@ _UIDS_TABLE = ("CREATE TABLE IF NOT EXISTS record_uids "
 
 #: Column renames of version 1 -> 2 (the CSV header's names).
 _RENAMES_V2 = (("id", "record_id"), ("wall_time", "wall_time_utc"), ("extra", "extra_json"))
+
+
+#: SQLite's result codes of a lock held by another connection (``SQLITE_BUSY``, ``_LOCKED``).
+_BUSY_CODES = (5, 6)
+
+
+def _write_error(what: str, exc: sqlite3.Error) -> OSError:
+    """The ``OSError`` of a failed write: ``TimeoutError`` when another writer held the lock."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    if isinstance(code, int) and (code & 0xFF) in _BUSY_CODES:
+        return TimeoutError(f"{what}: {exc} (held by another connection)")
+    return OSError(f"{what}: {exc}")
 
 
 def _uri_path(p: Path) -> str:
@@ -138,7 +151,7 @@ class SqliteStore:
         """Bring an older log to the current layout.
 
         v2: the CSV header's names; v3: ``machine_id``; v4: orientation, self-calibration and
-        kinematic depth (records before it read ``None`` there).
+        kinematic depth (records before it read ``None`` there); v5: ``flag_reason``.
         """
         conn = self._connection()
         try:
@@ -158,6 +171,10 @@ class SqliteStore:
                     for name, sqlite_type, _ in ADDED_IN_V4:
                         conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
                     version = 4
+                if version == 4:
+                    for name, sqlite_type, _ in ADDED_IN_V5:
+                        conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
+                    version = 5
                 conn.execute("UPDATE schema_version SET version = ?", (version,))
                 conn.execute("COMMIT")
             except BaseException:
@@ -231,8 +248,13 @@ class SqliteStore:
         except OverflowError as exc:  # check_storable should have caught it
             raise RecordRefusedError("record", f"record refused by the log: {exc}") from None
         except sqlite3.Error as exc:
-            raise OSError(f"cannot append to quality log {self.path}: {exc}") from None
+            raise _write_error(f"cannot append to quality log {self.path}", exc) from None
         return ids
+
+    def set_write_timeout(self, timeout_s: float) -> None:
+        """Wait at most ``timeout_s`` for another connection's lock (``TimeoutError`` after)."""
+        timeout_s = check_positive("timeout_s", timeout_s)
+        self._connection().execute(f"PRAGMA busy_timeout = {int(timeout_s * 1000)}")
 
     def has_uid(self, uid: str) -> bool:
         """Whether a record appended with this ``uid`` is in the log."""
