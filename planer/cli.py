@@ -1,7 +1,8 @@
 """The ``planer`` command: one sub-command per module in :mod:`planer.commands`.
 
-Each command module defines ``HELP`` (one line), ``configure(parser)`` and ``run(args) -> int``;
-modules keep heavy imports inside ``run`` so that ``planer --help`` stays fast.
+Each command module defines ``configure(parser)`` and ``run(args) -> int``; its one-line help is
+in :data:`COMMANDS`. Only the chosen command's module is imported (``planer --help`` imports
+none), so command modules import what they use at their top.
 
 Every error a user can cause ends in ONE line on stderr, ``planer <cmd>: error: <message>``,
 and a non-zero exit code, never in a traceback:
@@ -30,8 +31,22 @@ import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
-COMMANDS = ("measure", "calibrate", "calibrate-rig", "bench", "sim", "serve", "hil", "report",
-            "acquire", "sweep")
+COMMANDS = {
+    "measure": "measure the profile and cuttermarks of an image pair (prints one JSON object)",
+    "calibrate": ("calibrate the camera from checkerboard images and write the rig file's [camera] "
+                  "table"),
+    "calibrate-rig": ("estimate camera roll and light slants from a reference run and write them "
+                      "into rig.toml"),
+    "bench": "benchmarks: vision pairs/s, simulator real-time factor, service latency",
+    "sim": "run the simulated planer alone (Modbus server, CAN node, frame spool) until stopped",
+    "serve": "run the service beside the PLC (measure, control, log) until stopped",
+    "hil": "hardware-in-the-loop run: simulator + service, scenario, summary and quality log",
+    "report": "summarise a quality log: text or JSON summary, PNG figures, CSV export",
+    "acquire": "grab image pairs from a GenICam camera (Aravis) into a spool directory",
+    "sweep": "run a grid of HIL scenarios on Dask distributed: results.csv and plots",
+}
+"""Every sub-command and its one-line help; ``planer.commands.<name>`` defines ``configure(parser)``
+and ``run(args) -> int`` (a dash in the name is an underscore in the module's)."""
 
 EXIT_USAGE = 2
 EXIT_ERROR = 2
@@ -48,19 +63,32 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {first} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every sub-command registered."""
+def build_parser(commands: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The argument parser with every sub-command registered.
+
+    Parameters
+    ----------
+    commands : sequence of str, optional
+        The commands whose modules are imported and whose options are configured (default:
+        all); the others are listed with their help only.
+    """
     parser = _Parser(
         prog="planer",
         description="Cuttermark measurement and closed-loop control of a planing machine.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMANDS:
-        mod = importlib.import_module(f"planer.commands.{name.replace('-', '_')}")
-        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
-        mod.configure(p)
-        p.set_defaults(_run=mod.run)
+    for name, text in COMMANDS.items():
+        p = sub.add_parser(name, help=text, description=text)
+        if commands is None or name in commands:
+            mod = importlib.import_module(f"planer.commands.{name.replace('-', '_')}")
+            mod.configure(p)
+            p.set_defaults(_run=mod.run)
     return parser
+
+
+def chosen_command(argv: Sequence[str]) -> list[str]:
+    """The sub-command named on a command line (``[]``: none, e.g. ``planer --help``)."""
+    return [a for a in argv if a in COMMANDS][:1]
 
 
 def error_line(exc: BaseException) -> str:
@@ -221,7 +249,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(chosen_command(argv))
     args = parser.parse_args(argv)
     name = f"planer {args.command}"
     debug = os.environ.get(TRACEBACK_ENV, "") not in ("", "0")

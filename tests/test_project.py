@@ -45,7 +45,7 @@ def test_value_errors_become_one_line_and_exit_2(capsys, monkeypatch):
         raise ValueError("bad thing: value 7\nsecond line")
 
     parser = cli.build_parser()
-    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    monkeypatch.setattr(cli, "build_parser", lambda *_: parser)
     parser._subparsers._group_actions[0].choices["bench"].set_defaults(_run=boom)
     assert cli.main(["bench"]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -37,6 +37,7 @@ import contextlib
 import os
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -159,39 +160,24 @@ async def _run(
     """
     from dataclasses import replace
 
-    import can
-
     from config.machine import load_machine
-    from controller.frames.source import QueueFrameSource
-    from controller.service.latency import MEASURE_NICE, GcPauses, prioritize, tune_for_latency
-    from controller.service.service import open_service
-    from core.realtime import BUS_RT_PRIORITY, cpu_wakeup_latency, realtime_thread
-    from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
-    from protocol.piezo_can import PiezoCodec
+    from controller.runtime import RuntimeOptions, ServiceRuntime
+    from controller.service.latency import MEASURE_NICE, GcPauses
 
     plc, plc_pump = await _plc_for(machine, realtime=priority)
     host, port = await plc.start()
+    h, w = frames[0].image_a.shape
     cfg = load_machine()
     cfg = cfg.with_changes(
         plc=replace(cfg.plc, host=host, port=port),
         log=replace(cfg.log, path=workdir / f"bench-{workers}.sqlite"),
+        frames=replace(cfg.frames, image_width=w, image_height=h),
     )
-    channel = f"planer-bench-{id(frames)}-{workers}"
-    svc_bus = can.Bus(interface="virtual", channel=channel)
-    amp = AmpNode(
-        can.Bus(interface="virtual", channel=channel),
-        AmpNodeCore(machine, PiezoCodec.load(), knives=machine.knives),
-        own_bus=True,
-    )
-    service = open_service(cfg, can_bus=svc_bus)
-    pool = None
-    if workers > 0:
-        from controller.workers.pool import MeasureWorkerPool
-
-        pool = MeasureWorkerPool(service.measurement.factory, workers=workers,
-                                 shape=frames[0].image_a.shape,
-                                 nice=MEASURE_NICE if priority else None).start()
-        service.pipeline.use_workers(pool)
+    svc_bus, amp = _amplifier(machine, f"planer-bench-{id(frames)}-{workers}")
+    runtime = ServiceRuntime(cfg, can_bus=svc_bus, options=RuntimeOptions(
+        workers=workers, plan_workers=False, worker_nice=MEASURE_NICE if priority else None,
+        tune=tune, prioritize=priority, realtime=priority, cpu_wakeup=priority))
+    service = await runtime.open()
     # what the figures need of each result, not the results: kept whole (their measurements,
     # profiles and passes) they made every young collection walk ~300 pairs' lists, 2-4 ms
     # pauses the service as it runs (results not kept) does not have
@@ -202,24 +188,8 @@ async def _run(
         records.on_stored = lambda seq, at: stored_at.__setitem__(int(seq), at)
     running = asyncio.Event()
     service.on_event = lambda e: running.set() if e.kind is EventKind.RECOVERED else None
-    h, w = frames[0].image_a.shape
-    camera = None
-    if via == "spool":
-        from controller.frames.source import open_frame_source
-
-        spool_dir = workdir / f"spool-{workers}"
-        source = open_frame_source(replace(cfg.frames, source="spool", spool_dir=spool_dir,
-                                           image_width=w, image_height=h))
-        camera = await asyncio.get_running_loop().run_in_executor(
-            None, _SpoolCamera, spool_dir, len(frames), rate_hz)
-
-        def dropped() -> int:  # given up, or pruned by the camera before the reader got them
-            return int(getattr(source, "abandoned", 0)) + int(getattr(source, "missed", 0))
-    else:
-        source = QueueFrameSource(maxsize=min(QUEUE_PAIRS, len(frames)))
-
-        def dropped() -> int:
-            return int(source.dropped)
+    source, camera, dropped = await _bench_source(runtime, via, workdir / f"spool-{workers}",
+                                                  frames, rate_hz)
     stop = asyncio.Event()
     unfinished: list[int] = []
     put_at: dict[int, float] = {}
@@ -236,17 +206,6 @@ async def _run(
             handled.set()
 
     service.on_result = on_result
-    if tune:
-        tune_for_latency()
-    if priority:
-        prioritize(service, source=source)
-
-    async def pump_plant() -> None:
-        t0 = time.monotonic()
-        while not stop.is_set():
-            amp.pump(time.monotonic() - t0)
-            plc_pump()
-            await asyncio.sleep(0.005)
 
     async def feed_frames() -> None:
         # the service is running (PLC and CAN heard, confirmation time passed): pairs go in
@@ -259,42 +218,25 @@ async def _run(
             raise RuntimeError(
                 f"service benchmark: service not in RUN after {ready_timeout_s:g} s ({why})"
             ) from None
-        loop = asyncio.get_running_loop()
-        if camera is not None:  # the camera process writes them, telling when each is there
-            put_at.update(await loop.run_in_executor(None, camera.run))
-        else:
-            t_next = loop.time()
-            for f in frames:  # the camera's rate, not a wait for the service
-                put_at[int(f.seq)] = time.monotonic()
-                source.put(f)
-                t_next += 1.0 / rate_hz
-                await asyncio.sleep(max(0.0, t_next - loop.time()))
+        put_at.update(await _put_frames(frames, source, camera, rate_hz))
         try:  # every pair handled or dropped by the source (a backstop: never hang)
             await asyncio.wait_for(handled.wait(), DRAIN_TIMEOUT_S)
         except asyncio.TimeoutError:
             unfinished.append(len(frames) - n_results - dropped())
         stop.set()
 
-    pump = asyncio.create_task(pump_plant())
+    pump = asyncio.create_task(_pump_plant(amp, plc_pump, stop))
     feeder = asyncio.create_task(feed_frames())
     gc_pauses = GcPauses()
-    granted = "normal"
-    wakeup = "as the system has it (not asked)"
     try:
-        with gc_pauses, contextlib.ExitStack() as stack:
-            if priority:
-                granted = stack.enter_context(realtime_thread(rt_priority=BUS_RT_PRIORITY))
-                wakeup = stack.enter_context(cpu_wakeup_latency(cfg.service.cpu_latency_us))
-            await service.run(source, stop=stop)
+        with gc_pauses:
+            await runtime.run(stop=stop)
         await feeder  # re-raises the deadline
     finally:
         stop.set()
         feeder.cancel()
         await asyncio.gather(pump, feeder, return_exceptions=True)
-        service.close()
-        if pool is not None:
-            pool.close()
-        source.close()
+        runtime.close()
         if camera is not None:
             camera.close()
         amp.close()
@@ -308,15 +250,84 @@ async def _run(
     out["dropped"] = dropped()
     if unfinished:
         out["unfinished"] = unfinished[0]  # neither handled nor dropped after DRAIN_TIMEOUT_S
+    return _how_it_ran(out, via=via, runtime=runtime, plc=plc, priority=priority)
+
+
+def _how_it_ran(out: dict[str, Any], *, via: str, runtime: Any, plc: Any,
+                priority: bool) -> dict[str, Any]:
+    """The figures with how the run was made: the path of the pairs and the priorities."""
+    from controller.service.latency import MEASURE_NICE
+
     out["via"] = via
-    out["priority"] = {"service_bus": granted,
+    out["priority"] = {"service_bus": runtime.granted,
                        "measurement_nice": MEASURE_NICE if priority else None,
                        "plc_process": getattr(plc, "priority", None),
-                       "cpu_wakeup": wakeup}
+                       "cpu_wakeup": runtime.wakeup}
     if via == "spool":
         out["latency_from"] = "pair committed to the spool (its metadata file renamed)"
         out["spool_image_format"] = SPOOL_IMAGE_FORMAT
     return out
+
+
+async def _bench_source(runtime: Any, via: str, spool_dir: Path, frames: list,
+                        rate_hz: float) -> tuple[Any, Any, Callable[[], int]]:
+    """The service's frame source (given to ``runtime``), the spool camera, the drop counter.
+
+    ``via = "spool"``: a spool folder that a camera process (:class:`_SpoolCamera`) writes; else
+    an in-process queue of :data:`QUEUE_PAIRS` pairs that drops the oldest.
+    """
+    from dataclasses import replace
+
+    from controller.frames.source import QueueFrameSource, open_frame_source
+
+    if via == "spool":
+        source = runtime.attach(open_frame_source(replace(runtime.cfg.frames, source="spool",
+                                                          spool_dir=spool_dir)))
+        camera = await asyncio.get_running_loop().run_in_executor(
+            None, _SpoolCamera, spool_dir, len(frames), rate_hz)
+
+        def dropped() -> int:  # given up, or pruned by the camera before the reader got them
+            return int(getattr(source, "abandoned", 0)) + int(getattr(source, "missed", 0))
+
+        return source, camera, dropped
+    queue = runtime.attach(QueueFrameSource(maxsize=min(QUEUE_PAIRS, len(frames))))
+    return queue, None, lambda: int(queue.dropped)
+
+
+async def _pump_plant(amp: Any, plc_pump: Callable[[], Any], stop: asyncio.Event) -> None:
+    """Step the simulated amplifier and PLC every 5 ms until ``stop``."""
+    t0 = time.monotonic()
+    while not stop.is_set():
+        amp.pump(time.monotonic() - t0)
+        plc_pump()
+        await asyncio.sleep(0.005)
+
+
+async def _put_frames(frames: list, source: Any, camera: Any, rate_hz: float) -> dict[int, float]:
+    """Hand the pairs in at the camera's rate (not a wait for the service); when each went in."""
+    loop = asyncio.get_running_loop()
+    if camera is not None:  # the camera process writes them, telling when each is there
+        return await loop.run_in_executor(None, camera.run)
+    put_at: dict[int, float] = {}
+    t_next = loop.time()
+    for f in frames:
+        put_at[int(f.seq)] = time.monotonic()
+        source.put(f)
+        t_next += 1.0 / rate_hz
+        await asyncio.sleep(max(0.0, t_next - loop.time()))
+    return put_at
+
+
+def _amplifier(machine: Any, channel: str) -> tuple[Any, Any]:
+    """The service's end of a virtual CAN bus and the simulated amplifier on its other end."""
+    import can
+
+    from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
+    from protocol.piezo_can import PiezoCodec
+
+    amp = AmpNode(can.Bus(interface="virtual", channel=channel),
+                  AmpNodeCore(machine, PiezoCodec.load(), knives=machine.knives), own_bus=True)
+    return can.Bus(interface="virtual", channel=channel), amp
 
 
 def _camera_main(conn: Any, spool_dir: str, n: int, rate_hz: float,

@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "grab image pairs from a GenICam camera (Aravis) into a spool directory"
-
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""

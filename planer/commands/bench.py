@@ -13,7 +13,6 @@ import json
 import sys
 from typing import Any
 
-HELP = "benchmarks: vision pairs/s, simulator real-time factor, service latency"
 PARTS = ("vision", "sim", "service", "camera")
 
 

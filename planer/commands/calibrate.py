@@ -16,8 +16,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-HELP = "calibrate the camera from checkerboard images and write the rig file's [camera] table"
-
 _DESCRIPTION = (
     "Find the checkerboard's inner corners (sub-pixel) in each image, calibrate the camera with "
     "OpenCV and write the rig file. Default model k1: radial k1 only (the seed's Eq. 7), "

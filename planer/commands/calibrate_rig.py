@@ -25,8 +25,6 @@ import sys
 
 from planer.commands.measure import knife_count, positive_number
 
-HELP = "estimate camera roll and light slants from a reference run and write them into rig.toml"
-
 
 def _counts(text: str) -> tuple[int, int]:
     try:

@@ -20,8 +20,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-HELP = "hardware-in-the-loop run: simulator + service, scenario, summary and quality log"
-
 
 def _shipped_scenarios() -> str:
     """The scenario names of ``config/hil.toml``, for the help (the file is the one list)."""

@@ -24,8 +24,6 @@ import json
 import math
 import sys
 
-HELP = "measure the profile and cuttermarks of an image pair (prints one JSON object)"
-
 
 def _finite_float(text: str) -> float:
     try:

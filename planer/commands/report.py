@@ -14,8 +14,6 @@ import argparse
 import json
 from pathlib import Path
 
-HELP = "summarise a quality log: text or JSON summary, PNG figures, CSV export"
-
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""

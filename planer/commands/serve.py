@@ -12,10 +12,24 @@ machine: only ``--config`` changes (see ``docs/service.md``, "Running it").
 from __future__ import annotations
 
 import argparse
-from collections.abc import Mapping
+import asyncio
+import logging
+import signal
+import sys
+from collections.abc import Callable, Mapping
 from typing import Any
 
-HELP = "run the service beside the PLC (measure, control, log) until stopped"
+from config.machine import load_machine
+from controller.opcua.compose import server_for, serving
+from controller.quality.log import log_target, vision_fields
+from controller.runtime import RuntimeOptions, ServiceRuntime
+from controller.service.events import EventKind
+from controller.service.latency import MEASURE_NICE
+from controller.service.supervisor import SafetyState
+from controller.web.compose import listen_for
+from controller.web.compose import serving as serving_http
+from core.checks import check_int
+from planer.cli import output_file, output_folder
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -113,8 +127,6 @@ def source_text(counts: Mapping[str, int]) -> str:
 
 def vision_text(measurement: Any) -> str:
     """``"roll +0.42 deg, calibration applied (gain 0.897)"`` of a measurement (``""``: none)."""
-    from controller.quality.log import vision_fields
-
     if measurement is None:
         return ""
     v = vision_fields(measurement, ok=False)
@@ -128,83 +140,8 @@ def vision_text(measurement: Any) -> str:
     return ", ".join(parts)
 
 
-def open_source(cfg: Any) -> tuple[Any, Any]:
-    """The frame source of ``[frames]`` and, for a camera, its reader of the PLC's latches.
-
-    With ``source = "camera"`` the pairs carry the encoder counts the PLC latched at the two
-    triggers: a ``ModbusLatchReader`` of its own on ``[plc]`` (the service's client stays the
-    owner of the control registers; ``docs/camera.md``).
-
-    Returns
-    -------
-    (source, latch_reader)
-        ``latch_reader`` is ``None`` for a spool.
-    """
-    from config.machine import registers_path
-    from controller.frames.source import open_frame_source
-
-    latch_reader = None
-    if cfg.frames.source == "camera":
-        from controller.frames.camera.latches import ModbusLatchReader
-
-        latch_reader = ModbusLatchReader(cfg.plc.host, cfg.plc.port, unit_id=cfg.plc.unit_id,
-                                         registers=registers_path(cfg),
-                                         timeout_s=cfg.plc.timeout_s)
-    try:
-        return open_frame_source(cfg.frames, latch_reader=latch_reader), latch_reader
-    except BaseException:
-        if latch_reader is not None:
-            latch_reader.close()
-        raise
-
-
-async def start_workers(service: Any, cfg: Any, requested: int | None) -> Any:
-    """The measurement's worker processes (``--workers``, else ``[service] workers``), or None.
-
-    Started off the event loop (each worker sets up for the configured image size); more than
-    the cores available is one line on stderr and one worker per core. The pool measures for
-    ``service`` from then on; the caller closes it after the service.
-    """
-    import asyncio
-    import sys
-
-    from controller.service.latency import MEASURE_NICE
-    from controller.workers.pool import open_worker_pool
-
-    workers = cfg.service.workers if requested is None else requested
-    if not workers:
-        return None
-    fr = cfg.frames
-    shape = (fr.image_height, fr.image_width) if fr.image_width > 0 and fr.image_height > 0 \
-        else None
-    pool, warning = await asyncio.get_running_loop().run_in_executor(
-        None, lambda: open_worker_pool(service.measurement.factory, workers, shape=shape,
-                                       timeout_s=cfg.safety.measurement_timeout_s,
-                                       nice=MEASURE_NICE))
-    if warning:
-        print(f"planer serve: {warning}", file=sys.stderr, flush=True)
-    service.pipeline.use_workers(pool)
-    print(f"workers: measuring in {pool.workers} process(es)", flush=True)
-    return pool
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    import asyncio
-    import logging
-    import signal
-    import sys
-
-    from config.machine import load_machine
-    from controller.quality.log import log_target
-    from controller.service.events import EventKind
-    from controller.service.latency import MEASURE_NICE, prioritize, tune_for_latency
-    from controller.service.service import open_service
-    from controller.service.supervisor import SafetyState
-    from core.checks import check_int
-    from core.realtime import BUS_RT_PRIORITY, cpu_wakeup_latency, realtime_thread
-    from planer.cli import output_file, output_folder
-
     if args.max_frames is not None:
         check_int("--max-frames", args.max_frames, lo=1)
     if args.workers is not None:
@@ -223,136 +160,128 @@ def run(args: argparse.Namespace) -> int:
                           check_file=lambda p: output_file(log_opt, p))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-
-    def say(line: str) -> None:
-        print(line, flush=True)
-
-    from controller.opcua.compose import server_for, serving
-
     server_for(cfg, args.opcua)  # a bad endpoint or missing security: one line before starting
-    from controller.web.compose import listen_for
-    from controller.web.compose import serving as serving_http
-
     listen_for(cfg, args.http)  # a bad address or no web packages: one line before starting
-    opened: list = []
+    options = RuntimeOptions(workers=args.workers, worker_nice=MEASURE_NICE, prioritize=True,
+                             realtime=True, cpu_wakeup=True)
+    runtime = ServiceRuntime(cfg, options=options, log_path=log_path,
+                             say=lambda line: _say(f"planer serve: {line}"))
 
     async def main() -> int:
-        get = lambda: opened[0] if opened else None  # noqa: E731
-        async with serving(cfg, args.opcua, get, say=say), \
-                serving_http(cfg, args.http, get, say=say, log=log_path):
-            return await serve()
-
-    async def serve() -> int:
-        service = open_service(cfg, log_path=log_path)
-        opened.append(service)
-        try:
-            pool = await start_workers(service, cfg, args.workers)
-        except BaseException:
-            service.close()
-            raise
-        try:
-            source, latch_reader = open_source(cfg)
-        except BaseException:
-            service.close()
-            if pool is not None:
-                pool.close()
-            raise
-        t0 = service.clock()
-        say(f"plc: {cfg.plc.host}:{cfg.plc.port} unit {cfg.plc.unit_id}")
-        say(f"can: {cfg.can.interface}:{cfg.can.channel}")
-        if cfg.frames.source == "camera":
-            frames_at = f"camera {cfg.frames.camera_id}"
-            say(f"frames: {frames_at}, trigger latches from the PLC {cfg.plc.host}:"
-                f"{cfg.plc.port}")
-        else:
-            frames_at = f"spool {cfg.frames.spool_dir}"
-            say(f"frames: {frames_at}")
-        say(f"log: {service.log.path}")
-        say(
-            f"quality: {cfg.quality.class_name}, target pitch {cfg.quality.target_pitch_mm} mm, "
-            f"safe state {cfg.safety.safe_state}"
-        )
-        to_stderr = {EventKind.LOG_FAILED, EventKind.RECORDS_SAVED, EventKind.RECORDS_LOST,
-                     EventKind.SERVICE_ERROR}
-
-        def on_event(e) -> None:  # the log's trouble and the service's own faults: stderr
-            line = f"t={e.t_s - t0:9.3f} s  {e.text}"
-            if e.kind in to_stderr:
-                print(line, file=sys.stderr, flush=True)
-            else:
-                say(line)
-
-        service.on_event = on_event
-        every = cfg.log.print_every
-        window: list = []
-
-        def on_result(r) -> None:
-            window.append(r)
-            if len(window) < every:
-                return
-            ok = [x for x in window if x.ok]
-            pitch = sum(x.measurement.pitch_mm for x in ok) / len(ok) if ok else float("nan")
-            cv = sum(x.measurement.uniformity_cv for x in ok) / len(ok) if ok else float("nan")
-            lat = sorted(x.latency_s for x in window)
-            feed = r.feed_setpoint_mm_s
-            counts = source_text(source_counts(source))
-            vision = vision_text(ok[-1].measurement) if ok else ""
-            say(
-                f"t={r.t_s - t0:9.3f} s  #{service.counters['frames']}  {r.state}  "
-                f"ok {len(ok)}/{len(window)}  pitch {pitch:.3f} mm  cv {cv:.3f}  "
-                f"feed {feed if feed is not None else float('nan'):.1f} mm/s  "
-                f"offsets [{' '.join(f'{v:+.2f}' for v in r.offsets_um)}] um  "
-                f"latency p50 {lat[len(lat) // 2] * 1e3:.1f} ms"
-                + (f"  {vision}" if vision else "") + (f"  {counts}" if counts else "")
-            )
-            window.clear()
-
-        service.on_result = on_result
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, stop.set)
-        where = {
-            "plc": f"{cfg.plc.host}:{cfg.plc.port}",
-            "can": f"{cfg.can.interface}:{cfg.can.channel}",
-            "frames": frames_at,
-        }
-
-        async def tell_why_waiting() -> None:
-            # the service starts in SAFE and says nothing until it recovers: say what it waits for
-            while not stop.is_set():
-                await asyncio.sleep(args.status_every)
-                status = service.status()
-                if status.t_s is not None and status.state != SafetyState.RUN.value:
-                    say(f"t={service.clock() - t0:9.3f} s  "
-                        + waiting_line(tuple(status.missing), **where))
-
-        tune_for_latency()  # after the set-up: frozen heap, short lock switch interval
-        prioritize(service, source=source)  # measurement, records' writer, spool reader first
-        watcher = asyncio.create_task(tell_why_waiting())
-        try:
-            # the event loop (PLC and CAN cycles, each pair's control) at real-time priority
-            with realtime_thread(rt_priority=BUS_RT_PRIORITY) as granted, \
-                    cpu_wakeup_latency(cfg.service.cpu_latency_us) as wakeup:
-                say(f"priority: service bus {granted}; measurement and records asked for "
-                    f"nice {MEASURE_NICE}; CPU wake-up: {wakeup}")
-                say("ready")
-                await service.run(source, stop=stop, max_frames=args.max_frames)
-        finally:
-            watcher.cancel()
-            service.close()
-            if pool is not None:
-                pool.close()
-            source.close()
-            if latch_reader is not None:  # after the camera's thread that polls it
-                latch_reader.close()
-        c = service.counters
-        print(
-            f"stopped: {c['frames']} pairs, {c['ok']} measured, {c['failed']} failed, "
-            f"{c['safe_entries']} safe-state entries; quality log {service.log.path}",
-            file=sys.stderr,
-            flush=True,
-        )
-        return 0
+        get = lambda: runtime.service  # noqa: E731
+        async with serving(cfg, args.opcua, get, say=_say), \
+                serving_http(cfg, args.http, get, say=_say, log=log_path), runtime:
+            return await _serve(runtime, args)
 
     return asyncio.run(main())
+
+
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
+def _frames_at(cfg: Any) -> str:
+    if cfg.frames.source == "camera":
+        return f"camera {cfg.frames.camera_id}"
+    return f"spool {cfg.frames.spool_dir}"
+
+
+async def _serve(runtime: ServiceRuntime, args: argparse.Namespace) -> int:
+    """Run the opened service until stopped: its lines, its events, why it waits."""
+    cfg, service = runtime.cfg, runtime.service
+    assert service is not None
+    if runtime.pool is not None:
+        _say(f"workers: measuring in {runtime.pool.workers} process(es)")
+    source = runtime.open_source()
+    t0 = service.clock()
+    _say(f"plc: {cfg.plc.host}:{cfg.plc.port} unit {cfg.plc.unit_id}")
+    _say(f"can: {cfg.can.interface}:{cfg.can.channel}")
+    frames_at = _frames_at(cfg)
+    if cfg.frames.source == "camera":
+        _say(f"frames: {frames_at}, trigger latches from the PLC {cfg.plc.host}:{cfg.plc.port}")
+    else:
+        _say(f"frames: {frames_at}")
+    _say(f"log: {service.log.path}")
+    _say(f"quality: {cfg.quality.class_name}, target pitch {cfg.quality.target_pitch_mm} mm, "
+         f"safe state {cfg.safety.safe_state}")
+    service.on_event = _event_printer(t0)
+    service.on_result = _progress_printer(service, source, t0, cfg.log.print_every)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    where = {"plc": f"{cfg.plc.host}:{cfg.plc.port}",
+             "can": f"{cfg.can.interface}:{cfg.can.channel}", "frames": frames_at}
+
+    async def tell_why_waiting() -> None:
+        # the service starts in SAFE and says nothing until it recovers: say what it waits for
+        while not stop.is_set():
+            await asyncio.sleep(args.status_every)
+            status = service.status()
+            if status.t_s is not None and status.state != SafetyState.RUN.value:
+                _say(f"t={service.clock() - t0:9.3f} s  "
+                     + waiting_line(tuple(status.missing), **where))
+
+    watcher = asyncio.create_task(tell_why_waiting())
+    try:
+        started = asyncio.create_task(runtime.run(stop=stop, max_frames=args.max_frames))
+        await asyncio.sleep(0)  # the run raised the loop's priority: say what it got
+        _say(f"priority: service bus {runtime.granted}; measurement and records asked for "
+             f"nice {MEASURE_NICE}; CPU wake-up: {runtime.wakeup}")
+        _say("ready")
+        await started
+    finally:
+        watcher.cancel()
+    c = service.counters
+    print(
+        f"stopped: {c['frames']} pairs, {c['ok']} measured, {c['failed']} failed, "
+        f"{c['safe_entries']} safe-state entries; quality log {service.log.path}",
+        file=sys.stderr,
+        flush=True,
+    )
+    return 0
+
+
+_TO_STDERR = frozenset({EventKind.LOG_FAILED, EventKind.RECORDS_SAVED, EventKind.RECORDS_LOST,
+                        EventKind.SERVICE_ERROR})
+
+
+def _event_printer(t0: float) -> Callable[[Any], None]:
+    """The service's events as lines: the log's trouble and the service's own faults on stderr."""
+
+    def on_event(e: Any) -> None:
+        line = f"t={e.t_s - t0:9.3f} s  {e.text}"
+        if e.kind in _TO_STDERR:
+            print(line, file=sys.stderr, flush=True)
+        else:
+            _say(line)
+
+    return on_event
+
+
+def _progress_printer(service: Any, source: Any, t0: float, every: int) -> Callable[[Any], None]:
+    """One line per ``every`` results: state, pitch, CV, feed, offsets, latency, counts."""
+    window: list = []
+
+    def on_result(r: Any) -> None:
+        window.append(r)
+        if len(window) < every:
+            return
+        ok = [x for x in window if x.ok]
+        pitch = sum(x.measurement.pitch_mm for x in ok) / len(ok) if ok else float("nan")
+        cv = sum(x.measurement.uniformity_cv for x in ok) / len(ok) if ok else float("nan")
+        lat = sorted(x.latency_s for x in window)
+        feed = r.feed_setpoint_mm_s
+        counts = source_text(source_counts(source))
+        vision = vision_text(ok[-1].measurement) if ok else ""
+        _say(
+            f"t={r.t_s - t0:9.3f} s  #{service.counters['frames']}  {r.state}  "
+            f"ok {len(ok)}/{len(window)}  pitch {pitch:.3f} mm  cv {cv:.3f}  "
+            f"feed {feed if feed is not None else float('nan'):.1f} mm/s  "
+            f"offsets [{' '.join(f'{v:+.2f}' for v in r.offsets_um)}] um  "
+            f"latency p50 {lat[len(lat) // 2] * 1e3:.1f} ms"
+            + (f"  {vision}" if vision else "") + (f"  {counts}" if counts else "")
+        )
+        window.clear()
+
+    return on_result

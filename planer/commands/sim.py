@@ -17,8 +17,6 @@ import argparse
 import math
 from collections.abc import Callable
 
-HELP = "run the simulated planer alone (Modbus server, CAN node, frame spool) until stopped"
-
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""

@@ -15,8 +15,6 @@ import sys
 import time
 from pathlib import Path
 
-HELP = "run a grid of HIL scenarios on Dask distributed: results.csv and plots"
-
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""

@@ -30,9 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from config.loading import default_path
-from controller.service.service import FrameResult
+from controller.service.frame_result import FrameResult
 from core.errors import FieldbusError
-from core.realtime import BUS_RT_PRIORITY, realtime_thread
 from planer.hil.scenario import Progress, Scenario, machine_config_for, sim_config_for, sim_document
 from planer.hil.summary import PROGRESS_LEGEND, BoardTravel, _progress_line, _service_summary
 
@@ -241,21 +240,15 @@ async def run_cross_process(
                                         on_service=on_service)
 
 
-async def _run_cross_process(
-    scenario: Scenario,
-    tmp: Path,
-    *,
-    log_path: Path,
-    progress: Progress | None,
-    progress_every: int,
-    on_service: Callable[[Any], None] | None = None,
-) -> dict[str, Any]:
-    from config.machine import CanConfig
-    from controller.fieldbus.piezo_client import open_bus
-    from controller.frames.source import open_frame_source
-    from controller.service.service import open_service
+def _configs(scenario: Scenario, tmp: Path, log_path: Path) -> tuple[Path, Any, Any]:
+    """The simulator's config file in ``tmp`` and both configs, built once for the run.
 
-    say = progress or (lambda _line: None)
+    Returns ``(sim_toml, sim_cfg, cfg)``: the simulator's file (CAN over UDP multicast on the
+    namespace's loopback, the spool in ``tmp``), its loaded config, and the service's config
+    meeting it (PLC on a free port of 127.0.0.1, the same CAN group, the spool).
+    """
+    from config.machine import CanConfig
+
     spool = tmp / "spool"
     group = "239.74.163.2"
     can_port = 43113
@@ -288,21 +281,39 @@ async def _run_cross_process(
                        pairs_per_s=sim_cfg.camera.pairs_per_s,
                        image_width=optics.width, image_height=optics.height),
     )
+    return sim_toml, sim_cfg, cfg
+
+
+async def _run_cross_process(
+    scenario: Scenario,
+    tmp: Path,
+    *,
+    log_path: Path,
+    progress: Progress | None,
+    progress_every: int,
+    on_service: Callable[[Any], None] | None = None,
+) -> dict[str, Any]:
+    from controller.fieldbus.piezo_client import open_bus
+    from controller.runtime import RuntimeOptions, ServiceRuntime
+
+    say = progress or (lambda _line: None)
+    sim_toml, sim_cfg, cfg = _configs(scenario, tmp, log_path)
+    port = cfg.plc.port
     # the service first (imports, log, CAN bus; nothing contacted yet): the machine's clock
     # starts with the simulator, and the service must be there when it does
-    bus = open_bus(cfg.can.interface, cfg.can.channel, dict(cfg.can.options))
-    try:  # the bus is shut down if the service cannot start (log)
-        service = open_service(cfg, threaded=True, log_path=log_path, can_bus=bus)
-    except BaseException:
-        bus.shutdown()
-        raise
+    runtime = ServiceRuntime(
+        cfg, log_path=log_path, can_bus=open_bus(cfg.can.interface, cfg.can.channel,
+                                                 dict(cfg.can.options)),
+        options=RuntimeOptions(min_workers=HIL_MEASURE_WORKERS, realtime=True,
+                               realtime_others=True),
+        say=lambda line: say(f"hil (cross-process): {line}"))
     argv = [sys.executable, "-m", "planer.cli", "sim", "--config", str(sim_toml),
             "--seed", str(scenario.seed), "--port", str(port)]
     sim: _SimProcess | None = None
-    pool = None
-    granted = "not asked"
     try:
-        pool = _measure_in_workers(service, cfg, say)
+        service = await runtime.open()
+        if runtime.pool is not None:
+            say(f"service: measuring in {runtime.pool.workers} worker process(es)")
         say(f"hil (cross-process): starting {' '.join(argv[2:])}")
         sim = _SimProcess(argv, progress)
         banner = sim.wait_ready(60.0)
@@ -312,7 +323,7 @@ async def _run_cross_process(
         service.keep_results = True
         if on_service is not None:  # e.g. the OPC UA server follows it
             on_service(service)
-        source = open_frame_source(cfg.frames)
+        runtime.open_source()
         stop = asyncio.Event()
         cpm = sim_cfg.encoder.counts_per_mm
         travel = BoardTravel(cpm)
@@ -338,31 +349,25 @@ async def _run_cross_process(
         reads = _timed_reads(service.plc.bus)  # request to answer of each register read
         # the measurement runs in worker processes: every other thread here is light I/O that
         # shares the interpreter lock with the bus thread (spool reader, log writer), raised
-        # with it so that none is descheduled by a hog while holding the lock
-        others = [t for t in threading.enumerate()
-                  if t is not threading.current_thread()] if pool is not None else []
-        with realtime_thread(rt_priority=BUS_RT_PRIORITY, others=others) as granted:
-            t_start = service.clock()
-            service.on_event = lambda e: say(f"t={e.t_s - t_start:7.3f} s  {e.text}")
-            raised = granted.startswith(("SCHED_FIFO", "nice"))
-            say(f"service: bus thread {granted}" + (
-                f" (with {', '.join(t.name for t in others)})" if raised and others else "")
-                + ("" if raised
-                   else "; not permitted to raise it: on a busy host its cycles may run late"))
-            say(PROGRESS_LEGEND)
-            wall0 = time.perf_counter()
-            try:
-                await service.run(source, stop=stop)
-            finally:
-                limiter.cancel()
-            wall = time.perf_counter() - wall0
+        # with it so that none is descheduled by a hog while holding it
+        t_start = service.clock()
+        service.on_event = lambda e: say(f"t={e.t_s - t_start:7.3f} s  {e.text}")
+        say(PROGRESS_LEGEND)
+        wall0 = time.perf_counter()
+        running = asyncio.create_task(runtime.run(stop=stop))
+        await asyncio.sleep(0)  # the run raised the bus thread: say what it got
+        _say_priority(say, runtime)
+        try:
+            await running
+        finally:
+            limiter.cancel()
+        wall = time.perf_counter() - wall0
     finally:
         try:
-            service.close()
+            runtime.close()
         finally:
-            if pool is not None:
-                pool.close()
             code = sim.stop() if sim is not None else 0
+    granted, others = runtime.granted, runtime.others
     factor = time_factor(service.results)
     summary = _service_summary(
         service,
@@ -402,29 +407,12 @@ real-time bus thread from sending ``PIEZO_COMMAND`` for up to 90-210 ms (measure
 hogs: over the amplifier's 100 ms setpoint timeout). In a process of its own it cannot."""
 
 
-def _measure_in_workers(service: Any, cfg: Any, say: Progress) -> Any:
-    """Start the measurement's worker process(es) for ``service`` and tune its process.
-
-    Returns the pool (the caller closes it after the service). The process's heap is frozen and
-    its interpreter lock's switch interval shortened (:func:`controller.service.latency.
-    tune_for_latency`), as ``planer serve`` does.
-    """
-    from controller.service.latency import tune_for_latency
-    from controller.workers.pool import open_worker_pool
-
-    fr = cfg.frames
-    shape = (fr.image_height, fr.image_width) if fr.image_width > 0 and fr.image_height > 0 \
-        else None
-    pool, warning = open_worker_pool(service.measurement.factory,
-                                     max(HIL_MEASURE_WORKERS, cfg.service.workers), shape=shape,
-                                     timeout_s=cfg.safety.measurement_timeout_s)
-    if warning:
-        say(f"hil (cross-process): {warning}")
-    if pool is not None:
-        service.pipeline.use_workers(pool)
-        say(f"service: measuring in {pool.workers} worker process(es)")
-    tune_for_latency()
-    return pool
+def _say_priority(say: Progress, runtime: Any) -> None:
+    granted, others = runtime.granted, runtime.others
+    raised = granted.startswith(("SCHED_FIFO", "nice"))
+    say(f"service: bus thread {granted}" + (
+        f" (with {', '.join(t.name for t in others)})" if raised and others else "")
+        + ("" if raised else "; not permitted to raise it: on a busy host its cycles may run late"))
 
 
 def _command_gaps(lines: Sequence[str]) -> dict[str, float | int] | None:

@@ -21,7 +21,6 @@ FAKE = textwrap.dedent(
     import planer.cli as cli
 
     mod = types.ModuleType("planer.commands.fake")
-    mod.HELP = "a test command"
     mod.configure = lambda parser: parser.add_argument("what")
 
     def run(args):
@@ -36,7 +35,7 @@ FAKE = textwrap.dedent(
 
     mod.run = run
     sys.modules["planer.commands.fake"] = mod
-    cli.COMMANDS = (*cli.COMMANDS, "fake")
+    cli.COMMANDS = {**cli.COMMANDS, "fake": "a test command"}
     sys.exit(cli.main(sys.argv[1:]))
     """
 )

@@ -190,7 +190,7 @@ def test_every_exception_ends_in_one_line(exc, code, text, capsys, monkeypatch):
         raise exc
 
     parser = cli.build_parser()
-    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    monkeypatch.setattr(cli, "build_parser", lambda *_: parser)
     parser._subparsers._group_actions[0].choices["bench"].set_defaults(_run=boom)
     monkeypatch.delenv(cli.TRACEBACK_ENV, raising=False)
     assert cli.main(["bench"]) == code

@@ -1,4 +1,4 @@
-"""``planer serve``'s composition: the camera's latch reader and the frame source's counters."""
+"""``planer serve``'s lines: the frame source's counters and the vision's state."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import pytest
 
 from config.machine import load_machine
-from planer.commands.serve import open_source, source_counts, source_text
+from planer.commands.serve import source_counts, source_text
 
 
 @pytest.mark.parametrize(
@@ -38,71 +38,6 @@ def test_source_counts_of_every_kind_of_source(source, expected):
     else:
         assert text == ""
 
-
-def _capture(monkeypatch):
-    import controller.frames.source as fs
-
-    got = {}
-
-    def fake_open(frames, *, inprocess=None, latch_reader=None):
-        got.update(frames=frames, latch_reader=latch_reader)
-        return SimpleNamespace(close=lambda: None)
-
-    monkeypatch.setattr(fs, "open_frame_source", fake_open)
-    return got
-
-
-def test_a_camera_source_gets_the_plcs_latches(monkeypatch):
-    from controller.frames.camera.latches import ModbusLatchReader
-
-    got = _capture(monkeypatch)
-    cfg = load_machine()
-    cfg = cfg.with_changes(frames=replace(cfg.frames, source="camera", camera_id="Fake_1"),
-                           plc=replace(cfg.plc, host="127.0.0.1", port=1502, unit_id=7))
-    source, reader = open_source(cfg)
-    try:
-        assert isinstance(reader, ModbusLatchReader) and got["latch_reader"] is reader
-        assert got["frames"] is cfg.frames
-        assert reader.unit_id == 7
-        assert (reader.client.comm_params.host, reader.client.comm_params.port) == (
-            "127.0.0.1", 1502)
-        assert all(name in reader.map for name in ("trigger_seq", "trigger_a_counts",
-                                                   "trigger_b_counts", "index_latch_counts"))
-    finally:
-        reader.close()
-
-
-def test_a_spool_source_needs_no_latch_reader(monkeypatch):
-    got = _capture(monkeypatch)
-    cfg = load_machine()
-    assert cfg.frames.source == "spool"
-    _, reader = open_source(cfg)
-    assert reader is None and got["latch_reader"] is None
-
-
-def test_the_latch_reader_is_closed_when_the_camera_does_not_open(monkeypatch):
-    import controller.frames.camera.latches as latches
-    import controller.frames.source as fs
-
-    closed = []
-
-    class Reader:
-        def __init__(self, *a, **kw):
-            pass
-
-        def close(self):
-            closed.append(True)
-
-    def failing(frames, *, inprocess=None, latch_reader=None):
-        raise OSError("camera Fake_9 not found")
-
-    monkeypatch.setattr(latches, "ModbusLatchReader", Reader)
-    monkeypatch.setattr(fs, "open_frame_source", failing)
-    cfg = load_machine()
-    cfg = cfg.with_changes(frames=replace(cfg.frames, source="camera", camera_id="Fake_9"))
-    with pytest.raises(OSError, match="Fake_9"):
-        open_source(cfg)
-    assert closed == [True]
 
 
 @pytest.mark.parametrize(
