@@ -24,7 +24,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from controller.quality.log import QualityClass, judge
+from controller.quality.schema import QualityClass, judge
 from controller.service.events import EventKind, ServiceEvent
 from controller.service.frame_result import FrameResult
 from controller.service.status import ServiceStatus

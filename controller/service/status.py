@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
-from controller.quality.log import vision_fields
+from controller.quality.schema import vision_fields
 from controller.service.frame_result import FrameResult
 
 

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from controller.quality.log import QualityClass
+from controller.quality.schema import QualityClass
 from controller.service.events import ServiceEvent
 from controller.service.frame_result import FrameResult
 from controller.service.status import ServiceStatus

@@ -17,7 +17,7 @@ from plant_sim.interfaces.plc_process import PlcProcess
 from plant_sim.run.driver import PlantDriver
 from plant_sim.run.runner import SimRunner
 from protocol import can_transport
-from protocol.frames import InProcessSource
+from protocol.frame_queue import InProcessSource
 from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
 from tests.plant_sim.test_sim_plc import FakeMachine, read_adu

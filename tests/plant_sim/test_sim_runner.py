@@ -21,7 +21,8 @@ from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
 from plant_sim.interfaces.plc_server import PlcServer
 from plant_sim.run.runner import SimRunner, parse_banner
 from protocol import can_transport
-from protocol.frames import Frame, InProcessSource
+from protocol.frame_queue import InProcessSource
+from protocol.frames import Frame
 from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
 from protocol.spool import SpoolReader, SpoolWriter
