@@ -334,8 +334,8 @@ def test_port_in_use_is_a_fieldbus_error(plc):
 
 
 def test_real_machine_register_values_match_the_map():
-    sim = pytest.importorskip("plant_sim.model.machine")
     from config.sim import default_sim
+    from plant_sim.model import machine as sim
 
     m = sim.Machine(default_sim(), seed=0, render_images=False)
     m.advance(0.01)

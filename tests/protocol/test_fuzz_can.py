@@ -114,12 +114,10 @@ def test_ids_that_are_not_integers_are_value_errors(fid, data):
 @given(st.sampled_from(KNOWN_IDS),
        st.one_of(st.none(), st.text(max_size=8), st.lists(st.integers(-300, 300), max_size=9)))
 def test_data_that_is_not_bytes_is_a_value_error(fid, data):
-    try:
+    with pytest.raises(Exception) as err:  # noqa: B017 - the assertion names what leaked
         CODEC.decode(fid, data)  # type: ignore[arg-type]
-    except ValueError:
-        pass
-    except Exception as exc:  # noqa: BLE001 - the assertion names what leaked
-        pytest.fail(f"{type(exc).__name__} leaked: {exc}")
+    assert err.type is ValueError, f"{err.type.__name__} leaked: {err.value}"
+    assert "bytes" in str(err.value)
 
 
 # ------------------------------------------------------------------ the DBC file itself

@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 
 from core.errors import MeasurementError
+from plant_sim.rendering import scenarios
 from vision.marks import corr2
 from vision.pipeline import Measurement, Measurer, measure_pair
-
-scenarios = pytest.importorskip("plant_sim.rendering.scenarios")
 
 
 def _measure(rig, pair, **kwargs) -> Measurement:

@@ -247,10 +247,8 @@ def test_connection_loss_arms_backoff_then_reconnects():
 
 # ---------------------------------------------------------------------------------- real server
 def _server_cls():
-    try:
-        from plant_sim.interfaces.plc_server import PlcServer
-    except ImportError:  # pragma: no cover - the simulator's server is not there yet
-        pytest.skip("plant_sim.interfaces.plc_server not available")
+    from plant_sim.interfaces.plc_server import PlcServer
+
     return PlcServer
 
 

@@ -10,8 +10,7 @@ import pytest
 
 from config.rig import rig_to_toml
 from planer.cli import main
-
-scenarios = pytest.importorskip("plant_sim.rendering.scenarios")
+from plant_sim.rendering import scenarios
 
 
 @pytest.fixture(scope="module")
