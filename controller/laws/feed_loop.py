@@ -26,7 +26,17 @@ taken effect: the commanded pitch must have been steady (within ``steady_tol``) 
 for ``None``) the correction is held and only the feed-forward follows the spindle speed.
 
 The history holds only setpoints that reached the machine: the caller takes back one it did not
-write, or that the PLC refused, with :meth:`FeedLoop.reject`.
+write, or that the PLC refused, with :meth:`FeedLoop.reject`, or one it held back because the
+change was too small to write with :meth:`FeedLoop.defer` (the rate limit then counts from the
+setpoint in force, so steps smaller than a write deadband add up instead of freezing the feed).
+
+What the drive really did rules the learning when the caller reports it
+(:meth:`FeedLoop.observe_drive`: the PLC's actual feed and the spindle speed, every cycle): the
+measured board's cut interval is found by integrating the actual feed, and the model error is
+``p_meas`` over the pitch the drive actually cut with (``V_act / (n Z)``, travel over passes in
+the window). A drive that lags its setpoint (a slow ramp of the PLC, a low bandwidth) then
+teaches the loop nothing false: no wind-up while the drive is rate-limited. Without drive
+readings the setpoint history stands in for them (the drive follows within ``settle_s``).
 
 The per-measurement gain is scheduled on the loop delay so that the crossover sits at a fixed
 fraction of the delay at every feed: ``g = ki * Ts / (T_delay + Ts)``.
@@ -46,6 +56,91 @@ from core.errors import ConfigError
 
 #: Values of :attr:`FeedLoop.status` after an update.
 STATUSES = ("accepted", "no_measurement", "no_history", "transient", "implausible", "idle")
+
+
+class DriveHistory:
+    """The drive's actual feed and knife passing rate over time (piecewise constant, pure).
+
+    Parameters
+    ----------
+    horizon_s : float
+        How far back readings are kept, s.
+    """
+
+    def __init__(self, horizon_s: float) -> None:
+        self.horizon_s = check_positive("horizon_s", horizon_s)
+        self._t: list[float] = []
+        self._v: list[float] = []  # actual feed, mm/s
+        self._r: list[float] = []  # knife passes per second, n Z
+        self._d: list[float] = []  # board travel at each reading, mm
+        self._n: list[float] = []  # knife passes at each reading
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def record(self, t: float, feed_mm_s: float, passes_per_s: float) -> None:
+        """A reading from ``t`` on; older than the last one: ignored, same instant: replaces."""
+        v, r = float(feed_mm_s), float(passes_per_s)
+        if not (math.isfinite(t) and math.isfinite(v) and v >= 0.0 and math.isfinite(r)
+                and r >= 0.0):
+            return
+        if self._t and t <= self._t[-1]:
+            if t == self._t[-1]:
+                self._v[-1], self._r[-1] = v, r
+            return
+        if self._t:
+            dt = t - self._t[-1]
+            d, n = self._d[-1] + self._v[-1] * dt, self._n[-1] + self._r[-1] * dt
+        else:
+            d = n = 0.0
+        for lst, x in ((self._t, t), (self._v, v), (self._r, r), (self._d, d), (self._n, n)):
+            lst.append(x)
+        k = bisect.bisect_right(self._t, t - self.horizon_s) - 1
+        if k > 0:
+            del self._t[:k], self._v[:k], self._r[:k], self._d[:k], self._n[:k]
+
+    def distance_at(self, t: float) -> float | None:
+        """Board travel at ``t`` (history coordinates), mm; ``None`` before the first reading."""
+        if not self._t or t < self._t[0]:
+            return None
+        i = bisect.bisect_right(self._t, t) - 1
+        return self._d[i] + self._v[i] * (t - self._t[i])
+
+    def time_at(self, d: float) -> float | None:
+        """When the board had travelled ``d``; ``None`` before the history or while it stood."""
+        if not self._d or d < self._d[0]:
+            return None
+        i = bisect.bisect_right(self._d, d) - 1
+        while i > 0 and self._v[i] <= 0.0 and d == self._d[i]:
+            i -= 1
+        if self._v[i] <= 0.0:
+            return None if d > self._d[i] else self._t[i]
+        return self._t[i] + (d - self._d[i]) / self._v[i]
+
+    def _passes_at(self, t: float) -> float:
+        i = bisect.bisect_right(self._t, t) - 1
+        return self._n[i] + self._r[i] * (t - self._t[i])
+
+    def pitch_stats(self, t0: float, t1: float) -> tuple[float, float, float] | None:
+        """Min, max and mean (travel over passes) of the cut pitch ``V / (n Z)`` in ``[t0, t1]``.
+
+        ``None`` before the history, or when the spindle or the board stood meanwhile.
+        """
+        if not self._t or t0 < self._t[0] or t1 < t0:
+            return None
+        i0 = bisect.bisect_right(self._t, t0) - 1
+        i1 = bisect.bisect_right(self._t, t1) - 1
+        vals = []
+        for i in range(i0, i1 + 1):
+            if not (self._v[i] > 0.0 and self._r[i] > 0.0):
+                return None
+            vals.append(self._v[i] / self._r[i])
+        passes = self._passes_at(t1) - self._passes_at(t0)
+        if passes <= 0.0:
+            return vals[0], vals[0], vals[0]
+        d0, d1 = self.distance_at(t0), self.distance_at(t1)
+        assert d0 is not None and d1 is not None
+        return min(vals), max(vals), (d1 - d0) / passes
 
 
 def integral_gain(ki: float, sample_time_s: float, delay_s: float) -> float:
@@ -218,6 +313,9 @@ class FeedLoop:
         self._p_star = cfg.pitch_setpoint_mm
         self._x_lo = math.log(cfg.correction_min)
         self._x_hi = math.log(cfg.correction_max)
+        self.drive = DriveHistory(cfg.history_s)
+        """The drive's actual feed and passing rate (:meth:`observe_drive`); kept by
+        :meth:`reset` (what the drive did stays true)."""
         self.reset()
 
     # -- state ------------------------------------------------------------------------------
@@ -245,13 +343,15 @@ class FeedLoop:
         feed = c.feed_min_mm_s if feed is None else feed
         self._feed = check_range("feed_mm_s", feed, c.feed_min_mm_s, c.feed_max_mm_s)
         self._t_last = None if now_s is None else check_finite("now_s", now_s)
+        self._t_rate = self._t_last  # the rate limit counts from the setpoint in force then
         corr = check_range("correction", correction, c.correction_min, c.correction_max)
         self._x = math.log(corr)
         self._hist_t: list[float] = []  # update times; setpoint i holds on [t_i, t_{i+1})
         self._hist_v: list[float] = []  # feed setpoints, mm/s
         self._hist_p: list[float] = []  # commanded pitch V / (n Z), mm (nan: spindle stopped)
         self._hist_d: list[float] = []  # board travelled at t_i since the first entry, mm
-        self._undo: tuple[float, tuple[float, float, float, float] | None] | None = None
+        self._undo: tuple[float, float | None, tuple[float, float, float, float] | None] | None
+        self._undo = None
         self.status = "idle"
         self.last_gain = 0.0
         self.last_model_error = math.nan
@@ -317,15 +417,43 @@ class FeedLoop:
         desired = clamp(
             math.exp(self._x) * self._p_star * n_rev_s * c.knives, c.feed_min_mm_s, c.feed_max_mm_s
         )
-        dt = 0.0 if self._t_last is None else t - self._t_last
+        dt = 0.0 if self._t_rate is None else max(t - self._t_rate, 0.0)
         feed = rate_limit(desired, self._feed, rate_max=c.rate_max_mm_s2, dt_s=dt)
-        prev_feed = self._feed
+        prev_feed, prev_t_rate = self._feed, self._t_rate
         self._feed = clamp(feed, c.feed_min_mm_s, c.feed_max_mm_s)
-        self._t_last = t
+        self._t_last = self._t_rate = t
         p_cmd = self._feed / (n_rev_s * c.knives) if n_rev_s > 0 else math.nan
         replaced = self._record(t, self._feed, p_cmd)
-        self._undo = (prev_feed, replaced)
+        self._undo = (prev_feed, prev_t_rate, replaced)
         return self._feed
+
+    def observe_drive(self, *, now_s: float, feed_actual_mm_s: float, spindle_rpm: float) -> None:
+        """What the drive does at ``now_s``: the PLC's actual feed and the spindle speed.
+
+        From then on the learning judges each measurement against the pitch the drive really
+        cut with (see the module's docstring). Readings that go back in time are ignored.
+        """
+        t = check_finite("now_s", now_s)
+        rate = check_positive("spindle_rpm", spindle_rpm, allow_zero=True) / 60.0 * self.cfg.knives
+        self.drive.record(t, check_finite("feed_actual_mm_s", feed_actual_mm_s), rate)
+
+    def defer(self) -> float:
+        """The last update's setpoint was held back as too small a change to write.
+
+        Taken back as :meth:`reject` does, except that the rate limit of the next update still
+        counts from the setpoint in force: the steps held back add up until one is worth
+        writing (a slow ramp of a few tenths of mm/s per cycle still moves).
+
+        Returns
+        -------
+        float
+            The setpoint in force, mm/s.
+        """
+        undo = self._undo
+        feed = self.reject()
+        if undo is not None:
+            self._t_rate = undo[1]
+        return feed
 
     def reject(self) -> float:
         """The setpoint the last :meth:`update` returned never reached the machine.
@@ -344,7 +472,7 @@ class FeedLoop:
         """
         if self._undo is None:
             return self._feed
-        prev_feed, replaced = self._undo
+        prev_feed, _, replaced = self._undo
         self._undo = None
         if self._hist_t:
             self._hist_t.pop()
@@ -364,8 +492,9 @@ class FeedLoop:
         """When the board seen by a measurement taken at ``measured_at_s`` was cut.
 
         The board moved ``cutter_to_camera_mm -+ window_mm / 2`` between the cut and the
-        measurement; the distance is integrated over the setpoint history (the drive follows its
-        setpoint within ``settle_s``).
+        measurement; the distance is integrated over the drive's actual feed when it was
+        reported (:meth:`observe_drive`) back that far, else over the setpoint history (the
+        drive follows its setpoint within ``settle_s``).
 
         Parameters
         ----------
@@ -379,6 +508,9 @@ class FeedLoop:
             history does not reach back far enough.
         """
         t_m = check_finite("measured_at_s", measured_at_s)
+        by_drive = self._drive_interval(t_m)
+        if by_drive is not None:
+            return by_drive
         d_m = self._distance_at(t_m)
         if d_m is None:
             return None
@@ -390,19 +522,55 @@ class FeedLoop:
         return t_lo, t_hi
 
     # -- internals --------------------------------------------------------------------------
+    def _drive_interval(self, t_m: float) -> tuple[float, float] | None:
+        """The cut interval from the drive's actual feed (``None``: not reported back so far)."""
+        drive = self.drive
+        d_m = drive.distance_at(t_m)
+        if d_m is None:
+            return None
+        half = 0.5 * self.cfg.window_mm
+        t_lo = drive.time_at(d_m - self.cfg.cutter_to_camera_mm - half)
+        t_hi = drive.time_at(d_m - self.cfg.cutter_to_camera_mm + half)
+        if t_lo is None or t_hi is None:
+            return None
+        return t_lo, t_hi
+
+    def _cut_pitch(self, t_meas: float) -> tuple[float, float, float, float, float] | str:
+        """``(t_lo, t_hi, min, max, mean)`` of the pitch the measured board was cut with.
+
+        From the drive's readings when they reach back (no settling allowance: they show the
+        drive's lag), else from the setpoint history (``settle_s`` before the window too). A
+        status string when there is none.
+        """
+        c = self.cfg
+        if len(self.drive) and self.drive.distance_at(t_meas) is not None:
+            interval = self._drive_interval(t_meas)
+            stats = None if interval is None else self.drive.pitch_stats(*interval)
+            if interval is None or stats is None:
+                return "no_history"
+            return (*interval, *stats)
+        interval = self.cut_interval_s(t_meas)
+        if interval is None or interval[0] - c.settle_s < self._hist_t[0]:
+            return "no_history"
+        t_lo, t_hi = interval
+        stats = self._pitch_stats(t_lo - c.settle_s, t_hi)
+        if stats is None:
+            return "transient"
+        mean = self._pitch_stats(t_lo, t_hi)
+        assert mean is not None
+        return t_lo, t_hi, stats[0], stats[1], mean[2]
+
     def _learn(self, p_meas: float, t_meas: float, now: float) -> None:
         c = self.cfg
         self.last_gain = 0.0
-        interval = self.cut_interval_s(t_meas)
-        if interval is None or interval[0] - c.settle_s < self._hist_t[0]:
-            self.status = "no_history"
+        cut = self._cut_pitch(t_meas)
+        if isinstance(cut, str):
+            self.status = cut
             return
-        t_lo, t_hi = interval
-        stats = self._pitch_stats(t_lo - c.settle_s, t_hi)
-        if stats is None or stats[1] - stats[0] > c.steady_tol * stats[2]:
+        t_lo, t_hi, p_min, p_max, p_mean = cut
+        if p_max - p_min > c.steady_tol * p_mean:
             self.status = "transient"
             return
-        p_mean = self._pitch_stats(t_lo, t_hi)[2]  # the commanded pitch of the measured board
         k_hat = p_meas / p_mean
         if not 1.0 / c.correction_max <= k_hat <= 1.0 / c.correction_min:
             self.status = "implausible"

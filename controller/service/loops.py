@@ -11,6 +11,7 @@ its geometry or limits change), runs them on each valid, attributed measurement
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 from typing import Any
 
@@ -37,6 +38,12 @@ PASS_TOL = 0.2
 pass counts (so the widths per knife) are not trusted and the uniformity loop skips the pair
 (:meth:`ControlLoops.attribution_trusted`). A wrong count is off by at least 4/3 (three passes
 for four) and mostly by 2 (two for one)."""
+
+
+def plc_accel_mm_s2(snap: PlcSnapshot) -> float | None:
+    """The feed drive's acceleration limit the PLC reports, mm/s^2 (``None``: not reported)."""
+    accel = float(snap.values.get("feed_accel_max_mm_s2", 0.0) or 0.0)
+    return accel if math.isfinite(accel) and accel > 0.0 else None
 
 
 def check_loop_tables(cfg: MachineConfig) -> None:
@@ -86,6 +93,7 @@ class ControlLoops:
         self.feed_loop: Any = None
         self.uniformity_loop: Any = None
         self._key: tuple | None = None
+        self._accel: float | None = None
         self._learned_offsets: np.ndarray | None = None
         self._stroke_limit_um: float | None = None
         self._t_loops = -math.inf
@@ -109,6 +117,8 @@ class ControlLoops:
             round(snap.cutter_to_camera_mm, 3),
         )
         if key == self._key:
+            if plc_accel_mm_s2(snap) != self._accel:
+                self._new_feed_rate(snap)
             return
         q = self.cfg.quality
         cam = self.rig.camera
@@ -124,9 +134,11 @@ class ControlLoops:
         }
         fl_map = dict(self.cfg.feed_loop)
         fl_map.setdefault("sample_time_s", 1.0 / self.pairs_per_s)
-        accel = float(snap.values.get("feed_accel_max_mm_s2", 0.0) or 0.0)
-        if accel > 0 and "rate_max_mm_s2" in fl_map:
-            fl_map["rate_max_mm_s2"] = min(float(fl_map["rate_max_mm_s2"]), accel)
+        accel = plc_accel_mm_s2(snap)
+        if accel is not None:  # the PLC's own limit rules, whatever machine.toml says
+            rate = float(fl_map.get("rate_max_mm_s2", FeedLoopConfig.rate_max_mm_s2))
+            fl_map["rate_max_mm_s2"] = min(rate, accel)
+        self._accel = accel
         self.feed_loop = FeedLoop(FeedLoopConfig.from_mapping(fl_map, **overrides))
         lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
         self.feed_loop.reset(feed_mm_s=min(max(snap.feed_setpoint_mm_s, lo), hi))
@@ -141,6 +153,20 @@ class ControlLoops:
         self._learned_offsets = np.zeros(snap.knives)
         self.out.set_knives(snap.knives)
         self._key = key
+
+    def _new_feed_rate(self, snap: PlcSnapshot) -> None:
+        """The PLC's acceleration limit changed: the feed loop again, its learning kept."""
+        old = self.feed_loop
+        accel = plc_accel_mm_s2(snap)
+        rate = float(dict(self.cfg.feed_loop).get("rate_max_mm_s2",
+                                                  FeedLoopConfig.rate_max_mm_s2))
+        cfg = dataclasses.replace(old.cfg, rate_max_mm_s2=rate if accel is None
+                                  else min(rate, accel))
+        self.feed_loop = FeedLoop(cfg)
+        self.feed_loop.reset(feed_mm_s=old.feed_mm_s, now_s=self._t_loops
+                             if math.isfinite(self._t_loops) else None,
+                             correction=old.correction)
+        self._accel = accel
 
     def set_limit_um(self, stroke_um: float, t: float) -> np.ndarray | None:
         """The stroke the uniformity loop plans within from now on (e.g. the amplifier's).
@@ -198,9 +224,9 @@ class ControlLoops:
             current = self.out.feed_setpoint_mm_s
             if current is None:
                 current = snap.feed_setpoint_mm_s
-            if abs(feed - current) <= FEED_WRITE_DEADBAND_MM_S or not await self.out.write_feed(
-                feed, t
-            ):
+            if abs(feed - current) <= FEED_WRITE_DEADBAND_MM_S:
+                loop.defer()  # too small to write: it adds up with the next steps
+            elif not await self.out.write_feed(feed, t):
                 loop.reject()
 
     async def apply(
@@ -277,6 +303,9 @@ class ControlLoops:
 
     def _record_speed(self, t: float, snap: PlcSnapshot) -> None:
         self.board_speed.record(t, snap.feed_actual_mm_s, snap.spindle_rpm / 60.0 * snap.knives)
+        if self.feed_loop is not None:  # the feed loop learns against what the drive did
+            self.feed_loop.observe_drive(now_s=t, feed_actual_mm_s=snap.feed_actual_mm_s,
+                                         spindle_rpm=snap.spindle_rpm)
 
     def attribution_trusted(self, att: Attributed, measured_at: float, back_mm: float) -> bool:
         """Whether the attribution counted the knife passes the measured board was cut with.

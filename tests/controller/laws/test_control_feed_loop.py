@@ -374,3 +374,95 @@ def test_rejected_setpoint_is_retried_from_the_feed_in_force():
     assert loop.feed_mm_s == 100.0
     # 0.25 s later the next attempt moves at most 100 mm/s from 100 mm/s, not from 200
     assert loop.update(measured_pitch_mm=None, spindle_rpm=6000.0, now_s=0.5) == 200.0
+
+
+# -- the drive's own limits ----------------------------------------------------------------
+def _run_with_drive(cfg, plant, *, t_end_s, observe, dt_s=0.02, measure_every=5):
+    """A 20 ms cycle: the drive's actual feed reported every cycle (``observe``), a measurement
+    every ``measure_every`` cycles; the plant's own encoder scale is the model error."""
+    loop = FeedLoop(cfg)
+    loop.reset(feed_mm_s=plant.v, now_s=0.0)
+    out = []
+    for i in range(round(t_end_s / dt_s)):
+        t = i * dt_s
+        if observe:
+            loop.observe_drive(now_s=t, feed_actual_mm_s=plant.v, spindle_rpm=6000.0)
+        meas = plant.measure() if i % measure_every == 0 else None
+        feed = loop.update(measured_pitch_mm=meas, spindle_rpm=6000.0, now_s=t)
+        out.append((t, feed, plant.true_pitch(6000.0), loop.correction))
+        plant.step(feed, 6000.0, dt_s)
+    return loop, out
+
+
+@pytest.mark.parametrize("accel", [20.0, 50.0])
+def test_a_drive_that_ramps_slowly_teaches_no_false_model_error(accel):
+    """The loop's rate (500 mm/s^2) outruns a drive of 20-50 mm/s^2: with the drive's actual
+    feed reported the correction learns the true model error only; without, it winds down."""
+    cfg = FeedLoopConfig(rate_max_mm_s2=500.0)
+    runs = {}
+    for observe in (True, False):
+        plant = BoardPlant(scale=1.0, feed_mm_s=800.0, accel_mm_s2=accel, dt_s=0.005)
+        runs[observe] = _run_with_drive(cfg, plant, t_end_s=6.0, observe=observe)
+    loop, out = runs[True]
+    assert min(c for *_, c in out) > 0.995  # no wind-up while the drive lagged
+    assert min(f for _, f, *_ in out) > 0.995 * 600.0
+    _, blind = runs[False]
+    assert min(c for *_, c in blind) < 0.95  # what the setpoints alone teach (the old fault)
+
+
+def test_a_lagging_drive_still_lets_the_loop_learn_the_true_model_error():
+    """Bandwidth 0.3 Hz (time constant 0.53 s, far beyond settle_s): the correction converges
+    to the plant's scale error from the drive's readings."""
+    cfg = FeedLoopConfig(rate_max_mm_s2=2000.0)
+    plant = BoardPlant(scale=1.03, feed_mm_s=800.0, bandwidth_hz=0.3, dt_s=0.005)
+    loop, out = _run_with_drive(cfg, plant, t_end_s=25.0, observe=True)
+    assert loop.correction == pytest.approx(1 / 1.03, rel=0.005)
+    assert abs(out[-1][2] / 1.5 - 1) < 0.005
+
+
+def test_deferred_steps_add_up_instead_of_freezing_the_feed():
+    """25 mm/s^2 moves 0.5 mm/s per 20 ms cycle: each step alone is inside a 0.5 mm/s write
+    deadband. Deferred (not written), they add up and the feed still ramps at the full rate;
+    rejected instead, the rate limit starts again every cycle and the feed never moves."""
+    cfg = FeedLoopConfig(rate_max_mm_s2=25.0)
+    finals = {}
+    for how in ("defer", "reject"):
+        loop = FeedLoop(cfg)
+        loop.reset(feed_mm_s=700.0, now_s=0.0)
+        in_force = 700.0
+        for i in range(1, 201):  # 4 s
+            feed = loop.update(measured_pitch_mm=None, spindle_rpm=6000.0, now_s=i * 0.02)
+            if abs(feed - in_force) <= 0.5:
+                getattr(loop, how)()
+            else:
+                in_force = feed
+            assert loop.feed_mm_s == in_force
+        finals[how] = in_force
+    assert finals["defer"] == pytest.approx(700.0 - 25.0 * 4.0, abs=0.6)
+    assert finals["reject"] == 700.0
+
+
+def test_defer_takes_the_setpoint_out_of_the_history_like_reject():
+    cfg = FeedLoopConfig(rate_max_mm_s2=1e6, cutter_to_camera_mm=300.0, window_mm=40.0)
+    loop = FeedLoop(cfg)
+    loop.reset(feed_mm_s=600.0, now_s=0.0)
+    loop.update(measured_pitch_mm=None, spindle_rpm=6000.0, now_s=1.0)
+    before = (loop.feed_mm_s, loop.cut_interval_s(1.5))
+    loop.update(measured_pitch_mm=None, spindle_rpm=6010.0, now_s=1.2)
+    loop.defer()
+    assert (loop.feed_mm_s, loop.cut_interval_s(1.5)) == before
+
+
+def test_cut_interval_follows_the_drive_when_it_reports():
+    """Setpoint 600 mm/s but the drive ran at 300 mm/s: the board seen at 2 s was cut 1 s
+    before (300 mm at 300 mm/s), not 0.5 s."""
+    loop = FeedLoop(FeedLoopConfig(rate_max_mm_s2=1e6, cutter_to_camera_mm=300.0,
+                                   window_mm=40.0))
+    loop.reset(feed_mm_s=600.0, now_s=0.0)
+    for i in range(101):
+        t = i * 0.02
+        loop.observe_drive(now_s=t, feed_actual_mm_s=300.0, spindle_rpm=6000.0)
+        loop.update(measured_pitch_mm=None, spindle_rpm=6000.0, now_s=t)
+    lo, hi = loop.cut_interval_s(2.0)
+    assert (lo + hi) / 2 == pytest.approx(1.0, abs=1e-9)
+    assert hi - lo == pytest.approx(40.0 / 300.0, abs=1e-9)
