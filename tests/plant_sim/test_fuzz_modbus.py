@@ -19,7 +19,8 @@ from pyModbusTCP.client import ModbusClient
 
 from plant_sim.interfaces.plc_server import FUNCTION_CODES, PlcServer
 from protocol.registers import RegisterMap
-from tests.plant_sim.test_sim_plc import FakeMachine, LoopThread
+from tests.plant_sim.test_sim_plc import LoopThread
+from tests.support.fake_machine import FakeMachine
 
 RMAP = RegisterMap.load()
 EXCEPTIONS = {0x01, 0x02, 0x03, 0x0B}

@@ -16,7 +16,7 @@ from core.errors import FieldbusError
 from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
 from protocol import can_transport, piezo_can
 from protocol.piezo_can import PiezoCodec
-from tests.plant_sim.test_sim_plc import FakeMachine
+from tests.support.fake_machine import FakeMachine
 
 CODEC = PiezoCodec.load()
 _channels = itertools.count()

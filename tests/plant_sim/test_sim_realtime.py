@@ -20,8 +20,9 @@ from protocol import can_transport
 from protocol.frame_queue import InProcessSource
 from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
-from tests.plant_sim.test_sim_plc import FakeMachine, read_adu
+from tests.plant_sim.test_sim_plc import read_adu
 from tests.plant_sim.test_sim_runner import FakeClock
+from tests.support.fake_machine import FakeMachine
 
 RMAP = RegisterMap.load()
 
@@ -298,7 +299,7 @@ def test_amp_node_receiving_thread_hands_frames_over_at_machine_time():
     assert not node._rx_thread.is_alive() and bus._is_shutdown
 
 
-# ------------------------------------------------------------------ priority (issue 14)
+# ------------------------------------------------------------------ priority
 class _FakeOs:
     """An ``os`` stand-in: records what was asked, refuses what it is told to."""
 
@@ -418,7 +419,7 @@ def test_render_workers_run_at_the_nice_value_asked():
         pool.close()
 
 
-# ------------------------------------------------------------------ bounded catch-up (issue 14)
+# ------------------------------------------------------------------ bounded catch-up
 class StallMachine(FakeMachine):
     """Steps are free, except that the host stalls ``stall_s`` of (fake) wall time at each of
     ``stall_at`` (machine times): a stepping thread starved by CPU hogs."""

@@ -26,7 +26,7 @@ from protocol.frames import Frame
 from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
 from protocol.spool import SpoolReader, SpoolWriter
-from tests.plant_sim.test_sim_plc import FakeMachine
+from tests.support.fake_machine import FakeMachine
 
 REPO = Path(__file__).resolve().parents[2]
 RMAP = RegisterMap.load()

@@ -13,40 +13,18 @@ from core.errors import FieldbusError, ModbusRefused
 from plant_sim.interfaces.register_bus import MachineRegisterBus
 from protocol.register_bus import BusRefused
 from protocol.registers import MachineState, PlcFault, RegisterMap
+from tests.support.fake_machine import FakeMachine as FakeMachineBase
 
 RMAP = RegisterMap.load()
 
 
-class FakeMachine:
-    """The PLC side of a machine: register values and the two writable registers."""
+class FakeMachine(FakeMachineBase):
+    """The shared stand-in with the PLC side these tests were written for."""
 
     def __init__(self) -> None:
-        self.feed = 300.0
-        self.heartbeat = 0
-        self.values = {reg.name: 0 for reg in RMAP}
-        self.values.update(
-            feed_min_mm_s=50.0,
-            feed_max_mm_s=1000.0,
-            spindle_rpm=6000.0,
-            knives=4,
-            cutter_to_camera_mm=350.0,
-            counts_per_mm=20.0,
-            encoder_counts=4_000_000_000,
-            index_latch_counts=123_456,
-            machine_state=0b11011,
-            board_position_mm=812.5,
-        )
-
-    def register_values(self) -> dict:
-        return dict(self.values, feed_setpoint_mm_s=self.feed, heartbeat_service=self.heartbeat)
-
-    def set_feed_setpoint(self, feed_mm_s: float) -> None:
-        if not 50.0 <= feed_mm_s <= 1000.0:
-            raise ValueError("feed_mm_s outside limits")
-        self.feed = feed_mm_s
-
-    def set_service_heartbeat(self, value: int) -> None:
-        self.heartbeat = value
+        super().__init__(feed_setpoint=300.0, cutter_to_camera_mm=350.0, machine_state=0b11011,
+                         board_position_mm=812.5, feed_accel_max_mm_s2=0.0, watchdog_ms=0,
+                         cutterhead_radius_mm=0.0)
 
 
 class Clock:
@@ -145,7 +123,7 @@ def test_client_reads_and_writes_through_in_process_bus():
         assert snap.index_latch_counts == 123_456
         await c.write_feed(512.5)
         await c.write_heartbeat(70_000)
-        assert m.feed == 512.5 and m.heartbeat == 70_000 % 65536
+        assert m.feed_setpoint == 512.5 and m.heartbeat_service == 70_000 % 65536
         assert c.last_ok_s == clock.t
 
     asyncio.run(main())
@@ -203,7 +181,7 @@ def test_a_value_the_machine_refuses_inside_the_map_limits_is_exception_03():
         await c.read()
         with pytest.raises(ModbusRefused, match=r"feed_setpoint_mm_s.*03 ILLEGAL DATA VALUE"):
             await c.write_feed(500.0)
-        assert m.feed == 300.0
+        assert m.feed_setpoint == 300.0
 
     asyncio.run(main())
 
@@ -266,7 +244,7 @@ def test_against_real_modbus_server_with_restart():
             assert math.isclose(snap["board_position_mm"], 812.5)
             await c.write_feed(444.5)
             await c.write_heartbeat(7)
-            assert m.feed == 444.5 and m.heartbeat == 7
+            assert m.feed_setpoint == 444.5 and m.heartbeat_service == 7
             c.last = None
             with pytest.raises(ModbusRefused, match="feed_setpoint_mm_s"):
                 await c.write_feed(2000.0)
@@ -288,7 +266,7 @@ def test_against_real_modbus_server_with_restart():
             server.refresh()
             assert c.connected and c.reconnects >= 2
             await c.write_feed(333.0)
-            assert m.feed == 333.0
+            assert m.feed_setpoint == 333.0
             c.close()
         finally:
             await server.stop()
@@ -343,6 +321,6 @@ def test_requests_from_two_tasks_never_overlap_on_the_bus():
         await asyncio.gather(c.read(), c.write_heartbeat(5), c.read(), c.write_feed(400.0))
         assert bus.overlaps == 0
         assert bus.order.count("connect") == 1 and len(bus.order) == 5
-        assert m.feed == 400.0 and m.heartbeat == 5
+        assert m.feed_setpoint == 400.0 and m.heartbeat_service == 5
 
     asyncio.run(main())
