@@ -1,4 +1,4 @@
-"""Scheduling priority of the threads that talk to the machine: raise, lower, guard (issue 14).
+"""Scheduling priority of the threads that talk to the machine: raise, lower, guard.
 
 A real PLC does not stop answering because a PC is busy, and a service must send its
 ``PIEZO_COMMAND`` every 20 ms whatever else the host runs (the amplifier's setpoint timeout is

@@ -268,7 +268,7 @@ def _main(argv: Sequence[str] | None) -> int:
         _quiet_teardown()
         print(f"{name}: error: {error_line(exc)}", file=sys.stderr, flush=True)
         return EXIT_ERROR
-    # One of the project's three bare ``except Exception`` handlers (issue 8): the process's
+    # One of the project's three bare ``except Exception`` handlers: the process's
     # outermost boundary. Whatever a command let escape is a bug; the user still gets one line
     # and exit code 3 instead of a traceback, and PLANER_TRACEBACK=1 gives the traceback.
     # Nothing runs after it, so swallowing cannot leave a half-working process behind.

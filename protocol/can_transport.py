@@ -157,7 +157,7 @@ def _unshare_flag() -> str:
     """``unshare``'s flag: ``-n`` for root with the right to, else ``-rn``.
 
     Inside a user namespace (``-r``) a process loses the right to real-time scheduling that the
-    simulated PLC and the service's bus thread ask for (issue 14, :mod:`core.realtime`).
+    simulated PLC and the service's bus thread ask for (:mod:`core.realtime`).
     """
     if hasattr(os, "geteuid") and os.geteuid() == 0 and shutil.which("unshare"):
         try:

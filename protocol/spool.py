@@ -219,7 +219,7 @@ class SpoolReader:
         return out
 
     def _identity(self, slot: int) -> tuple[int, int] | None:
-        try:  # a str path: no Path object per handled file and scan (issue 11, latency)
+        try:  # a str path: no Path object per handled file and scan (latency)
             st = os.lstat(os.path.join(self.directory, f"{_PREFIX}{slot:012d}{_META_SUFFIX}"))
         except OSError:
             return None

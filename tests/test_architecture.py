@@ -69,7 +69,7 @@ def _modules():
 
 
 def test_no_class_over_500_lines():
-    """A class that grows past a few hundred lines is two classes (issue 8: under 500)."""
+    """A class that grows past a few hundred lines is two classes (under 500)."""
     big = [
         f"{path.relative_to(ROOT)}:{node.name} ({node.end_lineno - node.lineno + 1} lines)"
         for path, tree in _modules()

@@ -44,7 +44,7 @@ from core.checks import check_int, check_positive
 #: Feeds (mm/s) at which the margins are computed and documented.
 DESIGN_FEEDS_MM_S = (50.0, 100.0, 300.0, 600.0, 1000.0)
 
-#: Required margins (issue 4).
+#: Required margins.
 MIN_GAIN_MARGIN_DB = 6.0
 MIN_PHASE_MARGIN_DEG = 45.0
 

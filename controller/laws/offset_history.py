@@ -1,7 +1,7 @@
 """Which offset table cut which board: the history of the tables in force (pass-to-board map).
 
 The camera sees board that was cut ``L / V`` seconds earlier (``L`` cutter to camera, ``V`` the
-feed): 0.3-40 s on the machines of issue 9. The uniformity loop learns on every image pair, so it
+feed): 0.3-40 s on the machines it serves. The uniformity loop learns on every image pair, so it
 must know the table the measured board was cut with, not the one in force now. The feed loop
 gives the cut times of a measurement's window
 (:meth:`controller.laws.feed_loop.FeedLoop.cut_interval_s`,

@@ -6,7 +6,7 @@ from the encoder speed and the PLC's spindle speed and knives); a narrow mark wh
 on its cusp and a knife that left no mark do not spoil them. The result (:class:`Attributed`)
 is what the loops get: widths per knife and the pitch per knife pass.
 
-Vanished marks (issue 10, item 5): every mark gets a knife pass of its own, so the passes
+Vanished marks: every mark gets a knife pass of its own, so the passes
 between the first and the last mark that got none are the passes that left no mark, and a
 knife with passes there but no mark at all has *vanished* (another knife's cut removed its
 mark). Then the marks found say little: the mean mark width is a multiple of the feed per pass

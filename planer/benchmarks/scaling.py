@@ -1,4 +1,4 @@
-"""The measurement workers' scaling (``planer bench``, ``service`` part; issue 11, item 3).
+"""The measurement workers' scaling (``planer bench``, ``service`` part).
 
 The measurement's throughput in this process (one core) and in 1..N worker processes
 (N = the cores available), each fed as fast as it takes pairs, results taken in sequence

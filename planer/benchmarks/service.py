@@ -1,6 +1,6 @@
 """Service latency and measurement workers (``planer bench``, ``service`` part).
 
-**Latency** (issue 11, item 2). The simulated machine renders 659x493 pairs once (before
+**Latency**. The simulated machine renders 659x493 pairs once (before
 timing); its PLC's Modbus server runs in a process of its own
 (``plant_sim.interfaces.plc_process``) on an
 ephemeral 127.0.0.1 port and its piezo amplifier node answers on a virtual CAN bus, pumped every
@@ -25,7 +25,7 @@ The median and p99 are the steady state's: the first :data:`WARMUP_PAIRS` pairs 
 after the idle start-up) are reported apart (``warmup_max_ms``, ``p99_all_ms``); the max counts
 every pair.
 
-**Workers** (item 3): :mod:`planer.benchmarks.scaling`.
+**Workers**: :mod:`planer.benchmarks.scaling`.
 
 The machine (cores, load average) is in the result: read the figures against it.
 """
@@ -55,7 +55,7 @@ this long (a pair lost without a count: reported as ``unfinished``), s."""
 RATE_HZ = 100.0
 """Camera rate of the latency runs, pairs per second."""
 TARGETS = {"p99_ms": 5.0, "max_ms": 20.0, "p99_over_median": 3.0}
-"""Issue 11, item 2: p99 and max on a quiet machine, p99 / median on a busy one."""
+"""Latency targets: p99 and max on a quiet machine, p99 / median on a busy one."""
 SPOOL_KEEP = 32
 """Pairs the camera keeps in the spool folder (``SpoolWriter(keep=...)``; it deletes older ones,
 as a camera does: the reader scans the folder, so its size counts)."""

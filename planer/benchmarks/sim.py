@@ -6,8 +6,8 @@ the model alone (``render_images=False``: frames carry counts and truth, no imag
 image rendering at the configured 10 pairs/s. Timing starts once a board is under the camera,
 so every pair is assembled (and rendered); set-up (the renderer's maps) is reported apart.
 Each is timed over three consecutive windows of ``sim_s`` and the median window counts (a
-shared host's other jobs come and go). Targets (issue 11): >= 100 without images, >= 10 with;
-the minimums of issue 3 (20 and 1) are reported beside them.
+shared host's other jobs come and go). Targets: >= 100 without images, >= 10 with;
+the earlier minimums (20 and 1) are reported beside them.
 
 Floors, measured in the same run so that a reader can judge the figures on whatever host ran
 them (these shared hosts vary about 3x from day to day): ``python_call_ns``, one Python method
@@ -20,7 +20,7 @@ this process's CPU time), while ``real_time_factor`` is what a run gets on the h
 
 ``modbus_latency``: a real ``planer sim`` process (images rendered by its worker, time scale 1)
 answering reads of the whole register map over Modbus TCP on 127.0.0.1, timed from request
-to response (target issue 14: p99 <= 5 ms whatever the renderer does), and the time scale the
+to response (target: p99 <= 5 ms whatever the renderer does), and the time scale the
 simulator achieved. ``echo_latency``: the same reads against a bare server that answers every
 request with a fixed reply (the host's scheduling floor; same priority options). Both can time
 from a client at real-time priority (``client_realtime``), so that the number is the server's
@@ -376,7 +376,7 @@ def run(quick: bool) -> dict[str, Any]:
         ``cpu_cycle_us``, ``setup_s``; with images also ``ms_per_pair``, ``cpu_ms_per_pair``;
         each with its ratio to a floor, ``calls_per_cycle`` and ``remaps_per_pair``),
         ``floors`` (:func:`floors`), ``modbus_latency`` (:func:`modbus_latency`),
-        ``pairs_per_s`` of the camera, the ``targets`` (issue 11), ``minimums`` (issue 3) and
+        ``pairs_per_s`` of the camera, the ``targets``, the earlier ``minimums`` and
         whether they are met.
     """
     from config.sim import load_sim

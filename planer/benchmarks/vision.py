@@ -7,7 +7,7 @@ whose field matches the default rig's 52 mm).  The timed work is everything
 slope, deblur, integrate, cuttermark metrics.  The reference rate is plainly copying the same
 two images (``ndarray.copy``), measured in the same run.
 
-The issue-12 steps are timed beside it: ``no_roll_pairs_per_s`` is the same measurement without
+The real-rig steps are timed beside it: ``no_roll_pairs_per_s`` is the same measurement without
 the per-pair orientation (``max_roll_deg=0``: no roll search, no shear, the vertical bins no
 longer capped for a leaning mark), ``selfcal_pairs_per_s`` the measurement as the service runs
 it (the PLC's cutting radius and knives given, one ``SelfCalibrator`` for the board:
@@ -21,7 +21,7 @@ budget is timed with them: one ``cv2.remap`` of both full images with float maps
 that the rig file does not know (``rolled_pairs_per_s``, ``rolled_cpu_ms``: the marks are
 averaged along their lean, the texture rotated to the feed).  The ratios to the remap floor
 (CPU times, same run) are ``remap_ratio`` (plain), ``selfcal_remap_ratio`` (as the service),
-``rolled_remap_ratio``; the performance issue's budget is ``target_remap_ratio`` (1 at
+``rolled_remap_ratio``; the budget is ``target_remap_ratio`` (1 at
 659 x 493, 4 at 1920 x 1200) and ``meets_target`` says whether the service's measurement
 reaches it.
 
@@ -177,7 +177,7 @@ def _interleaved_rates(fns: dict[str, Any], min_time_s: float, min_calls: int, *
 ROLLED_DEG = 1.0
 """Camera roll of the rolled timing (the rig file says 0), degrees."""
 TARGETS = {(659, 493): 1.0, (1920, 1200): 4.0}
-"""The performance issue's budget: the measurement this many times as fast as one remap."""
+"""The budget: the measurement this many times as fast as one remap."""
 
 
 def _measure_fn(measurer: Any, a: np.ndarray, b: np.ndarray, ca: int, cb: int,
@@ -194,7 +194,7 @@ def _floor_ratios(cpu_ms: dict[str, float], target: float) -> dict[str, Any]:
     """How many times as fast as one remap of the pair each variant runs (CPU times).
 
     ``remap_ratio`` (plain measurement), ``selfcal_remap_ratio`` (as the service runs it),
-    ``rolled_remap_ratio`` (a rolled camera: shear and rotation), the issue's
+    ``rolled_remap_ratio`` (a rolled camera: shear and rotation), the budget's
     ``target_remap_ratio`` for this image size and ``meets_target`` (the service's
     measurement at or above it).
     """
@@ -242,7 +242,7 @@ def run(quick: bool) -> list[dict[str, Any]]:
     Returns
     -------
     list of dict
-        ``{width, height, pairs_per_s, copy_pairs_per_s}`` per image size, and the issue-12
+        ``{width, height, pairs_per_s, copy_pairs_per_s}`` per image size, and the real-rig
         steps: ``no_roll_pairs_per_s``, ``selfcal_pairs_per_s``, ``remap_pairs_per_s``,
         ``cpu_ms``, ``selfcal_cpu_ms``, ``remap_cpu_ms``, ``orientation_ms``, ``selfcal_ms``;
         a rolled camera: ``rolled_pairs_per_s``, ``rolled_cpu_ms``; the floor ratios

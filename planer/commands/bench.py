@@ -85,7 +85,7 @@ def vision_row_text(row: dict[str, Any]) -> str:
     -------
     str
         The measurement rate and CPU time with its speed as a multiple of one remap's (plain
-        and as the service runs it, against the issue's target), its floors measured in the
+        and as the service runs it, against the budget), its floors measured in the
         same run (a copy of the pair, one remap of the pair) as "N x faster" ratios, and the
         CPU cost of the orientation and self-calibration steps and of a rolled camera; rows
         without the step keys give one line.

@@ -1,6 +1,6 @@
 """Cross-process HIL: ``planer sim`` in a private network namespace and the real-time service.
 
-Order of start (issue 14: the machine's clock must not run ahead of a service still starting on
+Order of start (the machine's clock must not run ahead of a service still starting on
 a busy host): the service is built first (its imports, quality log, CAN bus; nothing contacted
 yet) for a Modbus port chosen here, then ``planer sim`` is started on that port, and the service
 runs as soon as the simulator says ``ready``. While it runs, the service's bus thread (the event

@@ -1,6 +1,6 @@
 """Stress: ``planer hil`` run N times, optionally against CPU-bound competitors, tabulated.
 
-Issue 14 asks that the README's main job pass on a 2-core machine with six CPU-bound processes
+The README's main job must pass on a 2-core machine with six CPU-bound processes
 competing with it. :func:`run_stress` runs ``planer hil --json --scenario NAME`` (the
 cross-process real-time run, as the README runs it) ``runs`` times per scenario, each in a
 fresh process with its own quality log, while ``hogs`` busy loops (``sh -c 'while :; do :;

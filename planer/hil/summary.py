@@ -703,8 +703,8 @@ def _local_offset(results: Sequence[FrameResult], at_s: float, default: float) -
     From the pairs taken in the ``LOCAL_OFFSET_WINDOW_S`` before it: a simulator that fell
     behind real time (a loaded machine) shifts the mapping, and a fault's timing is judged
     against the mapping in force when it happened. The simulated clock also runs slower than
-    the service's while the host cannot keep up (issue 14: it slows itself), so the rate
-    counts too (realtime helper). Pairs stamped by ``planer sim`` with the host clock at their
+    the service's while the host cannot keep up (it slows itself), so the rate
+    counts too. Pairs stamped by ``planer sim`` with the host clock at their
     capture (``truth["sim_clock_s"]``, the service's clock in the cross-process HIL; used when
     every stamp precedes its pair's arrival) give the mapping directly: the last one before
     ``at_s``, carried on at the stamps' rate. Otherwise the lowest arrival delay of the pairs

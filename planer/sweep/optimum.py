@@ -1,6 +1,6 @@
 """The best uniformity a plant allows: the reference for "within 5 % of the constrained optimum".
 
-Issue 10 asks that a saturated plant (stroke 10 um, 15 um of runout) ends within 5 % of the CV
+A saturated plant (stroke 10 um, 15 um of runout) must end within 5 % of the CV
 of the best zero-mean offsets within the stroke. :func:`constrained_optimum_cv` finds that CV on
 the simulated plant itself, not on the loop's model: the commanded table is played by the
 simulated amplifier and actuator (:class:`plant_sim.model.piezo.PiezoAmplifier`, steady state at the
@@ -36,7 +36,7 @@ class Optimum:
     limit_um : float
         The bound of the table, um.
     clipped_cv : float
-        For comparison: the CV of the runout clipped into the bound (the loop before issue 10).
+        For comparison: the CV of the runout clipped into the bound (the earlier loop's end).
     """
 
     cv: float

@@ -56,7 +56,7 @@ OUTCOME_COLUMNS = (
 ``final_*``: the mean of the last ``FINAL_MEASUREMENTS`` measurements (true values from the
 simulator; ``final_pitch_error`` = true pitch / target - 1). ``*_settled_after_mm``: board
 travel after the loop closed from which every true value stayed within CV <= 0.05 / CV <= 0.03
-(``cv_003_``, issue 10's target) / pitch within 2 % (empty: never). ``feed_ratio`` = final feed
+(``cv_003_``, the closed-loop target) / pitch within 2 % (empty: never). ``feed_ratio`` = final feed
 setpoint / the fastest feed the quality class allows (target pitch under the depth ceiling
 times n Z, at most the machine's ``feed.max_mm_s``). ``offset_ratio`` = largest piezo offset /
 stroke. ``error``: why the run failed (then the outcome cells are empty)."""
@@ -261,7 +261,7 @@ def _mean_last(values: Sequence[float | None], n: int = FINAL_MEASUREMENTS) -> f
 
 
 TIGHT_CV = 0.03
-"""The uniformity target of issue 10 (``cv_003_settled_after_mm``)."""
+"""The closed loop's uniformity target (``cv_003_settled_after_mm``)."""
 
 
 def settled_after_mm(

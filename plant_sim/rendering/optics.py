@@ -50,7 +50,7 @@ with ``Optics.oversample``; one row per pixel along y), blurred along the feed b
 pixels with :func:`cv2.remap`; illumination (LED imbalance, fall-off) is applied per pixel, then
 shot and read noise, then quantisation with saturation.
 
-Cost (issue 11): per image the work is a fixed number of passes over the board grid and the
+Cost: per image the work is a fixed number of passes over the board grid and the
 image, in float32, with no per-pixel Python; the texture window is interpolated in one
 ``cv2.addWeighted`` and the sensor noise drawn by OpenCV's generator seeded from the
 renderer's stream (:func:`standard_normal_f32`); ``tests/plant_sim/test_sim_speed_optics.py`` holds

@@ -4,7 +4,7 @@
 takes the exact lower envelope of the knife circles (:func:`envelope`) and renders the two
 grazing-light images (:class:`plant_sim.rendering.optics.Renderer`). :func:`random_board_pair`
 draws every
-parameter from the ranges of the vision issue's acceptance criteria, for held-out testing.
+parameter from the ranges of the vision's acceptance criteria, for held-out testing.
 """
 
 from __future__ import annotations
@@ -333,7 +333,7 @@ def _flat_board(b_mm: np.ndarray) -> np.ndarray:
 
 
 def random_board_params(seed: int) -> dict[str, Any]:
-    """Keyword arguments of :func:`board_pair` drawn from the vision issue's acceptance ranges.
+    """Keyword arguments of :func:`board_pair` drawn from the vision's acceptance ranges.
 
     Species from the presets; pitch 1-2.5 mm; 1-6 knives with runout (up to 0.12
     ``pitch^2 / R``, so every knife still leaves a mark at least half a pitch wide); feed up to

@@ -1,4 +1,4 @@
-"""Fuzz of the configuration loaders (issue 14 item 5): arbitrary TOML into every loader.
+"""Fuzz of the configuration loaders: arbitrary TOML into every loader.
 
 Documents are the shipped files with a few keys replaced by arbitrary TOML values, deleted or
 added, plus documents of arbitrary tables and raw text. Every loader either returns its

@@ -99,7 +99,7 @@ def test_bad_loop_keys_fail_when_the_service_is_built(table, key):
 
 @pytest.mark.parametrize("table", ["feed_loop", "uniformity_loop"])
 def test_bad_loop_keys_name_the_file_they_came_from(tmp_path, table):
-    """Issue 14: ``unknown key feed_loop.gian`` must say which file holds it."""
+    """``unknown key feed_loop.gian`` must say which file holds it."""
     from types import SimpleNamespace
 
     from controller.service.service import Service

@@ -1,4 +1,4 @@
-"""core.realtime: raising, lowering and guarding the priority of the bus threads (issue 14).
+"""core.realtime: raising, lowering and guarding the priority of the bus threads.
 
 The fallbacks are checked with an ``os`` stand-in; the real OS is asked only for a short-lived
 thread, and the real-time assertions apply where this host permits real-time scheduling.

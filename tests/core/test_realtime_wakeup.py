@@ -1,4 +1,4 @@
-"""The CPUs' wake-up latency request (PM QoS) of `planer serve` (issue 11, item 2).
+"""The CPUs' wake-up latency request (PM QoS) of `planer serve`.
 
 Against a stand-in device file: what is written, that the request is held while the block runs
 and let go after it, and that a missing device or a request not asked for never raises.

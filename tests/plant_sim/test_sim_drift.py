@@ -1,4 +1,4 @@
-"""Runout drift in the simulator (issue 10, item 6): knives that warm up and wear.
+"""Runout drift in the simulator: knives that warm up and wear.
 
 ``drift_k(t) = A_k (1 - exp(-t / tau_k)) - W_k t / 60`` um at machine time t: starts at the
 base runout, approaches base + amplitude with the time constant, wears linearly; configured in

@@ -348,7 +348,7 @@ def test_board_range_covers_every_height_query(speed, k1):
     assert hi - lo < (W + 20) / PPM + speed * rend.optics.dt_ab_s
 
 
-# -- effects of a real rig and real wood (issue 12 item 5) ----------------------------------
+# -- effects of a real rig and real wood ------------------------------------------------------
 
 
 def _fx_renderer(wood=FLAT_WOOD, w=W, h=H, seed=0, **effects):

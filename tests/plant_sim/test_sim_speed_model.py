@@ -1,4 +1,4 @@
-"""The machine model's fast paths equal the reference formulas they replace (issue 11 item 4).
+"""The machine model's fast paths equal the reference formulas they replace.
 
 The ``_ref_*`` functions are the model's code as it was before the speed work: per cycle the
 spindle recomputed its first-order gains, the feed read its limits through the config, the

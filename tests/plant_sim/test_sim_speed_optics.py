@@ -1,4 +1,4 @@
-"""The renderer's fast paths equal the reference formulas they replace (issue 11 item 4).
+"""The renderer's fast paths equal the reference formulas they replace.
 
 The reference functions below are the renderer's formulas as they were before the speed work
 (numpy step by step); the renderer now interpolates the texture with one ``cv2.addWeighted``,

@@ -1,4 +1,4 @@
-"""The simulated planer seen through the vision pipeline (issue 3, "Done when", second bullet).
+"""The simulated planer seen through the vision pipeline.
 
 Every check here measures RENDERED images of the machine model (`plant_sim.model.machine.Machine`,
 frames from `Machine.advance`) with the vision pipeline (`vision.pipeline.Measurer`) and compares

@@ -1,4 +1,4 @@
-"""Fuzz of the piezo CAN decoder (issue 14 item 5): arbitrary ids, data and lengths.
+"""Fuzz of the piezo CAN decoder: arbitrary ids, data and lengths.
 
 Whatever arrives on the bus, :meth:`PiezoCodec.decode` either returns a message of the DBC file
 with every signal inside its declared range, or raises ``ValueError`` naming the id or the

@@ -1,4 +1,4 @@
-"""Fuzz of the register map codec (issue 14 item 5): arbitrary register blocks and writes.
+"""Fuzz of the register map codec: arbitrary register blocks and writes.
 
 Whatever words a PLC (or a client) sends, decoding gives every register lying wholly inside the
 block a value of its type, and refusals are ``ValueError`` (``RegisterAccessError`` -> Modbus

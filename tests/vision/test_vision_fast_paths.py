@@ -1,4 +1,4 @@
-"""The performance issue's faster formulations give what the plain formulas give."""
+"""The faster formulations give what the plain formulas give."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Issue 12: the measurement on boards with the effects of real rigs and real wood.
+"""The measurement on boards with the effects of real rigs and real wood.
 
 Boards from the independent renderer ``tests/support/vision_boards.py`` (not ``plant_sim``): camera
 roll, anisotropic subsurface scattering, true light slants off the rig file, rough reflectance,

@@ -1,4 +1,4 @@
-"""Rig calibration from a reference run (issue 12 item 4): vision.rigcal and the command."""
+"""Rig calibration from a reference run: vision.rigcal and the command."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The texture registration on windows of wide images (issue 11: the texture stage's width).
+"""The texture registration on windows of wide images (the texture stage's width).
 
 Images at least twice ``texture_width_px`` wide register their texture on windows of that
 width, B's ``round(encoder shift)`` columns after A's; a window that is not strongly confident

@@ -95,7 +95,7 @@ def test_inside_the_stroke_the_optimum_is_the_runout():
 
 
 def test_saturated_optimum_beats_the_clipped_runout_in_width_cv():
-    """Stroke 10 um, 2 um margin, runout (0, 15, -8, 5) plus 0.5 um eccentricity (issue 10)."""
+    """Stroke 10 um, 2 um margin, runout (0, 15, -8, 5) plus 0.5 um eccentricity."""
     s = np.array([0.5, 15.0, -8.5, 5.0])
     d = second_difference(4)
     o = best_offsets_um(s, width_operator=d, actuator=np.eye(4), bound_um=8.0)

@@ -1,6 +1,6 @@
 """The fast paths of the per-pair control and checks give what the straightforward code gives.
 
-Issue 11, item 2: the per-pair path works in plain floats and sets up once what it can. Each
+The per-pair path works in plain floats and sets up once what it can. Each
 test here holds a fast path against the straightforward numpy computation it replaced (written
 out below as the reference): bit for bit where the arithmetic is the same (attribution, feed
 history, offset history, mean and std of a few values), within 1e-12 where only the rounding

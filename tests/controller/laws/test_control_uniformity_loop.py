@@ -273,7 +273,7 @@ def test_a_missing_mark_is_pushed_deeper_until_it_reappears():
 
 
 def test_saturated_offsets_are_the_constrained_optimum_not_the_clipped_step():
-    """Stroke 10 um with 15 um runout: the best zero-mean table within the limit (issue 10)."""
+    """Stroke 10 um with 15 um runout: the best zero-mean table within the limit."""
     runout = np.array([0.5, 15.0, -8.5, 5.0])
     cfg = UniformityLoopConfig(stroke_um=10.0)
     loop = UniformityLoop(cfg)
@@ -329,7 +329,7 @@ def test_no_windup_at_saturation():
     ki=st.floats(0.2, 3.0),
 )
 def test_the_learning_step_never_increases_the_model_cv(before, runout, stroke, pitch, ki):
-    """Each step is a convex combination of the table and the constrained optimum (issue 10).
+    """Each step is a convex combination of the table and the constrained optimum.
 
     The loop first learns another runout (``before``), then the runout changes: from that
     state on, every pair's model CV is at most the previous one's and never below the
@@ -527,7 +527,7 @@ def test_a_smaller_stroke_before_any_measurement_keeps_the_widths_nearest():
     ),
 )
 def test_the_stroke_is_never_exceeded_even_when_machine_toml_is_wrong(ops):
-    """machine.toml says 20 um; the amplifier may say anything, at any time (issue 10)."""
+    """machine.toml says 20 um; the amplifier may say anything, at any time."""
     loop = UniformityLoop(UniformityLoopConfig(stroke_um=20.0))
     stroke, t = 20.0, 0.0
     for kind, arg in ops:

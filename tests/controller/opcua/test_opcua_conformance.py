@@ -1,4 +1,4 @@
-"""Conformance of our address space with the official nodesets (issue 13 item 2).
+"""Conformance of our address space with the official nodesets.
 
 Reads the NodeSet2 files in ../shared/data/opcua (skips when absent; never copied into the
 project) and checks, through an asyncua client:

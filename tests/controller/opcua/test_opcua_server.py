@@ -1,5 +1,5 @@
 """The OPC UA server with an asyncua client: finds the WwMachineType instance, reads everything
-of issue 13 item 1, sees values change as status snapshots, results and events are fed, and
+the machine shows, sees values change as status snapshots, results and events are fed, and
 cannot write. The server runs in its own thread and loop (one start for the module)."""
 
 from __future__ import annotations

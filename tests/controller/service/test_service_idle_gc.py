@@ -1,4 +1,4 @@
-"""The garbage collector runs between pairs, not in the middle of one (issue 11, item 2).
+"""The garbage collector runs between pairs, not in the middle of one.
 
 Judged by what the collector reports (``gc.callbacks``) and the order of events, never by time:
 with :class:`controller.service.latency.IdleCollector` installed, collections happen, as many as the

@@ -1,4 +1,4 @@
-"""The short paths of a pair (issue 11, item 2), judged by order and by thread, never by time.
+"""The short paths of a pair, judged by order and by thread, never by time.
 
 * the spool reader is woken by a commit (inotify), not by its poll interval; the commit filter;
 * the fast spool image format (raw ``.npy``) reads back the same pixels;

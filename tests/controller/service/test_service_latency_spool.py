@@ -1,4 +1,4 @@
-"""The spool's short path (issue 11, item 2): a committed pair read without listing the folder.
+"""The spool's short path: a committed pair read without listing the folder.
 
 * the inotify events name the committed slots (or say they cannot: overflow, a stray name);
 * ``SpoolReader.note_committed`` reads those pairs without a listing, never a pair twice, a

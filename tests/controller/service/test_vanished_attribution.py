@@ -1,4 +1,4 @@
-"""Vanished marks (issue 10, item 5): which knife left no mark, the kinematic CV, the pitch.
+"""Vanished marks: which knife left no mark, the kinematic CV, the pitch.
 
 Synthetic measurement tables: the passes of a cutterhead over image A's field (the
 mark-to-knife formula of docs/architecture.md), one or more knives whose marks another knife's

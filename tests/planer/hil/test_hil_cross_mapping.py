@@ -1,4 +1,4 @@
-"""Machine time onto service time in the cross-process HIL: offset and rate (issue 14).
+"""Machine time onto service time in the cross-process HIL: offset and rate.
 
 The simulated clock slows itself on a loaded host; a fault's timing must still be judged
 against the service's clock at the moment it happened. Synthetic results, no processes.

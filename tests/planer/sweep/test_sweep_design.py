@@ -175,13 +175,13 @@ def test_every_shipped_sweep_file_is_accepted_by_the_loaders(path):
     assert {j.point.seed for j in jobs} == set(sw.seeds)
 
 
-def test_the_issue10_sweeps_cover_every_plant_of_its_done_when_table():
+def test_the_plant_sweeps_cover_every_plant_of_the_closed_loop_table():
     """Base, cameras 1000/2000 mm, saturated, 150 Hz, hysteresis 0.30, stroke mismatch,
-    vanished knife (issue 10), and the drift plant in its own file, each with 3 seeds."""
+    vanished knife, and the drift plant in its own file, each with 3 seeds."""
     from planer.sweep.point import build_machine_config, build_sim_config, prepare
 
     plants = set()
-    for name in ("issue10.toml", "issue10_drift.toml"):
+    for name in ("plants.toml", "plants_drift.toml"):
         sw = load_sweep(default_path(f"sweeps/{name}"))
         assert len(sw.seeds) == 3
         for job in prepare(sw)[0]:

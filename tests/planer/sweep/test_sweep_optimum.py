@@ -1,4 +1,4 @@
-"""The constrained-optimum reference of issue 10: the best true CV a plant allows."""
+"""The constrained-optimum reference: the best true CV a plant allows."""
 
 from __future__ import annotations
 
