@@ -144,11 +144,6 @@ class Service:
         return self.keeper.state
 
     @property
-    def safety_status(self) -> SafetyStatus | None:
-        """The supervisor's last decision (``None`` before the first cycle)."""
-        return self.keeper.status
-
-    @property
     def events(self) -> list[ServiceEvent]:
         """Every event so far, in order."""
         return self.report.events

@@ -209,10 +209,6 @@ class Supervisor:
             raise ValueError(f"condition must be one of {', '.join(CONDITIONS)}; got {condition!r}")
         self._ok[condition] = bool(ok)
 
-    def last_heard(self, source: str) -> float | None:
-        """Time ``source`` (``"plc"``, ``"can"``, ``"measurement"``) was last good."""
-        return self._last[source]
-
     # ------------------------------------------------------------------ state
     def missing(self, now_s: float, *, fraction: float = 1.0) -> tuple[str, ...]:
         """Sources gone and conditions failing at ``now_s``.

@@ -340,19 +340,6 @@ class Machine:
         bid = self._default_board() if board_id is None else board_id
         return self.assembler.surface(self.passes(bid), lo, hi)
 
-    def true_metrics(self, x_lo_board_mm: float, x_hi_board_mm: float, *,
-                     board_id: int | None = None) -> dict[str, Any]:
-        """True mark metrics over a board range (board coordinate ``x`` from the trailing end).
-
-        Returns
-        -------
-        dict
-            As :meth:`plant_sim.model.surface.Surface.metrics`: ``pitch_mm``, ``uniformity_cv``,
-            ``depth_um``, ``mark_widths_mm``, ``knife``, ... of the complete marks inside.
-        """
-        surf = self.surface(x_lo_board_mm, x_hi_board_mm, board_id=board_id)
-        return surf.metrics(x_lo_board_mm, x_hi_board_mm)
-
     def _default_board(self) -> int:
         last = self.capture.last_pair
         if last is not None and last.board_id in self.cut.logs:
@@ -373,14 +360,6 @@ class Machine:
     def spindle_rpm(self) -> float:
         """Spindle speed now, rpm."""
         return self.spindle.rpm
-
-    def board_under_cutter(self) -> tuple[int, float]:
-        """``(board_id, x_mm)`` of the board under the cutter axis (``(0, nan)`` if none)."""
-        return self.boards.at(self.feed_position_mm, 0.0)
-
-    def board_under_camera(self) -> tuple[int, float]:
-        """``(board_id, x_mm)`` of the board under the optical axis (``(0, nan)`` if none)."""
-        return self.boards.at(self.feed_position_mm, self.L_mm)
 
     def standout_um(self) -> list[float]:
         """True radial stand-out of each knife now (runout, eccentricity, drift), um."""
