@@ -311,6 +311,46 @@ def attribute_marks(
     z = check_int("knives", knives, lo=1)
     guide = check_positive("pass_guide_mm", pass_guide_mm)
     inset = check_positive("min_inset_mm", min_inset_mm, allow_zero=True)
+    b, centre, reliable = _reliable_bottoms(bottom_x_mm, cusps_x_mm, inset)
+    # board travel after the index pulse, mm (falls with x): pass_numbers with a pitch of 1 mm
+    length = check_finite("cutter_to_camera_mm", cutter_to_camera_mm)
+    cpm = check_positive("counts_per_mm", counts_per_mm)
+    ppm = check_positive("px_per_mm", px_per_mm)
+    cx = check_finite("cx_px", cx_px)
+    base = wrapped_difference(counts_a, index_latch_counts, counter_bits=counter_bits)
+    travel = (base - (length + b - cx / ppm) * cpm) / (1.0 * cpm)
+    travel_c = travel if centre is b else (base - (length + centre - cx / ppm) * cpm) / (1.0 * cpm)
+    t_rel = travel[reliable][::-1]  # increasing
+    gaps = t_rel[1:] - t_rel[:-1]
+    t_dev = t_rel - _mean(t_rel)
+    pitch = _travel_per_pass(gaps, t_dev, guide)
+    n_rel = travel[reliable] / pitch
+    resultant = _mean_resultant(n_rel)
+    phase = _phase_of(resultant)
+    spread = _spread_of(resultant)
+    # order along the image: q = -(pass number) increases with x
+    q_real = -(np.where(reliable, travel, travel_c) / pitch - phase)
+    q = np.rint(q_real).astype(np.int64).tolist()
+    q = _one_pass_per_mark(q, reliable.tolist())
+    passes = np.array([-v for v in q], dtype=np.int64)
+    knife = np.array([(-v) % z for v in q], dtype=np.int64)
+    first, span = -max(q), max(q) - min(q) + 1  # passes first .. first + span - 1, by knife
+    per_knife = np.array([span // z + ((k - first) % z < span % z) for k in range(z)],
+                         dtype=np.intp)
+    return PassAttribution(
+        passes=passes,
+        knife=knife,
+        reliable=reliable,
+        pass_mm=pitch,
+        phase=phase,
+        spread=spread,
+        passes_per_knife=per_knife,
+    )
+
+
+def _reliable_bottoms(bottom_x_mm: Sequence[float], cusps_x_mm: Sequence[float] | None,
+                      inset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bottoms (checked), the marks' centres and which bottoms are reliable (step 1)."""
     b = np.asarray(bottom_x_mm, dtype=float)
     if b.ndim != 1 or not np.isfinite(b).all():
         raise ValueError("bottom_x_mm must be a finite 1-D sequence")
@@ -331,17 +371,11 @@ def attribute_marks(
     n_reliable = int(np.count_nonzero(reliable))
     if n_reliable < 2:
         raise ValueError(f"{n_reliable} mark bottoms inside their marks, need 2")
-    # board travel after the index pulse, mm (falls with x): pass_numbers with a pitch of 1 mm
-    length = check_finite("cutter_to_camera_mm", cutter_to_camera_mm)
-    cpm = check_positive("counts_per_mm", counts_per_mm)
-    ppm = check_positive("px_per_mm", px_per_mm)
-    cx = check_finite("cx_px", cx_px)
-    base = wrapped_difference(counts_a, index_latch_counts, counter_bits=counter_bits)
-    travel = (base - (length + b - cx / ppm) * cpm) / (1.0 * cpm)
-    travel_c = travel if centre is b else (base - (length + centre - cx / ppm) * cpm) / (1.0 * cpm)
-    t_rel = travel[reliable][::-1]  # increasing
-    gaps = t_rel[1:] - t_rel[:-1]
-    t_dev = t_rel - _mean(t_rel)
+    return b, centre, reliable
+
+
+def _travel_per_pass(gaps: np.ndarray, t_dev: np.ndarray, guide: float) -> float:
+    """Board travel per knife pass from the reliable bottoms' gaps, refined twice (step 2)."""
     pitch = guide
     last_steps = None
     for _ in range(3):
@@ -360,14 +394,17 @@ def attribute_marks(
         pitch = float(dc @ t_dev / (dc @ dc))
         if not pitch > 0:
             raise ValueError("mark bottoms do not advance along the board")
-    n_rel = travel[reliable] / pitch
-    resultant = _mean_resultant(n_rel)
-    phase = _phase_of(resultant)
-    spread = _spread_of(resultant)
-    # order along the image: q = -(pass number) increases with x
-    q_real = -(np.where(reliable, travel, travel_c) / pitch - phase)
-    q = np.rint(q_real).astype(np.int64).tolist()
-    rel = reliable.tolist()
+    return pitch
+
+
+def _one_pass_per_mark(q: list[int], rel: list[bool]) -> list[int]:
+    """Passes in order along the image, one per mark (step 4): unreliable marks fitted between.
+
+    ``q`` is the rounded order number of each mark (minus its pass number); reliable marks keep
+    theirs, every other mark takes the nearest one after its predecessor and before its
+    successor.
+    """
+    q = list(q)
     q_rel = list(itertools.compress(q, rel))
     if min(map(operator.sub, q_rel[1:], q_rel), default=1) < 1:
         raise ValueError("two mark bottoms on one knife pass")
@@ -379,17 +416,4 @@ def attribute_marks(
             q[i] = min(q[i], q[i + 1] - 1)
     if min(map(operator.sub, q[1:], q), default=1) < 1:
         raise ValueError("marks do not fit one per knife pass between the reliable bottoms")
-    passes = np.array([-v for v in q], dtype=np.int64)
-    knife = np.array([(-v) % z for v in q], dtype=np.int64)
-    first, span = -max(q), max(q) - min(q) + 1  # passes first .. first + span - 1, by knife
-    per_knife = np.array([span // z + ((k - first) % z < span % z) for k in range(z)],
-                         dtype=np.intp)
-    return PassAttribution(
-        passes=passes,
-        knife=knife,
-        reliable=reliable,
-        pass_mm=pitch,
-        phase=phase,
-        spread=spread,
-        passes_per_knife=per_knife,
-    )
+    return q
