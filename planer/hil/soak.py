@@ -179,19 +179,14 @@ async def run_soak(
                            Path(log_path), trace, progress)
 
 
-async def _run_soak(
-    duration_s: float,
-    fault_every_s: float,
-    sample_every_s: float,
-    render_images: bool,
-    scenario: Scenario | None,
-    log_path: Path,
-    trace: bool,
-    progress: Callable[[str], None] | None,
-) -> dict[str, Any]:
+async def _soak_plant(scenario: Scenario | None, log_path: Path, render_images: bool) -> Any:
+    """The in-process plant of the soak, started (faults off: the soak plays its own).
+
+    Without images the measurement is the machine's truth (:class:`TruthMeasurer`), filed as
+    the machine hands its frames out.
+    """
     from planer.hil.in_process import InProcessPlant
 
-    say = progress or (lambda _line: None)
     sc = scenario if scenario is not None else load_scenario("default")
     sc = replace(sc, faults=())
     cfg = machine_config_for(sc, log_path=log_path)
@@ -214,9 +209,11 @@ async def _run_soak(
     except BaseException:
         await plant.close()
         raise
-    service = plant.service
-    assert service is not None
-    service.keep_results = False  # the soak must not hold what it measures
+    return plant
+
+
+def _time_pairs(service: Any) -> list[float]:
+    """Wrap the service's pair handling to note each pair's wall time, ms (the list returned)."""
     pair_ms: list[float] = []
     handle = service.handle_frame
 
@@ -227,6 +224,25 @@ async def _run_soak(
         return out
 
     service.handle_frame = timed_handle  # type: ignore[method-assign]
+    return pair_ms
+
+
+async def _run_soak(
+    duration_s: float,
+    fault_every_s: float,
+    sample_every_s: float,
+    render_images: bool,
+    scenario: Scenario | None,
+    log_path: Path,
+    trace: bool,
+    progress: Callable[[str], None] | None,
+) -> dict[str, Any]:
+    say = progress or (lambda _line: None)
+    plant = await _soak_plant(scenario, log_path, render_images)
+    service = plant.service
+    assert service is not None
+    service.keep_results = False  # the soak must not hold what it measures
+    pair_ms = _time_pairs(service)
     counts = {"pairs": 0, "failed": 0, "faults": 0}
     errors: dict[str, int] = {}
 
