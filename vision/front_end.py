@@ -247,7 +247,7 @@ class FrontEnd:
         src_y = (np.asarray(my, dtype=np.float64) - src_first) / src_step
         valid = slice(0, n_out)
         if rotate_deg is not None:
-            # Rows whose samples all come from inside the band of bins (as vision.Rotator).
+            # Rows whose samples all come from inside the band of bins (as orientation.Rotator).
             p, i = np.meshgrid(np.arange(self.width, dtype=np.float64),
                                np.arange(n_out, dtype=np.float64))
             v_und = a[1, 0] * p + a[1, 1] * i + a[1, 2]
