@@ -140,12 +140,20 @@ class PlausibilityConfig:
         Fewest complete marks in the profile.
     min_confidence : float
         Lowest registration confidence.
+    pitch_tolerance : float
+        Largest relative difference between the measured pitch per knife pass and the feed
+        per pass the PLC reports, ``V / (n Z)`` (feed and spindle steady since the cut);
+        beyond it the pair is flagged and kept out of the loops. The default 0.01 is the
+        budget of what the two legitimately differ by: the spindle's load ripple (0.1 %) and
+        droop (0.2 %) between the cut and the PLC's reading, the feed encoder's slip against
+        the board (belt-driven table, 0.5 %) and the measured pitch's own error (0.2 %).
     """
 
     pitch_ratio_min: float = 0.5
     pitch_ratio_max: float = 2.0
     min_marks: int = 6
     min_confidence: float = 0.3
+    pitch_tolerance: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -303,26 +311,8 @@ def _loop_table(sec: Section) -> Mapping[str, Any]:
     return _frozen(out)
 
 
-def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> MachineConfig:
-    """Build and check a :class:`MachineConfig` from a parsed TOML document.
-
-    Parameters
-    ----------
-    data : mapping
-        The parsed document.
-    base : Path, optional
-        Unused for now (paths are relative to the working directory); kept for loaders that
-        resolve paths against the file's folder.
-
-    Raises
-    ------
-    ConfigError
-        A value is missing, of the wrong type or out of range; the message names the key.
-    """
-    root = Section(data, "")
-    # every default is the dataclass field's own (written once, in the classes above)
-    d = MachineConfig()
-
+def _plc_table(root: Section, d: MachineConfig, base: Path | None) -> PlcConfig:
+    """``[plc]``, checked (defaults: the dataclass fields)."""
     plc = root.section("plc", required=False)
     dp = d.plc
     host, port, unit_id = modbus_endpoint(
@@ -343,6 +333,11 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
         raise ConfigError("plc.backoff_max_s must be >= plc.backoff_initial_s")
     plc.reject_unknown()
 
+    return plc_cfg
+
+
+def _can_table(root: Section, d: MachineConfig, base: Path | None) -> CanConfig:
+    """``[can]``, checked (defaults: the dataclass fields)."""
     can = root.section("can", required=False)
     dc = d.can
     interface, channel, options = can_bus_keys(can, interface=dc.interface, channel=dc.channel)
@@ -360,6 +355,11 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
     )
     can.reject_unknown()
 
+    return can_cfg
+
+
+def _frames_table(root: Section, d: MachineConfig) -> FramesConfig:
+    """``[frames]``, checked (defaults: the dataclass fields)."""
     fr = root.section("frames", required=False)
     df = d.frames
     frames_cfg = FramesConfig(
@@ -377,8 +377,11 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
     )
     fr.reject_unknown()
 
-    rig = None if root.string("rig", "") == "" else Path(root.string("rig"))
+    return frames_cfg
 
+
+def _quality_table(root: Section, d: MachineConfig) -> QualityConfig:
+    """``[quality]``, checked (defaults: the dataclass fields)."""
     q = root.section("quality", required=False)
     dq = d.quality
     quality_cfg = QualityConfig(
@@ -394,13 +397,11 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
     )
     q.reject_unknown()
 
-    pz = root.section("piezo", required=False)
-    stroke_um = pz.number("stroke_um", d.stroke_um, lo=0.0, lo_open=True, hi=32.767)
-    pz.reject_unknown()
+    return quality_cfg
 
-    feed_loop = _loop_table(root.section("feed_loop", required=False))
-    uniformity_loop = _loop_table(root.section("uniformity_loop", required=False))
 
+def _plausibility_table(root: Section, d: MachineConfig) -> PlausibilityConfig:
+    """``[plausibility]``, checked (defaults: the dataclass fields)."""
     pl = root.section("plausibility", required=False)
     dl = d.plausibility
     plaus_cfg = PlausibilityConfig(
@@ -410,9 +411,16 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
         pitch_ratio_max=pl.number("pitch_ratio_max", dl.pitch_ratio_max, lo=1.0),
         min_marks=pl.integer("min_marks", dl.min_marks, lo=2),
         min_confidence=pl.number("min_confidence", dl.min_confidence, lo=0.0, hi=1.0),
+        pitch_tolerance=pl.number("pitch_tolerance", dl.pitch_tolerance, lo=0.0, lo_open=True,
+                                  hi=0.5),
     )
     pl.reject_unknown()
 
+    return plaus_cfg
+
+
+def _safety_table(root: Section, d: MachineConfig) -> SafetyConfig:
+    """``[safety]``, checked (defaults: the dataclass fields)."""
     sf = root.section("safety", required=False)
     ds = d.safety
     safety_cfg = SafetyConfig(
@@ -432,6 +440,11 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
             raise ConfigError(f"safety.{name} must be longer than safety.cycle_s")
     sf.reject_unknown()
 
+    return safety_cfg
+
+
+def _log_table(root: Section, d: MachineConfig) -> LogConfig:
+    """``[log]`` and ``[machine]``, checked (defaults: the dataclass fields)."""
     lg = root.section("log", required=False)
     log_cfg = LogConfig(
         path=Path(lg.string("path", str(d.log.path))),
@@ -444,6 +457,45 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
         raise ConfigError(f"{mc.key('id')} must be 1..64 printable characters, got {mid!r:.80}")
     log_cfg = replace(log_cfg, machine_id=mid)
     mc.reject_unknown()
+    return log_cfg
+
+
+def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> MachineConfig:
+    """Build and check a :class:`MachineConfig` from a parsed TOML document.
+
+    Parameters
+    ----------
+    data : mapping
+        The parsed document.
+    base : Path, optional
+        Unused for now (paths are relative to the working directory); kept for loaders that
+        resolve paths against the file's folder.
+
+    Raises
+    ------
+    ConfigError
+        A value is missing, of the wrong type or out of range; the message names the key.
+    """
+    root = Section(data, "")
+    # every default is the dataclass field's own (written once, in the classes above)
+    d = MachineConfig()
+
+    plc_cfg = _plc_table(root, d, base)
+    can_cfg = _can_table(root, d, base)
+    frames_cfg = _frames_table(root, d)
+    rig = None if root.string("rig", "") == "" else Path(root.string("rig"))
+
+    quality_cfg = _quality_table(root, d)
+    pz = root.section("piezo", required=False)
+    stroke_um = pz.number("stroke_um", d.stroke_um, lo=0.0, lo_open=True, hi=32.767)
+    pz.reject_unknown()
+
+    feed_loop = _loop_table(root.section("feed_loop", required=False))
+    uniformity_loop = _loop_table(root.section("uniformity_loop", required=False))
+
+    plaus_cfg = _plausibility_table(root, d)
+    safety_cfg = _safety_table(root, d)
+    log_cfg = _log_table(root, d)
     opcua_cfg, identification = _opcua_tables(root)
     ht = root.section("http", required=False)
     listen = ht.string("listen", "")
