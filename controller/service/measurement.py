@@ -16,6 +16,12 @@ calibration estimates into the board's calibrator in that order. Whatever the vi
 (:data:`VISION_ERRORS`: its ``MeasurementError`` / ``RegistrationError``, ``cv2.error``, numpy's
 and Python's numerical errors) is a failed measurement with its reason, never a crash of the
 service.
+
+A measured pair is *flagged* (kept out of the loops, logged with its reason: the record's
+``flag_reason``) when the vision's own checks disagree (``Measurement.flag_reason``) or when its
+pitch per knife pass disagrees with the feed per pass the PLC reports
+(:mod:`controller.service.pitch_check`); the error is then a
+:class:`~controller.service.pitch_check.Flagged`.
 """
 
 from __future__ import annotations
@@ -35,6 +41,12 @@ import numpy as np
 from config.machine import PlausibilityConfig
 from controller.fieldbus.plc_protocol import PlcSnapshot
 from controller.service.events import exc_name
+from controller.service.pitch_check import (
+    FIELD_HALF_MM,
+    FeedHistory,
+    Flagged,
+    pitch_disagreement,
+)
 from core.errors import RegistrationError
 from protocol.frames import Frame
 from vision.selfcal import SelfCalibrator
@@ -208,7 +220,8 @@ class MeasurementStage:
     Parameters
     ----------
     plausibility : PlausibilityConfig
-        ``min_marks``, ``min_confidence``, ``pitch_ratio_min``, ``pitch_ratio_max``.
+        ``min_marks``, ``min_confidence``, ``pitch_ratio_min``, ``pitch_ratio_max``,
+        ``pitch_tolerance``.
     measurer_factory : callable
         ``factory(shape) -> measurer``; called once per image shape ``(height, width)``. With
         ``takes_facts = True`` (:class:`VisionMeasurers`): ``factory(shape, facts)``, once per
@@ -225,6 +238,8 @@ class MeasurementStage:
         threaded: bool,
     ) -> None:
         self.plausibility = plausibility
+        self.feed_history = FeedHistory()
+        """The PLC's feed and spindle readings (every PLC cycle), for the pitch check."""
         self.threaded = threaded
         self._factory = measurer_factory
         self._measurers: dict[tuple[Any, ...], Any] = {}
@@ -325,6 +340,7 @@ class MeasurementStage:
         a background thread in real time, in the workers with worker processes), so the pair
         after a start or a change does not wait 20-60 ms for the set-up.
         """
+        self.feed_history.note(snap)
         if not self.takes_facts or snap is None:
             return
         try:
@@ -524,9 +540,10 @@ class MeasurementStage:
         )
 
     def implausible(self, meas: Any, frame: Frame, snap: PlcSnapshot) -> str | None:
-        """Basic plausibility: a pitch, enough marks, confidence, spindle and feed running.
+        """Basic plausibility: not flagged, a pitch, enough marks, confidence, machine running.
 
-        Returns ``None`` when plausible, else the reason (``"implausible: ..."``); a result
+        Returns ``None`` when plausible, else the reason: a :class:`Flagged` when the vision
+        flagged the measurement (its ``flag_reason``), else ``"implausible: ..."``; a result
         without the expected fields is implausible too.
         """
         try:
@@ -536,6 +553,9 @@ class MeasurementStage:
 
     def _implausible(self, meas: Any, frame: Frame, snap: PlcSnapshot) -> str | None:
         pl = self.plausibility
+        flag = getattr(meas, "flag_reason", None)
+        if flag is not None:
+            return Flagged(str(flag))
         pitch = float(getattr(meas, "pitch_mm", math.nan))
         widths = np.asarray(getattr(meas, "mark_widths_mm", ()), dtype=float)
         conf = getattr(meas, "confidence", None)
@@ -551,7 +571,13 @@ class MeasurementStage:
         return None
 
     def implausible_pitch(self, pitch: float, frame: Frame, snap: PlcSnapshot) -> str | None:
-        """The pitch per knife pass against ``V / (n Z)`` (``None`` if within the ratios)."""
+        """The pitch per knife pass against ``V / (n Z)`` (``None`` if it agrees).
+
+        First the wide ratios (``pitch_ratio_min`` .. ``pitch_ratio_max`` of the encoder's
+        speed over the PLC's spindle: ``"implausible: ..."``), then, where the PLC's feed and
+        spindle held steady since the pair's marks were cut, ``pitch_tolerance``
+        (:func:`controller.service.pitch_check.pitch_disagreement`): a :class:`Flagged`.
+        """
         pl = self.plausibility
         expected = expected_pitch_mm(frame, snap)
         ratio = pitch / expected
@@ -560,4 +586,11 @@ class MeasurementStage:
                 f"implausible: pitch {pitch:.3f} mm vs {expected:.3f} mm expected from "
                 f"V/(nZ) (ratio {ratio:.2f})"
             )
-        return None
+        history = self.feed_history
+        history.note(snap)  # the pair's own read (the cycle's, or a fresh one)
+        t_s = getattr(snap, "t_s", None)
+        if t_s is None or not math.isfinite(t_s):
+            return None  # no time of the read: the cutting feed is not known
+        cutting = history.cutting_feed(t_s, travel_mm=snap.cutter_to_camera_mm + FIELD_HALF_MM)
+        why = pitch_disagreement(pitch, cutting, tolerance=pl.pitch_tolerance)
+        return None if why is None else Flagged(why)

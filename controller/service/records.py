@@ -38,6 +38,7 @@ from controller.quality.log import QualityClass, QualityRecord, judge, utc_iso, 
 from controller.service.events import EventKind, EventLog
 from controller.service.frame_result import FrameResult
 from controller.service.intake import finite_or_none, frame_metadata, int_or
+from controller.service.pitch_check import flag_reason_of
 from protocol.frames import Frame
 
 PROFILE_EVERY = 10
@@ -209,6 +210,7 @@ class QualityRecords:
             "wall_time": utc_iso(time.time()),
             "ok": r.ok,
             "error": r.error,
+            "flag_reason": flag_reason_of(r.error),  # a flagged pair: why (schema version 5)
             "feed_setpoint_mm_s": feed,
             "piezo_offsets_um": tuple(r.offsets_um),
             "target_pitch_mm": self.cfg.quality.target_pitch_mm,

@@ -1,0 +1,190 @@
+"""The measured pitch against the machine: feed per knife pass ``V / (n Z)`` from the PLC.
+
+A pair's marks were cut ``L / V`` before the camera saw them (``L`` = ``cutter_to_camera_mm``).
+Where the PLC's feed (``feed_actual_mm_s``) and spindle speed (``spindle_rpm``) held steady from
+that cut until the pair's register read, the pitch per knife pass is known from the machine to
+within the spindle's ripple and droop and the encoder's slip: a measured pitch further from it
+than ``tolerance`` (``[plausibility] pitch_tolerance``) is a measurement gone wrong (a defect
+the vision took for marks, a wrong registration), and the pair is flagged. Where the feed
+changed over that time (the feed loop's own steps, a ramp) the cutting feed is not known from
+the PLC and nothing is checked: the wide ratio check and the feed loop's own steadiness test
+remain.
+
+:class:`Flagged` is the error of a flagged pair (the vision's flag or this check's).
+:class:`FeedHistory` keeps the PLC's readings (every PLC cycle, :meth:`FeedHistory.note`);
+:func:`pitch_disagreement` is the check itself. Pure: no I/O, times passed in.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from controller.fieldbus.plc_protocol import PlcSnapshot
+from core.checks import check_finite, check_positive
+
+FIELD_HALF_MM = 30.0
+"""Half the camera's field along the feed and then some, mm: the marks of one pair were cut
+over ``L -+ FIELD_HALF_MM`` of board travel before the pair."""
+LATENCY_S = 0.2
+"""Longest time from trigger A to the pair's register read, s (the spool's hand-off included)."""
+HISTORY_S = 10.0
+"""Readings kept, s (``L / V`` is 0.3-6.6 s between 1000 and 50 mm/s at L = 330 mm)."""
+
+
+@dataclass(frozen=True)
+class CuttingFeed:
+    """The feed and spindle speed the PLC reported, steady over a pair's cut-to-read time.
+
+    Attributes
+    ----------
+    feed_mm_s : float
+        Mean ``feed_actual_mm_s`` over the time, mm/s.
+    spindle_rpm : float
+        Mean ``spindle_rpm`` over the time, rpm.
+    knives : int
+        Knives Z.
+    spread : float
+        ``(max - min) / mean`` of the feed per pass over the time.
+    """
+
+    feed_mm_s: float
+    spindle_rpm: float
+    knives: int
+    spread: float
+
+    @property
+    def pitch_mm(self) -> float:
+        """Feed per knife pass ``V / (n Z)``, mm."""
+        return self.feed_mm_s / (self.spindle_rpm / 60.0 * self.knives)
+
+
+class FeedHistory:
+    """The PLC's feed and spindle readings of the last :data:`HISTORY_S` seconds.
+
+    Parameters
+    ----------
+    history_s : float
+        Readings older than this (before the newest) are dropped, s.
+    """
+
+    def __init__(self, history_s: float = HISTORY_S) -> None:
+        self.history_s = check_positive("history_s", history_s)
+        self._t: deque[float] = deque()
+        self._pitch: deque[float] = deque()  # feed per pass, mm
+        self._feed: deque[float] = deque()
+        self._rpm: deque[float] = deque()
+        self._knives: deque[int] = deque()
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def note(self, snap: PlcSnapshot | None) -> None:
+        """Keep one register read (ignored: ``None``, unsound, stopped, or not newer)."""
+        if snap is None:
+            return
+        try:
+            t = float(snap.t_s)
+            feed, rpm, knives = snap.feed_actual_mm_s, snap.spindle_rpm, snap.knives
+        except (AttributeError, KeyError, TypeError, ValueError, OverflowError):
+            return  # not a register read of the PLC (a stand-in without times)
+        if not (math.isfinite(t) and math.isfinite(feed) and math.isfinite(rpm)
+                and feed > 0 and rpm > 0 and knives >= 1):
+            return
+        if self._t and t <= self._t[-1]:
+            return  # the same read again (the pair's snapshot is the cycle's)
+        self._t.append(t)
+        self._feed.append(feed)
+        self._rpm.append(rpm)
+        self._knives.append(knives)
+        self._pitch.append(feed / (rpm / 60.0 * knives))
+        while self._t and self._t[0] < t - self.history_s:
+            for q in (self._t, self._feed, self._rpm, self._knives, self._pitch):
+                q.popleft()
+
+    def cutting_feed(self, t_s: float, *, travel_mm: float) -> CuttingFeed | None:
+        """The readings from ``travel_mm`` of board travel before ``t_s`` up to ``t_s``.
+
+        The time back is ``travel_mm`` over the slowest feed kept (the longest the travel may
+        have taken) plus :data:`LATENCY_S`. ``None`` when the history does not
+        reach that far back, a reading in it changed the knives, or it holds no reading.
+        """
+        t = check_finite("t_s", t_s)
+        travel = check_positive("travel_mm", travel_mm)
+        idx = [i for i, ti in enumerate(self._t) if ti <= t]
+        if not idx:
+            return None
+        last = idx[-1]
+        slowest = min(self._feed[i] for i in idx)  # the longest the travel may have taken
+        t0 = t - travel / slowest - LATENCY_S
+        if self._t[0] > t0:
+            return None  # the history does not reach back to the cut
+        first = max(i for i in idx if self._t[i] <= t0)
+        span = range(first, last + 1)
+        if len({self._knives[i] for i in span}) != 1:
+            return None
+        pitches = [self._pitch[i] for i in span]
+        mean = sum(pitches) / len(pitches)
+        n = len(pitches)
+        return CuttingFeed(
+            feed_mm_s=sum(self._feed[i] for i in span) / n,
+            spindle_rpm=sum(self._rpm[i] for i in span) / n,
+            knives=self._knives[last],
+            spread=(max(pitches) - min(pitches)) / mean,
+        )
+
+
+class Flagged(str):
+    """The error of a flagged pair, ``"flagged: <reason>"``; :attr:`flag_reason` the reason.
+
+    A string like every other error of a pair (``FrameResult.error``), which the quality
+    record's ``flag_reason`` is taken from.
+    """
+
+    flag_reason: str
+
+    def __new__(cls, reason: str) -> Flagged:  # noqa: D102 (the class says it)
+        text = str(reason) or "flagged"
+        obj = super().__new__(cls, f"flagged: {text}")
+        obj.flag_reason = text
+        return obj
+
+
+def flag_reason_of(error: object) -> str | None:
+    """The flag reason of a pair's error (``None``: not a flagged pair)."""
+    return error.flag_reason if isinstance(error, Flagged) else None
+
+
+def pitch_disagreement(pitch_mm: float, cutting: CuttingFeed | None, *,
+                       tolerance: float) -> str | None:
+    """Why ``pitch_mm`` disagrees with the cutting feed per pass, or ``None``.
+
+    Parameters
+    ----------
+    pitch_mm : float
+        Measured pitch per knife pass, mm.
+    cutting : CuttingFeed or None
+        The PLC's feed and spindle over the pair's cut-to-read time (``None``: not known, not
+        checked).
+    tolerance : float
+        Largest relative difference allowed (``[plausibility] pitch_tolerance``).
+
+    Returns
+    -------
+    str or None
+        ``None`` when the feed changed by more than ``tolerance`` over the time (the cutting
+        feed is not known) or the pitch lies within ``tolerance`` of ``V / (n Z)``; else the
+        reason, naming both pitches.
+    """
+    tol = check_positive("tolerance", tolerance)
+    p = check_finite("pitch_mm", pitch_mm)
+    if cutting is None or cutting.spread > tol:
+        return None
+    expected = cutting.pitch_mm
+    off = p / expected - 1.0
+    if abs(off) <= tol:
+        return None
+    return (f"pitch {p:.3f} mm is {100 * off:+.1f} % off the feed per pass {expected:.3f} mm "
+            f"(V {cutting.feed_mm_s:.1f} mm/s, {cutting.spindle_rpm:.0f} rpm, "
+            f"{cutting.knives} knives; tolerance {100 * tol:.2g} %)")
