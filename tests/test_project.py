@@ -167,7 +167,7 @@ def test_the_issue_pattern_catches_every_spelling_and_nothing_else():
     for text in (f"{word} 11", f"{word.title()} 8 item 3", f"({word} 14)", f"{word}10.toml",
                  f"{word}s 10 and 11", f"{word} #12", f"{word}-12 steps", "see (" + "#7)"):
         assert _issue_refs(text), text
-    for text in (f"the {word} of the day", "tissue 3", f"{word}s remain", "item 3", "#7"):
+    for text in (f"the {word} of the day", f"t{word} 3", f"{word}s remain", "item 3", "#7"):
         assert not _issue_refs(text), text
 
 
