@@ -260,7 +260,7 @@ async def build_address_space(
         "own": await server.register_namespace(OWN_URI),
     }
     types = await _types(server, ns)
-    own, ww = ns["own"], ns["ww"]
+    own = ns["own"]
     objects = server.nodes.objects
     machines = await objects.add_folder(ua.NodeId(MACHINERY_MACHINES, ns["machinery"]),
                                         _qn("Machines", ns["machinery"]))
@@ -269,6 +269,20 @@ async def build_address_space(
                                         instantiate_optional=False)
     nodes = MachineNodes(machine=machine, ns=ns, event_type=types["event_type"])
 
+    await _identification(machine, nodes, identification, machine_name, types, ns)
+    await _state(machine, nodes, machine_name, types, ns)
+    await _events(machine, nodes, machine_name, types, ns)
+    await _manufacturer(machine, nodes, machine_name, knives, ns)
+    # the server object sees the machine's events too (HasNotifier chain)
+    await server.nodes.server.add_reference(machine.nodeid, ua.ObjectIds.HasNotifier)
+    return nodes
+
+
+async def _identification(machine: Node, nodes: MachineNodes,
+                          identification: Mapping[str, Any], machine_name: str,
+                          types: Mapping[str, Any], ns: Mapping[str, int]) -> None:
+    """``Identification``: a DI AddIn of type ``MachineIdentificationType``."""
+    own = ns["own"]
     # Identification (DI AddIn of type Machinery MachineIdentificationType)
     ident = await machine.add_object(ua.NodeId(f"{machine_name}.Identification", own),
                                      _qn("Identification", ns["di"]),
@@ -290,6 +304,11 @@ async def build_address_space(
             _identification_value(key, values[key], vtype))
         nodes.variables[f"Identification/{key}"] = prop
 
+
+async def _state(machine: Node, nodes: MachineNodes, machine_name: str,
+                 types: Mapping[str, Any], ns: Mapping[str, int]) -> None:
+    """``State/Machine/{Overview, Flags, Values}`` and their interfaces."""
+    own, ww = ns["own"], ns["ww"]
     # State/Machine/{Overview, Flags, Values}
     state = await machine.add_object(ua.NodeId(f"{machine_name}.State", own), _qn("State", ww))
     unit = await state.add_object(ua.NodeId(f"{machine_name}.State.Machine", own),
@@ -326,6 +345,11 @@ async def build_address_space(
                        ("State/Machine/Overview", overview), ("State/Machine/Values", vals)):
         await node.add_reference(types["interfaces"][path].nodeid, HAS_INTERFACE)
 
+
+async def _events(machine: Node, nodes: MachineNodes, machine_name: str,
+                  types: Mapping[str, Any], ns: Mapping[str, int]) -> None:
+    """``Events``: the notifier of the machine's Woodworking events."""
+    own, ww = ns["own"], ns["ww"]
     # Events (WwEventsDispatcherType): the notifier of the machine's Woodworking events
     events = await machine.add_object(ua.NodeId(f"{machine_name}.Events", own), _qn("Events", ww),
                                       objecttype=types["dispatcher"].nodeid)
@@ -336,6 +360,11 @@ async def build_address_space(
     await machine.add_reference(events.nodeid, ua.ObjectIds.HasNotifier)
     nodes.events_node = events
 
+
+async def _manufacturer(machine: Node, nodes: MachineNodes, machine_name: str, knives: int,
+                        ns: Mapping[str, int]) -> None:
+    """``ManufacturerSpecific``: our variables in our namespace."""
+    own, ww = ns["own"], ns["ww"]
     # ManufacturerSpecific (FolderType), our variables in our namespace
     ms = await machine.add_object(ua.NodeId(f"{machine_name}.ManufacturerSpecific", own),
                                   _qn("ManufacturerSpecific", ww),
@@ -359,6 +388,3 @@ async def build_address_space(
             await var.write_value_rank(1)
             await var.write_array_dimensions([0])
         nodes.variables[path], nodes.variant_types[path] = var, vtype
-    # the server object sees the machine's events too (HasNotifier chain)
-    await server.nodes.server.add_reference(machine.nodeid, ua.ObjectIds.HasNotifier)
-    return nodes

@@ -211,6 +211,16 @@ class OpcUaServer:
         Certificates and users; required for a non-loopback host.
     wall_clock : callable
         Returns the UTC ``datetime`` used as source timestamp (injected in tests).
+    max_connections : int, keyword-only
+        TCP connections at once; asyncua closes one more on accept.
+    max_subscriptions : int, keyword-only
+        Subscriptions on the whole server (``BadTooManySubscriptions`` past it).
+    min_publishing_ms : float, keyword-only
+        Shortest publishing interval granted, ms (a client asking for less gets this).
+    activation_s : float, keyword-only
+        A connection that has not activated a session this long after connecting is closed, s.
+    max_session_timeout_ms : float, keyword-only
+        Longest session timeout granted, ms.
     """
 
     def __init__(
@@ -223,8 +233,18 @@ class OpcUaServer:
         knives: int = 0,
         security: OpcUaSecurity | None = None,
         wall_clock: Callable[[], datetime] | None = None,
+        max_connections: int = 32,
+        max_subscriptions: int = 64,
+        min_publishing_ms: float = 100.0,
+        activation_s: float = 10.0,
+        max_session_timeout_ms: float = 60_000.0,
     ) -> None:
         self.host, self.port = parse_endpoint(endpoint)
+        self.limits = _check_limits(max_connections=max_connections,
+                                    max_subscriptions=max_subscriptions,
+                                    min_publishing_ms=min_publishing_ms,
+                                    activation_s=activation_s,
+                                    max_session_timeout_ms=max_session_timeout_ms)
         self.security = security or OpcUaSecurity()
         sec = self.security
         if (sec.certificate is None) != (sec.private_key is None):
@@ -247,6 +267,7 @@ class OpcUaServer:
         self._lock = threading.Lock()
         self._pending_events: list[WwEvent] = []
         self._dirty = False
+        self._values: dict[str, Any] | None = None  # given by apply(), instead of the view's
         self._written: dict[str, Any] = {}
         self._server: Server | None = None
         self._nodes: MachineNodes | None = None
@@ -288,6 +309,7 @@ class OpcUaServer:
             self.host, has_certificate=sec.certificate is not None, has_users=bool(self._users))
         server.set_security_policy(list(policies), permission_ruleset=_ReadOnly())
         server.set_identity_tokens(list(tokens))
+        _apply_limits(server, self.limits)
         self._nodes = await build_address_space(server, self.identification, knives=self.knives)
         self._gen = await server.get_event_generator(self._nodes.event_type,
                                                      self._nodes.events_node)
@@ -369,6 +391,19 @@ class OpcUaServer:
         with self._lock:
             self.view.result(r)
             self._dirty = True
+        self._poke()
+
+    def apply(self, values: Mapping[str, Any] | None, events: list[WwEvent]) -> None:
+        """Values and events computed elsewhere (a :class:`MachineView` in another process).
+
+        ``values`` (by path, :meth:`MachineView.all_values`; ``None``: unchanged) replace the
+        server's own view from now on; ``events`` are fired in order. Thread-safe, never blocks.
+        """
+        with self._lock:
+            if values is not None:
+                self._values = dict(values)
+                self._dirty = True
+            self._pending_events.extend(events)
         self._poke()
 
     def attach(self, service: Any, *, period_s: float = 0.2) -> asyncio.Task[None]:
@@ -459,7 +494,10 @@ class OpcUaServer:
         if nodes is None:
             return
         with self._lock:
-            values = self.view.all_values() if self._dirty or not self._written else {}
+            if self._dirty or not self._written:
+                values = self._values if self._values is not None else self.view.all_values()
+            else:
+                values = {}
             self._dirty = False
             events, self._pending_events = self._pending_events, []
         ts = self._wall()
@@ -492,6 +530,39 @@ class OpcUaServer:
         e.PathParts = list(ev.path_parts)
         e.EventCategory = int(ev.category)
         e.Time = ts
+
+
+def _check_limits(**limits: float) -> dict[str, float]:
+    for name, v in limits.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 \
+                or v == float("inf"):
+            raise ValueError(f"opcua {name} must be a number > 0, got {v!r}")
+    for name in ("max_connections", "max_subscriptions"):
+        if not isinstance(limits[name], int):
+            raise ValueError(f"opcua {name} must be an integer, got {limits[name]!r}")
+    return dict(limits)
+
+
+def _apply_limits(server: Server, limits: Mapping[str, float]) -> None:
+    """Set asyncua's own limits, and the shortest publishing interval granted."""
+    iserver = server.iserver
+    iserver.max_connections = int(limits["max_connections"])
+    iserver.max_subscriptions = int(limits["max_subscriptions"])
+    iserver.max_pending_activation_seconds = float(limits["activation_s"])
+    iserver.max_session_timeout_ms = float(limits["max_session_timeout_ms"])
+    iserver.min_session_timeout_ms = min(iserver.min_session_timeout_ms,
+                                         float(limits["max_session_timeout_ms"]))
+    service = iserver.subscription_service
+    create = service.create_subscription
+    floor_ms = float(limits["min_publishing_ms"])
+
+    async def create_subscription(params: Any, callback: Any, session_id: Any,
+                                  request_callback: Any = None) -> Any:
+        if not params.RequestedPublishingInterval >= floor_ms:  # NaN and 0 included
+            params.RequestedPublishingInterval = floor_ms
+        return await create(params, callback, session_id, request_callback=request_callback)
+
+    service.create_subscription = create_subscription
 
 
 def _same(a: Any, b: Any) -> bool:
