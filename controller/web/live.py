@@ -2,10 +2,10 @@
 
 Pure functions (:func:`result_json`, :func:`event_json`, :func:`status_json`,
 :func:`mark_knives`) turn what the service reports into JSON without NaN, and :class:`LiveView`
-keeps the latest of each plus a short history, thread-safely: :meth:`LiveView.follow` runs on
-the service's event loop and feeds it (polling ``status()``, the ``events`` list and the
-results, taking no callbacks), the web server reads :meth:`LiveView.snapshot` from its own
-thread.
+keeps the latest of each plus a short history, thread-safely. In ``planer serve`` and
+``planer hil`` the servers' process holds it, fed the JSON (``take_status``, ``take_result``,
+``take_event``) that :mod:`controller.edge.feed` computes beside the service;
+:meth:`LiveView.follow` feeds it from a service in the same process (tests, tools).
 """
 
 from __future__ import annotations
@@ -316,7 +316,10 @@ class LiveView:
 
     def update(self, status: ServiceStatus) -> None:
         """Take a service snapshot."""
-        d = status_json(status)
+        self.take_status(status_json(status))
+
+    def take_status(self, d: dict[str, Any]) -> None:
+        """Take a service snapshot already as :func:`status_json`."""
         with self._lock:
             if d != self._status:
                 self._status = d
@@ -324,7 +327,11 @@ class LiveView:
 
     def result(self, r: FrameResult) -> None:
         """Take one pair's result."""
-        d = result_json(r)
+        self.take_result(result_json(r))
+
+    def take_result(self, d: dict[str, Any]) -> None:
+        """Take one pair's result already as :func:`result_json` (``board_m`` is added)."""
+        d = dict(d)
         with self._lock:
             if self._counts0 is None:
                 self._counts0 = d["counts_a"]
@@ -339,8 +346,12 @@ class LiveView:
 
     def event(self, e: ServiceEvent) -> None:
         """Take one service event."""
+        self.take_event(event_json(e))
+
+    def take_event(self, d: dict[str, Any]) -> None:
+        """Take one service event already as :func:`event_json`."""
         with self._lock:
-            self._events.append(event_json(e))
+            self._events.append(d)
             self._bump()
 
     def snapshot(self) -> dict[str, Any]:

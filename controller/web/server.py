@@ -1,8 +1,11 @@
-"""The web server on its own thread (uvicorn).
+"""The web server on its own thread (uvicorn), bounded.
 
-The pages stay responsive while the service's event loop is busy; the socket is bound before
-the thread starts, so a busy port or a bad address is one clear ``OSError`` / ``ValueError``
-line at start.
+The socket is bound before the thread starts, so a busy port or a bad address is one clear
+``OSError`` / ``ValueError`` line at start. The server holds at most ``max_connections``
+connections (one more is closed as it is accepted), closes a connection whose request head
+is not complete ``header_timeout_s`` after it opened or went idle (idle and slow clients), an
+idle keep-alive connection after ``keep_alive_s``, and refuses a request head over
+``max_header_bytes``. :attr:`WebServer.counters` counts what it refused.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import threading
 import time
 from typing import Any
 
-__all__ = ["WebServer", "bind", "parse_listen"]
+__all__ = ["WebServer", "bind", "bounded_h11", "parse_listen"]
 
 
 def parse_listen(text: str) -> tuple[str, int]:
@@ -68,6 +71,68 @@ def bind(host: str, port: int) -> socket.socket:
     return sock
 
 
+def bounded_h11(max_connections: int, header_timeout_s: float,
+                counters: dict[str, int]) -> type:
+    """The h11 protocol of uvicorn with a connection cap and a deadline on the request head.
+
+    Parameters
+    ----------
+    max_connections : int
+        Connections at once; one more is aborted in ``connection_made`` (``refused``).
+    header_timeout_s : float
+        The request head must be complete this long after the connection opened or its last
+        response completed; else the connection is closed (``header_timeouts``). Bytes
+        trickling in do not extend it.
+    counters : dict
+        ``refused`` and ``header_timeouts`` are counted here (the server's thread only).
+    """
+    import h11
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class BoundedH11(H11Protocol):
+        _head_timer: asyncio.TimerHandle | None = None
+
+        def connection_made(self, transport: Any) -> None:  # type: ignore[override]
+            super().connection_made(transport)
+            if len(self.connections) > max_connections:
+                self.connections.discard(self)
+                counters["refused"] += 1
+                transport.abort()
+                return
+            self._arm_head_timer()
+
+        def _arm_head_timer(self) -> None:
+            if self._head_timer is None:
+                self._head_timer = self.loop.call_later(header_timeout_s, self._head_too_slow)
+
+        def _cancel_head_timer(self) -> None:
+            if self._head_timer is not None:
+                self._head_timer.cancel()
+                self._head_timer = None
+
+        def _head_too_slow(self) -> None:
+            self._head_timer = None
+            if not self.transport.is_closing():
+                counters["header_timeouts"] += 1
+                self.transport.abort()
+
+        def handle_events(self) -> None:
+            super().handle_events()
+            if self.conn.their_state is not h11.IDLE:  # the request head is in
+                self._cancel_head_timer()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            if not self.transport.is_closing():
+                self._arm_head_timer()
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            self._cancel_head_timer()
+            super().connection_lost(exc)
+
+    return BoundedH11
+
+
 class WebServer:
     """An ASGI app served by uvicorn on a thread of its own.
 
@@ -79,10 +144,32 @@ class WebServer:
         ``HOST:PORT`` (port 0: ephemeral; :attr:`port` tells which).
     stopping : threading.Event, optional
         Set by :meth:`stop` before the server shuts down (the app's streams end on it).
+    max_connections : int, keyword-only
+        Connections at once (one more is closed on accept).
+    header_timeout_s : float, keyword-only
+        Deadline of a request head after the connection opened or went idle, s.
+    keep_alive_s : int, keyword-only
+        An idle keep-alive connection is closed after this long, s.
+    max_header_bytes : int, keyword-only
+        Largest request head, bytes.
     """
 
-    def __init__(self, app: Any, listen: str, *, stopping: threading.Event | None = None) -> None:
+    def __init__(self, app: Any, listen: str, *, stopping: threading.Event | None = None,
+                 max_connections: int = 256, header_timeout_s: float = 5.0,
+                 keep_alive_s: int = 5, max_header_bytes: int = 16_384) -> None:
         self.host, port = parse_listen(listen)
+        for name, v in (("max_connections", max_connections), ("keep_alive_s", keep_alive_s),
+                        ("max_header_bytes", max_header_bytes)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"http {name} must be an integer >= 1, got {v!r}")
+        if not 0 < header_timeout_s < float("inf"):
+            raise ValueError(f"http header_timeout_s must be > 0 s, got {header_timeout_s!r}")
+        self.max_connections = max_connections
+        self.header_timeout_s = float(header_timeout_s)
+        self.keep_alive_s = keep_alive_s
+        self.max_header_bytes = max_header_bytes
+        self.counters = {"refused": 0, "header_timeouts": 0}
+        """Connections refused over the cap, closed for a slow request head."""
         self.app = app
         self.stopping = stopping if stopping is not None else threading.Event()
         self._sock: socket.socket | None = None
@@ -111,8 +198,12 @@ class WebServer:
 
         self._sock = bind(self.host, self.port)
         self.port = int(self._sock.getsockname()[1])
+        protocol = bounded_h11(self.max_connections, self.header_timeout_s, self.counters)
         config = uvicorn.Config(self.app, log_level="warning", access_log=False, lifespan="off",
-                                timeout_graceful_shutdown=1, ws="none")
+                                timeout_graceful_shutdown=1, ws="none", http=protocol,
+                                log_config=None, limit_concurrency=self.max_connections + 1,
+                                timeout_keep_alive=self.keep_alive_s,
+                                h11_max_incomplete_event_size=self.max_header_bytes)
         self._server = uvicorn.Server(config)
         sock = self._sock
 
@@ -130,6 +221,12 @@ class WebServer:
                 self.stop()
                 raise OSError(f"http {self.url}: the server did not start: {self._error}")
             time.sleep(0.01)
+
+    @property
+    def connections(self) -> int:
+        """Connections open now."""
+        server = self._server
+        return 0 if server is None else len(server.server_state.connections)
 
     def stop(self, *, timeout_s: float = 10.0) -> None:
         """Stop serving and join the thread (idempotent)."""
