@@ -32,6 +32,9 @@ COUNTERS = (
     "amp_faults",
     "uniformity_skipped",
     "tables_refused",
+    "knife_chips",
+    "targets_unreachable",
+    "measurements_failing",
 )
 """The service's counters (``Service.counters``), all starting at 0."""
 
@@ -75,6 +78,27 @@ class EventKind(enum.Enum):
     SERVICE_ERROR = "service_error"
     """The service's own code failed unexpectedly (the supervisor boundary caught it)."""
     CLOSE_PROBLEM = "close_problem"
+    LEARNED_STATE_RESUMED = "learned_state_resumed"
+    """The loops start from the state a previous service learnt on the same knives
+    (``controller.service.memory``). ``data``: ``path``, ``age_s``, ``offsets_um``,
+    ``feed_correction``, ``warm`` (the machine was running: the feed is held at start)."""
+    LEARNED_STATE_DISCARDED = "learned_state_discarded"
+    """A learnt state was found and not used (``reason``: another machine, too old, the knife set
+    changed, unreadable): the loops learn afresh. ``data``: ``path``."""
+    TARGET_UNREACHABLE = "target_unreachable"
+    """The pitch stays off its target with the feed at the machine's limit (``reason``: "feed at
+    its maximum" / "feed at its minimum") or the target lowered to the depth ceiling.
+    ``data``: ``target_pitch_mm``, ``reachable_pitch_mm``, ``measured_pitch_mm``, ``limit``."""
+    TARGET_REACHABLE = "target_reachable"
+    """The target pitch is reachable again (the condition of ``TARGET_UNREACHABLE`` cleared)."""
+    KNIFE_CHIPPED = "knife_chipped"
+    """One knife's mark width changed suddenly and stays changed (a chipped or moved knife).
+    ``data``: ``knife``, ``width_change_mm``, ``runout_step_um`` (its estimate), ``seq``."""
+    MEASUREMENTS_FAILING = "measurements_failing"
+    """Pairs keep failing to measure (``data``: ``failed``, ``of``, ``last_error``): a board is
+    present but the camera, lights or vision do not deliver."""
+    MEASUREMENTS_RECOVERED = "measurements_recovered"
+    """Pairs measure again after ``MEASUREMENTS_FAILING``."""
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -27,8 +28,10 @@ from controller.laws.uniformity_loop import UniformityLoop, UniformityLoopConfig
 from controller.service.actuators import Actuators
 from controller.service.attribution import Attributed
 from controller.service.events import EventKind, EventLog
+from controller.service.memory import KnifeSet, LearnedMemory, LearnedState
 from controller.service.supervisor import AmplifierMonitor
 from core.errors import FieldbusError
+from protocol.registers import MachineState
 
 FEED_WRITE_DEADBAND_MM_S = 0.5
 """Feed-forward changes smaller than this between measurements are not written, mm/s."""
@@ -94,6 +97,14 @@ class ControlLoops:
         self.uniformity_loop: Any = None
         self._key: tuple | None = None
         self._accel: float | None = None
+        self._snap: PlcSnapshot | None = None
+        self.memory: LearnedMemory | None = None
+        """Where the learnt state is kept across restarts (``None``: not kept)."""
+        self.on_warm_start: Callable[[float], Any] | None = None
+        """Called when a remembered state was resumed on a running machine (the supervisor
+        holds the feed while starting up: :meth:`Supervisor.warm_start`)."""
+        self.resumed: LearnedState | None = None
+        """The remembered state the loops started from (``None``: they learnt afresh)."""
         self._learned_offsets: np.ndarray | None = None
         self._stroke_limit_um: float | None = None
         self._t_loops = -math.inf
@@ -116,10 +127,12 @@ class ControlLoops:
             round(float(snap["cutterhead_radius_mm"]), 3),
             round(snap.cutter_to_camera_mm, 3),
         )
+        self._snap = snap
         if key == self._key:
             if plc_accel_mm_s2(snap) != self._accel:
                 self._new_feed_rate(snap)
             return
+        first = self._key is None
         q = self.cfg.quality
         cam = self.rig.camera
         overrides: dict[str, Any] = {
@@ -153,6 +166,77 @@ class ControlLoops:
         self._learned_offsets = np.zeros(snap.knives)
         self.out.set_knives(snap.knives)
         self._key = key
+        if first and self.memory is not None:
+            self._resume_memory(snap)
+
+    # ------------------------------------------------------------------ memory
+    def knife_set(self, snap: PlcSnapshot) -> KnifeSet:
+        """The knife set the PLC's registers and the amplifier describe now."""
+        amp = self.out.piezo.limit.amp
+        return KnifeSet(knives=int(snap.knives), radius_mm=float(snap["cutterhead_radius_mm"]),
+                        spindle_rpm=max(float(snap.spindle_rpm), 0.0),
+                        stroke_um=None if amp is None else float(amp.stroke_um))
+
+    def _resume_memory(self, snap: PlcSnapshot) -> None:
+        """Start the loops from the remembered state when it is this machine's and knives'."""
+        mem = self.memory
+        assert mem is not None
+        t = float(snap.t_s)
+        state, problem = mem.load()
+        why = problem if state is None else mem.judge(state, self.knife_set(snap))
+        if state is None or why is not None:
+            if why is not None:
+                self._report.emit(t, EventKind.LEARNED_STATE_DISCARDED,
+                                  f"learnt state not used, learning afresh: {why}", reason=why,
+                                  data={"path": str(mem.path)})
+            return
+        fl, uni = self.feed_loop, self.uniformity_loop
+        corr = min(max(state.feed_correction, fl.cfg.correction_min), fl.cfg.correction_max)
+        fl.reset(feed_mm_s=fl.feed_mm_s, correction=corr)
+        offs = project_zero_mean_box(np.asarray(state.offsets_um, float), bound=uni.limit_um)
+        uni.reset(offs, forget=True)  # its first pairs check the table against the board
+        self._learned_offsets = offs.copy()  # what the return to RUN sends
+        self.resumed = state
+        running = MachineState.RUNNING in snap.machine_state and snap.feed_actual_mm_s > 0
+        age = mem.wall_clock() - state.saved_at_unix
+        self._report.emit(
+            t, EventKind.LEARNED_STATE_RESUMED,
+            f"resuming the learnt state of {age:.0f} s ago (offsets "
+            f"[{' '.join(f'{v:+.2f}' for v in offs)}] um, feed correction {corr:.4f})"
+            + ("; the machine runs: feed held while starting up" if running else ""),
+            data={"path": str(mem.path), "age_s": age, "offsets_um": offs.tolist(),
+                  "feed_correction": corr, "warm": running})
+        if running and self.on_warm_start is not None:
+            self.on_warm_start(t)
+
+    def learned_state(self) -> LearnedState | None:
+        """What the loops have learnt now, for the memory (``None`` before they exist)."""
+        if self.memory is None or self._snap is None or self.feed_loop is None:
+            return None
+        uni = self.uniformity_loop
+        offs = self._learned_offsets
+        if offs is None or len(offs) != uni.cfg.knives:
+            return None
+        est = uni.runout_estimate_um
+        return self.memory.make(self.knife_set(self._snap), offs.tolist(),
+                                feed_correction=self.feed_loop.correction,
+                                runout_estimate_um=None if est is None else est.tolist(),
+                                mode_gains=list(uni.mode_gains))
+
+    def remember(self, t: float, *, now: bool = False) -> None:
+        """Offer the learnt state to the memory: written if due and changed.
+
+        ``now``: written if changed, whatever the interval (e.g. at a clean stop).
+        """
+        mem = self.memory
+        if mem is None:
+            return
+        if now:
+            state = self.learned_state()
+            if state is not None and mem.changed(state):
+                mem.save(state, t)
+        else:
+            mem.offer(self.learned_state, t)
 
     def _new_feed_rate(self, snap: PlcSnapshot) -> None:
         """The PLC's acceleration limit changed: the feed loop again, its learning kept."""
@@ -288,6 +372,7 @@ class ControlLoops:
             applied = applied or taken
         if applied:
             self._report.count("applied")
+            self.remember(t)
         return applied
 
     async def _feed_write(self, feed_mm_s: float, t: float) -> asyncio.Future:

@@ -44,6 +44,7 @@ from controller.service.frame_result import FrameResult
 from controller.service.intake import FrameIntake
 from controller.service.loops import ControlLoops
 from controller.service.measurement import MeasurementStage, VisionMeasurers
+from controller.service.memory import learned_memory_of
 from controller.service.pipeline import PairPipeline
 from controller.service.records import QualityRecords
 from controller.service.safe_state import SafeStateKeeper
@@ -125,6 +126,8 @@ class Service:
         self.keeper = SafeStateKeeper(cfg.safety, self.report, self.out, amp_monitor,
                                       now_s=clock())
         self.keeper.on_recovered = lambda t: self.loops.resume(t, self.plc.last)
+        self.loops.memory = learned_memory_of(log)  # the learnt state across restarts
+        self.loops.on_warm_start = self.keeper.supervisor.warm_start
         self.records = QualityRecords(
             cfg, log, self.report, threaded=threaded,
             on_health=lambda ok: self.keeper.supervisor.set_ok("log", ok),
@@ -411,6 +414,7 @@ class Service:
         ``RECORDS_SAVED`` event); the next service on that log writes them.
         """
         t = self.service_clock.last_s if self.service_clock.last_s is not None else 0.0
+        self.loops.remember(t, now=True)  # what was learnt since the last write
         if self.piezo is not None:
             problem = self.out.leave_safe(t)
             if problem is not None:

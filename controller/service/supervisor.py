@@ -76,6 +76,10 @@ BACKOFF_MAX_FACTOR = 8.0
 """... up to this multiple of ``recovery_s``."""
 BACKOFF_RESET_S = 10.0
 """A RUN this long resets the back-off (the next entry waits ``recovery_s`` again), s."""
+WARM_START_CONFIRM_S = 0.05
+"""At a warm start (:meth:`Supervisor.warm_start`) every source and condition must hold this long
+before the first RUN instead of ``recovery_s`` (when shorter), s: nothing failed, the machine
+ran before the service started, and each confirmation cycle cuts board without the offsets."""
 AMP_FAULT_BITS = {
     0: "over-temperature",
     1: "stroke limit (offsets refused)",
@@ -176,6 +180,10 @@ class Supervisor:
         self._ok_since: float | None = None
         self.entries = 0
         """How many times the SAFE state was entered from RUN."""
+        self.ran = False
+        """Whether the state has been RUN at all (``False``: still starting up)."""
+        self.warm = False
+        """A warm start (:meth:`warm_start`): the safe feed holds until the first RUN."""
 
     # ------------------------------------------------------------------ inputs
     def _note(self, source: str, now_s: float) -> None:
@@ -199,6 +207,22 @@ class Supervisor:
         """No measurement is due (no board under the camera): the measurement timeout rests."""
         self._note("measurement", now_s)
 
+    def warm_start(self, now_s: float) -> None:
+        """The service resumes a remembered state on a machine that runs (a restart).
+
+        Until the first RUN the safe action holds the feed the PLC has instead of ramping it
+        down: the machine ran well before the service started and nothing has failed since.
+        The first RUN needs every source heard and every condition held for
+        :data:`WARM_START_CONFIRM_S` instead of ``recovery_s`` (each cycle of it cuts board
+        without the offsets). Everything else of the start stays: the offsets stay zero and the
+        amplifier disabled until RUN, and a failing source or condition (a PLC that does not
+        answer, data that make no sense) keeps the service in SAFE; a machine that stops ends
+        the warm start. Ignored once the service has run.
+        """
+        check_finite("now_s", now_s)
+        if not self.ran:
+            self.warm = True
+
     def machine_ok(self, ok: bool) -> None:
         """Whether the machine reports itself fit to run (no e-stop, spindle turning)."""
         self.set_ok("machine", ok)
@@ -208,6 +232,8 @@ class Supervisor:
         if condition not in self._ok:
             raise ValueError(f"condition must be one of {', '.join(CONDITIONS)}; got {condition!r}")
         self._ok[condition] = bool(ok)
+        if condition == "machine" and not ok:
+            self.warm = False  # a machine that stops is no running machine to hold
 
     # ------------------------------------------------------------------ state
     def missing(self, now_s: float, *, fraction: float = 1.0) -> tuple[str, ...]:
@@ -231,6 +257,8 @@ class Supervisor:
     @property
     def recovery_required_s(self) -> float:
         """How long everything must hold before RUN now, s (the back-off)."""
+        if self.warm:  # the first RUN of a warm start: nothing failed before
+            return min(self.cfg.recovery_s, WARM_START_CONFIRM_S)
         n = max(self.backoff_level - 1, 0)
         factor = min(self.backoff_factor**n, self.backoff_max_factor)
         return self.cfg.recovery_s * factor
@@ -262,6 +290,7 @@ class Supervisor:
             if t - self._ok_since >= self.recovery_required_s - 1e-9:
                 self.state, self.since_s, changed = SafetyState.RUN, t, True
                 self._ok_since = None
+                self.ran, self.warm = True, False
         return SafetyStatus(state=self.state, missing=gone, changed=changed, since_s=self.since_s)
 
     @property
@@ -277,7 +306,8 @@ class Supervisor:
 
         ``hold`` keeps the current setpoint (clamped to the limits); ``ramp_down`` moves it toward
         ``safe_feed_mm_s`` (clamped to the limits) by at most ``ramp_mm_s2 * dt_s``, never
-        increasing it unless it lies below the machine's minimum.
+        increasing it unless it lies below the machine's minimum. A warm start
+        (:meth:`warm_start`) holds until the first RUN whatever the configuration.
 
         Parameters
         ----------
@@ -300,7 +330,7 @@ class Supervisor:
         if lo > hi:
             raise ValueError(f"feed_min_mm_s {lo} > feed_max_mm_s {hi}")
         cur_c = min(max(cur, lo), hi)
-        if self.cfg.safe_state == "hold":
+        if self.cfg.safe_state == "hold" or self.warm:
             return cur_c
         target = min(max(self.cfg.safe_feed_mm_s, lo), hi)
         if cur_c <= target:

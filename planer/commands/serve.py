@@ -7,6 +7,12 @@ measurements and every change of the safe state; while it waits in the safe stat
 answering, amplifier silent, no image pairs) it says so every ``--status-every`` seconds. Ctrl-C
 or SIGTERM stops it cleanly. The same command runs against ``planer sim`` and against the real
 machine: only ``--config`` changes (see ``docs/service.md``, "Running it").
+
+Under systemd (``deploy/planer.service``, ``docs/deploy.md``) it speaks the notification
+protocol: ``READY=1`` when it serves, ``STATUS=`` with its latest line, ``WATCHDOG=1`` from a
+task on its event loop, ``STOPPING=1`` on the way out; with the journal as its output
+(``JOURNAL_STREAM`` or ``INVOCATION_ID`` set) its lines carry no run times of their own and a
+logged error stays on one line.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from config.machine import load_machine
 from controller.opcua.compose import server_for, serving
 from controller.quality.log import log_target, vision_fields
 from controller.runtime import RuntimeOptions, ServiceRuntime
+from controller.sd_notify import Notifier, under_journald
 from controller.service.events import EventKind
 from controller.service.latency import MEASURE_NICE
 from controller.service.supervisor import SafetyState
@@ -158,7 +165,11 @@ def run(args: argparse.Namespace) -> int:
     log_opt = "--log" if args.log else f"{args.config or 'config/machine.toml'}: log.path"
     log_path = log_target(args.log or cfg.log.path,  # a postgresql:// URL or a file
                           check_file=lambda p: output_file(log_opt, p))
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    journal = under_journald()
+    handler = logging.StreamHandler()
+    handler.setFormatter(_OneLine("%(levelname)s %(name)s: %(message)s") if journal
+                         else logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=logging.WARNING, handlers=[handler])
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     server_for(cfg, args.opcua)  # a bad endpoint or missing security: one line before starting
     listen_for(cfg, args.http)  # a bad address or no web packages: one line before starting
@@ -166,12 +177,14 @@ def run(args: argparse.Namespace) -> int:
                              realtime=True, cpu_wakeup=True)
     runtime = ServiceRuntime(cfg, options=options, log_path=log_path,
                              say=lambda line: _say(f"planer serve: {line}"))
+    notifier = Notifier()  # a bad NOTIFY_SOCKET or WATCHDOG_USEC: one line before starting
+    stamp = (lambda _t: "") if journal else (lambda t: f"t={t:9.3f} s  ")
 
     async def main() -> int:
         get = lambda: runtime.service  # noqa: E731
         async with serving(cfg, args.opcua, get, say=_say), \
                 serving_http(cfg, args.http, get, say=_say, log=log_path), runtime:
-            return await _serve(runtime, args)
+            return await _serve(runtime, args, notifier=notifier, stamp=stamp)
 
     return asyncio.run(main())
 
@@ -186,8 +199,20 @@ def _frames_at(cfg: Any) -> str:
     return f"spool {cfg.frames.spool_dir}"
 
 
-async def _serve(runtime: ServiceRuntime, args: argparse.Namespace) -> int:
-    """Run the opened service until stopped: its lines, its events, why it waits."""
+class _OneLine(logging.Formatter):
+    """Log records on one line each (the journal makes one entry per line)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return " | ".join(line for line in super().format(record).splitlines() if line.strip())
+
+
+async def _serve(runtime: ServiceRuntime, args: argparse.Namespace, *, notifier: Notifier,
+                 stamp: Callable[[float], str]) -> int:
+    """Run the opened service until stopped: its lines, its events, why it waits.
+
+    ``notifier`` tells systemd (ready, status, watchdog, stopping); ``stamp(t)`` is the run
+    time's prefix of a line (empty under the journal, which stamps lines itself).
+    """
     cfg, service = runtime.cfg, runtime.service
     assert service is not None
     if runtime.pool is not None:
@@ -204,8 +229,9 @@ async def _serve(runtime: ServiceRuntime, args: argparse.Namespace) -> int:
     _say(f"log: {service.log.path}")
     _say(f"quality: {cfg.quality.class_name}, target pitch {cfg.quality.target_pitch_mm} mm, "
          f"safe state {cfg.safety.safe_state}")
-    service.on_event = _event_printer(t0)
-    service.on_result = _progress_printer(service, source, t0, cfg.log.print_every)
+    service.on_event = _event_printer(t0, stamp, notifier)
+    service.on_result = _progress_printer(service, source, t0, cfg.log.print_every, stamp,
+                                          notifier)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -219,19 +245,24 @@ async def _serve(runtime: ServiceRuntime, args: argparse.Namespace) -> int:
             await asyncio.sleep(args.status_every)
             status = service.status()
             if status.t_s is not None and status.state != SafetyState.RUN.value:
-                _say(f"t={service.clock() - t0:9.3f} s  "
-                     + waiting_line(tuple(status.missing), **where))
+                line = waiting_line(tuple(status.missing), **where)
+                notifier.status(line)
+                _say(stamp(service.clock() - t0) + line)
 
     watcher = asyncio.create_task(tell_why_waiting())
+    watchdog = asyncio.create_task(notifier.watchdog())  # on this loop: a stuck loop stops it
     try:
         started = asyncio.create_task(runtime.run(stop=stop, max_frames=args.max_frames))
         await asyncio.sleep(0)  # the run raised the loop's priority: say what it got
         _say(f"priority: service bus {runtime.granted}; measurement and records asked for "
              f"nice {MEASURE_NICE}; CPU wake-up: {runtime.wakeup}")
         _say("ready")
+        notifier.ready("serving: waiting in the safe state until every source answers")
         await started
     finally:
         watcher.cancel()
+        watchdog.cancel()
+        notifier.stopping("stopping")
     c = service.counters
     print(
         f"stopped: {c['frames']} pairs, {c['ok']} measured, {c['failed']} failed, "
@@ -246,11 +277,13 @@ _TO_STDERR = frozenset({EventKind.LOG_FAILED, EventKind.RECORDS_SAVED, EventKind
                         EventKind.SERVICE_ERROR})
 
 
-def _event_printer(t0: float) -> Callable[[Any], None]:
+def _event_printer(t0: float, stamp: Callable[[float], str],
+                   notifier: Notifier) -> Callable[[Any], None]:
     """The service's events as lines: the log's trouble and the service's own faults on stderr."""
 
     def on_event(e: Any) -> None:
-        line = f"t={e.t_s - t0:9.3f} s  {e.text}"
+        notifier.status(e.text)
+        line = stamp(e.t_s - t0) + e.text
         if e.kind in _TO_STDERR:
             print(line, file=sys.stderr, flush=True)
         else:
@@ -259,7 +292,8 @@ def _event_printer(t0: float) -> Callable[[Any], None]:
     return on_event
 
 
-def _progress_printer(service: Any, source: Any, t0: float, every: int) -> Callable[[Any], None]:
+def _progress_printer(service: Any, source: Any, t0: float, every: int,
+                      stamp: Callable[[float], str], notifier: Notifier) -> Callable[[Any], None]:
     """One line per ``every`` results: state, pitch, CV, feed, offsets, latency, counts."""
     window: list = []
 
@@ -274,14 +308,16 @@ def _progress_printer(service: Any, source: Any, t0: float, every: int) -> Calla
         feed = r.feed_setpoint_mm_s
         counts = source_text(source_counts(source))
         vision = vision_text(ok[-1].measurement) if ok else ""
-        _say(
-            f"t={r.t_s - t0:9.3f} s  #{service.counters['frames']}  {r.state}  "
+        line = (
+            f"#{service.counters['frames']}  {r.state}  "
             f"ok {len(ok)}/{len(window)}  pitch {pitch:.3f} mm  cv {cv:.3f}  "
             f"feed {feed if feed is not None else float('nan'):.1f} mm/s  "
-            f"offsets [{' '.join(f'{v:+.2f}' for v in r.offsets_um)}] um  "
+            f"offsets [{' '.join(f'{v:+.2f}' for v in r.offsets_um)}] µm  "
             f"latency p50 {lat[len(lat) // 2] * 1e3:.1f} ms"
             + (f"  {vision}" if vision else "") + (f"  {counts}" if counts else "")
         )
+        notifier.status(line)
+        _say(stamp(r.t_s - t0) + line)
         window.clear()
 
     return on_result

@@ -113,6 +113,9 @@ class InProcessPlant:
         try:
             self.start_id = log.last_id if log is not None else 0
             channel = f"planer-hil-{os.getpid()}-{next(_channels)}"
+            self._channel = channel
+            self._codec = codec
+            self._opened_log = opened_log
             self.svc_bus = can.Bus(interface="virtual", channel=channel)
             buses.append(self.svc_bus)
             amp_bus = can.Bus(interface="virtual", channel=channel)
@@ -160,6 +163,7 @@ class InProcessPlant:
         if self.server is not None and self.service is None:
             self._io = InterfaceLoop("hil-plc")
             host, port = await self._io.run_async(self.server.start())
+            self._addr = (host, port)
             self.plc = PlcClient.tcp(
                 host, port, unit_id=self.regmap.unit_id, timeout_s=self.cfg.plc.timeout_s,
                 regmap=self.regmap, backoff=self._backoff, clock=self.clock,
@@ -187,6 +191,69 @@ class InProcessPlant:
         if kind not in ("can_silence", "can_drop"):
             raise ValueError(f"kind must be can_silence or can_drop, got {kind!r}")
         self.driver.inject(kind, duration_s=duration_s, **params)  # the registry checks them
+
+    async def stop_service(self, *, kill: bool = False) -> None:
+        """Stop the service, the plant running on (:meth:`idle` steps it meanwhile).
+
+        ``kill=False``: a clean stop (:meth:`Service.close`: amplifier disabled with zero
+        offsets, the learnt state written, records and buses closed). ``kill=True``: what a
+        ``kill -9`` leaves -- the service's code stops mid-run and only what the operating
+        system does happens: its CAN and PLC connections and the log's file close, nothing
+        is written or sent on the way out (the amplifier times out by itself).
+        """
+        svc = self.service
+        assert svc is not None, "no service running"
+        if kill:
+            self.svc_bus.shutdown()
+            if self.plc is not None:
+                self.plc.close()
+            if self.log is not None and self._opened_log:
+                self.log.close()
+        else:
+            svc.close()
+        self.service = None
+
+    async def start_service(self) -> Service:
+        """A new service on the same plant, quality log and bus channels (a restart)."""
+        import can
+
+        from controller.fieldbus.piezo_client import PiezoClient
+        from controller.fieldbus.plc_client import PlcClient
+        from controller.fieldbus.plc_protocol import Backoff
+        from controller.quality.log import open_quality_log
+        from plant_sim.interfaces.register_bus import MachineRegisterBus
+
+        assert self.service is None, "stop the running service first"
+        cfg = self.cfg
+        if self._opened_log:
+            self.log = open_quality_log(Path(cfg.log.path), machine_id=cfg.log.machine_id or None)
+        self.svc_bus = can.Bus(interface="virtual", channel=self._channel)
+        self.piezo = PiezoClient(
+            self.svc_bus, self._codec, knives=self.sim_cfg.cutterhead.knives,
+            command_period_s=cfg.can.command_period_s, offsets_period_s=cfg.can.offsets_period_s,
+            stroke_um=cfg.stroke_um,
+        )
+        backoff = Backoff(cfg.plc.backoff_initial_s, cfg.plc.backoff_max_s)
+        if self.plc_transport == "direct":
+            self.direct_bus = MachineRegisterBus(self.machine, self.regmap)
+            self.plc = PlcClient(self.direct_bus, self.regmap, backoff=backoff, clock=self.clock)
+            self._make_service()
+        else:
+            host, port = self._addr
+            self.plc = PlcClient.tcp(
+                host, port, unit_id=self.regmap.unit_id, timeout_s=cfg.plc.timeout_s,
+                regmap=self.regmap, backoff=backoff, clock=self.clock,
+            )
+            self._make_service()
+        assert self.service is not None
+        return self.service
+
+    def idle(self) -> list[Any]:
+        """One control cycle of the plant alone (no service: stopped or not yet restarted).
+
+        The pairs captured meanwhile are returned, not measured: no service reads them.
+        """
+        return self.driver.step(self.cfg.safety.cycle_s)
 
     async def step(self) -> list[FrameResult]:
         """One control cycle; returns the results of the pairs captured in it."""
