@@ -1,0 +1,232 @@
+"""The simulated piezo amplifier as a CANopen slave: a ``canopen`` local node from the EDS.
+
+:class:`CanopenAmpNode` puts one head's amplifier (the machine's ``piezo_command``,
+``set_piezo_offsets``, ``piezo_status`` and its amplifier's ``limits()``) on a CAN bus as node
+``node_id`` of ``config/piezo_amp.eds``, several on one :class:`SlaveBus`:
+
+* NMT: it boots (boot-up message), waits pre-operational, acts on PDOs only when operational;
+  NMT start / stop / pre-operational / reset from the master as CiA 301 says;
+* heartbeat every ``0x1017`` ms of machine time (its NMT state), sent by :meth:`pump`;
+* SDO server: the whole dictionary, the limits (``0x2200``) and status (``0x2100``) read live
+  from the amplifier model;
+* RPDO1/2 the offset table (a table outside the offset range is refused and raises the
+  stroke-limit bit), RPDO3 the command (a command for another number of knives is refused);
+* TPDO1 the status every 10 ms of machine time; an EMCY when a fault bit rises, and the
+  "no error" EMCY when all have cleared.
+
+Time is the machine's: :meth:`pump` is called with it, as :class:`~plant_sim.interfaces.amp_node.
+AmpNode` is. Received frames are handled on the bus's notifier thread and only reach the
+machine through its thread-safe setters (the same calls the frame-set node makes).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import canopen
+
+from protocol.piezo_canopen import (
+    EMCY_CODES,
+    HEARTBEAT_TIME,
+    LIMITS,
+    MAX_KNIVES,
+    STATUS,
+    AmpFault,
+    NmtState,
+    load_od,
+    nm_from_um,
+    um_from_nm,
+)
+
+__all__ = ["CanopenAmpNode", "SlaveBus"]
+
+log = logging.getLogger(__name__)
+
+STATUS_PERIOD_S = 0.01
+"""TPDO1 period (the EDS's event timer, 10 ms)."""
+
+
+class SlaveBus:
+    """A CAN bus with the simulator's amplifier nodes on it (owns the bus and its notifier)."""
+
+    def __init__(self, bus: Any) -> None:
+        self.network = canopen.Network(bus)
+        self.network.connect()
+        self.nodes: list[CanopenAmpNode] = []
+
+    def pump(self, now_s: float) -> None:
+        """Every node's frames due at machine time ``now_s``."""
+        for node in self.nodes:
+            node.pump(now_s)
+
+    def close(self) -> None:
+        """Stop the notifier and shut the bus down (idempotent)."""
+        if self.network.bus is not None:
+            self.network.disconnect()
+
+
+class CanopenAmpNode:
+    """One amplifier on a :class:`SlaveBus`.
+
+    Parameters
+    ----------
+    slaves : SlaveBus
+        The bus.
+    node_id : int
+        Its node id (1..127).
+    machine : object
+        The head's machine side: ``piezo_command(enable=, alive_counter=)``,
+        ``set_piezo_offsets(table)``, ``piezo_status()`` and ``amp.limits()`` (or
+        ``piezo_limits()``).
+    knives : int, keyword-only
+        Knives of the head.
+    eds : Path, optional, keyword-only
+        The EDS file (default ``config/piezo_amp.eds``).
+    """
+
+    def __init__(self, slaves: SlaveBus, node_id: int, machine: Any, *, knives: int = 4,
+                 eds: str | Path | None = None) -> None:
+        self.slaves = slaves
+        self.machine = machine
+        self.knives = int(knives)
+        od = load_od(node_id, eds)
+        self.od = od
+        self.node = canopen.LocalNode(node_id, od)
+        slaves.network.add_node(self.node)
+        slaves.nodes.append(self)
+        self.node.add_read_callback(self._on_read)
+        self.node.rpdo.read(from_od=True)
+        self.node.tpdo.read(from_od=True)
+        for n in (1, 2, 3):
+            self.node.rpdo[n].add_callback(self._on_rpdo)
+        self._lock = threading.Lock()
+        self.offsets_um = [0.0] * MAX_KNIVES
+        self._stroke_fault = False
+        self._faults_sent = AmpFault(0)
+        self.heartbeat_period_s = int(od[HEARTBEAT_TIME].default) / 1000.0
+        self._next_status_s: float | None = None
+        self._next_heartbeat_s: float | None = None
+        self.silent = False
+        """While set the node sends nothing (a lost amplifier, for tests and faults)."""
+        self.refused = 0
+        self.pdos = 0
+        self._boot()
+
+    # -- NMT -----------------------------------------------------------------------------------
+
+    def _boot(self) -> None:
+        """Boot-up message, then pre-operational (heartbeats from :meth:`pump`, machine time)."""
+        self.node.network.send_message(0x700 + self.node.id, [NmtState.BOOT_UP])
+        # the state is set directly: NmtSlave's own transition would start a heartbeat on a
+        # wall-clock thread, and this node's heartbeats run on machine time
+        self.node.nmt._state = int(NmtState.PRE_OPERATIONAL)
+
+    @property
+    def nmt_state(self) -> NmtState:
+        """The node's NMT state."""
+        return NmtState(self.node.nmt._state if self.node.nmt._state else NmtState.BOOT_UP)
+
+    # -- received (the notifier's thread) ------------------------------------------------------
+
+    def _on_rpdo(self, pdo: Any) -> None:
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            return  # PDOs are acted on only when operational
+        with self._lock:
+            self.pdos += 1
+            if pdo is self.node.rpdo[3]:
+                self._command([v.raw for v in pdo])
+            else:
+                first = 0 if pdo is self.node.rpdo[1] else 4
+                for k, var in enumerate(pdo):
+                    self.offsets_um[first + k] = um_from_nm(var.raw)
+                self._table()
+
+    def _command(self, values: Sequence[int]) -> None:
+        enable, knives, alive = (int(v) for v in values[:3])
+        if knives != self.knives:
+            self.refused += 1
+            log.info("command for %d knives refused (the head has %d)", knives, self.knives)
+            return
+        try:
+            self.machine.piezo_command(enable=bool(enable), alive_counter=alive)
+        except ValueError as exc:
+            self.refused += 1
+            log.info("command refused: %s", exc)
+
+    def _table(self) -> None:
+        try:
+            self.machine.set_piezo_offsets(self.offsets_um[: self.knives])
+        except ValueError as exc:
+            self.refused += 1
+            self._stroke_fault = True
+            log.info("offsets refused: %s", exc)
+            return
+        self._stroke_fault = False
+
+    def _limits(self) -> Any:
+        report = getattr(self.machine, "piezo_limits", None) or getattr(
+            getattr(self.machine, "amp", None), "limits", None)
+        return None if report is None else report()
+
+    def _on_read(self, *, index: int, subindex: int, od: Any) -> int | None:
+        """SDO reads of the live objects: the limits and the status."""
+        if index == LIMITS:
+            lim = self._limits()
+            if lim is None:
+                return None
+            return {1: min(65535, round(float(lim.stroke_um) * 1000.0)),
+                    2: nm_from_um(lim.offset_min_um), 3: nm_from_um(lim.offset_max_um),
+                    4: int(round(lim.slew_max_um_ms)),
+                    5: int(round(lim.setpoint_timeout_ms))}.get(subindex)
+        if index == STATUS:
+            return self._status_raw().get(subindex)
+        return None
+
+    # -- sent (machine time) -------------------------------------------------------------------
+
+    def _fault(self) -> AmpFault:
+        st = self.machine.piezo_status()
+        fault = AmpFault(int(getattr(st, "fault", 0)) & 0x0F)
+        return fault | AmpFault.STROKE_LIMIT if self._stroke_fault else fault
+
+    def _status_raw(self) -> dict[int, int]:
+        st = self.machine.piezo_status()
+        disp = max(-32.768, min(32.767, float(st.displacement_um)))
+        return {1: nm_from_um(disp), 2: int(round(float(st.temperature_c) * 10.0)),
+                3: int(self._fault()), 4: int(st.state)}
+
+    def pump(self, now_s: float) -> None:
+        """Send what is due at machine time ``now_s``: heartbeat, TPDO1 status, EMCY."""
+        if self._next_status_s is None:
+            self._next_status_s = self._next_heartbeat_s = now_s
+        if self.silent:
+            return
+        net = self.node.network
+        node_id = self.node.id
+        if now_s >= self._next_heartbeat_s - 1e-9:  # type: ignore[operator]
+            self._next_heartbeat_s = max(self._next_heartbeat_s + self.heartbeat_period_s,
+                                         now_s)
+            net.send_message(0x700 + node_id, [int(self.nmt_state)])
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            return
+        if now_s >= self._next_status_s - 1e-9:
+            self._next_status_s = max(self._next_status_s + STATUS_PERIOD_S, now_s)
+            raw = self._status_raw()
+            pdo = self.node.tpdo[1]
+            for sub, var in enumerate(pdo, 1):
+                var.raw = raw[sub]
+            pdo.transmit()
+            self._emergencies(AmpFault(raw[3]))
+
+    def _emergencies(self, fault: AmpFault) -> None:
+        risen = fault & ~self._faults_sent
+        for bit in AmpFault:
+            if bit in risen:
+                self.node.emcy.send(EMCY_CODES[bit], register=0x01)
+        if self._faults_sent and not fault:
+            self.node.emcy.reset()  # code 0x0000: no error any more
+        self._faults_sent = fault
