@@ -1,23 +1,23 @@
-"""The OPC UA server in a composition (``planer serve``, ``planer hil``): from machine.toml.
+"""The OPC UA server that machine.toml asks for (``planer serve``, ``planer hil``).
 
 Imports asyncua only when a server is asked for (``--opcua`` or ``[opcua] endpoint``), so the
-commands run without the ``opcua`` extra installed.
+commands run without the ``opcua`` extra installed. The server runs in the servers' process
+(:func:`controller.edge.compose.serving`).
 """
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import AsyncIterator, Callable
-from contextlib import asynccontextmanager
 from typing import Any
 
 from config.machine import MachineConfig
 
-__all__ = ["serving", "server_for"]
+__all__ = ["opcua_options", "server_for"]
 
 
-def server_for(cfg: MachineConfig, endpoint: str | None = None) -> Any:
-    """The :class:`~controller.opcua.server.OpcUaServer` that ``cfg`` asks for, or ``None``.
+def opcua_options(cfg: MachineConfig, endpoint: str | None = None) -> dict[str, Any] | None:
+    """The :class:`~controller.opcua.server.OpcUaServer` arguments ``cfg`` asks for, or ``None``.
+
+    Checked (a server is built, not started), so a bad endpoint fails before anything starts.
 
     Parameters
     ----------
@@ -26,6 +26,11 @@ def server_for(cfg: MachineConfig, endpoint: str | None = None) -> Any:
         ``[quality]``.
     endpoint : str, optional
         ``--opcua``: overrides ``[opcua] endpoint``.
+
+    Returns
+    -------
+    dict or None
+        ``endpoint``, ``identification``, ``quality_class``, ``security`` (picklable).
 
     Raises
     ------
@@ -43,40 +48,28 @@ def server_for(cfg: MachineConfig, endpoint: str | None = None) -> Any:
     from controller.service.records import quality_class_of
 
     op = cfg.opcua
-    return OpcUaServer(
-        endpoint,
-        identification=dict(cfg.identification),
-        quality_class=quality_class_of(cfg),
-        security=OpcUaSecurity(certificate=op.certificate, private_key=op.private_key,
-                               users_file=op.users_file),
-    )
+    options = {
+        "endpoint": endpoint,
+        "identification": dict(cfg.identification),
+        "quality_class": quality_class_of(cfg),
+        "security": OpcUaSecurity(certificate=op.certificate, private_key=op.private_key,
+                                  users_file=op.users_file),
+    }
+    OpcUaServer(**options)  # checks the endpoint, the security files, the users
+    return options
 
 
-@asynccontextmanager
-async def serving(
-    cfg: MachineConfig,
-    endpoint: str | None,
-    get_service: Callable[[], Any],
-    *,
-    say: Callable[[str], None] | None = None,
-    period_s: float = 0.2,
-) -> AsyncIterator[Any]:
-    """Serve OPC UA (when asked for) while the block runs, following ``get_service()``.
+def server_for(cfg: MachineConfig, endpoint: str | None = None) -> Any:
+    """The :class:`~controller.opcua.server.OpcUaServer` that ``cfg`` asks for, or ``None``.
 
-    Yields the started server, or ``None`` when OPC UA is off. A busy port raises ``OSError``
-    (one line naming it) before the block starts.
+    Raises
+    ------
+    ValueError
+        As :func:`opcua_options`.
     """
-    server = server_for(cfg, endpoint)
-    if server is None:
-        yield None
-        return
-    await server.start()
-    if say is not None:
-        say(f"opcua: {server.endpoint} (WwMachineType under Objects/Machines)")
-    task = asyncio.create_task(server.follow(get_service, period_s=period_s))
-    try:
-        yield server
-    finally:
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
-        await server.stop()
+    options = opcua_options(cfg, endpoint)
+    if options is None:
+        return None
+    from controller.opcua.server import OpcUaServer
+
+    return OpcUaServer(**options)

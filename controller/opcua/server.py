@@ -351,6 +351,16 @@ class OpcUaServer:
             except OSError as exc:
                 raise self._listen_error(exc) from None
 
+    def clients(self) -> dict[str, int]:
+        """``connections`` and ``subscriptions`` held now, ``published`` rounds (0 unstarted)."""
+        server = self._server
+        if server is None:
+            return {"connections": 0, "subscriptions": 0, "published": self.published}
+        bserver = server.bserver
+        return {"connections": len(bserver.clients) if bserver is not None else 0,
+                "subscriptions": len(server.iserver.subscription_service.subscriptions),
+                "published": self.published}
+
     async def stop(self) -> None:
         """Stop serving (idempotent)."""
         if self._task is not None:

@@ -273,19 +273,19 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
     """Run the scenario in the chosen mode; return the summary."""
     import asyncio
 
-    from controller.opcua.compose import server_for, serving
+    from controller.edge.compose import serving
+    from controller.opcua.compose import server_for
 
     cfg = hil.machine_config_for(scenario, log_path=log_path)
     server_for(cfg, getattr(args, "opcua", None))  # bad endpoint / security: one line, early
     from controller.web.compose import listen_for
-    from controller.web.compose import serving as serving_http
 
     listen_for(cfg, getattr(args, "http", None))  # bad address / no web packages: one line
     opened: list = []
 
     async def with_opcua(run: Any, get_service: Callable[[], Any]) -> dict:
-        async with serving(cfg, getattr(args, "opcua", None), get_service, say=progress), \
-                serving_http(cfg, getattr(args, "http", None), get_service, say=progress):
+        async with serving(cfg, get_service, opcua=getattr(args, "opcua", None),
+                           http=getattr(args, "http", None), say=progress):
             return await run
 
     if cross:

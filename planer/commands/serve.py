@@ -26,7 +26,8 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from config.machine import load_machine
-from controller.opcua.compose import server_for, serving
+from controller.edge.compose import serving
+from controller.opcua.compose import server_for
 from controller.quality.log import log_target, vision_fields
 from controller.runtime import RuntimeOptions, ServiceRuntime
 from controller.sd_notify import Notifier, under_journald
@@ -34,7 +35,6 @@ from controller.service.events import EventKind
 from controller.service.latency import MEASURE_NICE
 from controller.service.supervisor import SafetyState
 from controller.web.compose import listen_for
-from controller.web.compose import serving as serving_http
 from core.checks import check_int
 from planer.cli import output_file, output_folder
 
@@ -182,8 +182,8 @@ def run(args: argparse.Namespace) -> int:
 
     async def main() -> int:
         get = lambda: runtime.service  # noqa: E731
-        async with serving(cfg, args.opcua, get, say=_say), \
-                serving_http(cfg, args.http, get, say=_say, log=log_path), runtime:
+        async with serving(cfg, get, opcua=args.opcua, http=args.http, say=_say,
+                           log=log_path), runtime:
             return await _serve(runtime, args, notifier=notifier, stamp=stamp)
 
     return asyncio.run(main())

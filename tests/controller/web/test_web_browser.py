@@ -65,12 +65,13 @@ class _HilWithPages:
             self.ready.put(exc)
 
     async def _run(self) -> None:
-        from controller.web.compose import serving
+        from controller.edge.compose import serving
         from planer.hil import InProcessHil, machine_config_for
 
         cfg = machine_config_for(self.scenario, log_path=self.log_path)
         runner = InProcessHil(self.scenario, log_path=self.log_path, plc_transport="direct")
-        async with serving(cfg, "127.0.0.1:0", lambda: getattr(runner, "service", None)) as srv:
+        async with serving(cfg, lambda: getattr(runner, "service", None),
+                           http="127.0.0.1:0") as srv:
             self.ready.put(srv)
             run = asyncio.create_task(runner.run())
             wait = asyncio.create_task(asyncio.to_thread(self.done.wait))
@@ -264,7 +265,8 @@ def test_hil_composition_serves_only_local_clients_and_stops_with_the_run(tmp_pa
                 seqs.add(last["seq"])
             time.sleep(0.1)  # polling the run's progress, not waiting for time to pass
         assert len(seqs) >= 3
-        served = list(server.app.state.requests)
+        served = server.wait_stats(lambda s: bool(s.get("http", {}).get("requests")),
+                                   TIMEOUT_S)["http"]["requests"]
         assert served and all(r["client"] == "127.0.0.1" and r["method"] == "GET"
                               for r in served)
     with pytest.raises(httpx.ConnectError):
