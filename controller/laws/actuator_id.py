@@ -15,18 +15,34 @@ From every complete measurement the loop knows the effective offsets of the meas
 ``y = D^+ (w - mean(w)) / G = A o - s`` (``s`` the runout). Per mode, ``Y_m = a_m O_m - S_m``.
 :class:`ActuatorIdentifier` fits ``a_m`` on differences over ``lag_pairs`` measurements,
 ``dY_m = a_m dO_m - dS_m``, taking only differences in which the mode moved by at least
-``min_step_um`` (the learning transients) and whose ratio ``dY_m / dO_m`` is itself a plausible
-gain (magnitude within ``[gain_min / 2, 1.5 gain_max]``, phase within ``+-gate_phase_deg``): a
-step of the runout itself (a knife changed, a misattributed pair) passes for a wild gain and is
-left out. A slow drift of the runout (``dS``), which the loop
-follows with equally slow moves of the table, would otherwise pass for a gain near zero (in
-closed loop ``y`` stays near zero while ``o`` tracks ``s``). The fit is exponentially weighted
-least squares over the accepted differences (forgetting only when something new is learnt, so a
-settled loop keeps its estimate) with a prior ``a_m = 1`` of weight ``prior_um2``, and ``|a_m|``
-bounded to ``[gain_min, gain_max]`` and its phase to ``+-phase_max_deg`` (inside the loop's phase
-margin) so that the loop never divides by nearly nothing nor turns a mode around. Pure; per
-measurement a DFT of ``Z`` values in plain numbers (``Z <= 8``: cheaper than numpy's FFT calls)
-and ``O(Z)`` updates; the circulant matrix is built once per new estimate.
+``min_step_um`` (the learning transients; a slow drift of the runout, which the loop follows
+with equally slow moves of the table, would otherwise pass for a gain near zero: in closed loop
+``y`` stays near zero while ``o`` tracks ``s``) and whose ratio ``dY_m / dO_m`` has a magnitude
+within ``[gain_min / 4, 1.5 gain_max]`` (a step of the runout itself, a knife changed or a
+misattributed pair, passes for a wild gain; a difference across a table change inside the
+measured window, for nearly none). Once a mode is confident, a difference must also agree with
+its estimate (:meth:`ActuatorIdentifier._consistent`); ``3 lag_pairs`` disagreeing in a row
+and the mode is learnt afresh (the actuator changed). A jump of the width errors while the
+table stood still is a step of the runout: the differences start again after it. The gain may
+lie anywhere on the phase circle: a resonance below the knife passing frequency turns a mode by
+60-180 degrees (at 100 Hz and 400 knife passes per second the alternating mode's gain is about
+-0.2), and a hysteretic stack shrinks small cycles to a few per cent.
+
+The fit is exponentially weighted least squares over the accepted differences (forgetting only
+when something new is learnt, so a settled loop keeps its estimate) with a prior ``a_m = 1``
+of weight ``prior_um2``. Beside the estimate it keeps what the fit knows: the weighted number
+of differences and their residual, so each mode has a standard error ``sigma_m`` and a
+confidence ``1 - 2 sigma_m / |a_m|`` (clipped to [0, 1]): the fraction of the loop's
+robust-stability disc (``|a_true / a_hat - 1| < 1``, ``controller.laws.design``) left after two
+standard errors. :meth:`mode_states` sorts the modes into ``usable`` (confident, ``|a_m| >=
+gain_min``), ``no_authority`` (``|a_m| + 2 sigma_m < gain_min`` after ``min_samples``
+differences: the actuator cannot move that knife pattern), ``unidentifiable`` (many differences,
+still no confidence) and ``unknown`` (not enough seen yet). :attr:`mode_gains`, the gains the
+loop plans with, bound ``|a_m|`` to ``[gain_min, gain_max]`` (``unconfirmed_gain_min`` below
+while the mode is not confident; the phase kept) so that the loop never divides by nearly
+nothing. Pure; per measurement a DFT of ``Z`` values in plain numbers
+(``Z <= 8``: cheaper than numpy's FFT calls) and ``O(Z)`` updates; the circulant matrix is
+built once per new estimate.
 """
 
 from __future__ import annotations
@@ -61,6 +77,10 @@ def circulant_from_mode_gains(mode_gains: np.ndarray) -> np.ndarray:
     return np.array([[col[(i - j) % z] for j in range(z)] for i in range(z)])
 
 
+#: Values of :meth:`ActuatorIdentifier.mode_states`, one per mode.
+MODE_STATES = ("usable", "unknown", "no_authority", "unidentifiable")
+
+
 class ActuatorIdentifier:
     """Per-mode complex gain of the actuator from (effective offsets, width errors) pairs.
 
@@ -78,11 +98,20 @@ class ActuatorIdentifier:
         Weight of the prior ``a_m = 1``, um^2 of offset excitation (the fit follows the data
         once the offsets have moved by a few times ``sqrt(prior_um2)``).
     gain_min, gain_max : float
-        Bounds on ``|a_m|``.
+        Bounds on the planning gain ``|a_m|``; a mode confidently below ``gain_min`` has no
+        authority.
     phase_max_deg : float
-        Bound on ``|arg a_m|``, degrees.
+        Bound on ``|arg a_m|`` of the planning gain, degrees (180: the whole circle).
     gate_phase_deg : float
-        A difference whose own gain ratio turns further than this is left out, degrees.
+        A difference whose own gain ratio turns further than this is left out, degrees (180:
+        none is).
+    min_samples : int
+        Accepted differences before a mode may count as usable or without authority.
+    unidentifiable_samples : int
+        Accepted differences after which a mode still without confidence is unidentifiable.
+    unconfirmed_gain_min : float
+        Smallest planning ``|a_m|`` of a mode not yet confident (a few differences saying
+        "small" do not blow the table up).
 
     Attributes
     ----------
@@ -100,8 +129,11 @@ class ActuatorIdentifier:
         prior_um2: float = 1.0,
         gain_min: float = 0.1,
         gain_max: float = 2.0,
-        phase_max_deg: float = 60.0,
-        gate_phase_deg: float = 75.0,
+        phase_max_deg: float = 180.0,
+        gate_phase_deg: float = 180.0,
+        min_samples: int = 3,
+        unidentifiable_samples: int = 30,
+        unconfirmed_gain_min: float = 0.5,
     ) -> None:
         self.knives = check_int("knives", knives, lo=1)
         self.lag = check_int("lag_pairs", lag_pairs, lo=1)
@@ -111,8 +143,18 @@ class ActuatorIdentifier:
         self.prior_um2 = check_positive("prior_um2", prior_um2)
         self.gain_min = check_range("gain_min", gain_min, 1e-3, 1.0)
         self.gain_max = check_range("gain_max", gain_max, 1.0, 100.0)
-        self.phase_max = math.radians(check_range("phase_max_deg", phase_max_deg, 0.0, 90.0))
+        self.phase_max = math.radians(check_range("phase_max_deg", phase_max_deg, 0.0, 180.0))
         self.gate_phase = math.radians(check_range("gate_phase_deg", gate_phase_deg, 0.0, 180.0))
+        self.min_samples = check_int("min_samples", min_samples, lo=1)
+        self.jump_um = 4.0 * self.min_step_um
+        """A move of the width errors (um of offset, per mode) with the table steady that counts
+        as a step of the runout."""
+        self.reject_reset = 3 * self.lag
+        """Consecutive outliers after which a mode is learnt afresh (the actuator changed)."""
+        self.unconfirmed_gain_min = check_range("unconfirmed_gain_min", unconfirmed_gain_min,
+                                                0.0, 1.0)
+        self.unidentifiable_samples = check_int(
+            "unidentifiable_samples", unidentifiable_samples, lo=self.min_samples)
         z = self.knives
         twiddles = np.exp(-2j * np.pi * np.outer(np.arange(z), np.arange(z)) / z) / math.sqrt(z)
         # exact 0, +-1, +-i where they are (the unit roots' rounding set aside)
@@ -130,8 +172,39 @@ class ActuatorIdentifier:
         self._past: deque[tuple[list[complex], list[complex]]] = deque(maxlen=self.lag)
         self._soo = [0.0] * z  # per mode (plain numbers: updated per measurement)
         self._soy = [0j] * z
+        self._syy = [0.0] * z  # weighted sum of |dY|^2 (the fit's residual)
+        self._n = [0.0] * z  # weighted number of accepted differences
+        self._rejected = [0] * z  # consecutive differences left out as outliers
         self.samples = 0
+        self._prior = np.ones(z, complex)
+        self._raw = np.ones(z, complex)
         self._set_gains(np.ones(z, complex))
+
+    def start_from(self, mode_gains: Sequence[complex]) -> None:
+        """Forget every measurement and start from a known actuator (e.g. one learnt before).
+
+        ``mode_gains`` (shape (Z,), ``a_{Z-m} = conj(a_m)``; ``a_0`` ignored) becomes the prior
+        the fit is drawn to and the estimate until the data say otherwise.
+        """
+        g = np.asarray(mode_gains, dtype=complex)
+        z = self.knives
+        if g.shape != (z,) or not np.all(np.isfinite(g)):
+            raise ValueError(f"mode_gains must be {z} finite complex values, got {mode_gains!r}")
+        self.reset()
+        g = g.copy()
+        g[0] = 1.0
+        for m in range(1, (z + 1) // 2):
+            g[z - m] = np.conj(g[m])
+        if z % 2 == 0:
+            g[z // 2] = g[z // 2].real
+        self._prior = g
+        self._raw = g.copy()
+        mag = np.clip(np.abs(g), self.gain_min, self.gain_max)
+        a = mag * np.exp(1j * np.clip(np.angle(g), -self.phase_max, self.phase_max))
+        a[0] = 1.0
+        if z % 2 == 0:
+            a[z // 2] = a[z // 2].real
+        self._set_gains(a)
 
     def _set_gains(self, gains: np.ndarray) -> None:
         self._gains = gains
@@ -160,52 +233,171 @@ class ActuatorIdentifier:
         om = self._dft(o)
         ym = self._dft(y)
         self.samples += 1
+        if self._past and self._jumped(om, ym):
+            self._past.clear()  # no difference straddles a step of the runout
         if len(self._past) == self.lag:
             o0, y0 = self._past[0]
-            soo, soy = self._soo, self._soy
+            soo, soy, syy, n = self._soo, self._soy, self._syy, self._n
+            lam = self.forget
             any_moved = False
-            for m in range(z):  # per mode, in plain complex numbers (Z is small)
+            for m in range(1, z):  # per mode, in plain complex numbers (Z is small)
                 do, dy = om[m] - o0[m], ym[m] - y0[m]
                 if abs(do) < self.min_step_um:
                     continue
                 ratio = dy / do
-                if not (0.5 * self.gain_min <= abs(ratio) <= 1.5 * self.gain_max
-                        and abs(cmath.phase(ratio)) <= self.gate_phase):
+                if (not 0.25 * self.gain_min <= abs(ratio) <= 1.5 * self.gain_max
+                        or abs(cmath.phase(ratio)) > self.gate_phase):
                     continue
-                soo[m] = self.forget * soo[m] + abs(do) ** 2
-                soy[m] = self.forget * soy[m] + do.conjugate() * dy
+                if not self._consistent(m, do, dy):
+                    self._rejected[m] += 1
+                    if self._rejected[m] >= self.reject_reset:  # the actuator changed: relearn
+                        self._forget_mode(m)
+                    continue
+                self._rejected[m] = 0
+                soo[m] = lam * soo[m] + abs(do) ** 2
+                soy[m] = lam * soy[m] + do.conjugate() * dy
+                syy[m] = lam * syy[m] + abs(dy) ** 2
+                n[m] = lam * n[m] + 1.0
                 any_moved = True
             if any_moved:
                 self._set_gains(self._fit())
         self._past.append((om, ym))
+
+    def interrupt(self) -> None:
+        """A measurement that does not enter (a mark vanished): no difference reaches across."""
+        self._past.clear()
+
+    def _jumped(self, om: list[complex], ym: list[complex]) -> bool:
+        """Whether the width errors jumped since the last measurement with the table steady.
+
+        With the table unchanged (every mode within ``min_step_um / 2``) a move of ``Y`` by
+        more than ``jump_um`` beyond what the estimate explains is the runout's (a knife
+        changed, a misattributed pair): differences across it would read it as the actuator's.
+        """
+        o1, y1 = self._past[-1]
+        z = self.knives
+        if max(abs(om[m] - o1[m]) for m in range(1, z)) >= 0.5 * self.min_step_um:
+            return False
+        return any(abs((ym[m] - y1[m]) - complex(self._gains[m]) * (om[m] - o1[m])) > self.jump_um
+                   for m in range(1, z))
+
+    def _consistent(self, m: int, do: complex, dy: complex) -> bool:
+        """Whether a difference agrees with a confident estimate of mode ``m`` (else an outlier).
+
+        Before the mode is confident every difference counts (the first learning steps are what
+        identify a turned or weak actuator). After, ``|dY - a dO|`` must stay within half the
+        predicted move plus three residual standard deviations: a step of the runout
+        (``dS``, a knife changed) is left out whatever its phase.
+        """
+        n = self._n[m]
+        if n < self.min_samples - 1e-9:
+            return True
+        a = complex(self._raw[m])
+        res = self._syy[m] - 2.0 * (a.conjugate() * self._soy[m]).real + abs(a) ** 2 * self._soo[m]
+        sigma = math.sqrt(max(res, 0.0) / max(n - 1.0, 1.0))
+        if 2.0 * sigma * math.sqrt(1.0 / (self._soo[m] + self.prior_um2)) >= abs(a):
+            return True  # not confident: nothing to judge by
+        return abs(dy - a * do) <= 0.5 * abs(a) * abs(do) + 3.0 * sigma
+
+    def _forget_mode(self, m: int) -> None:
+        """Forget what mode ``m`` (and its conjugate) learnt: back to the prior."""
+        for k in {m, (self.knives - m) % self.knives}:
+            self._soo[k], self._soy[k], self._syy[k], self._n[k] = 0.0, 0j, 0.0, 0.0
+            self._rejected[k] = 0
 
     def _dft(self, v: list[float]) -> list[complex]:
         """``np.fft.fft(v, norm="ortho")`` with the twiddles set up once."""
         return [sum(map(operator.mul, row, v)) for row in self._twiddles]
 
     def _fit(self) -> np.ndarray:
-        a = (np.array(self._soy) + self.prior_um2) / (np.array(self._soo) + self.prior_um2)
+        p = self.prior_um2
+        a = (np.array(self._soy) + p * self._prior) / (np.array(self._soo) + p)
         z = self.knives
         if z % 2 == 0:
             a[z // 2] = a[z // 2].real  # the alternating mode is real
         a[0] = 1.0
-        mag = np.clip(np.abs(a), self.gain_min, self.gain_max)
+        for m in range(1, (z + 1) // 2):  # a real map: mode Z - m is the conjugate of mode m
+            a[z - m] = np.conj(a[m])
+        self._raw = a.copy()
+        # a gain not yet confirmed is planned with at least ``unconfirmed_gain_min``: a few
+        # differences that say "small" must not blow the table up to the stroke
+        low = np.where(self.confidence() > 0.0, self.gain_min,
+                       max(self.gain_min, self.unconfirmed_gain_min))
+        mag = np.clip(np.abs(a), low, self.gain_max)
         phase = np.clip(np.angle(a), -self.phase_max, self.phase_max)
         a = mag * np.exp(1j * phase)
-        # a real map: mode Z - m is the conjugate of mode m
+        if z % 2 == 0:
+            a[z // 2] = a[z // 2].real  # (a phase of exactly +-pi leaves rounding behind)
         for m in range(1, (z + 1) // 2):
             a[z - m] = np.conj(a[m])
+        a[0] = 1.0
         return a
 
     @property
     def mode_gains(self) -> np.ndarray:
-        """The estimate ``a_m`` per Fourier mode, shape (Z,), complex (``a_0 = 1``)."""
+        """The planning gain ``a_m`` per Fourier mode, shape (Z,), complex (``a_0 = 1``)."""
         return self._gains.copy()
+
+    @property
+    def raw_gains(self) -> np.ndarray:
+        """The least-squares estimate per mode before the bounds, shape (Z,), complex."""
+        return self._raw.copy()
 
     @property
     def excitation_um2(self) -> np.ndarray:
         """Weighted sum of the accepted squared differences per mode (what the fit knows), um^2."""
         return np.array(self._soo)
+
+    @property
+    def differences(self) -> np.ndarray:
+        """Weighted number of accepted differences per mode, shape (Z,)."""
+        return np.array(self._n)
+
+    def gain_stderr(self) -> np.ndarray:
+        """Standard error of each mode's estimate, shape (Z,) (``inf`` before two differences).
+
+        The residual of the weighted fit at the estimate, ``sum |dY - a dO|^2``, over the
+        differences less one, divided by the excitation (the prior's included).
+        """
+        z = self.knives
+        out = np.full(z, math.inf)
+        out[0] = 0.0
+        for m in range(1, z):
+            n = self._n[m]
+            if n < 1.5:
+                continue
+            a = complex(self._raw[m])
+            res = (self._syy[m] - 2.0 * (a.conjugate() * self._soy[m]).real
+                   + abs(a) ** 2 * self._soo[m])
+            out[m] = math.sqrt(max(res, 0.0) / (n - 1.0) / (self._soo[m] + self.prior_um2))
+        return out
+
+    def confidence(self) -> np.ndarray:
+        """Per mode ``1 - 2 sigma_m / |a_m|`` clipped to [0, 1] (0 before ``min_samples``)."""
+        se = self.gain_stderr()
+        mag = np.maximum(np.abs(self._raw), 1e-12)
+        conf = np.clip(1.0 - 2.0 * se / mag, 0.0, 1.0)
+        conf[np.array(self._n) < self.min_samples - 1e-9] = 0.0
+        conf[0] = 1.0
+        return conf
+
+    def mode_states(self) -> tuple[str, ...]:
+        """Each mode's state (:data:`MODE_STATES`); mode 0 is always ``usable``."""
+        se = self.gain_stderr()
+        conf = self.confidence()
+        out = ["usable"]
+        for m in range(1, self.knives):
+            mag = abs(complex(self._raw[m]))
+            n = self._n[m]
+            if n >= self.min_samples - 1e-9 and mag + 2.0 * se[m] < self.gain_min:
+                out.append("no_authority")
+            elif conf[m] > 0.0 and mag >= self.gain_min:
+                out.append("usable")
+            elif n >= self.unidentifiable_samples - 1e-9:
+                out.append("unidentifiable")
+            else:
+                out.append("unknown")
+        return tuple(out)
 
     def matrix(self) -> np.ndarray:
         """The estimated effective gain as a real circulant matrix, shape (Z, Z) (a copy)."""

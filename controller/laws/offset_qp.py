@@ -12,9 +12,11 @@ uncorrected first). The problem is a convex QP in ``Z <= 8`` variables with one 
 box; :func:`box_qp` solves it exactly with a primal active-set method (finite, a few iterations,
 each one solve of at most ``Z + 1`` equations) started from a feasible point. When the
 unconstrained zero-sum minimiser lies inside the box (checked exactly) it is the answer and no
-iteration runs. :class:`OffsetPlanner` sets the problem up once for one width operator and
-actuator (the uniformity loop's, rebuilt when the identified actuator changes), so a pair costs
-one ``Z x Z`` product in plain floats when no bound is active. Pure: arrays in, arrays out.
+iteration runs. A part of the table may be held (a knife pattern the actuator cannot move:
+``hold``, a projector onto those modes, with a stiff penalty keeping it at a given table).
+:class:`OffsetPlanner` sets the problem up once for one width operator and actuator (the
+uniformity loop's, rebuilt when the identified actuator changes), so a pair costs one ``Z x Z``
+product in plain floats when no bound is active. Pure: arrays in, arrays out.
 """
 
 from __future__ import annotations
@@ -30,6 +32,10 @@ from core.checks import check_positive
 
 MAX_ITERATIONS = 200
 """Active-set iterations before giving up (the problem needs at most a few times ``Z``)."""
+HOLD_WEIGHT = 1e4
+"""Weight of a held part of the table (:class:`OffsetPlanner` ``hold``) against the scaled width
+cost (whose largest diagonal entry is 1): a held knife pattern moves by about 1e-4 of what the
+width cost asks of it."""
 
 
 def _solve(kkt: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -203,7 +209,13 @@ class OffsetPlanner:
         ``A`` (identity for an ideal actuator).
     """
 
-    def __init__(self, *, width_operator: np.ndarray, actuator: np.ndarray) -> None:
+    def __init__(
+        self,
+        *,
+        width_operator: np.ndarray,
+        actuator: np.ndarray,
+        hold: np.ndarray | None = None,
+    ) -> None:
         w = np.asarray(width_operator, dtype=float)
         a = np.asarray(actuator, dtype=float)
         n = w.shape[0]
@@ -217,22 +229,36 @@ class OffsetPlanner:
         self._w = w
         self._wa = wa
         self._scale = float(np.max(np.abs(np.diag(h)))) or 1.0  # scale-free tolerances
-        self.hessian = h / self._scale
-        """``H`` over its largest diagonal entry, shape (Z, Z)."""
+        self._hold: np.ndarray | None = None
+        if hold is not None:
+            p = np.asarray(hold, dtype=float)
+            if p.shape != (n, n) or not np.all(np.isfinite(p)):
+                raise ValueError(f"hold must be a finite ({n}, {n}) projector, got {p.shape}")
+            self._hold = HOLD_WEIGHT * p
+            h = h / self._scale + self._hold
+        else:
+            h = h / self._scale
+        self.hessian = h
+        """``H`` over its largest diagonal entry (plus the hold's penalty), shape (Z, Z)."""
         # unconstrained zero-sum minimiser: o = K c (K the top-left block of the KKT inverse)
         kinv = np.linalg.pinv(_kkt(self.hessian))[:n, :n]
         gain = kinv @ ((wa.T @ w) / self._scale)
         self._rows = tuple(tuple(float(v) for v in row) for row in gain)
+        self._hold_rows = (None if self._hold is None else
+                           tuple(tuple(float(v) for v in row) for row in kinv @ self._hold))
 
     @property
     def knives(self) -> int:
         """``Z``."""
         return len(self._rows)
 
-    def linear(self, disturbance_um: np.ndarray) -> np.ndarray:
-        """``c = (W A)' W s`` over the scale, shape (Z,)."""
+    def linear(self, disturbance_um: np.ndarray, hold_um: np.ndarray | None = None) -> np.ndarray:
+        """``c = (W A)' W s`` over the scale (plus the hold's ``w P h``), shape (Z,)."""
         s = np.asarray(disturbance_um, dtype=float)
-        return self._wa.T @ (self._w @ s) / self._scale
+        c = self._wa.T @ (self._w @ s) / self._scale
+        if self._hold is not None and hold_um is not None:
+            c = c + self._hold @ np.asarray(hold_um, dtype=float)
+        return c
 
     def best_offsets_um(
         self,
@@ -240,6 +266,7 @@ class OffsetPlanner:
         *,
         bound_um: float,
         start_um: np.ndarray | None = None,
+        hold_um: np.ndarray | None = None,
     ) -> np.ndarray:
         """The zero-mean offsets within ``bound_um`` that minimise ``|| W (A o - s) ||``.
 
@@ -251,6 +278,9 @@ class OffsetPlanner:
             Largest magnitude of an offset, um (> 0).
         start_um : ndarray, shape (Z,), optional
             Warm start of the iteration when a bound is active.
+        hold_um : ndarray, shape (Z,), optional
+            With a ``hold`` projector ``P``: the table whose ``P`` part the result keeps (the
+            penalty ``HOLD_WEIGHT ||P (o - h)||^2`` on the scaled cost); default zeros.
 
         Returns
         -------
@@ -264,9 +294,17 @@ class OffsetPlanner:
         if s_arr.shape != (n,) or not all(map(math.isfinite, s)):
             raise ValueError(f"disturbance_um must be {n} finite values, got {disturbance_um!r}")
         o = [sum(map(operator.mul, row, s)) for row in self._rows]
+        hold = None
+        if self._hold_rows is not None and hold_um is not None:
+            hold = np.asarray(hold_um, dtype=float)
+            if hold.shape != (n,) or not np.all(np.isfinite(hold)):
+                raise ValueError(f"hold_um must be {n} finite values, got {hold_um!r}")
+            hl = hold.tolist()
+            o = [v + sum(map(operator.mul, row, hl)) for v, row in zip(o, self._hold_rows,
+                                                                        strict=True)]
         mean = sum(o) / n
         o = [v - mean for v in o]
         if max(map(abs, o)) <= b:
             return np.array(o)
-        return _active_set(self.hessian, self.linear(s), b,
-                           o if start_um is None else start_um)
+        return _active_set(self.hessian, self.linear(s, hold), b,
+                           np.array(o) if start_um is None else start_um)

@@ -44,21 +44,23 @@ from __future__ import annotations
 
 import math
 import operator
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from controller.laws.actuator_id import ActuatorIdentifier
+from controller.laws.actuator_id import ActuatorIdentifier, circulant_from_mode_gains
 from controller.laws.feed_loop import config_from_mapping, integral_gain
 from controller.laws.limits import check_time_forward, project_zero_mean_box
 from controller.laws.offset_history import OffsetHistory
 from controller.laws.offset_qp import OffsetPlanner, best_offsets_um
+from controller.laws.uniformity_guard import TableGuard, Verdict
+from controller.laws.uniformity_status import AuthorityNotice, authority_notice, describe_loop
 from core.checks import check_finite, check_int, check_positive, check_range
 
 #: Values of :attr:`UniformityLoop.status` after an update.
-STATUSES = ("stepped", "waiting", "no_marks", "idle")
+STATUSES = ("stepped", "waiting", "no_marks", "idle", "undone", "holding")
 
 DEFAULT_MARGIN_UM = 0.01
 """Default reserve from the stroke, um: ten steps of the CAN codec (1 nm, rounded to the nearest
@@ -153,7 +155,14 @@ class UniformityLoopConfig:
     identify : bool
         Identify the actuator's gain per knife mode online (else it is taken as ideal).
     id_lag_pairs, id_min_step_um, id_memory, id_prior_um2, gain_min, gain_max
-        The identification's parameters (:class:`controller.laws.actuator_id.ActuatorIdentifier`).
+        The identification's parameters (:class:`controller.laws.actuator_id.ActuatorIdentifier`);
+        a knife pattern whose gain is confidently below ``gain_min`` is held (the actuator
+        cannot move it).
+    guard : bool
+        Watch the measured result of the learning (:class:`controller.laws.uniformity_guard.
+        TableGuard`): undo a step that made the board worse, hold the best table.
+    guard_window, guard_rel_tol, guard_abs_tol_um, guard_patience, guard_max_undos
+        The guard's parameters.
     """
 
     knives: int = 4
@@ -172,6 +181,12 @@ class UniformityLoopConfig:
     id_prior_um2: float = 1.0
     gain_min: float = 0.1
     gain_max: float = 2.0
+    guard: bool = True
+    guard_window: int = 3
+    guard_rel_tol: float = 0.2
+    guard_abs_tol_um: float = 0.3
+    guard_patience: int = 3
+    guard_max_undos: int = 3
 
     def __post_init__(self) -> None:
         check_int("knives", self.knives, lo=1)
@@ -193,6 +208,13 @@ class UniformityLoopConfig:
         check_positive("id_prior_um2", self.id_prior_um2)
         check_range("gain_min", self.gain_min, 1e-3, 1.0)
         check_range("gain_max", self.gain_max, 1.0, 100.0)
+        if not isinstance(self.guard, bool):
+            raise ValueError(f"guard must be true or false, got {self.guard!r}")
+        check_int("guard_window", self.guard_window, lo=1)
+        check_range("guard_rel_tol", self.guard_rel_tol, 0.0, 10.0)
+        check_range("guard_abs_tol_um", self.guard_abs_tol_um, 0.0, 100.0)
+        check_int("guard_patience", self.guard_patience, lo=1)
+        check_int("guard_max_undos", self.guard_max_undos, lo=1)
 
     @classmethod
     def from_mapping(
@@ -223,7 +245,9 @@ class UniformityLoop:
     Notes
     -----
     ``offsets_um`` always has zero mean and every entry within :attr:`limit_um`. ``status``
-    tells what the last update did (one of :data:`STATUSES`).
+    tells what the last update did (one of :data:`STATUSES`). A learning step never raises
+    the model's width spread (:meth:`model_spread_um`); what the camera measures of its
+    effect is judged by the guard (:class:`controller.laws.uniformity_guard.TableGuard`).
     """
 
     def __init__(self, cfg: UniformityLoopConfig) -> None:
@@ -234,7 +258,7 @@ class UniformityLoop:
         self._d = second_difference(z)
         self._d_pinv = np.linalg.pinv(self._d)
         self._d_pinv_rows = _rows(self._d_pinv)
-        self._plan: tuple[int, OffsetPlanner, tuple[tuple[float, ...], ...]] | None = None
+        self._plan: tuple[tuple, OffsetPlanner, tuple[tuple[float, ...], ...]] | None = None
         self._stroke = cfg.stroke_um
         self._ident = ActuatorIdentifier(
             z,
@@ -245,10 +269,18 @@ class UniformityLoop:
             gain_min=cfg.gain_min,
             gain_max=cfg.gain_max,
         )
+        self._guard = TableGuard(
+            z, window=cfg.guard_window, rel_tol=cfg.guard_rel_tol,
+            abs_tol_um=cfg.guard_abs_tol_um, patience=cfg.guard_patience,
+            max_undos=cfg.guard_max_undos,
+        )
         self._history = OffsetHistory(z, horizon_s=cfg.history_s)
         self._disturbance: np.ndarray | None = None
         self._estimates = 0  # open-loop estimates (board cut with the starting table)
         self._open_table: list[float] | None = [0.0] * z
+        self._held: frozenset[int] = frozenset()  # modes the actuator cannot move
+        self._notices: list[AuthorityNotice] = []
+        self._told: set[tuple] = set()
         self.reset()
 
     # -- state ------------------------------------------------------------------------------
@@ -269,7 +301,8 @@ class UniformityLoop:
             When they took effect: board cut before then (plus ``settle_s``) is not learnt from.
             Without it they count as always in force.
         forget : bool
-            Also forget the runout estimate and the identified actuator gains (a new machine).
+            Also forget the runout estimate, the identified actuator gains, the best table and
+            what the loop said of the actuator (a new machine).
         """
         z = self.cfg.knives
         if offsets_um is None:
@@ -284,11 +317,16 @@ class UniformityLoop:
         self._history.restart(start, t)
         self._t_last = None if now_s is None else t
         self._undo: tuple[np.ndarray, bool, np.ndarray | None] | None = None
+        self._reverted_at: float | None = None  # the guard's undo: waiting for its boards
+        self._guard.reset(forget=forget)
         if forget:
             self._disturbance = None
             self._estimates = 0
             self._open_table = start.tolist()
             self._ident.reset()
+            self._held = frozenset()
+            self._told = set()
+            self._notices = []
         self.status = "idle"
         self.steps = 0
         self.last_gain = 0.0
@@ -314,9 +352,64 @@ class UniformityLoop:
         return self._ident.mode_gains
 
     @property
+    def identifier(self) -> ActuatorIdentifier:
+        """The actuator's identification (its gains, confidence and mode states)."""
+        return self._ident
+
+    @property
+    def guard(self) -> TableGuard:
+        """The watch over the measured result (best table, undos)."""
+        return self._guard
+
+    @property
+    def held_modes(self) -> frozenset[int]:
+        """Knife patterns (Fourier modes ``1..Z-1``) held: the actuator cannot move them."""
+        return self._held
+
+    @property
+    def holding(self) -> bool:
+        """Whether the loop holds the best table and learns no more (see :attr:`hold_reason`)."""
+        return self.hold_reason is not None
+
+    @property
+    def hold_reason(self) -> str | None:
+        """Why the loop holds its best table, or ``None`` while it learns.
+
+        ``made_worse`` (undone too often), ``no_authority`` (no knife pattern the actuator can
+        move).
+        """
+        if self.cfg.guard and self._guard.holding:
+            return "made_worse"
+        if self.cfg.knives > 1 and len(self._held) >= self.cfg.knives - 1:
+            return "no_authority"
+        return None
+
+    @property
     def runout_estimate_um(self) -> np.ndarray | None:
         """The runout as the loop sees it (zero mean, um), ``None`` before a measurement."""
         return None if self._disturbance is None else self._disturbance.copy()
+
+    def recovery_table_um(self, fallback_um: Sequence[float] | None = None) -> np.ndarray:
+        """The table to restore after a safe state: the best one measured, within the limit.
+
+        Before the guard has a best table ``fallback_um`` (e.g. the last one sent), else the
+        offsets in force.
+        """
+        best = self._guard.best_table_um if self.cfg.guard else None
+        if best is None:
+            best = self.offsets_um if fallback_um is None else np.asarray(fallback_um, float)
+        if self._held:
+            best = best - _mode_projector(self.cfg.knives, self._held) @ best
+        return project_zero_mean_box(best - best.mean(), bound=self.limit_um)
+
+    def take_notices(self) -> list[AuthorityNotice]:
+        """What the loop has to say of the actuator since the last call (each thing once)."""
+        out, self._notices = self._notices, []
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        """Plain JSON of what the loop knows and does (the status snapshot's ``uniformity``)."""
+        return describe_loop(self)
 
     def set_limit_um(self, stroke_um: float, *, now_s: float | None = None) -> np.ndarray:
         """Plan within a new stroke from now on (e.g. the amplifier's, read over CAN).
@@ -352,6 +445,7 @@ class UniformityLoop:
         t = now_s if now_s is not None else self._t_last
         self._set(new, -math.inf if t is None else check_finite("now_s", t))
         self._undo = None
+        self._guard.reset()
         return self.offsets_um
 
     def reject(self) -> np.ndarray:
@@ -444,9 +538,9 @@ class UniformityLoop:
             o_cut = self._history.mean_over(t0, t1)
             delay_s = t - 0.5 * (t0 + t1)
         elif t >= self._history.last_change_s + cfg.holdoff_s:
-            o_cut, delay_s = self._history.latest(), cfg.holdoff_s
+            o_cut, delay_s, t0 = self._history.latest(), cfg.holdoff_s, t - cfg.holdoff_s
         else:
-            o_cut, delay_s = None, 0.0
+            o_cut, delay_s, t0 = None, 0.0, -math.inf
         if o_cut is None:
             self.status = "waiting"
             return self.offsets_um
@@ -458,6 +552,9 @@ class UniformityLoop:
         y = [v / gain_g for v in _matvec(self._d_pinv_rows, err)]
         if cfg.identify and not any(math.isnan(v) for v in ws):
             self._ident.add(o_c, y)
+            self._review_modes(t)
+        elif cfg.identify:
+            self._ident.interrupt()  # outside the linear model: no difference across it
         planner, a_rows = self._planner()
         s_est = [v - e for v, e in zip(_matvec(a_rows, o_c), y, strict=True)]
         s_mean = _mean(s_est)
@@ -472,23 +569,106 @@ class UniformityLoop:
             self._open_table = None  # the loop's own tables show: the scheduled gain from now
         prev = s_est if self._disturbance is None else self._disturbance.tolist()
         self._disturbance = np.array([p + g * (v - p) for p, v in zip(prev, s_est, strict=True)])
+        if self._judge(o_c, math.sqrt(sum(v * v for v in err) / len(err)) / gain_g, t, t0):
+            return self.offsets_um
         bound = self.limit_um
-        best = planner.best_offsets_um(s_est, bound_um=bound, start_um=self._offsets).tolist()
+        hold = self._hold_table() if self._held else None
+        best = planner.best_offsets_um(s_est, bound_um=bound, start_um=self._offsets,
+                                       hold_um=hold).tolist()
         now = self._offsets.tolist()
-        self._set(project_zero_mean_box(
-            np.array([o + g * (b - o) for o, b in zip(now, best, strict=True)]), bound=bound), t)
+        new = project_zero_mean_box(
+            np.array([o + g * (b - o) for o, b in zip(now, best, strict=True)]), bound=bound)
+        if self._held:  # the hold's penalty only nearly holds: never a step the model regrets
+            new, g = _monotone_step(self._offsets, new, g, self.model_spread_um)
+        self._set(new, t)
         self.last_gain = g
         self.steps += 1
         self.status = "stepped"
         return self.offsets_um
 
+    def _judge(self, o_cut: list[float], score_um: float, t: float, t0: float) -> bool:
+        """The guard's word on one pair; whether the update ends here (waiting, undone, held)."""
+        if not self.cfg.guard and not self.holding:
+            return False
+        if self._reverted_at is not None:
+            if t0 < self._reverted_at:  # board cut before the undo showed: not judged
+                self.status = "waiting"
+                return True
+            self._reverted_at = None
+        verdict = self._guard.observe(o_cut, score_um) if self.cfg.guard else Verdict.KEEP
+        if verdict is Verdict.UNDO or (verdict is Verdict.HOLD or self.holding):
+            if verdict is Verdict.UNDO:
+                self._guard.reverted()
+                self._reverted_at = t + self.cfg.settle_s
+            self._to_best(t)
+            self.status = "undone" if verdict is Verdict.UNDO else "holding"
+            if self.holding:
+                self._tell(t)
+            return True
+        return False
+
+    def _to_best(self, t: float) -> None:
+        """Go back to the best table measured (zero before one)."""
+        best = self._guard.best_table_um
+        if best is None:
+            best = np.zeros(self.cfg.knives)
+        if self._held:  # without the patterns the actuator cannot move
+            best = best - _mode_projector(self.cfg.knives, self._held) @ best
+        new = project_zero_mean_box(best - best.mean(), bound=self.limit_um)
+        if new.tolist() != self._offsets.tolist():
+            self._set(new, t)
+
+    def _review_modes(self, t: float) -> None:
+        """Hold the knife patterns the actuator cannot move (at zero)."""
+        states = self._ident.mode_states()
+        held = frozenset(m for m, st in enumerate(states)
+                         if m > 0 and st in ("no_authority", "unidentifiable"))
+        if held == self._held:
+            return
+        new_modes = held - self._held
+        self._held = held
+        if new_modes and not self.holding:
+            # the held patterns go to zero at once; the others stay
+            hold = self._hold_table()
+            p = _mode_projector(self.cfg.knives, held)
+            table = self._offsets - p @ self._offsets + p @ hold
+            new = project_zero_mean_box(table - table.mean(), bound=self.limit_um)
+            if new.tolist() != self._offsets.tolist():
+                self._set(new, t)
+        if new_modes:
+            self._tell(t)
+
+    def _hold_table(self) -> np.ndarray:
+        """Where the held patterns are kept: zero (moving them would only heat the amplifier)."""
+        return np.zeros(self.cfg.knives)
+
+    def _tell(self, t: float) -> None:
+        """Say once what the actuator cannot do (a new held pattern, or the hold)."""
+        key = (self.hold_reason, tuple(sorted(self._held)))
+        if key in self._told:
+            return
+        self._told.add(key)
+        self._notices.append(authority_notice(self, t))
+
+    def model_spread_um(self, offsets_um: Sequence[float]) -> float:
+        """The model's width spread of a table, ``|| D (A_hat o - s_est) ||``, um.
+
+        0 before a measurement; the model CV is this times ``G / (f sqrt(Z))``.
+        """
+        if self._disturbance is None:
+            return 0.0
+        z = self._ident.shared_matrix() @ np.asarray(offsets_um, float) - self._disturbance
+        return float(np.linalg.norm(self._d @ z))
+
     def _planner(self) -> tuple[OffsetPlanner, tuple[tuple[float, ...], ...]]:
         """The QP set up for the identified actuator, and its matrix by rows (once per estimate)."""
         ident = self._ident
-        if self._plan is None or self._plan[0] != ident.version:
+        key = (ident.version, self._held)
+        if self._plan is None or self._plan[0] != key:
             a_hat = ident.shared_matrix()
-            planner = OffsetPlanner(width_operator=self._d, actuator=a_hat)
-            self._plan = (ident.version, planner, _rows(a_hat))
+            hold = _mode_projector(self.cfg.knives, self._held) if self._held else None
+            planner = OffsetPlanner(width_operator=self._d, actuator=a_hat, hold=hold)
+            self._plan = (key, planner, _rows(a_hat))
         return self._plan[1], self._plan[2]
 
     def predicted_widths_mm(self, pitch_mm: float) -> np.ndarray | None:
@@ -497,6 +677,33 @@ class UniformityLoop:
             return None
         z = self._ident.matrix() @ self._offsets - self._disturbance
         return linear_widths_mm(z, pitch_mm=pitch_mm, radius_mm=self.cfg.radius_mm)
+
+
+def _mode_projector(knives: int, modes: frozenset[int]) -> np.ndarray:
+    """The real projector onto the Fourier modes ``modes`` of the knives (and their conjugates)."""
+    mask = np.zeros(knives, complex)
+    for m in modes:
+        mask[m] = mask[(knives - m) % knives] = 1.0
+    return circulant_from_mode_gains(mask)
+
+
+def _monotone_step(
+    old: np.ndarray, new: np.ndarray, g: float, spread: Callable[[np.ndarray], float]
+) -> tuple[np.ndarray, float]:
+    """``new``, or the largest of its halved steps from ``old`` that does not raise ``spread``.
+
+    Both tables are feasible, so every point between is (the set is convex). Returns the table
+    and its gain (0 and ``old`` when every halving raises the spread).
+    """
+    before = spread(old)
+    tol = 1e-9 * max(1.0, before)
+    frac = 1.0
+    for _ in range(6):
+        cand = new if frac == 1.0 else old + frac * (new - old)
+        if spread(cand) <= before + tol:
+            return cand, g * frac
+        frac *= 0.5
+    return old.copy(), 0.0
 
 
 def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:

@@ -62,6 +62,12 @@ class EventKind(enum.Enum):
     FEED_REFUSED = "feed_refused"
     """A feed setpoint was refused by the PLC or could not be written."""
     FEED_ACCEPTED = "feed_accepted"
+    UNIFORMITY_NO_AUTHORITY = "uniformity_no_authority"
+    """The uniformity loop found that the actuator cannot help, said once per finding: a knife
+    pattern it cannot move (held), or the loop holds its best table (the learning made the
+    board worse, or no pattern can be moved). ``data``: ``hold_reason``, ``held_modes``,
+    ``mode_gains`` (``[magnitude, phase_deg]`` per pattern), ``mode_states``, ``confidence``,
+    ``table_um``, ``best_score_um``, ``undos`` (``controller.laws.uniformity_status``)."""
     OFFSETS_NOT_SENT = "offsets_not_sent"
     OFFSETS_NOT_ZEROED = "offsets_not_zeroed"
     CLOCK_WENT_BACK = "clock_went_back"

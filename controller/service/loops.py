@@ -439,6 +439,8 @@ class ControlLoops:
             self._report.emit(t, EventKind.OFFSETS_NOT_SENT, f"piezo offsets not sent: {exc}")
             return False
         self._learned_offsets = np.asarray(sent, dtype=float)
+        for note in uni.take_notices():  # the actuator cannot help: said once
+            self._report.emit(t, EventKind.UNIFORMITY_NO_AUTHORITY, note.text, data=note.data)
         return True
 
     def amp_tracked(self, cut_at_s: float | None, t: float) -> bool:
@@ -471,7 +473,7 @@ class ControlLoops:
         uni = self.uniformity_loop
         if learned is not None and len(learned) == out.piezo.knives:
             if uni is not None and len(learned) == uni.cfg.knives:
-                learned = project_zero_mean_box(learned, bound=uni.limit_um)
+                learned = uni.recovery_table_um(learned)  # the best table measured
             try:
                 out.offsets_um = out.piezo.set_offsets(learned, now_s=t)
                 if self.uniformity_loop is not None:

@@ -232,6 +232,8 @@ class Service:
             log_problem=self.records.problem,
             records_pending=self.records.pending,
             piezo_limits=self.out.limits() if self.piezo is not None else None,
+            uniformity=(None if self.loops.uniformity_loop is None
+                        else self.loops.uniformity_loop.describe()),
         )
 
     # ------------------------------------------------------------------ the control cycles

@@ -130,6 +130,11 @@ class ServiceStatus:
     piezo_limits : Mapping or None
         The bound on the piezo offsets in force and where it comes from (the amplifier's
         reported stroke or ``machine.toml``'s, ``controller.service.actuators.Actuators.limits``).
+    uniformity : Mapping or None
+        The uniformity loop's state (``controller.laws.uniformity_status.describe_loop``): what
+        it does (``status``, ``hold_reason``), the actuator's gain, phase, confidence and state
+        per knife pattern (``modes``), the patterns it cannot move (``held_modes``), the best
+        table measured; ``None`` before the loops exist.
     """
 
     t_s: float | None
@@ -145,6 +150,7 @@ class ServiceStatus:
     log_problem: str | None = None
     records_pending: int = 0
     piezo_limits: Mapping[str, Any] | None = None
+    uniformity: Mapping[str, Any] | None = None
 
     @staticmethod
     def freeze(counters: Mapping[str, int]) -> Mapping[str, int]:
@@ -178,4 +184,5 @@ class ServiceStatus:
             "log_problem": self.log_problem,
             "records_pending": self.records_pending,
             "piezo_limits": None if self.piezo_limits is None else dict(self.piezo_limits),
+            "uniformity": None if self.uniformity is None else dict(self.uniformity),
         }

@@ -98,9 +98,12 @@ def test_a_slow_drift_the_loop_follows_does_not_pass_for_a_small_gain():
 
 
 def test_a_step_of_the_runout_does_not_corrupt_the_gain():
-    """A knife changed: the differences across the step imply wild gains and are left out."""
+    """A knife changed: the differences across the step disagree with the confident estimate
+    (whatever their phase) and are left out."""
     ident = ActuatorIdentifier(4)
     s0 = np.array([-1.0, 3.0, -3.0, 1.0])
+    transient(ident, np.eye(4), s0, np.array([-8.0, 12.0, -10.0, 6.0]))  # every mode learnt
+    assert ident.mode_states() == ("usable",) * 4
     o = transient(ident, np.eye(4), s0, s0)
     s1 = np.array([0.0, 40.0, 0.0, 0.0])
     for _ in range(10):
@@ -111,6 +114,7 @@ def test_a_step_of_the_runout_does_not_corrupt_the_gain():
 
 
 def test_gains_stay_within_their_bounds():
+    """The planning gains are bounded (magnitude always, phase when asked to)."""
     ident = ActuatorIdentifier(4, gain_min=0.1, gain_max=2.0, phase_max_deg=60.0)
     transient(ident, 0.02 * np.eye(4), np.zeros(4), np.array([-10.0, 10.0, -10.0, 10.0]),
               noise_um=0.0)

@@ -140,30 +140,80 @@ def _identify_reference(state: dict, o: np.ndarray, y: np.ndarray, ident: Actuat
     om = np.fft.fft(o, norm="ortho")
     ym = np.fft.fft(y, norm="ortho")
     past = state["past"]
+    z = ident.knives
+    if past:  # a jump of the width errors with the table steady: start the differences again
+        o1, y1 = past[-1]
+        steady = np.max(np.abs(om - o1)[1:]) < 0.5 * ident.min_step_um
+        if steady and np.any(np.abs((ym - y1) - state["gains"] * (om - o1))[1:] > ident.jump_um):
+            past.clear()
     if len(past) == ident.lag:
         o0, y0 = past[0]
         do, dy = om - o0, ym - y0
         moved = np.abs(do) >= ident.min_step_um
+        moved[0] = False
         ratio = np.where(moved, dy / np.where(moved, do, 1.0), 0.0)
-        moved &= (np.abs(ratio) >= 0.5 * ident.gain_min) & (np.abs(ratio) <= 1.5 * ident.gain_max)
+        moved &= (np.abs(ratio) >= 0.25 * ident.gain_min) & (np.abs(ratio) <= 1.5 * ident.gain_max)
         moved &= np.abs(np.angle(ratio)) <= ident.gate_phase
+        # a confident mode takes only differences that agree with its estimate
+        a = state["raw"]
+        n = state["n"]
+        res = (state["syy"] - 2.0 * np.real(np.conj(a) * state["soy"])
+               + np.abs(a) ** 2 * state["soo"])
+        sigma = np.sqrt(np.maximum(res, 0.0) / np.maximum(n - 1.0, 1.0))
+        confident = (n >= ident.min_samples - 1e-9) & (
+            2.0 * sigma * np.sqrt(1.0 / (state["soo"] + ident.prior_um2)) < np.abs(a))
+        agree = np.abs(dy - a * do) <= 0.5 * np.abs(a) * np.abs(do) + 3.0 * sigma
+        outlier = moved & confident & ~agree
+        moved &= ~outlier
+        state["rejected"] = np.where(outlier, state["rejected"] + 1,
+                                     np.where(moved, 0, state["rejected"]))
         lam = np.where(moved, ident.forget, 1.0)
         state["soo"] = lam * state["soo"] + np.where(moved, np.abs(do) ** 2, 0.0)
         state["soy"] = lam * state["soy"] + np.where(moved, np.conj(do) * dy, 0.0)
+        state["syy"] = lam * state["syy"] + np.where(moved, np.abs(dy) ** 2, 0.0)
+        state["n"] = lam * state["n"] + np.where(moved, 1.0, 0.0)
+        for m in np.flatnonzero(state["rejected"] >= ident.reject_reset):
+            for k in {int(m), (z - int(m)) % z}:
+                state["soo"][k] = state["syy"][k] = state["n"][k] = 0.0
+                state["soy"][k] = 0.0
+                state["rejected"][k] = 0
         if np.any(moved):
-            z = ident.knives
             a = (state["soy"] + ident.prior_um2) / (state["soo"] + ident.prior_um2)
             if z % 2 == 0:
                 a[z // 2] = a[z // 2].real
             a[0] = 1.0
-            mag = np.clip(np.abs(a), ident.gain_min, ident.gain_max)
-            phase = np.clip(np.angle(a), -ident.phase_max, ident.phase_max)
-            a = mag * np.exp(1j * phase)
             for m in range(1, (z + 1) // 2):
                 a[z - m] = np.conj(a[m])
+            state["raw"] = a.copy()
+            n = state["n"]
+            res = (state["syy"] - 2.0 * np.real(np.conj(a) * state["soy"])
+                   + np.abs(a) ** 2 * state["soo"])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                se = np.where(n >= 1.5, np.sqrt(np.maximum(res, 0.0) / (n - 1.0)
+                                                / (state["soo"] + ident.prior_um2)), np.inf)
+            conf = np.clip(1.0 - 2.0 * se / np.maximum(np.abs(a), 1e-12), 0.0, 1.0)
+            conf[n < ident.min_samples - 1e-9] = 0.0
+            conf[0] = 1.0
+            low = np.where(conf > 0.0, ident.gain_min,
+                           max(ident.gain_min, ident.unconfirmed_gain_min))
+            mag = np.clip(np.abs(a), low, ident.gain_max)
+            phase = np.clip(np.angle(a), -ident.phase_max, ident.phase_max)
+            a = mag * np.exp(1j * phase)
+            if z % 2 == 0:
+                a[z // 2] = a[z // 2].real
+            for m in range(1, (z + 1) // 2):
+                a[z - m] = np.conj(a[m])
+            a[0] = 1.0
             state["gains"] = a
     past.append((om, ym))
     del past[: max(0, len(past) - ident.lag)]
+
+
+def _id_state(knives: int) -> dict:
+    """The reference identification's starting state."""
+    return {"past": [], "soo": np.zeros(knives), "soy": np.zeros(knives, complex),
+            "syy": np.zeros(knives), "n": np.zeros(knives), "rejected": np.zeros(knives, int),
+            "raw": np.ones(knives, complex), "gains": np.ones(knives, complex)}
 
 
 @settings(max_examples=30, deadline=None)
@@ -171,8 +221,7 @@ def _identify_reference(state: dict, o: np.ndarray, y: np.ndarray, ident: Actuat
 def test_the_identification_in_plain_numbers_follows_the_fft_version(knives, seed, lag):
     rng = np.random.default_rng(seed)
     ident = ActuatorIdentifier(knives, lag_pairs=lag, min_step_um=0.3, memory=20.0)
-    state = {"past": [], "soo": np.zeros(knives), "soy": np.zeros(knives, complex),
-             "gains": np.ones(knives, complex)}
+    state = _id_state(knives)
     truth = np.fft.fft(np.r_[0.7, 0.2, np.zeros(knives - 2)])  # a lagging actuator
     runout = rng.normal(0.0, 5.0, knives)
     for _ in range(25):
@@ -205,6 +254,8 @@ def _uniformity_reference(loop: UniformityLoop, widths, pitch, now, cut_at, cut_
         pitch, cfg.radius_mm)
     if np.all(np.isfinite(w)):
         _identify_reference(state, o_cut, y, loop._ident)
+    else:
+        state["past"].clear()
     a_hat = circulant_from_mode_gains(state["gains"])
     s_est = a_hat @ o_cut - y
     s_est -= s_est.mean()
@@ -231,8 +282,7 @@ def test_the_uniformity_step_in_plain_numbers_follows_the_numpy_version(knives, 
     cfg = UniformityLoopConfig(knives=knives, stroke_um=stroke_um, id_min_step_um=0.1,
                                id_lag_pairs=2)
     loop = UniformityLoop(cfg)
-    state = {"past": [], "soo": np.zeros(knives), "soy": np.zeros(knives, complex),
-             "gains": np.ones(knives, complex)}
+    state = _id_state(knives)
     actuator = circulant_from_mode_gains(np.fft.fft(np.r_[0.8, 0.15, np.zeros(knives - 2)]))
     pitch = 1.5
     steps = 0
