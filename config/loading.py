@@ -239,3 +239,107 @@ def modbus_endpoint(
         s.integer("port", port, lo=port_lo, hi=65535),
         s.integer("unit_id", unit_id, lo=0, hi=unit_hi),
     )
+
+
+# ------------------------------------------------------------ partial files: over the shipped one
+def merged(below: Mapping[str, Any], above: Mapping[str, Any]) -> dict[str, Any]:
+    """``above`` deep-merged over ``below``: tables merge key by key, any other value replaces.
+
+    Lists (``runout_um``, ``[[faults]]``) replace as a whole. Neither argument is changed.
+    """
+    out = dict(below)
+    for key, value in above.items():
+        under = out.get(key)
+        if isinstance(value, Mapping) and isinstance(under, Mapping):
+            out[key] = merged(under, value)
+        else:
+            out[key] = value
+    return out
+
+
+def over_shipped(data: Mapping[str, Any], kind: str, *, aliases: Mapping[str, str] | None = None,
+                 _seen: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A configuration document deep-merged over the shipped file of its kind.
+
+    The one rule for every configuration file: a file gives only what it changes and keeps
+    every other value of the shipped file of its kind (``config/sim.toml``,
+    ``config/machine.toml``, ``config/rig.toml``). A top-level ``base = "sim_drift.toml"``
+    starts from another shipped file instead (itself over the shipped file of the kind).
+
+    Parameters
+    ----------
+    data : mapping
+        The parsed file.
+    kind : str
+        The shipped file of its kind, e.g. ``"sim.toml"``.
+    aliases : mapping, optional
+        Older key names: ``{"camera.optics.noise": "read_noise_dn"}``; a file giving the older
+        name replaces the shipped file's newer one in the same table.
+
+    Returns
+    -------
+    dict
+        The merged document, without ``base``.
+
+    Raises
+    ------
+    ConfigError
+        ``base`` is not a file name of the shipped config folder, that file is missing or bad,
+        or the bases form a circle; the message names the key.
+    """
+    name = data.get("base", kind)
+    if not isinstance(name, str) or not name.endswith(".toml") or Path(name).name != name:
+        raise ConfigError(f"base must name a file of the shipped config folder "
+                          f"(e.g. \"{kind}\"), got {name!r}")
+    if name in _seen:
+        raise ConfigError(f"base = {name!r} is circular ({' -> '.join((*_seen, name))})")
+    path = default_path(name)
+    if not path.is_file():
+        raise ConfigError(f"base = {name!r}: no such file in the shipped config folder "
+                          f"{path.parent}")
+    try:
+        below = load_toml(path)
+        if name != kind or "base" in below:  # the shipped file of the kind is the ground
+            below = over_shipped(below, kind, aliases=aliases, _seen=(*_seen, name))
+    except ConfigError as exc:
+        raise ConfigError(f"base = {name!r}: {exc}") from None
+    for old, new in (aliases or {}).items():
+        *table, key = old.split(".")
+        mine, ground = _table(data, table), _table(below, table)
+        if key in mine and new not in mine and new in ground:
+            below = merged(below, {})  # a copy down to the table, then without the newer name
+            _table(below, table, copy=True).pop(new)
+    return merged(below, {k: v for k, v in data.items() if k != "base"})
+
+
+def _table(doc: Mapping[str, Any], path: list[str], *, copy: bool = False) -> Any:
+    """The table at ``path`` of ``doc`` (``{}`` when missing); ``copy``: made a fresh dict."""
+    node: Any = doc
+    for key in path:
+        child = node.get(key, {}) if isinstance(node, Mapping) else {}
+        if copy:
+            child = dict(child)
+            node[key] = child
+        node = child
+    return node if isinstance(node, Mapping) else {}
+
+
+def load_over_shipped(path: str | Path | None, kind: str) -> tuple[Path, dict[str, Any]]:
+    """Load a configuration file over the shipped one of its kind (:func:`over_shipped`).
+
+    Parameters
+    ----------
+    path : str, Path or None
+        The file (``None``: the shipped file of the kind itself).
+    kind : str
+        The shipped file of its kind, e.g. ``"machine.toml"``.
+
+    Returns
+    -------
+    (Path, dict)
+        The file read and the merged document. Errors name the file.
+    """
+    p = default_path(kind) if path is None else Path(path)
+    data = load_toml(p)
+    with naming_file(p):
+        return p, over_shipped(data, kind)

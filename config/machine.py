@@ -5,8 +5,10 @@ quality class to hold and how to behave when something is gone. The same service
 the simulator and against the real machine by changing this file only (e.g. ``can.interface =
 "socketcan"``, ``can.channel = "can0"``, ``plc.host`` = the PLC's address).
 
-Every wrong or missing value raises :class:`core.errors.ConfigError` naming the key
-(``"safety.plc_timeout_s must be > 0"``); unknown keys are rejected (typos).
+A file (:func:`load_machine`) gives only what it changes: its tables are deep-merged over the
+shipped ``config/machine.toml`` (:func:`config.loading.over_shipped`). Every wrong value raises
+:class:`core.errors.ConfigError` naming the key (``"safety.plc_timeout_s must be > 0"``);
+unknown keys are rejected (typos).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from config.loading import (
     load_toml,
     modbus_endpoint,
     naming_file,
+    over_shipped,
 )
 from core.errors import ConfigError
 
@@ -533,7 +536,8 @@ def load_machine(path: str | Path | None = None) -> MachineConfig:
     """Load and check ``machine.toml`` (default: the shipped one); errors name file and key."""
     p = default_path("machine.toml") if path is None else Path(path)
     data = load_toml(p)
-    with naming_file(p):
+    with naming_file(p):  # over the shipped machine.toml: a file gives only what it changes
+        data = over_shipped(data, "machine.toml")
         return replace(machine_from_dict(data, base=p.parent), source=p)
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from config.loading import Section, load_toml
+from config.loading import Section, load_toml, over_shipped
 from core.errors import ConfigError
 
 
@@ -153,10 +153,13 @@ def rig_from_dict(data: Mapping[str, Any]) -> Rig:
 
 
 def load_rig(path: str | Path) -> Rig:
-    """Load and check a rig file; errors name the file and the key."""
+    """Load and check a rig file over the shipped ``config/rig.toml``; errors name file and key.
+
+    A file gives only what it changes (:func:`config.loading.over_shipped`).
+    """
     data = load_toml(path)
     try:
-        return rig_from_dict(data)
+        return rig_from_dict(over_shipped(data, "rig.toml"))
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
 

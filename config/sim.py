@@ -5,9 +5,11 @@ Tables: ``[spindle]``, ``[cutterhead]``, ``[piezo]``, ``[feed]``, ``[encoder]``,
 (:mod:`plant_sim.model.machine`); ``[modbus]``, ``[can]``, ``[frames]``, ``[run]`` its interfaces
 (the Modbus server, the CAN node, the frame spool and the ``planer sim`` runner). Every value is
 checked on load and an error names its key (``piezo.stroke_um must be > 0.0, got -1``).
-Missing keys take the defaults below; unknown keys are refused (typos). A file may start from
-a shipped one (top-level ``base = "sim.toml"``) and give only what it changes, e.g.
-``config/sim_drift.toml`` (``[cutterhead.drift]``: knives that warm up and wear, docs/drift.md).
+A file (:func:`load_sim`) gives only what it changes: its tables are deep-merged over the
+shipped ``config/sim.toml`` (:func:`config.loading.over_shipped`), or over the shipped file its
+top-level ``base`` names, e.g. ``config/sim_drift.toml`` (``[cutterhead.drift]``: knives that
+warm up and wear, docs/drift.md). A document built in code (:func:`sim_from_dict`) takes the
+defaults below for what it leaves out; unknown keys are refused (typos).
 
 See ``docs/simulator.md`` for what each parameter means physically.
 """
@@ -32,6 +34,7 @@ from config.loading import (
     default_path,
     load_toml,
     modbus_endpoint,
+    over_shipped,
 )
 from config.rig import Rig, load_rig
 from core.errors import ConfigError
@@ -858,8 +861,9 @@ def load_sim(path: str | Path | None = None) -> SimConfig:
         the key.
     """
     p = Path(path) if path is not None else default_path("sim.toml")
-    data = load_toml(p)
+    data = load_toml(p)  # over the shipped sim.toml: a file gives only what it changes
     try:
+        data = over_shipped(data, "sim.toml", aliases={"camera.optics.noise": "read_noise_dn"})
         cfg = sim_from_dict(data, base_dir=p.parent)
     except ConfigError as exc:
         raise ConfigError(f"{p}: {exc}") from None

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from config.faults import Fault, parse_faults
-from config.loading import Section, default_path, load_toml, naming_file
+from config.loading import Section, default_path, load_over_shipped, load_toml, naming_file
 from config.machine import MachineConfig, load_machine
 from core.errors import ConfigError
 
@@ -206,7 +206,7 @@ def load_scenario(name_or_path: str | None = None) -> Scenario:
 # ---------------------------------------------------------------------------------- configs
 def sim_document(scenario: Scenario) -> dict[str, Any]:
     """The simulator's TOML document for a scenario (shipped ``sim.toml`` plus overrides)."""
-    doc = load_toml(scenario.sim_config or default_path("sim.toml"))
+    doc = load_over_shipped(scenario.sim_config, "sim.toml")[1]  # a partial file: over sim.toml
     if scenario.runout_um is not None:
         doc.setdefault("cutterhead", {})["runout_um"] = list(scenario.runout_um)
         doc["cutterhead"]["knives"] = len(scenario.runout_um)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from config.loading import default_path, load_toml
+from config.loading import default_path, load_over_shipped
 from core.errors import ConfigError
 from planer.hil.scenario import (
     FINAL_MEASUREMENTS,
@@ -186,7 +186,7 @@ def make_job(point: Point, base: Scenario) -> Job:
         sc = replace(sc, name=f"{base.name}#{point.index}", seed=point.seed)
         sim_doc = copy.deepcopy(sim_document(sc))
         mpath = _machine_path(sc)
-        machine_doc = copy.deepcopy(load_toml(mpath))
+        machine_doc = load_over_shipped(mpath, "machine.toml")[1]  # a fresh document
         for key, value in point.values.items():
             head, _, rest = key.partition(".")
             if head == "sim":
@@ -222,7 +222,7 @@ def base_values(base: Scenario, keys: Sequence[str]) -> dict[str, Any]:
     sim_cfg = sim_from_dict(sim_doc, base_dir=Path(base.sim_config).parent
                             if base.sim_config else None)
     mpath = _machine_path(base)
-    machine_doc = load_toml(mpath)
+    machine_doc = load_over_shipped(mpath, "machine.toml")[1]
     machine_cfg = load_machine(mpath)
     out: dict[str, Any] = {}
     for key in keys:

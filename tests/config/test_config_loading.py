@@ -89,10 +89,10 @@ def test_load_errors_are_config_errors(tmp_path):
         load_toml(bad)
     with pytest.raises(ConfigError, match="directory"):
         load_toml(tmp_path)
-    missing = tmp_path / "rig.toml"
-    missing.write_text("[camera]\nfx = 1.0\n")
-    with pytest.raises(ConfigError, match="rig.toml: missing key camera.fy"):
-        load_rig(missing)
+    bad_value = tmp_path / "rig.toml"
+    bad_value.write_text("[camera]\nfx = -1.0\n")
+    with pytest.raises(ConfigError, match="rig.toml: camera.fx must be > 0"):
+        load_rig(bad_value)
 
 
 def test_section_rejects_unknown_keys_and_wrong_types():

@@ -117,7 +117,8 @@ def test_bad_loop_keys_name_the_file_they_came_from(tmp_path, table):
 def test_source_does_not_take_part_in_equality(tmp_path):
     p = tmp_path / "m.toml"
     p.write_text("")
-    assert load_machine(p) == machine_from_dict({}) and machine_from_dict({}).source is None
+    assert load_machine(p) == load_machine() and load_machine(p).source == p
+    assert machine_from_dict({}).source is None
 
 
 def test_naming_file_prefixes_once():

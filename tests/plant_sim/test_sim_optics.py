@@ -613,12 +613,13 @@ def test_sim_config_effects_defaults_and_errors(tmp_path):
     from core.errors import ConfigError
     from plant_sim.rendering.optics import effects_from_config
 
-    # a config without the new keys renders the ideal rig, as before they existed
+    # a document built without the new keys renders the ideal rig, as before they existed
     assert effects_from_config(default_sim()) == RigEffects()
+    # a file keeps the shipped rig's effects; the older name noise replaces read_noise_dn
     old = tmp_path / "old.toml"
     old.write_text('[camera]\nspecies = "spruce"\n[camera.optics]\nnoise = 0.5\n')
-    assert effects_from_config(load_sim(old)) == RigEffects()
-    assert load_sim(old).camera.optics == default_sim().camera.optics
+    assert effects_from_config(load_sim(old)) == effects_from_config(load_sim())
+    assert load_sim(old).camera.optics.read_noise_dn == 0.5
     # the shipped config/sim.toml is a realistic rig: what a real machine has, its rig file not
     shipped = load_sim()
     fx = effects_from_config(shipped)
