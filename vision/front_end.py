@@ -449,23 +449,32 @@ class FrontEnd:
             (sample ``p`` at undistorted column ``c0 + p`` on the optical axis's row); in
             units of one ``k0``-row bin.
         """
+        return mean_profile(*self.profile_rows(image, roll_deg))
+
+    def profile_rows(self, image: Binned, roll_deg: float) -> tuple[np.ndarray, int]:
+        """The profile's bins before they are averaged (see :meth:`profile`).
+
+        Returns
+        -------
+        rows : ndarray, shape (n_bins, width)
+            Sums of ``factor`` ``k0``-row bins each, undistorted and sheared along the marks
+            (``uint16`` or ``float32``; a view of the image's bins when nothing is resampled).
+        factor : int
+            ``k0``-row bins summed per row: ``rows.mean(axis=0) / factor`` is the profile.
+        """
         shear = self.margin_px(roll_deg) > 0
         t = self._profile_table(roll_deg, shear)
-        m = t.factor
         if not shear and image._plain is not None:
             part = image._plain
         else:
             part = self._profile_bins(image.bins, t)
         if self._identity and not shear:
             c0, c1 = self.columns
-            rows = part[t.valid, c0:c1]
-        else:
-            # cubic along the marks: the shear's fractional shifts vary by row, and a linear
-            # blend's smoothing would differ from a sheared to an unsheared profile
-            kind = cv2.INTER_CUBIC if shear else cv2.INTER_LINEAR
-            rows = cv2.remap(part, t.map_x, t.map_y, kind, borderMode=cv2.BORDER_REPLICATE)
-        total = cv2.reduce(rows, 0, cv2.REDUCE_SUM, dtype=cv2.CV_64F).ravel()
-        return total / (rows.shape[0] * m)
+            return part[t.valid, c0:c1], t.factor
+        # cubic along the marks: the shear's fractional shifts vary by row, and a linear
+        # blend's smoothing would differ from a sheared to an unsheared profile
+        kind = cv2.INTER_CUBIC if shear else cv2.INTER_LINEAR
+        return cv2.remap(part, t.map_x, t.map_y, kind, borderMode=cv2.BORDER_REPLICATE), t.factor
 
     def texture(self, image: Binned, roll_deg: float, profile: np.ndarray, *,
                 columns: slice | None = None) -> TextureRows:
@@ -517,6 +526,12 @@ class FrontEnd:
             return TextureRows(lambda key: src[pick[key], c0:c1], pick.size, n_cols, prof)
 
         return TextureRows(_remapper(src, t, cols), t.map_x.shape[0], n_cols, prof)
+
+
+def mean_profile(rows: np.ndarray, factor: int) -> np.ndarray:
+    """The column means of :meth:`FrontEnd.profile_rows` (in units of one ``k0``-row bin)."""
+    total = cv2.reduce(rows, 0, cv2.REDUCE_SUM, dtype=cv2.CV_64F).ravel()
+    return total / (rows.shape[0] * factor)
 
 
 def _remapper(src: np.ndarray, table: _Table, columns: slice) -> object:

@@ -28,10 +28,14 @@ import numpy as np
 
 from config.rig import Rig
 from core.checks import check_image, check_int, check_positive, check_range
-from core.errors import MeasurementError, RegistrationError
+from core.errors import MeasurementError
+from vision.checks import checked
 from vision.consistency import Agreement, honest_confidence, marks_shading_agreement
 from vision.deblur import Deblurrer, blur_length_px
-from vision.front_end import Binned, FrontEnd
+from vision.defect_rows import defect_rows, masked_pair
+from vision.defects import Defect, DefectFinder
+from vision.front_end import Binned, FrontEnd, mean_profile
+from vision.grading import grade_pair
 from vision.illumination import Detrender, flat_field_correct, running_mean
 from vision.integrate import Integrator
 from vision.marks import Marks, find_marks, knife_means, repeat_period_px
@@ -107,6 +111,12 @@ class Measurement:
     registration_source : str
         The coarse registration used: ``"texture"``, ``"profile"``, ``"shading"`` (or
         ``"encoder"`` when not registered).
+    defects : tuple of vision.defects.Defect, or None
+        Planing defects found on the pair's 2-D surface map (``None``: not looked for, the
+        measurer's ``defects=False``).
+    grade, grade_reason : int or None, str or None
+        ASTM D1666 grade of the pair (1 defect-free ... 5 very poor, :mod:`vision.grading`)
+        and why (``None`` when the defects were not looked for).
     """
 
     x_mm: np.ndarray
@@ -132,6 +142,9 @@ class Measurement:
     flag_reason: str | None = None
     marks_agreement: float = math.nan
     registration_source: str = "texture"
+    defects: tuple[Defect, ...] | None = None
+    grade: int | None = None
+    grade_reason: str | None = None
 
     @property
     def flagged(self) -> bool:
@@ -173,6 +186,9 @@ class Measurement:
             "flag_reason": self.flag_reason,
             "marks_agreement": _finite_or_none(self.marks_agreement, 3),
             "registration_source": self.registration_source,
+            "defects": (None if self.defects is None else [d.to_json() for d in self.defects]),
+            "grade": self.grade,
+            "grade_reason": self.grade_reason,
         }
 
 
@@ -369,6 +385,10 @@ class Measurer:
         repeat period, which the mean annihilates): what varies more slowly is the integrated
         low-frequency noise and residual illumination, not measurable anyway (see
         :func:`remove_slow`).
+    defects : bool, optional
+        Also map the pair's along-feed slope and albedo in 2-D and find planing defects on it
+        with their D1666 grade (:mod:`vision.defects`, :mod:`vision.grading`;
+        ``Measurement.defects``, ``grade``); off by default (it costs CPU).
     """
 
     def __init__(
@@ -395,6 +415,7 @@ class Measurer:
         min_agreement: float = 0.7,
         max_slip_px: float | None = None,
         flagged_confidence: float = 0.3,
+        defects: bool = False,
     ) -> None:
         self.rig = rig
         check_rig_size(rig, shape)
@@ -449,6 +470,10 @@ class Measurer:
             "slant_b_deg": None if slant_b == slant_a else slant_b,
         }
         self._slope = RatioSlope(**self._angles)  # validates the light geometry once
+        self.defect_finder = (DefectFinder(
+            rig.camera, rig.lights, self.shape, bin_rows=self.front.k0,
+            first_row_px=self.front.undistort.first_row_px, columns=self.front.columns,
+            source_rows=self.front.undistort.bins, knives=self.knives) if defects else None)
         self._flat: tuple[np.ndarray, np.ndarray] | None = None
         if flat_field is not None:
             if len(flat_field) != 2:
@@ -549,9 +574,12 @@ class Measurer:
             return replace(cal, deblurred=bool(deblur and pays)), s_cal, h_cal, m_cal, raw_depth
         return cal, slope, height, marks, raw_depth
 
-    def _registered_profile(self, prof_a: np.ndarray, prof_b: np.ndarray, d: float,
-                            margin: int, cos_roll: float) -> _Profile:
-        """Slope, height and marks of the pair registered at ``d`` px, and their agreement."""
+    def _registered_profile(self, prof_a: np.ndarray, prof_b: np.ndarray, registered: bool,
+                            d: float, margin: int, cos_roll: float) -> _Profile:
+        """Slope, height and marks of the pair registered at ``d`` px, and their agreement.
+
+        ``registered``: ``prof_b`` is already B at ``u + d`` in A's columns.
+        """
         u0, u1 = overlap(self.width, d, columns=(margin, self.width - margin))
         count = u1 - u0
         if count < self.min_overlap_px:
@@ -559,7 +587,8 @@ class Measurer:
                 f"registered shift {d:.1f} px leaves only {max(count, 0)} px of overlap"
             )
         ia = prof_a[u0:u1]
-        ib = shift_profile(prof_b, shift_px=d, start=u0, count=count)
+        ib = (prof_b[u0:u1] if registered else
+              shift_profile(prof_b, shift_px=d, start=u0, count=count))
         if np.any(ia <= 0) or np.any(ib <= 0):
             raise MeasurementError(
                 "non-positive intensities in the overlap (dark or clipped images)"
@@ -578,51 +607,21 @@ class Measurer:
         agreement = marks_shading_agreement(log_a, log_b, x_mm, marks.cusps_mm, marks.bottoms_mm)
         return _Profile(slope, height, marks, x_mm, period, agreement)
 
-    def _checked(self, raw: tuple[np.ndarray, np.ndarray], profiles: tuple[np.ndarray, np.ndarray],
-                 reg: Registration, profile: _Profile, margin: int, cos_roll: float,
-                 ) -> tuple[Registration, _Profile, str | None]:
-        """The measurement's own checks; a second registration when the marks disagree.
-
-        Returns the registration and profile kept and the reason the checks still fail
-        (``None``: they pass).  When the marks found do not explain the images' own shading
-        and the registration came from the texture, the pair is registered again from the
-        column profiles alone (the texture is what light-dependent defects fool); the one whose
-        marks explain the images better is kept.
-        """
-        score = profile.agreement.score
-        reasons: list[str] = []
-        if self.register and not score >= self.min_agreement and reg.source == "texture":
-            second: Registration | None = None
-            try:
-                second = self.registrar.without_texture(*raw, encoder_shift_px=reg.encoder_shift_px)
-            except RegistrationError as exc:
-                reasons.append(f"no second registration ({exc})")
-            if second is not None and abs(second.shift_px - reg.shift_px) > 0.5:
-                try:
-                    other = self._registered_profile(*profiles, second.shift_px, margin, cos_roll)
-                except MeasurementError as exc:
-                    reasons.append(f"the column profiles' registration gives no marks ({exc})")
-                else:
-                    if other.agreement.score > score or not math.isfinite(score):
-                        reasons.append(
-                            f"texture registration {reg.shift_px:.1f} px rejected: its marks "
-                            f"explain the images at {score:.2f}, the column profiles' "
-                            f"({second.shift_px:.1f} px) at {other.agreement.score:.2f}")
-                        reg, profile, score = second, other, other.agreement.score
-                    else:
-                        reasons.append(
-                            f"texture ({reg.shift_px:.1f} px) and column profiles "
-                            f"({second.shift_px:.1f} px) disagree")
-        failed: list[str] = []
-        if self.register and not score >= self.min_agreement:
-            failed.append(f"the marks found explain the images' own shading at {score:.2f} < "
-                          f"{self.min_agreement:.2f} (misregistered pair or no knife marks)")
-            failed.extend(reasons)
-        if self.register and abs(reg.shift_px - reg.encoder_shift_px) > self.max_slip_px:
-            failed.append(f"registered shift {reg.shift_px:.1f} px is more than the slip bound "
-                          f"{self.max_slip_px:.1f} px from the encoder's "
-                          f"{reg.encoder_shift_px:.1f} px")
-        return reg, profile, "; ".join(failed) if failed else None
+    def _register(self, binned_a: Binned, binned_b: Binned, roll: float, prof_a: np.ndarray,
+                  prof_b: np.ndarray, d_enc: float) -> Registration:
+        """The registrar on the pair: texture rows along the feed, profiles along the marks."""
+        cols_a, cols_b, offset = self._texture_windows(d_enc)
+        whole = (self.front.texture(binned_a, roll, prof_a),
+                 self.front.texture(binned_b, roll, prof_b))  # resampled only if used
+        if cols_a is None:
+            return self.registrar(*whole, encoder_shift_px=d_enc, profile_a=prof_a,
+                                  profile_b=prof_b)
+        return self.registrar(
+            self.front.texture(binned_a, roll, prof_a, columns=cols_a),
+            self.front.texture(binned_b, roll, prof_b, columns=cols_b),
+            encoder_shift_px=d_enc, profile_a=prof_a, profile_b=prof_b,
+            texture_offset_px=offset, whole_textures=whole,
+        )
 
     # -- the measurement ----------------------------------------------------------------------
 
@@ -695,44 +694,46 @@ class Measurer:
             self.rig.camera.roll_deg)
         cos_roll = math.cos(math.radians(roll))
         margin = self.front.margin_px(roll)
-        prof_a = self.front.profile(binned_a, roll)
-        prof_b = self.front.profile(binned_b, roll)
+        rows_a, factor = self.front.profile_rows(binned_a, roll)
+        rows_b, _ = self.front.profile_rows(binned_b, roll)
+        prof_a, prof_b = mean_profile(rows_a, factor), mean_profile(rows_b, factor)
         d_enc_sheared = d_enc / cos_roll
 
         raw_profiles = (prof_a, prof_b)  # as registered: the second opinion sees the same
         if self.register:
-            # Texture in rows along the feed (fibres and motion along the rows), profiles
-            # along the marks.
-            cols_a, cols_b, offset = self._texture_windows(d_enc_sheared)
-            whole = (self.front.texture(binned_a, roll, prof_a),
-                     self.front.texture(binned_b, roll, prof_b))  # resampled only if used
-            if cols_a is None:
-                reg = self.registrar(*whole, encoder_shift_px=d_enc_sheared,
-                                     profile_a=prof_a, profile_b=prof_b)
-            else:
-                reg = self.registrar(
-                    self.front.texture(binned_a, roll, prof_a, columns=cols_a),
-                    self.front.texture(binned_b, roll, prof_b, columns=cols_b),
-                    encoder_shift_px=d_enc_sheared, profile_a=prof_a, profile_b=prof_b,
-                    texture_offset_px=offset, whole_textures=whole,
-                )
+            reg = self._register(binned_a, binned_b, roll, prof_a, prof_b, d_enc_sheared)
         else:
             reg = Registration(shift_px=d_enc_sheared, confidence=math.nan,
                                encoder_shift_px=d_enc_sheared, source="encoder")
-        if self._flat is not None:
-            prof_a, prof_b = flat_field_correct(
-                prof_a, prof_b, reference_a=self._flat[0], reference_b=self._flat[1]
-            )
         blur = self.blur_px(speed_mm_s)
-        if blur > self.deblur_min_px:
-            both = self.deblurrer(np.stack([prof_a, prof_b]), blur_px=blur)
-            prof_a, prof_b = both[0], both[1]
-        else:
+        if not blur > self.deblur_min_px:
             blur = 0.0
 
-        profile = self._registered_profile(prof_a, prof_b, reg.shift_px, margin, cos_roll)
-        reg, profile, reason = self._checked(raw_profiles, (prof_a, prof_b), reg, profile,
-                                             margin, cos_roll)
+        def prepared(d: float) -> tuple[np.ndarray, np.ndarray, bool]:
+            """The profiles at shift ``d`` (a defect's rows left out: B registered onto A)."""
+            pa, pb, registered = prof_a, prof_b, False
+            mask = defect_rows(self.width, rows_a, rows_b, d, margin) if self.register else None
+            if mask is not None:
+                ra, rb = rows_a, rows_b
+                if self._flat is not None:  # the references in the camera's columns
+                    ones = np.ones(self.width)
+                    fa, fb = flat_field_correct(ones, ones, reference_a=self._flat[0],
+                                                reference_b=self._flat[1])
+                    ra, rb = ra * fa[None, :], rb * fb[None, :]
+                pa, pb = masked_pair(ra, rb, factor, mask)
+                registered = True
+            elif self._flat is not None:
+                pa, pb = flat_field_correct(pa, pb, reference_a=self._flat[0],
+                                            reference_b=self._flat[1])
+            if blur > 0:
+                both = self.deblurrer(np.stack([pa, pb]), blur_px=blur)
+                pa, pb = both[0], both[1]
+            return pa, pb, registered
+
+        profile = self._registered_profile(*prepared(reg.shift_px), reg.shift_px, margin,
+                                           cos_roll)
+        reg, profile, reason = checked(self, raw_profiles, prepared, reg, profile,
+                                       margin, cos_roll)
         slope, height, marks, x_mm, period = (profile.slope, profile.height, profile.marks,
                                               profile.x_mm, profile.period)
         d = reg.shift_px
@@ -749,6 +750,12 @@ class Measurer:
         knife_widths = None
         if self.knives is not None:
             knife_widths = knife_means(marks.widths_mm, knives=self.knives, phase=0)
+        found = grade = None
+        if self.defect_finder is not None:
+            found = self.defect_finder(binned_a.bins, binned_b.bins, shift_px=d * cos_roll,
+                                       roll_deg=roll, bottoms_mm=marks.bottoms_mm,
+                                       pitch_mm=marks.pitch_mm)
+            grade = grade_pair(found)
         return Measurement(
             x_mm=x_mm,
             height_um=height,
@@ -773,6 +780,9 @@ class Measurer:
             flag_reason=reason,
             marks_agreement=profile.agreement.score,
             registration_source=reg.source,
+            defects=found,
+            grade=None if grade is None else grade.grade,
+            grade_reason=None if grade is None else grade.reason,
         )
 
 

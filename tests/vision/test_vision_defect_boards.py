@@ -25,6 +25,7 @@ from vision.consistency import (
     shift_within_slip,
     shifts_agree,
 )
+from vision.defect_rows import defect_mask, defect_rows, masked_pair
 from vision.marks import corr2
 from vision.pipeline import Measurer
 
@@ -142,16 +143,27 @@ def test_never_a_confident_wrong_pitch(outcomes):
 
 
 def test_the_marks_are_right_on_every_board_not_flagged(outcomes):
-    # as measured on the 40 boards (2-core VM): 33 unflagged, all with pitch, CV, depth and
-    # shift within the criteria; 22 of them also with the profile within 0.95
-    assert sum(o.marks_ok and not o.flagged for o in outcomes) >= 33
-    assert sum(o.ok for o in outcomes) >= 22
+    # as measured on the 40 boards (2-core VM): 35 unflagged, all with pitch, CV, depth and
+    # shift within the criteria; 34 of them also with the profile within 0.95 (a defect's
+    # rows left out of the column profiles); 5 flagged or refused
+    assert sum(o.marks_ok and not o.flagged for o in outcomes) >= 35
+    assert sum(o.ok for o in outcomes) >= 34
 
 
-@pytest.mark.xfail(strict=True, reason="the column profile averages a pit's or chip's own "
-                   "shading into the cuttermarks' profile: pitch, CV, depth and shift stay "
-                   "right but the profile correlation falls to 0.39-0.94 on torn grain and "
-                   "chip marks")
+def test_torn_grain_and_chips_leave_the_profile_of_the_cuttermarks(outcomes):
+    # the rows of a pit or chip are left out of the column profiles: every unflagged torn-grain
+    # and chip-mark board within all the criteria (before: profile correlation 0.39-0.94)
+    kinds = ("torn along", "torn across", "chips", "torn + chips")
+    for o in outcomes:
+        if o.kind in kinds and not o.flagged:
+            assert o.ok, o
+
+
+@pytest.mark.xfail(strict=True, reason="34 of 40 (85 %): a pit across the feed spanning most "
+                   "of the rows leaves no clean rows in its columns (2 boards, flagged), raised "
+                   "grain over the whole field has no clean rows either (1 flagged, 1 with the "
+                   "profile correlation 0.91), a pit that moved the texture a whole mark off "
+                   "(flagged by the slip bound), a fuzzy patch (refused)")
 def test_at_least_95_percent_of_the_boards_are_measured_within_the_criteria(outcomes):
     good = sum(o.ok for o in outcomes)
     assert good >= math.ceil(0.95 * len(outcomes)), [o for o in outcomes if not o.ok]
@@ -231,3 +243,41 @@ def test_a_pair_whose_checks_disagree_is_flagged_with_its_reason():
         speed_mm_s=board.speed_mm_s)
     assert m.flagged and m.confidence <= 0.3 and "slip bound" in m.flag_reason
     assert m.to_json()["flag_reason"] == m.flag_reason
+
+
+def test_a_pit_is_left_out_of_the_profile_and_a_clean_pair_is_not_touched():
+    board = render_defect_board(3, defects=Defects(chips_um=(120.0,)), species="oak")
+    measurer = Measurer(board.rig, board.image_a.shape, radius_mm=60.0, knives=4)
+    m = measurer.measure(board.image_a, board.image_b, counts_a=board.counts_a,
+                         counts_b=board.counts_b, speed_mm_s=board.speed_mm_s)
+    truth = np.interp(m.x_mm, board.x_mm, board.height_um)
+    truth = truth - np.polyval(np.polyfit(m.x_mm, truth, 3), m.x_mm)
+    assert corr2(m.height_um, truth) >= 0.95
+    # the same rows of the same pair: the mask finds the chip, not the clean board
+    front = measurer.front
+    rows = [front.profile_rows(front.bin(img, "x"), 0.0)[0]
+            for img in (board.image_a, board.image_b)]
+    d = m.shift_px
+    assert defect_rows(measurer.width, *rows, d, 0) is not None
+    clean = render_defect_board(3, species="oak")
+    rows = [front.profile_rows(front.bin(img, "x"), 0.0)[0]
+            for img in (clean.image_a, clean.image_b)]
+    assert defect_rows(measurer.width, *rows, clean.shift_px, 0) is None
+
+
+def test_masked_profiles_cancel_the_albedo_of_the_rows_kept():
+    rng = np.random.default_rng(0)
+    n, w, d = 12, 300, 7.0
+    shading = 1.0 + 0.1 * np.sin(np.arange(w + 20) / 4.0)
+    albedo = 1.0 + 0.2 * rng.random((n, w + 20))
+    a = 100 * albedo[:, :w] * shading[:w]
+    b = 100 * albedo[:, :w] * shading[:w] ** 2  # B at u + 7 sees A's board point u
+    b = np.concatenate([np.ones((n, 7)), b], axis=1)[:, :w]
+    a[3:5, 100:140] *= 0.3  # a pit's shadow in A only
+    mask = defect_mask(a, b, d, u0=10, u1=280)
+    assert mask is not None and mask.mask[3:5, 95:125].all() and mask.fraction < 0.05
+    pa, pb = masked_pair(a, b, 1, mask)
+    ratio = (pb / pa)[12:278]
+    assert np.allclose(ratio, shading[12:278], rtol=1e-6)
+    with pytest.raises(ValueError, match="rows_a"):
+        defect_mask(a, b[:, :10], d, u0=10, u1=280)
