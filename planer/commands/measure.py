@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
                     f"{image_a.shape[1]}x{image_a.shape[0]}"
                 )
     measurer = Measurer(rig, image_a.shape, flat_field=flat,  # type: ignore[arg-type]
-                        radius_mm=args.radius_mm, knives=args.knives)
+                        radius_mm=args.radius_mm, knives=args.knives, defects=True)
     result = measurer.measure(
         image_a, image_b, counts_a=args.counts_a, counts_b=args.counts_b, speed_mm_s=speed,
     )

@@ -89,6 +89,20 @@ class Defects:
 
 
 @dataclass(frozen=True)
+class Placed:
+    """One local defect as placed on the board grid (``x`` along the feed at shot A, ``y``
+    across it from the board's centre line, mm; ``depth_um`` < 0 for a ridge)."""
+
+    kind: str  # "torn", "fuzzy", "chip" or "nick"
+    x_mm: float
+    y_mm: float
+    length_mm: float  # along its own axis
+    width_mm: float
+    angle_deg: float  # its axis from the feed toward +y
+    depth_um: float
+
+
+@dataclass(frozen=True)
 class DefectBoard:
     """A rendered pair and its truth (profile in A's frame along the feed)."""
 
@@ -110,6 +124,8 @@ class DefectBoard:
     roll_deg: float
     species: str
     defects: Defects = field(default_factory=Defects)
+    placed: tuple[Placed, ...] = ()  # where the local defects were put (board frame)
+    ring_angle_deg: float = 10.0  # direction of the growth rings (and raised grain)
 
 
 def _box(n: int) -> np.ndarray:
@@ -262,6 +278,7 @@ def render_defect_board(
     xx = X[None, :]
     yy = Y[:, None]
     dz = np.zeros((ny, nx), dtype=np.float64)  # defects' height, mm
+    placed: list[Placed] = []
     # the field's centre region, where defects must lie to be seen by both shots
     fx0, fx1 = cx / ppm - 0.4 * width / ppm, cx / ppm + 0.4 * width / ppm
     ta = math.radians(ring_angle_deg)
@@ -286,16 +303,19 @@ def render_defect_board(
         mask = cv2.GaussianBlur(mask, (0, 0), sigmaX=0.06 / DX_MM, sigmaY=0.06 / DY_MM)
         bottom = 0.75 + 0.25 * _smooth_noise(rng, (ny, nx), 0.25 / DX_MM, 0.05 / DY_MM)
         dz -= depth_mm * mask * np.clip(bottom, 0.3, 1.3)
+        placed.append(Placed("torn", tx, ty, length, wid, angle, 1000.0 * depth_mm))
     if defects.fuzzy_um:
         fxc, fyc = rng.uniform(fx0 + 8, fx1 - 8), rng.uniform(-3.0, 3.0)
         r2 = ((xx - fxc) ** 2 + (yy - fyc) ** 2) / (defects.fuzzy_mm / 2) ** 2
         patch = np.clip((1.0 - r2) / 0.3, 0.0, 1.0)
         tufts = _smooth_noise(rng, (ny, nx), 0.2 / DX_MM, 0.06 / DY_MM)
         dz += defects.fuzzy_um * 1e-3 * patch * tufts
+        placed.append(Placed("fuzzy", fxc, fyc, defects.fuzzy_mm, defects.fuzzy_mm, 0.0, 0.0))
     for chip_um in defects.chips_um:
         kx, ky = rng.uniform(fx0 + 3, fx1 - 3), rng.uniform(-6.0, 6.0)
         sx, sy = rng.uniform(0.4, 1.2), rng.uniform(0.5, 1.5)
         dz -= chip_um * 1e-3 * np.exp(-0.5 * (((xx - kx) / sx) ** 2 + ((yy - ky) / sy) ** 2))
+        placed.append(Placed("chip", kx, ky, 4 * sx, 4 * sy, 0.0, chip_um))  # +-2 sigma
     z_nick_line = None
     if defects.nick_um:
         knife = int(rng.integers(0, knives))
@@ -304,6 +324,8 @@ def render_defect_board(
         band = np.clip((defects.nick_mm / 2 - np.abs(yy - band_y)) / 0.05 + 0.5, 0, 1)
         z_nick_line = np.interp(X, xf, zn - marks_only)
         dz += band * z_nick_line[None, :]
+        placed.append(Placed("nick", cx / ppm, band_y, width / ppm, defects.nick_mm, 0.0,
+                             -defects.nick_um))
 
     # -- radiance maps: exact clean shading plus the defects' difference -----------------------
     rho = (1.0 - sp.ring_contrast * latewood).astype(np.float32)
@@ -376,4 +398,5 @@ def render_defect_board(
     spindle_rpm = speed_mm_s * 60.0 / (pitch_mm * knives)
     return DefectBoard(rig, image_a, image_b, counts_a, counts_b, shift_px, x_mm,
                        marks_truth * 1000.0, surface * 1000.0, cusps, np.asarray(depths),
-                       speed_mm_s, radius_mm, knives, spindle_rpm, roll_deg, species, defects)
+                       speed_mm_s, radius_mm, knives, spindle_rpm, roll_deg, species, defects,
+                       tuple(placed), ring_angle_deg)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import cv2
 import numpy as np
@@ -160,3 +161,35 @@ def test_new_keys_and_machine_facts(files, capsys):
     assert on["feed_per_pass_mm"] == pytest.approx(pair.speed_mm_s * 60 / (6000 * 4), rel=1e-4)
     for key in off:
         assert key in on
+
+
+def test_defects_and_grade_in_the_json_contract(tmp_path, capsys):
+    """``defects`` (objects with the contract's keys), ``grade`` and ``grade_reason``."""
+    from tests.support.defect_boards import Defects, render_defect_board
+
+    board = render_defect_board(11, defects=Defects(chips_um=(120.0,)), noise_dn=3.0)
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    assert cv2.imwrite(str(a), board.image_a) and cv2.imwrite(str(b), board.image_b)
+    rig_file = tmp_path / "rig.toml"
+    rig_file.write_text(rig_to_toml(board.rig))
+    rc = main(["measure", str(a), str(b), "--counts-a", str(board.counts_a), "--counts-b",
+               str(board.counts_b), "--rig", str(rig_file)])
+    out, err = capsys.readouterr()
+    assert rc == 0 and err == ""
+    data = json.loads(out)
+    assert isinstance(data["grade"], int) and 1 <= data["grade"] <= 5
+    assert isinstance(data["grade_reason"], str) and data["grade_reason"]
+    assert data["defects"], "a 120 um chip mark must be found"
+    kinds = {"torn_grain", "raised_grain", "fuzzy_grain", "chip_mark", "knife_nick", "chatter",
+             "snipe"}
+    for d in data["defects"]:
+        assert set(d) == {"kind", "x_mm", "y_mm", "length_mm", "width_mm", "depth_um",
+                          "confidence"}
+        assert d["kind"] in kinds and 0.0 <= d["confidence"] <= 1.0
+        assert d["depth_um"] is None or isinstance(d["depth_um"], float)
+    chip = board.placed[0]
+    ppm = board.rig.camera.px_per_mm
+    true_x, true_y = chip.x_mm, board.rig.camera.cy / ppm + chip.y_mm  # roll 0
+    assert any(d["kind"] == "chip_mark" and math.hypot(d["x_mm"] - true_x, d["y_mm"] - true_y)
+               <= 2.0 for d in data["defects"])
+    assert data["grade"] >= 2

@@ -1,0 +1,114 @@
+"""The 2-D surface map: slope along the feed by seed Eq. 4 at every pixel, albedo, frames."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from config.rig import Camera, Lights
+from vision.surface_map import SurfaceMapper, surface_map
+
+PPM = 12.5
+SLANT = 82.0
+
+
+def _camera(w: int = 400, h: int = 120) -> Camera:
+    return Camera(fx=1400.0, fy=1400.0, cx=(w - 1) / 2, cy=(h - 1) / 2,
+                  dist=(0.0, 0.0, 0.0, 0.0, 0.0), px_per_mm=PPM)
+
+
+def _pair(shift_px: int, *, bump: bool = True, gain_b: float = 1.0):
+    """A Lambert pair of a 2-D height field (marks + a dent) with albedo, B shifted."""
+    h, w = 120, 400
+    n = w + shift_px + 2
+    x = np.arange(n) / PPM
+    y = np.arange(h)[:, None] / PPM
+    z = 0.004 * np.cos(2 * np.pi * x / 2.0)[None, :] * np.ones((h, 1))  # mm
+    if bump:
+        z = z - 0.03 * np.exp(-((x[None, :] - 12.0) ** 2 + (y - 4.8) ** 2) / (2 * 0.8 ** 2))
+    p = np.gradient(z, 1 / PPM, axis=1)
+    q = np.gradient(z, 1 / PPM, axis=0)
+    rng = np.random.default_rng(0)
+    rho = 1.0 + 0.1 * np.sin(2 * np.pi * x / 3.1)[None, :] + 0.05 * rng.standard_normal((h, n))
+    s = math.radians(SLANT)
+    la = rho * np.maximum(0, math.cos(s) - p * math.sin(s)) / np.sqrt(1 + p * p + q * q)
+    lb = rho * np.maximum(0, math.cos(s) + p * math.sin(s)) / np.sqrt(1 + p * p + q * q)
+    # A's column u sees the board at u + shift, B's at u: B shows A's point u at u + shift
+    sl = slice(shift_px, shift_px + w)
+    a = 600.0 * la[:, sl]
+    b = 600.0 * gain_b * lb[:, :w]
+    return a.astype(np.float32), b.astype(np.float32), p[:, sl], rho[:, sl]
+
+
+def test_slope_along_feed_and_albedo_at_every_pixel():
+    a, b, p, rho = _pair(17, gain_b=1.07)
+    m = surface_map(a, b, camera=_camera(), lights=Lights(slant_deg=SLANT), shift_px=17.0)
+    assert m.shape == a.shape
+    ok = m.valid
+    assert ok[:, : 400 - 18].all() and not ok[:, -1].any()  # B does not see the last columns
+    est, true = m.slope_along_feed[ok], p[ok]
+    assert np.corrcoef(est, true)[0, 1] > 0.99
+    assert np.std(est - true) < 0.05 * np.std(true) + 1e-4  # the imbalance removed, no scale
+    alb = m.albedo[ok] / np.mean(rho[ok])
+    assert np.corrcoef(alb, rho[ok])[0, 1] > 0.98
+
+
+def test_a_wrong_shift_breaks_the_slope():
+    """Registration matters: one pixel off and the albedo leaks into the slope."""
+    a, b, p, _ = _pair(17)
+    good = surface_map(a, b, camera=_camera(), lights=Lights(slant_deg=SLANT), shift_px=17.0)
+    bad = surface_map(a, b, camera=_camera(), lights=Lights(slant_deg=SLANT), shift_px=18.0)
+    ok = good.valid & bad.valid
+    err = [np.std(m.slope_along_feed[ok] - p[ok]) for m in (good, bad)]
+    assert err[1] > 3 * err[0]
+
+
+def test_heights_integrate_the_slope_per_row():
+    a, b, _, _ = _pair(12, bump=True)
+    m = surface_map(a, b, camera=_camera(), lights=Lights(slant_deg=SLANT), shift_px=12.0)
+    h = m.heights_um()
+    row = int(round(4.8 * PPM))
+    far = 5
+    # the 30 um dent at x = 12 mm shows in its row and not in a far one
+    col = int(12 * PPM) - 12
+    dip = h[row, col] - np.median(h[row, 50:350])
+    assert dip < -20
+    assert h[far, col] - np.median(h[far, 50:350]) > -5
+
+
+def test_frames_roll_and_binned_rows():
+    cam = _camera()
+    mapper = SurfaceMapper(cam, Lights(slant_deg=SLANT), (120, 400), bin_rows=4)
+    rows = np.full((30, 400), 400.0, np.float32)
+    m = mapper(rows, rows, shift_px=0.0, roll_deg=0.0)
+    assert m.shape == (30, 400)
+    x, y = m.image_xy_mm(np.array([0.0, 399.0]), np.array([0.0, 29.0]))
+    assert x == pytest.approx([0.0, 399.0 / PPM])
+    assert y == pytest.approx([1.5 / PPM, (1.5 + 4 * 29) / PPM])
+    assert np.allclose(m.slope_along_feed[m.valid], 0.0, atol=1e-6)
+    rolled = mapper(rows, rows, shift_px=0.0, roll_deg=3.0)
+    assert rolled.valid.mean() < m.valid.mean()  # the turned grid leaves the image at corners
+    xr, yr = rolled.image_xy_mm(np.array([399.0]), np.array([15.0]))
+    assert yr[0] > y.mean()  # the feed turns +x toward +v
+
+
+@pytest.mark.parametrize("kwargs, word", [
+    ({"bin_rows": 0}, "bin_rows"),
+    ({"columns": (10, 5)}, "columns"),
+])
+def test_bad_set_up_is_refused(kwargs, word):
+    with pytest.raises(ValueError, match=word):
+        SurfaceMapper(_camera(), Lights(slant_deg=SLANT), (120, 400), **kwargs)
+
+
+def test_bad_inputs_are_refused():
+    mapper = SurfaceMapper(_camera(), Lights(slant_deg=SLANT), (120, 400))
+    img = np.ones((120, 400), np.float32)
+    with pytest.raises(ValueError, match="rows_a"):
+        mapper(img[:10], img, shift_px=0.0)
+    with pytest.raises(ValueError, match="shift_px"):
+        mapper(img, img, shift_px=float("nan"))
+    with pytest.raises(ValueError, match="opposite"):
+        SurfaceMapper(_camera(), Lights(slant_deg=SLANT, azimuth_b_deg=0.0), (120, 400))

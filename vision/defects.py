@@ -1,0 +1,611 @@
+"""Planing defects (ASTM D1666) found on the 2-D surface map of one pair.
+
+Each kind has its own detector, all working from one :class:`Residual` of the map
+(:mod:`vision.surface_map`):
+
+- the cuttermarks run straight across the feed, so their slope -- and anything else that is a
+  function of the position along the feed alone (illumination, the pair's imbalance) -- is the
+  map's robust mean over its rows; the *residual* slope ``r = p - mean`` holds what is
+  two-dimensional: the defects, the noise and the albedo the registration leaves;
+- ``r`` is summed into cells (``cell_px`` along the feed, one map row across: 0.4 x 0.4 mm at
+  the default rig); a cell is *marked* when its mean square, smoothed over 3 x 3 cells, exceeds
+  ``excess`` times the field's median (noise-adaptive);
+- marked cells form blobs (8-connected).  Per blob: its extent, the depth of the slope
+  integrated along each row across it (rim to rim), and its roughness (the share of ``r``'s
+  power above ~1 cycle/mm).
+
+Detectors: :func:`knife_nicks` (a band of rows marked along most of the field: a ridge running
+along the feed), :func:`raised_grain` (many thin lines over the field: ridges on the rings),
+:func:`pits` (compact blobs: a smooth dent is a *chip mark*, a rough or sharp-walled pit is
+*torn grain*, a rough patch without a dent is *fuzzy grain*), :func:`chatter` (a waviness of
+the marks' lowest points whose period is not the revolution's: needs the number of knives)
+and :func:`snipe` (the field's height bent along the feed, concave: the cut deepening toward
+one end).  A ridge running exactly along the feed has no along-feed slope: raised grain whose
+rings run within ~10 deg of the feed is not observed (the lights lie along the feed).
+
+Coordinates follow the measurement's contract: ``x_mm``, ``y_mm`` of a defect's centre in image
+A's undistorted frame from its top-left corner (x = columns, along the feed); ``length_mm``
+along the feed, ``width_mm`` across it; ``depth_um`` (positive = below the surface) where it
+is measured, else ``None``.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from config.rig import Camera, Lights
+from core.checks import check_positive
+from vision.surface_map import SurfaceMap, SurfaceMapper
+
+
+class DefectKind(enum.Enum):
+    """The planing defects of ASTM D1666 the vision finds (values are the JSON contract)."""
+
+    TORN_GRAIN = "torn_grain"
+    RAISED_GRAIN = "raised_grain"
+    FUZZY_GRAIN = "fuzzy_grain"
+    CHIP_MARK = "chip_mark"
+    KNIFE_NICK = "knife_nick"
+    CHATTER = "chatter"
+    SNIPE = "snipe"
+
+
+@dataclass(frozen=True)
+class Defect:
+    """One defect of one pair.
+
+    Attributes
+    ----------
+    kind : DefectKind
+    x_mm, y_mm : float
+        Centre in A's undistorted image frame, mm from its top-left corner (x along the feed).
+    length_mm, width_mm : float
+        Extent along and across the feed, mm.
+    depth_um : float or None
+        Depth below the surrounding surface (height of a ridge, amplitude of chatter, sag of
+        snipe), um; ``None`` where not measurable.
+    confidence : float
+        In [0, 1].
+    """
+
+    kind: DefectKind
+    x_mm: float
+    y_mm: float
+    length_mm: float
+    width_mm: float
+    depth_um: float | None
+    confidence: float
+
+    def to_json(self) -> dict[str, Any]:
+        """The contract's JSON object.
+
+        Keys ``kind``, ``x_mm``, ``y_mm``, ``length_mm``, ``width_mm``, ``depth_um`` (or null),
+        ``confidence``.
+        """
+        return {
+            "kind": self.kind.value,
+            "x_mm": round(float(self.x_mm), 3),
+            "y_mm": round(float(self.y_mm), 3),
+            "length_mm": round(float(self.length_mm), 3),
+            "width_mm": round(float(self.width_mm), 3),
+            "depth_um": (None if self.depth_um is None or not math.isfinite(self.depth_um)
+                         else round(float(self.depth_um), 2)),
+            "confidence": round(float(min(1.0, max(0.0, self.confidence))), 3),
+        }
+
+
+@dataclass(frozen=True)
+class DefectSettings:
+    """Thresholds of the detectors (measured on the independent boards; docs/vision.md).
+
+    Attributes
+    ----------
+    cell_mm : float
+        Cell length along the feed, mm.
+    excess : float
+        A cell is marked when its smoothed mean square exceeds this many times the median.
+    min_blob_mm2 : float
+        Smallest compact defect, mm^2.
+    min_fuzzy_mm2 : float
+        Smallest patch of fuzzy grain, mm^2.
+    min_confidence : float
+        Less confident detections are not reported.
+    nick_ratio : float
+        A knife nick's rows stand out from the median row by at least this factor.
+    nick_max_mm : float
+        Widest band across the feed that is still one nick, mm.
+    raised_coherence, raised_strong : float
+        Raised grain: the rows' correlation at a lag other than 0, or at any lag
+        (:func:`raised_grain`).
+    dent_um : float
+        A blob whose integrated depth exceeds this is a dent (chip mark or torn grain), um.
+    rough : float
+        Roughness (share of the residual's power at short periods) above which a dent is torn
+        grain.
+    fuzzy_rough : float
+        Roughness above which a patch without shadows is fuzzy grain.
+    torn_shadow : float
+        Share of a blob's samples near the shadow slope above which it is torn grain.
+    chatter_um : float
+        Smallest chatter amplitude reported, um.
+    snipe_um : float
+        Smallest snipe sag reported, um.
+    """
+
+    cell_mm: float = 0.4
+    excess: float = 4.0
+    min_blob_mm2: float = 1.0
+    min_fuzzy_mm2: float = 10.0
+    min_confidence: float = 0.3
+    nick_ratio: float = 3.0
+    nick_max_mm: float = 2.0
+    raised_coherence: float = 0.4
+    raised_strong: float = 0.8
+    dent_um: float = 8.0
+    rough: float = 0.12
+    fuzzy_rough: float = 0.55
+    torn_shadow: float = 0.05
+    chatter_um: float = 0.45
+    snipe_um: float = 3.0
+
+    def __post_init__(self) -> None:
+        for name in ("cell_mm", "excess", "min_blob_mm2", "min_fuzzy_mm2", "min_confidence",
+                     "nick_ratio", "nick_max_mm", "raised_coherence", "raised_strong",
+                     "dent_um", "rough", "fuzzy_rough", "torn_shadow", "chatter_um",
+                     "snipe_um"):
+            check_positive(name, getattr(self, name))
+
+
+@dataclass(frozen=True)
+class Blob:
+    """A connected group of marked cells (map coordinates: columns along the feed)."""
+
+    cols: tuple[int, int]  # map columns [c0, c1)
+    rows: tuple[int, int]  # map rows [r0, r1)
+    area_mm2: float
+    fill: float  # marked cells / bounding-box cells
+    depth_um: float  # integrated depth below the rim (negative: a bump)
+    rough: float  # share of the residual power at short periods
+    shadow: float  # share of its samples at >= 0.7 of the shadow slope
+    strength: float  # mean excess of its cells over the median
+
+
+@dataclass(frozen=True)
+class Residual:
+    """The map's two-dimensional part and its cells (see the module's docstring).
+
+    Attributes
+    ----------
+    smap : SurfaceMap
+    r : ndarray of float32, shape (rows, cols)
+        Residual slope (0 outside the valid map).
+    profile : ndarray of float64, shape (cols,)
+        The robust row mean of the slope (the marks' slope along the feed).
+    excess : ndarray of float32, shape (rows, cells)
+        Smoothed cell mean square over the field's median.
+    marked : ndarray of bool, shape (rows, cells)
+    cell_px : int
+        Map columns per cell.
+    """
+
+    smap: SurfaceMap
+    r: np.ndarray
+    profile: np.ndarray
+    excess: np.ndarray
+    marked: np.ndarray
+    valid_cells: np.ndarray
+    cell_px: int
+    hp: np.ndarray
+
+
+def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
+    """Residual slope, cell excess and marked cells of a map (see the module's docstring)."""
+    p, w = smap.slope_along_feed, smap.valid.astype(np.float32)
+    # the column median (invalid samples split evenly above and below), then the mean of the
+    # samples near it: a defect covering less than half a column does not move the profile
+    big = np.where(np.arange(p.shape[0]) % 2 == 0, np.float32(1e3), np.float32(-1e3))
+    filled = np.where(smap.valid, p, big[:, None])
+    med = np.partition(filled, p.shape[0] // 2, axis=0)[p.shape[0] // 2]
+    count = w.sum(axis=0)
+    mean = (p * w).sum(axis=0) / np.maximum(count, 1.0)
+    med = np.where(np.abs(med) < 10.0, med, mean)  # a column mostly outside: its plain mean
+    dev = np.abs(p - med[None, :])
+    sample = dev[smap.valid][::7]
+    scale = float(np.partition(sample, sample.size // 2)[sample.size // 2]) if sample.size else 0.0
+    keep = w * (dev <= 5.0 * 1.4826 * scale + 1e-4)
+    kc = keep.sum(axis=0)
+    profile = np.where(kc > 0, (p * keep).sum(axis=0) / np.maximum(kc, 1.0), med)
+    profile = np.where(count > 0, profile, 0.0)
+    r = ((p - profile[None, :]) * w).astype(np.float32)
+    cell = max(1, int(round(settings.cell_mm * smap.px_per_mm)))
+    rows, cols = r.shape
+    n_cells = cols // cell
+    used = n_cells * cell
+    w_cells = w[:, :used].reshape(rows, n_cells, cell).sum(axis=2)
+    valid_cells = w_cells >= 0.5 * cell
+    e = (r[:, :used] ** 2).reshape(rows, n_cells, cell).sum(axis=2) / np.maximum(w_cells, 1.0)
+    # short periods: the residual minus its running mean over ~1 mm along the feed
+    k = max(3, int(round(1.0 * smap.px_per_mm)) | 1)
+    hp = r - cv2.blur(r, (k, 1), borderType=cv2.BORDER_REFLECT)
+    base = float(np.median(e[valid_cells])) if np.any(valid_cells) else 1.0
+    base = max(base, 1e-12)
+    smooth = cv2.blur((e * valid_cells).astype(np.float32), (3, 3),
+                      borderType=cv2.BORDER_REFLECT)
+    excess = (smooth / np.float32(base)).astype(np.float32)
+    marked = (excess > settings.excess) & valid_cells
+    return Residual(smap, r, profile.astype(np.float64), excess, marked, valid_cells, cell, hp)
+
+
+def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.ndarray
+                  ) -> float:
+    """Depth below the rim of the slope integrated along each row over columns [c0, c1)."""
+    smap = res.smap
+    dx_um = 1000.0 / smap.px_per_mm
+    seg = res.r[r0:r1, c0:c1].astype(np.float64)
+    h = np.cumsum(seg, axis=1) * dx_um
+    h = np.concatenate([np.zeros((h.shape[0], 1)), h], axis=1)[:, :-1]
+    n = h.shape[1]
+    edge = max(1, n // 10)
+    left = h[:, :edge].mean(axis=1, keepdims=True)
+    right = h[:, -edge:].mean(axis=1, keepdims=True)
+    t = np.linspace(0.0, 1.0, n)[None, :]
+    h = h - (left + (right - left) * t)  # the rim on both sides at zero
+    inside = mask[r0:r1, c0:c1]
+    if not np.any(inside):
+        return 0.0
+    return float(np.percentile(-h[inside], 90))
+
+
+def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
+    """The marked cells' connected groups, with their extent, depth and roughness."""
+    smap = res.smap
+    cell_mm = res.cell_px / smap.px_per_mm
+    row_mm = smap.row_step_px / smap.px_per_mm
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(res.marked.astype(np.uint8), 8)
+    out = []
+    for lab in range(1, n):
+        x, y, w, h, area = (int(v) for v in stats[lab])
+        area_mm2 = area * cell_mm * row_mm
+        if area_mm2 < settings.min_blob_mm2:
+            continue
+        cells = labels[y:y + h, x:x + w] == lab
+        mask = np.zeros(res.r.shape, dtype=bool)
+        mask[y:y + h, x * res.cell_px:(x + w) * res.cell_px] = np.repeat(cells, res.cell_px,
+                                                                        axis=1)
+        pad = max(2, w // 2) * res.cell_px
+        c0 = max(0, x * res.cell_px - pad)
+        c1 = min(res.r.shape[1], (x + w) * res.cell_px + pad)
+        depth = _row_depth_um(res, c0, c1, y, y + h, mask)
+        tot = float((res.r[mask] ** 2).sum())
+        rough = float((res.hp[mask] ** 2).sum()) / max(tot, 1e-12)
+        strength = float(res.excess[y:y + h, x:x + w][cells].mean())
+        shadow = float(np.mean(np.abs(smap.slope_along_feed[mask])
+                               >= 0.7 * smap.shadow_slope))
+        out.append(Blob((x * res.cell_px, (x + w) * res.cell_px), (y, y + h), area_mm2,
+                        area / float(w * h), depth, rough, shadow, strength))
+    return out
+
+
+def _defect(res: Residual, kind: DefectKind, cols: tuple[float, float],
+            rows: tuple[float, float], depth_um: float | None, confidence: float) -> Defect:
+    smap = res.smap
+    cc, rc = 0.5 * (cols[0] + cols[1] - 1), 0.5 * (rows[0] + rows[1] - 1)
+    x, y = smap.image_xy_mm(cc, rc)
+    length = (cols[1] - cols[0]) / smap.px_per_mm
+    width = (rows[1] - rows[0]) * smap.row_step_px / smap.px_per_mm
+    return Defect(kind, float(x), float(y), float(length), float(width), depth_um,
+                  float(min(1.0, max(0.0, confidence))))
+
+
+def _confidence(strength: float, settings: DefectSettings) -> float:
+    return 1.0 - math.exp(-max(0.0, strength / settings.excess - 1.0) * 1.5)
+
+
+def knife_nicks(res: Residual, settings: DefectSettings) -> tuple[list[Defect], set[int]]:
+    """Bands of rows whose cells stand out along the whole field: knife nicks.
+
+    A nick is a ridge along the feed on one knife's marks; returned with the map rows taken.
+
+    Per row, the 70th percentile of its cells' excess (a local defect covering less than a
+    third of the row does not raise it) against the rows' median of the same.
+    """
+    vc = res.valid_cells
+    ex = np.where(vc, res.excess, np.nan)
+    thirds = np.array_split(np.arange(ex.shape[1]), 3)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        # evenly along the feed: the weakest third of the row decides
+        level = np.min([np.nanpercentile(ex[:, t], 70, axis=1) for t in thirds], axis=0)
+    level = np.nan_to_num(level, nan=0.0)
+    base = float(np.median(level)) if level.size else 0.0
+    peak = float(level.max()) if level.size else 0.0
+    if peak < settings.excess or peak < settings.nick_ratio * max(base, 1e-9):
+        return [], set()
+    hot = level >= max(0.5 * peak, settings.nick_ratio * base)
+    rows_mm = res.smap.row_step_px / res.smap.px_per_mm
+    bands = []
+    i, n = 0, hot.size
+    while i < n:
+        if hot[i]:
+            j = i
+            while j < n and hot[j]:
+                j += 1
+            bands.append((i, j))
+            i = j
+        else:
+            i += 1
+    if len(bands) > 2:
+        return [], set()  # many bands: ridges of raised grain, not a nick
+    found, taken = [], set()
+    for r0, r1 in bands:
+        if (r1 - r0) * rows_mm > settings.nick_max_mm + 2 * rows_mm:
+            continue
+        strength = float(level[r0:r1].max())
+        cols = np.flatnonzero(vc[r0:r1].any(axis=0))
+        c0, c1 = int(cols[0]) * res.cell_px, (int(cols[-1]) + 1) * res.cell_px
+        # height of the ridge: the band's residual integrated along the feed, peak to peak
+        seg = res.r[r0:r1, c0:c1].mean(axis=0).astype(np.float64)
+        h = np.cumsum(seg) * 1000.0 / res.smap.px_per_mm
+        h = h - np.polyval(np.polyfit(np.arange(h.size), h, 1), np.arange(h.size))
+        depth = -float(np.percentile(h, 98) - np.percentile(h, 2))
+        found.append(_defect(res, DefectKind.KNIFE_NICK, (c0, c1), (r0, r1), depth,
+                             _confidence(strength, settings)))
+        taken.update(range(r0, r1))
+    return found, taken
+
+
+def raised_grain(res: Residual, settings: DefectSettings) -> list[Defect]:
+    """Ridges on the growth rings: rows that repeat each other shifted along the feed.
+
+    :func:`oriented_coherence`: a peak at a lag other than 0 (ridges crossing the rows at an
+    angle) of at least ``raised_coherence``, or any peak of at least ``raised_strong``
+    (ridges almost across the feed).  Local defects correlate at lag 0 only.
+    """
+    coh, c0, lag = oriented_coherence(res)
+    if not ((coh >= settings.raised_coherence and lag != 0 and coh - c0 >= 0.05)
+            or coh >= settings.raised_strong):
+        return []
+    smap = res.smap
+    rows = np.flatnonzero(smap.valid.any(axis=1))
+    cols = np.flatnonzero(smap.valid.any(axis=0))
+    # ridge height: the rms of the residual integrated along the rows, x sqrt(2)
+    h = np.cumsum(res.r.astype(np.float64), axis=1) * 1000.0 / smap.px_per_mm
+    h -= h.mean(axis=1, keepdims=True)
+    depth = -math.sqrt(2.0) * float(np.sqrt(np.mean(h[smap.valid] ** 2)))
+    return [_defect(res, DefectKind.RAISED_GRAIN, (int(cols[0]), int(cols[-1]) + 1),
+                    (int(rows[0]), int(rows[-1]) + 1), depth, min(1.0, coh))]
+
+
+def pits(res: Residual, found: list[Blob], settings: DefectSettings) -> list[Defect]:
+    """Compact blobs: chip marks, torn grain, fuzzy grain.
+
+    A smooth dent is a chip mark, a rough or shadowed pit torn grain, a rough patch without
+    shadows fuzzy grain.
+    """
+    out = []
+    for b in found:
+        conf = _confidence(b.strength, settings)
+        depth: float | None = b.depth_um
+        if b.rough >= settings.fuzzy_rough and b.shadow < settings.torn_shadow:
+            if b.area_mm2 < settings.min_fuzzy_mm2:
+                continue  # a few fibres: not a patch
+            kind, depth = DefectKind.FUZZY_GRAIN, None
+        elif b.shadow >= settings.torn_shadow or (b.depth_um >= settings.dent_um
+                                                  and b.rough >= settings.rough):
+            kind = DefectKind.TORN_GRAIN
+        elif b.depth_um >= settings.dent_um:
+            kind = DefectKind.CHIP_MARK
+        else:
+            continue  # a smooth bump or a weak dent: nothing D1666 names
+        out.append(_defect(res, kind, b.cols, b.rows, depth, conf))
+    return out
+
+
+def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
+            settings: DefectSettings) -> list[Defect]:
+    """A waviness of the marks' lowest points whose period is not the revolution's.
+
+    The marks' slope profile (the map's row mean) is integrated; its heights at the marks'
+    lowest points, less each knife's mean (the runout repeats every revolution), are fitted
+    with a sinusoid over periods of 2.2-16 passes away from the revolution's harmonics.
+    """
+    if bottoms_mm is None or knives is None or len(bottoms_mm) < 3 * knives + 2:
+        return []
+    smap = res.smap
+    prof = res.profile
+    h = np.cumsum(prof) * 1000.0 / smap.px_per_mm
+    xs = smap.feed_mm(np.arange(prof.size)) + smap.cx / smap.px_per_mm  # Measurement.x_mm
+    t = np.linspace(-1, 1, h.size)
+    h = h - np.polyval(np.polyfit(t, h, 4), t)  # slow bends (snipe, drift) are not chatter
+    b = np.interp(np.asarray(bottoms_mm, dtype=np.float64), xs, h)
+    m = b.size
+    j = np.arange(m)
+    knife = j % knives
+    e = b - np.array([b[knife == k].mean() for k in range(knives)])[knife]
+    best = (0.0, 0.0, 0.0, math.inf)
+    for period in np.linspace(2.2, 16.0, 139):
+        f = 1.0 / period
+        near = min(abs(f - n / knives) for n in range(knives + 1))
+        if near < 0.6 / m:
+            continue
+        basis = np.stack([np.sin(2 * np.pi * f * j), np.cos(2 * np.pi * f * j)], axis=1)
+        basis -= np.stack([basis[knife == k].mean(axis=0) for k in range(knives)])[knife]
+        coef, *_ = np.linalg.lstsq(basis, e, rcond=None)
+        fit = basis @ coef
+        explained = float(fit @ fit) / max(float(e @ e), 1e-18)
+        amp = float(np.hypot(*coef))
+        if explained > best[0]:
+            rest = e - fit
+            best = (explained, amp, period, float(rest.std()) * math.sqrt(2.0 / m))
+    explained, amp, _period, amp_noise = best
+    if amp < settings.chatter_um or explained < 0.5 or amp < 4.0 * amp_noise:
+        return []
+    cols = np.flatnonzero(smap.valid.any(axis=0))
+    rows = np.flatnonzero(smap.valid.any(axis=1))
+    conf = min(1.0, explained) * min(1.0, amp / (2 * settings.chatter_um))
+    return [_defect(res, DefectKind.CHATTER, (int(cols[0]), int(cols[-1]) + 1),
+                    (int(rows[0]), int(rows[-1]) + 1), amp, conf)]
+
+
+def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> list[Defect]:
+    """The field's height bent along the feed: concave, the cut deepening toward one end.
+
+    The marks' slope profile is smoothed over one mark (which annihilates them) and fitted
+    with ``b x + c x^2`` (its constant is the pair's imbalance, not observed); the integrated
+    height's largest distance from its chord is the sag.  A concave sag (the ends lower) is
+    snipe, at the end whose slope is steeper.
+    """
+    smap = res.smap
+    prof = res.profile
+    cols = np.flatnonzero(smap.valid.any(axis=0))
+    if cols.size < 16:
+        return []
+    c0, c1 = int(cols[0]), int(cols[-1]) + 1
+    y = prof[c0:c1]
+    if pitch_mm is not None and math.isfinite(pitch_mm) and pitch_mm > 0:
+        k = max(1, int(round(pitch_mm * smap.px_per_mm)))
+        if k < y.size // 3:
+            y = np.convolve(y, np.ones(k) / k, mode="valid")
+    x_mm = (np.arange(y.size) - 0.5 * (y.size - 1)) / smap.px_per_mm
+    coef = np.polyfit(x_mm, y, 2)
+    c2, c1_, _ = coef
+    half = 0.5 * (c1 - c0) / smap.px_per_mm
+    xs = np.linspace(-half, half, 201)
+    hz = 1000.0 * (c1_ * xs ** 2 / 2 + c2 * xs ** 3 / 3)  # um
+    chord = hz[0] + (hz[-1] - hz[0]) * (xs + half) / (2 * half)
+    dev = hz - chord
+    sag = float(dev.max())  # concave: the middle above the chord
+    if sag < settings.snipe_um or dev.min() < -0.5 * sag:
+        return []
+    slope_ends = c1_ + 2 * c2 * np.array([-half, half])
+    left = abs(slope_ends[0]) >= abs(slope_ends[1])
+    rows = np.flatnonzero(smap.valid.any(axis=1))
+    span = (c1 - c0) / 4
+    cs = (c0, c0 + span) if left else (c1 - span, c1)
+    conf = min(1.0, sag / (2 * settings.snipe_um))
+    return [_defect(res, DefectKind.SNIPE, cs, (int(rows[0]), int(rows[-1]) + 1), sag, conf)]
+
+
+def detect_defects(smap: SurfaceMap, *, bottoms_mm: np.ndarray | None = None,
+                   knives: int | None = None, pitch_mm: float | None = None,
+                   settings: DefectSettings | None = None) -> tuple[Defect, ...]:
+    """Every detector on one pair's map.
+
+    Parameters
+    ----------
+    smap : SurfaceMap
+        The pair's map (:class:`vision.surface_map.SurfaceMapper`).
+    bottoms_mm : ndarray, optional
+        The marks' lowest points (``Measurement.bottoms_mm``): chatter needs them.
+    knives : int, optional
+        Knives on the cutterhead: chatter needs them (the runout repeats per revolution).
+    pitch_mm : float, optional
+        The marks' pitch (``Measurement.pitch_mm``): snipe smooths over one mark.
+    settings : DefectSettings, optional
+        Thresholds.
+
+    Returns
+    -------
+    tuple of Defect
+        Sorted along the feed.
+    """
+    s = DefectSettings() if settings is None else settings
+    res = residual(smap, s)
+    nicks, taken = knife_nicks(res, s)
+    if taken:
+        res = Residual(res.smap, res.r, res.profile, res.excess,
+                       _unmark(res.marked, taken), res.valid_cells, res.cell_px, res.hp)
+    raised = raised_grain(res, s)
+    out = raised if raised else nicks + pits(res, blobs(res, s), s)
+    if not any(d.kind in (DefectKind.RAISED_GRAIN, DefectKind.FUZZY_GRAIN) for d in out):
+        out += chatter(res, bottoms_mm, knives, s)  # else the marks' profile carries them
+    out += snipe(res, pitch_mm, s)
+    out = [d for d in out if d.confidence >= s.min_confidence]
+    return tuple(sorted(out, key=lambda d: (d.x_mm, d.y_mm)))
+
+
+def _unmark(marked: np.ndarray, rows: set[int]) -> np.ndarray:
+    m = marked.copy()
+    for r in rows:
+        lo, hi = max(0, r - 1), min(m.shape[0], r + 2)
+        m[lo:hi] = False
+    return m
+
+
+class DefectFinder:
+    """The map and the detectors of one rig and image shape (set up once).
+
+    What :class:`vision.pipeline.Measurer` runs with ``defects=True``.
+
+    Parameters
+    ----------
+    camera, lights : config.rig.Camera, config.rig.Lights
+        The rig.
+    shape : tuple of int
+        ``(height, width)`` of the images, pixels.
+    bin_rows, first_row_px, columns, source_rows
+        The row bins the map is made from (:class:`vision.surface_map.SurfaceMapper`).
+    knives : int, optional
+        Knives on the cutterhead (chatter is looked for only with them).
+    settings : DefectSettings, optional
+        Thresholds.
+    """
+
+    def __init__(self, camera: Camera, lights: Lights, shape: tuple[int, int], *,
+                 bin_rows: int = 1, first_row_px: float | None = None,
+                 columns: tuple[int, int] | None = None, source_rows: int | None = None,
+                 knives: int | None = None, settings: DefectSettings | None = None) -> None:
+        self.mapper = SurfaceMapper(camera, lights, shape, bin_rows=bin_rows,
+                                    first_row_px=first_row_px, columns=columns,
+                                    source_rows=source_rows)
+        self.knives = knives
+        self.settings = DefectSettings() if settings is None else settings
+
+    def __call__(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
+                 roll_deg: float, bottoms_mm: np.ndarray | None = None,
+                 pitch_mm: float | None = None) -> tuple[Defect, ...]:
+        """The defects of one pair from its row bins.
+
+        Registered at ``shift_px`` (px along the feed) with the feed at ``roll_deg``.
+        """
+        smap = self.mapper(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg)
+        return detect_defects(smap, bottoms_mm=bottoms_mm, knives=self.knives,
+                              pitch_mm=pitch_mm, settings=self.settings)
+
+
+def oriented_coherence(res: Residual, max_lag_px: int = 24) -> tuple[float, float, int]:
+    """How well each map row predicts the next one shifted along the feed.
+
+    Ridges on the growth rings cross the rows at the rings' angle: row ``i + 1`` repeats row
+    ``i`` shifted by ``row_step / tan(angle)``.  The residual is clipped at 4 of its robust
+    scales (a deep pit does not dominate) and the rows' cross-correlations summed (FFT).
+
+    Returns
+    -------
+    tuple
+        ``(peak correlation, correlation at lag 0, lag of the peak in px)``.
+    """
+    r = res.r.astype(np.float64)
+    sample = np.abs(r[res.smap.valid][::7])
+    scale = 1.4826 * float(np.median(sample)) if sample.size else 0.0
+    if scale <= 0:
+        return 0.0, 0.0, 0
+    r = np.clip(r, -4 * scale, 4 * scale)
+    n = r.shape[1]
+    size = 1 << int(math.ceil(math.log2(n + max_lag_px)))
+    f = np.fft.rfft(r, size, axis=1)
+    x = np.fft.irfft((np.conj(f[:-1]) * f[1:]).sum(axis=0), size)
+    norm = float((r[:-1] ** 2).sum() * (r[1:] ** 2).sum()) ** 0.5
+    if norm <= 0:
+        return 0.0, 0.0, 0
+    lags = np.r_[np.arange(0, max_lag_px + 1), np.arange(-max_lag_px, 0)]
+    vals = np.r_[x[:max_lag_px + 1], x[-max_lag_px:]] / norm
+    k = int(np.argmax(vals))
+    return float(vals[k]), float(vals[0]), int(lags[k])

@@ -1,0 +1,317 @@
+"""A 2-D surface map of one registered pair: the slope along the feed and the albedo.
+
+The two lights lie along the feed (azimuths 0 and 180 deg), so the pair observes the surface's
+slope *along the feed* only: ``p = dz/dx`` comes from the ratio ``I_B / I_A`` by seed Eq. 4
+(:func:`vision.slope.slope_from_ratio`) at every pixel once B is registered onto A.  The slope
+*across* the feed, ``q = dz/dy``, enters both images alike (through ``1 / sqrt(1 + p^2 + q^2)``)
+and cancels in the ratio: it is not observed, and a ridge running exactly along the feed shows
+only in the albedo.  The albedo is the mean of the two registered images over their common
+shading ``cos(sigma)``, relative to its mean over the field (1 = typical wood).
+
+:class:`SurfaceMapper` does the set-up once per camera, lights and image shape: one remap table
+per roll (cached) from row-binned *distorted* images to a grid turned to the feed -- columns
+along the feed at the camera's resolution (1 px), rows across it every ``bin_rows`` image rows
+-- undistorted at once.  On that grid the board's motion between the shots is a shift along
+the columns alone, so B is registered with the measurement's shift (``Measurement.shift_px``,
+px along the feed) by a linear interpolation along the rows.  With ``bin_rows = 1`` the map has
+the camera's full resolution; the :class:`vision.pipeline.Measurer` builds it from the row bins
+it has already summed (``k0`` rows, 0.4 mm at the default rig), so the map costs one small
+remap per image and no further pass over the images.
+
+Map coordinates: column ``j`` lies ``j + col0_px - cx`` px from the optical axis along the feed,
+row ``i`` ``row0_px + i * row_step_px - cy`` px across it; :meth:`SurfaceMap.image_xy_mm` turns
+them into A's undistorted image frame (mm from its top-left corner, x = columns).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from config.rig import Camera, Lights
+from core.checks import check_finite, check_int
+
+_ROLL_KEY_DEG = 0.05
+"""Rolls are rounded to this grid for the cached tables (a row moves < 0.3 px over 659 px)."""
+
+
+@dataclass(frozen=True)
+class SurfaceMap:
+    """Slope along the feed and albedo of one registered pair, on a grid turned to the feed.
+
+    Attributes
+    ----------
+    slope_along_feed : ndarray of float32, shape (rows, cols)
+        ``dz/dx`` along the feed (dimensionless); the pair's constant imbalance removed
+        (a surface tilt along the feed cannot be told from it); 0 where ``valid`` is False.
+    albedo : ndarray of float32, shape (rows, cols)
+        Reflectance relative to the map's mean (1 = typical); 0 where ``valid`` is False.
+    valid : ndarray of bool, shape (rows, cols)
+        Both shots see the point, inside the images.
+    col0_px : float
+        Undistorted image column (along the feed at roll 0) of map column 0.
+    row0_px, row_step_px : float
+        Undistorted row of map row 0 and the rows' spacing, pixels.
+    roll_deg : float
+        Direction of the feed in the image the grid was turned to, degrees.
+    cx, cy : float
+        Principal point (the centre of the turn), pixels.
+    px_per_mm : float
+        Image scale.
+    shadow_slope : float
+        The slope Eq. 4 gives where one light is fully shadowed (its bound, ``1 / tan(slant)``
+        for equal slants): slopes near it are cast shadows or steeper walls.
+    """
+
+    slope_along_feed: np.ndarray
+    albedo: np.ndarray
+    valid: np.ndarray
+    col0_px: float
+    row0_px: float
+    row_step_px: float
+    roll_deg: float
+    cx: float
+    cy: float
+    px_per_mm: float
+    shadow_slope: float = math.inf
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(rows, cols)`` of the map."""
+        return self.slope_along_feed.shape  # type: ignore[return-value]
+
+    def feed_mm(self, cols: np.ndarray | float) -> np.ndarray:
+        """Position along the feed of map columns, mm from the optical axis."""
+        return (np.asarray(cols, dtype=np.float64) + self.col0_px - self.cx) / self.px_per_mm
+
+    def across_mm(self, rows: np.ndarray | float) -> np.ndarray:
+        """Position across the feed of map rows, mm from the optical axis."""
+        r = np.asarray(rows, dtype=np.float64)
+        return (self.row0_px + r * self.row_step_px - self.cy) / self.px_per_mm
+
+    def image_xy_mm(self, cols: np.ndarray | float, rows: np.ndarray | float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """A's undistorted image frame of map points: ``(x_mm, y_mm)`` from its top-left corner.
+
+        Parameters
+        ----------
+        cols, rows : array_like
+            Map column and row (fractional allowed).
+
+        Returns
+        -------
+        tuple of ndarray
+            ``x = u / px_per_mm`` (columns, along the feed at roll 0), ``y = v / px_per_mm``.
+        """
+        xi = self.feed_mm(cols) * self.px_per_mm
+        eta = self.across_mm(rows) * self.px_per_mm
+        c, s = math.cos(math.radians(self.roll_deg)), math.sin(math.radians(self.roll_deg))
+        u = self.cx + xi * c - eta * s
+        v = self.cy + xi * s + eta * c
+        return u / self.px_per_mm, v / self.px_per_mm
+
+    def heights_um(self) -> np.ndarray:
+        """The slope integrated along each row, um (each row's valid mean removed).
+
+        Returns
+        -------
+        ndarray of float64, shape (rows, cols)
+            ``1000 * cumulative integral of p dx`` per row (trapezoid, ``dx = 1 / px_per_mm``);
+            only the along-feed integral is observed, so rows are not tied to each other.
+        """
+        p = np.where(self.valid, self.slope_along_feed, 0.0).astype(np.float64)
+        dx_um = 1000.0 / self.px_per_mm
+        h = np.zeros_like(p)
+        h[:, 1:] = np.cumsum(0.5 * (p[:, 1:] + p[:, :-1]), axis=1) * dx_um
+        n = np.maximum(self.valid.sum(axis=1, keepdims=True), 1)
+        return h - (h * self.valid).sum(axis=1, keepdims=True) / n
+
+
+class SurfaceMapper:
+    """Builds :class:`SurfaceMap` of one camera, lights and image shape (tables set up once).
+
+    Parameters
+    ----------
+    camera : config.rig.Camera
+        Intrinsics, distortion and scale.
+    lights : config.rig.Lights
+        The two lights' slants and azimuths (seed Eq. 4).
+    shape : tuple of int
+        ``(height, width)`` of the images, pixels.
+    bin_rows : int, optional
+        Image rows summed per source row (1: the camera's resolution).
+    first_row_px : float, optional
+        Image row at the centre of source row 0 (default ``(bin_rows - 1) / 2``).
+    columns : tuple of int, optional
+        Undistorted columns the map covers (default the whole width).
+    source_rows : int, optional
+        Source rows per image (default: as many whole bins as fit below ``first_row_px``).
+    cache : int, optional
+        Tables kept (one per roll on a 0.05 deg grid).
+    """
+
+    def __init__(self, camera: Camera, lights: Lights, shape: tuple[int, int], *,
+                 bin_rows: int = 1, first_row_px: float | None = None,
+                 columns: tuple[int, int] | None = None, source_rows: int | None = None,
+                 cache: int = 8) -> None:
+        if len(shape) != 2:
+            raise ValueError(f"shape must be (height, width), got {shape!r}")
+        self.height = check_int("shape[0] (height)", shape[0], lo=2)
+        self.width = check_int("shape[1] (width)", shape[1], lo=8)
+        self.bin_rows = check_int("bin_rows", bin_rows, lo=1)
+        self.first_row_px = ((self.bin_rows - 1) / 2.0 if first_row_px is None
+                             else check_finite("first_row_px", first_row_px))
+        c0, c1 = (0, self.width) if columns is None else (int(columns[0]), int(columns[1]))
+        if not 0 <= c0 < c1 <= self.width:
+            raise ValueError(f"columns must lie within 0..{self.width}, got {columns!r}")
+        self.columns = (c0, c1)
+        self.n_src = ((self.height - int(round(self.first_row_px - (self.bin_rows - 1) / 2))
+                       ) // self.bin_rows if source_rows is None
+                      else check_int("source_rows", source_rows, lo=2))
+        self.camera = camera
+        self._k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy],
+                            [0.0, 0.0, 1.0]])
+        self._dist = np.asarray(camera.dist, dtype=np.float64)
+        self._identity = not np.any(self._dist)
+        slant_a, slant_b = lights.slants_deg
+        ta, tb = math.tan(math.radians(slant_a)), math.tan(math.radians(slant_b))
+        self._ka = math.cos(math.radians(lights.azimuth_a_deg)) * ta
+        self._kb = math.cos(math.radians(lights.azimuth_b_deg)) * tb
+        if self._ka == self._kb:
+            raise ValueError("the lights must stand on opposite sides along the feed")
+        # albedo: the mean of both images over their common flat-surface shading
+        ca, cb = math.cos(math.radians(slant_a)), math.cos(math.radians(slant_b))
+        self._flat = 0.5 * (ca + cb)
+        self._cache_size = check_int("cache", cache, lo=1)
+        self._tables: OrderedDict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = (
+            OrderedDict())
+
+    def _table(self, roll_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Remap table (x, y in source bins) and validity of the grid turned by ``roll_deg``."""
+        key = round(roll_deg / _ROLL_KEY_DEG) * _ROLL_KEY_DEG
+        hit = self._tables.get(key)
+        if hit is not None:
+            self._tables.move_to_end(key)
+            return hit
+        cam = self.camera
+        c0, c1 = self.columns
+        width, n_out = c1 - c0, self.n_src
+        step, v0 = float(self.bin_rows), self.first_row_px
+        c, s = math.cos(math.radians(key)), math.sin(math.radians(key))
+        cx, cy, fx, fy = cam.cx, cam.cy, cam.fx, cam.fy
+        # undistorted pixel of output (p, i): u = cx + xi c - eta s, v = cy + xi s + eta c,
+        # xi = c0 + p - cx, eta = v0 + i step - cy
+        a = np.array([[c, -step * s, cx + (c0 - cx) * c - (v0 - cy) * s],
+                      [s, step * c, cy + (c0 - cx) * s + (v0 - cy) * c]])
+        if self._identity:
+            p, i = np.meshgrid(np.arange(width, dtype=np.float64),
+                               np.arange(n_out, dtype=np.float64))
+            mx = a[0, 0] * p + a[0, 1] * i + a[0, 2]
+            my = a[1, 0] * p + a[1, 1] * i + a[1, 2]
+        else:
+            m = np.array([[a[0, 0] / fx, a[0, 1] / fx, (a[0, 2] - cx) / fx],
+                          [a[1, 0] / fy, a[1, 1] / fy, (a[1, 2] - cy) / fy],
+                          [0.0, 0.0, 1.0]])
+            mx, my = cv2.initUndistortRectifyMap(self._k, self._dist, None, np.linalg.inv(m),
+                                                 (width, n_out), cv2.CV_32FC1)
+        src_y = (np.asarray(my, dtype=np.float64) - self.first_row_px) / step
+        valid = ((mx >= 0) & (mx <= self.width - 1) & (src_y >= 0) & (src_y <= self.n_src - 1))
+        hit = (np.ascontiguousarray(mx, dtype=np.float32),
+               np.ascontiguousarray(src_y, dtype=np.float32), valid)
+        self._tables[key] = hit
+        if len(self._tables) > self._cache_size:
+            self._tables.popitem(last=False)
+        return hit
+
+    def __call__(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
+                 roll_deg: float = 0.0) -> SurfaceMap:
+        """The map of one pair from its row-binned images.
+
+        Parameters
+        ----------
+        rows_a, rows_b : ndarray, shape (n_src, width)
+            Sums (or means) of ``bin_rows`` adjacent rows of the distorted images A and B
+            (with ``bin_rows = 1`` the images themselves); any real dtype OpenCV remaps.
+        shift_px : float
+            Board motion from A to B along the feed, pixels (``Measurement.shift_px``).
+        roll_deg : float, optional
+            Direction of the feed in the image (``Measurement.roll_deg``), degrees.
+
+        Returns
+        -------
+        SurfaceMap
+        """
+        d = check_finite("shift_px", shift_px)
+        roll = check_finite("roll_deg", roll_deg)
+        for name, r in (("rows_a", rows_a), ("rows_b", rows_b)):
+            if np.shape(r) != (self.n_src, self.width):
+                raise ValueError(f"{name} must have shape {(self.n_src, self.width)}, "
+                                 f"got {np.shape(r)}")
+        mx, my, valid = self._table(roll)
+        a = cv2.remap(np.asarray(rows_a), mx, my, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE).astype(np.float32, copy=False)
+        b = cv2.remap(np.asarray(rows_b), mx, my, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE).astype(np.float32, copy=False)
+        width = a.shape[1]
+        k = int(math.floor(d))
+        t = np.float32(d - k)
+        # B registered onto A: b_reg[:, j] = b[:, j + d] (linear), where j + d is inside
+        b_reg = np.zeros_like(b)
+        lo, hi = max(0, -k), min(width, width - k - 1)
+        ok = np.zeros(width, dtype=bool)
+        if hi > lo:
+            b_reg[:, lo:hi] = (1 - t) * b[:, lo + k:hi + k] + t * b[:, lo + k + 1:hi + k + 1]
+            ok[lo:hi] = True
+        vb = np.zeros_like(valid)
+        if hi > lo:
+            vb[:, lo:hi] = valid[:, lo + k:hi + k] & valid[:, lo + k + 1:hi + k + 1]
+        both = valid & vb & ok[None, :] & (a > 0) & (b_reg > 0)
+        a = np.where(both, a, np.float32(1.0))
+        b_reg = np.where(both, b_reg, np.float32(1.0))
+        n = max(int(np.count_nonzero(both)), 1)
+        sa, sb = float(a[both].sum()), float(b_reg[both].sum())
+        if not (sa > 0 and sb > 0):
+            sa = sb = 1.0
+        r = b_reg * np.float32(sa / sb)  # the pair's constant imbalance removed
+        slope = (r - a) / (r * np.float32(self._ka) - a * np.float32(self._kb))
+        slope = np.where(both, slope, np.float32(0.0)).astype(np.float32)
+        albedo = np.where(both, (a + r) * np.float32(n / (2.0 * sa)), np.float32(0.0))
+        return SurfaceMap(
+            slope_along_feed=slope, albedo=albedo.astype(np.float32), valid=both,
+            col0_px=float(self.columns[0]), row0_px=self.first_row_px,
+            row_step_px=float(self.bin_rows), roll_deg=float(round(roll / _ROLL_KEY_DEG)
+                                                              * _ROLL_KEY_DEG),
+            cx=float(self.camera.cx), cy=float(self.camera.cy),
+            px_per_mm=float(self.camera.px_per_mm),
+            shadow_slope=min(abs(1.0 / self._ka), abs(1.0 / self._kb)))
+
+
+def surface_map(image_a: np.ndarray, image_b: np.ndarray, *, camera: Camera, lights: Lights,
+                shift_px: float, roll_deg: float = 0.0) -> SurfaceMap:
+    """The map of one pair at the camera's full resolution (a one-off :class:`SurfaceMapper`).
+
+    Parameters
+    ----------
+    image_a, image_b : ndarray, shape (height, width)
+        The distorted images lit by light A and light B, B taken after A.
+    camera, lights : config.rig.Camera, config.rig.Lights
+        The rig.
+    shift_px : float
+        Board motion along the feed between the shots, pixels (the registration's).
+    roll_deg : float, optional
+        Direction of the feed in the image, degrees.
+
+    Returns
+    -------
+    SurfaceMap
+    """
+    a, b = np.asarray(image_a), np.asarray(image_b)
+    if a.ndim != 2 or a.shape != b.shape:
+        raise ValueError(f"image_a and image_b must be 2-D of one shape, got {a.shape}, "
+                         f"{b.shape}")
+    mapper = SurfaceMapper(camera, lights, a.shape)  # type: ignore[arg-type]
+    return mapper(a, b, shift_px=shift_px, roll_deg=roll_deg)
