@@ -774,6 +774,15 @@ def build_figures(
     return figs
 
 
+FIGURE_NAMES = ("pitch_uniformity", "setpoints", "profile")
+"""The figures :func:`build_figures` may draw (``<stem>_<name>.png``)."""
+
+
+def figure_paths(out_dir: str | Path, *, stem: str) -> dict[str, Path]:
+    """Where :func:`save_figures` writes each figure it may draw, by name (for checks before)."""
+    return {name: Path(out_dir) / f"{stem}_{name}.png" for name in FIGURE_NAMES}
+
+
 def save_figures(
     figures: dict[str, Figure], out_dir: str | Path, *, stem: str
 ) -> dict[str, str]:

@@ -65,8 +65,9 @@ class SqliteStore:
         The log file. Opening an existing log continues it.
     create : bool, keyword-only
         Create the file when it does not exist, and bring an older layout to the current one.
-        With ``False`` a missing file raises ``FileNotFoundError`` (readers such as
-        ``planer report``) and an older layout is read as it is.
+        With ``False`` the file is opened read-only (SQLite ``mode=ro``: readers such as
+        ``planer report`` never write to it), a missing file raises ``FileNotFoundError`` and
+        an older layout is read as it is.
     timeout_s : float, keyword-only
         How long to wait for another process's write lock, seconds.
 
@@ -97,7 +98,9 @@ class SqliteStore:
                 raise FileNotFoundError(f"folder of the quality log does not exist: {p.parent}")
         try:
             conn = sqlite3.connect(
-                f"file:{_uri_path(p)}?mode={'rwc' if create else 'rw'}", uri=True,
+                # create=False: only read (planer report, the web page): mode=ro, the file is
+                # never written (an empty or foreign file stays what it is)
+                f"file:{_uri_path(p)}?mode={'rwc' if create else 'ro'}", uri=True,
                 timeout=timeout_s, isolation_level=None, check_same_thread=False,
             )
         except sqlite3.Error as exc:
@@ -122,13 +125,14 @@ class SqliteStore:
                 "SELECT name FROM sqlite_master WHERE type = 'table'")}
             if tables and (app_id != APPLICATION_ID or "records" not in tables):
                 raise QualityLogError(f"{p} is an SQLite file but not a quality log")
-            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-            if str(mode).lower() != "wal":
-                raise OSError(f"cannot use write-ahead logging for {p} (journal mode {mode})")
-            conn.execute("PRAGMA synchronous = FULL")
+            if not tables and not create:
+                raise QualityLogError(f"{p} is empty, not a quality log")
+            if create:
+                mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+                if str(mode).lower() != "wal":
+                    raise OSError(f"cannot use write-ahead logging for {p} (journal mode {mode})")
+                conn.execute("PRAGMA synchronous = FULL")
             if not tables:
-                if not create:
-                    raise QualityLogError(f"{p} is empty, not a quality log")
                 self._create_schema()
             rows = conn.execute("SELECT version FROM schema_version").fetchall()
         except sqlite3.DatabaseError as exc:

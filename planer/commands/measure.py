@@ -110,6 +110,15 @@ def run(args: argparse.Namespace) -> int:
     speed = check_speed_mm_s(args.speed_mm_s)
     if (args.flat_a is None) != (args.flat_b is None):
         raise ValueError("--flat-a and --flat-b must be given together")
+    if args.plot:  # before the work: a figure file, writable, none of the inputs
+        from planer.cli import output_file
+        from planer.outputs import figure_file, not_an_input
+
+        figure_file("--plot", args.plot)
+        not_an_input("--plot", args.plot, {"IMAGE_A": args.image_a, "IMAGE_B": args.image_b,
+                                           "--rig": args.rig, "--flat-a": args.flat_a,
+                                           "--flat-b": args.flat_b})
+        output_file("--plot", args.plot)
     rig = load_rig(args.rig)
     image_a = read_gray(args.image_a)
     image_b = read_gray(args.image_b)
@@ -133,10 +142,12 @@ def run(args: argparse.Namespace) -> int:
         image_a, image_b, counts_a=args.counts_a, counts_b=args.counts_b, speed_mm_s=speed,
     )
     if args.plot:
+        from planer.outputs import writing
         from vision.plot import profile_figure
 
         fig = profile_figure(result, title=f"{args.image_a} / {args.image_b}")
-        fig.savefig(args.plot, dpi=110)
+        with writing("--plot", args.plot):
+            fig.savefig(args.plot, dpi=110)
     data = result.to_json()
     feed = None
     if args.knives is not None and args.rpm is not None and speed is not None:

@@ -6,6 +6,11 @@ picks one machine's records). The log may be growing (the service appending) whi
 it: the report shows the records committed when it started. A record journal left on local
 disk (records the log could not take yet) is named with its record count; its records are not
 in the summary. An unreachable database is one line naming ``host:port/db`` (exit 2).
+
+The report never writes to what it reads: the log is opened read-only (SQLite ``mode=ro``; an
+empty or foreign file stays as it is), and ``--csv`` or a figure that is the log or its journal
+(the same path after symlinks, or the same inode) is refused before any work. A write that
+fails (a full disk) names the file.
 """
 
 from __future__ import annotations
@@ -35,9 +40,20 @@ def run(args: argparse.Namespace) -> int:
     """Run the command."""
     from controller.quality.journal import default_journal_path, read_journal
     from controller.quality.log import is_database_url, log_target, open_quality_log
-    from controller.quality.report import build_figures, format_summary, save_figures, summarise
+    from controller.quality.report import (
+        build_figures,
+        figure_paths,
+        format_summary,
+        save_figures,
+        summarise,
+    )
     from planer.cli import output_file, output_folder
+    from planer.outputs import not_an_input, writing
 
+    if "://" in args.log and not is_database_url(args.log):
+        scheme = args.log.split("://", 1)[0]
+        raise ValueError(f"LOG {args.log}: {scheme}:// is not a quality log; give an SQLite "
+                         "file or a postgresql://USER@HOST:PORT/DB URL")
     log_path = log_target(args.log)
     if isinstance(log_path, Path) and log_path.is_dir():
         raise ValueError(f"LOG {log_path}: is a folder, expected a quality log file")
@@ -46,8 +62,15 @@ def run(args: argparse.Namespace) -> int:
     else:
         default_out, stem = Path(log_path).absolute().parent, Path(log_path).stem
     out_dir = Path(args.out) if args.out is not None else default_out
-    output_folder("--out" if args.out is not None else "figure folder (next to LOG; see --out)",
-                  out_dir)
+    journal = default_journal_path(log_path)
+    inputs = {"LOG": None if is_database_url(log_path) else log_path,
+              "the log's record journal": journal}
+    if args.csv is not None:
+        not_an_input("--csv", args.csv, inputs)
+    out_opt = "--out" if args.out is not None else "figure folder (next to LOG; see --out)"
+    for fig in figure_paths(out_dir, stem=stem).values():
+        not_an_input(out_opt, fig, inputs)
+    output_folder(out_opt, out_dir)
     if args.csv is not None:
         output_file("--csv", args.csv)
 
@@ -58,9 +81,9 @@ def run(args: argparse.Namespace) -> int:
         csv_path, n_csv = None, 0
         if args.csv is not None:
             csv_path = Path(args.csv)
-            n_csv = log.export_csv(csv_path, machine_id=args.machine)
+            with writing("--csv", csv_path):
+                n_csv = log.export_csv(csv_path, machine_id=args.machine)
 
-    journal = default_journal_path(log_path)
     try:
         held, bad = read_journal(journal)
         journal_info = {"path": str(journal), "records": len(held), "unreadable_lines": bad}
@@ -70,8 +93,9 @@ def run(args: argparse.Namespace) -> int:
         journal_info = {"path": str(journal), "records": None, "error": exc.strerror or str(exc)}
 
     summary = summarise(records, quality_class=quality_class)
-    written = save_figures(build_figures(records, quality_class=quality_class), out_dir,
-                           stem=stem)  # each PNG written atomically
+    with writing(out_opt, out_dir):
+        written = save_figures(build_figures(records, quality_class=quality_class), out_dir,
+                               stem=stem)  # each PNG written atomically
 
     if args.json:
         summary = {"log": shown, "machine": args.machine, **summary, "figures": written,
