@@ -35,6 +35,7 @@ COUNTERS = (
     "knife_chips",
     "targets_unreachable",
     "measurements_failing",
+    "spool_skipped",
 )
 """The service's counters (``Service.counters``), all starting at 0."""
 
@@ -73,7 +74,9 @@ class EventKind(enum.Enum):
     CLOCK_WENT_BACK = "clock_went_back"
     CAMERA_CLOCK_WENT_BACK = "camera_clock_went_back"
     PAIRS_MISSED = "pairs_missed"
-    """Pairs that never reached the service (a gap in the sequence numbers)."""
+    """A gap in the camera's sequence numbers (text: the count of numbers, then the jump)."""
+    SPOOL_SKIPPED = "spool_skipped"
+    """A spool file that gave no pair, or pairs pruned before they were read: one per file."""
     FRAME_SOURCE_FAILED = "frame_source_failed"
     LOG_FAILED = "log_failed"
     LOG_REFUSED_RECORD = "log_refused_record"

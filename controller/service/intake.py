@@ -111,7 +111,7 @@ class FrameIntake:
         return min(ft + self._machine_offset_s, t_arr)
 
     def _note_seq(self, frame: Frame, t: float) -> None:
-        """Report pairs that never reached the service (a gap in the camera's sequence)."""
+        """Report a gap in the camera's sequence with its numbers (files it skipped: the spool)."""
         try:
             seq = int(frame.seq)
         except (TypeError, ValueError, OverflowError):
@@ -121,4 +121,5 @@ class FrameIntake:
             n = seq - last - 1
             self._report.count("missed", n)
             self._report.emit(t, EventKind.PAIRS_MISSED,
-                              f"{n} pair(s) never reached the service (seq {last + 1}..{seq - 1})")
+                              f"{n} sequence number(s) without a pair: the camera's seq jumped "
+                              f"from {last} to {seq}")

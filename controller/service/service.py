@@ -231,6 +231,7 @@ class Service:
             counters=ServiceStatus.freeze(self.report.counters),
             log_problem=self.records.problem,
             records_pending=self.records.pending,
+            alerts=self.loops.alerts.describe(),
             piezo_limits=self.out.limits() if self.piezo is not None else None,
             uniformity=(None if self.loops.uniformity_loop is None
                         else self.loops.uniformity_loop.describe()),
@@ -389,6 +390,7 @@ class Service:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             await self.pipeline.drain()  # pairs still with the workers get their records
+            self._report_skips(source)  # the run's last files too: a record or a named skip
 
     async def _next_frame(self, source: Any) -> Frame | None:
         """The next pair of ``source`` (``None``: none within 0.1 s, or the source failed)."""
@@ -407,7 +409,24 @@ class Service:
             await asyncio.sleep(0.1)
             return None
         self.keeper.clean("source")
+        self._report_skips(source)
         return frame
+
+    def _report_skips(self, source: Any) -> None:
+        """One ``SPOOL_SKIPPED`` event per spool file that gave no pair (``take_skips``)."""
+        take = getattr(source, "take_skips", None)
+        if take is None:
+            return
+        try:
+            skips = take()
+        except (OSError, ValueError):  # a broken source is reported by _next_frame
+            return
+        for skip in skips:
+            self.report.count("spool_skipped", skip.pairs)
+            what = (f"spool: {skip.pairs} pair(s) {skip.file}" if skip.pairs > 1
+                    else f"spool: skipped {skip.file}")
+            self.report.emit(self.service_clock.now(), EventKind.SPOOL_SKIPPED,
+                             f"{what}: {skip.reason}")
 
     def close(self) -> None:
         """Leave the amplifier disabled with zero offsets, write held records, close everything.
