@@ -26,6 +26,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from config.wood import SPECIES as WOOD_SPECIES
 from core.errors import ConfigError
 
 __all__ = [
@@ -58,10 +59,12 @@ class FaultParam:
         Whether ``lo`` is excluded.
     integer : bool
         Whether the value must be a whole number.
-    default : float or None
+    default : float or str or None
         Value when not given; ``None`` with ``required`` false: the model picks (see ``doc``).
     required : bool
         Whether the table must give it.
+    choices : tuple of str
+        For a parameter that is a name, not a number: the names allowed (empty: a number).
     """
 
     name: str
@@ -71,11 +74,16 @@ class FaultParam:
     hi: float = math.inf
     lo_open: bool = False
     integer: bool = False
-    default: float | None = None
+    default: float | str | None = None
     required: bool = False
+    choices: tuple[str, ...] = ()
 
-    def check(self, value: Any, key: str) -> float | int:
-        """``value`` as a number inside the range; :class:`ConfigError` naming ``key`` if not."""
+    def check(self, value: Any, key: str) -> float | int | str:
+        """``value`` in range (a name among ``choices``); :class:`ConfigError` naming ``key``."""
+        if self.choices:
+            if not isinstance(value, str) or value not in self.choices:
+                raise ConfigError(f"{key} must be one of {', '.join(self.choices)}, got {value!r}")
+            return value
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise ConfigError(f"{key} must be a number, got {value!r}")
         v = float(value)
@@ -157,6 +165,32 @@ _SPECS: dict[str, _Spec] = {
         interface=True, trips="can", doc="the piezo amplifier sends nothing",
     ),
     "reset": _Spec(doc="fault reset: clears the e-stop and the drive faults"),
+    "knife_chip": _Spec(
+        (FaultParam("knife", "", "the knife that chips (0 = the index knife)", lo=0.0, hi=7.0,
+                    integer=True, default=0.0),
+         FaultParam("step_um", "um", "its runout steps by this much (> 0: it stands further "
+                    "out and cuts deeper, as a knife that moved; < 0: a chip takes material "
+                    "off its edge)", lo=-50.0, hi=50.0, default=6.0),
+         FaultParam("at_travel_mm", "mm", "the table's travel at which it happens (instead of "
+                    "at_s)", lo=0.0)),
+        doc="a knife chips or moves: a step of its runout, at a time or a distance",
+    ),
+    "species_change": _Spec(
+        (FaultParam("species", "", "the wood of the boards from then on", required=True,
+                    choices=tuple(sorted(WOOD_SPECIES))),
+         FaultParam("board_id", "", "the first board of the new wood (default the next one)",
+                    lo=1.0, integer=True)),
+        doc="the wood changes between two boards (its texture, albedo, translucency)",
+    ),
+    "measurement_dropout": _Spec(
+        (FaultParam("duration_s", "s", _DURATION, lo=0.0, lo_open=True, required=True),
+         FaultParam("fraction", "", "share of the pairs hit", lo=0.0, lo_open=True, hi=1.0,
+                    default=0.5),
+         FaultParam("spoil", "", "0: the pairs hit are lost (never delivered); 1: they arrive "
+                    "spoiled (light B did not fire)", lo=0.0, hi=1.0, integer=True,
+                    default=0.0)),
+        doc="a share of the image pairs is lost or spoiled for a while (camera or lights)",
+    ),
 }
 
 
@@ -178,6 +212,9 @@ class FaultKind(str, enum.Enum):
     MODBUS_RESTART = "modbus_restart"
     CAN_SILENCE = "can_silence"
     RESET = "reset"
+    KNIFE_CHIP = "knife_chip"
+    SPECIES_CHANGE = "species_change"
+    MEASUREMENT_DROPOUT = "measurement_dropout"
 
     def __str__(self) -> str:
         return self.value
@@ -230,7 +267,7 @@ class FaultKind(str, enum.Enum):
                 f"{key} must be one of {', '.join(FAULT_KINDS)}; got {name!r}"
             ) from None
 
-    def check(self, params: Mapping[str, Any], *, key: str | None = None) -> dict[str, float]:
+    def check(self, params: Mapping[str, Any], *, key: str | None = None) -> dict[str, Any]:
         """The parameters checked (``at_s`` allowed, defaults not filled in).
 
         Parameters
@@ -270,10 +307,11 @@ class FaultKind(str, enum.Enum):
             raise ConfigError(f"{prefix}: give one of {', '.join(spec.exclusive)}, not both")
         return out
 
-    def value_of(self, params: Mapping[str, float], name: str) -> float | None:
+    def value_of(self, params: Mapping[str, Any], name: str) -> float | str | None:
         """A parameter's value: given, else its default (``None`` if it has none)."""
         if name in params:
-            return float(params[name])
+            v = params[name]
+            return v if isinstance(v, str) else float(v)
         p = next((p for p in self.params if p.name == name), None)
         if p is None:
             raise KeyError(f"{self.value} has no parameter {name!r}")
@@ -307,7 +345,7 @@ class Fault:
 
     kind: FaultKind
     at_s: float | None = None
-    params: Mapping[str, float] = field(default_factory=dict)
+    params: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         kind = FaultKind.parse(self.kind)

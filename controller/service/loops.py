@@ -26,6 +26,7 @@ from controller.laws.feed_loop import FeedLoop, FeedLoopConfig
 from controller.laws.limits import project_zero_mean_box
 from controller.laws.uniformity_loop import UniformityLoop, UniformityLoopConfig
 from controller.service.actuators import Actuators
+from controller.service.alerts import OperatorAlerts
 from controller.service.attribution import Attributed
 from controller.service.events import EventKind, EventLog
 from controller.service.memory import KnifeSet, LearnedMemory, LearnedState
@@ -105,6 +106,9 @@ class ControlLoops:
         holds the feed while starting up: :meth:`Supervisor.warm_start`)."""
         self.resumed: LearnedState | None = None
         """The remembered state the loops started from (``None``: they learnt afresh)."""
+        self.alerts = OperatorAlerts(report, target_pitch_mm=cfg.quality.target_pitch_mm,
+                                     tolerance=cfg.quality.tolerance)
+        """What the operator is told: an unreachable target, a chipped knife, failing pairs."""
         self._learned_offsets: np.ndarray | None = None
         self._stroke_limit_um: float | None = None
         self._t_loops = -math.inf
@@ -165,6 +169,7 @@ class ControlLoops:
             self.uniformity_loop.set_limit_um(self._stroke_limit_um)
         self._learned_offsets = np.zeros(snap.knives)
         self.out.set_knives(snap.knives)
+        self.alerts.machine(snap.knives, float(snap["cutterhead_radius_mm"]))
         self._key = key
         if first and self.memory is not None:
             self._resume_memory(snap)
@@ -351,6 +356,8 @@ class ControlLoops:
             )
             feed = min(max(float(feed), lo), hi)
             write = await self._feed_write(feed, t)
+            self.alerts.target.update(t, pitch_mm=pitch, feed_mm_s=feed, feed_limits_mm_s=(lo, hi),
+                                      held_pitch_mm=loop.pitch_setpoint_mm)
             try:
                 if np.any(np.isfinite(widths)):
                     interval = loop.cut_interval_s(measured_at)
@@ -426,6 +433,11 @@ class ControlLoops:
         if not self.amp_tracked(cut_at, t):
             self._report.count("uniformity_skipped")
             return False
+        chips = self.alerts.chips
+        if chips is not None:  # the board was cut with the table the service sent
+            chips.timeline.note(t, self.out.offsets_um)
+            chips.pair(t, widths_mm=widths, pitch_mm=pitch,
+                       cut_at_s=None if cut is None else 0.5 * (cut[0] + cut[1]))
         uni = self.uniformity_loop
         offs = uni.update(
             knife_widths_mm=widths, pitch_mm=pitch, now_s=t, cut_at_s=cut_at,
@@ -439,6 +451,8 @@ class ControlLoops:
             self._report.emit(t, EventKind.OFFSETS_NOT_SENT, f"piezo offsets not sent: {exc}")
             return False
         self._learned_offsets = np.asarray(sent, dtype=float)
+        if chips is not None:
+            chips.timeline.note(t, sent)
         for note in uni.take_notices():  # the actuator cannot help: said once
             self._report.emit(t, EventKind.UNIFORMITY_NO_AUTHORITY, note.text, data=note.data)
         return True
@@ -474,6 +488,9 @@ class ControlLoops:
         if learned is not None and len(learned) == out.piezo.knives:
             if uni is not None and len(learned) == uni.cfg.knives:
                 learned = uni.recovery_table_um(learned)  # the best table measured
+            if self.alerts.chips is not None:  # board cut in the safe state is not compared
+                self.alerts.chips.reset()
+                self.alerts.chips.timeline.note(t, learned)
             try:
                 out.offsets_um = out.piezo.set_offsets(learned, now_s=t)
                 if self.uniformity_loop is not None:

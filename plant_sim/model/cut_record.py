@@ -103,6 +103,11 @@ class CutRecord:
         base = self._standout[knife]
         return base if self.drift is None else base + self.drift.knife_um(knife, t_s)
 
+    def step_standout(self, knife: int, step_um: float) -> None:
+        """Knife ``knife`` stands out ``step_um`` more from now on (a chipped or moved knife)."""
+        k = check_int("knife", knife, lo=0, hi=len(self._standout) - 1)
+        self._standout[k] += float(step_um)
+
     def bdc(self, knife: int, s_mm: float, piezo_um: float, *, t_s: float = 0.0) -> None:
         """Knife ``knife`` at BDC at time ``t_s``: table at ``s_mm``, head at ``piezo_um``."""
         if knife == 0:

@@ -24,10 +24,25 @@ applied on the PLC-cycle grid). Parameter names, defaults and ranges come from t
 - ``modbus_restart``, ``can_silence`` (``duration_s``): interface faults; only queued for the
   runner (:meth:`FaultInjector.take_interface_events`).
 - ``reset``: acknowledge (:meth:`FaultInjector.reset`).
+- ``knife_chip`` (``knife``, ``step_um``, ``at_s`` and/or ``at_travel_mm``): the knife's runout
+  steps by ``step_um`` from then on (every later pass of it cuts that much deeper); at a time,
+  or once the table has travelled ``at_travel_mm`` (and ``at_s`` has come, when given both;
+  :meth:`FaultInjector.apply_at_travel`).
+- ``species_change`` (``species``, ``board_id`` default the next board): the boards from that
+  one on are of another wood; the renderer changes when that board reaches the cutter (the
+  gap between boards is longer than the cutter-to-camera distance, so no pair shows two woods).
+  Only the images change: without rendering (``render_images=False``) it has no effect. Render
+  workers of ``planer sim`` render the configured species (they are not told).
+- ``measurement_dropout`` (``duration_s``, ``fraction`` default 0.5, ``spoil`` default 0): that
+  share of the pairs captured meanwhile is lost (``spoil = 0``: never delivered, counted in
+  :attr:`FaultInjector.pairs_dropped`) or delivered spoiled (``spoil = 1``: light B did not
+  fire, image B is black; without images the pair carries an ``error``), drawn from the seed
+  (:meth:`FaultInjector.filter_frames`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -42,6 +57,7 @@ from plant_sim.model.piezo import PiezoAmplifier
 from plant_sim.model.spindle import BRAKE, COAST, RUN, Spindle
 from plant_sim.rendering.camera import Knot
 from plant_sim.rendering.frame_capture import FrameCapture
+from protocol.frames import Frame
 from protocol.registers import PlcFault
 
 __all__ = ["FaultInjector"]
@@ -52,8 +68,8 @@ _EPS_S = 1e-9
 def _param(fault: str, params: dict[str, Any], name: str) -> float:
     """A fault parameter: given, else the registry's default (``config.faults``, written once)."""
     value = FaultKind(fault).value_of(params, name)
-    if value is None:
-        raise ValueError(f"{fault}.{name} is required")
+    if value is None or isinstance(value, str):
+        raise ValueError(f"{fault}.{name} is required as a number, got {value!r}")
     return value
 
 
@@ -93,6 +109,21 @@ class FaultInjector:
         self._can_drop_until = -math.inf
         self._can_drop_fraction = 1.0
         self._interface_events: list[dict[str, Any]] = []
+        self._cfg = cfg
+        self._by_travel: list[tuple[float, int, str, dict[str, Any]]] = []
+        self._species: list[tuple[int, str]] = []  # (first board id, species), in order
+        self._renderers: dict[str, Any] = {}
+        self.species_now = cfg.camera.species
+        """The wood the renderer shows now."""
+        self._dropout_until = -math.inf
+        self._dropout = (0.5, False)  # fraction, spoil
+        self._dropout_rng: np.random.Generator | None = None
+        self.pairs_dropped = 0
+        """Pairs a ``measurement_dropout`` lost."""
+        self.pairs_spoiled = 0
+        """Pairs a ``measurement_dropout`` spoiled."""
+        self.chips: list[dict[str, Any]] = []
+        """Every ``knife_chip`` applied: ``t_s``, ``travel_mm``, ``knife``, ``step_um``."""
 
     def inject(self, fault: str, params: dict[str, Any], *, now_s: float) -> None:
         """Inject ``fault`` now (``now_s``) or at ``params["at_s"]`` if that is later.
@@ -107,6 +138,14 @@ class FaultInjector:
         params = dict(params)
         at = params.pop("at_s", None)
         self._validate(fault, params)
+        travel = params.pop("at_travel_mm", None)
+        if travel is not None:  # when the table has travelled that far (and at_s has come)
+            self._n_sched += 1
+            not_before = now_s if at is None else max(float(at), now_s)
+            self._by_travel.append((float(travel), self._n_sched, fault,
+                                    {**params, "_not_before_s": not_before}))
+            self._by_travel.sort()
+            return
         if at is not None and check_finite("at_s", at) > now_s:
             self._n_sched += 1
             self._scheduled.append((float(at), self._n_sched, fault, params))
@@ -121,7 +160,13 @@ class FaultInjector:
             "counts_before_wrap": (1, self.encoder.modulus - 1),
             "at_mm": (0.0, self.boards.length_mm),
         }
+        knives = self._cfg.cutterhead.knives
+        if fault == "knife_chip" and int(params.get("knife", 0)) >= knives:
+            raise ValueError(f"knife_chip.knife must be in [0, {knives - 1}], "
+                             f"got {params['knife']!r}")
         for k, v in params.items():
+            if isinstance(v, str):
+                continue  # a name: the registry checked it
             lo, hi = ranges.get(k, (-math.inf, math.inf))
             if not lo <= float(v) <= hi:
                 raise ValueError(f"{fault}.{k} must be in [{lo}, {hi}], got {v!r}")
@@ -131,6 +176,58 @@ class FaultInjector:
         while self._scheduled and self._scheduled[0][0] <= t_s + _EPS_S:
             _, _, fault, params = self._scheduled.pop(0)
             self._apply(fault, params, t_s)
+
+    def apply_at_travel(self, s_mm: float, t_s: float) -> None:
+        """Apply the faults due at table travel ``s_mm`` (``at_travel_mm``), time ``t_s``."""
+        due = [x for x in self._by_travel
+               if x[0] <= s_mm and x[3]["_not_before_s"] <= t_s + _EPS_S]
+        for item in due:
+            self._by_travel.remove(item)
+            _, _, fault, params = item
+            self._apply(fault, {k: v for k, v in params.items() if k != "_not_before_s"}, t_s)
+        self._change_wood(s_mm)
+
+    def filter_frames(self, frames: list[Frame]) -> list[Frame]:
+        """The pairs a ``measurement_dropout`` leaves: some lost, some spoiled, the rest."""
+        if not frames or frames[0].t_s >= self._dropout_until:
+            return frames
+        frac, spoil = self._dropout
+        if self._dropout_rng is None:
+            self._dropout_rng = np.random.default_rng(int(self._drop_rng.integers(2**31)))
+        out = []
+        for fr in frames:
+            hit = fr.t_s < self._dropout_until and float(self._dropout_rng.random()) < frac
+            if not hit:
+                out.append(fr)
+            elif not spoil:
+                self.pairs_dropped += 1
+            else:
+                self.pairs_spoiled += 1
+                out.append(_spoiled(fr))
+        return out
+
+    def _change_wood(self, s_mm: float) -> None:
+        """The renderer of the wood of the board under the cutter (``species_change``)."""
+        if not self._species:
+            return
+        bid, _ = self.boards.at(s_mm, 0.0)
+        want = None
+        for first, species in self._species:
+            if bid >= first:
+                want = species
+        if want is None or want == self.species_now:
+            return
+        self.species_now = want
+        asm = self.capture.assembler
+        if asm.renderer is None:
+            return  # no images: nothing shows the wood
+        if want not in self._renderers:
+            from plant_sim.rendering.frame_capture import build_renderer
+
+            cfg = dataclasses.replace(self._cfg, camera=dataclasses.replace(
+                self._cfg.camera, species=want))
+            self._renderers[want] = build_renderer(cfg, seed=asm.renderer.seed)
+        asm.renderer = self._renderers[want]
 
     def _apply(self, fault: str, p: dict[str, Any], t: float) -> None:
         s = self.feed.position_at(t)
@@ -177,6 +274,28 @@ class FaultInjector:
             self._interface_events.append({"kind": fault, "t_s": t, **p})
         elif fault == "reset":
             self.reset(t)
+        elif fault == "knife_chip":
+            k = int(_param("knife_chip", p, "knife"))
+            step = float(_param("knife_chip", p, "step_um"))
+            self.capture.cut.step_standout(k, step)
+            self.chips.append({"t_s": t, "travel_mm": s, "knife": k, "step_um": step})
+        elif fault == "species_change":
+            self._add_species(s, p)
+        elif fault == "measurement_dropout":
+            self._dropout_until = t + float(_param("measurement_dropout", p, "duration_s"))
+            self._dropout = (float(_param("measurement_dropout", p, "fraction")),
+                             bool(int(_param("measurement_dropout", p, "spoil"))))
+
+    def _add_species(self, s: float, p: dict[str, Any]) -> None:
+        b = self.boards
+        if "board_id" in p:
+            bid = check_int("species_change.board_id", int(p["board_id"]), lo=1)
+        else:  # the next board to reach the cutter
+            cur, _ = b.at(s, 0.0)
+            bid = cur + 1 if cur else max(1, math.floor((s - b.first_at_mm) / b.period_mm) + 2)
+        self._species.append((bid, str(p["species"])))
+        self._species.sort()
+        self._change_wood(s)
 
     def _add_knot(self, s: float, p: dict[str, Any]) -> None:
         b = self.boards
@@ -224,3 +343,11 @@ class FaultInjector:
         """Interface faults that came due (``modbus_restart``, ``can_silence``); cleared on read."""
         out, self._interface_events = self._interface_events, []
         return out
+
+
+def _spoiled(frame: Frame) -> Frame:
+    """The pair as it arrives when light B did not fire: image B black (or an error)."""
+    if frame.image_b is None:
+        return dataclasses.replace(frame, error="spoiled pair: light B did not fire "
+                                   "(simulated measurement dropout)")
+    return dataclasses.replace(frame, image_b=np.zeros_like(frame.image_b))

@@ -170,12 +170,13 @@ class Machine:
                 self._t = target
         if self._t < target:
             self._t = target
-        return frames
+        return self.faults.filter_frames(frames) if frames else frames
 
     def _start_cycle(self) -> None:
         t = self._cycle * self.cycle_s
         cs = self.cycle_s
         self.faults.apply_due(t)
+        self.faults.apply_at_travel(self.feed.s_mm, t)
         self.plc.start_cycle(t)
         cutting = self.boards.at(self.feed.s_mm, 0.0)[0] != 0
         self.spindle.start_cycle(t, cs, cutting=cutting)

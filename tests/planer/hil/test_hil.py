@@ -89,7 +89,8 @@ def test_unknown_fault_kind_names_the_file_and_the_table(tmp_path):
         assert msg.startswith(f"{p}: base.faults[1].kind must be one of "), msg
         assert "'gremlin'" in msg and all(k in msg for k in FAULT_KINDS)
     for kind in FaultKind:  # every known kind loads, with its required parameters
-        extra = "".join(f", {name} = 1.0" for name in kind.required)
+        extra = "".join(f", {q.name} = '{q.choices[0]}'" if q.choices else f", {q.name} = 1.0"
+                        for q in kind.params if q.required)
         p.write_text(f"[a]\nfaults = [{{ kind = '{kind}', at_s = 1{extra} }}]\n")
         assert [f.kind for f in load_scenario(str(p)).faults] == [kind]
 

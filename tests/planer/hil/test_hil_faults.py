@@ -19,11 +19,13 @@ from core.errors import ConfigError
 from planer.hil import load_scenario, sim_config_for
 
 
-def _valid(kind: FaultKind) -> dict[str, float]:
+def _valid(kind: FaultKind) -> dict[str, float | str]:
     """A value inside the range of every required parameter."""
     out = {}
     for p in kind.params:
-        if p.required:
+        if p.required and p.choices:
+            out[p.name] = p.choices[0]
+        elif p.required:
             lo = p.lo if math.isfinite(p.lo) else 0.0
             out[p.name] = lo + 1.0 if p.lo_open or p.integer else lo + 0.5
     return out

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import pytest
@@ -163,3 +164,39 @@ def test_the_final_cv_check_uses_the_scenarios_bound_and_names_it(bound, cv, pas
     assert set(k for k in s["done"] if k.startswith("final_uniformity")) == {key}
     assert s["done"][key] is passes
     assert (s["converged"]["uniformity_settled_after_mm"] is not None) is passes
+
+
+def test_a_run_that_starts_within_the_band_and_stays_there_is_no_failure():
+    """``initial_uniformity_ge_0.10`` failed every run that began below 0.10 (e.g. a resumed
+    machine): a run failing it now is one that starts good and ends bad."""
+    good = _summary([_result(i, cv=0.02) for i in range(10)])
+    assert good["done"]["initial_uniformity_ge_0.10"] and good["passed"]
+    worse = _summary([_result(i, cv=0.02 if i < 5 else 0.08) for i in range(10)])
+    assert not worse["done"]["initial_uniformity_ge_0.10"]
+
+
+def test_every_check_reads_as_a_sentence_under_its_key():
+    s = _summary([_result(i) for i in range(10)])
+    assert set(s["checks"]) == set(s["done"])
+    for key, check in s["checks"].items():
+        assert check["ok"] is s["done"][key]
+        text = check["text"]
+        assert text[0].isupper() and text.endswith(".") and "_" not in text
+
+
+def test_the_pitch_is_judged_against_what_the_machine_holds_when_told_unreachable():
+    results = [replace(_result(i), truth={"pitch_mm": 2.5, "uniformity_cv": 0.02})
+               for i in range(10)]
+    told = ServiceEvent(0.3, EventKind.TARGET_UNREACHABLE, "target not reachable",
+                        reason="feed at its maximum", data={"reachable_pitch_mm": 2.49})
+    s = summarize(results, target_pitch_mm=3.0, counts_per_mm=20.0,
+                  feed_limits_mm_s=(50.0, 1000.0), stroke_um=20.0, events=[told])
+    assert s["reachable_pitch_mm"] == 2.49 and s["done"]["final_pitch_within_2pct"]
+    assert s["alerts"]["target_unreachable"] == 1
+    silent = summarize(results, target_pitch_mm=3.0, counts_per_mm=20.0,
+                       feed_limits_mm_s=(50.0, 1000.0), stroke_um=20.0)
+    assert not silent["done"]["final_pitch_within_2pct"]  # nobody said it was out of reach
+    again = ServiceEvent(0.6, EventKind.TARGET_REACHABLE, "reached again")
+    back = summarize(results, target_pitch_mm=3.0, counts_per_mm=20.0,
+                     feed_limits_mm_s=(50.0, 1000.0), stroke_um=20.0, events=[told, again])
+    assert back["reachable_pitch_mm"] is None and not back["done"]["final_pitch_within_2pct"]
