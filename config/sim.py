@@ -3,7 +3,8 @@
 Tables: ``[spindle]``, ``[cutterhead]``, ``[piezo]``, ``[feed]``, ``[encoder]``, ``[camera]``
 (with ``[camera.optics]``), ``[board]``, ``[plc]``, ``[faults]`` describe the machine model
 (:mod:`plant_sim.model.machine`); ``[modbus]``, ``[can]``, ``[frames]``, ``[run]`` its interfaces
-(the Modbus server, the CAN node, the frame spool and the ``planer sim`` runner). Every value is
+(the Modbus server, the CAN node, the frame spool and the ``planer sim`` runner); ``[defects]``
+the wood defects on the boards (:mod:`config.defects`). Every value is
 checked on load and an error names its key (``piezo.stroke_um must be > 0.0, got -1``).
 A file (:func:`load_sim`) gives only what it changes: its tables are deep-merged over the
 shipped ``config/sim.toml`` (:func:`config.loading.over_shipped`), or over the shipped file its
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from config.defects import DefectsConfig, defects_table
 from config.faults import FAULT_KINDS as _FAULT_KINDS
 from config.faults import parse_fault
 from config.loading import (
@@ -446,6 +448,8 @@ class SimConfig:
     frames: FramesConfig
     run: RunConfig
     source: Path | None = None
+    defects: DefectsConfig = DefectsConfig()
+    """``[defects]``: wood defects on the boards (:mod:`config.defects`; none by default)."""
 
 
 def _spindle(s: Section) -> SpindleConfig:
@@ -825,6 +829,7 @@ def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> S
         can=_can(sec("can")),
         frames=_frames(sec("frames")),
         run=_run(sec("run")),
+        defects=defects_table(sec("defects")),
     )
     root.reject_unknown()
     head = cfg.cutterhead

@@ -40,7 +40,15 @@ class Frame:
         Position of image A's centre from the board's leading end, mm.
     truth : dict or None
         Simulator only: the true ``pitch_mm``, ``uniformity_cv``, ``mark_widths_mm``,
-        ``depth_um``, ``shift_px`` of the imaged patch. ``None`` on a real machine.
+        ``depth_um``, ``shift_px`` of the imaged patch, and ``defects`` (when the board
+        carries wood defects in view): a list of dicts with the keys a defect detector reports,
+        ``kind`` (``torn_grain``, ``raised_grain``, ``fuzzy_grain``, ``chip_mark``,
+        ``knife_nick``, ``chatter``, ``snipe``), ``x_mm``, ``y_mm`` (centre in image A's
+        undistorted frame from its top-left corner, x along the feed), ``length_mm`` (along
+        the feed), ``width_mm``, ``depth_um`` (depth of a pit, height of a ridge, rms of
+        fuzz, amplitude of chatter; positive), plus ``angle_deg``, ``period_mm``, ``knife``,
+        ``notch_um``, ``board_x_mm``, ``board_y_mm`` where they apply
+        (:mod:`plant_sim.rendering.defects`). ``None`` on a real machine.
     error : str or None
         Why the pair cannot be measured although its metadata arrived (an image file that is
         missing or unreadable); the images are then ``None``. The service logs such a pair as a

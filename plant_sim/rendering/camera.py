@@ -10,6 +10,10 @@ the
 truth, and the images are rendered by the optics :class:`~plant_sim.rendering.optics.Renderer`
 (built once).
 
+Wood defects (``[defects]``, :mod:`plant_sim.rendering.defects`) on a board are rendered with
+the pair's images (their heights shaded by the renderer) and listed in the frame's truth
+(``truth["defects"]``, in image A's frame).
+
 Knots (a fault) darken an elliptical patch of the board and add a rough height profile there;
 the optics renderer draws one texture per rig, so the dark patch is applied to the rendered
 images per pixel (each pixel's board coordinate is known from the renderer's distortion maps).
@@ -26,6 +30,7 @@ import numpy as np
 
 from core.units import counter_difference
 from plant_sim.model.surface import Passes, Surface, envelope
+from plant_sim.rendering.defects import Defect, DefectLayer, nick_ridge, truth_in_frame
 from protocol.frames import Frame
 
 __all__ = ["FrameAssembler", "Knot", "Latch", "RenderJob", "TriggerClock", "render_images"]
@@ -178,6 +183,8 @@ class RenderJob:
         Encoder count latched at A.
     counter_bits : int
         Encoder counter width.
+    defects : DefectLayer or None
+        Wood defects over the pair's board range (``None``: none).
     """
 
     seq: int
@@ -188,6 +195,7 @@ class RenderJob:
     v_a_mm_s: float
     counts_a: int
     counter_bits: int
+    defects: DefectLayer | None = None
 
 
 def render_images(renderer: Any, job: RenderJob, *,
@@ -212,6 +220,7 @@ def render_images(renderer: Any, job: RenderJob, *,
         counts_a=job.counts_a,
         counter_bits=job.counter_bits,
         rng_seed=rng_seed,
+        defects=job.defects,
     )
     image_a, image_b = pair.image_a, pair.image_b
     if job.knots:
@@ -246,14 +255,26 @@ class FrameAssembler:
         Encoder counter width.
     renderer : plant_sim.rendering.optics.Renderer or None
         Renders the images; ``None`` gives frames without images (truth and counts only).
+    height : int
+        Image height, pixels (the field across the feed, for the defects' truth).
+    roll_deg : float
+        The camera's true roll (the defects' truth in image A's frame).
+    defects : callable, optional
+        ``defects(board_id) -> tuple of Defect`` on that board (``None``: no defects).
     """
 
     MARGIN_MM = 20.0
 
-    def __init__(self, rig, *, width: int, counter_bits: int, renderer=None) -> None:
+    def __init__(self, rig, *, width: int, counter_bits: int, renderer=None, height: int = 0,
+                 roll_deg: float = 0.0, defects=None) -> None:
         cam = rig.camera
         self.px_per_mm = float(cam.px_per_mm)
+        self.px_per_mm_y = self.px_per_mm * float(cam.fy) / float(cam.fx)
         self.cx = float(cam.cx)
+        self.cy = float(cam.cy)
+        self.height_px = int(height) if height else int(round(2 * self.cy + 1))
+        self.roll_deg = float(roll_deg)
+        self.defects = defects
         self.px_per_count = float(rig.encoder.px_per_count)
         self.x_lo_mm = -self.cx / self.px_per_mm  # FOV relative to the optical axis
         self.x_hi_mm = (width - 1 - self.cx) / self.px_per_mm
@@ -315,6 +336,44 @@ class FrameAssembler:
         m["board_offset_mm"] = float(offset)
         return m
 
+    def _defects_in_view(self, latch: Latch, near: Passes, lo: float, hi: float,
+                         shift_mm: float) -> DefectLayer | None:
+        """The board's defects near image A's and B's fields (``None``: none there)."""
+        if self.defects is None:
+            return None
+        on_board = self.defects(latch.board_id)
+        if not on_board:
+            return None
+        x_lo, x_hi = lo - abs(shift_mm) - 15.0, hi + abs(shift_mm) + 15.0  # shadows, blur
+        items: list[Any] = []
+        for d in on_board:
+            b = d.bbox()
+            if b[1] < x_lo or b[0] > x_hi:
+                continue
+            if d.kind.value == "knife_nick":
+                items.append(nick_ridge(d, near, x_lo, x_hi))
+            else:
+                items.append(d)
+        return DefectLayer(items) if items else None
+
+    def _in_field(self, item: Any, lo: float, hi: float) -> bool:
+        """Whether a defect touches image A's field (board range ``[lo, hi]``, its rows)."""
+        d: Defect = getattr(item, "defect", item)
+        x0, x1, y0, y1 = d.bbox()
+        if d.kind.profile or d.kind.value == "knife_nick":
+            y0, y1 = -math.inf, math.inf
+            if d.kind.value == "knife_nick":
+                y0, y1 = d.y_mm - 0.5 * d.width_mm, d.y_mm + 0.5 * d.width_mm
+        top = -self.cy / self.px_per_mm_y
+        bottom = (self.height_px - 1 - self.cy) / self.px_per_mm_y
+        return x1 >= lo and x0 <= hi and y1 >= top and y0 <= bottom
+
+    def _defect_truth(self, item: Any, x_centre_mm: float) -> dict[str, Any]:
+        return truth_in_frame(item, x_centre_mm=x_centre_mm, cx=self.cx, cy=self.cy,
+                              px_per_mm=self.px_per_mm, px_per_mm_y=self.px_per_mm_y,
+                              roll_deg=self.roll_deg,
+                              frame_height_mm=self.height_px / self.px_per_mm_y)
+
     def assemble(
         self, latch: Latch, passes: Passes, knots: list[Knot], *, board_length_mm: float
     ) -> Frame:
@@ -329,6 +388,10 @@ class FrameAssembler:
         truth["encoder_error_px"] = counted_px * self.px_per_count - shift_px
         mine = [k for k in knots if k.board_id == latch.board_id and k.overlaps(lo - 5, hi + 5)]
         truth["knot"] = bool(mine)
+        layer = self._defects_in_view(latch, near, lo, hi, shift_mm)
+        if layer is not None:
+            truth["defects"] = [self._defect_truth(item, latch.x_centre_mm)
+                                for item in layer.items if self._in_field(item, lo, hi)]
         image_a = image_b = None
         if self.renderer is not None or self.jobs is not None:
             job = RenderJob(
@@ -340,6 +403,7 @@ class FrameAssembler:
                 v_a_mm_s=latch.v_a,
                 counts_a=latch.counts_a,
                 counter_bits=self.counter_bits,
+                defects=layer,
             )
             if self.renderer is not None:
                 image_a, image_b = render_images(self.renderer, job)

@@ -22,7 +22,7 @@ from plant_sim.model.surface import Passes
 from plant_sim.rendering.camera import FrameAssembler, Knot, Latch, TriggerClock
 from protocol.frames import Frame
 
-__all__ = ["FrameCapture", "build_renderer"]
+__all__ = ["BoardDefects", "FrameCapture", "build_renderer"]
 
 _FIELD_MARGIN_MM = 5.0  # the field of view must be this far inside the board's ends
 
@@ -58,6 +58,42 @@ def build_renderer(cfg: SimConfig, *, seed: int) -> Any:
     )
     return Renderer(cam.rig, optics, SPECIES[cam.species], seed=seed,
                     effects=effects_from_config(cfg))
+
+
+class BoardDefects:
+    """The defects of each board (``[defects]``), drawn once per board and kept.
+
+    Callable: ``defects(board_id) -> tuple of Defect`` (empty for the boards without).
+
+    Parameters
+    ----------
+    cfg : config.sim.SimConfig
+        ``[defects]``, the boards' size and the knives.
+    """
+
+    def __init__(self, cfg: SimConfig) -> None:
+        self.cfg = cfg.defects
+        self.length_mm = cfg.board.length_mm
+        self.width_mm = cfg.board.width_mm
+        self.knives = cfg.cutterhead.knives
+        self._boards: dict[int, tuple[Any, ...]] = {}
+
+    def __call__(self, board_id: int) -> tuple[Any, ...]:
+        """The defects of ``board_id`` (the same tuple every time it is asked)."""
+        got = self._boards.get(board_id)
+        if got is None:
+            got = ()
+            if self.cfg.on_board(board_id):
+                from plant_sim.rendering.defects import board_defects
+
+                got = board_defects(self.cfg.place, board_id=board_id,
+                                    board_length_mm=self.length_mm,
+                                    board_width_mm=self.width_mm, knives=self.knives,
+                                    seed=self.cfg.seed)
+            if len(self._boards) > 64:
+                self._boards.pop(next(iter(self._boards)))
+            self._boards[board_id] = got
+        return got
 
 
 class FrameCapture:
@@ -97,9 +133,11 @@ class FrameCapture:
         self.encoder = encoder
         self.boards = boards
         self.cut = cut
+        self.defects = BoardDefects(cfg) if cfg.defects.active else None
         self.assembler = FrameAssembler(
             cam.rig, width=cam.optics.width, counter_bits=cfg.encoder.counter_bits,
-            renderer=renderer,
+            renderer=renderer, height=cam.optics.height, roll_deg=cam.roll_deg,
+            defects=self.defects,
         )
         self._fov_lo, self._fov_hi = self.assembler.x_lo_mm, self.assembler.x_hi_mm
         self.triggers = TriggerClock(cam.pairs_per_s)

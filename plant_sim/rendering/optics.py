@@ -72,6 +72,8 @@ from config.rig import Rig
 from config.wood import Wood
 from core.checks import check_finite, check_int, check_positive, check_range
 from core.units import wrap_counter
+from plant_sim.rendering.defect_shading import BoardGrid, shade_patch
+from plant_sim.rendering.defects import DefectLayer
 from plant_sim.rendering.wood import texture_tiles
 
 __all__ = [
@@ -490,6 +492,8 @@ class Renderer:
         for sl in self.true_slant_deg:
             if not 0.0 < sl < 90.0:
                 raise ValueError(f"slant_offset_deg gives a true slant of {sl} deg (0..90)")
+        self._tan_elevation = tuple(1.0 / math.tan(math.radians(sl))
+                                    for sl in self.true_slant_deg)
         sig = math.radians(fx.reflectance_roughness_deg)
         self._on_a = 1.0 - 0.5 * sig * sig / (sig * sig + 0.33)
         self._on_b = 0.45 * sig * sig / (sig * sig + 0.09)
@@ -576,15 +580,27 @@ class Renderer:
         spec *= ((1.0 - a) + a * h).astype(np.complex64)
         return sfft.irfft2(spec, s=field_.shape, workers=1).astype(np.float32, copy=False)
 
-    def _shade(self, p: np.ndarray, which: int) -> tuple[np.ndarray, np.ndarray]:
-        """Profile shading ``g`` and roughness coefficient ``c`` per grid column (float64)."""
+    def _shade(self, p: np.ndarray, which: int,
+               q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Profile shading ``g`` and roughness coefficient ``c`` per grid column (float64).
+
+        ``q`` (a defect's slope across the feed, same shape as ``p``): the normal's tilt across
+        enters the incidence and the normalisation; the Oren-Nayar term keeps its projection
+        along the feed.
+        """
         sin_s, cos_s, cos_t, sin_t = self._light[which]
-        norm = 1.0 / np.sqrt(1.0 + p * p + self._rough_ms)
-        cos_i = (cos_s - p * (cos_t * sin_s)) * norm
+        if q is None:
+            pq2 = p * p
+            lit = cos_s - p * (cos_t * sin_s)
+        else:
+            pq2 = p * p + q * q
+            lit = cos_s - p * (cos_t * sin_s) - q * (sin_t * sin_s)
+        norm = 1.0 / np.sqrt(1.0 + pq2 + self._rough_ms)
+        cos_i = lit * norm
         g = self._on_a * cos_i
         if self._on_b > 0:
-            inv = 1.0 / np.sqrt(1.0 + p * p)
-            cos_i0 = (cos_s - p * (cos_t * sin_s)) * inv
+            inv = 1.0 / np.sqrt(1.0 + pq2)
+            cos_i0 = lit * inv
             # light and view projected on the tangent plane (normal (-p, 0, 1) inv, view +z)
             lx = sin_s * cos_t + cos_i0 * inv * p
             ly = sin_s * sin_t
@@ -637,7 +653,7 @@ class Renderer:
 
     def _radiance_grid(
         self, height: Callable[[np.ndarray], np.ndarray], b_at_axis_mm: float,
-        speed_mm_s: float, which: int,
+        speed_mm_s: float, which: int, defects: DefectLayer | None = None,
     ) -> tuple[np.ndarray, int]:
         """Blurred radiance on a board grid whose nodes fall on undistorted pixel columns.
 
@@ -655,6 +671,8 @@ class Renderer:
         z = np.asarray(height(edges), dtype=np.float64)
         if z.shape != edges.shape or not np.all(np.isfinite(z)):
             raise ValueError("height returned non-finite values or a wrong shape")
+        if defects is not None and defects.profiles:
+            z = z + defects.profile_um(edges)  # chatter, snipe: along the feed
         p_prof = np.diff(z) * (1e-3 / dx)  # mean slope over each grid cell
         if self._bow_per_mm != 0.0:
             p_prof += self._bow_per_mm * (edges[:-1] + 0.5 * dx - self._bow_mid_mm)
@@ -663,10 +681,14 @@ class Renderer:
             a = self._scatter_a
             g = (1.0 - a) * g[m:-m] + a * np.convolve(g, self._scatter_kernel, mode="valid")
             c = c[m:-m]
-        rad = np.multiply(self._tile_window(self._tile_rho, c0, n, frac),
-                          g.astype(np.float32)[None, :])
-        rad -= np.multiply(self._tile_window(self._tile_r[which], c0, n, frac),
-                           c.astype(np.float32)[None, :])
+        rho_w = self._tile_window(self._tile_rho, c0, n, frac)
+        r_w = self._tile_window(self._tile_r[which], c0, n, frac)
+        rad = np.multiply(rho_w, g.astype(np.float32)[None, :])
+        rad -= np.multiply(r_w, c.astype(np.float32)[None, :])
+        if defects is not None and defects.local:
+            grid = BoardGrid(edges=edges, z=z, p=p_prof, k=k, n=n, m=m, b_u0=b_u0)
+            for box, covered in defects.patches(self._tan_elevation[which]):
+                shade_patch(self, rad, rho_w, r_w, covered, grid, box, which)
         cv2.max(rad, 0.0, dst=rad)  # np.maximum's NaN handling costs 3x; rad has no NaN
         kernel = self._pixel_kernel
         if blur_cols > 1e-3:
@@ -678,9 +700,9 @@ class Renderer:
     def _render_one(
         self, height: Callable[[np.ndarray], np.ndarray], b_at_axis_mm: float,
         speed_mm_s: float, which: int, rng: np.random.Generator,
-        albedo_factor: AlbedoFactor | None = None,
+        albedo_factor: AlbedoFactor | None = None, defects: DefectLayer | None = None,
     ) -> np.ndarray:
-        rad, k = self._radiance_grid(height, b_at_axis_mm, speed_mm_s, which)
+        rad, k = self._radiance_grid(height, b_at_axis_mm, speed_mm_s, which, defects)
         map_x = self._col_index - np.float32(k)
         img = cv2.remap(rad, map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         img *= self._gain_maps[which]
@@ -718,6 +740,7 @@ class Renderer:
         counter_bits: int | None = None,
         rng_seed: int | None = None,
         albedo_factor: AlbedoFactor | None = None,
+        defects: DefectLayer | None = None,
     ) -> ImagePair:
         """Render the images A and B of a moving board and the encoder counts at both triggers.
 
@@ -744,6 +767,10 @@ class Renderer:
         albedo_factor : callable, optional
             ``factor(board_x_mm, board_y_mm)`` (arrays of the image's shape) multiplying the
             reflected light per pixel before the sensor noise: knots, stains.
+        defects : DefectLayer, optional
+            Wood defects over the pair's board range (:mod:`plant_sim.rendering.defects`):
+            their heights are added to the profile and shaded (``None`` or empty: the same
+            images, at the same cost, as without).
 
         Returns
         -------
@@ -764,8 +791,10 @@ class Renderer:
         o = self.optics
         shift_mm = v * o.dt_ab_s
         # at trigger A board point b is at X = b - bc; at B at X + shift -> b = X + bc - shift
-        img_a = self._render_one(fn, bc, v, 0, rng, albedo_factor)
-        img_b = self._render_one(fn, bc - shift_mm, v, 1, rng, albedo_factor)
+        if defects is not None and not defects:
+            defects = None
+        img_a = self._render_one(fn, bc, v, 0, rng, albedo_factor, defects)
+        img_b = self._render_one(fn, bc - shift_mm, v, 1, rng, albedo_factor, defects)
         ppm = self.px_per_mm
         cam = self.rig.camera
         counts_a_w = wrap_counter(ca, bits=bits)
@@ -799,6 +828,32 @@ class Renderer:
             truth=truth,
         )
 
+
+    def height_map(self, height: HeightSource, *, board_x_at_centre_mm: float,
+                   defects: DefectLayer | None = None) -> np.ndarray:
+        """The height image A shows at each pixel: the profile plus the defects, um.
+
+        Parameters
+        ----------
+        height : callable or Surface-like
+            As :meth:`render_pair`'s.
+        board_x_at_centre_mm : float
+            Board coordinate on the optical axis at trigger A, mm.
+        defects : DefectLayer, optional
+            As :meth:`render_pair`'s.
+
+        Returns
+        -------
+        ndarray, shape (height, width)
+            Height of the board point each (distorted) pixel of image A shows, um; the bow is
+            not in it.
+        """
+        bc = check_finite("board_x_at_centre_mm", board_x_at_centre_mm)
+        bx = self.x_phys_mm + bc
+        out = np.asarray(_height_function(height)(bx.ravel()), dtype=float).reshape(bx.shape)
+        if defects is not None and defects:
+            out = out + defects.height_um(bx, self.y_phys_mm)
+        return out
 
 def standard_normal_f32(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
     """Independent standard normal samples, float32, drawn for one image from ``rng``'s stream.
