@@ -13,8 +13,13 @@ streams, no Modbus library): like a PLC it offers only what the register map off
   register: exception 02 (ILLEGAL DATA ADDRESS).
 * A value outside the register's limits (or one the machine refuses): exception 03, never clamped.
 * Another unit id than the map's: exception 0B (gateway target failed to respond).
-* A header that is not Modbus TCP (protocol id not 0, length outside 2..254) closes that
-  connection; the server and its other clients go on.
+* A PDU longer than Modbus TCP's 253 bytes (an ADU over 260) is exception 03 when it is a
+  write-multiple (16 or 23) no longer than its one-byte byte count can state (16: up to 261
+  bytes, 23: up to 265; a write of 124..127 registers): the PDU is read whole and refused, so
+  the client learns why and the stream stays in step.
+* A header that is not Modbus TCP (protocol id not 0, length outside 2..254, or longer for
+  anything but such a write-multiple) closes that connection; the server and its other clients
+  go on.
 
 Accepted writes go through the register map's one dispatch
 (:func:`protocol.registers.apply_writes`). Threads: the server may run on its own asyncio loop
@@ -50,6 +55,10 @@ FUNCTION_CODES = frozenset({3, 6, 16, 23})
 MAX_READ = 125
 MAX_WRITE = 123
 MAX_RW_WRITE = 121
+MAX_PDU = 253
+"""The longest PDU Modbus TCP carries (an ADU of at most 260 bytes)."""
+OVERSIZE_WRITE_PDU = {16: 1 + 5 + 255, 23: 1 + 9 + 255}
+"""The longest PDU of a write-multiple whose byte count (one byte) fits: read and refused."""
 MAX_CLIENTS = 16
 """Connections served at once (a PLC's limit); more are closed at once."""
 
@@ -309,11 +318,16 @@ class PlcServer:
             while True:
                 header = await reader.readexactly(_MBAP.size)
                 tid, pid, length, unit = _MBAP.unpack(header)
-                if pid != 0 or not 2 <= length <= 254:
+                if pid != 0 or not 2 <= length <= 1 + max(OVERSIZE_WRITE_PDU.values()):
                     log.info("not a Modbus TCP header (protocol %d, length %d): closing",
                              pid, length)
                     return
-                pdu = await reader.readexactly(length - 1)
+                pdu = await reader.readexactly(1)
+                if length - 1 > MAX_PDU and length - 1 > OVERSIZE_WRITE_PDU.get(pdu[0], 0):
+                    log.info("not a Modbus TCP header (length %d, function %d): closing",
+                             length, pdu[0])
+                    return
+                pdu += await reader.readexactly(length - 2)
                 reply = self.respond(unit, pdu)
                 writer.write(_MBAP.pack(tid, 0, len(reply) + 1, unit) + reply)
                 await writer.drain()

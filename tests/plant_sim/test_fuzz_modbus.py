@@ -1,6 +1,7 @@
 """Raw Modbus TCP fuzz of the simulated PLC (127.0.0.1 only; bounded count, no timing).
 
-Hypothesis sends well-framed requests with arbitrary function codes and bodies, broken headers
+Hypothesis sends well-framed requests with arbitrary function codes and bodies, writes of more
+registers than an ADU holds (124..127: exception 03), broken headers
 and plain garbage, each on its own connection. Every answer must be a well-formed Modbus TCP
 response to one of the requests sent (the data asked for, or ``function | 0x80`` with one of the
 exception codes the map documents); a header that is not Modbus TCP closes the connection. The
@@ -51,7 +52,8 @@ quantities = st.one_of(st.integers(0, 130), st.integers(0, 0xFFFF))
 @st.composite
 def requests(draw) -> tuple[list[int], bytes]:
     """``(transaction ids that must be answered or dropped, bytes to send)``."""
-    kind = draw(st.sampled_from(["structured", "random_pdu", "bad_header", "garbage"]))
+    kind = draw(st.sampled_from(["structured", "random_pdu", "oversize_write", "bad_header",
+                                 "garbage"]))
     tid = draw(st.integers(0, 0xFFFF))
     unit = draw(st.sampled_from([1, 1, 1, 0, 2, 255]))
     if kind == "structured":
@@ -69,6 +71,15 @@ def requests(draw) -> tuple[list[int], bytes]:
     if kind == "random_pdu":
         pdu = draw(st.binary(min_size=1, max_size=253))
         return [tid], _adu(tid, 0, unit, pdu)
+    if kind == "oversize_write":  # 124..127 registers: longer than an ADU, the count fits
+        fc = draw(st.sampled_from([16, 23]))
+        qty = draw(st.integers(124 if fc == 16 else 122, 127))
+        nbytes = draw(st.sampled_from([2 * qty, 255, 2 * qty - 2]))
+        body = struct.pack(">HHB", draw(addresses), qty, nbytes) + draw(
+            st.binary(min_size=2 * qty, max_size=2 * qty))
+        if fc == 23:
+            body = struct.pack(">HH", draw(addresses), draw(quantities)) + body
+        return [tid], _adu(tid, 0, unit, bytes([fc]) + body)
     if kind == "bad_header":
         pid = draw(st.integers(1, 0xFFFF))
         length = draw(st.one_of(st.just(0), st.just(1), st.integers(255, 0xFFFF)))
@@ -95,6 +106,8 @@ def _responses(data: bytes) -> list[tuple[int, int, bytes]]:
 
 def _check_pdu(request: bytes, pdu: bytes) -> None:
     fc = request[7]
+    if len(request) - 7 > 253:  # longer than Modbus TCP carries: only ever refused
+        assert pdu[0] & 0x80, pdu
     if pdu[0] & 0x80:
         assert pdu[0] == (fc | 0x80) & 0xFF and len(pdu) == 2 and pdu[1] in EXCEPTIONS, pdu
         return

@@ -262,18 +262,58 @@ def test_read_quantity_outside_1_to_125_is_exception_03(plc, count):
         (struct.pack(">BHHB", 3, 0, 1, 0), 0x03),  # long body
         (struct.pack(">BHHB", 16, 2, 2, 3) + b"\x00" * 3, 0x03),  # byte count != 2 * qty
         (struct.pack(">BHHB", 16, 2, 0, 0), 0x03),  # no registers
-        (struct.pack(">BHHB", 16, 2, 124, 248) + b"\x00" * 248, None),  # 124 > 123: 03
+        (struct.pack(">BHHB", 16, 2, 124, 248) + b"\x00" * 248, 0x03),  # 124 > 123
         (struct.pack(">BHHB", 16, 2, 2, 4) + b"\x00" * 2, 0x03),  # fewer bytes than said
         (struct.pack(">BHH", 6, 40000, 1), 0x02),  # write past the map
         (struct.pack(">BHH", 3, 37, 2), 0x02),  # read past the map
     ],
 )
 def test_malformed_requests_get_the_spec_exception(plc, pdu, code):
-    reply = raw_exchange(plc.port, pdu)
-    if code is None:  # a PDU longer than an ADU may hold: refused or the connection closed
-        assert reply in (None, bytes([pdu[0] | 0x80, 0x03]))
-    else:
-        assert reply == bytes([pdu[0] | 0x80, code])
+    assert raw_exchange(plc.port, pdu) == bytes([pdu[0] | 0x80, code])
+
+
+def _oversize_write(fc: int, qty: int, nbytes: int | None = None) -> bytes:
+    nbytes = 2 * qty if nbytes is None else nbytes
+    head = struct.pack(">BHH", fc, 0, 4) if fc == 23 else bytes([fc])
+    feed = RMAP["feed_setpoint_mm_s"]
+    return head + struct.pack(">HHB", feed.address, qty, nbytes) + b"\x44" * nbytes
+
+
+@pytest.mark.parametrize(
+    "pdu",
+    [_oversize_write(16, q) for q in (124, 125, 126, 127)]
+    + [_oversize_write(16, 127, 255), _oversize_write(16, 124, 10) + b"\x00" * 238]
+    + [_oversize_write(23, q) for q in (122, 124, 127)] + [_oversize_write(23, 127, 255)],
+    ids=lambda pdu: f"fc{pdu[0]}-{len(pdu)}B",
+)
+def test_write_multiple_longer_than_an_adu_is_exception_03_on_a_connection_that_goes_on(plc, pdu):
+    """A write of 124..127 registers (PDU 254..265 bytes): 03, nothing written, still in step."""
+    import socket
+
+    assert len(pdu) > 253  # longer than Modbus TCP carries (ADU > 260 bytes)
+    before = plc.machine.feed_setpoint
+    with socket.create_connection(("127.0.0.1", plc.port), timeout=5.0) as s:
+        s.sendall(struct.pack(">HHHB", 9, 0, len(pdu) + 1, 1) + pdu)
+        assert read_adu(s, tid=9, unit=1) == bytes([pdu[0] | 0x80, 0x03])
+        read = struct.pack(">BHH", 3, RMAP["knives"].address, 1)
+        s.sendall(struct.pack(">HHHB", 10, 0, len(read) + 1, 1) + read)
+        assert read_adu(s, tid=10, unit=1) == b"\x03\x02\x00\x04"  # the same stream goes on
+    assert plc.machine.feed_setpoint == before
+    assert plc.server.refused == 1
+
+
+@pytest.mark.parametrize(
+    "fc, length",
+    [(3, 255), (6, 260), (1, 262), (16, 263), (23, 267), (16, 300), (23, 0xFFFF)],
+)
+def test_oversize_header_of_anything_but_a_fitting_write_multiple_still_closes(plc, fc, length):
+    import socket
+
+    with socket.create_connection(("127.0.0.1", plc.port), timeout=5.0) as s:
+        body = bytes([fc]) + b"\x00" * min(length - 2, 300)
+        s.sendall(struct.pack(">HHHB", 1, 0, length, 1) + body)
+        assert s.recv(100) == b""  # closed without an answer
+    assert _read(plc.client, "knives") == [4]
 
 
 def test_read_write_multiple_writes_then_reads(plc):
