@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import enum
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -245,7 +244,10 @@ def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
 
 def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.ndarray
                   ) -> float:
-    """Depth below the rim of the slope integrated along each row over columns [c0, c1)."""
+    """Depth below the rim of the slope integrated along each row over columns [c0, c1).
+
+    ``mask`` (shape ``(r1 - r0, c1 - c0)``) selects the blob's samples.
+    """
     smap = res.smap
     dx_um = 1000.0 / smap.px_per_mm
     seg = res.r[r0:r1, c0:c1].astype(np.float64)
@@ -257,7 +259,7 @@ def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.nd
     right = h[:, -edge:].mean(axis=1, keepdims=True)
     t = np.linspace(0.0, 1.0, n)[None, :]
     h = h - (left + (right - left) * t)  # the rim on both sides at zero
-    inside = mask[r0:r1, c0:c1]
+    inside = mask
     if not np.any(inside):
         return 0.0
     return float(np.percentile(-h[inside], 90))
@@ -276,17 +278,20 @@ def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
         if area_mm2 < settings.min_blob_mm2:
             continue
         cells = labels[y:y + h, x:x + w] == lab
-        mask = np.zeros(res.r.shape, dtype=bool)
-        mask[y:y + h, x * res.cell_px:(x + w) * res.cell_px] = np.repeat(cells, res.cell_px,
-                                                                        axis=1)
+        strength = float(res.excess[y:y + h, x:x + w][cells].mean())
+        if _confidence(strength, settings) < settings.min_confidence:
+            continue  # would not be reported: its depth and roughness are not needed
         pad = max(2, w // 2) * res.cell_px
         c0 = max(0, x * res.cell_px - pad)
         c1 = min(res.r.shape[1], (x + w) * res.cell_px + pad)
+        mask = np.zeros((h, c1 - c0), dtype=bool)  # the blob's samples, rows y..y+h, c0..c1
+        m0 = x * res.cell_px - c0
+        mask[:, m0:m0 + w * res.cell_px] = np.repeat(cells, res.cell_px, axis=1)
         depth = _row_depth_um(res, c0, c1, y, y + h, mask)
-        tot = float((res.r[mask] ** 2).sum())
-        rough = float((res.hp[mask] ** 2).sum()) / max(tot, 1e-12)
-        strength = float(res.excess[y:y + h, x:x + w][cells].mean())
-        shadow = float(np.mean(np.abs(smap.slope_along_feed[mask])
+        r_in = res.r[y:y + h, c0:c1][mask]
+        tot = float((r_in ** 2).sum())
+        rough = float((res.hp[y:y + h, c0:c1][mask] ** 2).sum()) / max(tot, 1e-12)
+        shadow = float(np.mean(np.abs(smap.slope_along_feed[y:y + h, c0:c1][mask])
                                >= 0.7 * smap.shadow_slope))
         out.append(Blob((x * res.cell_px, (x + w) * res.cell_px), (y, y + h), area_mm2,
                         area / float(w * h), depth, rough, shadow, strength))
@@ -317,13 +322,11 @@ def knife_nicks(res: Residual, settings: DefectSettings) -> tuple[list[Defect], 
     third of the row does not raise it) against the rows' median of the same.
     """
     vc = res.valid_cells
-    ex = np.where(vc, res.excess, np.nan)
+    ex = np.where(vc, res.excess, np.float32(0.0))
     thirds = np.array_split(np.arange(ex.shape[1]), 3)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        # evenly along the feed: the weakest third of the row decides
-        level = np.min([np.nanpercentile(ex[:, t], 70, axis=1) for t in thirds], axis=0)
-    level = np.nan_to_num(level, nan=0.0)
+    # evenly along the feed: the weakest third of the row decides (invalid cells count as 0)
+    level = np.min([np.partition(ex[:, t], int(0.7 * (t.size - 1)), axis=1)[
+        :, int(0.7 * (t.size - 1))] for t in thirds], axis=0)
     base = float(np.median(level)) if level.size else 0.0
     peak = float(level.max()) if level.size else 0.0
     if peak < settings.excess or peak < settings.nick_ratio * max(base, 1e-9):

@@ -269,6 +269,7 @@ def run(quick: bool) -> list[dict[str, Any]]:
                 ("selfcal_pairs_per_s", Measurer(rig, a.shape, radius_mm=SELFCAL_RADIUS_MM,
                                                  knives=SELFCAL_KNIVES),
                  {"calibrator": calibrator}),
+                ("defects_pairs_per_s", Measurer(rig, a.shape, defects=True), {}),
             ):
                 fns[name] = _measure_fn(measurer, a, b, ca, cb, **kw)
             rolled = synthetic_pair(width, height, roll_deg=ROLLED_DEG)
@@ -300,6 +301,11 @@ def run(quick: bool) -> list[dict[str, Any]]:
                                         2),
                     "rolled_pairs_per_s": round(rates["rolled_pairs_per_s"], 1),
                     "rolled_cpu_ms": round(cpu_ms["rolled_pairs_per_s"], 2),
+                    # the 2-D surface map and the planing defects (Measurer(defects=True))
+                    "defects_pairs_per_s": round(rates["defects_pairs_per_s"], 1),
+                    "defects_cpu_ms": round(cpu_ms["defects_pairs_per_s"], 2),
+                    "defects_overhead": round(cpu_ms["defects_pairs_per_s"]
+                                              / cpu_ms["pairs_per_s"] - 1.0, 3),
                     **_floor_ratios(cpu_ms, TARGETS.get((width, height), 1.0)),
                 }
             )
