@@ -523,7 +523,7 @@ def _piezo(s: Section) -> PiezoConfig:
         stroke_um=s.number("stroke_um", d.stroke_um, lo=0.0, lo_open=True, hi=1000.0),
         resonance_hz=s.number("resonance_hz", d.resonance_hz, lo=10.0, hi=100000.0),
         damping=s.number("damping", d.damping, lo=0.01, hi=0.95),
-        hysteresis=s.number("hysteresis", d.hysteresis, lo=0.0, hi=0.3),
+        hysteresis=s.number("hysteresis", d.hysteresis, lo=0.0, hi=0.5),  # the model's range
         input_shaper=s.boolean("input_shaper", d.input_shaper),
         lead_fraction=s.number("lead_fraction", d.lead_fraction, lo=0.05, hi=0.95),
         timeout_s=s.number("timeout_s", d.timeout_s, lo=0.0, lo_open=True, hi=60.0),

@@ -22,7 +22,8 @@ within ``[gain_min / 4, 1.5 gain_max]`` (a step of the runout itself, a knife ch
 misattributed pair, passes for a wild gain; a difference across a table change inside the
 measured window, for nearly none). Once a mode is confident, a difference must also agree with
 its estimate (:meth:`ActuatorIdentifier._consistent`); ``3 lag_pairs`` disagreeing in a row
-and the mode is learnt afresh (the actuator changed). A jump of the width errors while the
+and the mode is learnt afresh (the actuator changed), as is a mode that was confident and lost
+all its confidence to disagreeing differences. A jump of the width errors while the
 table stood still is a step of the runout: the differences start again after it. The gain may
 lie anywhere on the phase circle: a resonance below the knife passing frequency turns a mode by
 60-180 degrees (at 100 Hz and 400 knife passes per second the alternating mode's gain is about
@@ -31,10 +32,10 @@ lie anywhere on the phase circle: a resonance below the knife passing frequency 
 The fit is exponentially weighted least squares over the accepted differences (forgetting only
 when something new is learnt, so a settled loop keeps its estimate) with a prior ``a_m = 1``
 of weight ``prior_um2``. Beside the estimate it keeps what the fit knows: the weighted number
-of differences and their residual, so each mode has a standard error ``sigma_m`` and a
-confidence ``1 - 2 sigma_m / |a_m|`` (clipped to [0, 1]): the fraction of the loop's
-robust-stability disc (``|a_true / a_hat - 1| < 1``, ``controller.laws.design``) left after two
-standard errors. :meth:`mode_states` sorts the modes into ``usable`` (confident, ``|a_m| >=
+of differences and their residual, so each mode has an uncertainty ``sigma_m`` (the fit's
+standard error and the prior's pull) and a confidence ``1 - 2 sigma_m / |a_m|`` (clipped to
+[0, 1]): the fraction of the loop's robust-stability disc (``|a_true / a_hat - 1| < 1``,
+``controller.laws.design``) left after two standard errors. :meth:`mode_states` sorts the modes into ``usable`` (confident, ``|a_m| >=
 gain_min``), ``no_authority`` (``|a_m| + 2 sigma_m < gain_min`` after ``min_samples``
 differences: the actuator cannot move that knife pattern), ``unidentifiable`` (many differences,
 still no confidence) and ``unknown`` (not enough seen yet). :attr:`mode_gains`, the gains the
@@ -175,6 +176,7 @@ class ActuatorIdentifier:
         self._syy = [0.0] * z  # weighted sum of |dY|^2 (the fit's residual)
         self._n = [0.0] * z  # weighted number of accepted differences
         self._rejected = [0] * z  # consecutive differences left out as outliers
+        self._confident = [False] * z  # confident once since learnt (afresh)
         self.samples = 0
         self._prior = np.ones(z, complex)
         self._raw = np.ones(z, complex)
@@ -240,7 +242,7 @@ class ActuatorIdentifier:
             soo, soy, syy, n = self._soo, self._soy, self._syy, self._n
             lam = self.forget
             any_moved = False
-            for m in range(1, z):  # per mode, in plain complex numbers (Z is small)
+            for m in range(1, z // 2 + 1):  # per mode pair, in plain complex numbers
                 do, dy = om[m] - o0[m], ym[m] - y0[m]
                 if abs(do) < self.min_step_um:
                     continue
@@ -259,8 +261,13 @@ class ActuatorIdentifier:
                 syy[m] = lam * syy[m] + abs(dy) ** 2
                 n[m] = lam * n[m] + 1.0
                 any_moved = True
+            for m in range(z // 2 + 1, z):  # mode Z - m: the conjugate of mode m
+                c = z - m
+                soo[m], soy[m], syy[m], n[m] = soo[c], soy[c].conjugate(), syy[c], n[c]
+                self._rejected[m] = self._rejected[c]
             if any_moved:
                 self._set_gains(self._fit())
+                self._relearn_lost()
         self._past.append((om, ym))
 
     def interrupt(self) -> None:
@@ -286,24 +293,40 @@ class ActuatorIdentifier:
 
         Before the mode is confident every difference counts (the first learning steps are what
         identify a turned or weak actuator). After, ``|dY - a dO|`` must stay within half the
-        predicted move plus three residual standard deviations: a step of the runout
+        predicted move (three uncertainties of the gain, when larger) plus three residual
+        standard deviations: a step of the runout
         (``dS``, a knife changed) is left out whatever its phase.
         """
         n = self._n[m]
         if n < self.min_samples - 1e-9:
             return True
         a = complex(self._raw[m])
+        se = self._stderr(m)
+        if 2.0 * se >= abs(a):
+            return True  # not confident: nothing to judge by
         res = self._syy[m] - 2.0 * (a.conjugate() * self._soy[m]).real + abs(a) ** 2 * self._soo[m]
         sigma = math.sqrt(max(res, 0.0) / max(n - 1.0, 1.0))
-        if 2.0 * sigma * math.sqrt(1.0 / (self._soo[m] + self.prior_um2)) >= abs(a):
-            return True  # not confident: nothing to judge by
-        return abs(dy - a * do) <= 0.5 * abs(a) * abs(do) + 3.0 * sigma
+        return abs(dy - a * do) <= max(0.5 * abs(a), 3.0 * se) * abs(do) + 3.0 * sigma
+
+    def _relearn_lost(self) -> None:
+        """A mode that was confident and lost all confidence is learnt afresh (it changed)."""
+        conf = self.confidence()
+        lost = False
+        for m in range(1, self.knives):
+            if conf[m] > 0.0:
+                self._confident[m] = True
+            elif self._confident[m]:
+                self._forget_mode(m)
+                lost = True
+        if lost:
+            self._set_gains(self._fit())
 
     def _forget_mode(self, m: int) -> None:
         """Forget what mode ``m`` (and its conjugate) learnt: back to the prior."""
         for k in {m, (self.knives - m) % self.knives}:
             self._soo[k], self._soy[k], self._syy[k], self._n[k] = 0.0, 0j, 0.0, 0.0
             self._rejected[k] = 0
+            self._confident[k] = False
 
     def _dft(self, v: list[float]) -> list[complex]:
         """``np.fft.fft(v, norm="ortho")`` with the twiddles set up once."""
@@ -354,10 +377,12 @@ class ActuatorIdentifier:
         return np.array(self._n)
 
     def gain_stderr(self) -> np.ndarray:
-        """Standard error of each mode's estimate, shape (Z,) (``inf`` before two differences).
+        """Uncertainty of each mode's estimate, shape (Z,) (``inf`` before two differences).
 
-        The residual of the weighted fit at the estimate, ``sum |dY - a dO|^2``, over the
-        differences less one, divided by the excitation (the prior's included).
+        The standard error of the weighted fit (its residual ``sum |dY - a dO|^2`` over the
+        differences less one, divided by the excitation, the prior's included) and the prior's
+        pull on the estimate (``prior_um2 |a_prior - a| / (excitation + prior_um2)``) added in
+        quadrature: little excitation is little confidence even without noise.
         """
         z = self.knives
         out = np.full(z, math.inf)
@@ -366,11 +391,17 @@ class ActuatorIdentifier:
             n = self._n[m]
             if n < 1.5:
                 continue
-            a = complex(self._raw[m])
-            res = (self._syy[m] - 2.0 * (a.conjugate() * self._soy[m]).real
-                   + abs(a) ** 2 * self._soo[m])
-            out[m] = math.sqrt(max(res, 0.0) / (n - 1.0) / (self._soo[m] + self.prior_um2))
+            out[m] = self._stderr(m)
         return out
+
+    def _stderr(self, m: int) -> float:
+        a = complex(self._raw[m])
+        n = self._n[m]
+        res = self._syy[m] - 2.0 * (a.conjugate() * self._soy[m]).real + abs(a) ** 2 * self._soo[m]
+        w = self._soo[m] + self.prior_um2
+        fit = max(res, 0.0) / max(n - 1.0, 1.0) / w
+        pull = self.prior_um2 * abs(complex(self._prior[m]) - a) / w
+        return math.sqrt(fit + pull * pull)
 
     def confidence(self) -> np.ndarray:
         """Per mode ``1 - 2 sigma_m / |a_m|`` clipped to [0, 1] (0 before ``min_samples``)."""

@@ -276,6 +276,7 @@ class UniformityLoop:
         )
         self._history = OffsetHistory(z, horizon_s=cfg.history_s)
         self._disturbance: np.ndarray | None = None
+        self._estimate: np.ndarray | None = None
         self._estimates = 0  # open-loop estimates (board cut with the starting table)
         self._open_table: list[float] | None = [0.0] * z
         self._held: frozenset[int] = frozenset()  # modes the actuator cannot move
@@ -321,6 +322,7 @@ class UniformityLoop:
         self._guard.reset(forget=forget)
         if forget:
             self._disturbance = None
+            self._estimate = None
             self._estimates = 0
             self._open_table = start.tolist()
             self._ident.reset()
@@ -567,14 +569,19 @@ class UniformityLoop:
             self._estimates += 1
         else:
             self._open_table = None  # the loop's own tables show: the scheduled gain from now
+        self._estimate = np.array(s_est)  # what this pair's step plans against
         prev = s_est if self._disturbance is None else self._disturbance.tolist()
         self._disturbance = np.array([p + g * (v - p) for p, v in zip(prev, s_est, strict=True)])
         if self._judge(o_c, math.sqrt(sum(v * v for v in err) / len(err)) / gain_g, t, t0):
             return self.offsets_um
         bound = self.limit_um
         hold = self._hold_table() if self._held else None
-        best = planner.best_offsets_um(s_est, bound_um=bound, start_um=self._offsets,
-                                       hold_um=hold).tolist()
+        best_a = planner.best_offsets_um(s_est, bound_um=bound, start_um=self._offsets,
+                                         hold_um=hold)
+        if hold is not None:  # the penalty holds nearly: the held patterns exactly where held
+            p = _mode_projector(cfg.knives, self._held)
+            best_a = project_zero_mean_box(best_a - p @ best_a + p @ hold, bound=bound)
+        best = best_a.tolist()
         now = self._offsets.tolist()
         new = project_zero_mean_box(
             np.array([o + g * (b - o) for o, b in zip(now, best, strict=True)]), bound=bound)
@@ -653,11 +660,12 @@ class UniformityLoop:
     def model_spread_um(self, offsets_um: Sequence[float]) -> float:
         """The model's width spread of a table, ``|| D (A_hat o - s_est) ||``, um.
 
-        0 before a measurement; the model CV is this times ``G / (f sqrt(Z))``.
+        ``s_est`` the last pair's estimate of the runout (what its step planned against); 0
+        before a measurement. The model CV is this times ``G / (f sqrt(Z))``.
         """
-        if self._disturbance is None:
+        if self._estimate is None:
             return 0.0
-        z = self._ident.shared_matrix() @ np.asarray(offsets_um, float) - self._disturbance
+        z = self._ident.shared_matrix() @ np.asarray(offsets_um, float) - self._estimate
         return float(np.linalg.norm(self._d @ z))
 
     def _planner(self) -> tuple[OffsetPlanner, tuple[tuple[float, ...], ...]]:

@@ -181,3 +181,103 @@ def test_history_same_instant_replaces_and_pop_puts_it_back():
     assert np.allclose(h.latest(), [0.0, 0.0]) and len(h) == 1
     h.pop()  # the oldest entry stays
     assert len(h) == 1
+
+
+# ------------------------------------------------------------- the whole phase circle
+
+def _modal_actuator(mode1: complex, mode2: float) -> np.ndarray:
+    """A 4-knife circulant actuator with these gains on modes 1 (and 3) and 2."""
+    return circulant_from_mode_gains(np.array([1.0, mode1, mode2, np.conj(mode1)]))
+
+
+# a 100 Hz piezo at 400 knife passes per second (plant_sim.model.piezo at the knives' BDC):
+# the first pattern lags by 63 deg, the alternating one is turned around
+RESONANT_100HZ = (0.69 * np.exp(-1j * np.radians(63.0)), -0.23)
+
+
+def test_a_turned_actuator_is_identified_over_the_whole_phase_circle():
+    a = _modal_actuator(*RESONANT_100HZ)
+    ident = ActuatorIdentifier(4)
+    transient(ident, a, np.array([-1.0, 3.0, -3.0, 1.0]), np.array([-2.0, 14.0, -10.0, -2.0]))
+    g = ident.mode_gains
+    assert abs(g[1] - RESONANT_100HZ[0]) < 0.05 and abs(g[2] - RESONANT_100HZ[1]) < 0.03
+    assert ident.mode_states() == ("usable",) * 4
+    assert np.all(ident.confidence()[1:] > 0.5)
+
+
+@settings(max_examples=40, deadline=None)
+@given(mag=st.floats(0.15, 1.8), phase=st.floats(-179.0, 179.0), alt=st.floats(-1.8, 1.8),
+       seed=st.integers(0, 1000))
+def test_any_gain_within_the_envelope_is_identified(mag, phase, alt, seed):
+    """Any complex gain of the first pattern and any real one of the alternating pattern
+    (above the authority threshold) is found from one learning transient."""
+    mode1 = mag * np.exp(1j * np.radians(phase))
+    alt = alt if abs(alt) >= 0.15 else 0.15
+    ident = ActuatorIdentifier(4)
+    rng = np.random.default_rng(seed)
+    # a learning transient that moves both patterns by several um
+    turn = np.exp(1j * rng.uniform(0.0, 2.0 * np.pi))
+    target = np.real(np.fft.ifft(np.array([0.0, 16.0 * turn, 16.0, 16.0 * np.conj(turn)])))
+    transient(ident, _modal_actuator(mode1, alt), rng.normal(0.0, 3.0, 4), target, seed=seed)
+    raw = ident.raw_gains
+    assert ident.mode_states() == ("usable",) * 4
+    for m, truth in ((1, mode1), (2, alt)):
+        # the prior (gain 1, weight prior_um2) pulls by its share of the excitation
+        pull = ident.prior_um2 * abs(1.0 - truth) / (ident.excitation_um2[m] + ident.prior_um2)
+        assert abs(raw[m] - truth) < 0.02 + 0.03 * abs(truth) + pull, (m, raw[m], truth)
+        assert abs(raw[m] - truth) <= 3.0 * ident.gain_stderr()[m] + 0.01  # honest uncertainty
+
+
+def test_an_actuator_that_barely_moves_a_pattern_has_no_authority_there():
+    """A hysteretic stack moves small cycles by a few per cent: said, not divided by."""
+    a = _modal_actuator(0.6 * np.exp(-0.3j), 0.03)
+    ident = ActuatorIdentifier(4, gain_min=0.1)
+    transient(ident, a, np.array([-1.0, 3.0, -3.0, 1.0]), np.array([-8.0, 12.0, -10.0, 6.0]))
+    assert ident.mode_states() == ("usable", "usable", "no_authority", "usable")
+    assert abs(ident.raw_gains[2] - 0.03) < 0.02
+    assert abs(ident.mode_gains[2]) == pytest.approx(0.1)  # planned with the bound, then held
+
+
+def test_a_pattern_never_moved_stays_unknown_and_unconfident():
+    ident = ActuatorIdentifier(4)
+    transient(ident, np.eye(4), np.zeros(4), np.array([3.0, -3.0, 3.0, -3.0]))  # mode 2 only
+    st_ = ident.mode_states()
+    assert st_[2] == "usable" and st_[1] == "unknown" and ident.confidence()[1] == 0.0
+
+
+def test_an_unconfirmed_small_gain_is_planned_with_a_cautious_bound():
+    ident = ActuatorIdentifier(4, min_samples=50, unidentifiable_samples=60,
+                               unconfirmed_gain_min=0.5)
+    transient(ident, 0.05 * np.eye(4), np.zeros(4), np.array([-8.0, 12.0, -10.0, 6.0]),
+              steps=12)
+    assert np.all(np.abs(ident.raw_gains[1:]) < 0.3)
+    assert np.all(np.abs(ident.mode_gains[1:]) >= 0.5 - 1e-12)
+
+
+def test_an_actuator_that_changes_is_learnt_afresh():
+    """Confident at gain 1, the actuator turns (a resonance moved): the disagreeing
+    differences are outliers at first, then the pattern is learnt again."""
+    ident = ActuatorIdentifier(4)
+    s = np.array([-1.0, 3.0, -3.0, 1.0])
+    transient(ident, np.eye(4), s, np.array([-8.0, 12.0, -10.0, 6.0]))
+    assert np.allclose(ident.mode_gains[1:], 1.0, atol=0.05)
+    turned = _modal_actuator(*RESONANT_100HZ)
+    rng = np.random.default_rng(1)
+    for _ in range(120):  # the loop keeps stepping between tables
+        o = rng.normal(0.0, 6.0, 4)
+        y = turned @ o - s
+        ident.add(o, y - y.mean())
+    assert abs(ident.mode_gains[2] - RESONANT_100HZ[1]) < 0.05
+    assert abs(ident.mode_gains[1] - RESONANT_100HZ[0]) < 0.08
+
+
+def test_a_jump_with_the_table_steady_starts_the_differences_again():
+    ident = ActuatorIdentifier(4, lag_pairs=3)
+    o = np.array([1.0, -1.0, 2.0, -2.0])
+    for _ in range(4):
+        ident.add(o, o - o.mean())
+    ident.add(o, o - np.array([0.0, 20.0, 0.0, -20.0]))  # the runout stepped, table steady
+    assert ident.samples == 5
+    assert len(ident._past) == 1  # only the measurement after the jump
+    ident.interrupt()
+    assert len(ident._past) == 0

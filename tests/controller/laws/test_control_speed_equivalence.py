@@ -160,9 +160,10 @@ def _identify_reference(state: dict, o: np.ndarray, y: np.ndarray, ident: Actuat
         res = (state["syy"] - 2.0 * np.real(np.conj(a) * state["soy"])
                + np.abs(a) ** 2 * state["soo"])
         sigma = np.sqrt(np.maximum(res, 0.0) / np.maximum(n - 1.0, 1.0))
-        confident = (n >= ident.min_samples - 1e-9) & (
-            2.0 * sigma * np.sqrt(1.0 / (state["soo"] + ident.prior_um2)) < np.abs(a))
-        agree = np.abs(dy - a * do) <= 0.5 * np.abs(a) * np.abs(do) + 3.0 * sigma
+        se = _stderr_reference(state, ident)
+        confident = (n >= ident.min_samples - 1e-9) & (2.0 * se < np.abs(a))
+        agree = (np.abs(dy - a * do)
+                 <= np.maximum(0.5 * np.abs(a), 3.0 * se) * np.abs(do) + 3.0 * sigma)
         outlier = moved & confident & ~agree
         moved &= ~outlier
         state["rejected"] = np.where(outlier, state["rejected"] + 1,
@@ -178,42 +179,70 @@ def _identify_reference(state: dict, o: np.ndarray, y: np.ndarray, ident: Actuat
                 state["soy"][k] = 0.0
                 state["rejected"][k] = 0
         if np.any(moved):
-            a = (state["soy"] + ident.prior_um2) / (state["soo"] + ident.prior_um2)
-            if z % 2 == 0:
-                a[z // 2] = a[z // 2].real
-            a[0] = 1.0
-            for m in range(1, (z + 1) // 2):
-                a[z - m] = np.conj(a[m])
-            state["raw"] = a.copy()
-            n = state["n"]
-            res = (state["syy"] - 2.0 * np.real(np.conj(a) * state["soy"])
-                   + np.abs(a) ** 2 * state["soo"])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                se = np.where(n >= 1.5, np.sqrt(np.maximum(res, 0.0) / (n - 1.0)
-                                                / (state["soo"] + ident.prior_um2)), np.inf)
-            conf = np.clip(1.0 - 2.0 * se / np.maximum(np.abs(a), 1e-12), 0.0, 1.0)
-            conf[n < ident.min_samples - 1e-9] = 0.0
-            conf[0] = 1.0
-            low = np.where(conf > 0.0, ident.gain_min,
-                           max(ident.gain_min, ident.unconfirmed_gain_min))
-            mag = np.clip(np.abs(a), low, ident.gain_max)
-            phase = np.clip(np.angle(a), -ident.phase_max, ident.phase_max)
-            a = mag * np.exp(1j * phase)
-            if z % 2 == 0:
-                a[z // 2] = a[z // 2].real
-            for m in range(1, (z + 1) // 2):
-                a[z - m] = np.conj(a[m])
-            a[0] = 1.0
-            state["gains"] = a
+            _fit_reference(state, ident)
+            # a mode that was confident and lost all confidence is learnt afresh
+            conf = _confidence_reference(state, ident)
+            lost = [m for m in range(1, z) if conf[m] <= 0.0 and state["confident"][m]]
+            state["confident"] |= conf > 0.0
+            if lost:
+                for m in lost:
+                    for k in {m, (z - m) % z}:
+                        state["soo"][k] = state["syy"][k] = state["n"][k] = 0.0
+                        state["soy"][k] = 0.0
+                        state["rejected"][k] = 0
+                        state["confident"][k] = False
+                _fit_reference(state, ident)
     past.append((om, ym))
     del past[: max(0, len(past) - ident.lag)]
+
+
+def _stderr_reference(state: dict, ident: ActuatorIdentifier) -> np.ndarray:
+    """The fit's standard error and the prior's pull in quadrature, per mode."""
+    a, n, soo = state["raw"], state["n"], state["soo"]
+    res = state["syy"] - 2.0 * np.real(np.conj(a) * state["soy"]) + np.abs(a) ** 2 * soo
+    w = soo + ident.prior_um2
+    fit = np.maximum(res, 0.0) / np.maximum(n - 1.0, 1.0) / w
+    pull = ident.prior_um2 * np.abs(1.0 - a) / w
+    return np.sqrt(fit + pull ** 2)
+
+
+def _confidence_reference(state: dict, ident: ActuatorIdentifier) -> np.ndarray:
+    n = state["n"]
+    se = np.where(n >= 1.5, _stderr_reference(state, ident), np.inf)
+    conf = np.clip(1.0 - 2.0 * se / np.maximum(np.abs(state["raw"]), 1e-12), 0.0, 1.0)
+    conf[n < ident.min_samples - 1e-9] = 0.0
+    conf[0] = 1.0
+    return conf
+
+
+def _fit_reference(state: dict, ident: ActuatorIdentifier) -> None:
+    z = ident.knives
+    a = (state["soy"] + ident.prior_um2) / (state["soo"] + ident.prior_um2)
+    if z % 2 == 0:
+        a[z // 2] = a[z // 2].real
+    a[0] = 1.0
+    for m in range(1, (z + 1) // 2):
+        a[z - m] = np.conj(a[m])
+    state["raw"] = a.copy()
+    low = np.where(_confidence_reference(state, ident) > 0.0, ident.gain_min,
+                   max(ident.gain_min, ident.unconfirmed_gain_min))
+    mag = np.clip(np.abs(a), low, ident.gain_max)
+    phase = np.clip(np.angle(a), -ident.phase_max, ident.phase_max)
+    a = mag * np.exp(1j * phase)
+    if z % 2 == 0:
+        a[z // 2] = a[z // 2].real
+    for m in range(1, (z + 1) // 2):
+        a[z - m] = np.conj(a[m])
+    a[0] = 1.0
+    state["gains"] = a
 
 
 def _id_state(knives: int) -> dict:
     """The reference identification's starting state."""
     return {"past": [], "soo": np.zeros(knives), "soy": np.zeros(knives, complex),
             "syy": np.zeros(knives), "n": np.zeros(knives), "rejected": np.zeros(knives, int),
-            "raw": np.ones(knives, complex), "gains": np.ones(knives, complex)}
+            "raw": np.ones(knives, complex), "gains": np.ones(knives, complex),
+            "confident": np.zeros(knives, bool)}
 
 
 @settings(max_examples=30, deadline=None)

@@ -234,14 +234,14 @@ def test_a_sweep_runs_on_a_separately_started_scheduler_and_worker(tiny, tmp_pat
         (["sweep", "missing.toml", "--out", "o"], ["config file not found", "missing.toml"]),
         (["sweep", "{f}", "--out", "o", "--workers", "-1"], ["--workers must be >= 0"]),
         (["sweep", "{f}", "--out", "o", "--scheduler", "127.0.0.1:1"], ["tcp://HOST:PORT"]),
-        (["sweep", "{bad}", "--out", "o"], ["run 0", "sim.piezo.hysteresis must be <= 0.3"]),
+        (["sweep", "{bad}", "--out", "o"], ["run 0", "sim.piezo.hysteresis must be <= 0.5"]),
     ],
 )
 def test_command_errors_are_one_line(argv, words, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "ok.toml").write_text(TINY)
     (tmp_path / "bad.toml").write_text(TINY.replace("resonance_hz\" = [300.0]",
-                                                    "hysteresis\" = [0.5]"))
+                                                    "hysteresis\" = [0.6]"))
     argv = [a.format(f="ok.toml", bad="bad.toml") for a in argv]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()

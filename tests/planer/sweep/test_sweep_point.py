@@ -63,7 +63,7 @@ def test_the_service_target_may_come_from_the_machine_key_instead_of_the_scenari
     [
         ({"sim.cutterhead.knives": 2}, ["run 7", "sim.cutterhead.knives=2",
                                         "sim.cutterhead.runout_um must have 2 values"]),
-        ({"sim.piezo.hysteresis": 0.5}, ["sim.piezo.hysteresis must be <= 0.3"]),
+        ({"sim.piezo.hysteresis": 0.6}, ["sim.piezo.hysteresis must be <= 0.5"]),
         ({"sim.cutterhead.knifes": 3}, ["unknown key sim.cutterhead.knifes"]),
         ({"sim.spindle.rpm.x": 3}, ["sim.spindle.rpm.x", "is a value, not a table"]),
         ({"machine.piezo.stroke_um": -1.0}, ["machine.piezo.stroke_um must be > 0"]),
