@@ -35,15 +35,15 @@ of weight ``prior_um2``. Beside the estimate it keeps what the fit knows: the we
 of differences and their residual, so each mode has an uncertainty ``sigma_m`` (the fit's
 standard error and the prior's pull) and a confidence ``1 - 2 sigma_m / |a_m|`` (clipped to
 [0, 1]): the fraction of the loop's robust-stability disc (``|a_true / a_hat - 1| < 1``,
-``controller.laws.design``) left after two standard errors. :meth:`mode_states` sorts the modes into ``usable`` (confident, ``|a_m| >=
-gain_min``), ``no_authority`` (``|a_m| + 2 sigma_m < gain_min`` after ``min_samples``
-differences: the actuator cannot move that knife pattern), ``unidentifiable`` (many differences,
-still no confidence) and ``unknown`` (not enough seen yet). :attr:`mode_gains`, the gains the
-loop plans with, bound ``|a_m|`` to ``[gain_min, gain_max]`` (``unconfirmed_gain_min`` below
-while the mode is not confident; the phase kept) so that the loop never divides by nearly
-nothing. Pure; per measurement a DFT of ``Z`` values in plain numbers
-(``Z <= 8``: cheaper than numpy's FFT calls) and ``O(Z)`` updates; the circulant matrix is
-built once per new estimate.
+``controller.laws.design``) left after two standard errors. :meth:`mode_states` sorts the modes
+into ``usable`` (confident, ``|a_m| >= gain_min``), ``no_authority`` (``|a_m| + 2 sigma_m <
+gain_min`` after ``min_samples`` differences: the actuator cannot move that knife pattern),
+``unidentifiable`` (many differences, still no confidence) and ``unknown`` (not enough seen
+yet). :attr:`mode_gains`, the gains the loop plans with, bound ``|a_m|`` to ``[gain_min,
+gain_max]`` (``unconfirmed_gain_min`` below while the mode is not confident; the phase kept) so
+that the loop never divides by nearly nothing. Pure; per measurement a DFT of ``Z`` values in
+plain numbers (``Z <= 8``: cheaper than numpy's FFT calls) and ``O(Z)`` updates; the circulant
+matrix is built once per new estimate.
 """
 
 from __future__ import annotations
