@@ -126,7 +126,7 @@ def test_counts_giving_a_shift_larger_than_the_image(files, capsys):
         ("slant_deg = 82.0", "slant_deg = 95.0", "lights.slant_deg"),
         ("px_per_count = 0.625", "px_per_count = -1.0", "encoder.px_per_count"),
         ("fx = 1400.0", 'fx = "wide"', "camera.fx"),
-        ("px_per_mm = 12.5\n", "", "camera.px_per_mm"),
+        ("px_per_mm = 12.5\n", "px_per_mm = 0.0\n", "camera.px_per_mm"),
     ],
 )
 def test_bad_rig_value(files, capsys, old, new, key):
