@@ -10,7 +10,13 @@ NaN, a missing number is ``null`` with its reason in ``null_reasons``) to stdout
 The report's figures of the run (``controller/quality/report.py``: pitch and uniformity along the
 boards, setpoints, a profile) are written next to the quality log and their paths printed
 (``figures`` in the JSON object). Exit code 0 when every check of the summary's ``done`` table
-passed, 1 otherwise.
+passed, 1 otherwise; a run that a limit cut before its distance (the scenario's ``max_sim_s``)
+fails its ``distance_reached`` check and says so.
+
+With ``--http`` or ``--opcua`` the simulated run is paced at real time (``--pace FACTOR``:
+simulated seconds per wall second; without servers the run goes as fast as it can unless
+``--pace`` is given), and when it ends the summary is printed and the servers keep serving
+its final state until Ctrl-C (or SIGTERM); the exit code is then still the summary's.
 """
 
 from __future__ import annotations
@@ -49,13 +55,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="simulator seed")
     parser.add_argument(
         "--opcua", default=None, metavar="ENDPOINT",
-        help="serve OPC UA (OPC 40550 Woodworking) at ENDPOINT during the run, e.g. "
-        "opc.tcp://127.0.0.1:4840 (docs/opcua.md)",
+        help="serve OPC UA (OPC 40550 Woodworking) at ENDPOINT during the run (paced at real "
+        "time) and its final state after it until Ctrl-C, e.g. opc.tcp://127.0.0.1:4840 "
+        "(docs/opcua.md)",
     )
     parser.add_argument(
         "--http", default=None, metavar="HOST:PORT",
-        help="serve the operator and quality web pages at HOST:PORT during the run, e.g. "
-        "127.0.0.1:8080 (runs the simulator in this process; docs/web.md)",
+        help="serve the operator and quality web pages at HOST:PORT during the run (paced at "
+        "real time) and its final state after it until Ctrl-C, e.g. 127.0.0.1:8080 (runs the "
+        "simulator in this process; docs/web.md)",
+    )
+    parser.add_argument(
+        "--pace", type=float, default=None, metavar="FACTOR",
+        help="simulated seconds per wall second (1: real time; default with --http or --opcua, "
+        "else as fast as it goes; cross-process: the simulator's time scale)",
     )
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument(
@@ -78,6 +91,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def _human(summary: dict) -> str:
+    from planer.hil.run_end import run_end_text
+
     init, fin, conv = summary["initial"], summary["final"], summary["converged"]
     lines = [
         f"planer hil: scenario {summary.get('scenario')} ({summary.get('mode')}), "
@@ -106,8 +121,11 @@ def _human(summary: dict) -> str:
     lines.append(
         f"  setpoints         feed {feed} mm/s within "
         f"[{f(lim['feed_min_mm_s'], 'g')}, {f(lim['feed_max_mm_s'], 'g')}], offsets |max| "
-        f"{lim['max_abs_offset_um']:.2f} um within {lim['stroke_um']:g}"
+        f"{lim['max_abs_offset_um']:.2f} µm within {lim['stroke_um']:g}"
     )
+    end = summary.get("run_end")
+    if end and not summary["done"].get("distance_reached", True):
+        lines.append(f"  run cut short     {run_end_text(end)}")
     for why in lim.get("reasons") or ():
         lines.append(f"                    NOT OK: {why}")
     lat = summary.get("latency_ms")
@@ -179,6 +197,14 @@ def run(args: argparse.Namespace) -> int:
         if args.seed < 0:
             raise ValueError(f"--seed must be >= 0, got {args.seed}")
         scenario = replace(scenario, seed=int(args.seed))
+    serving_asked = bool(getattr(args, "http", None) or getattr(args, "opcua", None))
+    pace = getattr(args, "pace", None)
+    if pace is not None and not (math.isfinite(pace) and pace > 0):
+        raise ValueError(f"--pace must be a number > 0, got {pace}")
+    if pace is None and serving_asked:
+        pace = 1.0  # real time: the pages and OPC UA clients follow the run as it happens
+    if pace is not None:
+        scenario = replace(scenario, time_scale=float(pace))  # the cross-process simulator's
     log_path = Path(args.log) if args.log else Path("runs") / time.strftime(
         "hil-%Y%m%d-%H%M%S.sqlite"
     )
@@ -225,19 +251,30 @@ def run(args: argparse.Namespace) -> int:
                 f"planer hil: {why}; falling back to the in-process simulator "
                 "(simulated time, virtual CAN)"
             )
+    told: list[dict] = []
+
+    def tell(summary: dict) -> None:
+        """Write the figures and print the summary (before the servers hold the end)."""
+        summary["figures"] = _write_figures(summary, progress)
+        if args.json:
+            # strict JSON: NaN/inf become null (listed in null_reasons); a regression fails
+            print(json.dumps(hil.json_ready(summary), allow_nan=False), flush=True)
+        else:
+            print(_human(summary), flush=True)
+        told.append(summary)
+
     try:
         summary = _run_scenario(hil, scenario, args, cross=cross, log_path=log_path,
-                                progress=progress)
+                                progress=progress, pace=pace, tell=tell)
     except KeyboardInterrupt:
+        if told:  # the run was over and told; Ctrl-C ended the serving of its final state
+            progress("planer hil: stopped serving")
+            return 0 if told[-1]["passed"] else 1
         if log_path.exists():
             progress(f"planer hil: stopped early; the quality log so far is {log_path}")
         raise
-    summary["figures"] = _write_figures(summary, progress)
-    if args.json:
-        # strict JSON: NaN/inf become null (listed in null_reasons); a regression fails loudly
-        print(json.dumps(hil.json_ready(summary), allow_nan=False), flush=True)
-    else:
-        print(_human(summary), flush=True)
+    if not told:
+        tell(summary)
     return 0 if summary["passed"] else 1
 
 
@@ -269,9 +306,37 @@ def _write_figures(summary: dict, progress: Callable[[str], None]) -> dict[str, 
         return {}
 
 
+async def _final_state_served(servers: Any, *, timeout_s: float = 10.0) -> None:
+    """Wait (at most ``timeout_s``) until the servers' process has the ended run's last state.
+
+    The service is looked at every period (:func:`controller.edge.feed.follow`); two looks taken
+    by the sender after the run ended mean the first, which holds the last state, was sent; then
+    the servers' process must report having received as many messages as were sent.
+    """
+    import asyncio
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    box = servers.mailbox
+    for _ in range(2):
+        n = box.put_count
+        while box.put_count == n or len(box):
+            if time.monotonic() > deadline:
+                return
+            await asyncio.sleep(0.02)
+    sent = servers.sent
+    left = max(0.0, deadline - time.monotonic())
+    await asyncio.to_thread(servers.wait_stats, lambda s: s.get("received", 0) >= sent, left)
+
+
 def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: bool,
-                  log_path: Path, progress: Callable[[str], None]) -> dict:
-    """Run the scenario in the chosen mode; return the summary."""
+                  log_path: Path, progress: Callable[[str], None], pace: float | None = None,
+                  tell: Callable[[dict], None] | None = None) -> dict:
+    """Run the scenario in the chosen mode; return the summary.
+
+    With servers asked for (``--http``, ``--opcua``) the summary is told (``tell``) when the
+    run ends and the servers go on serving its final state until Ctrl-C (``KeyboardInterrupt``).
+    """
     import asyncio
 
     from controller.edge.compose import serving
@@ -286,8 +351,17 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
 
     async def with_opcua(run: Any, get_service: Callable[[], Any]) -> dict:
         async with serving(cfg, get_service, opcua=getattr(args, "opcua", None),
-                           http=getattr(args, "http", None), say=progress):
-            return await run
+                           http=getattr(args, "http", None), say=progress) as servers:
+            summary = await run
+            if servers is None or tell is None:
+                return summary
+            tell(summary)
+            await _final_state_served(servers)
+            where = " and ".join(x for x in (servers.url, servers.endpoint) if x)
+            progress(f"planer hil: the run is over; serving its final state at {where} "
+                     "until Ctrl-C")
+            await asyncio.Event().wait()  # until Ctrl-C or SIGTERM (KeyboardInterrupt)
+            return summary
 
     if cross:
         # the simulator's config and frame spool (tens of MB) live in a temporary folder that
@@ -298,7 +372,7 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
             lambda: opened[-1] if opened else None))
     else:
         runner = hil.InProcessHil(
-            scenario, log_path=log_path, plc_transport=args.plc, progress=progress
+            scenario, log_path=log_path, plc_transport=args.plc, progress=progress, pace=pace
         )
         summary = asyncio.run(with_opcua(runner.run(),
                                          lambda: getattr(runner, "service", None)))

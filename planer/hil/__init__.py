@@ -20,8 +20,10 @@ the machine's limits; what each injected fault did (safe state, recovery); the q
 integrity.
 
 The package, by job: :mod:`planer.hil.scenario` (what to run), :mod:`planer.hil.in_process`
-(simulated time, one process), :mod:`planer.hil.cross_process` (real time, two processes),
+(simulated time, one process; :mod:`planer.hil.pacing` holds it to the wall clock when asked),
+:mod:`planer.hil.cross_process` (real time, two processes),
 :mod:`planer.hil.summary` (what the run achieved; :func:`json_ready` for strict JSON),
+:mod:`planer.hil.run_end` (the distance run, or the limit that cut the run: a check),
 :mod:`planer.hil.soak` (an hour of machine time with faults: memory, files and latency flat;
 ``python -m planer.hil.soak``). Fault kinds and their parameters: :mod:`config.faults`.
 """

@@ -32,6 +32,7 @@ from typing import Any
 from config.loading import default_path
 from controller.service.frame_result import FrameResult
 from core.errors import FieldbusError
+from planer.hil.run_end import note_run_end
 from planer.hil.scenario import Progress, Scenario, machine_config_for, sim_config_for, sim_document
 from planer.hil.summary import PROGRESS_LEGEND, BoardTravel, _progress_line, _service_summary
 
@@ -342,6 +343,7 @@ async def _run_cross_process(
 
         async def time_limit() -> None:
             await asyncio.sleep(scenario.max_sim_s / scenario.time_scale + 10.0)
+            state["time_limit_hit"] = 1
             stop.set()
 
         limiter = asyncio.create_task(time_limit())
@@ -396,6 +398,9 @@ async def _run_cross_process(
         },
     )
     summary["sim_exit_code"] = code
+    note_run_end(summary, distance_m=scenario.distance_m, travelled_m=travel.measured_mm / 1000,
+                 max_sim_s=scenario.max_sim_s, time_limit_hit=bool(state.get("time_limit_hit")),
+                 say=progress)
     return summary
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import itertools
 import os
 import time
@@ -12,6 +11,8 @@ from typing import Any
 
 from config.machine import MachineConfig
 from controller.service.service import FrameResult, Service
+from planer.hil.pacing import Pacer
+from planer.hil.run_end import note_run_end
 from planer.hil.scenario import Progress, Scenario, machine_config_for, sim_config_for
 from planer.hil.summary import PROGRESS_LEGEND, BoardTravel, _progress_line, _service_summary
 
@@ -297,6 +298,9 @@ class InProcessHil:
         Receives progress lines.
     progress_every : int
         Measurements between progress lines.
+    pace : float or None
+        Simulated seconds per wall second (1: real time, for pages and OPC UA clients to
+        follow); ``None``: as fast as the CPU allows (:class:`~planer.hil.pacing.Pacer`).
     """
 
     def __init__(
@@ -307,7 +311,9 @@ class InProcessHil:
         plc_transport: str = "direct",
         progress: Progress | None = None,
         progress_every: int = 10,
+        pace: float | None = None,
     ) -> None:
+        self.pace = Pacer(pace).factor  # checked here; each run paces itself afresh
         self.scenario = scenario
         self.log_path = Path(log_path)
         self.plc_transport = plc_transport
@@ -333,6 +339,7 @@ class InProcessHil:
         assert service is not None
         service.on_event = lambda e: self._say(f"t={e.t_s:7.3f} s  {e.text}")
         pending = sorted(sc.faults, key=lambda f: f.at_s)
+        pacer = Pacer(self.pace)
         n_last = n_seen = 0
         travel = BoardTravel(self.sim_cfg.encoder.counts_per_mm)
         wall0 = time.perf_counter()
@@ -353,7 +360,7 @@ class InProcessHil:
                         plant.driver.inject(f.kind.value, **f.params)
                     # machine faults are in the simulator's [faults] table already
                 await plant.step()
-                await asyncio.sleep(0)  # a real suspension: Ctrl-C (task cancel) lands here
+                await pacer.wait(plant.clock())  # a real suspension: Ctrl-C lands here
                 n = len(service.results)
                 for r in service.results[n_seen:]:
                     travel.add(r)
@@ -365,7 +372,7 @@ class InProcessHil:
         finally:
             await plant.close()
         snap = plant.plc.last
-        return _service_summary(
+        summary = _service_summary(
             service,
             cfg,
             sc.faults,
@@ -380,5 +387,11 @@ class InProcessHil:
                 "sim_time_s": round(plant.clock(), 3),
                 "wall_time_s": round(wall, 3),
                 "board_travel_m": round(plant.travelled_mm / 1000, 3),
+                "pace": pacer.factor,
+                "pace_behind_s": round(pacer.behind_s, 3),
             },
         )
+        note_run_end(summary, distance_m=sc.distance_m, travelled_m=plant.travelled_mm / 1000,
+                     max_sim_s=sc.max_sim_s, time_limit_hit=plant.clock() >= sc.max_sim_s,
+                     say=self._say)
+        return summary
