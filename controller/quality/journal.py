@@ -48,8 +48,13 @@ from core.fileio import atomic_write_text, fsync_dir
 __all__ = [
     "JOURNAL_VERSION",
     "RETRY_EVERY_APPENDS",
+    "JournalEntry",
     "RecordSink",
+    "bare_failed",
     "default_journal_path",
+    "log_unavailable",
+    "one_line",
+    "parse_line",
     "read_journal",
 ]
 
@@ -112,8 +117,39 @@ def read_journal(path: str | Path) -> tuple[list[QualityRecord], int]:
     return records, bad
 
 
+def log_unavailable(exc: BaseException) -> bool:
+    """Whether a log error only says the log did not answer in time or cannot be reached.
+
+    ``TimeoutError`` (another writer holds the lock beyond the write timeout, a statement
+    timed out) and ``ConnectionError`` (the database server is gone or does not answer): the
+    records wait on local disk and go in later. Any other error (disk full, I/O error, a
+    damaged file) means the log refuses them.
+    """
+    return isinstance(exc, (TimeoutError, ConnectionError))
+
+
+def parse_line(raw: bytes) -> JournalEntry:
+    """The entry of one journal line (without its newline).
+
+    Raises
+    ------
+    ValueError
+        The line is not a journal record (``KeyError``/``TypeError`` turned into it).
+    """
+    try:
+        obj = json.loads(raw.decode("utf-8", "backslashreplace"))
+        uid = obj["uid"]
+        if not isinstance(uid, str) or not uid:
+            raise ValueError("uid must be a non-empty string")
+        return JournalEntry(uid, storable_record(record_from_dict(obj["record"])))
+    except (KeyError, TypeError, RecursionError, AttributeError) as exc:
+        raise ValueError(f"not a journal record: {exc}") from None
+
+
 @dataclass(frozen=True)
-class _Entry:
+class JournalEntry:
+    """One journalled record and its identity (the uid the log stores with it)."""
+
     uid: str
     record: QualityRecord
 
@@ -124,22 +160,23 @@ class _Entry:
             text = json.dumps({"v": JOURNAL_VERSION, "uid": self.uid, "record": rec},
                               allow_nan=False, separators=(",", ":"))
         except (TypeError, ValueError, RecursionError) as exc:
-            rec = record_to_dict(_bare_failed(self.record, exc))
+            rec = record_to_dict(bare_failed(self.record, exc))
             text = json.dumps({"v": JOURNAL_VERSION, "uid": self.uid, "record": rec},
                               allow_nan=False, separators=(",", ":"))
         return text + "\n"
 
 
-def _bare_failed(record: QualityRecord, exc: BaseException) -> QualityRecord:
+def bare_failed(record: QualityRecord, exc: BaseException) -> QualityRecord:
     """A failed record the log surely stores, for one it refused although it looked storable."""
     return QualityRecord(
         t_s=record.t_s, wall_time=record.wall_time, seq=0, board_id=0, board_position_mm=0.0,
-        ok=False, error=f"record refused: {_one_line(exc)}",
+        ok=False, error=f"record refused: {one_line(exc)}",
         extra={"refused": {"record": repr(record)[:2000]}},
     )
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
+    """An error as one line of storable text (at most 300 characters)."""
     text = " ".join(str(exc).split()) or type(exc).__name__
     text = text.encode("utf-8", "backslashreplace").decode("utf-8")  # storable text
     return text if len(text) <= 300 else text[:297] + "..."
@@ -182,11 +219,12 @@ class RecordSink:
         if self.journal_path.is_dir():
             raise IsADirectoryError(f"journal path is a directory: {self.journal_path}")
         self._lock = threading.RLock()
-        self._entries: list[_Entry] = []  # in the journal file, not known to be in the log
+        self._entries: list[JournalEntry] = []  # in the journal file, not known to be in the log
         self._bad_lines: list[str] = []  # journal lines that are not records (kept, never lost)
-        self._unsaved: list[_Entry] = []  # neither the log nor the journal took them (memory)
+        self._unsaved: list[JournalEntry] = []  # neither the log nor the journal took them (memory)
         self._stale = False  # the journal file holds entries already written to the log
         self._log_error: str | None = None
+        self._log_unavailable = False  # the log's trouble is only that it does not answer
         self._journal_error: str | None = None
         self._since_retry = 0
         #: Counts: ``logged`` (written to the log), ``journalled`` (written to the journal),
@@ -213,19 +251,14 @@ class RecordSink:
         for raw in data[:end].split(b"\n"):
             if not raw.strip():
                 continue
-            text = raw.decode("utf-8", "backslashreplace")
             try:
-                obj = json.loads(text)
-                uid = obj["uid"]
-                if not isinstance(uid, str) or not uid:
-                    raise ValueError("uid must be a non-empty string")
-                rec = storable_record(record_from_dict(obj["record"]))
-            except (ValueError, KeyError, TypeError, RecursionError):
-                self._bad_lines.append(text)
+                entry = parse_line(raw)
+            except ValueError:
+                self._bad_lines.append(raw.decode("utf-8", "backslashreplace"))
                 continue
-            if uid not in seen:
-                seen.add(uid)
-                self._entries.append(_Entry(uid, rec))
+            if entry.uid not in seen:
+                seen.add(entry.uid)
+                self._entries.append(entry)
         if self._bad_lines:
             self._journal_error = (f"{len(self._bad_lines)} line(s) of journal {p} are not "
                                    "records (kept in the journal)")
@@ -242,7 +275,7 @@ class RecordSink:
                 keep.append(e)
         self._entries = keep
 
-    def _write_lines(self, entries: list[_Entry]) -> None:
+    def _write_lines(self, entries: list[JournalEntry]) -> None:
         """Append entries to the journal and fsync it; on failure leave the file as it was."""
         p = self.journal_path
         body = "".join(e.line() for e in entries).encode("utf-8")
@@ -279,12 +312,12 @@ class RecordSink:
                               + "".join(b + "\n" for b in self._bad_lines))
         self._stale = False
 
-    def _journal(self, entries: list[_Entry]) -> None:
+    def _journal(self, entries: list[JournalEntry]) -> None:
         try:
             self._write_lines(entries)
         except OSError as exc:
             self._unsaved.extend(entries)
-            self._journal_error = f"journal {self.journal_path} not writable: {_one_line(exc)}"
+            self._journal_error = f"journal {self.journal_path} not writable: {one_line(exc)}"
             return
         self._entries.extend(entries)
         self.counters["journalled"] += len(entries)
@@ -293,7 +326,7 @@ class RecordSink:
 
     # -- the log ------------------------------------------------------------------------------
 
-    def _to_log(self, entry: _Entry) -> bool:
+    def _to_log(self, entry: JournalEntry) -> bool:
         """Write one entry to the log; ``False`` (and the reason noted) when it cannot."""
         record = entry.record
         for attempt in (0, 1):
@@ -304,13 +337,14 @@ class RecordSink:
                     self.log.append(record)
             except RecordRefusedError as exc:
                 if attempt == 1:  # even the bare record refused: the log's trouble
-                    self._log_error = f"quality log refused a record: {_one_line(exc)}"
+                    self._log_error = f"quality log refused a record: {one_line(exc)}"
                     return False
-                record = _bare_failed(record, exc)  # never blocks the records behind it
+                record = bare_failed(record, exc)  # never blocks the records behind it
                 self.counters["rewritten"] += 1
                 continue
             except (OSError, ValueError) as exc:  # the log's trouble: the journal keeps it
-                self._log_error = f"quality log write failed: {_one_line(exc)}"
+                self._log_error = f"quality log write failed: {one_line(exc)}"
+                self._log_unavailable = log_unavailable(exc)
                 return False
             break
         self._log_error = None
@@ -334,7 +368,7 @@ class RecordSink:
                 self._rewrite()
             except OSError as exc:  # replay skips what the log holds: no duplicate
                 self._journal_error = (f"journal {self.journal_path} not rewritten: "
-                                       f"{_one_line(exc)}")
+                                       f"{one_line(exc)}")
         if self._unsaved and not self._entries:  # the journal still refuses: try the log
             while self._unsaved and self._to_log(self._unsaved[0]):
                 self._unsaved.pop(0)
@@ -365,7 +399,7 @@ class RecordSink:
         if not isinstance(record, QualityRecord):
             raise ValueError(f"record must be a QualityRecord, got {type(record).__name__}")
         rec = storable_record(record)
-        entry = _Entry(uuid.uuid4().hex, rec)
+        entry = JournalEntry(uuid.uuid4().hex, rec)
         with self._lock:
             if rec is not record:
                 self.counters["rewritten"] += 1
@@ -402,7 +436,7 @@ class RecordSink:
                     self.append(record)
                 return [None] * len(records)
             recs = [storable_record(r) for r in records]
-            entries = [_Entry(uuid.uuid4().hex, r) for r in recs]
+            entries = [JournalEntry(uuid.uuid4().hex, r) for r in recs]
             self.counters["rewritten"] += sum(
                 r is not o for r, o in zip(recs, records, strict=True))
             try:
@@ -416,7 +450,8 @@ class RecordSink:
                         self._journal([e])
                 return [None] * len(records)
             except (OSError, ValueError) as exc:  # the log's trouble: the journal keeps them
-                self._log_error = f"quality log write failed: {_one_line(exc)}"
+                self._log_error = f"quality log write failed: {one_line(exc)}"
+                self._log_unavailable = log_unavailable(exc)
                 self._journal(entries)
                 return [None] * len(records)
             self._log_error = None
@@ -448,6 +483,18 @@ class RecordSink:
             if self._journal_error:
                 parts.append(self._journal_error)
             return "; ".join(parts) or None
+
+    @property
+    def failing(self) -> bool:
+        """Whether control must stop for the log: records not durable, or the log refuses them.
+
+        A log that only does not answer (locked, server gone: :func:`log_unavailable`) while
+        the journal keeps every record is not failing: the records go in later.
+        """
+        with self._lock:
+            if self._unsaved:
+                return True
+            return bool(self._log_error and self._entries and not self._log_unavailable)
 
     @property
     def pending(self) -> int:

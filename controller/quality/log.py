@@ -281,6 +281,18 @@ class QualityLog:
         return [int(self._call("insert", row, uid=uid))
                 for row, uid in zip(rows, uids, strict=True)]
 
+    def set_write_timeout(self, timeout_s: float) -> None:
+        """Bound each later write to about ``timeout_s``.
+
+        SQLite waits at most that for another writer's lock; PostgreSQL gets it as
+        ``statement_timeout``, and a little later the client cuts the connection (a server that
+        does not answer at all). Beyond it the write raises ``TimeoutError`` /
+        ``ConnectionError`` (both ``OSError``).
+        """
+        setter = getattr(self._store, "set_write_timeout", None)
+        if setter is not None:
+            self._call("set_write_timeout", timeout_s)
+
     def has_uid(self, uid: str) -> bool:
         """Whether a record appended with this ``uid`` is in the log."""
         return bool(self._call("has_uid", uid))

@@ -9,13 +9,16 @@ locked, a value the schema refuses), and the journal is written to the log as so
 records again. Log trouble is reported once (``LOG_FAILED`` ... ``LOG_RECOVERED``) and fails the
 supervisor's ``log`` condition while it lasts (no control without a record of it).
 
-In real time (``threaded``) the record is written after the pair's setpoints went out, by one
-writer thread, off the control path: :meth:`QualityRecords.append` only queues it; the writer
-makes the records and commits all that queued up meanwhile in one transaction
-(:meth:`RecordSink.append_many`: one commit, or one journal fsync), so the log keeps up with
-pairs faster than one commit each. A record is durable (acknowledged) when its batch is
-committed, normally within one commit time of its setpoint; at most :data:`MAX_QUEUED` wait,
-beyond that the next pair waits for the writer (a log slower than the camera).
+In real time (``threaded``) the record is made after the pair's setpoints went out, off the
+control path, by a :class:`~controller.quality.write_ahead.WriteAheadSink`:
+:meth:`QualityRecords.append` only queues it; the journal thread makes the records and appends
+what queued up meanwhile to the journal with one fsync (durable: :attr:`on_stored`), and the
+database thread writes them to the log, in batches, whatever time the log takes. Nothing the
+event loop does waits for the database: the log's state is read from the sink's published
+snapshot. At most :data:`MAX_QUEUED` records wait for the *journal* (local disk slower than the
+camera); beyond that the next pair waits for it. A log that is locked or does not answer only
+holds records back in the journal (``LOG_FAILED`` is said); a log that refuses them (disk
+full, a damaged file) or a journal that cannot be written fails the ``log`` condition.
 """
 
 from __future__ import annotations
@@ -23,7 +26,6 @@ from __future__ import annotations
 import asyncio
 import math
 import sqlite3
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -35,6 +37,7 @@ import numpy as np
 from config.machine import MachineConfig
 from controller.quality.journal import RecordSink, default_journal_path
 from controller.quality.log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
+from controller.quality.write_ahead import CLOSE_TIMEOUT_S, WriteAheadSink
 from controller.service.events import EventKind, EventLog
 from controller.service.frame_result import FrameResult
 from controller.service.intake import finite_or_none, frame_metadata, int_or
@@ -47,8 +50,8 @@ surface profile (``extra["profile"]``, drawn by ``planer report``)."""
 PROFILE_MAX_POINTS = 800
 """Most points of a stored profile (about 6 kB of JSON)."""
 MAX_QUEUED = 200
-"""Records waiting for the writer thread (real time) before the next pair waits for it (2 s of
-pairs at 100 pairs/s)."""
+"""Records waiting for the journal thread (real time: local disk) before the next pair waits for
+it (2 s of pairs at 100 pairs/s). The database never makes a pair wait."""
 
 
 def decimated_profile(
@@ -117,8 +120,9 @@ class QualityRecords:
     on_health : callable
         ``on_health(ok)`` when the log starts or stops failing (the supervisor's ``log``).
     threaded : bool
-        Real time: records are written by a writer thread after the setpoints, in batches (the
-        log commits with fsync); ``False``: written at once, in the caller's thread.
+        Real time: records are journalled and then logged by two threads after the setpoints,
+        in batches (:class:`~controller.quality.write_ahead.WriteAheadSink`); ``False``:
+        written at once, in the caller's thread (:class:`RecordSink`).
     journal_path : Path, optional
         The journal; default beside the log (``<log>.journal.jsonl``).
     """
@@ -141,24 +145,24 @@ class QualityRecords:
         self.threaded = threaded
         self._ok_count = 0  # successful measurements so far (profile every PROFILE_EVERY-th)
         self._profile_board: int | None = None
-        self._failing = False
+        self._failing = False  # LOG_FAILED said, LOG_RECOVERED not yet
+        self._unhealthy = False  # the supervisor's log condition failed by this stage
         self._rewritten = 0
         self.sink: RecordSink | None = None
+        self.writer: WriteAheadSink | None = None
         if log is not None:
             if journal_path is None:
                 journal_path = default_journal_path(getattr(log, "path", None) or cfg.log.path)
-            self.sink = RecordSink(log, journal_path=Path(journal_path))
-        # real time: the writer thread's queue, its answers, and who waits for room
-        self._cond = threading.Condition()
-        self._queue: deque[tuple[FrameResult, Frame, float]] = deque()
+            if threaded:
+                self.writer = WriteAheadSink(log, journal_path=Path(journal_path),
+                                             make=self._make, on_durable=self._durable)
+                self.writer.thread_setup = self._thread_setup
+            else:
+                self.sink = RecordSink(log, journal_path=Path(journal_path))
+        # real time: the journal thread's answers, and who waits for room
         self._answers: deque[tuple[float, Any, bool, float]] = deque()
-        self._queued = 0  # appended, not yet answered (queue + the batch being written)
-        self._writer: threading.Thread | None = None
-        self._closing = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._room: asyncio.Event | None = None
-        self.batches = 0
-        """Batches the writer thread committed (one transaction or journal fsync each)."""
         self.writer_nice: int | None = None
         """Nice value of the writer thread (``None``: as started)."""
         self.on_stored: Callable[[Any, float], None] | None = None
@@ -167,18 +171,37 @@ class QualityRecords:
 
     @property
     def problem(self) -> str | None:
-        """The log's trouble in one line (``None`` when healthy or not logging)."""
+        """The log's trouble in one line (``None`` when healthy or not logging).
+
+        In real time the writer's published snapshot: no lock, no I/O.
+        """
+        if self.writer is not None:
+            return self.writer.state.problem
         return None if self.sink is None else self.sink.problem
 
     @property
     def pending(self) -> int:
-        """Records waiting for the log (journal or memory, and queued for the writer)."""
-        return 0 if self.sink is None else self.sink.pending + self._queued
+        """Records not yet in the log (queued, in the journal, or in memory)."""
+        if self.writer is not None:
+            return self.writer.state.pending
+        return 0 if self.sink is None else self.sink.pending
 
     @property
     def queued(self) -> int:
-        """Records queued for the writer thread, not yet durable (real time)."""
-        return self._queued
+        """Records queued for the journal thread, not yet durable (real time)."""
+        return 0 if self.writer is None else self.writer.queued
+
+    @property
+    def batches(self) -> int:
+        """Database transactions of the writer (real time; 0 inline)."""
+        return 0 if self.writer is None else int(self.writer.state.counters.get("db_batches", 0))
+
+    def _thread_setup(self) -> None:
+        """On each writer thread as it starts: the nice value asked for (``writer_nice``)."""
+        if self.writer_nice is not None:
+            from core.realtime import lower_priority
+
+            lower_priority(self.writer_nice)
 
     def profile_of(self, meas: Any, frame: Frame) -> dict[str, list[float]] | None:
         """The decimated profile of a successful measurement if this one carries it.
@@ -269,18 +292,20 @@ class QualityRecords:
     async def append(self, r: FrameResult, frame: Frame, t: float) -> int | None:
         """Store the pair's record durably; its id in the log, or ``None`` (journal, no log).
 
-        In real time (``threaded``) the record is only queued for the writer thread (``None``;
-        it is durable once its batch is committed, :attr:`on_stored`); the caller does not wait
-        for a commit unless :data:`MAX_QUEUED` records wait already. A log that fails is
-        reported once (``LOG_FAILED``, the supervisor's ``log`` condition fails) and counted per
-        record it did not take (``log_errors``); held records go to the log, in order, as soon
-        as it takes them again (``LOG_RECOVERED``).
+        In real time (``threaded``) the record is only queued for the journal thread
+        (``None``; it is durable once its batch is fsync'ed to the journal, :attr:`on_stored`,
+        and goes to the log after); the caller waits for nothing unless :data:`MAX_QUEUED`
+        records wait for the journal already. A log that fails is reported once
+        (``LOG_FAILED``; the supervisor's ``log`` condition fails when records are not durable
+        or the log refuses them) and counted per record answered meanwhile (``log_errors``);
+        held records go to the log, in order, as soon as it takes them again
+        (``LOG_RECOVERED``).
         """
+        if self.writer is not None:
+            await self._enqueue(r, frame, t)
+            return None
         sink = self.sink
         if sink is None:
-            return None
-        if self.threaded:
-            await self._enqueue(r, frame, t)
             return None
         rec = self.record_of(r, frame)
         logged, rid = self._store(sink, rec)
@@ -292,85 +317,58 @@ class QualityRecords:
         if not logged:
             self._report.count("log_errors")
 
-    # ------------------------------------------------------------------ the writer thread
+    # ------------------------------------------------------------------ real time
     async def _enqueue(self, r: FrameResult, frame: Frame, t: float) -> None:
-        """Queue a record for the writer (after the setpoints); wait only when too many wait."""
+        """Queue a record for the journal (after the setpoints); wait only for local disk."""
+        writer = self.writer
+        assert writer is not None
         loop = asyncio.get_running_loop()
         if self._loop is not loop:
             self._loop, self._room = loop, asyncio.Event()
-        with self._cond:
-            if self._writer is None:
-                self._writer = threading.Thread(target=self._write_loop,
-                                                name="quality-records", daemon=True)
-                self._writer.start()
-            self._queue.append((r, frame, t))
-            self._queued += 1
-            self._cond.notify()
-        while self._queued > MAX_QUEUED and self._writer is not None:
+        writer.put((r, frame, t))
+        while writer.queued > MAX_QUEUED:
             assert self._room is not None
             self._room.clear()
-            await self._room.wait()  # the log is slower than the camera: the pairs wait
+            await self._room.wait()  # the local disk is slower than the camera: pairs wait
 
-    def _write_loop(self) -> None:
-        """The writer: every record queued meanwhile in one batch, in order."""
-        sink = self.sink
-        assert sink is not None
-        if self.writer_nice is not None:
-            from core.realtime import lower_priority
+    def _make(self, item: tuple[FrameResult, Frame, float]) -> QualityRecord:
+        """On the journal thread: the record of a queued pair."""
+        r, frame, _ = item
+        return self.record_of(r, frame)
 
-            lower_priority(self.writer_nice)
-        while True:
-            with self._cond:
-                while not self._queue and not self._closing:
-                    self._cond.wait()
-                if not self._queue:
-                    return
-                batch = list(self._queue)
-                self._queue.clear()
-            records = [self.record_of(r, frame) for r, frame, _ in batch]
-            outcomes = self._store_batch(sink, records)
-            now = time.monotonic()
-            with self._cond:
-                self._answers.extend((t, r.seq, ok, now) for (r, _, t), ok in
-                                     zip(batch, outcomes, strict=True))
-            self.batches += 1
-            loop = self._loop
-            if loop is not None and not loop.is_closed():
-                try:
-                    loop.call_soon_threadsafe(self._take_answers)
-                except RuntimeError:  # the loop closed meanwhile: close() takes them
-                    pass
-
-    def _store_batch(self, sink: RecordSink, records: list[QualityRecord]) -> list[bool]:
-        """Append a batch after the held records; whether each is in the log (not journal)."""
-        sink.append_many(records)  # the held ones first, in order
-        logged = not sink.pending
-        return [logged] * len(records)
+    def _durable(self, items: list[tuple[FrameResult, Frame, float]], durable: bool) -> None:
+        """On the journal thread: a batch is on disk (or, ``durable`` False, only in memory)."""
+        now = time.monotonic()
+        self._answers.extend((t, r.seq, durable, now) for r, _, t in items)
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(self._take_answers)
+            except RuntimeError:  # the loop closed meanwhile: close() takes them
+                pass
 
     def _take_answers(self) -> None:
-        """On the event loop: the writer's answers (health, counters, room for more)."""
-        with self._cond:
-            answers = list(self._answers)
-            self._answers.clear()
-            self._queued -= len(answers)
-        for t, seq, logged, at in answers:
+        """On the event loop: the journal's answers (health, counters, room for more)."""
+        writer = self.writer
+        while self._answers:
+            t, seq, durable, at = self._answers.popleft()
+            logged = durable and writer is not None and writer.state.problem is None
             self._answered(t, seq, logged)
-            if self.on_stored is not None:
+            if self.on_stored is not None and durable:
                 self.on_stored(seq, at)
-        if self._room is not None and self._queued <= MAX_QUEUED:
+        if self._room is not None and (writer is None or writer.queued <= MAX_QUEUED):
             self._room.set()
 
-    def flush(self) -> None:
-        """Wait until the writer thread wrote every queued record (blocking; close uses it)."""
-        writer = self._writer
-        if writer is not None:
-            with self._cond:
-                self._closing = True
-                self._cond.notify()
-            writer.join()
-            self._writer = None
-            self._closing = False
+    def flush(self, timeout_s: float = 60.0) -> bool:
+        """Block until every queued record is in the log, at most ``timeout_s`` (tests, tools).
+
+        Returns whether everything is logged; never call it from the control loop.
+        """
+        ok = True
+        if self.writer is not None:
+            ok = self.writer.wait_logged(timeout_s)
         self._take_answers()
+        return ok
 
     def _store(self, sink: RecordSink, rec: QualityRecord) -> tuple[bool, int | None]:
         """Append (after the held ones): whether it is in the log, and its id there if known."""
@@ -386,32 +384,56 @@ class QualityRecords:
         return True, (last if isinstance(last, int) else None)
 
     def _health(self, t: float, seq: Any) -> None:
-        sink = self.sink
-        assert sink is not None
-        rewritten = sink.counters.get("rewritten", 0)
+        """The log's trouble as events and the supervisor's ``log`` condition (no I/O)."""
+        if self.writer is not None:
+            st = self.writer.state
+            rewritten, problem, failing = st.counters.get("rewritten", 0), st.problem, st.failing
+        else:
+            sink = self.sink
+            assert sink is not None
+            rewritten, problem, failing = (sink.counters.get("rewritten", 0), sink.problem,
+                                           sink.failing)
         if rewritten != self._rewritten:
             self._rewritten = rewritten
             self._report.emit(t, EventKind.LOG_REFUSED_RECORD,
                               f"quality record of pair {seq} refused by the log: logged as a "
                               "failed record naming the value")
-        problem = sink.problem
         if problem is not None and not self._failing:
             self._failing = True
-            self._on_health(False)
             self._report.emit(t, EventKind.LOG_FAILED,
                               f"quality log failing, records held in the journal: {problem}")
         elif problem is None and self._failing:
             self._failing = False
-            self._on_health(True)
             self._report.emit(t, EventKind.LOG_RECOVERED,
                               "quality log writable again: held records written")
+        if failing != self._unhealthy:
+            self._unhealthy = failing
+            self._on_health(not failing)
 
-    def close(self, t: float) -> Path | None:
-        """Write what the log takes, close it; the journal left behind (reported) or ``None``."""
+    def close(self, t: float, *, timeout_s: float = CLOSE_TIMEOUT_S) -> Path | None:
+        """Write what the log takes, close it; the journal left behind (reported) or ``None``.
+
+        In real time the log gets at most ``timeout_s`` (a database that does not answer);
+        what it did not take stays in the journal, named in the ``RECORDS_SAVED`` event.
+        """
+        if self.writer is not None:
+            writer = self.writer
+            left = writer.close(timeout_s)
+            self._take_answers()
+            hung = writer.database_busy
+            if left is not None:
+                n = writer.state.pending
+                self._report.emit(t, EventKind.RECORDS_SAVED,
+                                  f"{n} quality records NOT in the quality log: kept in {left} "
+                                  "(written to the log when a service opens it again)"
+                                  + ("; the log did not answer within "
+                                     f"{timeout_s:g} s" if hung else ""))
+            if not hung:  # a call that never returns holds the log: leave it to the exit
+                self.log.close()
+            return left
         sink = self.sink
         if sink is None:
             return None
-        self.flush()  # the records queued for the writer first
         left = sink.close()
         if left is not None:
             n = sink.pending

@@ -110,7 +110,7 @@ def test_setpoints_go_out_while_no_record_is_committed_and_records_follow_in_ord
         held = await run_for(plant, 1.0)
         assert held and log.commits == commits_before  # the pairs went through, no commit
         assert all(r.applied for r in held)
-        queued = svc.records.queued
+        queued = svc.records.pending  # none of them reached the log (they wait in the journal)
         gate.set()
         svc.records.flush()  # writes what is queued
         await plant.close()
@@ -118,7 +118,7 @@ def test_setpoints_go_out_while_no_record_is_committed_and_records_follow_in_ord
 
     held, queued, commits_before = asyncio.run(main())
     seqs = [r.seq for r in held]
-    assert queued >= len(held) - 1  # at most one record was with the writer, held at the gate
+    assert queued >= len(held) - 1  # the held pairs' records waited for the log (journal)
     fed = [s for kind, s in events if kind == "feed"]
     assert set(seqs) <= set(fed)  # every applied pair's feed setpoint went out ...
     first_commit = next(i for i, e in enumerate(events) if e[0] == "commit")
@@ -141,11 +141,40 @@ def _result(seq: int) -> tuple[FrameResult, Frame]:
     return r, f
 
 
-def test_the_next_pair_waits_for_the_writer_only_when_too_many_records_wait(tmp_path,
-                                                                              monkeypatch):
+def test_a_stuck_database_never_makes_a_pair_wait(tmp_path, monkeypatch):
+    # write-ahead: the records wait in the journal, not in the pipeline (was: the next pair
+    # waited for the database beyond MAX_QUEUED records)
     monkeypatch.setattr(quality_records, "MAX_QUEUED", 3)
     gate = threading.Event()
     log = GatedLog(tmp_path / "q.sqlite", [], gate)
+    records = quality_records.QualityRecords(load_machine(), log, EventLog(),
+                                             on_health=lambda ok: None, threaded=True)
+
+    async def main():
+        for seq in range(20):  # far beyond MAX_QUEUED, the database held at the gate
+            await asyncio.wait_for(records.append(*_result(seq), 0.01 * seq), BACKSTOP_S)
+        gate.set()
+
+    asyncio.run(main())
+    records.close(0.0)
+    with QualityLog(tmp_path / "q.sqlite", create=False) as check:
+        assert [r.seq for r in check.records()] == list(range(20))
+
+
+def test_the_next_pair_waits_only_when_too_many_records_wait_for_the_journal(tmp_path,
+                                                                              monkeypatch):
+    from controller.quality import write_ahead
+
+    monkeypatch.setattr(quality_records, "MAX_QUEUED", 3)
+    gate = threading.Event()
+    append = write_ahead.WriteAheadSink._append
+
+    def gated_append(self, body):  # the local disk does not take the journal's writes
+        assert gate.wait(BACKSTOP_S), "the test never opened the gate"
+        return append(self, body)
+
+    monkeypatch.setattr(write_ahead.WriteAheadSink, "_append", gated_append)
+    log = QualityLog(tmp_path / "q.sqlite")
     records = quality_records.QualityRecords(load_machine(), log, EventLog(),
                                              on_health=lambda ok: None, threaded=True)
 
@@ -160,7 +189,7 @@ def test_the_next_pair_waits_for_the_writer_only_when_too_many_records_wait(tmp_
         await asyncio.wait_for(over, BACKSTOP_S)
         return blocked
 
-    assert asyncio.run(main())  # only the writer could let it go, and the gate held the writer
+    assert asyncio.run(main())  # only the journal could let it go, and the gate held it
     records.close(0.0)
     with QualityLog(tmp_path / "q.sqlite", create=False) as check:
         assert [r.seq for r in check.records()] == [0, 1, 2, 3]

@@ -1,0 +1,609 @@
+"""Write-ahead: every quality record on local disk first, the database after, off the loop.
+
+:class:`WriteAheadSink` is the real-time service's way into the quality log. Two threads, and
+nothing the caller's thread (the event loop) can be held up by:
+
+* the **journal thread** takes what :meth:`WriteAheadSink.put` queued, makes the records
+  (``make``), appends them to the journal (``<log>.journal.jsonl``, JSON lines) with one
+  ``fsync`` per batch, says so (``on_durable``) and hands them on. It never waits for the
+  database: a record is durable on local disk within one fsync of its pair, whatever the log
+  does.
+* the **database thread** writes the journalled records to the log, in order, each batch in
+  one transaction with the records' UUIDs (the log skips a uid it holds, so a journal that
+  still holds logged records is replayed safely). A failed write is tried again after a
+  back-off (0.2 s doubling to 5 s). Every call has a time limit (:data:`DB_TIMEOUT_S`,
+  :meth:`QualityLog.set_write_timeout`); a call that never returns (a PostgreSQL server
+  stopped) holds up only this thread.
+
+The journal is truncated when everything in it is logged and it has grown beyond
+:data:`COMPACT_BYTES` or nothing came for :data:`COMPACT_IDLE_S` (not per batch: the steady
+state costs one fsync per batch). While the database is stuck the backlog waits on disk: at
+most :data:`MAX_IN_MEMORY` records wait in memory, the rest are read back from the journal.
+
+Readers on any thread see :attr:`WriteAheadSink.state`, a frozen :class:`SinkState` the
+writer threads replace after every step (a plain attribute: no lock, no I/O). The only lock
+the caller's thread takes (in :meth:`~WriteAheadSink.put`) guards two queues and is never
+held across I/O.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import inspect
+import os
+import sys
+import threading
+import time
+import uuid
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from controller.quality.journal import (
+    JournalEntry,
+    bare_failed,
+    log_unavailable,
+    one_line,
+    parse_line,
+)
+from controller.quality.log import QualityRecord, RecordRefusedError, storable_record
+from core.fileio import atomic_write_text, fsync_dir
+
+__all__ = [
+    "CLOSE_TIMEOUT_S",
+    "COMPACT_BYTES",
+    "COMPACT_IDLE_S",
+    "DB_TIMEOUT_S",
+    "MAX_IN_MEMORY",
+    "SinkState",
+    "WriteAheadSink",
+]
+
+DB_TIMEOUT_S = 2.0
+"""Time limit of one database write (SQLite busy timeout; PostgreSQL statement timeout), s."""
+JOURNAL_BATCH_MAX = 500
+"""Most records per journal append (one fsync)."""
+DB_BATCH_MAX = 500
+"""Most records per database transaction."""
+MAX_IN_MEMORY = 2000
+"""Most journalled records kept in memory for the database thread; the rest are read back from
+the journal when it catches up."""
+COMPACT_BYTES = 1 << 20
+"""The journal is truncated once everything in it is logged and it is this large, bytes ..."""
+COMPACT_IDLE_S = 1.0
+"""... or once everything in it is logged and nothing came for this long, s."""
+RETRY_INITIAL_S = 0.2
+RETRY_MAX_S = 5.0
+"""Back-off between failed database writes: from the first to the last value, doubling, s."""
+CLOSE_TIMEOUT_S = 5.0
+"""How long :meth:`WriteAheadSink.close` waits for the database by default, s."""
+_READ_CHUNK = 1 << 20
+
+
+@dataclass(frozen=True)
+class SinkState:
+    """What the writer threads last published (read without a lock, on any thread).
+
+    Attributes
+    ----------
+    problem : str or None
+        The log's or the journal's trouble in one line; ``None`` when all is logged.
+    pending : int
+        Records handed in and not yet in the log (queued, in the journal, or in memory).
+    unsaved : int
+        Records neither the journal nor the log took (held in memory: not durable).
+    failing : bool
+        Control must stop for the log: records not durable, or the log refuses them (a log
+        that only does not answer while the journal keeps every record is not failing).
+    counters : Mapping[str, int]
+        ``journalled``, ``logged``, ``rewritten`` (refused values made failed records),
+        ``batches`` (journal appends), ``db_batches`` (database transactions), ``compactions``.
+    """
+
+    problem: str | None = None
+    pending: int = 0
+    unsaved: int = 0
+    failing: bool = False
+    counters: Mapping[str, int] = field(default_factory=lambda: MappingProxyType({}))
+
+
+def _tail_of(path: Path) -> tuple[int, int]:
+    """``(end of the last whole line, lines)`` of a journal; a torn last line is cut off."""
+    try:
+        fh = open(path, "r+b")  # noqa: SIM115 - closed below
+    except (FileNotFoundError, NotADirectoryError):
+        return 0, 0
+    with fh:
+        size = os.fstat(fh.fileno()).st_size
+        pos, end, lines = 0, 0, 0
+        while pos < size:
+            chunk = fh.read(_READ_CHUNK)
+            if not chunk:
+                break
+            n = chunk.count(b"\n")
+            if n:
+                lines += n
+                end = pos + chunk.rfind(b"\n") + 1
+            pos += len(chunk)
+        if end < size:  # a torn last line: its append never returned (not acknowledged)
+            fh.truncate(end)
+            os.fsync(fh.fileno())
+    return end, lines
+
+
+class WriteAheadSink:
+    """Journal first (fsync), database after; two threads, none waits for the other.
+
+    Parameters
+    ----------
+    log : QualityLog
+        The quality log (not owned). Its write timeout is set to :data:`DB_TIMEOUT_S`.
+    journal_path : Path, keyword-only
+        The journal. One left by an earlier run (a crash, a log that was down at close) is
+        written to the log first, in order (a torn last line is cut off).
+    make : callable, keyword-only
+        ``make(item) -> QualityRecord``, called on the journal thread for each item
+        :meth:`put` queued (default: the item is the record).
+    on_durable : callable, keyword-only, optional
+        ``on_durable(items, durable)`` on the journal thread after each batch: ``durable`` is
+        ``False`` when the journal could not be written (the records are then only in memory
+        until the log takes them).
+    db_timeout_s : float, keyword-only
+        Time limit of one database write.
+    """
+
+    def __init__(self, log: Any, *, journal_path: Path,
+                 make: Callable[[Any], QualityRecord] | None = None,
+                 on_durable: Callable[[list[Any], bool], None] | None = None,
+                 db_timeout_s: float = DB_TIMEOUT_S) -> None:
+        if not hasattr(log, "append"):
+            raise ValueError(f"log must be a QualityLog, got {type(log).__name__}")
+        self.log = log
+        try:  # a log without identities (a test double) still works, without exactly-once
+            self._uid_ok = "uid" in inspect.signature(log.append).parameters
+        except (TypeError, ValueError):
+            self._uid_ok = False
+        self.journal_path = Path(journal_path)
+        if self.journal_path.is_dir():
+            raise IsADirectoryError(f"journal path is a directory: {self.journal_path}")
+        setter = getattr(log, "set_write_timeout", None)
+        if setter is not None:
+            with contextlib.suppress(OSError, ValueError):
+                setter(db_timeout_s)
+        self._make = make or (lambda item: item)
+        self._on_durable = on_durable
+        end, lines = _tail_of(self.journal_path)
+        self._cond = threading.Condition()  # the queues below; never held across I/O
+        self._inbox: deque[Any] = deque()  # put, not yet with the journal thread
+        self._todo: deque[JournalEntry] = deque()  # for the database thread, in order
+        self._spill: tuple[int, int] | None = (0, end) if end else None  # journal bytes
+        self._unsaved: dict[str, JournalEntry] = {}  # not journalled, not logged (memory)
+        self._bad_lines: list[str] = []
+        self._pending = lines  # handed in (or left in the journal), not yet logged
+        self._in_journal = 0  # with the journal thread now
+        self._file_lock = threading.Lock()  # the journal file (local disk I/O only)
+        self._fd: int | None = None
+        self._size = end  # bytes in the journal
+        self._compact_failed_at: float | None = None
+        self._compact_error: str | None = None
+        self._log_error: str | None = None
+        self._log_unavailable = False
+        self._journal_error: str | None = None
+        self._last_put = time.monotonic()
+        self._closing = False
+        self._stop_db = False
+        self._abandoned = False
+        self._counts = {"journalled": 0, "logged": 0, "rewritten": 0, "batches": 0,
+                        "db_batches": 0, "compactions": 0}
+        self.state = SinkState()
+        """The last published :class:`SinkState` (read it, never lock it)."""
+        with self._cond:
+            self._publish()
+        self.thread_setup: Callable[[], None] | None = None
+        """Called first on each of the two threads (e.g. to lower their priority)."""
+        self._journal_thread = threading.Thread(target=self._run, args=(self._journal_loop,),
+                                                daemon=True, name="quality-journal")
+        self._db_thread = threading.Thread(target=self._run, args=(self._db_loop,),
+                                           daemon=True, name="quality-database")
+        self._started = False
+
+    def _start(self) -> None:
+        """Start the two threads (with ``_cond`` held; from the first :meth:`put`)."""
+        if not self._started:
+            self._started = True
+            self._journal_thread.start()
+            self._db_thread.start()
+
+    def _run(self, loop: Callable[[], None]) -> None:
+        if self.thread_setup is not None:
+            self.thread_setup()
+        loop()
+
+    # -- the caller's side --------------------------------------------------------------------
+
+    def put(self, item: Any) -> None:
+        """Queue one item (its record is made and journalled on the journal thread)."""
+        with self._cond:
+            if self._closing:
+                raise ValueError("the record sink is closed")
+            self._inbox.append(item)
+            self._pending += 1
+            self._start()
+            self._cond.notify_all()
+
+    @property
+    def queued(self) -> int:
+        """Items not yet journalled (queued or with the journal thread now)."""
+        return len(self._inbox) + self._in_journal
+
+    def _publish(self) -> None:
+        """Replace :attr:`state` and wake who waits for it (called with ``_cond`` held)."""
+        parts = []
+        waiting = self._pending
+        if self._log_error and waiting:
+            parts.append(self._log_error)
+        journalled = waiting - len(self._unsaved) - len(self._inbox) - self._in_journal
+        if self._log_error and journalled > 0:
+            parts.append(f"{journalled} record(s) kept in journal {self.journal_path}")
+        if self._unsaved:
+            parts.append(f"{len(self._unsaved)} record(s) NOT durable (held in memory)")
+        parts += [e for e in (self._journal_error, self._compact_error) if e]
+        if self._bad_lines:
+            parts.append(f"{len(self._bad_lines)} line(s) of journal {self.journal_path} are "
+                         "not records (kept in the journal)")
+        refusing = bool(self._log_error and waiting and not self._log_unavailable)
+        self.state = SinkState(problem="; ".join(parts) or None, pending=waiting,
+                               unsaved=len(self._unsaved),
+                               failing=bool(self._unsaved) or refusing,
+                               counters=MappingProxyType(dict(self._counts)))
+        self._cond.notify_all()
+
+    # -- the journal thread -------------------------------------------------------------------
+
+    def _journal_loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._inbox and not self._closing:
+                    self._cond.wait(1.0 if self._unsaved else None)
+                    if self._unsaved and not self._inbox:
+                        break  # try the journal again for the records only in memory
+                if not self._inbox and self._closing:
+                    return
+                items = [self._inbox.popleft()
+                         for _ in range(min(len(self._inbox), JOURNAL_BATCH_MAX))]
+                self._in_journal = len(items)
+                retry = list(self._unsaved.values())
+            entries = [self._entry(item) for item in items]
+            ok = self._journal(retry, entries)
+            if self._on_durable is not None and items:
+                self._on_durable(items, ok)
+
+    def _entry(self, item: Any) -> JournalEntry:
+        try:
+            record = self._make(item)
+        except Exception as exc:  # noqa: BLE001 - a record that says why, never a lost pair
+            record = bare_failed(QualityRecord(t_s=0.0, wall_time="", seq=0, board_id=0,
+                                               board_position_mm=0.0, ok=False), exc)
+        rec = storable_record(record)
+        if rec is not record:
+            with self._cond:
+                self._counts["rewritten"] += 1
+        return JournalEntry(uuid.uuid4().hex, rec)
+
+    def _journal(self, retry: list[JournalEntry], entries: list[JournalEntry]) -> bool:
+        """Append and fsync; hand the entries to the database thread. Whether it worked."""
+        lines = [e.line().encode("utf-8") for e in retry + entries]
+        with self._file_lock:
+            try:
+                start = self._append(b"".join(lines))
+                ok = True
+            except Exception as exc:  # noqa: BLE001 - the records stay in memory, said
+                ok = False
+                err = f"journal {self.journal_path} not writable: {one_line(exc)}"
+            with self._cond:
+                self._in_journal = 0
+                if ok:
+                    self._journal_error = None
+                    for e in retry:
+                        self._unsaved.pop(e.uid, None)
+                    first = start + sum(len(b) for b in lines[:len(retry)])
+                    end = start + sum(len(b) for b in lines)
+                    self._counts["journalled"] += len(entries) + len(retry)
+                    self._counts["batches"] += 1
+                    if self._spill is None and len(self._todo) + len(entries) <= MAX_IN_MEMORY:
+                        self._todo.extend(entries)
+                    elif entries:  # the backlog waits on disk, read back later
+                        self._spill = (self._spill[0] if self._spill else first, end)
+                else:
+                    self._journal_error = err
+                    for e in entries:
+                        self._unsaved[e.uid] = e
+                    self._todo.extend(entries)  # the log may still take them
+                self._last_put = time.monotonic()
+                self._publish()
+                self._cond.notify_all()
+        return ok
+
+    def _append(self, body: bytes) -> int:
+        """Write ``body`` at the journal's end and fsync; its offset. Nothing torn on failure."""
+        created = False
+        if self._fd is None:
+            p = self.journal_path
+            if not p.parent.is_dir():  # a database log's journal folder (state folder)
+                p.parent.mkdir(parents=True, exist_ok=True)
+            created = not p.exists()
+            self._fd = os.open(p, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        fd = self._fd
+        start = os.fstat(fd).st_size
+        try:
+            view = memoryview(body)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, start)  # no torn line left behind
+            raise
+        if created:
+            fsync_dir(self.journal_path.parent)
+        self._size = start + len(body)
+        return start
+
+    # -- the database thread ------------------------------------------------------------------
+
+    def _db_loop(self) -> None:
+        delay = RETRY_INITIAL_S
+        while True:
+            with self._cond:
+                while not self._todo and self._spill is None and not self._stop_db:
+                    if self._compact_due():
+                        break
+                    self._cond.wait(COMPACT_IDLE_S)
+                if self._abandoned or (self._stop_db and not self._todo and self._spill is None):
+                    return
+                spill = self._spill if not self._todo else None
+                batch = list(self._todo)[:DB_BATCH_MAX]
+            if spill is not None:
+                self._read_back(spill)
+                continue
+            if not batch:
+                self._compact(force=False)
+                continue
+            written = self._write(batch)
+            with self._cond:
+                for e in batch[:written]:
+                    self._todo.popleft()
+                    self._unsaved.pop(e.uid, None)
+                self._pending -= written
+                self._counts["logged"] += written
+                if written == len(batch):
+                    self._log_error = None
+                self._publish()
+                self._cond.notify_all()
+                if written < len(batch):
+                    if self._stop_db:
+                        return  # closing: what is left stays in the journal
+                    self._cond.wait(delay)  # close() wakes it
+                    delay = min(2 * delay, RETRY_MAX_S)
+                    continue
+            delay = RETRY_INITIAL_S
+            if not self._todo and self._spill is None:
+                self._compact(force=False)
+
+    def _write(self, batch: list[JournalEntry]) -> int:
+        """Write entries to the log, in order: how many went in (the rest wait)."""
+        many = getattr(self.log, "append_many", None)
+        if many is not None and len(batch) > 1:
+            try:
+                if self._uid_ok:
+                    many([e.record for e in batch], uids=[e.uid for e in batch])
+                else:
+                    many([e.record for e in batch])
+                self._counts["db_batches"] += 1
+                return len(batch)
+            except RecordRefusedError:
+                pass  # record by record below: the refused one rewritten
+            except (OSError, ValueError) as exc:
+                self._note_log_error(exc)
+                return 0
+        for n, e in enumerate(batch):
+            if not self._write_one(e):
+                return n
+        self._counts["db_batches"] += 1
+        return len(batch)
+
+    def _write_one(self, entry: JournalEntry) -> bool:
+        record = entry.record
+        for attempt in (0, 1):
+            try:
+                if self._uid_ok:
+                    self.log.append(record, uid=entry.uid)
+                else:
+                    self.log.append(record)
+                return True
+            except RecordRefusedError as exc:
+                if attempt == 1:  # even the bare record refused: the log's trouble
+                    with self._cond:
+                        self._log_error = f"quality log refused a record: {one_line(exc)}"
+                        self._log_unavailable = False
+                    return False
+                record = bare_failed(record, exc)  # never blocks the records behind it
+                with self._cond:
+                    self._counts["rewritten"] += 1
+            except (OSError, ValueError) as exc:
+                self._note_log_error(exc)
+                return False
+        return False
+
+    def _note_log_error(self, exc: BaseException) -> None:
+        with self._cond:
+            self._log_error = f"quality log write failed: {one_line(exc)}"
+            self._log_unavailable = log_unavailable(exc)
+
+    def _read_back(self, spill: tuple[int, int]) -> None:
+        """Read journalled entries the memory had no room for (``spill``: byte range)."""
+        start, end = spill
+        entries: list[JournalEntry] = []
+        bad: list[str] = []
+        pos = start
+        try:
+            with open(self.journal_path, "rb") as fh:
+                fh.seek(start)
+                data = fh.read(min(end - start, 16 * _READ_CHUNK))
+        except OSError as exc:
+            with self._cond:
+                self._journal_error = f"journal {self.journal_path} not readable: {one_line(exc)}"
+                self._publish()
+                self._cond.wait(RETRY_MAX_S)
+            return
+        blank = 0
+        for raw in data.split(b"\n")[:-1]:  # whole lines only
+            pos += len(raw) + 1
+            if not raw.strip():
+                blank += 1
+            else:
+                try:
+                    entries.append(parse_line(raw))
+                except ValueError:
+                    bad.append(raw.decode("utf-8", "backslashreplace"))
+            if len(entries) >= MAX_IN_MEMORY:
+                break
+        with self._cond:
+            self._todo.extend(entries)
+            self._bad_lines.extend(bad)
+            self._pending -= len(bad) + blank
+            cur = self._spill
+            if cur is not None:
+                self._spill = None if pos >= cur[1] else (pos, cur[1])
+            self._publish()
+
+    def _compact_due(self) -> bool:
+        """Everything journalled is logged and the journal is worth truncating (``_cond``)."""
+        if self._todo or self._spill is not None or self._inbox or self._in_journal:
+            return False
+        now = time.monotonic()
+        if self._compact_failed_at is not None and now - self._compact_failed_at < RETRY_MAX_S:
+            return False
+        idle = now - self._last_put >= COMPACT_IDLE_S
+        size = self._size
+        return size > self._bad_size() and (idle or size >= COMPACT_BYTES)
+
+    def _bad_size(self) -> int:
+        return sum(len(b.encode("utf-8")) + 1 for b in self._bad_lines)
+
+    def _compact(self, *, force: bool) -> None:
+        """Truncate the journal (keep lines that are not records) if everything is logged."""
+        with self._file_lock:  # the journal thread appends nothing meanwhile
+            with self._cond:
+                if (self._abandoned and not force) or self._todo or self._spill is not None \
+                        or self._unsaved:
+                    return
+                if not force and not self._compact_due():
+                    return
+                bad = "".join(b + "\n" for b in self._bad_lines)
+            try:  # no lock the caller's thread takes is held here
+                if bad:
+                    self._close_fd()
+                    atomic_write_text(self.journal_path, bad)
+                elif force:
+                    self._close_fd()
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(self.journal_path)
+                        fsync_dir(self.journal_path.parent)
+                elif self._fd is not None:
+                    os.ftruncate(self._fd, 0)
+                    os.fsync(self._fd)
+                else:
+                    with open(self.journal_path, "r+b") as fh:
+                        fh.truncate(0)
+                        os.fsync(fh.fileno())
+            except OSError as exc:  # replay skips what the log holds: no duplicate
+                with self._cond:
+                    self._compact_failed_at = time.monotonic()
+                    self._compact_error = (f"journal {self.journal_path} not rewritten: "
+                                           f"{one_line(exc)}")
+                    self._publish()
+                return
+            with self._cond:
+                self._size = len(bad.encode("utf-8"))
+                self._compact_failed_at = None
+                self._compact_error = None
+                self._counts["compactions"] += 1
+                self._publish()
+
+    def _close_fd(self) -> None:
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+    # -- closing ------------------------------------------------------------------------------
+
+    def close(self, timeout_s: float = CLOSE_TIMEOUT_S) -> Path | None:
+        """Journal what is queued, wait at most ``timeout_s`` for the log; the journal left.
+
+        Returns
+        -------
+        Path or None
+            The journal still holding records the log has not taken (named by the caller), or
+            ``None`` when every record is in the log (the journal is removed). Records neither
+            the journal nor the log took are printed on stderr (``unsaved quality record:``).
+        """
+        with self._cond:
+            self._closing = True
+            self._start()  # a journal left by an earlier run is replayed even without pairs
+            self._cond.notify_all()
+        self._journal_thread.join()  # local disk only
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        with self._cond:  # the log gets what is left, but not forever
+            while (self._todo or self._spill is not None) and self._db_thread.is_alive():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(min(left, 0.1))
+            self._stop_db = True
+            self._cond.notify_all()
+        self._db_thread.join(max(0.0, deadline - time.monotonic()) + 0.05)
+        with self._cond:
+            self._abandoned = True
+            self._cond.notify_all()
+        if not self._db_thread.is_alive() and not self._pending:
+            self._compact(force=True)
+        with self._file_lock:
+            self._close_fd()
+        with self._cond:
+            for e in self._unsaved.values():
+                print(f"unsaved quality record: {e.line()}", end="", file=sys.stderr)
+            sys.stderr.flush()
+            self._pending -= len(self._unsaved)
+            self._unsaved.clear()
+            self._publish()
+            left = self._pending > 0 or bool(self._bad_lines)
+        return self.journal_path if left and self.journal_path.exists() else None
+
+    def wait_logged(self, timeout_s: float) -> bool:
+        """Block until every record handed in is in the log, at most ``timeout_s``.
+
+        For tests and tools, never the event loop. Returns whether everything is logged.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            if self._pending:
+                self._start()
+            while self._pending and not self._abandoned:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(min(left, 0.1))
+            return not self._pending
+
+    @property
+    def database_busy(self) -> bool:
+        """Whether the database thread is still inside a call (after :meth:`close`)."""
+        return self._db_thread.is_alive()
+
+    def __repr__(self) -> str:
+        return f"WriteAheadSink({self.journal_path}, pending={self.state.pending})"
