@@ -112,6 +112,7 @@ class FramesConfig:
     # source = "camera" (docs/camera.md): Aravis device id and GenICam settings
     camera_id: str = ""
     exposure_us: float = 0.0  # 0: the rig's exposure_ms, else the camera's
+    fake_exposure_us: float = 0.0  # Aravis' fake cameras (Fake_*) when exposure_us is 0
     gain_db: float = 0.0
     trigger_source: str = "Line1"  # PLC trigger line; "Software" for tests
     packet_size: int = 0  # GigE Vision packet size, bytes; 0: negotiated
@@ -374,6 +375,7 @@ def _frames_table(root: Section, d: MachineConfig) -> FramesConfig:
         image_height=fr.integer("image_height", df.image_height, lo=0, hi=100_000),
         camera_id=fr.string("camera_id", df.camera_id),
         exposure_us=fr.number("exposure_us", df.exposure_us, lo=0.0, hi=1e7),
+        fake_exposure_us=fr.number("fake_exposure_us", df.fake_exposure_us, lo=0.0, hi=1e7),
         gain_db=fr.number("gain_db", df.gain_db, lo=0.0, hi=100.0),
         trigger_source=fr.string("trigger_source", df.trigger_source),
         packet_size=fr.integer("packet_size", df.packet_size, lo=0, hi=16_384),

@@ -6,7 +6,10 @@ machine file), grabs ``--pairs`` pairs and writes each good one into ``--spool``
 format (``docs/frames.md``), with a progress bar on stderr. With ``--plc HOST:PORT`` each pair
 carries the PLC's trigger latches; without it the counts are 0 and ``acquire.json`` in the spool
 says ``"counts": "not latched"``. Failed pairs (dropped, incomplete, no latch) are counted and
-not written. See ``docs/camera.md``.
+not written. Every written pair's images are checked (:mod:`controller.frames.camera.image_check`):
+dark, flat or saturated images are warned about on stderr as they come and counted in the last
+line and in ``acquire.json`` (``image_problems``). Aravis' fake cameras get ``[frames]
+fake_exposure_us`` (the shipped 10 ms) unless ``exposure_us`` is set. See ``docs/camera.md``.
 """
 
 from __future__ import annotations
@@ -36,6 +39,51 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="give up after S seconds without a good pair (default 10)")
 
 
+HINTS = {
+    "dark": "too little light or exposure: raise [frames] exposure_us or gain_db, check the "
+            "lights and the trigger",
+    "flat": "one grey, no texture: check the lights, the focus, the lens cap and that a "
+            "board is under the camera",
+    "saturated": "too much light or exposure: lower [frames] exposure_us or gain_db",
+}
+"""What to do about each image problem (:class:`~controller.frames.camera.image_check.
+ImageProblem` by value)."""
+
+
+class ImageTally:
+    """The written pairs' image problems: warns once per kind, counts pairs per kind."""
+
+    def __init__(self, exposure: str) -> None:
+        self.exposure = exposure
+        self.pairs: dict[str, int] = {}
+        self.first: dict[str, str] = {}
+
+    def check(self, frame: object) -> list[str]:
+        """Check a written pair; the warning lines for kinds not seen before."""
+        from controller.frames.camera.image_check import image_problems
+
+        found: dict[str, str] = {}
+        for name in ("a", "b"):
+            problems, levels = image_problems(getattr(frame, f"image_{name}"))
+            for p in problems:
+                found.setdefault(p.value, f"image {name.upper()}: {levels.describe()}")
+        lines = []
+        for kind, where in found.items():
+            self.pairs[kind] = self.pairs.get(kind, 0) + 1
+            if kind not in self.first:
+                self.first[kind] = where
+                lines.append(f"planer acquire: warning: pair {getattr(frame, 'seq', '?')} is "
+                             f"{kind} ({where}; exposure {self.exposure}): {HINTS[kind]}")
+        return lines
+
+    def summary(self, written: int) -> str:
+        """``""`` when every pair was usable, else e.g. ``; warning: 3 of 3 pairs dark``."""
+        if not self.pairs:
+            return ""
+        said = ", ".join(f"{n} of {written} pairs {kind}" for kind, n in self.pairs.items())
+        return f"; warning: {said} (see the warnings above)"
+
+
 def _bar(done: int, total: int, failed: int) -> str:
     width = 30
     n = width * done // total
@@ -53,7 +101,11 @@ def run(args: argparse.Namespace) -> int:
     from config.rig import load_rig
     from controller.frames.camera.device import AravisCamera
     from controller.frames.camera.latches import ModbusLatchReader, parse_host_port
-    from controller.frames.camera.source import CameraFrameSource, settings_from_config
+    from controller.frames.camera.source import (
+        CameraFrameSource,
+        is_fake_camera,
+        settings_from_config,
+    )
     from core.checks import check_int, check_positive
     from core.fileio import atomic_write_text
     from planer.cli import output_folder
@@ -64,8 +116,8 @@ def run(args: argparse.Namespace) -> int:
     plc = parse_host_port(args.plc) if args.plc else None
     cfg = load_machine(args.config)
     rig = load_rig(args.rig or rig_path(cfg))
-    settings = settings_from_config(cfg.frames, rig_camera=rig.camera)
-    trigger = args.trigger or ("Software" if args.camera.startswith("Fake")
+    settings = settings_from_config(cfg.frames, rig_camera=rig.camera, camera_id=args.camera)
+    trigger = args.trigger or ("Software" if is_fake_camera(args.camera)
                                else cfg.frames.trigger_source)
     settings = settings.with_changes(trigger_source=trigger)
     spool = Path(output_folder("--spool", args.spool))
@@ -73,8 +125,11 @@ def run(args: argparse.Namespace) -> int:
     camera = AravisCamera(args.camera, settings)
     reader = ModbusLatchReader(plc[0], plc[1], unit_id=cfg.plc.unit_id,
                                registers=cfg.plc.registers) if plc else None
+    exposure = f"{camera.info['exposure_us']:g} µs"
     print(f"camera: {camera.info['vendor']} {camera.info['model']} {args.camera}, "
-          f"{settings.width}x{settings.height} Mono8, trigger {trigger}", file=sys.stderr)
+          f"{settings.width}x{settings.height} Mono8, exposure {exposure}, trigger {trigger}",
+          file=sys.stderr)
+    tally = ImageTally(exposure)
     source = CameraFrameSource(camera, latch_reader=reader, maxsize=4 * 1024)
     written = failed = 0
     reasons: dict[str, int] = {}
@@ -100,6 +155,9 @@ def run(args: argparse.Namespace) -> int:
                 writer.write(frame)
                 written += 1
                 last = time.monotonic()
+                for line in tally.check(frame):  # below the progress bar once it shows
+                    print(f"\n{line}" if written + failed > 1 else line, file=sys.stderr,
+                          flush=True)
             print(_bar(written, pairs, failed), end="", file=sys.stderr, flush=True)
     finally:
         source.close()
@@ -115,8 +173,9 @@ def run(args: argparse.Namespace) -> int:
         "pairs_failed": failed,
         "failures": reasons,
         "counters": counters,
+        "image_problems": {"pairs": dict(tally.pairs), "first": dict(tally.first)},
     }
     atomic_write_text(spool / "acquire.json", json.dumps(meta, indent=2) + "\n")
     print(f"wrote {written} pairs to {spool} ({failed} failed, "
-          f"{counters['dropped']} dropped)", flush=True)
+          f"{counters['dropped']} dropped){tally.summary(written)}", flush=True)
     return 0

@@ -30,7 +30,8 @@ from core.checks import check_int, check_positive
 from protocol.frames import Frame
 from protocol.spool_files import Skip
 
-__all__ = ["CameraFrameSource", "LatchReader", "open_camera_source", "settings_from_config"]
+__all__ = ["CameraFrameSource", "LatchReader", "is_fake_camera", "open_camera_source",
+           "settings_from_config"]
 
 #: Reads the PLC's latch registers now: the last pair's latch, or ``None`` (PLC unreachable).
 LatchReader = Callable[[], "TriggerLatch | None"]
@@ -222,19 +223,30 @@ class CameraFrameSource:
             self.camera.close()
 
 
-def settings_from_config(frames: Any, *, rig_camera: Any = None) -> CameraSettings:
+def is_fake_camera(camera_id: str) -> bool:
+    """Whether an Aravis device id names one of Aravis' in-process fake cameras (``Fake_1``)."""
+    return camera_id.startswith("Fake")
+
+
+def settings_from_config(frames: Any, *, rig_camera: Any = None,
+                         camera_id: str | None = None) -> CameraSettings:
     """The camera settings of a ``[frames]`` table (and the rig's ``[camera]``).
 
     The image size is the rig's ``width``/``height`` when recorded, else ``[frames]
-    image_width``/``image_height``; the exposure ``[frames] exposure_us``, else the rig's
-    ``exposure_ms``.
+    image_width``/``image_height``; the exposure ``[frames] exposure_us``, else for one of
+    Aravis' fake cameras (``camera_id``, default ``[frames] camera_id``) ``[frames]
+    fake_exposure_us`` (its test image is black at a real camera's strobed exposure), else the
+    rig's ``exposure_ms``.
     """
     width = getattr(rig_camera, "width", None) or frames.image_width
     height = getattr(rig_camera, "height", None) or frames.image_height
     if not (width and height):
         raise ValueError("frames.image_width and frames.image_height must be set for the "
                          "camera (or the rig's camera width/height)")
+    camera_id = frames.camera_id if camera_id is None else camera_id
     exposure_us = frames.exposure_us or None
+    if exposure_us is None and is_fake_camera(camera_id or ""):
+        exposure_us = getattr(frames, "fake_exposure_us", 0.0) or None
     if exposure_us is None and getattr(rig_camera, "exposure_ms", None):
         exposure_us = rig_camera.exposure_ms * 1000.0
     return CameraSettings(width=int(width), height=int(height), exposure_us=exposure_us,
