@@ -161,7 +161,8 @@ def _phase_of(resultant: complex) -> float:
 
 
 def _spread_of(resultant: complex) -> float:
-    r = float(np.abs(resultant))
+    # |mean exp(2 pi i n)| of exact pass numbers may round to just above 1: spread 0, not NaN
+    r = min(float(np.abs(resultant)), 1.0)
     return float(np.sqrt(-2.0 * np.log(max(r, 1e-300))) / (2.0 * np.pi))
 
 
