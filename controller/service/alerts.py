@@ -184,8 +184,9 @@ class KnifeChipMonitor:
         if self.knives < 3 or len(widths_mm) != self.knives or not pitch_mm > 0:
             return False
         o = self.timeline.at(t if cut_at_s is None else cut_at_s)
-        if o is None or all(math.isnan(float(v)) for v in widths_mm):
-            return False
+        if (o is None or len(o) != self.knives
+                or all(math.isnan(float(v)) for v in widths_mm)):
+            return False  # no table of these knives known yet, or no mark at all
         o_cut = np.asarray(o, float)
         s = self._runout(widths_mm, pitch_mm, o_cut)
         if len(self._ref) < self._ref.maxlen:  # type: ignore[operator]

@@ -134,3 +134,10 @@ def test_the_status_carries_what_is_active():
         alerts.target.update(i * 0.1, pitch_mm=2.5, feed_mm_s=1000.0,
                              feed_limits_mm_s=(50.0, 1000.0), held_pitch_mm=3.0)
     assert alerts.describe()["target_unreachable"]["reason"] == "feed at its maximum"
+
+
+def test_a_table_of_other_knives_or_none_is_no_comparison():
+    mon = KnifeChipMonitor(EventLog(), knives=4, radius_mm=60.0)
+    assert not mon.pair(0.0, widths_mm=[1.5] * 4, pitch_mm=1.5, cut_at_s=None)  # no table yet
+    mon.timeline.note(0.0, ())  # an actuator that has not been told its knives
+    assert not mon.pair(0.1, widths_mm=[1.5] * 4, pitch_mm=1.5, cut_at_s=0.05)
