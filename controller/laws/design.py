@@ -489,6 +489,90 @@ def uniformity_loop_margins(
     return rows
 
 
+# -- the identified actuator: how far off may it be ------------------------------------------------
+def robust_disc_radius(model: FeedLoopModel) -> float:
+    """Largest ``r``: every true/model gain ratio with ``|alpha - 1| < r`` keeps one mode stable.
+
+    The loop of one knife mode is ``alpha L1`` (``L1`` the nominal loop, ``alpha`` complex:
+    the identified gain's error in magnitude and phase; a mode pair sees ``alpha`` and its
+    conjugate). With ``alpha = 1 + delta`` the return difference is ``(1 + L1)(1 + delta T)``,
+    ``T = L1 / (1 + L1)``: by the small-gain theorem stable for ``|delta| max|T| < 1``. The
+    radius is ``1 / max_w |T(e^jw)|`` from the frequency response (python-control FRD of
+    :func:`feed_loop_frd`); the identifier's confidence ``1 - 2 sigma / |a|`` is positive only
+    when two standard errors stay inside a disc of radius 1 (``controller.laws.actuator_id``).
+    """
+    loop = feed_loop_frd(model)
+    l1 = np.asarray(loop.frdata[0, 0, :], dtype=complex)
+    ok = np.isfinite(l1) & (np.abs(l1) < 1e12)  # |L| = inf at the integrator's z = 1
+    t = l1[ok] / (1.0 + l1[ok])
+    peak = max(float(np.max(np.abs(t))), 1.0)  # T(1) = 1 at the integrator
+    return 1.0 / peak
+
+
+def identified_mode_margin(model: FeedLoopModel, alpha: complex) -> float:
+    """``min_w |1 + alpha L1(e^jw)|`` over both signs of frequency (the mode and its conjugate).
+
+    The stability margin (the distance of the Nyquist curve from -1) of one knife mode when
+    the true gain is ``alpha`` times the identified one; > 0 and the closed loop stable
+    (:func:`uniformity_closed_loop_radius` < 1) is the design's test.
+    """
+    loop = feed_loop_frd(model)
+    l1 = np.asarray(loop.frdata[0, 0, :], dtype=complex)
+    l1 = l1[np.isfinite(l1) & (np.abs(l1) < 1e12)]
+    a = complex(alpha)
+    return float(min(np.min(np.abs(1.0 + a * l1)), np.min(np.abs(1.0 + a.conjugate() * l1))))
+
+
+@dataclass(frozen=True)
+class IdentifiedDiscRow:
+    """The loop of one mode at one operating point against the identifier's 2-sigma disc."""
+
+    cutter_to_camera_mm: float
+    feed_mm_s: float
+    robust_radius: float
+    worst_pole_radius: float
+    worst_margin: float
+
+
+def identified_disc_rows(
+    cfg: UniformityLoopConfig,
+    disc: float = 0.5,
+    feeds_mm_s: tuple[float, ...] = DESIGN_FEEDS_MM_S,
+    cameras_mm: tuple[float, ...] = DESIGN_CAMERAS_MM,
+    points: int = 24,
+) -> list[IdentifiedDiscRow]:
+    """Worst closed-loop pole radius and stability margin over ``|alpha - 1| = disc``.
+
+    ``disc = 0.5``: a mode at confidence 0 (two standard errors = half the gain) whose true
+    gain lies two standard errors off in any direction.
+    """
+    rows = []
+    for cam in cameras_mm:
+        for v in feeds_mm_s:
+            mdl = uniformity_loop_model(cfg, v, cutter_to_camera_mm=cam)
+            alphas = [1.0 + disc * complex(math.cos(th), math.sin(th))
+                      for th in np.linspace(0.0, 2.0 * math.pi, points, endpoint=False)]
+            rows.append(IdentifiedDiscRow(
+                float(cam), float(v), robust_disc_radius(mdl),
+                max(uniformity_closed_loop_radius(mdl, a) for a in alphas),
+                min(identified_mode_margin(mdl, a) for a in alphas),
+            ))
+    return rows
+
+
+def identified_disc_markdown(rows: list[IdentifiedDiscRow], disc: float) -> str:
+    """Markdown table of :func:`identified_disc_rows`."""
+    out = [
+        f"| camera mm | feed mm/s | robust disc radius | worst pole radius, abs(alpha-1) = "
+        f"{disc:g} | worst min abs(1+L) |",
+        "|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        out.append(f"| {r.cutter_to_camera_mm:.0f} | {r.feed_mm_s:.0f} | {r.robust_radius:.2f} "
+                   f"| {r.worst_pole_radius:.3f} | {r.worst_margin:.2f} |")
+    return "\n".join(out)
+
+
 # -- report ------------------------------------------------------------------------------------
 def _fmt(x: float, digits: int = 1) -> str:
     return "inf" if not math.isfinite(x) else f"{x:.{digits}f}"
@@ -571,6 +655,8 @@ def main() -> None:
         pm = min(r.margins.phase_margin_deg for r in rows)
         print(f"\nuniformity loop, {name}: worst GM {_fmt(gm)} dB, worst PM {_fmt(pm)} deg")
     print("\nmode eigenvalues, Z = 4:", np.round(mode_eigenvalues(4), 3))
+    print("\n## Uniformity loop, the identified gain two standard errors off (confidence 0)\n")
+    print(identified_disc_markdown(identified_disc_rows(ucfg, 0.5), 0.5))
 
 
 if __name__ == "__main__":  # pragma: no cover
