@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
@@ -104,49 +105,11 @@ def board_surface(
     return envelope(np.linspace(x_start_mm, x_end_mm, n), passes)
 
 
-def board_pair(
-    *,
-    seed: int = 0,
-    species: str = "beech",
-    pitch_mm: float = 1.5,
-    knives: int = 4,
-    runout_um: Sequence[float] | None = None,
-    radius_mm: float = 60.0,
-    spindle_rpm: float = 6000.0,
-    speed_mm_s: float | None = None,
-    imbalance: float = 0.0,
-    falloff: float = 0.0,
-    k1: float = 0.0,
-    encoder_error_px: float = 0.0,
-    exposure_ms: float | None = 0.05,
-    width: int = 659,
-    height: int = 493,
-    noise: bool = True,
-    dt_ab_s: float = 0.002,
-    counter_bits: int = 32,
-    counts_a: int | None = None,
-    offsets_um: Sequence[float] | None = None,
-    eccentricity_um: float = 0.0,
-    slant_deg: float = 82.0,
-    gain: float = 1.0,
-    quantize: bool = True,
-    board_x_at_centre_mm: float | None = None,
-    flat: bool = False,
-    roll_deg: float = 0.0,
-    slant_offset_deg: tuple[float, float] = (0.0, 0.0),
-    scattering_mm: float = 0.0,
-    reflectance_roughness_deg: float = 0.0,
-    bow_mm: float = 0.0,
-    cup_mm: float = 0.0,
-    pencil_lines: Sequence[PencilLine] = (),
-    read_noise_dn: float | None = None,
-    board_length_mm: float = 4000.0,
-    knots: Sequence[Knot] = (),
-    pore_density_per_mm2: float | None = None,
-) -> tuple[Rig, ImagePair]:
-    """A simulated rig and one rendered image pair of a freshly planed board.
+@dataclass(frozen=True)
+class BoardScene:
+    """What :func:`board_pair` renders: the board, the cutterhead, the rig and its effects.
 
-    Parameters
+    Attributes
     ----------
     seed : int
         Seeds the wood texture, the knife phase, the board position, ``counts_a`` (when not
@@ -207,85 +170,151 @@ def board_pair(
         Pores per mm^2, replacing the species' (``None``: the species' own); a species without
         pores gets them with a contrast of 0.3.
 
+    """
+
+    seed: int = 0
+    species: str = "beech"
+    pitch_mm: float = 1.5
+    knives: int = 4
+    runout_um: Sequence[float] | None = None
+    radius_mm: float = 60.0
+    spindle_rpm: float = 6000.0
+    speed_mm_s: float | None = None
+    imbalance: float = 0.0
+    falloff: float = 0.0
+    k1: float = 0.0
+    encoder_error_px: float = 0.0
+    exposure_ms: float | None = 0.05
+    width: int = 659
+    height: int = 493
+    noise: bool = True
+    dt_ab_s: float = 0.002
+    counter_bits: int = 32
+    counts_a: int | None = None
+    offsets_um: Sequence[float] | None = None
+    eccentricity_um: float = 0.0
+    slant_deg: float = 82.0
+    gain: float = 1.0
+    quantize: bool = True
+    board_x_at_centre_mm: float | None = None
+    flat: bool = False
+    roll_deg: float = 0.0
+    slant_offset_deg: tuple[float, float] = (0.0, 0.0)
+    scattering_mm: float = 0.0
+    reflectance_roughness_deg: float = 0.0
+    bow_mm: float = 0.0
+    cup_mm: float = 0.0
+    pencil_lines: Sequence[PencilLine] = ()
+    read_noise_dn: float | None = None
+    board_length_mm: float = 4000.0
+    knots: Sequence[Knot] = ()
+    pore_density_per_mm2: float | None = None
+
+
+def board_pair(scene: BoardScene | None = None, /, **changes: Any) -> tuple[Rig, ImagePair]:
+    """A simulated rig and one rendered image pair of a freshly planed board.
+
+    Parameters
+    ----------
+    scene : BoardScene, optional
+        What to render (default: :class:`BoardScene`'s defaults).
+    **changes
+        Fields of the scene to change (``board_pair(roll_deg=3.0, knives=8)``).
+
     Returns
     -------
     rig : config.rig.Rig
         ``px_per_mm = 12.5``, K centred with ``fx = fy = 1400``, 20 counts per mm.
     pair : plant_sim.rendering.optics.ImagePair
         Images, counts and truth (``pair.truth.metrics(x_lo, x_hi)`` gives the true marks).
+
+    Raises
+    ------
+    ValueError
+        A field that :class:`BoardScene` does not have, or a value out of its range (naming it).
     """
-    seed = check_int("seed", seed, lo=0)
-    pitch = check_positive("pitch_mm", pitch_mm)
-    z = check_int("knives", knives, lo=1, hi=64)
-    rpm = check_positive("spindle_rpm", spindle_rpm)
-    if speed_mm_s is None:
+    unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(BoardScene)})
+    if unknown:
+        raise ValueError(f"board_pair has no option {', '.join(unknown)}")
+    sc = dataclasses.replace(scene if scene is not None else BoardScene(), **changes)
+    return _render_scene(sc)
+
+
+def _render_scene(sc: BoardScene) -> tuple[Rig, ImagePair]:
+    """Render one scene (checked here, field by field)."""
+    check_int("seed", sc.seed, lo=0)
+    pitch = check_positive("pitch_mm", sc.pitch_mm)
+    z = check_int("knives", sc.knives, lo=1, hi=64)
+    rpm = check_positive("spindle_rpm", sc.spindle_rpm)
+    if sc.speed_mm_s is None:
         speed = pitch * rpm / 60.0 * z
     else:
-        speed = check_positive("speed_mm_s", speed_mm_s)
+        speed = check_positive("speed_mm_s", sc.speed_mm_s)
         rpm = speed * 60.0 / (pitch * z)
-    if runout_um is None:
+    if sc.runout_um is None:
         runout = tuple(DEFAULT_RUNOUT_UM[k % len(DEFAULT_RUNOUT_UM)] for k in range(z))
     else:
-        runout = tuple(runout_um)
-    check_range("k1", k1, -1.0, 1.0)
-    wood = wood_presets.species(species)
-    if pore_density_per_mm2 is not None:
-        check_positive("pore_density_per_mm2", pore_density_per_mm2, allow_zero=True)
-        wood = dataclasses.replace(wood, pore_density_per_mm2=float(pore_density_per_mm2))
+        runout = tuple(sc.runout_um)
+    check_range("k1", sc.k1, -1.0, 1.0)
+    wood = wood_presets.species(sc.species)
+    if sc.pore_density_per_mm2 is not None:
+        check_positive("pore_density_per_mm2", sc.pore_density_per_mm2, allow_zero=True)
+        wood = dataclasses.replace(wood, pore_density_per_mm2=float(sc.pore_density_per_mm2))
         if wood.pore_contrast == 0.0 and wood.pore_density_per_mm2 > 0:
             wood = dataclasses.replace(wood, pore_contrast=0.3)
-    knots = tuple(knots)
+    knots = tuple(sc.knots)
     for kn in knots:
         if not isinstance(kn, Knot):
             raise ValueError(f"knots must hold plant_sim.rendering.camera.Knot objects, got {kn!r}")
-    head = Cutterhead(z, radius_mm, runout, eccentricity_um)
-    rng = np.random.default_rng([seed, 0xB0A2D])
+    head = Cutterhead(z, sc.radius_mm, runout, sc.eccentricity_um)
+    rng = np.random.default_rng([sc.seed, 0xB0A2D])
     rig = make_rig(
-        width=width, height=height, k1=k1, exposure_ms=exposure_ms, counter_bits=counter_bits,
-        slant_deg=slant_deg,
+        width=sc.width, height=sc.height, k1=sc.k1, exposure_ms=sc.exposure_ms,
+        counter_bits=sc.counter_bits, slant_deg=sc.slant_deg,
     )
+    read_noise_dn = sc.read_noise_dn
     if read_noise_dn is None:
-        read_noise_dn = 0.5 if noise else 0.0
+        read_noise_dn = 0.5 if sc.noise else 0.0
     effects = RigEffects(
-        roll_deg=roll_deg,
-        slant_offset_deg=tuple(slant_offset_deg),
-        scattering_mm=scattering_mm,
-        reflectance_roughness_deg=reflectance_roughness_deg,
-        bow_mm=bow_mm,
-        cup_mm=cup_mm,
-        board_length_mm=board_length_mm,
-        pencil_lines=tuple(pencil_lines),
+        roll_deg=sc.roll_deg,
+        slant_offset_deg=tuple(sc.slant_offset_deg),
+        scattering_mm=sc.scattering_mm,
+        reflectance_roughness_deg=sc.reflectance_roughness_deg,
+        bow_mm=sc.bow_mm,
+        cup_mm=sc.cup_mm,
+        board_length_mm=sc.board_length_mm,
+        pencil_lines=tuple(sc.pencil_lines),
     )
     optics = Optics(
-        width=width,
-        height=height,
+        width=sc.width,
+        height=sc.height,
         read_noise_dn=read_noise_dn,
-        shot_noise=bool(noise),
-        led_imbalance=imbalance,
-        falloff=falloff,
-        exposure_ms=exposure_ms,
-        dt_ab_s=dt_ab_s,
+        shot_noise=bool(sc.noise),
+        led_imbalance=sc.imbalance,
+        falloff=sc.falloff,
+        exposure_ms=sc.exposure_ms,
+        dt_ab_s=sc.dt_ab_s,
         counts_per_mm=COUNTS_PER_MM,
-        gain=gain,
-        quantize=quantize,
+        gain=sc.gain,
+        quantize=sc.quantize,
     )
-    rend = renderer(rig, optics, wood, seed, None if effects == RigEffects() else effects)
-    if board_x_at_centre_mm is None:
+    rend = renderer(rig, optics, wood, sc.seed, None if effects == RigEffects() else effects)
+    if sc.board_x_at_centre_mm is None:
         bc = float(rng.uniform(100.0, 1000.0))
     else:
-        bc = check_finite("board_x_at_centre_mm", board_x_at_centre_mm)
+        bc = check_finite("board_x_at_centre_mm", sc.board_x_at_centre_mm)
     lo, hi = rend.board_range_mm(board_x_at_centre_mm=bc, speed_mm_s=speed)
     x0, x1 = lo - 1.0, hi + 1.0
     phase = float(rng.uniform(0.0, pitch * z))
     surface = board_surface(
         head, spindle_rpm=rpm, feed_mm_s=speed, x_start_mm=x0, x_end_mm=x1, phase_mm=phase,
-        offsets_um=offsets_um,
+        offsets_um=sc.offsets_um,
     )
-    if counts_a is None:
-        ca = int(rng.integers(0, 1 << counter_bits))
+    if sc.counts_a is None:
+        ca = int(rng.integers(0, 1 << sc.counter_bits))
     else:
-        ca = check_int("counts_a", counts_a)
-    source: Any = _flat_board if flat else surface
+        ca = check_int("counts_a", sc.counts_a)
+    source: Any = _flat_board if sc.flat else surface
     if knots:
         source = _Knotted(source, knots)
     pair = rend.render_pair(
@@ -293,8 +322,8 @@ def board_pair(
         board_x_at_centre_mm=bc,
         speed_mm_s=speed,
         counts_a=ca,
-        encoder_error_px=encoder_error_px,
-        counter_bits=counter_bits,
+        encoder_error_px=sc.encoder_error_px,
+        counter_bits=sc.counter_bits,
         rng_seed=int(rng.integers(0, 2**63 - 1)),
         albedo_factor=_knot_darkness(knots) if knots else None,
     )
