@@ -429,6 +429,21 @@ class Renderer:
         exp = optics.exposure_ms if optics.exposure_ms is not None else (cam.exposure_ms or 0.0)
         self.exposure_s = float(exp) * 1e-3
         w, h = optics.width, optics.height
+        self._map_pixels(cam, w, h, fx.roll_deg)
+        n_rows, span_cols = self._board_grid(cam, optics)
+        tiles = texture_tiles(
+            wood, rows=n_rows, cols=self._period, dx_mm=self.dx_mm, dy_mm=self.dy_mm,
+            seed=self.seed
+        )
+        self._set_lights(rig, fx)
+        self._set_reflectance(tiles, fx, wood, n_rows=n_rows, span_cols=span_cols)
+        self._set_gains(optics, wood)
+        self._noise_rng = np.random.default_rng([self.seed, 0x5EED])
+        self._undistorted_cols = np.arange(w, dtype=np.float64)
+
+    def _map_pixels(self, cam: Any, w: int, h: int, roll_deg: float) -> None:
+        """The board-frame position (mm) every distorted pixel shows, through the lens model."""
+        ppm = self.px_per_mm
         self.K = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
         self.dist = np.asarray(cam.dist, dtype=float)
         # undistorted position of every distorted pixel
@@ -454,16 +469,21 @@ class Renderer:
             und = pts.reshape(h, w, 2)
         xc = (und[..., 0] - cam.cx) / ppm
         yc = (und[..., 1] - cam.cy) / self.px_per_mm_y
-        roll = math.radians(fx.roll_deg)
+        roll = math.radians(roll_deg)
         cr, sr = math.cos(roll), math.sin(roll)
         # board-frame position shown by each pixel (the camera rolled by `roll`)
         self.x_phys_mm = (xc * cr + yc * sr).astype(np.float64)
         self.y_phys_mm = (yc * cr - xc * sr).astype(np.float64)
         del xc, yc
         x_lo, x_hi = float(self.x_phys_mm.min()), float(self.x_phys_mm.max())
-        y_lo, y_hi = float(self.y_phys_mm.min()), float(self.y_phys_mm.max())
         self.field_width_mm = x_hi - x_lo
         self._x_lo, self._x_hi = x_lo, x_hi
+
+    def _board_grid(self, cam: Any, optics: Optics) -> tuple[int, int]:
+        """The fine board grid the texture is sampled on; its rows and its span in columns."""
+        ppm = self.px_per_mm
+        x_lo, x_hi = self._x_lo, self._x_hi
+        y_lo, y_hi = float(self.y_phys_mm.min()), float(self.y_phys_mm.max())
         # board grid
         self.dx_mm = 1.0 / (ppm * optics.oversample)
         self.dy_mm = 1.0 / self.px_per_mm_y
@@ -479,9 +499,10 @@ class Renderer:
         span_cols = int(math.ceil((x_hi - x_lo) / self.dx_mm)) + 8
         period = max(2048, sfft.next_fast_len(span_cols + 64, real=True))
         self._period = period
-        tiles = texture_tiles(
-            wood, rows=n_rows, cols=period, dx_mm=self.dx_mm, dy_mm=self.dy_mm, seed=self.seed
-        )
+        return n_rows, span_cols
+
+    def _set_lights(self, rig: Rig, fx: RigEffects) -> None:
+        """Each light's azimuth and true slant (the rig file's plus the effect's offset)."""
         # lights: the true slant of each (the rig file's plus the effect's offset)
         lit = rig.lights
         self._tau = (math.radians(lit.azimuth_a_deg), math.radians(lit.azimuth_b_deg))
@@ -501,6 +522,10 @@ class Renderer:
             (math.sin(math.radians(sl)), math.cos(math.radians(sl)), math.cos(t), math.sin(t))
             for sl, t in zip(self.true_slant_deg, self._tau, strict=True)
         )
+
+    def _set_reflectance(self, tiles: Any, fx: RigEffects, wood: Wood, *, n_rows: int,
+                         span_cols: int) -> None:
+        """Bow, scattering and the roughness tiles of each light (scattered once, here)."""
         # bow: slope 8 bow (b - L/2) / L^2 added to the profile's
         self._bow_per_mm = 8.0 * fx.bow_mm / fx.board_length_mm**2
         self._bow_mid_mm = 0.5 * fx.board_length_mm
@@ -535,6 +560,9 @@ class Renderer:
         self._tile_rho = np.ascontiguousarray(np.concatenate([rho, rho[:, :pad]], axis=1))
         self._rough_ms = float(np.mean(tiles.slope_x**2) + np.mean(tiles.slope_y**2))
         del tiles, rho, rough, r
+
+    def _set_gains(self, optics: Optics, wood: Wood) -> None:
+        """Each LED's gain map over the field (level, fall-off, imbalance)."""
         gains = []
         for i, tau in enumerate(self._tau):
             # each LED's power gives `level` on a flat board of mean albedo
@@ -547,8 +575,6 @@ class Renderer:
             gains.append(g.astype(np.float32))
         self._gain_maps = tuple(gains)
         self._dn_per_e = optics.gain * optics.max_dn / optics.full_well_e
-        self._noise_rng = np.random.default_rng([self.seed, 0x5EED])
-        self._undistorted_cols = np.arange(w, dtype=np.float64)
 
     # -- rendering -------------------------------------------------------------------------
 
