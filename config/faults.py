@@ -5,7 +5,7 @@ One :class:`FaultKind` per fault, each with
 * its parameters (:class:`FaultParam`: unit, range, required or with a default);
 * whether it is an **interface** fault (the Modbus server or the CAN node misbehave; played by
   whoever drives the interfaces: ``plant_sim.run.runner`` or the in-process HIL plant) or a
-  **machine** fault (the :class:`plant_sim.model.machine.Machine` model applies it);
+  **machine** fault (the :class:`plant_sim.machine.machine.Machine` model applies it);
 * the service condition it should trip (``modbus_restart`` -> ``plc``; names of
   ``controller.service.supervisor.SOURCES``), ``None`` when the service should ride it out (a belt
   slip, a

@@ -2,7 +2,7 @@
 
 Tables: ``[spindle]``, ``[cutterhead]``, ``[piezo]``, ``[feed]``, ``[encoder]``, ``[camera]``
 (with ``[camera.optics]``), ``[board]``, ``[plc]``, ``[faults]`` describe the machine model
-(:mod:`plant_sim.model.machine`); ``[modbus]``, ``[can]``, ``[frames]``, ``[run]`` its interfaces
+(:mod:`plant_sim.machine.machine`); ``[modbus]``, ``[can]``, ``[frames]``, ``[run]`` its interfaces
 (the Modbus server, the CAN node, the frame spool and the ``planer sim`` runner); ``[defects]``
 the wood defects on the boards (:mod:`config.defects`). Every value is
 checked on load and an error names its key (``piezo.stroke_um must be > 0.0, got -1``).

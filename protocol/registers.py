@@ -682,7 +682,7 @@ class RegisterMap:
 
 
 class WriteTarget(Protocol):
-    """What a PLC applies accepted writes to (``plant_sim.model.machine.Machine`` is one)."""
+    """What a PLC applies accepted writes to (``plant_sim.machine.machine.Machine`` is one)."""
 
     def set_feed_setpoint(self, feed_mm_s: float) -> None:
         """New feed setpoint, mm/s; ``ValueError`` when the machine refuses it."""

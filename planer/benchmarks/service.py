@@ -521,7 +521,7 @@ def _frames(n: int, *, seed: int = 1) -> tuple[list, Any]:
     without waiting for a measurement.
     """
     from config.sim import default_sim
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
 
     machine = Machine(default_sim(), seed=seed)
     frames: list = []

@@ -53,7 +53,7 @@ def _measure(render: bool, sim_s: float, *, windows: int = WINDOWS) -> dict[str,
         images ``ms_per_pair`` and ``cpu_ms_per_pair`` (per simulated pair), ``setup_s``.
     """
     from config.sim import load_sim
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
 
     cfg = load_sim()
     t0 = time.perf_counter()

@@ -7,11 +7,11 @@ Two ways to run the same scenario:
   ``planer sim`` there as a separate process (Modbus TCP on 127.0.0.1, CAN over python-can's
   ``udp_multicast``, frames through a spool directory) and runs the real-time service against
   it (:func:`run_cross_process`).
-* **in-process** (fallback, tests): the :class:`plant_sim.model.machine.Machine` and the service in
-  one process on *simulated time*, stepped in lockstep every control cycle: the PLC through
-  :class:`~plant_sim.interfaces.register_bus.MachineRegisterBus` (or the real Modbus server on an
-  ephemeral
-  loopback port), the amplifier node on python-can's ``virtual`` bus (:class:`InProcessHil`).
+* **in-process** (fallback, tests): the :class:`plant_sim.machine.machine.Machine` and the
+  service in one process on *simulated time*, stepped in lockstep every control cycle: the PLC
+  through :class:`~plant_sim.interfaces.register_bus.MachineRegisterBus` (or the real Modbus
+  server on an ephemeral loopback port), the amplifier node on python-can's ``virtual`` bus
+  (:class:`InProcessHil`).
 
 Both end with :func:`summarize`: per measurement the measured and the simulator's true pitch and
 uniformity (``Frame.truth``) and the setpoints; ``initial`` and ``final`` true values; where the

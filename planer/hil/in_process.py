@@ -70,7 +70,7 @@ class InProcessPlant:
         from controller.quality.log import is_database_url, open_quality_log
         from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
         from plant_sim.interfaces.register_bus import MachineRegisterBus
-        from plant_sim.model.machine import Machine
+        from plant_sim.machine.machine import Machine
         from plant_sim.run.driver import PlantDriver
         from protocol.piezo_can import PiezoCodec
         from protocol.registers import RegisterMap

@@ -56,7 +56,7 @@ ARRIVAL_TOLERANCE_S = 1e-9
 
 
 class AmpMachine(Protocol):
-    """What the node needs of the machine (see ``plant_sim/model/machine.py``)."""
+    """What the node needs of the machine (see ``plant_sim/machine/machine.py``)."""
 
     def piezo_command(self, *, enable: bool, alive_counter: int) -> None: ...  # noqa: D102
     def set_piezo_offsets(self, offsets_um: Sequence[float]) -> None: ...  # noqa: D102

@@ -71,7 +71,7 @@ _MBAP = struct.Struct(">HHHB")
 
 
 class PlcMachine(Protocol):
-    """What the server needs of the machine (see ``plant_sim/model/machine.py``)."""
+    """What the server needs of the machine (see ``plant_sim/machine/machine.py``)."""
 
     def register_values(self) -> dict[str, float | int]: ...  # noqa: D102
     def set_feed_setpoint(self, feed_mm_s: float) -> None: ...  # noqa: D102

@@ -17,7 +17,9 @@ __all__ = ["MachineRegisterBus"]
 
 
 class MachineRegisterBus:
-    """:class:`RegisterBus` straight onto a :class:`plant_sim.model.machine.Machine` (same process).
+    """:class:`RegisterBus` straight onto a simulated machine in the same process.
+
+    The machine is a :class:`plant_sim.machine.machine.Machine` (or the tests' stand-in).
 
     Reads encode ``machine.register_values()`` with the register map; writes are checked by the
     map exactly as the PLC server checks them (read-only -> exception 2, out of range ->

@@ -1,7 +1,7 @@
 """The record of the cut: every knife pass over each board, and the spindle's index pulses.
 
 At every knife's bottom dead centre (BDC) the machine model
-(:class:`plant_sim.model.machine.Machine`)
+(:class:`plant_sim.machine.machine.Machine`)
 calls :meth:`CutRecord.bdc`: the pass is recorded for the board under the cutter (5 mm clear
 of its ends) as the board coordinate of the cutter axis, the cut bottom
 ``-standout_k(t) + x_piezo`` (um; the stand-out drifts with machine time when the head has a

@@ -287,7 +287,7 @@ class FrameAssembler:
         """Keep a :class:`RenderJob` per frame (see :meth:`take_job`) instead of rendering.
 
         For a machine built without a renderer whose images are rendered elsewhere (worker
-        processes, :mod:`plant_sim.rendering.render_worker`).
+        processes, :mod:`plant_sim.run.render_worker`).
         """
         if self.jobs is None:
             self.jobs = {}

@@ -3,7 +3,7 @@
 Threads and processes (``SimRunner.from_config``, as ``planer sim`` runs it):
 
 * the **stepping thread** (the runner's asyncio loop) owns the
-:class:`~plant_sim.model.machine.Machine`
+:class:`~plant_sim.machine.machine.Machine`
   and drives it through the one :class:`~plant_sim.run.driver.PlantDriver`: so that machine time
   follows ``time_scale`` x wall time (clock and sleep injected: tests run on simulated time);
 * the **PLC process** (:class:`~plant_sim.interfaces.plc_process.PlcProcess`, at real-time
@@ -15,7 +15,7 @@ priority where
   lock) and sends accepted writes back, which the driver applies in order before the next step;
   the amplifier node (:mod:`plant_sim.interfaces.amp_node`) reads its CAN bus on a thread of its
   own;
-* the **render worker** (:class:`~plant_sim.rendering.render_worker.RenderPool`, a process)
+* the **render worker** (:class:`~plant_sim.run.render_worker.RenderPool`, a process)
 renders the
   images of each pair and writes the pairs to the spool directory, in order (PNG encoding and
   fsync stay out of this process); for an in-process sink (:mod:`protocol.frames`) the workers

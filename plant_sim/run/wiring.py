@@ -49,7 +49,7 @@ def wire_runner(
     cfg : config.sim.SimConfig
         The simulator configuration (``[run]`` gives the time scale and step).
     machine : Machine, optional
-        Default: ``plant_sim.model.machine.Machine(cfg, seed=seed)`` with deferred rendering.
+        Default: ``plant_sim.machine.machine.Machine(cfg, seed=seed)`` with deferred rendering.
     render_images : bool
         Render the camera's images (default machine only).
     render_workers : int
@@ -75,8 +75,8 @@ def wire_runner(
 
     render = None
     if machine is None:
-        from plant_sim.model.machine import Machine
-        from plant_sim.rendering.render_worker import RenderPool
+        from plant_sim.machine.machine import Machine
+        from plant_sim.run.render_worker import RenderPool
 
         machine = Machine(cfg, seed=seed, render_images=False)
         if render_images:

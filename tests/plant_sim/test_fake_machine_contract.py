@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from config.sim import default_sim
-from plant_sim.model.machine import Machine
+from plant_sim.machine.machine import Machine
 from protocol.frames import Frame
 from protocol.registers import RegisterMap
 from tests.support.fake_machine import FakeMachine

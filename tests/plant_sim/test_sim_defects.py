@@ -17,7 +17,7 @@ from config.loading import Section, default_path
 from config.sim import load_sim, sim_from_dict
 from config.wood import species
 from core.errors import ConfigError
-from plant_sim.model.machine import Machine
+from plant_sim.machine.machine import Machine
 from plant_sim.model.surface import Cutterhead, passes_steady
 from plant_sim.rendering import scenarios as sc
 from plant_sim.rendering.defects import (

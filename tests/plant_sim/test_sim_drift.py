@@ -19,7 +19,7 @@ from config.loading import default_path
 from config.sim import DriftConfig, load_sim, sim_from_dict, with_base
 from core.errors import ConfigError
 from planer.hil.scenario import load_scenario, sim_config_for
-from plant_sim.model.machine import Machine, runout_drift
+from plant_sim.machine.machine import Machine, runout_drift
 from plant_sim.model.surface import Cutterhead, RunoutDrift
 
 RUNOUT = (0.0, 4.0, -2.0, 2.0)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from config.sim import FaultSpec, load_sim
-from plant_sim.model.machine import Machine
+from plant_sim.machine.machine import Machine
 
 MOD32 = 1 << 32
 

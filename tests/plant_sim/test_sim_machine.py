@@ -12,7 +12,7 @@ from scipy.integrate import solve_ivp
 from config.loading import default_path, load_toml
 from config.sim import default_sim, load_sim, sim_from_dict
 from core.errors import ConfigError
-from plant_sim.model.machine import Machine
+from plant_sim.machine.machine import Machine
 from plant_sim.model.piezo import PiezoActuator
 
 

@@ -198,7 +198,7 @@ def test_port_in_use_is_a_fieldbus_error(plc):
 
 def test_real_machine_register_values_match_the_map():
     from config.sim import default_sim
-    from plant_sim.model import machine as sim
+    from plant_sim.machine import machine as sim
 
     m = sim.Machine(default_sim(), seed=0, render_images=False)
     m.advance(0.01)

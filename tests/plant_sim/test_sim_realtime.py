@@ -126,9 +126,9 @@ def test_worker_images_equal_the_machines_own(tmp_path, workers, to_spool):
     workers in order: one worker with the machine's own noise stream; several with each pair's
     noise seeded from (seed, seq)."""
     from config.sim import default_sim
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
     from plant_sim.rendering.camera import render_images
-    from plant_sim.rendering.render_worker import RenderPool, noise_seed
+    from plant_sim.run.render_worker import RenderPool, noise_seed
     from protocol.spool import SpoolReader, SpoolWriter
 
     cfg = default_sim()
@@ -408,7 +408,7 @@ def test_render_workers_run_at_the_nice_value_asked():
     import os
 
     from config.sim import default_sim
-    from plant_sim.rendering.render_worker import RenderPool
+    from plant_sim.run.render_worker import RenderPool
 
     base = os.nice(0)
     pool = RenderPool(default_sim(), seed=0, workers=1, nice=min(base + 3, 19))

@@ -30,7 +30,7 @@ from tests.support.fake_machine import FakeMachine
 
 REPO = Path(__file__).resolve().parents[2]
 RMAP = RegisterMap.load()
-HAVE_MACHINE = importlib.util.find_spec("plant_sim.model.machine") is not None
+HAVE_MACHINE = importlib.util.find_spec("plant_sim.machine.machine") is not None
 
 
 class FakeClock:
@@ -373,7 +373,7 @@ def test_in_process_source_drops_oldest_when_full():
 
 
 # ---------------------------------------------------------------------------------- the CLI
-@pytest.mark.skipif(not HAVE_MACHINE, reason="plant_sim.model.machine not available yet")
+@pytest.mark.skipif(not HAVE_MACHINE, reason="plant_sim.machine.machine not available yet")
 def test_planer_sim_cli_prints_where_it_listens_and_stops_on_sigterm(tmp_path):
     proc = subprocess.Popen(
         [

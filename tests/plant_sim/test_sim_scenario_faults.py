@@ -8,7 +8,7 @@ import pytest
 from config.faults import FaultKind, parse_fault
 from config.sim import load_sim
 from core.errors import ConfigError
-from plant_sim.model.machine import Machine
+from plant_sim.machine.machine import Machine
 
 
 @pytest.fixture(scope="module")

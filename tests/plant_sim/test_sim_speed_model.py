@@ -19,10 +19,10 @@ from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 
 from config.sim import default_sim
-from plant_sim.interfaces.plc_registers import PlcRegisters
+from plant_sim.machine.machine import Machine
+from plant_sim.machine.plc_registers import PlcRegisters
 from plant_sim.model.cut_record import PassLog
 from plant_sim.model.feed_drive import FeedDrive
-from plant_sim.model.machine import Machine
 from plant_sim.model.piezo import PiezoActuator
 from plant_sim.model.spindle import BRAKE, COAST, RUN, Spindle
 from plant_sim.model.surface import Passes

@@ -1,6 +1,6 @@
 """The simulated planer seen through the vision pipeline.
 
-Every check here measures RENDERED images of the machine model (`plant_sim.model.machine.Machine`,
+Every check here measures RENDERED images of the machine model (`plant_sim.machine.machine.Machine`,
 frames from `Machine.advance`) with the vision pipeline (`vision.pipeline.Measurer`) and compares
 the measurement with the kinematics (feed per knife pass ``V / (n Z)``, mark depth ``p^2 / (8 R)``,
 the one-knife-finish threshold) and with each frame's truth:
@@ -21,7 +21,7 @@ import pytest
 from config.loading import default_path
 from config.rig import load_rig
 from config.sim import SimConfig, load_sim
-from plant_sim.model.machine import Machine
+from plant_sim.machine.machine import Machine
 from plant_sim.model.surface import Cutterhead, envelope, passes_steady
 from plant_sim.rendering.optics import RigEffects, effects_from_config
 from vision.pipeline import Measurement, Measurer

@@ -1,6 +1,6 @@
 """The one stand-in for the simulated machine in tests: the Machine API with trivial dynamics.
 
-It has the interface of :class:`plant_sim.model.machine.Machine` that the PLC server, the CAN
+It has the interface of :class:`plant_sim.machine.machine.Machine` that the PLC server, the CAN
 node, the runner and the in-process register bus use (``tests/plant_sim/
 test_fake_machine_contract.py`` holds it against the real machine), and none of its physics: a
 frame every ``1 / pairs_per_s`` seconds with its sequence number in its pixels, the feed setpoint

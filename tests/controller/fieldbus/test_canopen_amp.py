@@ -20,7 +20,7 @@ import pytest
 from config.sim import default_sim
 from controller.fieldbus.canopen_amp import AmpBus
 from plant_sim.interfaces.canopen_node import CanopenAmpNode, SlaveBus
-from plant_sim.model.machine import Machine
+from plant_sim.machine.machine import Machine
 from protocol.piezo_canopen import (
     EMCY_CODES,
     LIMITS,

@@ -51,7 +51,7 @@ def _child(port: int, log: str) -> None:  # pragma: no cover - runs in the servi
     from controller.quality.log import open_quality_log
     from controller.service.service import Service
     from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
     from protocol.piezo_can import PiezoCodec
     from protocol.registers import RegisterMap
     from tests.support.plant_support import truth_measurer
@@ -201,7 +201,7 @@ class Plant:
 
     def __init__(self, log: str, *, seed: int = 3) -> None:
         from config.sim import default_sim
-        from plant_sim.model.machine import Machine
+        from plant_sim.machine.machine import Machine
 
         self.log = log
         self.machine = Machine(default_sim(), seed=seed, render_images=False)

@@ -77,7 +77,7 @@ async def _run(frames, machine, tmp_path):
 def test_run_in_real_time_applies_every_pair(tmp_path):
     from config.sim import default_sim
     from controller.quality.log import QualityLog
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
 
     machine = Machine(default_sim(), seed=3)
     frames: list = []

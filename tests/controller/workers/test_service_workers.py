@@ -278,7 +278,7 @@ def test_workers_measure_as_this_process_does_and_the_calibrator_folds_in_order(
     from config.rig import load_rig
     from config.sim import default_sim
     from controller.service.measurement import MachineFacts, MeasurementStage, VisionMeasurers
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
 
     machine = Machine(default_sim(), seed=4)
     frames: list = []

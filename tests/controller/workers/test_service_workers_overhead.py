@@ -286,7 +286,7 @@ def test_scaling_reports_both_ratios_and_where_the_time_goes():
     from config.sim import default_sim
     from controller.service.measurement import MachineFacts
     from planer.benchmarks.scaling import scaling
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
 
     machine = Machine(default_sim(), seed=3)
     frames: list = []

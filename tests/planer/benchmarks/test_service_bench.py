@@ -18,7 +18,7 @@ N_PAIRS = 4
 @pytest.fixture(scope="module")
 def frames_and_machine():
     from config.sim import default_sim
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
 
     machine = Machine(default_sim(), seed=2)
     frames: list = []

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
 from types import SimpleNamespace
 
 import pytest
 
-from config.machine import load_machine
 from planer.commands.serve import source_counts, source_text
 
 

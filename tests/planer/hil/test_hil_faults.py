@@ -58,7 +58,7 @@ def test_registry_is_the_one_list_of_kinds():
 @pytest.mark.parametrize("kind", list(FaultKind), ids=str)
 def test_every_kind_and_parameter_is_understood_by_the_machine(kind, sim_cfg):
     """What the registry accepts the machine model takes (scheduled, so nothing acts yet)."""
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
 
     m = Machine(sim_cfg, seed=0, render_images=False)
     params = _valid(kind)
@@ -73,7 +73,7 @@ def test_every_kind_and_parameter_is_understood_by_the_machine(kind, sim_cfg):
 @pytest.mark.parametrize("kind", [k for k in FaultKind if k.required], ids=str)
 def test_a_missing_required_parameter_is_an_error_everywhere(kind, sim_cfg, tmp_path):
     """A fault without ``duration_s`` was once taken as 0 s: now every entry point refuses it."""
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
 
     (name,) = kind.required
     with pytest.raises(ConfigError, match=rf"faults\.inject\[0\]\.{name} is required for {kind}"):

@@ -37,7 +37,7 @@ TURN_POLL_S = 0.2
 
 def build_renderer(cfg: Any, *, seed: int) -> Any:
     """The optics renderer of a ``SimConfig``'s camera, exactly as the machine builds it."""
-    from plant_sim.model.machine import Machine
+    from plant_sim.machine.machine import Machine
 
     return Machine(cfg, seed=seed, render_images=True).renderer
 

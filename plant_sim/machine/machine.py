@@ -23,9 +23,9 @@ recorded for
   genuinely changes the surface;
 - :class:`plant_sim.rendering.frame_capture.FrameCapture`: the camera's triggers, latches and
 frames;
-- :class:`plant_sim.interfaces.plc_registers.PlcRegisters`: the PLC's flags, heartbeats, watchdog,
+- :class:`plant_sim.machine.plc_registers.PlcRegisters`: the PLC's flags, heartbeats, watchdog,
   interlock and register values;
-- :class:`plant_sim.model.fault_injection.FaultInjector`: the faults (kinds and parameters listed
+- :class:`plant_sim.machine.fault_injection.FaultInjector`: the faults (kinds and parameters listed
   there), their schedule and timers.
 
 This class steps time through them and keeps the API the PLC server, the CAN node, the runner
@@ -42,9 +42,9 @@ import numpy as np
 
 from config.sim import DriftConfig, SimConfig
 from core.checks import check_finite, check_int, check_positive
-from plant_sim.interfaces.plc_registers import PlcRegisters, register_names
+from plant_sim.machine.fault_injection import FaultInjector
+from plant_sim.machine.plc_registers import PlcRegisters, register_names
 from plant_sim.model.cut_record import CutRecord
-from plant_sim.model.fault_injection import FaultInjector
 from plant_sim.model.feed_drive import BoardStream, Encoder, FeedDrive
 from plant_sim.model.piezo import FAULT as PIEZO_FAULT
 from plant_sim.model.piezo import PiezoAmplifier, PiezoStatus
@@ -91,9 +91,9 @@ class Machine:
         The knife passes per board and the index pulses.
     capture : plant_sim.rendering.frame_capture.FrameCapture
         The camera station (``assembler``, ``knots``, ``frames_dropped``).
-    plc : plant_sim.interfaces.plc_registers.PlcRegisters
+    plc : plant_sim.machine.plc_registers.PlcRegisters
         The PLC's flags, heartbeats and register values.
-    faults : plant_sim.model.fault_injection.FaultInjector
+    faults : plant_sim.machine.fault_injection.FaultInjector
         Injected faults, their schedule and timers.
     """
 
@@ -298,7 +298,7 @@ class Machine:
     def inject(self, fault: str, **params: Any) -> None:
         """Inject a fault now or at ``at_s``.
 
-        Kinds and parameters: :mod:`plant_sim.model.fault_injection`.
+        Kinds and parameters: :mod:`plant_sim.machine.fault_injection`.
 
         Raises
         ------

@@ -1,6 +1,6 @@
 """Fault injection into the machine model: validation, the schedule, each fault's effect, timers.
 
-Faults (:meth:`plant_sim.model.machine.Machine.inject`, or ``[faults] inject`` in
+Faults (:meth:`plant_sim.machine.machine.Machine.inject`, or ``[faults] inject`` in
 ``config/sim.toml``), each with an optional ``at_s`` (absolute simulated time; default now;
 applied on the PLC-cycle grid). Parameter names, defaults and ranges come from the registry
 (:mod:`config.faults`); the ranges that depend on the machine are checked here.
@@ -51,7 +51,7 @@ import numpy as np
 from config.faults import FaultKind
 from config.sim import FAULT_KINDS, SimConfig
 from core.checks import check_finite, check_int, check_positive
-from plant_sim.interfaces.plc_registers import PlcRegisters
+from plant_sim.machine.plc_registers import PlcRegisters
 from plant_sim.model.feed_drive import BoardStream, Encoder, FeedDrive
 from plant_sim.model.piezo import PiezoAmplifier
 from plant_sim.model.spindle import BRAKE, COAST, RUN, Spindle
@@ -82,7 +82,7 @@ class FaultInjector:
         The configuration (the rig's ``px_per_count`` for ``belt_slip``).
     spindle, feed, encoder, boards, amp : the machine's parts
         What the faults act on.
-    plc : plant_sim.interfaces.plc_registers.PlcRegisters
+    plc : plant_sim.machine.plc_registers.PlcRegisters
         The PLC's fault bits and e-stop.
     capture : plant_sim.rendering.frame_capture.FrameCapture
         The camera station (pending slip, latches in flight, knots).
