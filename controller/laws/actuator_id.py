@@ -20,8 +20,10 @@ with equally slow moves of the table, would otherwise pass for a gain near zero:
 ``y`` stays near zero while ``o`` tracks ``s``) and whose ratio ``dY_m / dO_m`` has a magnitude
 within ``[gain_min / 4, 1.5 gain_max]`` (a step of the runout itself, a knife changed or a
 misattributed pair, passes for a wild gain; a difference across a table change inside the
-measured window, for nearly none). Once a mode is confident, a difference must also agree with
-its estimate (:meth:`ActuatorIdentifier._consistent`); ``3 lag_pairs`` disagreeing in a row
+measured window, for nearly none). Large moves (``4 min_step_um``) that moved nothing, ``2
+lag_pairs`` in a row, are themselves the finding: that pattern has no authority. Once a mode is
+confident, a difference must also agree with its estimate
+(:meth:`ActuatorIdentifier._consistent`); ``3 lag_pairs`` disagreeing in a row
 and the mode is learnt afresh (the actuator changed), as is a mode that was confident and lost
 all its confidence to disagreeing differences. A jump of the width errors while the
 table stood still is a step of the runout: the differences start again after it. The gain may
@@ -150,6 +152,9 @@ class ActuatorIdentifier:
         self.jump_um = 4.0 * self.min_step_um
         """A move of the width errors (um of offset, per mode) with the table steady that counts
         as a step of the runout."""
+        self.still_samples = 2 * self.lag
+        """Large moves (``4 min_step_um``) in a row whose response is below the ratio gate
+        (``gain_min / 4``) after which a mode has no authority even without a fit."""
         self.reject_reset = 3 * self.lag
         """Consecutive outliers after which a mode is learnt afresh (the actuator changed)."""
         self.unconfirmed_gain_min = check_range("unconfirmed_gain_min", unconfirmed_gain_min,
@@ -177,6 +182,7 @@ class ActuatorIdentifier:
         self._n = [0.0] * z  # weighted number of accepted differences
         self._rejected = [0] * z  # consecutive differences left out as outliers
         self._confident = [False] * z  # confident once since learnt (afresh)
+        self._still = [0] * z  # large moves in a row that moved nothing (ratio ~ 0)
         self.samples = 0
         self._prior = np.ones(z, complex)
         self._raw = np.ones(z, complex)
@@ -247,9 +253,13 @@ class ActuatorIdentifier:
                 if abs(do) < self.min_step_um:
                     continue
                 ratio = dy / do
+                if abs(ratio) < 0.25 * self.gain_min and abs(do) >= 4.0 * self.min_step_um:
+                    self._still[m] += 1  # a large move that moved nothing
+                    continue
                 if (not 0.25 * self.gain_min <= abs(ratio) <= 1.5 * self.gain_max
                         or abs(cmath.phase(ratio)) > self.gate_phase):
                     continue
+                self._still[m] = 0
                 if not self._consistent(m, do, dy):
                     self._rejected[m] += 1
                     if self._rejected[m] >= self.reject_reset:  # the actuator changed: relearn
@@ -265,6 +275,7 @@ class ActuatorIdentifier:
                 c = z - m
                 soo[m], soy[m], syy[m], n[m] = soo[c], soy[c].conjugate(), syy[c], n[c]
                 self._rejected[m] = self._rejected[c]
+                self._still[m] = self._still[c]
             if any_moved:
                 self._set_gains(self._fit())
                 self._relearn_lost()
@@ -327,6 +338,7 @@ class ActuatorIdentifier:
             self._soo[k], self._soy[k], self._syy[k], self._n[k] = 0.0, 0j, 0.0, 0.0
             self._rejected[k] = 0
             self._confident[k] = False
+            self._still[k] = 0
 
     def _dft(self, v: list[float]) -> list[complex]:
         """``np.fft.fft(v, norm="ortho")`` with the twiddles set up once."""
@@ -420,7 +432,8 @@ class ActuatorIdentifier:
         for m in range(1, self.knives):
             mag = abs(complex(self._raw[m]))
             n = self._n[m]
-            if n >= self.min_samples - 1e-9 and mag + 2.0 * se[m] < self.gain_min:
+            if ((n >= self.min_samples - 1e-9 and mag + 2.0 * se[m] < self.gain_min)
+                    or self._still[m] >= self.still_samples):
                 out.append("no_authority")
             elif conf[m] > 0.0 and mag >= self.gain_min:
                 out.append("usable")

@@ -281,3 +281,18 @@ def test_a_jump_with_the_table_steady_starts_the_differences_again():
     assert len(ident._past) == 1  # only the measurement after the jump
     ident.interrupt()
     assert len(ident._past) == 0
+
+
+def test_large_moves_that_move_nothing_are_no_authority_without_a_fit():
+    """A 60 Hz piezo barely moves the alternating pattern (about 1 %): below the ratio gate no
+    difference enters the fit, and the moves that moved nothing are the finding."""
+    a = _modal_actuator(0.42 * np.exp(-2.2j), 0.01)
+    ident = ActuatorIdentifier(4)
+    o = np.zeros(4)
+    rng = np.random.default_rng(3)
+    for k in range(40):  # a loop that keeps pushing the alternating pattern
+        o = np.array([1.0, -1.0, 1.0, -1.0]) * 0.5 * k
+        y = a @ o - np.array([0.0, 4.0, -2.0, 2.0])
+        ident.add(o, y - y.mean() + 0.02 * rng.standard_normal(4))
+    assert ident.differences[2] == 0  # nothing entered the fit
+    assert ident.mode_states()[2] == "no_authority"
