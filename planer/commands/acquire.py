@@ -93,6 +93,7 @@ def _bar(done: int, total: int, failed: int) -> str:
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
     import json
+    import logging
     import sys
     import time
     from pathlib import Path
@@ -114,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
     pairs = check_int("--pairs", args.pairs, lo=1, hi=10**9)
     check_positive("--timeout", args.timeout)
     plc = parse_host_port(args.plc) if args.plc else None
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # its lines are not ours: one below
     cfg = load_machine(args.config)
     rig = load_rig(args.rig or rig_path(cfg))
     settings = settings_from_config(cfg.frames, rig_camera=rig.camera, camera_id=args.camera)
@@ -134,9 +136,15 @@ def run(args: argparse.Namespace) -> int:
     written = failed = 0
     reasons: dict[str, int] = {}
     last = time.monotonic()
+    plc_said = False
     try:
         while written < pairs:
             frame = source.poll()
+            if reader is not None and reader.errors and not plc_said:
+                plc_said = True
+                print(f"\nplaner acquire: warning: the PLC at {args.plc} does not answer: no "
+                      "trigger latches, the pairs fail until it answers", file=sys.stderr,
+                      flush=True)
             if time.monotonic() - last > args.timeout:
                 told = [s.reason for s in source.take_skips() if s.file == "<camera>"]
                 worst = (max(reasons, key=reasons.get) if reasons

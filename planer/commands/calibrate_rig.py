@@ -72,16 +72,36 @@ def _pairs_from_files(args: argparse.Namespace) -> list[tuple]:
 
 
 def _pairs_from_spool(directory: str) -> tuple[list[tuple], float | None]:
+    """The good pairs of a spool folder and their median speed; a folder with none is an error.
+
+    Raises
+    ------
+    ValueError
+        Naming ``--spool`` and the folder: missing, not a folder, or without a good pair (with
+        the count of failed pairs and files skipped).
+    """
+    import os
+
     from protocol.spool import SpoolReader
 
+    if not os.path.exists(directory):
+        raise ValueError(f"--spool {directory}: no such folder")
+    if not os.path.isdir(directory):
+        raise ValueError(f"--spool {directory}: is a file, expected a spool folder")
     reader = SpoolReader(directory, start="all")
     pairs = []
     speeds = []
+    failed = 0
     while (frame := reader.poll()) is not None:
         if frame.error is not None or frame.image_a is None:
+            failed += 1
             continue
         pairs.append((frame.image_a, frame.image_b, frame.counts_a, frame.counts_b))
         speeds.append(float(frame.speed_mm_s))
+    if not pairs:
+        skipped = len(reader.take_skips())
+        raise ValueError(f"--spool {directory}: no good image pairs in the folder ({failed} "
+                         f"failed pairs, {skipped} files skipped; docs/frames.md has the format)")
     speed = sorted(speeds)[len(speeds) // 2] if speeds else None
     return pairs, speed
 

@@ -182,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
     import time
     from dataclasses import replace
 
-    from controller.quality.log import log_target
+    from controller.quality.log import is_database_url, log_target
     from core.errors import FieldbusError
     from planer import hil
     from planer.cli import output_file
@@ -270,8 +270,9 @@ def run(args: argparse.Namespace) -> int:
         if told:  # the run was over and told; Ctrl-C ended the serving of its final state
             progress("planer hil: stopped serving")
             return 0 if told[-1]["passed"] else 1
-        if log_path.exists():
-            progress(f"planer hil: stopped early; the quality log so far is {log_path}")
+        if is_database_url(log_path) or log_path.exists():
+            progress(f"planer hil: stopped early; the quality log so far is "
+                     f"{log_target(log_path)}")  # a URL with its '//'
         raise
     if not told:
         tell(summary)
@@ -349,10 +350,12 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
     listen_for(cfg, getattr(args, "http", None))  # bad address / no web packages: one line
     opened: list = []
 
-    async def with_opcua(run: Any, get_service: Callable[[], Any]) -> dict:
+    async def with_opcua(run: Callable[[], Any], get_service: Callable[[], Any]) -> dict:
+        # the run's coroutine is made only once the servers listen: a busy port leaves no
+        # coroutine never awaited
         async with serving(cfg, get_service, opcua=getattr(args, "opcua", None),
                            http=getattr(args, "http", None), say=progress) as servers:
-            summary = await run
+            summary = await run()
             if servers is None or tell is None:
                 return summary
             tell(summary)
@@ -367,13 +370,13 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
         # the simulator's config and frame spool (tens of MB) live in a temporary folder that
         # run_cross_process removes when the run ends
         summary = asyncio.run(with_opcua(
-            hil.run_cross_process(scenario, log_path=log_path, progress=progress,
-                                  on_service=opened.append),
+            lambda: hil.run_cross_process(scenario, log_path=log_path, progress=progress,
+                                          on_service=opened.append),
             lambda: opened[-1] if opened else None))
     else:
         runner = hil.InProcessHil(
             scenario, log_path=log_path, plc_transport=args.plc, progress=progress, pace=pace
         )
-        summary = asyncio.run(with_opcua(runner.run(),
+        summary = asyncio.run(with_opcua(runner.run,
                                          lambda: getattr(runner, "service", None)))
     return summary

@@ -662,14 +662,14 @@ def check_log(path: Path, n_expected: int, *, after_id: int = 0) -> dict[str, An
         ``path``, ``after_id`` (the run's records have larger ids), ``records`` (count),
         ``expected``, ``ids_consecutive``, ``ok``.
     """
-    from controller.quality.log import QualityLog
+    from controller.quality.log import QualityLog, database_url, is_database_url
 
     with QualityLog(path, create=False) as log:
         entries = log.entries(after_id=after_id)
     ids = [i for i, _ in entries]
     consecutive = ids == list(range(ids[0], ids[0] + len(ids))) if ids else True
     return {
-        "path": str(path),
+        "path": database_url(path) if is_database_url(path) else str(path),  # '//' kept
         "after_id": int(after_id),
         "records": len(entries),
         "expected": n_expected,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import sys
 import time
 import uuid
@@ -25,8 +26,12 @@ CONNECT_TIMEOUT_S = 30.0
 
 
 def columns(keys: Sequence[str]) -> list[str]:
-    """The CSV header: ``run``, ``seed``, the varied keys, then ``OUTCOME_COLUMNS``."""
-    return ["run", "seed", *keys, *OUTCOME_COLUMNS]
+    """The CSV header: ``run``, ``seed``, the varied keys, then ``OUTCOME_COLUMNS``.
+
+    An outcome column that is also a varied key (``target_pitch_mm``) is there once, among
+    the keys (the run's value: the same number).
+    """
+    return ["run", "seed", *keys, *(c for c in OUTCOME_COLUMNS if c not in keys)]
 
 
 def _line(row: Mapping[str, str], header: Sequence[str]) -> str:
@@ -114,6 +119,60 @@ class ProgressBar:
         self.stream.flush()
 
 
+CANCEL_NOISE = (
+    ("distributed.worker.state_machine", "ended with CancelledError"),
+    ("distributed.nanny", "Worker process still alive after"),
+)
+"""Dask's own warnings when a sweep is stopped (Ctrl-C): the runs cancelled on the workers, the
+workers still busy with a run ended by their nanny. Stopping is asked for: nothing to warn."""
+
+
+class _DropCancelNoise(logging.Filter):
+    """Drops the :data:`CANCEL_NOISE` records of the logger it is attached to."""
+
+    def __init__(self, logger: str) -> None:
+        super().__init__()
+        self.texts = tuple(text for name, text in CANCEL_NOISE if name == logger)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        return not any(text in msg for text in self.texts)
+
+
+def quiet_cancel_noise() -> None:
+    """Attach the :data:`CANCEL_NOISE` filters in this process (idempotent)."""
+    for name, _ in CANCEL_NOISE:
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _DropCancelNoise) for f in logger.filters):
+            logger.addFilter(_DropCancelNoise(name))
+
+
+def _quiet_workers() -> Any:
+    """A worker plugin for the local cluster's worker processes: Ctrl-C is the sweep's.
+
+    Ctrl-C in a terminal reaches every process of the group; a worker process interrupted
+    mid-run tears its event loop down with tracebacks. The plugin makes each worker process
+    ignore SIGINT (the sweep stops them: its runs cancelled, the cluster closed) and attaches
+    :func:`quiet_cancel_noise`.
+    """
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class QuietWorkers(WorkerPlugin):
+        name = "planer-sweep-quiet-cancel"
+
+        def setup(self, worker: Any) -> None:
+            import signal
+            import threading
+
+            from planer.sweep.driver import quiet_cancel_noise
+
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+            quiet_cancel_noise()
+
+    return QuietWorkers()
+
+
 @contextmanager
 def dask_client(*, workers: int, scheduler: str | None) -> Iterator[Any]:
     """A Dask client: on ``scheduler`` (``tcp://HOST:PORT``) or on a new local cluster.
@@ -146,8 +205,10 @@ def dask_client(*, workers: int, scheduler: str | None) -> Iterator[Any]:
                            host="127.0.0.1", dashboard_address="127.0.0.1:0",
                            worker_dashboard_address="127.0.0.1:0",
                            scheduler_kwargs={"dashboard": False})
+    quiet_cancel_noise()  # the nannies run in this process
     try:
         client = Client(cluster)
+        client.register_plugin(_quiet_workers())  # our own workers only, not a shared cluster's
         try:
             yield client
         finally:
@@ -243,7 +304,9 @@ def run_sweep(
             if hasattr(stream, "close"):
                 stack.callback(stream.close)  # runs before the client closes
             for index, outcome in stream:
-                writer.add({**input_cells(by_index[index].point, keys, bases), **outcome})
+                # a varied key that is an outcome too keeps the run's input (a failed run's
+                # outcome cells are empty)
+                writer.add({**outcome, **input_cells(by_index[index].point, keys, bases)})
                 bar.update(failed=bool(outcome.get("error")))
         complete = True
     finally:

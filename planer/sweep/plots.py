@@ -10,6 +10,7 @@ combinations) hollow. Failed runs are red crosses on the axis' floor; a run that
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,8 @@ OUTCOMES = (
     ("offset_ratio", "largest piezo offset / stroke", 1.0, (1.0,)),
 )
 """(column, axis label, scale, reference lines) of each figure."""
+TITLE_CHARS_PER_IN = 14
+"""Characters of a 9 pt title per inch of figure width it may fill (its lines are wrapped)."""
 
 
 def _float(text: str) -> float | None:
@@ -146,8 +149,11 @@ def outcome_figure(
         ax.tick_params(labelsize=7)
         ax.grid(True, alpha=0.3)
     never = "; triangles: never settled" if outcome.endswith("_after_mm") else ""
-    fig.suptitle(f"{ylabel} over the sweep ({len(ok)} runs, {len(rows) - len(ok)} failed; "
-                 f"filled: other keys at base{never})", fontsize=9)
+    title = (f"{ylabel} over the sweep ({len(ok)} runs, {len(rows) - len(ok)} failed; "
+             f"filled: other keys at base{never})")
+    # wrapped to the figure's width (9 pt: about 14 characters per inch), never cut off
+    fig.suptitle(textwrap.fill(title, width=int(TITLE_CHARS_PER_IN * fig.get_figwidth())),
+                 fontsize=9)
     return fig
 
 

@@ -68,3 +68,26 @@ def test_saturated_images_are_warned_about(tmp_path, capsys):
     assert rc == 0
     assert "is saturated (image A:" in err and "lower [frames] exposure_us or gain_db" in err
     assert out.strip().endswith("; warning: 3 of 3 pairs saturated (see the warnings above)")
+
+
+def test_a_plc_that_does_not_answer_is_one_line_of_ours_not_pymodbus_lines(tmp_path):
+    import subprocess
+    import sys
+
+    from planer.hil.cross_process import free_port
+
+    port = free_port()  # nothing listens there
+    out = subprocess.run(
+        [sys.executable, "-m", "planer.cli", "acquire", "--camera", "Fake_1", "--pairs", "2",
+         "--spool", str(tmp_path / "spool"), "--plc", f"127.0.0.1:{port}", "--timeout", "1"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert out.returncode == 2, out.stderr
+    lines = [ln.strip() for ln in out.stderr.replace("\r", "\n").splitlines() if ln.strip()]
+    ours = [ln for ln in lines if not ln.startswith("[")]  # without the progress bar
+    assert ours[0].startswith("camera: Aravis Fake Fake_1")
+    assert ours[1:] == [
+        f"planer acquire: warning: the PLC at 127.0.0.1:{port} does not answer: no trigger "
+        "latches, the pairs fail until it answers",
+        ours[2]]
+    assert ours[2].startswith("planer acquire: error: no good pair from camera 'Fake_1' for 1 s")
+    assert "no trigger latch from the PLC" in ours[2]

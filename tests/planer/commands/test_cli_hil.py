@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from planer.hil.cross_process import free_port
+from tests.support import pg_support
 
 SCENARIO = """
 [{name}]
@@ -104,3 +105,37 @@ def test_a_pace_that_is_not_a_positive_number_is_refused(tmp_path, pace):
     out = subprocess.run(_hil("--pace", pace, "--distance-m", "0.1"),
                          capture_output=True, text=True, cwd=tmp_path, timeout=120)
     assert out.returncode == 2 and f"--pace must be a number > 0, got {float(pace)}" in out.stderr
+
+
+pg_server = pg_support.pg_server  # the fixtures (skip without PostgreSQL's binaries)
+fresh_db = pg_support.fresh_db
+
+
+def test_a_postgresql_log_is_printed_as_its_url(tmp_path, fresh_db):
+    """The URL keeps its ``//`` in the text summary (``pathlib.Path`` folds it to one)."""
+    assert fresh_db.startswith("postgresql://")
+    out = subprocess.run(_hil("--distance-m", "0.3", "--log", fresh_db),
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert out.returncode in (0, 1), out.stderr
+    shown = [ln for ln in out.stdout.splitlines() if ln.startswith("  quality log")]
+    assert len(shown) == 1 and shown[0].split()[2] == fresh_db, out.stdout
+    assert "postgresql:/" + fresh_db[len("postgresql://"):] not in out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("server", ["--opcua", "--http"])
+def test_a_busy_port_is_one_error_line_and_nothing_else(tmp_path, server):
+    """No ``coroutine ... was never awaited`` warning after the error."""
+    import socket
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen(1)
+        port = held.getsockname()[1]
+        where = f"opc.tcp://127.0.0.1:{port}" if server == "--opcua" else f"127.0.0.1:{port}"
+        out = subprocess.run(_hil("--distance-m", "0.1", "--log", str(tmp_path / "b.sqlite"),
+                                  server, where),
+                             capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert out.returncode == 2, out.stderr
+    lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("planer hil: error:"), out.stderr
+    assert str(port) in lines[0]
