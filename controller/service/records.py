@@ -225,6 +225,10 @@ class QualityRecords:
         m = r.measurement
         truth = frame.truth or {}
         meta, odd = frame_metadata(frame)
+        # like with like: a pair that reports the kinematic numbers (a knife left no mark) is
+        # recorded beside the truth's kinematic numbers, not the marks the truth has
+        true_keys = (("pass_pitch_mm", "kinematic_cv") if r.vanished_knives
+                     and "kinematic_cv" in truth else ("pitch_mm", "uniformity_cv"))
         feed = finite_or_none(r.feed_setpoint_mm_s)
         if feed is None:  # the service wrote none yet: the setpoint the PLC reported in force
             feed = finite_or_none(r.extra.get("plc_feed_setpoint_mm_s"))
@@ -237,8 +241,8 @@ class QualityRecords:
             "feed_setpoint_mm_s": feed,
             "piezo_offsets_um": tuple(r.offsets_um),
             "target_pitch_mm": self.cfg.quality.target_pitch_mm,
-            "true_pitch_mm": finite_or_none(truth.get("pitch_mm")),
-            "true_uniformity_cv": finite_or_none(truth.get("uniformity_cv")),
+            "true_pitch_mm": finite_or_none(truth.get(true_keys[0])),
+            "true_uniformity_cv": finite_or_none(truth.get(true_keys[1])),
             "extra": {
                 "state": r.state,
                 "safe_reason": r.extra.get("safe_reason"),

@@ -170,6 +170,12 @@ def test_record_carries_the_vanished_knife_and_the_kinematic_numbers():
     assert rec.mark_widths_mm[3] == 0.0
     assert rec.extra["passes"]["vanished_knives"] == [3]
     assert rec.passed is False  # a field with a knife missing fails the class
+    # beside the truth's kinematic numbers (like with like), not the marks the truth has
+    truth = {"pitch_mm": 2.0, "uniformity_cv": 0.24, "pass_pitch_mm": 1.5, "kinematic_cv": 0.61}
+    rec = records.record_of(result, Frame(seq=7, t_s=1.0, image_a=img, image_b=img,
+                                          counts_a=frame.counts_a, counts_b=frame.counts_a + 24,
+                                          speed_mm_s=frame.speed_mm_s, board_id=1, truth=truth))
+    assert (rec.true_pitch_mm, rec.true_uniformity_cv) == (1.5, 0.61)
     failed = FrameResult(seq=8, ok=False, error="measurement failed: x", measurement=None,
                          knife_widths_mm=(), applied=False, feed_setpoint_mm_s=None,
                          offsets_um=(), state="run", t_s=1.1, latency_s=0.0)
