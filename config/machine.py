@@ -130,6 +130,8 @@ class QualityConfig:
     tolerance: float = 0.02
     uniformity_max_cv: float = 0.05
     depth_max_um: float = 20.0
+    board_length_mm: float = 4000.0
+    """A typical board, mm: the knife condition's forecast in boards."""
 
 
 @dataclass(frozen=True)
@@ -399,6 +401,8 @@ def _quality_table(root: Section, d: MachineConfig) -> QualityConfig:
             "uniformity_max_cv", dq.uniformity_max_cv, lo=0.0, lo_open=True
         ),
         depth_max_um=q.number("depth_max_um", dq.depth_max_um, lo=0.0, lo_open=True),
+        board_length_mm=q.number("board_length_mm", dq.board_length_mm, lo=0.0, lo_open=True,
+                                 hi=100_000.0),
     )
     q.reject_unknown()
 

@@ -103,6 +103,11 @@ class EventKind(enum.Enum):
     KNIFE_CHIPPED = "knife_chipped"
     """One knife's mark width changed suddenly and stays changed (a chipped or moved knife).
     ``data``: ``knife``, ``width_change_mm``, ``runout_step_um`` (its estimate), ``seq``."""
+    JOINTING_DUE = "jointing_due"
+    """The knives' wear takes the finish out of its class soon: the forecast of
+    :class:`controller.laws.knife_condition.KnifeConditionTracker` came within
+    ``JOINTING_WARN_BOARDS`` boards (said once per knife set). ``data``: ``knife``,
+    ``due_in_m``, ``due_in_boards``, ``due_in_h``."""
     MEASUREMENTS_FAILING = "measurements_failing"
     """Pairs keep failing to measure (``data``: ``failed``, ``of``, ``last_error``): a board is
     present but the camera, lights or vision do not deliver."""

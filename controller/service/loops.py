@@ -23,6 +23,7 @@ from config.machine import MachineConfig
 from controller.fieldbus.plc_protocol import PlcSnapshot
 from controller.laws.board_speed import BoardSpeedHistory
 from controller.laws.feed_loop import FeedLoop, FeedLoopConfig
+from controller.laws.knife_condition import KnifeConditionTracker
 from controller.laws.limits import project_zero_mean_box
 from controller.laws.uniformity_loop import UniformityLoop, UniformityLoopConfig
 from controller.service.actuators import Actuators
@@ -42,6 +43,13 @@ PASS_TOL = 0.2
 pass counts (so the widths per knife) are not trusted and the uniformity loop skips the pair
 (:meth:`ControlLoops.attribution_trusted`). A wrong count is off by at least 4/3 (three passes
 for four) and mostly by 2 (two for one)."""
+
+
+CONDITION_EVERY_S = 2.0
+"""The knife condition's forecast is renewed at most this often (about 2 ms of CPU each)."""
+JOINTING_WARN_BOARDS = 20.0
+"""The operator is told (``JOINTING_DUE``) when the finish leaves its class within this many
+boards at the knives' present wear."""
 
 
 def plc_accel_mm_s2(snap: PlcSnapshot) -> float | None:
@@ -114,6 +122,14 @@ class ControlLoops:
         self._t_loops = -math.inf
         self.board_speed = BoardSpeedHistory()
         """The PLC's actual feed and knife passing rate (the feed per pass at a cut)."""
+        self.knife_condition: KnifeConditionTracker | None = None
+        """Each knife's wear from the tables in force against the board travelled."""
+        self.board_travel_m = 0.0
+        """Board travelled under the cutter since the service started (the PLC's actual feed), m."""
+        self._travel_t: float | None = None
+        self._jointing_said = False
+        self._condition: dict[str, Any] | None = None
+        self._condition_t = -math.inf
         self._lock: asyncio.Lock | None = None
         self._lock_loop: Any = None
 
@@ -394,6 +410,10 @@ class ControlLoops:
         return write
 
     def _record_speed(self, t: float, snap: PlcSnapshot) -> None:
+        if self._travel_t is not None and t > self._travel_t:
+            self.board_travel_m += max(float(snap.feed_actual_mm_s), 0.0) * (
+                t - self._travel_t) * 1e-3
+        self._travel_t = t
         self.board_speed.record(t, snap.feed_actual_mm_s, snap.spindle_rpm / 60.0 * snap.knives)
         if self.feed_loop is not None:  # the feed loop learns against what the drive did
             self.feed_loop.observe_drive(now_s=t, feed_actual_mm_s=snap.feed_actual_mm_s,
@@ -451,11 +471,64 @@ class ControlLoops:
             self._report.emit(t, EventKind.OFFSETS_NOT_SENT, f"piezo offsets not sent: {exc}")
             return False
         self._learned_offsets = np.asarray(sent, dtype=float)
+        self._note_condition(t, sent)
         if chips is not None:
             chips.timeline.note(t, sent)
         for note in uni.take_notices():  # the actuator cannot help: said once
             self._report.emit(t, EventKind.UNIFORMITY_NO_AUTHORITY, note.text, data=note.data)
         return True
+
+    def _note_condition(self, t: float, table: Any) -> None:
+        """The table in force against the board travelled (the knife condition's history)."""
+        uni = self.uniformity_loop
+        kc = self.knife_condition
+        table = [float(v) for v in table]
+        if kc is None or kc.knives != len(table) or kc.stroke_um != uni.limit_um:
+            kc = self.knife_condition = KnifeConditionTracker(knives=len(table),
+                                                              stroke_um=uni.limit_um)
+            self._jointing_said = False
+        kc.update(board_m=self.board_travel_m, offsets_um=table)
+        if t - self._condition_t >= CONDITION_EVERY_S:
+            self._condition_t = t
+            self._condition = self._forecast_condition(t)
+
+    def describe_knife_condition(self) -> dict[str, Any] | None:
+        """Each knife's offset, wear and reserve, and the jointing forecast (for displays).
+
+        The forecast of the last :data:`CONDITION_EVERY_S` seconds (``None`` before the first
+        table was applied).
+        """
+        return None if self._condition is None else dict(self._condition)
+
+    def _forecast_condition(self, t: float) -> dict[str, Any] | None:
+        """The knives' condition now.
+
+        Says ``JOINTING_DUE`` once when it comes within :data:`JOINTING_WARN_BOARDS` boards.
+        """
+        kc, snap = self.knife_condition, self._snap
+        if kc is None or snap is None:
+            return None
+        q = self.cfg.quality
+        feed = max(float(snap.feed_actual_mm_s), 1.0)
+        fc = kc.forecast(pitch_mm=q.target_pitch_mm,
+                         radius_mm=float(snap["cutterhead_radius_mm"]),
+                         cv_max=q.uniformity_max_cv, feed_mm_s=feed,
+                         board_length_mm=q.board_length_mm)
+        if (fc.due_in_boards is not None and fc.due_in_boards <= JOINTING_WARN_BOARDS
+                and not self._jointing_said):
+            self._jointing_said = True
+            self._report.emit(t, EventKind.JOINTING_DUE, fc.text, data={
+                "knife": fc.knife, "due_in_m": fc.due_in_m, "due_in_boards": fc.due_in_boards,
+                "due_in_h": fc.due_in_h})
+        return {
+            "board_travel_m": self.board_travel_m,
+            "knives": [{"knife": c.knife, "offset_um": c.offset_um,
+                        "drift_um_per_m": None if math.isnan(c.drift_um_per_m)
+                        else c.drift_um_per_m, "reserve_um": c.reserve_um}
+                       for c in kc.conditions()],
+            "due_in_m": fc.due_in_m, "due_in_boards": fc.due_in_boards,
+            "due_in_h": fc.due_in_h, "knife": fc.knife, "text": fc.text,
+        }
 
     def amp_tracked(self, cut_at_s: float | None, t: float) -> bool:
         """Whether the board a measurement shows was cut while the amplifier played the offsets.

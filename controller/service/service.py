@@ -235,6 +235,7 @@ class Service:
             piezo_limits=self.out.limits() if self.piezo is not None else None,
             uniformity=(None if self.loops.uniformity_loop is None
                         else self.loops.uniformity_loop.describe()),
+            knife_condition=self.loops.describe_knife_condition(),
         )
 
     # ------------------------------------------------------------------ the control cycles

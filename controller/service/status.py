@@ -157,6 +157,7 @@ class ServiceStatus:
     alerts: Mapping[str, Any] | None = None
     piezo_limits: Mapping[str, Any] | None = None
     uniformity: Mapping[str, Any] | None = None
+    knife_condition: Mapping[str, Any] | None = None
 
     @staticmethod
     def freeze(counters: Mapping[str, int]) -> Mapping[str, int]:
@@ -193,4 +194,6 @@ class ServiceStatus:
                 k: None if v is None else dict(v) for k, v in self.alerts.items()},
             "piezo_limits": None if self.piezo_limits is None else dict(self.piezo_limits),
             "uniformity": None if self.uniformity is None else dict(self.uniformity),
+            "knife_condition": None if self.knife_condition is None
+            else dict(self.knife_condition),
         }
