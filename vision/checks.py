@@ -6,7 +6,9 @@ the shift must lie within the slip bound of the encoder's.  When the texture reg
 pair and the marks disagree, the column profiles register it a second time
 (:meth:`vision.registration.Registrar.without_texture`).  When that does not satisfy the checks
 either -- a defect's shading outvoted the albedo in the texture *and* the profiles, or the
-registration is half a mark off -- :func:`rescued` searches the shifts a defect can fool the
+registration is half a mark off -- or the registered shift lies beyond the slip bound of the
+encoder's (a pit's texture pulled it a whole mark off: its marks agree, its profile does not),
+:func:`rescued` searches the shifts a defect can fool the
 registration into: the shifts found, each half a mark to either side (the fine fit's alias),
 and a grid over the slip bound around the encoder's, each refined by the fine fit, and keeps
 the one whose marks explain the images best (of those within a few hundredths of the best,
@@ -24,7 +26,7 @@ import numpy as np
 
 from core.errors import MeasurementError, RegistrationError
 from vision.registration import Registration
-from vision.shift_estimators import mark_period_px
+from vision.shift_estimators import log_difference, mark_period_px
 
 if TYPE_CHECKING:
     from vision.pipeline import Measurer, _Profile
@@ -80,7 +82,7 @@ def rescued(measurer: Measurer, raw: tuple[np.ndarray, np.ndarray], prepared: Ca
         if abs(c - encoder_px) > slip + reg.fine_px:
             continue
         try:
-            shift, score = reg.fine(pa, pb, guess_px=c)
+            shift, score = _refined(reg, pa, pb, prepared(c), c)
         except RegistrationError:
             continue
         if score < reg.min_fine_score:
@@ -106,6 +108,27 @@ def rescued(measurer: Measurer, raw: tuple[np.ndarray, np.ndarray], prepared: Ca
                         encoder_shift_px=encoder_px, source="marks"), profile
 
 
+def _refined(reg: Any, pa: np.ndarray, pb: np.ndarray, prep: tuple, guess: float
+             ) -> tuple[float, float]:
+    """The fine fit near ``guess``, a defect's rows and columns left out.
+
+    With a defect found, the fit runs on the profiles without its rows (and, when it covers
+    most rows of its columns, without those columns), B there already registered onto A at
+    ``guess``: it finds the residual.  Without one, on the plain profiles.
+    """
+    qa, qb, registered, columns = prep
+    if not registered:
+        return reg.fine(pa, pb, guess_px=guess)
+    la, lb = log_difference(qa), log_difference(qb)
+    if columns is not None:  # a defect over most rows of its columns: only the clean stretch
+        keep = np.zeros(la.size, dtype=bool)
+        keep[columns[0]: max(columns[0], columns[1] - 1)] = True
+        la[~keep] = 0.0
+        lb[~keep] = 0.0
+    residual, score = reg.fine_fit(la, lb, 0.0)
+    return guess + residual, score
+
+
 def checked(measurer: Measurer, raw: tuple[np.ndarray, np.ndarray], prepared: Callable[..., Any],
             reg: Registration, profile: _Profile, margin: int, cos_roll: float,
             ) -> tuple[Registration, _Profile, str | None]:
@@ -115,9 +138,9 @@ def checked(measurer: Measurer, raw: tuple[np.ndarray, np.ndarray], prepared: Ca
     (``None``: they pass).  When the marks found do not explain the images' own shading and
     the registration came from the texture, the pair is registered again from the column
     profiles alone (the texture is what light-dependent defects fool); the one whose marks
-    explain the images better is kept.  When the marks still do not explain the images,
-    :func:`rescued` (a registration whose marks agree but which lies beyond the slip bound
-    stays flagged: a whole mark's alias agrees as well, and the encoder may be the one off).
+    explain the images better is kept.  When the marks still do not explain the images, or
+    the shift lies beyond the slip bound, :func:`rescued` searches within the slip bound; what
+    it does not find stays flagged.
     """
     m = measurer
     if not m.register:
@@ -148,10 +171,14 @@ def checked(measurer: Measurer, raw: tuple[np.ndarray, np.ndarray], prepared: Ca
                         f"texture ({reg.shift_px:.1f} px) and column profiles "
                         f"({second.shift_px:.1f} px) disagree")
     slipped = abs(reg.shift_px - reg.encoder_shift_px) > m.max_slip_px
-    if not score >= m.min_agreement:  # (a shift beyond the slip bound alone stays flagged)
+    if not score >= m.min_agreement or slipped:
         seeds = [reg.shift_px] + ([second.shift_px] if second is not None else [])
         found = rescued(m, raw, prepared, seeds, reg.encoder_shift_px, margin, cos_roll)
-        if found is not None:
+        # a shift beyond the slip bound whose marks agree is replaced only by one that
+        # explains the images clearly better (a whole mark's alias explains them as well: the
+        # belt may have slipped that far, and the pair stays flagged)
+        if found is not None and (not score >= m.min_agreement
+                                  or found[1].agreement.score > score + _TIE):
             return found[0], found[1], None
     failed: list[str] = []
     if not score >= m.min_agreement:

@@ -32,7 +32,13 @@ from core.errors import MeasurementError
 from vision.checks import checked
 from vision.consistency import Agreement, honest_confidence, marks_shading_agreement
 from vision.deblur import Deblurrer, blur_length_px
-from vision.defect_rows import defect_rows, masked_pair
+from vision.defect_rows import (
+    clean_columns,
+    defect_rows,
+    masked_pair,
+    ridged_rows,
+    weighted_profile,
+)
 from vision.defects import Defect, DefectFinder
 from vision.front_end import Binned, FrontEnd, mean_profile
 from vision.grading import grade_pair
@@ -603,12 +609,16 @@ class Measurer:
         return cal, slope, height, marks, raw_depth
 
     def _registered_profile(self, prof_a: np.ndarray, prof_b: np.ndarray, registered: bool,
-                            d: float, margin: int, cos_roll: float) -> _Profile:
+                            columns: tuple[int, int] | None, d: float, margin: int,
+                            cos_roll: float) -> _Profile:
         """Slope, height and marks of the pair registered at ``d`` px, and their agreement.
 
-        ``registered``: ``prof_b`` is already B at ``u + d`` in A's columns.
+        ``registered``: ``prof_b`` is already B at ``u + d`` in A's columns; ``columns``: only
+        A's columns ``c0 .. c1 - 1`` of the overlap are used (``None``: all of it).
         """
         u0, u1 = overlap(self.width, d, columns=(margin, self.width - margin))
+        if columns is not None:
+            u0, u1 = max(u0, columns[0]), min(u1, columns[1])
         count = u1 - u0
         if count < self.min_overlap_px:
             raise MeasurementError(
@@ -737,18 +747,29 @@ class Measurer:
         if not blur > self.deblur_min_px:
             blur = 0.0
 
-        def prepared(d: float) -> tuple[np.ndarray, np.ndarray, bool]:
-            """The profiles at shift ``d`` (a defect's rows left out: B registered onto A)."""
-            pa, pb, registered = prof_a, prof_b, False
-            mask = defect_rows(self.width, rows_a, rows_b, d, margin) if self.register else None
+        def prepared(d: float) -> tuple[np.ndarray, np.ndarray, bool, tuple[int, int] | None]:
+            """The profiles at shift ``d`` and the columns to use.
+
+            A defect's rows left out (B then registered onto A), its columns too when it covers
+            most of their rows; the bins' ends tapered when they disagree (raised grain).
+            """
+            pa, pb, registered, columns = prof_a, prof_b, False, None
+            mask = weights = None
+            if self.register:
+                mask = defect_rows(self.width, rows_a, rows_b, d, margin)
+                weights = ridged_rows(self.width, rows_a, rows_b, d, margin)
+            if weights is not None and mask is None:  # the bins' ends tapered (raised grain)
+                pa, pb = (weighted_profile(rows_a, factor, weights),
+                          weighted_profile(rows_b, factor, weights))
             if mask is not None:
+                columns = clean_columns(mask, min_width=self.min_overlap_px)
                 ra, rb = rows_a, rows_b
                 if self._flat is not None:  # the references in the camera's columns
                     ones = np.ones(self.width)
                     fa, fb = flat_field_correct(ones, ones, reference_a=self._flat[0],
                                                 reference_b=self._flat[1])
                     ra, rb = ra * fa[None, :], rb * fb[None, :]
-                pa, pb = masked_pair(ra, rb, factor, mask)
+                pa, pb = masked_pair(ra, rb, factor, mask, weights=weights)
                 registered = True
             elif self._flat is not None:
                 pa, pb = flat_field_correct(pa, pb, reference_a=self._flat[0],
@@ -756,7 +777,7 @@ class Measurer:
             if blur > 0:
                 both = self.deblurrer(np.stack([pa, pb]), blur_px=blur)
                 pa, pb = both[0], both[1]
-            return pa, pb, registered
+            return pa, pb, registered, columns
 
         profile = self._registered_profile(*prepared(reg.shift_px), reg.shift_px, margin,
                                            cos_roll)

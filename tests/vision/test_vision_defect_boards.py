@@ -25,7 +25,16 @@ from vision.consistency import (
     shift_within_slip,
     shifts_agree,
 )
-from vision.defect_rows import defect_mask, defect_rows, masked_pair
+from vision.defect_rows import (
+    RowMask,
+    clean_columns,
+    defect_mask,
+    defect_rows,
+    masked_pair,
+    ridged_rows,
+    row_window,
+    weighted_profile,
+)
 from vision.marks import corr2
 from vision.pipeline import Measurer
 
@@ -143,11 +152,11 @@ def test_never_a_confident_wrong_pitch(outcomes):
 
 
 def test_the_marks_are_right_on_every_board_not_flagged(outcomes):
-    # as measured on the 40 boards (2-core VM): 35 unflagged, all with pitch, CV, depth and
-    # shift within the criteria; 34 of them also with the profile within 0.95 (a defect's
-    # rows left out of the column profiles); 5 flagged or refused
-    assert sum(o.marks_ok and not o.flagged for o in outcomes) >= 35
-    assert sum(o.ok for o in outcomes) >= 34
+    # as measured on the 40 boards (2-core VM): 38 unflagged, all within every criterion
+    # (a defect's rows left out of the column profiles, the row bins Hann-weighted, a pit
+    # over most rows of its columns left out with its columns); 2 flagged or refused
+    assert sum(o.marks_ok and not o.flagged for o in outcomes) >= 38
+    assert sum(o.ok for o in outcomes) >= 38
 
 
 def test_torn_grain_and_chips_leave_the_profile_of_the_cuttermarks(outcomes):
@@ -159,12 +168,10 @@ def test_torn_grain_and_chips_leave_the_profile_of_the_cuttermarks(outcomes):
             assert o.ok, o
 
 
-@pytest.mark.xfail(strict=True, reason="34 of 40 (85 %): a pit across the feed spanning most "
-                   "of the rows leaves no clean rows in its columns (2 boards, flagged), raised "
-                   "grain over the whole field has no clean rows either (1 flagged, 1 with the "
-                   "profile correlation 0.91), a pit that moved the texture a whole mark off "
-                   "(flagged by the slip bound), a fuzzy patch (refused)")
 def test_at_least_95_percent_of_the_boards_are_measured_within_the_criteria(outcomes):
+    # as measured (2-core VM): 38 of 40; the two left are flagged or refused (raised beech
+    # grain at 80 deg, nearly along the marks, over the whole field; a fuzzy patch where
+    # neither the texture nor the profiles give a confident peak)
     good = sum(o.ok for o in outcomes)
     assert good >= math.ceil(0.95 * len(outcomes)), [o for o in outcomes if not o.ok]
 
@@ -281,3 +288,40 @@ def test_masked_profiles_cancel_the_albedo_of_the_rows_kept():
     assert np.allclose(ratio, shading[12:278], rtol=1e-6)
     with pytest.raises(ValueError, match="rows_a"):
         defect_mask(a, b[:, :10], d, u0=10, u1=280)
+
+
+def test_a_pit_over_most_rows_leaves_its_columns_out():
+    mask = np.zeros((10, 200), dtype=bool)
+    mask[1:9, 120:140] = True  # 8 of 10 bins: the pit's columns
+    mask[2:4, 30:50] = True  # 2 of 10: a chip, its columns kept
+    rm = RowMask(mask, u0=5, u1=205, shift_px=12.0)
+    assert clean_columns(rm) == (5, 125)  # the longer clean stretch, in A's columns
+    assert clean_columns(rm, min_width=130) is None  # too narrow to measure on
+    mask[:, 120:140] = False
+    assert clean_columns(RowMask(mask, 5, 205, 12.0)) is None  # every column keeps its rows
+
+
+def test_ridges_at_an_angle_taper_the_bins_and_agreeing_bins_do_not():
+    w = row_window(8)
+    assert w.sum() == pytest.approx(8) and np.allclose(w, w[::-1])
+    assert w[0] < 0.6 < w[3] and np.all(row_window(2) == 1.0)
+    rng = np.random.default_rng(3)
+    u = np.arange(400.0)
+    marks = np.exp(0.1 * ((u % 25) / 25 - 0.5))  # the same sawtooth in every bin
+    noise = 1.0 + 0.01 * rng.standard_normal((8, 400))
+    a = 100 * marks[None, :] * noise
+    b = 100 / marks[None, :] * noise
+    assert ridged_rows(400, a, b, 0.0, 4) is None
+    ridge = np.exp(0.4 * np.sin(2 * np.pi * (u[None, :] + 15 * np.arange(8)[:, None]) / 60))
+    assert ridged_rows(400, a * ridge, b / ridge, 0.0, 4) is not None
+    p = weighted_profile(a, 1, row_window(8))
+    assert p.shape == (400,) and np.allclose(p, (row_window(8) @ a) / 8)
+
+
+def test_a_pit_across_the_feed_does_not_pull_the_roll():
+    spec = board_spec(31)  # a pit 11 mm long at 86 deg: 4 deg from the marks
+    spec.pop("kind")
+    board = render_defect_board(spec.pop("seed"), **spec)
+    m = Measurer(board.rig, board.image_a.shape)
+    est = m.orientation(m._binned(board.image_a, "a"), m._binned(board.image_b, "b"))
+    assert abs(est.roll_deg - board.roll_deg) < 0.5  # 3.3 deg off before the clip
