@@ -4,7 +4,7 @@ The test process plays the plant: the simulated machine stepped in real time, it
 the real Modbus TCP server (127.0.0.1), which notes the time of every new service heartbeat it
 receives. The pairs the machine's camera takes (counts and truth, no images) go to the service
 process over its stdin. The service process (``python -m
-tests.controller.service.records_fault_harness PORT LOG``) is the real-time service
+tests.controller.service.records.records_fault_harness PORT LOG``) is the real-time service
 (``Service.run``, ``threaded``) with a measurer that reads each pair's truth and the amplifier
 node on an in-process virtual CAN bus; it says on stdout, one JSON object a line, every event
 (``{"event": kind, "text": ...}``), every pair handled (``{"result": seq}``) and every record
@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[3]
+REPO = Path(__file__).resolve().parents[4]
 STEP_S = 0.005
 """Real-time step of the plant, s."""
 STATUS_EVERY_S = 0.2
@@ -219,8 +219,8 @@ class Plant:
         _, port = await self.server.start()
         env = {**os.environ, "PYTHONPATH": str(REPO)}
         proc = subprocess.Popen(
-            [sys.executable, "-m", "tests.controller.service.records_fault_harness", str(port),
-             self.log], cwd=REPO, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            [sys.executable, "-m", "tests.controller.service.records.records_fault_harness",
+             str(port), self.log], cwd=REPO, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
             text=False)
         self.service = ServiceProcess(proc)
         threading.Thread(target=self.service.read, daemon=True).start()

@@ -27,7 +27,7 @@ import pytest
 
 from controller.quality.journal import RecordSink, default_journal_path, read_journal
 from controller.quality.log import QualityLog
-from tests.controller.service.records_fault_harness import Plant
+from tests.controller.service.records.records_fault_harness import Plant
 from tests.support import pg_support
 
 pg_server = pg_support.pg_server  # the fixture
