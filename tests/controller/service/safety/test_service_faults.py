@@ -521,7 +521,8 @@ def test_pairs_that_never_arrived_are_reported(tmp_path):
         while not res:
             res = await plant.step()
         assert svc.counters["missed"] == 2
-        assert any("2 pair(s) never reached" in e for _, e in _events(svc, t0, None))
+        assert any("2 sequence number(s) without a pair" in e and "jumped" in e
+                   for _, e in _events(svc, t0, None))
         await _close_and_check_log(plant, tmp_path)
 
     asyncio.run(main())
