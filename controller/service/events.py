@@ -89,7 +89,7 @@ class EventKind(enum.Enum):
     CLOSE_PROBLEM = "close_problem"
     LEARNED_STATE_RESUMED = "learned_state_resumed"
     """The loops start from the state a previous service learnt on the same knives
-    (``controller.service.memory``). ``data``: ``path``, ``age_s``, ``offsets_um``,
+    (``controller.quality.learned_state``). ``data``: ``path``, ``age_s``, ``offsets_um``,
     ``feed_correction``, ``warm`` (the machine was running: the feed is held at start)."""
     LEARNED_STATE_DISCARDED = "learned_state_discarded"
     """A learnt state was found and not used (``reason``: another machine, too old, the knife set

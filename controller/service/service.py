@@ -36,6 +36,7 @@ from typing import Any
 from config.machine import MachineConfig
 from controller.fieldbus.piezo_client import PiezoClient
 from controller.fieldbus.plc_client import PlcClient
+from controller.quality.learned_state import learned_memory_of
 from controller.service.actuators import Actuators
 from controller.service.bus_cycles import BusCycles
 from controller.service.clock import ServiceClock
@@ -44,7 +45,6 @@ from controller.service.frame_result import FrameResult
 from controller.service.intake import FrameIntake
 from controller.service.loops import ControlLoops
 from controller.service.measurement import MeasurementStage, VisionMeasurers
-from controller.service.memory import learned_memory_of
 from controller.service.pipeline import PairPipeline
 from controller.service.records import QualityRecords
 from controller.service.safe_state import SafeStateKeeper

@@ -8,7 +8,7 @@ import math
 import pytest
 
 from config.machine import SafetyConfig
-from controller.service.memory import (
+from controller.quality.learned_state import (
     MAX_AGE_S,
     KnifeSet,
     LearnedMemory,

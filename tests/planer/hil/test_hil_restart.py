@@ -13,8 +13,8 @@ import json
 
 import pytest
 
+from controller.quality.learned_state import learned_state_path
 from controller.service.events import EventKind
-from controller.service.memory import learned_state_path
 from planer.hil.in_process import InProcessPlant
 from planer.hil.scenario import Scenario, machine_config_for, sim_config_for
 
