@@ -5,12 +5,15 @@ Each kind has its own detector, all working from one :class:`Residual` of the ma
 
 - the cuttermarks run straight across the feed, so their slope -- and anything else that is a
   function of the position along the feed alone (illumination, the pair's imbalance) -- is the
-  map's robust mean over its rows; the *residual* slope ``r = p - mean`` holds what is
+  map's robust mean over its rows (the median of groups of rows, then the mean of the samples
+  near it); the *residual* slope ``r = p - mean`` holds what is
   two-dimensional: the defects, the noise and the albedo the registration leaves;
-- ``r`` is summed into cells (``cell_px`` along the feed, one map row across: 0.4 x 0.4 mm at
-  the default rig); a cell is *marked* when its mean square, smoothed over 3 x 3 cells, exceeds
-  ``excess`` times the field's median (noise-adaptive);
-- marked cells form blobs (8-connected).  Per blob: its extent, the depth of the slope
+- ``r`` is summed into cells (``cell_px`` map columns along the feed, one map row across:
+  ~0.3 x 0.4 mm on the :class:`DefectFinder`'s map); a cell is *marked* when its mean square,
+  smoothed over 3 x 3 cells, exceeds ``excess`` times the field's median (noise-adaptive) or,
+  on an almost noise-free pair, ``excess`` times the floor ``floor_slope**2``;
+- marked cells form blobs (8-connected).  Area and strength of every blob at once; only the
+  blobs large and strong enough to be reported are analysed further: the depth of the slope
   integrated along each row across it (rim to rim), and its roughness (the share of ``r``'s
   power above ~1 cycle/mm).
 
@@ -31,6 +34,7 @@ is measured, else ``None``.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass
@@ -38,6 +42,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import scipy.fft as sfft
 
 from config.rig import Camera, Lights
 from core.checks import check_positive
@@ -108,8 +113,15 @@ class DefectSettings:
     ----------
     cell_mm : float
         Cell length along the feed, mm.
+    col_mm, row_mm : float
+        The map's column spacing along the feed and row spacing across it the
+        :class:`DefectFinder` aims at, mm (whole image columns and row bins averaged).
     excess : float
         A cell is marked when its smoothed mean square exceeds this many times the median.
+    floor_slope : float
+        The median's floor: the rms residual slope of a cell on a surface without noise (a
+        cell is marked only above ``excess * floor_slope**2``; what the map's registration
+        and undistortion leave on an ideal pair stays below it).
     min_blob_mm2 : float
         Smallest compact defect, mm^2.
     min_fuzzy_mm2 : float
@@ -139,7 +151,10 @@ class DefectSettings:
     """
 
     cell_mm: float = 0.4
+    col_mm: float = 0.16
+    row_mm: float = 0.4
     excess: float = 4.0
+    floor_slope: float = 0.001
     min_blob_mm2: float = 1.0
     min_fuzzy_mm2: float = 10.0
     min_confidence: float = 0.3
@@ -155,7 +170,8 @@ class DefectSettings:
     snipe_um: float = 3.0
 
     def __post_init__(self) -> None:
-        for name in ("cell_mm", "excess", "min_blob_mm2", "min_fuzzy_mm2", "min_confidence",
+        for name in ("cell_mm", "col_mm", "row_mm", "excess", "floor_slope", "min_blob_mm2",
+                     "min_fuzzy_mm2", "min_confidence",
                      "nick_ratio", "nick_max_mm", "raised_coherence", "raised_strong",
                      "dent_um", "rough", "fuzzy_rough", "torn_shadow", "chatter_um",
                      "snipe_um"):
@@ -192,6 +208,11 @@ class Residual:
     marked : ndarray of bool, shape (rows, cells)
     cell_px : int
         Map columns per cell.
+    base : float
+        The mean square ``excess`` is relative to: the cells' median, or the floor
+        ``floor_slope**2`` where that is larger.
+    median : float
+        The cells' median mean square.
     """
 
     smap: SurfaceMap
@@ -201,45 +222,61 @@ class Residual:
     marked: np.ndarray
     valid_cells: np.ndarray
     cell_px: int
-    hp: np.ndarray
+    base: float = 1.0
+    median: float = 1.0
+
+
+def _column_profile(p: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The robust mean of each column: the median of groups of rows, then the samples near it.
+
+    A defect covering less than half the groups of a column does not move it.
+    """
+    rows, cols = p.shape
+    g = max(1, rows // 16)
+    n_g = rows // g
+    w = valid.astype(np.float32)
+    ps = p[:n_g * g].reshape(n_g, g, cols).sum(axis=1)
+    ws = w[:n_g * g].reshape(n_g, g, cols).sum(axis=1)
+    # groups mostly outside split evenly above and below the median
+    big = np.where(np.arange(n_g) % 2 == 0, np.float32(1e3), np.float32(-1e3))[:, None]
+    gm = np.where(ws >= 0.5 * g, ps / np.maximum(ws, 1.0), big)
+    med = np.partition(gm, n_g // 2, axis=0)[n_g // 2]
+    count = w.sum(axis=0)
+    mean = p.sum(axis=0) / np.maximum(count, 1.0)
+    med = np.where(np.abs(med) < 10.0, med, mean)  # a column mostly outside: its plain mean
+    dev = np.abs(p - med[None, :])
+    sample = dev[::3, ::3][valid[::3, ::3]]
+    scale = float(np.median(sample)) if sample.size else 0.0
+    keep = valid & (dev <= np.float32(5.0 * 1.4826 * scale + 1e-4))
+    kc = keep.sum(axis=0)
+    profile = np.where(kc > 0, np.where(keep, p, 0.0).sum(axis=0) / np.maximum(kc, 1), med)
+    return np.where(count > 0, profile, 0.0)
 
 
 def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
     """Residual slope, cell excess and marked cells of a map (see the module's docstring)."""
-    p, w = smap.slope_along_feed, smap.valid.astype(np.float32)
-    # the column median (invalid samples split evenly above and below), then the mean of the
-    # samples near it: a defect covering less than half a column does not move the profile
-    big = np.where(np.arange(p.shape[0]) % 2 == 0, np.float32(1e3), np.float32(-1e3))
-    filled = np.where(smap.valid, p, big[:, None])
-    med = np.partition(filled, p.shape[0] // 2, axis=0)[p.shape[0] // 2]
-    count = w.sum(axis=0)
-    mean = (p * w).sum(axis=0) / np.maximum(count, 1.0)
-    med = np.where(np.abs(med) < 10.0, med, mean)  # a column mostly outside: its plain mean
-    dev = np.abs(p - med[None, :])
-    sample = dev[smap.valid][::7]
-    scale = float(np.partition(sample, sample.size // 2)[sample.size // 2]) if sample.size else 0.0
-    keep = w * (dev <= 5.0 * 1.4826 * scale + 1e-4)
-    kc = keep.sum(axis=0)
-    profile = np.where(kc > 0, (p * keep).sum(axis=0) / np.maximum(kc, 1.0), med)
-    profile = np.where(count > 0, profile, 0.0)
-    r = ((p - profile[None, :]) * w).astype(np.float32)
-    cell = max(1, int(round(settings.cell_mm * smap.px_per_mm)))
+    p, valid = smap.slope_along_feed, smap.valid
+    profile = _column_profile(p, valid)
+    r = (p - profile[None, :].astype(np.float32))
+    r[~valid] = 0.0
+    cell = max(1, int(round(settings.cell_mm * smap.cols_per_mm)))
     rows, cols = r.shape
     n_cells = cols // cell
     used = n_cells * cell
-    w_cells = w[:, :used].reshape(rows, n_cells, cell).sum(axis=2)
+    w_cells = valid[:, :used].reshape(rows, n_cells, cell).sum(axis=2, dtype=np.float32)
     valid_cells = w_cells >= 0.5 * cell
-    e = (r[:, :used] ** 2).reshape(rows, n_cells, cell).sum(axis=2) / np.maximum(w_cells, 1.0)
-    # short periods: the residual minus its running mean over ~1 mm along the feed
-    k = max(3, int(round(1.0 * smap.px_per_mm)) | 1)
-    hp = r - cv2.blur(r, (k, 1), borderType=cv2.BORDER_REFLECT)
-    base = float(np.median(e[valid_cells])) if np.any(valid_cells) else 1.0
-    base = max(base, 1e-12)
-    smooth = cv2.blur((e * valid_cells).astype(np.float32), (3, 3),
+    r2 = r[:, :used] * r[:, :used]
+    e = r2.reshape(rows, n_cells, cell).sum(axis=2) / np.maximum(w_cells, 1.0)
+    ev = e[valid_cells]
+    base = float(np.partition(ev, ev.size // 2)[ev.size // 2]) if ev.size else 1.0
+    median = max(base, 1e-12)
+    base = max(base, settings.floor_slope ** 2)
+    smooth = cv2.blur(np.where(valid_cells, e, np.float32(0.0)), (3, 3),
                       borderType=cv2.BORDER_REFLECT)
-    excess = (smooth / np.float32(base)).astype(np.float32)
+    excess = smooth * np.float32(1.0 / base)
     marked = (excess > settings.excess) & valid_cells
-    return Residual(smap, r, profile.astype(np.float64), excess, marked, valid_cells, cell, hp)
+    return Residual(smap, r, profile.astype(np.float64), excess, marked, valid_cells, cell,
+                    base, median)
 
 
 def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.ndarray
@@ -249,7 +286,7 @@ def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.nd
     ``mask`` (shape ``(r1 - r0, c1 - c0)``) selects the blob's samples.
     """
     smap = res.smap
-    dx_um = 1000.0 / smap.px_per_mm
+    dx_um = 1000.0 / smap.cols_per_mm
     seg = res.r[r0:r1, c0:c1].astype(np.float64)
     h = np.cumsum(seg, axis=1) * dx_um
     h = np.concatenate([np.zeros((h.shape[0], 1)), h], axis=1)[:, :-1]
@@ -266,21 +303,33 @@ def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.nd
 
 
 def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
-    """The marked cells' connected groups, with their extent, depth and roughness."""
+    """The marked cells' connected groups, with their extent, depth and roughness.
+
+    Area and strength of every group at once (``np.bincount`` over the labels); depth,
+    roughness and shadows only for the groups large and strong enough to be reported.
+    """
     smap = res.smap
-    cell_mm = res.cell_px / smap.px_per_mm
+    cell_mm = res.cell_px / smap.cols_per_mm
     row_mm = smap.row_step_px / smap.px_per_mm
     n, labels, stats, _ = cv2.connectedComponentsWithStats(res.marked.astype(np.uint8), 8)
-    out = []
-    for lab in range(1, n):
-        x, y, w, h, area = (int(v) for v in stats[lab])
-        area_mm2 = area * cell_mm * row_mm
-        if area_mm2 < settings.min_blob_mm2:
-            continue
+    if n <= 1:
+        return []
+    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
+    strength = np.bincount(labels.ravel(), weights=res.excess.ravel(), minlength=n) / area
+    # confidence >= min_confidence  <=>  strength >= excess (1 - ln(1 - c) / 1.5)
+    need = settings.excess * (1.0 - math.log(1.0 - min(settings.min_confidence, 0.999)) / 1.5)
+    keep = np.flatnonzero((area * cell_mm * row_mm >= settings.min_blob_mm2)
+                          & (strength >= need))
+    out: list[Blob] = []
+    keep = keep[keep > 0]
+    if keep.size == 0:
+        return out
+    # short periods: the residual minus its running mean over ~1 mm along the feed
+    k = max(3, int(round(1.0 * smap.cols_per_mm)) | 1)
+    hp = res.r - cv2.blur(res.r, (k, 1), borderType=cv2.BORDER_REFLECT)
+    for lab in keep:
+        x, y, w, h, a = (int(v) for v in stats[lab])
         cells = labels[y:y + h, x:x + w] == lab
-        strength = float(res.excess[y:y + h, x:x + w][cells].mean())
-        if _confidence(strength, settings) < settings.min_confidence:
-            continue  # would not be reported: its depth and roughness are not needed
         pad = max(2, w // 2) * res.cell_px
         c0 = max(0, x * res.cell_px - pad)
         c1 = min(res.r.shape[1], (x + w) * res.cell_px + pad)
@@ -290,11 +339,12 @@ def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
         depth = _row_depth_um(res, c0, c1, y, y + h, mask)
         r_in = res.r[y:y + h, c0:c1][mask]
         tot = float((r_in ** 2).sum())
-        rough = float((res.hp[y:y + h, c0:c1][mask] ** 2).sum()) / max(tot, 1e-12)
+        rough = float((hp[y:y + h, c0:c1][mask] ** 2).sum()) / max(tot, 1e-12)
         shadow = float(np.mean(np.abs(smap.slope_along_feed[y:y + h, c0:c1][mask])
                                >= 0.7 * smap.shadow_slope))
-        out.append(Blob((x * res.cell_px, (x + w) * res.cell_px), (y, y + h), area_mm2,
-                        area / float(w * h), depth, rough, shadow, strength))
+        out.append(Blob((x * res.cell_px, (x + w) * res.cell_px), (y, y + h),
+                        a * cell_mm * row_mm, a / float(w * h), depth, rough, shadow,
+                        float(strength[lab])))
     return out
 
 
@@ -303,7 +353,7 @@ def _defect(res: Residual, kind: DefectKind, cols: tuple[float, float],
     smap = res.smap
     cc, rc = 0.5 * (cols[0] + cols[1] - 1), 0.5 * (rows[0] + rows[1] - 1)
     x, y = smap.image_xy_mm(cc, rc)
-    length = (cols[1] - cols[0]) / smap.px_per_mm
+    length = (cols[1] - cols[0]) / smap.cols_per_mm
     width = (rows[1] - rows[0]) * smap.row_step_px / smap.px_per_mm
     return Defect(kind, float(x), float(y), float(length), float(width), depth_um,
                   float(min(1.0, max(0.0, confidence))))
@@ -322,7 +372,8 @@ def knife_nicks(res: Residual, settings: DefectSettings) -> tuple[list[Defect], 
     third of the row does not raise it) against the rows' median of the same.
     """
     vc = res.valid_cells
-    ex = np.where(vc, res.excess, np.float32(0.0))
+    # relative to the cells' median (the floor does not apply: the rows are compared)
+    ex = np.where(vc, res.excess, np.float32(0.0)) * np.float32(res.base / res.median)
     thirds = np.array_split(np.arange(ex.shape[1]), 3)
     # evenly along the feed: the weakest third of the row decides (invalid cells count as 0)
     level = np.min([np.partition(ex[:, t], int(0.7 * (t.size - 1)), axis=1)[
@@ -355,7 +406,7 @@ def knife_nicks(res: Residual, settings: DefectSettings) -> tuple[list[Defect], 
         c0, c1 = int(cols[0]) * res.cell_px, (int(cols[-1]) + 1) * res.cell_px
         # height of the ridge: the band's residual integrated along the feed, peak to peak
         seg = res.r[r0:r1, c0:c1].mean(axis=0).astype(np.float64)
-        h = np.cumsum(seg) * 1000.0 / res.smap.px_per_mm
+        h = np.cumsum(seg) * 1000.0 / res.smap.cols_per_mm
         h = h - np.polyval(np.polyfit(np.arange(h.size), h, 1), np.arange(h.size))
         depth = -float(np.percentile(h, 98) - np.percentile(h, 2))
         found.append(_defect(res, DefectKind.KNIFE_NICK, (c0, c1), (r0, r1), depth,
@@ -379,7 +430,7 @@ def raised_grain(res: Residual, settings: DefectSettings) -> list[Defect]:
     rows = np.flatnonzero(smap.valid.any(axis=1))
     cols = np.flatnonzero(smap.valid.any(axis=0))
     # ridge height: the rms of the residual integrated along the rows, x sqrt(2)
-    h = np.cumsum(res.r.astype(np.float64), axis=1) * 1000.0 / smap.px_per_mm
+    h = np.cumsum(res.r.astype(np.float64), axis=1) * 1000.0 / smap.cols_per_mm
     h -= h.mean(axis=1, keepdims=True)
     depth = -math.sqrt(2.0) * float(np.sqrt(np.mean(h[smap.valid] ** 2)))
     return [_defect(res, DefectKind.RAISED_GRAIN, (int(cols[0]), int(cols[-1]) + 1),
@@ -423,7 +474,7 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
         return []
     smap = res.smap
     prof = res.profile
-    h = np.cumsum(prof) * 1000.0 / smap.px_per_mm
+    h = np.cumsum(prof) * 1000.0 / smap.cols_per_mm
     xs = smap.feed_mm(np.arange(prof.size)) + smap.cx / smap.px_per_mm  # Measurement.x_mm
     t = np.linspace(-1, 1, h.size)
     h = h - np.polyval(np.polyfit(t, h, 4), t)  # slow bends (snipe, drift) are not chatter
@@ -431,22 +482,28 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
     m = b.size
     j = np.arange(m)
     knife = j % knives
-    e = b - np.array([b[knife == k].mean() for k in range(knives)])[knife]
-    best = (0.0, 0.0, 0.0, math.inf)
-    for period in np.linspace(2.2, 16.0, 139):
-        f = 1.0 / period
-        near = min(abs(f - n / knives) for n in range(knives + 1))
-        if near < 0.6 / m:
-            continue
-        basis = np.stack([np.sin(2 * np.pi * f * j), np.cos(2 * np.pi * f * j)], axis=1)
-        basis -= np.stack([basis[knife == k].mean(axis=0) for k in range(knives)])[knife]
-        coef, *_ = np.linalg.lstsq(basis, e, rcond=None)
-        fit = basis @ coef
-        explained = float(fit @ fit) / max(float(e @ e), 1e-18)
-        amp = float(np.hypot(*coef))
-        if explained > best[0]:
-            rest = e - fit
-            best = (explained, amp, period, float(rest.std()) * math.sqrt(2.0 / m))
+    onehot = (knife[None, :] == np.arange(knives)[:, None]).astype(np.float64)
+    per_knife = onehot / onehot.sum(axis=1, keepdims=True)  # (knives, m): each knife's mean
+    e = b - (per_knife @ b)[knife]
+    f = 1.0 / np.linspace(2.2, 16.0, 139)
+    near = np.min(np.abs(f[:, None] - np.arange(knives + 1)[None, :] / knives), axis=1)
+    f = f[near >= 0.6 / m]
+    if f.size == 0:
+        return []
+    ph = 2 * np.pi * f[:, None] * j[None, :]
+    sn, cs = np.sin(ph), np.cos(ph)
+    sn -= (sn @ per_knife.T)[:, knife]  # each knife's mean removed, as from e
+    cs -= (cs @ per_knife.T)[:, knife]
+    gss, gsc, gcc = (sn * sn).sum(1), (sn * cs).sum(1), (cs * cs).sum(1)
+    bs, bc = sn @ e, cs @ e
+    det = np.maximum(gss * gcc - gsc * gsc, 1e-18)
+    a_s, a_c = (gcc * bs - gsc * bc) / det, (gss * bc - gsc * bs) / det
+    fitted = a_s * bs + a_c * bc  # |fit|^2 of the least-squares fit
+    ee = max(float(e @ e), 1e-18)
+    k = int(np.argmax(fitted))
+    rest = max(ee - float(fitted[k]), 0.0)
+    best = (float(fitted[k]) / ee, float(np.hypot(a_s[k], a_c[k])), float(1.0 / f[k]),
+            math.sqrt(rest / m) * math.sqrt(2.0 / m))
     explained, amp, _period, amp_noise = best
     if amp < settings.chatter_um or explained < 0.5 or amp < 4.0 * amp_noise:
         return []
@@ -473,13 +530,13 @@ def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> li
     c0, c1 = int(cols[0]), int(cols[-1]) + 1
     y = prof[c0:c1]
     if pitch_mm is not None and math.isfinite(pitch_mm) and pitch_mm > 0:
-        k = max(1, int(round(pitch_mm * smap.px_per_mm)))
+        k = max(1, int(round(pitch_mm * smap.cols_per_mm)))
         if k < y.size // 3:
             y = np.convolve(y, np.ones(k) / k, mode="valid")
-    x_mm = (np.arange(y.size) - 0.5 * (y.size - 1)) / smap.px_per_mm
+    x_mm = (np.arange(y.size) - 0.5 * (y.size - 1)) / smap.cols_per_mm
     coef = np.polyfit(x_mm, y, 2)
     c2, c1_, _ = coef
-    half = 0.5 * (c1 - c0) / smap.px_per_mm
+    half = 0.5 * (c1 - c0) / smap.cols_per_mm
     xs = np.linspace(-half, half, 201)
     hz = 1000.0 * (c1_ * xs ** 2 / 2 + c2 * xs ** 3 / 3)  # um
     chord = hz[0] + (hz[-1] - hz[0]) * (xs + half) / (2 * half)
@@ -523,8 +580,7 @@ def detect_defects(smap: SurfaceMap, *, bottoms_mm: np.ndarray | None = None,
     res = residual(smap, s)
     nicks, taken = knife_nicks(res, s)
     if taken:
-        res = Residual(res.smap, res.r, res.profile, res.excess,
-                       _unmark(res.marked, taken), res.valid_cells, res.cell_px, res.hp)
+        res = dataclasses.replace(res, marked=_unmark(res.marked, taken))
     raised = raised_grain(res, s)
     out = raised if raised else nicks + pits(res, blobs(res, s), s)
     if not any(d.kind in (DefectKind.RAISED_GRAIN, DefectKind.FUZZY_GRAIN) for d in out):
@@ -565,11 +621,16 @@ class DefectFinder:
                  bin_rows: int = 1, first_row_px: float | None = None,
                  columns: tuple[int, int] | None = None, source_rows: int | None = None,
                  knives: int | None = None, settings: DefectSettings | None = None) -> None:
+        self.settings = DefectSettings() if settings is None else settings
+        ppm = camera.px_per_mm
+        merge = max(1, int(round(self.settings.row_mm * ppm / bin_rows)))
+        n_src = source_rows if source_rows is not None else shape[0] // bin_rows
+        merge = min(merge, max(1, n_src // 8))
         self.mapper = SurfaceMapper(camera, lights, shape, bin_rows=bin_rows,
                                     first_row_px=first_row_px, columns=columns,
-                                    source_rows=source_rows)
+                                    source_rows=source_rows, merge_rows=merge,
+                                    bin_cols=max(1, int(round(self.settings.col_mm * ppm))))
         self.knives = knives
-        self.settings = DefectSettings() if settings is None else settings
 
     def __call__(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
                  roll_deg: float, bottoms_mm: np.ndarray | None = None,
@@ -583,7 +644,7 @@ class DefectFinder:
                               pitch_mm=pitch_mm, settings=self.settings)
 
 
-def oriented_coherence(res: Residual, max_lag_px: int = 24) -> tuple[float, float, int]:
+def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, float, int]:
     """How well each map row predicts the next one shifted along the feed.
 
     Ridges on the growth rings cross the rows at the rings' angle: row ``i + 1`` repeats row
@@ -593,19 +654,21 @@ def oriented_coherence(res: Residual, max_lag_px: int = 24) -> tuple[float, floa
     Returns
     -------
     tuple
-        ``(peak correlation, correlation at lag 0, lag of the peak in px)``.
+        ``(peak correlation, correlation at lag 0, lag of the peak in map columns)``.
     """
-    r = res.r.astype(np.float64)
+    max_lag_px = max(2, int(round(max_lag_mm * res.smap.cols_per_mm)))
+    r = res.r
     sample = np.abs(r[res.smap.valid][::7])
     scale = 1.4826 * float(np.median(sample)) if sample.size else 0.0
     if scale <= 0:
         return 0.0, 0.0, 0
     r = np.clip(r, -4 * scale, 4 * scale)
     n = r.shape[1]
-    size = 1 << int(math.ceil(math.log2(n + max_lag_px)))
-    f = np.fft.rfft(r, size, axis=1)
-    x = np.fft.irfft((np.conj(f[:-1]) * f[1:]).sum(axis=0), size)
-    norm = float((r[:-1] ** 2).sum() * (r[1:] ** 2).sum()) ** 0.5
+    size = sfft.next_fast_len(n + max_lag_px, real=True)
+    f = sfft.rfft(r, size, axis=1, workers=1)
+    x = sfft.irfft((np.conj(f[:-1]) * f[1:]).sum(axis=0), size)
+    r2 = (r * r).sum(axis=1, dtype=np.float64)
+    norm = float(r2[:-1].sum() * r2[1:].sum()) ** 0.5
     if norm <= 0:
         return 0.0, 0.0, 0
     lags = np.r_[np.arange(0, max_lag_px + 1), np.arange(-max_lag_px, 0)]

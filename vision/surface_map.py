@@ -10,15 +10,19 @@ shading ``cos(sigma)``, relative to its mean over the field (1 = typical wood).
 
 :class:`SurfaceMapper` does the set-up once per camera, lights and image shape: one remap table
 per roll (cached) from row-binned *distorted* images to a grid turned to the feed -- columns
-along the feed at the camera's resolution (1 px), rows across it every ``bin_rows`` image rows
--- undistorted at once.  On that grid the board's motion between the shots is a shift along
-the columns alone, so B is registered with the measurement's shift (``Measurement.shift_px``,
-px along the feed) by a linear interpolation along the rows.  With ``bin_rows = 1`` the map has
-the camera's full resolution; the :class:`vision.pipeline.Measurer` builds it from the row bins
-it has already summed (``k0`` rows, 0.4 mm at the default rig), so the map costs one small
+along the feed every ``bin_cols`` px, rows across it every ``bin_rows * merge_rows`` image rows
+-- undistorted at once.  The source rows are first averaged over ``merge_rows`` rows and
+``bin_cols`` columns (``cv2.resize``, area), so the remap and every step after it run on the
+coarse grid.  On that grid the board's motion between the shots is a shift along the columns
+alone, so B is registered with the measurement's shift (``Measurement.shift_px``, px along the
+feed) by a linear interpolation along the rows (``cv2.warpAffine``).  With ``bin_rows = 1`` and
+``bin_cols = 1`` the map has the camera's full resolution; the
+:class:`vision.pipeline.Measurer`'s :class:`vision.defects.DefectFinder` builds it from the row
+bins the Measurer has already summed, on ~0.16 x 0.4 mm samples, so the map costs one small
 remap per image and no further pass over the images.
 
-Map coordinates: column ``j`` lies ``j + col0_px - cx`` px from the optical axis along the feed,
+Map coordinates: column ``j`` lies ``col0_px + j * col_step_px - cx`` px from the optical axis
+along the feed,
 row ``i`` ``row0_px + i * row_step_px - cy`` px across it; :meth:`SurfaceMap.image_xy_mm` turns
 them into A's undistorted image frame (mm from its top-left corner, x = columns).
 """
@@ -65,6 +69,8 @@ class SurfaceMap:
     shadow_slope : float
         The slope Eq. 4 gives where one light is fully shadowed (its bound, ``1 / tan(slant)``
         for equal slants): slopes near it are cast shadows or steeper walls.
+    col_step_px : float
+        Spacing of the map's columns, pixels along the feed.
     """
 
     slope_along_feed: np.ndarray
@@ -78,15 +84,22 @@ class SurfaceMap:
     cy: float
     px_per_mm: float
     shadow_slope: float = math.inf
+    col_step_px: float = 1.0
 
     @property
     def shape(self) -> tuple[int, int]:
         """``(rows, cols)`` of the map."""
         return self.slope_along_feed.shape  # type: ignore[return-value]
 
+    @property
+    def cols_per_mm(self) -> float:
+        """Map columns per mm along the feed."""
+        return self.px_per_mm / self.col_step_px
+
     def feed_mm(self, cols: np.ndarray | float) -> np.ndarray:
         """Position along the feed of map columns, mm from the optical axis."""
-        return (np.asarray(cols, dtype=np.float64) + self.col0_px - self.cx) / self.px_per_mm
+        c = np.asarray(cols, dtype=np.float64)
+        return (self.col0_px + c * self.col_step_px - self.cx) / self.px_per_mm
 
     def across_mm(self, rows: np.ndarray | float) -> np.ndarray:
         """Position across the feed of map rows, mm from the optical axis."""
@@ -120,11 +133,11 @@ class SurfaceMap:
         Returns
         -------
         ndarray of float64, shape (rows, cols)
-            ``1000 * cumulative integral of p dx`` per row (trapezoid, ``dx = 1 / px_per_mm``);
+            ``1000 * cumulative integral of p dx`` per row (trapezoid, ``dx`` one column);
             only the along-feed integral is observed, so rows are not tied to each other.
         """
         p = np.where(self.valid, self.slope_along_feed, 0.0).astype(np.float64)
-        dx_um = 1000.0 / self.px_per_mm
+        dx_um = 1000.0 / self.cols_per_mm
         h = np.zeros_like(p)
         h[:, 1:] = np.cumsum(0.5 * (p[:, 1:] + p[:, :-1]), axis=1) * dx_um
         n = np.maximum(self.valid.sum(axis=1, keepdims=True), 1)
@@ -150,6 +163,10 @@ class SurfaceMapper:
         Undistorted columns the map covers (default the whole width).
     source_rows : int, optional
         Source rows per image (default: as many whole bins as fit below ``first_row_px``).
+    merge_rows : int, optional
+        Source rows averaged into one map row.
+    bin_cols : int, optional
+        Image columns averaged into one map column.
     cache : int, optional
         Tables kept (one per roll on a 0.05 deg grid).
     """
@@ -157,12 +174,14 @@ class SurfaceMapper:
     def __init__(self, camera: Camera, lights: Lights, shape: tuple[int, int], *,
                  bin_rows: int = 1, first_row_px: float | None = None,
                  columns: tuple[int, int] | None = None, source_rows: int | None = None,
-                 cache: int = 8) -> None:
+                 merge_rows: int = 1, bin_cols: int = 1, cache: int = 8) -> None:
         if len(shape) != 2:
             raise ValueError(f"shape must be (height, width), got {shape!r}")
         self.height = check_int("shape[0] (height)", shape[0], lo=2)
         self.width = check_int("shape[1] (width)", shape[1], lo=8)
         self.bin_rows = check_int("bin_rows", bin_rows, lo=1)
+        self.merge_rows = check_int("merge_rows", merge_rows, lo=1)
+        self.bin_cols = check_int("bin_cols", bin_cols, lo=1, hi=self.width // 8)
         self.first_row_px = ((self.bin_rows - 1) / 2.0 if first_row_px is None
                              else check_finite("first_row_px", first_row_px))
         c0, c1 = (0, self.width) if columns is None else (int(columns[0]), int(columns[1]))
@@ -172,6 +191,12 @@ class SurfaceMapper:
         self.n_src = ((self.height - int(round(self.first_row_px - (self.bin_rows - 1) / 2))
                        ) // self.bin_rows if source_rows is None
                       else check_int("source_rows", source_rows, lo=2))
+        # the coarse source: merge_rows x bin_cols blocks of the source rows
+        self._n_red = self.n_src // self.merge_rows
+        self._w_red = self.width // self.bin_cols
+        if self._n_red < 2:
+            raise ValueError(f"merge_rows must leave >= 2 rows of {self.n_src}, "
+                             f"got {merge_rows}")
         self.camera = camera
         self._k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy],
                             [0.0, 0.0, 1.0]])
@@ -183,15 +208,22 @@ class SurfaceMapper:
         self._kb = math.cos(math.radians(lights.azimuth_b_deg)) * tb
         if self._ka == self._kb:
             raise ValueError("the lights must stand on opposite sides along the feed")
-        # albedo: the mean of both images over their common flat-surface shading
-        ca, cb = math.cos(math.radians(slant_a)), math.cos(math.radians(slant_b))
-        self._flat = 0.5 * (ca + cb)
         self._cache_size = check_int("cache", cache, lo=1)
         self._tables: OrderedDict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = (
             OrderedDict())
 
+    @property
+    def col0_px(self) -> float:
+        """Undistorted column of map column 0."""
+        return self.columns[0] + (self.bin_cols - 1) / 2.0
+
+    @property
+    def row0_px(self) -> float:
+        """Undistorted row of map row 0."""
+        return self.first_row_px + (self.merge_rows - 1) / 2.0 * self.bin_rows
+
     def _table(self, roll_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Remap table (x, y in source bins) and validity of the grid turned by ``roll_deg``."""
+        """Remap table (x, y in coarse source cells) and validity of the grid turned by roll."""
         key = round(roll_deg / _ROLL_KEY_DEG) * _ROLL_KEY_DEG
         hit = self._tables.get(key)
         if hit is not None:
@@ -199,14 +231,16 @@ class SurfaceMapper:
             return hit
         cam = self.camera
         c0, c1 = self.columns
-        width, n_out = c1 - c0, self.n_src
-        step, v0 = float(self.bin_rows), self.first_row_px
+        sc = float(self.bin_cols)
+        width, n_out = (c1 - c0) // self.bin_cols, self._n_red
+        step, v0 = float(self.bin_rows * self.merge_rows), self.row0_px
         c, s = math.cos(math.radians(key)), math.sin(math.radians(key))
         cx, cy, fx, fy = cam.cx, cam.cy, cam.fx, cam.fy
         # undistorted pixel of output (p, i): u = cx + xi c - eta s, v = cy + xi s + eta c,
-        # xi = c0 + p - cx, eta = v0 + i step - cy
-        a = np.array([[c, -step * s, cx + (c0 - cx) * c - (v0 - cy) * s],
-                      [s, step * c, cy + (c0 - cx) * s + (v0 - cy) * c]])
+        # xi = col0 + p sc - cx, eta = v0 + i step - cy
+        x0 = self.col0_px
+        a = np.array([[sc * c, -step * s, cx + (x0 - cx) * c - (v0 - cy) * s],
+                      [sc * s, step * c, cy + (x0 - cx) * s + (v0 - cy) * c]])
         if self._identity:
             p, i = np.meshgrid(np.arange(width, dtype=np.float64),
                                np.arange(n_out, dtype=np.float64))
@@ -218,14 +252,28 @@ class SurfaceMapper:
                           [0.0, 0.0, 1.0]])
             mx, my = cv2.initUndistortRectifyMap(self._k, self._dist, None, np.linalg.inv(m),
                                                  (width, n_out), cv2.CV_32FC1)
-        src_y = (np.asarray(my, dtype=np.float64) - self.first_row_px) / step
-        valid = ((mx >= 0) & (mx <= self.width - 1) & (src_y >= 0) & (src_y <= self.n_src - 1))
-        hit = (np.ascontiguousarray(mx, dtype=np.float32),
+        # distorted pixel -> coarse source cell (centres of merge_rows x bin_cols blocks)
+        src_x = (np.asarray(mx, dtype=np.float64) - (sc - 1) / 2) / sc
+        src_y = ((np.asarray(my, dtype=np.float64) - self.first_row_px) / self.bin_rows
+                 - (self.merge_rows - 1) / 2) / self.merge_rows
+        valid = ((src_x >= 0) & (src_x <= self._w_red - 1) & (src_y >= 0)
+                 & (src_y <= self._n_red - 1))
+        hit = (np.ascontiguousarray(src_x, dtype=np.float32),
                np.ascontiguousarray(src_y, dtype=np.float32), valid)
         self._tables[key] = hit
         if len(self._tables) > self._cache_size:
             self._tables.popitem(last=False)
         return hit
+
+    def _coarse(self, rows: np.ndarray) -> np.ndarray:
+        """The source rows averaged over ``merge_rows x bin_cols`` blocks, float32."""
+        r = np.asarray(rows)
+        if r.dtype not in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
+            r = r.astype(np.float32)
+        if self.merge_rows > 1 or self.bin_cols > 1:
+            r = cv2.resize(r[:self._n_red * self.merge_rows, :self._w_red * self.bin_cols],
+                           (self._w_red, self._n_red), interpolation=cv2.INTER_AREA)
+        return r.astype(np.float32, copy=False)
 
     def __call__(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
                  roll_deg: float = 0.0) -> SurfaceMap:
@@ -235,7 +283,7 @@ class SurfaceMapper:
         ----------
         rows_a, rows_b : ndarray, shape (n_src, width)
             Sums (or means) of ``bin_rows`` adjacent rows of the distorted images A and B
-            (with ``bin_rows = 1`` the images themselves); any real dtype OpenCV remaps.
+            (with ``bin_rows = 1`` the images themselves); any real dtype.
         shift_px : float
             Board motion from A to B along the feed, pixels (``Measurement.shift_px``).
         roll_deg : float, optional
@@ -245,49 +293,50 @@ class SurfaceMapper:
         -------
         SurfaceMap
         """
-        d = check_finite("shift_px", shift_px)
+        d = check_finite("shift_px", shift_px) / self.bin_cols  # map columns
         roll = check_finite("roll_deg", roll_deg)
         for name, r in (("rows_a", rows_a), ("rows_b", rows_b)):
             if np.shape(r) != (self.n_src, self.width):
                 raise ValueError(f"{name} must have shape {(self.n_src, self.width)}, "
                                  f"got {np.shape(r)}")
         mx, my, valid = self._table(roll)
-        a = cv2.remap(np.asarray(rows_a), mx, my, cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_REPLICATE).astype(np.float32, copy=False)
-        b = cv2.remap(np.asarray(rows_b), mx, my, cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_REPLICATE).astype(np.float32, copy=False)
-        width = a.shape[1]
-        k = int(math.floor(d))
-        t = np.float32(d - k)
+        a = cv2.remap(self._coarse(rows_a), mx, my, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE)
+        b = cv2.remap(self._coarse(rows_b), mx, my, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE)
+        rows, width = a.shape
         # B registered onto A: b_reg[:, j] = b[:, j + d] (linear), where j + d is inside
-        b_reg = np.zeros_like(b)
+        b_reg = cv2.warpAffine(b, np.array([[1.0, 0.0, d], [0.0, 1.0, 0.0]]), (width, rows),
+                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        k = int(math.floor(d))
         lo, hi = max(0, -k), min(width, width - k - 1)
-        ok = np.zeros(width, dtype=bool)
+        both = np.zeros_like(valid)
         if hi > lo:
-            b_reg[:, lo:hi] = (1 - t) * b[:, lo + k:hi + k] + t * b[:, lo + k + 1:hi + k + 1]
-            ok[lo:hi] = True
-        vb = np.zeros_like(valid)
-        if hi > lo:
-            vb[:, lo:hi] = valid[:, lo + k:hi + k] & valid[:, lo + k + 1:hi + k + 1]
-        both = valid & vb & ok[None, :] & (a > 0) & (b_reg > 0)
+            both[:, lo:hi] = (valid[:, lo:hi] & valid[:, lo + k:hi + k]
+                              & valid[:, lo + k + 1:hi + k + 1])
+        both &= (a > 0) & (b_reg > 0)
+        n = max(int(np.count_nonzero(both)), 1)
         a = np.where(both, a, np.float32(1.0))
         b_reg = np.where(both, b_reg, np.float32(1.0))
-        n = max(int(np.count_nonzero(both)), 1)
-        sa, sb = float(a[both].sum()), float(b_reg[both].sum())
+        sa, sb = float(cv2.sumElems(a)[0]) - (a.size - n), float(cv2.sumElems(b_reg)[0]) - (
+            a.size - n)
         if not (sa > 0 and sb > 0):
             sa = sb = 1.0
         r = b_reg * np.float32(sa / sb)  # the pair's constant imbalance removed
         slope = (r - a) / (r * np.float32(self._ka) - a * np.float32(self._kb))
-        slope = np.where(both, slope, np.float32(0.0)).astype(np.float32)
-        albedo = np.where(both, (a + r) * np.float32(n / (2.0 * sa)), np.float32(0.0))
+        slope[~both] = 0.0
+        albedo = (a + r) * np.float32(n / (2.0 * sa))
+        albedo[~both] = 0.0
         return SurfaceMap(
-            slope_along_feed=slope, albedo=albedo.astype(np.float32), valid=both,
-            col0_px=float(self.columns[0]), row0_px=self.first_row_px,
-            row_step_px=float(self.bin_rows), roll_deg=float(round(roll / _ROLL_KEY_DEG)
-                                                              * _ROLL_KEY_DEG),
+            slope_along_feed=slope, albedo=albedo, valid=both,
+            col0_px=self.col0_px, row0_px=self.row0_px,
+            row_step_px=float(self.bin_rows * self.merge_rows),
+            roll_deg=float(round(roll / _ROLL_KEY_DEG) * _ROLL_KEY_DEG),
             cx=float(self.camera.cx), cy=float(self.camera.cy),
             px_per_mm=float(self.camera.px_per_mm),
-            shadow_slope=min(abs(1.0 / self._ka), abs(1.0 / self._kb)))
+            shadow_slope=min(abs(1.0 / self._ka), abs(1.0 / self._kb)),
+            col_step_px=float(self.bin_cols))
 
 
 def surface_map(image_a: np.ndarray, image_b: np.ndarray, *, camera: Camera, lights: Lights,

@@ -112,3 +112,23 @@ def test_bad_inputs_are_refused():
         mapper(img, img, shift_px=float("nan"))
     with pytest.raises(ValueError, match="opposite"):
         SurfaceMapper(_camera(), Lights(slant_deg=SLANT, azimuth_b_deg=0.0), (120, 400))
+
+
+def test_a_coarse_map_is_the_fine_map_averaged_in_blocks():
+    """Columns and rows averaged before the remap: the same slope on ~0.16 x 0.4 mm samples."""
+    a, b, p, _ = _pair(17)
+    mapper = SurfaceMapper(_camera(), Lights(slant_deg=SLANT), a.shape, bin_rows=1,
+                           merge_rows=5, bin_cols=2)
+    m = mapper(a, b, shift_px=17.0)
+    assert m.shape == (120 // 5, 400 // 2)
+    assert m.col_step_px == 2.0 and m.row_step_px == 5.0 and m.cols_per_mm == PPM / 2
+    # the true slope averaged over the same blocks (centres at 2 j + 0.5, 5 i + 2)
+    true = p.reshape(24, 5, 200, 2).mean(axis=(1, 3))
+    ok = m.valid
+    assert ok[:, : (400 - 18) // 2].all()
+    assert np.corrcoef(m.slope_along_feed[ok], true[ok])[0, 1] > 0.98
+    assert m.feed_mm(0) == pytest.approx((0.5 - 199.5) / PPM)
+    x, y = m.image_xy_mm(10, 3)
+    assert (x, y) == (pytest.approx(20.5 / PPM), pytest.approx(17.0 / PPM))
+    with pytest.raises(ValueError, match="merge_rows"):
+        SurfaceMapper(_camera(), Lights(slant_deg=SLANT), a.shape, merge_rows=100)
