@@ -137,7 +137,7 @@ _SPECS: dict[str, _Spec] = {
          FaultParam("width_mm", "mm", "across the board", lo=0.0, lo_open=True, default=30.0),
          FaultParam("y_mm", "mm", "across, from the centre line", default=0.0),
          FaultParam("darkness", "", "0 none .. 1 black", lo=0.0, hi=1.0, default=0.6),
-         FaultParam("roughness_um", "um", "surface roughness", lo=0.0, default=4.0)),
+         FaultParam("roughness_um", "µm", "surface roughness", lo=0.0, default=4.0)),
         doc="a dark, rough patch on a board",
     ),
     "spindle_stop": _Spec(trips="machine", doc="the spindle drive trips and coasts down"),
@@ -168,7 +168,7 @@ _SPECS: dict[str, _Spec] = {
     "knife_chip": _Spec(
         (FaultParam("knife", "", "the knife that chips (0 = the index knife)", lo=0.0, hi=7.0,
                     integer=True, default=0.0),
-         FaultParam("step_um", "um", "its runout steps by this much (> 0: it stands further "
+         FaultParam("step_um", "µm", "its runout steps by this much (> 0: it stands further "
                     "out and cuts deeper, as a knife that moved; < 0: a chip takes material "
                     "off its edge)", lo=-50.0, hi=50.0, default=6.0),
          FaultParam("at_travel_mm", "mm", "the table's travel at which it happens (instead of "

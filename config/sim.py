@@ -478,7 +478,7 @@ def _cutterhead(s: Section) -> CutterheadConfig:
         runout = (0.0,) * knives
     for i, r in enumerate(runout):
         if abs(r) > 100.0:
-            raise ConfigError(f"{s.key('runout_um')}[{i}] must be within +-100 um, got {r!r}")
+            raise ConfigError(f"{s.key('runout_um')}[{i}] must be within +-100 µm, got {r!r}")
     out = CutterheadConfig(
         knives=knives,
         radius_mm=s.number("radius_mm", d.radius_mm, lo=5.0, hi=500.0),
@@ -497,7 +497,7 @@ def _drift(s: Section, knives: int) -> DriftConfig:
     for i, v in enumerate(warmup):
         if abs(v) > DRIFT_WARMUP_MAX_UM:
             raise ConfigError(f"{s.key('warmup_um')}[{i}] must be within "
-                              f"+-{DRIFT_WARMUP_MAX_UM:g} um, got {v!r}")
+                              f"+-{DRIFT_WARMUP_MAX_UM:g} µm, got {v!r}")
     raw_tau = s.raw("warmup_tau_s", DRIFT_TAU_DEFAULT_S)
     if isinstance(raw_tau, (list, tuple)):
         tau = s.numbers("warmup_tau_s", length=knives)
@@ -512,7 +512,7 @@ def _drift(s: Section, knives: int) -> DriftConfig:
     for i, v in enumerate(wear):
         if not 0.0 <= v <= DRIFT_WEAR_MAX_UM_PER_MIN:
             raise ConfigError(f"{s.key('wear_um_per_min')}[{i}] must be within 0.."
-                              f"{DRIFT_WEAR_MAX_UM_PER_MIN:g} um/min, got {v!r}")
+                              f"{DRIFT_WEAR_MAX_UM_PER_MIN:g} µm/min, got {v!r}")
     s.reject_unknown()
     return DriftConfig(warmup_um=warmup, warmup_tau_s=tau, wear_um_per_min=wear)
 

@@ -248,8 +248,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _closed_pipe_exit()
 
 
+def _printable_units() -> None:
+    r"""Let stdout and stderr print the unit µm whatever their encoding.
+
+    A terminal or pipe set to ASCII (``PYTHONIOENCODING=ascii``) cannot encode ``µ``: there it
+    is written as ``\xb5`` instead of stopping the command with ``UnicodeEncodeError``.
+    """
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            "µ".encode(stream.encoding or "ascii")
+        except (UnicodeEncodeError, LookupError):
+            reconfigure = getattr(stream, "reconfigure", None)
+            if reconfigure is not None:
+                reconfigure(errors="backslashreplace")
+        except AttributeError:  # a stream without an encoding (replaced by a test)
+            continue
+
+
 def _main(argv: Sequence[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    _printable_units()
     parser = build_parser(chosen_command(argv))
     args = parser.parse_args(argv)
     name = f"planer {args.command}"

@@ -239,7 +239,7 @@ class PiezoCodec:
                     raise ValueError(f"offsets_um[{k}] (knife {k}) must be a number") from None
                 if not math.isfinite(fv) or not lo - 0.0005 <= fv <= hi + 0.0005:
                     raise ValueError(
-                        f"offsets_um[{k}] (knife {k}) = {v!r} um outside [{lo}, {hi}] um"
+                        f"offsets_um[{k}] (knife {k}) = {v!r} µm outside [{lo}, {hi}] µm"
                     )
                 values[f"offset_knife_{k}"] = fv
             frames.append(self._encode(name, values))

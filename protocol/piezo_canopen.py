@@ -118,7 +118,7 @@ def nm_from_um(value_um: float, *, name: str = "value_um") -> int:
     """A length in um as the INTEGER16 nm the dictionary holds (rounded; ValueError beyond)."""
     raw = round(float(value_um) * NM_PER_UM)
     if not -32768 <= raw <= 32767:
-        raise ValueError(f"{name} = {value_um!r} um is outside -32.768..32.767 um")
+        raise ValueError(f"{name} = {value_um!r} µm is outside -32.768..32.767 µm")
     return int(raw)
 
 

@@ -85,7 +85,7 @@ def _describe(sev: int, d: Defect) -> str:
     words = {1: "slight", 2: "moderate", 3: "severe", 4: "very severe"}[sev]
     size = f"{d.length_mm:.1f} x {d.width_mm:.1f} mm"
     if d.depth_um is not None:
-        size += f", {abs(d.depth_um):.1f} um"
+        size += f", {abs(d.depth_um):.1f} µm"
     return f"{d.kind.value} {size} at x={d.x_mm:.1f} mm, y={d.y_mm:.1f} mm ({words})"
 
 

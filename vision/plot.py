@@ -68,11 +68,11 @@ def profile_figure(
         top = float(np.max(h)) if h.size else 0.0
         for left, w in zip(cusps[:-1], widths, strict=True):
             ax.text(left + w / 2, top, f"{w:.2f}", ha="center", va="bottom", fontsize=6.5)
-    ax.set_ylabel("height (um)")
+    ax.set_ylabel("height (µm)")
     ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8, borderaxespad=0.0)
     summary = (
         f"pitch {m.pitch_mm:.3f} mm, uniformity CV {m.uniformity_cv:.3f}, "
-        f"depth {m.depth_um:.2f} um, {widths.size} marks, shift {m.shift_px:.2f} px"
+        f"depth {m.depth_um:.2f} µm, {widths.size} marks, shift {m.shift_px:.2f} px"
     )
     ax.set_title(summary if title is None else f"{title}\n{summary}", fontsize=10)
 
@@ -81,7 +81,7 @@ def profile_figure(
     ax2.axhline(m.pitch_mm, color="C0", lw=0.8, ls="--")
     ax2.set_ylabel("width (mm)")
     ax3 = ax2.twinx()
-    ax3.plot(mids, depths, "s-", color="C1", ms=3, lw=0.8, label="depth (um)")
-    ax3.set_ylabel("depth (um)")
+    ax3.plot(mids, depths, "s-", color="C1", ms=3, lw=0.8, label="depth (µm)")
+    ax3.set_ylabel("depth (µm)")
     ax2.set_xlabel("x along the feed (mm)")
     return fig

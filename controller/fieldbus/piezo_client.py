@@ -412,11 +412,11 @@ class PiezoClient:
             self._replan()
         replanned = None if limit is None else list(self.offsets_um)
         if limit is None:
-            text = (f"piezo amplifier refused the zero table {list(table)} um: nothing smaller "
+            text = (f"piezo amplifier refused the zero table {list(table)} µm: nothing smaller "
                     "to send")
         else:
-            text = (f"piezo amplifier refused the table {list(table)} um: re-planned within "
-                    f"+-{limit:.3f} um as {replanned} um")
+            text = (f"piezo amplifier refused the table {list(table)} µm: re-planned within "
+                    f"+-{limit:.3f} µm as {replanned} µm")
         self._note("refused", now_s, text, {"table_um": list(table), "limit_um": limit,
                                             "replanned_um": replanned})
 

@@ -191,7 +191,7 @@ class AmpLimits:
         hi = check_finite("offset_max_um", self.offset_max_um)
         if not lo <= 0.0 <= hi:
             raise ValueError(
-                f"offset_min_um <= 0 <= offset_max_um must hold, got [{lo!r}, {hi!r}] um"
+                f"offset_min_um <= 0 <= offset_max_um must hold, got [{lo!r}, {hi!r}] µm"
             )
         check_positive("slew_max_um_ms", self.slew_max_um_ms, allow_zero=True)
         check_positive("setpoint_timeout_s", self.setpoint_timeout_s, allow_zero=True)
@@ -326,18 +326,18 @@ class OffsetLimit:
         amp = self.amp
         if amp is None:
             return (f"piezo offsets held at zero: the amplifier has not reported its limits "
-                    f"(machine.toml: stroke {cfg:.3f} um)")
+                    f"(machine.toml: stroke {cfg:.3f} µm)")
         src = self.source
         lim = self.limit_um
         if src == "refused table":
-            return (f"piezo offsets within +-{lim:.3f} um after a refused table (stroke "
-                    f"{self.stroke_um:.3f} um: amplifier {amp.bound_um:.3f}, machine.toml "
+            return (f"piezo offsets within +-{lim:.3f} µm after a refused table (stroke "
+                    f"{self.stroke_um:.3f} µm: amplifier {amp.bound_um:.3f}, machine.toml "
                     f"{cfg:.3f})")
         if src == "amplifier":
-            return (f"piezo offsets within +-{lim:.3f} um: the amplifier's stroke, smaller than "
-                    f"machine.toml's {cfg:.3f} um")
-        return (f"piezo offsets within +-{lim:.3f} um: machine.toml's stroke (the amplifier "
-                f"allows {amp.bound_um:.3f} um)")
+            return (f"piezo offsets within +-{lim:.3f} µm: the amplifier's stroke, smaller than "
+                    f"machine.toml's {cfg:.3f} µm")
+        return (f"piezo offsets within +-{lim:.3f} µm: machine.toml's stroke (the amplifier "
+                f"allows {amp.bound_um:.3f} µm)")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON of the bound and what it comes from.

@@ -87,10 +87,10 @@ def authority_notice(loop: Any, t_s: float) -> AuthorityNotice:
     table = " ".join(f"{v:+.2f}" for v in d["offsets_um"])
     if reason == "made_worse":
         text = (f"uniformity: the learning made the board worse {d['undos']} times: holding the "
-                f"best table measured [{table}] um (actuator gains per knife pattern {gains})")
+                f"best table measured [{table}] µm (actuator gains per knife pattern {gains})")
     elif reason == "no_authority":
         text = (f"uniformity: the actuator cannot move any knife pattern (gains {gains}): "
-                f"holding [{table}] um")
+                f"holding [{table}] µm")
     else:
         text = (f"uniformity: the actuator cannot move knife pattern(s) "
                 f"{', '.join(str(m) for m in d['held_modes'])} (gains {gains}): those held, "

@@ -128,7 +128,7 @@ class KnifeSet:
             return f"spindle {self.spindle_rpm:.0f} rpm then, {now.spindle_rpm:.0f} rpm now"
         if (self.stroke_um is not None and now.stroke_um is not None
                 and abs(now.stroke_um - self.stroke_um) > STROKE_TOL_UM):
-            return f"amplifier stroke {self.stroke_um:g} um then, {now.stroke_um:g} um now"
+            return f"amplifier stroke {self.stroke_um:g} µm then, {now.stroke_um:g} µm now"
         return None
 
     def to_dict(self) -> dict[str, Any]:

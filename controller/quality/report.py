@@ -210,7 +210,7 @@ def format_summary(summary: dict[str, Any], *, title: str = "Quality log") -> st
         if qc["uniformity_max_cv"] is not None:
             parts.append(f"uniformity CV <= {qc['uniformity_max_cv']:.3f}")
         if qc["depth_max_um"] is not None:
-            parts.append(f"depth <= {qc['depth_max_um']:.1f} um")
+            parts.append(f"depth <= {qc['depth_max_um']:.1f} µm")
         lines.append(f"Quality class {qc['name']}: " + ", ".join(parts))
     elif s["target_pitch_mm"]:
         lines.append("Target pitch: " + ", ".join(f"{t:.3f} mm" for t in s["target_pitch_mm"]))
@@ -221,7 +221,7 @@ def format_summary(summary: dict[str, Any], *, title: str = "Quality log") -> st
     lines.append(f"Pass rate: {_pct(s['pass_rate'])} of {s['n_judged']} judged; "
                  f"mean pitch {_f(s['mean_pitch_mm'], '.3f', ' mm')}, "
                  f"uniformity CV {_f(s['mean_uniformity_cv'], '.3f')}, "
-                 f"depth {_f(s['mean_depth_um'], '.2f', ' um')}")
+                 f"depth {_f(s['mean_depth_um'], '.2f', ' µm')}")
     vis = s.get("vision") or {}
     if vis.get("roll_deg") or vis.get("calibration_states"):
         roll = vis["roll_deg"]
@@ -230,12 +230,12 @@ def format_summary(summary: dict[str, Any], *, title: str = "Quality log") -> st
             "Orientation and self-calibration: roll "
             + ("-" if roll is None else f"{roll['min']:+.2f} .. {roll['max']:+.2f} deg")
             + f"; calibration {states}; gain {_f(vis['mean_calibration_gain'], '.3f')}; "
-            f"depth uncalibrated {_f(vis['mean_uncalibrated_depth_um'], '.2f', ' um')}, "
-            f"kinematic {_f(s.get('mean_kinematic_depth_um'), '.2f', ' um')}")
+            f"depth uncalibrated {_f(vis['mean_uncalibrated_depth_um'], '.2f', ' µm')}, "
+            f"kinematic {_f(s.get('mean_kinematic_depth_um'), '.2f', ' µm')}")
     if s["boards"]:
         lines.append("")
         head = (f"{'board':>6} {'meas':>5} {'failed':>6} {'position mm':>15} "
-                f"{'pitch mm (mean+-sd)':>20} {'unif. CV':>8} {'depth um':>8} {'pass':>7}")
+                f"{'pitch mm (mean+-sd)':>20} {'unif. CV':>8} {'depth µm':>8} {'pass':>7}")
         truth = any(b["mean_true_pitch_mm"] is not None for b in s["boards"])
         kin = any(b.get("mean_kinematic_depth_um") is not None for b in s["boards"])
         if kin:
@@ -267,7 +267,7 @@ def format_summary(summary: dict[str, Any], *, title: str = "Quality log") -> st
     for k in sp["piezo_offsets_um"]:
         if k["min"] is None:
             continue
-        lines.append(f"  piezo offset knife {k['knife']}: {k['min']:+.2f} .. {k['max']:+.2f} um, "
+        lines.append(f"  piezo offset knife {k['knife']}: {k['min']:+.2f} .. {k['max']:+.2f} µm, "
                      f"last {k['last']:+.2f}")
     return "\n".join(lines)
 

@@ -220,7 +220,7 @@ class KnifeChipMonitor:
         self._report.count("knife_chips")
         self._report.emit(
             t, EventKind.KNIFE_CHIPPED,
-            f"knife {k} chipped or moved: its runout stepped by {runout_step:+.1f} um "
+            f"knife {k} chipped or moved: its runout stepped by {runout_step:+.1f} µm "
             f"(its marks {2.0 * g * runout_step:+.3f} mm wider)", data=self.last)
         return True
 

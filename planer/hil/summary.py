@@ -424,7 +424,7 @@ def limits_report(
         reasons.append("piezo offsets not a number")
     beyond = sum(o > in_force + 1e-9 for o in offs if math.isfinite(o))
     if beyond:
-        reasons.append(f"{beyond} piezo offset(s) beyond the stroke {in_force:g} um")
+        reasons.append(f"{beyond} piezo offset(s) beyond the stroke {in_force:g} µm")
     refused = refused_tables(events)
     unplanned = sum(r["replanned_um"] is None for r in refused)
     if unplanned:
@@ -786,7 +786,7 @@ def _progress_line(r: FrameResult, travel: BoardTravel) -> str:
     dist = "  -  " if d is None else f"{d / 1000:5.2f}"
     return (
         f"{dist} m  {r.state:4s}  pitch {pitch} mm  cv {cv}{truth}  "
-        f"feed {feed} mm/s  offsets [{offs}] um  pair {r.seq}"
+        f"feed {feed} mm/s  offsets [{offs}] µm  pair {r.seq}"
     )
 
 

@@ -292,7 +292,7 @@ class PiezoAmplifier:
         for i, v in enumerate(vals):
             f = check_finite(f"offsets_um[{i}]", v)
             if abs(f) > stroke:
-                raise ValueError(f"offsets_um[{i}] must be within +-{stroke} um, got {v!r}")
+                raise ValueError(f"offsets_um[{i}] must be within +-{stroke} µm, got {v!r}")
             out.append(f)
         return out[: self.knives]
 

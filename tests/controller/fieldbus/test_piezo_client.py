@@ -196,7 +196,7 @@ def test_the_smaller_stroke_is_used_and_said(config_um, amp_um, amp_range, limit
         report_limits(c, stroke_um=amp_um, lo=lo, hi=hi, now_s=0.01)
         (note,) = c.take_notes()
         assert note.data["source"] == source and note.data["limit_um"] == limit
-        assert f"{limit:.3f} um" in note.text and source.split(".")[0] in note.text
+        assert f"{limit:.3f} µm" in note.text and source.split(".")[0] in note.text
         assert c.stroke_um == limit
         # the table asked for before is re-planned into the bound (zero mean kept)
         c.tick(alive_counter=1, now_s=0.02)

@@ -130,7 +130,7 @@ def test_the_bound_is_the_smaller_stroke(config, amp, limit, source):
     assert d["limit_um"] == lim.limit_um and d["source"] == source
     assert d["config_stroke_um"] == min(config, 32.767)
     text = lim.describe()
-    assert (f"{limit:.3f} um" in text) if amp is not None else ("held at zero" in text)
+    assert (f"{limit:.3f} µm" in text) if amp is not None else ("held at zero" in text)
 
 
 @given(tables, st.floats(1.0, 30.0), st.floats(1.0, 30.0))

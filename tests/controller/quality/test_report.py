@@ -133,7 +133,9 @@ def test_summary_of_empty_and_all_failed():
     assert s["n_ok"] == 0 and all(b["mean_pitch_mm"] is None for b in s["boards"])
     for summary in (summarise([]), s, summarise(make_run(2), quality_class=QC)):
         text = format_summary(summary)
-        text.encode("ascii")  # plain text for any terminal
+        # plain text for any terminal: ASCII but for the unit µm (Latin-1, and UTF-8)
+        assert set(text.encode("ascii", "ignore").decode()) | {"µ"} >= set(text), text
+        text.encode("latin-1")
 
 
 def test_text_summary_lists_every_board_and_reason():

@@ -35,7 +35,7 @@ FAULT = FaultEvent("can_silence", 4.0, {"duration_s": 0.5})
         (RES, [], [], None, True, None),
         (RES, [], [], AMP, True, None),
         ([_result(i, offs=(12.0, -12.0)) for i in range(10)], [], [], AMP, False,
-         "20 piezo offset(s) beyond the stroke 10 um"),
+         "20 piezo offset(s) beyond the stroke 10 µm"),
         ([_result(i, offs=(12.0, -12.0)) for i in range(10)], [], [], None, True, None),
         (RES, [_refused(2.0, [12.0, -12.0], [8.0, -8.0])], [], AMP, True, None),
         (RES, [_refused(2.0, [0.0, 0.0], None)], [], AMP, False,
