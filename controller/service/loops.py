@@ -223,7 +223,7 @@ class ControlLoops:
         self._report.emit(
             t, EventKind.LEARNED_STATE_RESUMED,
             f"resuming the learnt state of {age:.0f} s ago (offsets "
-            f"[{' '.join(f'{v:+.2f}' for v in offs)}] um, feed correction {corr:.4f})"
+            f"[{' '.join(f'{v:+.2f}' for v in offs)}] µm, feed correction {corr:.4f})"
             + ("; the machine runs: feed held while starting up" if running else ""),
             data={"path": str(mem.path), "age_s": age, "offsets_um": offs.tolist(),
                   "feed_correction": corr, "warm": running})

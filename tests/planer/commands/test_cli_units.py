@@ -54,3 +54,32 @@ def test_the_docs_write_micrometres_as_the_unit_sign():
             if BARE_UM.search(line):
                 bare.setdefault(p.name, []).append(n)
     assert bare == {}
+
+
+def _string_literals(path: Path):
+    """``(line, text)`` of the string literals of a module that are not docstrings."""
+    import io
+    import tokenize
+
+    toks = list(tokenize.generate_tokens(io.StringIO(path.read_text(encoding="utf-8")).readline))
+    statement_start = (tokenize.INDENT, tokenize.NEWLINE, tokenize.DEDENT, tokenize.ENCODING,
+                       tokenize.NL)
+    for i, t in enumerate(toks):
+        if t.type != tokenize.STRING:
+            continue
+        prev = toks[i - 1].type if i else tokenize.NEWLINE
+        nxt = toks[i + 1].type if i + 1 < len(toks) else tokenize.NEWLINE
+        if prev in statement_start and nxt == tokenize.NEWLINE:
+            continue  # a docstring
+        yield t.start[0], t.string
+
+
+def test_no_message_or_label_in_the_code_says_um():
+    """Every string the code prints, raises or draws: µm (docstrings and identifiers aside)."""
+    bare = []
+    for package in ("config", "controller", "core", "planer", "plant_sim", "protocol", "vision"):
+        for path in sorted((ROOT / package).rglob("*.py")):
+            for line, text in _string_literals(path):
+                if BARE_UM.search(text):
+                    bare.append(f"{path.relative_to(ROOT)}:{line}: {text}")
+    assert bare == []
