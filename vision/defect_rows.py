@@ -108,23 +108,33 @@ def rows_disagreement(rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float, u
                       u1: int) -> float:
     """How much the row bins' log-ratios disagree, beyond their noise, for the marks' shading.
 
-    The log-ratio of every bin at the nearest column of the shift, less its column mean:
-    its mean square less the noise's (half the mean square of its differences between
-    neighbouring columns: the noise is white, a ridge's shading is not), rooted, over the rms
-    of the column mean (the marks' shading).  0.0-0.6 on boards without defects (up to 20 DN
-    of noise), 1.0-1.5 with pits and chips, 2.1-2.5 with raised grain at 60-70 deg; NaN when
-    the overlap is too small.
+    The log-ratio of every bin at the nearest column of the shift, less its column mean, on
+    ~200 pairs of neighbouring columns: its mean square less the noise's (half the mean square
+    of its differences within the pairs: the noise is white, a ridge's shading is not),
+    rooted, over the rms of the column mean (the marks' shading).  0.0-0.6 on boards without
+    defects (up to 20 DN of noise), 1.0-1.5 with pits and chips, 2.1-2.5 with raised grain at
+    60-70 deg; NaN when the overlap is too small.
     """
     s = int(round(shift_px))
     w = rows_a.shape[1]
     lo, hi = max(u0, -s), min(u1, w - s)
     if hi - lo < 16 or rows_a.shape[0] < 2:
         return math.nan
-    ratio = cv2.subtract(_log_rows(rows_b[:, lo + s: hi + s]), _log_rows(rows_a[:, lo:hi]))
-    mean = ratio.mean(axis=0)
-    dev = ratio - mean[None, :]
+    # pairs of neighbouring columns, ~200 pairs over the overlap: the same statistics, at a
+    # fraction of the cost on wide images
+    step = max(2, (hi - lo) // 200)
+    devs = []
+    for first in (lo, lo + 1):  # the pairs' first and second columns
+        stop = first + step * ((hi - 1 - lo) // step)
+        ratio = cv2.subtract(_log_rows(rows_b[:, first + s: stop + s: step]),
+                             _log_rows(rows_a[:, first:stop:step]))
+        devs.append(ratio)
+    both = np.concatenate(devs, axis=1)
+    mean = both.mean(axis=0)
+    dev = both - mean[None, :]
     total = float(np.mean(dev * dev))
-    noise = 0.5 * float(np.mean(np.square(np.diff(dev, axis=1))))
+    half = devs[0].shape[1]
+    noise = 0.5 * float(np.mean(np.square(dev[:, half:] - dev[:, :half])))
     marks = float(np.var(mean))
     if not marks > 0:
         return math.nan
