@@ -36,6 +36,19 @@ the loop is the feed loop's ``C = g / (z - 1 + g - g z^-d)`` around ``alpha z^-d
 are the same at every feed (``controller.laws.design``). The stored offsets are always a convex
 combination of feasible tables: zero mean, inside the stroke, no windup.
 
+Never worse than doing nothing. The identification covers the whole phase circle (a resonance
+below the knife passing frequency turns a knife pattern around) with a confidence per pattern;
+a pattern the actuator cannot move (gain confidently below ``gain_min``, or large moves that
+moved nothing) is held at zero, said once (:meth:`UniformityLoop.take_notices`), and the others
+are learnt; when no pattern can be moved the loop holds. With a pattern held a step is taken
+only as far as it does not raise the model's spread (:meth:`UniformityLoop.model_spread_um`).
+Whatever the model says, :class:`controller.laws.uniformity_guard.TableGuard` judges the tables
+by the measured boards: a learning step that made them worse is undone (back to the best table
+measured, status ``undone``), and after ``guard_max_undos`` undos that held the loop keeps the
+best table (status ``holding``, :attr:`UniformityLoop.hold_reason`). A recovery after the safe
+state restores that table (:meth:`UniformityLoop.recovery_table_um`). Design and measured
+figures: ``docs/control_design.md``, section 8.
+
 A knife that left no mark (``nan``) is taken as width 0, which under-states its error but pushes
 it the right way; such pairs do not enter the identification.
 """
