@@ -105,6 +105,20 @@ class TableGuard:
         """Its mean score, um of relative depth (``None`` before a full window)."""
         return None if self._best is None else self._best[1]
 
+    @property
+    def recent_score_um(self) -> float | None:
+        """The mean score of the last full window (``None`` before one, or just after a reset)."""
+        if len(self._pairs) < self.window:
+            return None
+        return sum(p[1] for p in self._pairs) / len(self._pairs)
+
+    def worse_than_best(self) -> bool:
+        """Whether the last full window scored worse than the best (held: always)."""
+        if self.holding:
+            return True
+        recent = self.recent_score_um
+        return recent is not None and recent > self.threshold_um()
+
     def threshold_um(self) -> float:
         """The mean score above which the board counts as worse, um (inf before a best)."""
         if self._best is None:

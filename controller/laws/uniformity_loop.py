@@ -46,7 +46,7 @@ Whatever the model says, :class:`controller.laws.uniformity_guard.TableGuard` ju
 by the measured boards: a learning step that made them worse is undone (back to the best table
 measured, status ``undone``), and after ``guard_max_undos`` undos that held the loop keeps the
 best table (status ``holding``, :attr:`UniformityLoop.hold_reason`). A recovery after the safe
-state restores that table (:meth:`UniformityLoop.recovery_table_um`). Design and measured
+state restores that table when the last one was worse (:meth:`UniformityLoop.recovery_table_um`). Design and measured
 figures: ``docs/control_design.md``, section 8.
 
 A knife that left no mark (``nan``) is taken as width 0, which under-states its error but pushes
@@ -405,12 +405,14 @@ class UniformityLoop:
         return None if self._disturbance is None else self._disturbance.copy()
 
     def recovery_table_um(self, fallback_um: Sequence[float] | None = None) -> np.ndarray:
-        """The table to restore after a safe state: the best one measured, within the limit.
+        """The table to restore after a safe state, within the limit.
 
-        Before the guard has a best table ``fallback_um`` (e.g. the last one sent), else the
-        offsets in force.
+        The last one (``fallback_um``, e.g. the last one sent; default the offsets in force)
+        unless the guard found the boards cut lately worse than its best, or holds: then the
+        best table measured.
         """
-        best = self._guard.best_table_um if self.cfg.guard else None
+        best = (self._guard.best_table_um
+                if self.cfg.guard and self._guard.worse_than_best() else None)
         if best is None:
             best = self.offsets_um if fallback_um is None else np.asarray(fallback_um, float)
         if self._held:

@@ -560,7 +560,7 @@ class ControlLoops:
         uni = self.uniformity_loop
         if learned is not None and len(learned) == out.piezo.knives:
             if uni is not None and len(learned) == uni.cfg.knives:
-                learned = uni.recovery_table_um(learned)  # the best table measured
+                learned = uni.recovery_table_um(learned)  # the best, if the last was worse
             if self.alerts.chips is not None:  # board cut in the safe state is not compared
                 self.alerts.chips.reset()
                 self.alerts.chips.timeline.note(t, learned)

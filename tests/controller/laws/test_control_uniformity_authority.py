@@ -204,11 +204,21 @@ def test_an_actuator_that_moves_nothing_holds_zero(gain):
     assert cvs[-1] <= cvs[0] * 1.02
 
 
-def test_a_recovery_restores_the_best_table_not_the_last():
+def test_a_recovery_restores_the_best_table_when_the_last_was_worse():
+    """Held after undos: the best table comes back, not the last one sent."""
     actuator = circulant_from_mode_gains(mode_gains(4, [0.9, -0.6]))
     loop = UniformityLoop(UniformityLoopConfig(identify=False))
     closed_loop(loop, actuator, RUNOUT, pairs=200)
+    assert loop.guard.worse_than_best()
     best = loop.guard.best_table_um
     assert np.allclose(loop.recovery_table_um([5.0, -5.0, 5.0, -5.0]), best - best.mean())
+
+
+def test_a_recovery_restores_the_last_table_while_the_boards_are_good():
+    loop = UniformityLoop(UniformityLoopConfig())
+    closed_loop(loop, np.eye(4), RUNOUT, pairs=100)
+    assert not loop.guard.worse_than_best()
+    last = loop.offsets_um
+    assert np.allclose(loop.recovery_table_um(last), last)
     fresh = UniformityLoop(UniformityLoopConfig())
     assert np.allclose(fresh.recovery_table_um([1.0, -1.0, 0.5, -0.5]), [1.0, -1.0, 0.5, -0.5])
