@@ -46,7 +46,8 @@ Whatever the model says, :class:`controller.laws.uniformity_guard.TableGuard` ju
 by the measured boards: a learning step that made them worse is undone (back to the best table
 measured, status ``undone``), and after ``guard_max_undos`` undos that held the loop keeps the
 best table (status ``holding``, :attr:`UniformityLoop.hold_reason`). A recovery after the safe
-state restores that table when the last one was worse (:meth:`UniformityLoop.recovery_table_um`). Design and measured
+state restores that table when the last one was worse
+(:meth:`UniformityLoop.recovery_table_um`). Design and measured
 figures: ``docs/control_design.md``, section 8.
 
 A knife that left no mark (``nan``) is taken as width 0, which under-states its error but pushes
