@@ -287,6 +287,36 @@ def _peaks(values: np.ndarray, *, distance: int = 3) -> tuple[np.ndarray, np.nda
     return cand, heights
 
 
+def periodic_noise(slope: np.ndarray) -> float:
+    """Robust standard deviation of one slope sample from differences one repeat period apart.
+
+    The marks repeat after one cutterhead revolution (:func:`repeat_period_px`), so
+    ``p(u + T) - p(u)`` (``p(u + T)`` interpolated linearly) holds the noise of two samples and
+    not the marks; the few samples next to a cusp that the interpolation smears are outvoted
+    by the median.  On a board without marks it is the sample noise, as the sample-to-sample
+    differences give it for white noise (and more than they do for smooth noise).
+
+    Parameters
+    ----------
+    slope : ndarray, shape (n,)
+        Slope profile.
+
+    Returns
+    -------
+    float
+        Noise of one sample; ``inf`` when no repeat period of at least 4 samples is found.
+    """
+    p = np.asarray(slope, dtype=np.float64)
+    period = repeat_period_px(p)
+    if not (math.isfinite(period) and 4.0 <= period <= p.size / 2):
+        return math.inf
+    shift = int(math.floor(period))
+    t = period - shift
+    ahead = (1.0 - t) * p[shift:-1] + t * p[shift + 1:]
+    d = ahead - p[: ahead.size]
+    return 1.4826 * _median(np.abs(d - _median(d))) / math.sqrt(2.0)
+
+
 def find_marks(
     x_mm: np.ndarray,
     height_um: np.ndarray,
@@ -329,7 +359,11 @@ def find_marks(
     min_snr : float, optional
         Smallest typical cusp step in units of the slope's noise (robust standard deviation
         of a sample): below it the profile holds no marks (noise on a flat board is not taken
-        for marks).
+        for marks).  The noise comes from the sample-to-sample differences; when the steps
+        fall short of it, also from the differences one repeat period apart
+        (:func:`periodic_noise`), and the smaller is used: marks of a few samples whose cusps
+        are rounded (0.5 mm at 12.5 px/mm, subsurface scattering) fill most of the
+        sample-to-sample differences themselves, one period apart they cancel.
     guard : int, optional
         Samples left out on either side of a cusp when fitting the arcs.
     refine : bool, optional
@@ -369,6 +403,8 @@ def find_marks(
             noise = 1.4826 * _median(np.abs(d - _median(d))) / math.sqrt(2.0)
             typical = _quantile(size, 0.9)
     if cand.size:
+        if typical < min_snr * noise:  # fine marks: their own cusps may be the differences
+            noise = min(noise, periodic_noise(p))
         if typical < min_snr * noise:  # the steps are noise: no cuttermarks to be seen
             cand = cand[:0]
         else:

@@ -28,7 +28,7 @@ import numpy as np
 
 from config.rig import Rig
 from core.checks import check_image, check_int, check_positive, check_range
-from core.errors import MeasurementError
+from core.errors import MeasurementError, RegistrationError
 from vision.checks import checked
 from vision.consistency import Agreement, honest_confidence, marks_shading_agreement
 from vision.deblur import Deblurrer, blur_length_px
@@ -40,6 +40,7 @@ from vision.defect_rows import (
     weighted_profile,
 )
 from vision.defects import Defect, DefectFinder
+from vision.encoder_fallback import encoder_registration
 from vision.front_end import Binned, FrontEnd, mean_profile
 from vision.grading import grade_pair
 from vision.illumination import Detrender, flat_field_correct, running_mean
@@ -421,6 +422,14 @@ class Measurer:
         Also map the pair's along-feed slope and albedo in 2-D and find planing defects on it
         with their D1666 grade (:mod:`vision.defects`, :mod:`vision.grading`;
         ``Measurement.defects``, ``grade``); off by default (it costs CPU).
+    encoder_fallback : bool, optional
+        When the images do not register the pair (the albedo drowned in read noise), measure
+        at the encoder's shift if the marks found there explain both images and no other
+        shift within the slip bound explains them about as well
+        (:mod:`vision.encoder_fallback`; ``registration_source == "encoder"``, confidence at
+        most 0.5).  Off by default: the marks cannot tell two boards whose marks happen to
+        line up from one board, so it is for pairs known to show one board (the service's
+        hardware-triggered pairs, 2 ms apart).
     """
 
     def __init__(
@@ -448,8 +457,10 @@ class Measurer:
         max_slip_px: float | None = None,
         flagged_confidence: float = 0.3,
         defects: bool = False,
+        encoder_fallback: bool = False,
     ) -> None:
         self.rig = rig
+        self.encoder_fallback = bool(encoder_fallback)
         check_rig_size(rig, shape)
         self.max_roll_deg = check_positive("max_roll_deg", max_roll_deg, allow_zero=True)
         self.min_roll_confidence = float(min_roll_confidence)
@@ -738,11 +749,16 @@ class Measurer:
         d_enc_sheared = d_enc / cos_roll
 
         raw_profiles = (prof_a, prof_b)  # as registered: the second opinion sees the same
+        reg = Registration(shift_px=d_enc_sheared, confidence=math.nan,
+                           encoder_shift_px=d_enc_sheared, source="encoder")
+        unregistered: RegistrationError | None = None
         if self.register:
-            reg = self._register(binned_a, binned_b, roll, prof_a, prof_b, d_enc_sheared)
-        else:
-            reg = Registration(shift_px=d_enc_sheared, confidence=math.nan,
-                               encoder_shift_px=d_enc_sheared, source="encoder")
+            try:
+                reg = self._register(binned_a, binned_b, roll, prof_a, prof_b, d_enc_sheared)
+            except RegistrationError as exc:  # the encoder's shift, if the marks confirm it
+                if not self.encoder_fallback:
+                    raise
+                unregistered = exc
         blur = self.blur_px(speed_mm_s)
         if not blur > self.deblur_min_px:
             blur = 0.0
@@ -779,8 +795,12 @@ class Measurer:
                 pa, pb = both[0], both[1]
             return pa, pb, registered, columns
 
-        profile = self._registered_profile(*prepared(reg.shift_px), reg.shift_px, margin,
-                                           cos_roll)
+        if unregistered is not None:
+            reg, profile = encoder_registration(self, prepared, d_enc_sheared, margin, cos_roll,
+                                                unregistered)
+        else:
+            profile = self._registered_profile(*prepared(reg.shift_px), reg.shift_px, margin,
+                                               cos_roll)
         reg, profile, reason = checked(self, raw_profiles, prepared, reg, profile,
                                        margin, cos_roll)
         slope, height, marks, x_mm, period = (profile.slope, profile.height, profile.marks,

@@ -136,7 +136,8 @@ class VisionMeasurers:
     """The service's measurer factory: the vision's ``Measurer`` of one rig, per shape and facts.
 
     ``factory(shape, facts)`` builds ``vision.pipeline.Measurer(rig, shape, radius_mm=R,
-    knives=Z, **options)`` (``facts=None``: without them, the self-calibration off).
+    knives=Z, encoder_fallback=True, **options)`` (``facts=None``: without them, the
+    self-calibration off).
 
     Parameters
     ----------
@@ -154,7 +155,9 @@ class VisionMeasurers:
 
         self._measurer_class = Measurer
         self.rig = rig
-        self.options = dict(options)
+        # A and B are triggered on one board 2 ms apart: the encoder's shift may stand in for
+        # a registration the read noise defeats, when the marks confirm it (vision docs).
+        self.options = {"encoder_fallback": True, **options}
 
     def __call__(self, shape: tuple[int, int], facts: MachineFacts | None = None) -> Any:
         """A measurer for images of ``shape`` with the machine's ``facts``."""
