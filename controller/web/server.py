@@ -2,7 +2,8 @@
 
 The socket is bound before the thread starts, so a busy port or a bad address is one clear
 ``OSError`` / ``ValueError`` line at start. The server holds at most ``max_connections``
-connections (one more is closed as it is accepted), closes a connection whose request head
+connections (one more evicts the oldest still waiting for its request head, or is closed as
+it is accepted when all are busy), closes a connection whose request head
 is not complete ``header_timeout_s`` after it opened or went idle (idle and slow clients), an
 idle keep-alive connection after ``keep_alive_s``, and refuses a request head over
 ``max_header_bytes``. :attr:`WebServer.counters` counts what it refused.
@@ -78,16 +79,21 @@ def bounded_h11(max_connections: int, header_timeout_s: float,
     Parameters
     ----------
     max_connections : int
-        Connections at once; one more is aborted in ``connection_made`` (``refused``).
+        Connections at once. One more evicts the oldest connection still waiting for its
+        request head (``evicted``: a flood of idle sockets cannot starve a client that sends
+        its request); when every connection is busy, the new one is aborted (``refused``).
     header_timeout_s : float
         The request head must be complete this long after the connection opened or its last
         response completed; else the connection is closed (``header_timeouts``). Bytes
         trickling in do not extend it.
     counters : dict
-        ``refused`` and ``header_timeouts`` are counted here (the server's thread only).
+        ``refused``, ``evicted`` and ``header_timeouts`` are counted here (the server's
+        thread only).
     """
     import h11
     from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    waiting: dict[Any, None] = {}  # connections waiting for a request head, oldest first
 
     class BoundedH11(H11Protocol):
         _head_timer: asyncio.TimerHandle | None = None
@@ -95,23 +101,33 @@ def bounded_h11(max_connections: int, header_timeout_s: float,
         def connection_made(self, transport: Any) -> None:  # type: ignore[override]
             super().connection_made(transport)
             if len(self.connections) > max_connections:
-                self.connections.discard(self)
-                counters["refused"] += 1
-                transport.abort()
-                return
+                if waiting:
+                    oldest = next(iter(waiting))
+                    oldest._cancel_head_timer()
+                    oldest.connections.discard(oldest)
+                    counters["evicted"] += 1
+                    oldest.transport.abort()
+                else:
+                    self.connections.discard(self)
+                    counters["refused"] += 1
+                    transport.abort()
+                    return
             self._arm_head_timer()
 
         def _arm_head_timer(self) -> None:
             if self._head_timer is None:
                 self._head_timer = self.loop.call_later(header_timeout_s, self._head_too_slow)
+                waiting[self] = None
 
         def _cancel_head_timer(self) -> None:
+            waiting.pop(self, None)
             if self._head_timer is not None:
                 self._head_timer.cancel()
                 self._head_timer = None
 
         def _head_too_slow(self) -> None:
             self._head_timer = None
+            waiting.pop(self, None)
             if not self.transport.is_closing():
                 counters["header_timeouts"] += 1
                 self.transport.abort()
@@ -168,8 +184,9 @@ class WebServer:
         self.header_timeout_s = float(header_timeout_s)
         self.keep_alive_s = keep_alive_s
         self.max_header_bytes = max_header_bytes
-        self.counters = {"refused": 0, "header_timeouts": 0}
-        """Connections refused over the cap, closed for a slow request head."""
+        self.counters = {"refused": 0, "evicted": 0, "header_timeouts": 0}
+        """Connections refused over the cap (all busy), evicted for a newer one while waiting
+        for their request head, closed for a slow request head."""
         self.app = app
         self.stopping = stopping if stopping is not None else threading.Event()
         self._sock: socket.socket | None = None
