@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["Load", "free_port", "main", "run_hil"]
+__all__ = ["Load", "free_port", "load_for", "main", "run_hil"]
 
 
 def free_port() -> int:
@@ -192,6 +192,17 @@ class Load:
         for s in self.held:
             s.close()
         self.held = []
+
+
+def load_for(http_port: int | None, opcua_port: int | None, seconds: float,
+             kwargs: dict[str, Any], out: Any) -> None:
+    """Run a :class:`Load` for ``seconds`` and put its counts on ``out`` (a process target)."""
+    import logging
+
+    logging.getLogger("asyncua").setLevel(logging.CRITICAL)
+    clients = Load(http_port, opcua_port, **kwargs)
+    asyncio.run(clients.run(time.monotonic() + seconds))
+    out.put(clients.counts)
 
 
 async def _find(client: Any, path: str) -> Any:
