@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.checks import check_finite, check_positive, check_range
-from vision.selfcal import kinematic_slope
+from vision import check_kernels
 
 
 @dataclass(frozen=True)
@@ -100,28 +100,12 @@ def marks_shading_agreement(
                          f"and {b.shape}")
     if b.size < 1:
         return Agreement(math.nan, math.nan)
-    inside = (x >= c[0]) & (x <= c[-1])
-    if np.count_nonzero(inside) < 16:
-        return Agreement(math.nan, math.nan)
-    xs = x[inside]
-    p = kinematic_slope(xs, c, b, radius_mm=1.0)
-    ok = np.isfinite(p)
-    if np.count_nonzero(ok) < 16:
-        return Agreement(math.nan, math.nan)
-    # at most ~max_samples samples: the sawtooth spans tens of them per mark either way
-    step = max(1, -(-int(np.count_nonzero(ok)) // max_samples))
-    idx = np.flatnonzero(inside)[ok][::step]
-    xs, p = xs[ok][::step], p[ok][::step]
-    t = (xs - 0.5 * (xs[0] + xs[-1])) / max(0.5 * (xs[-1] - xs[0]), 1e-9)
-    # a cubic, by its normal equations (t in [-1, 1]: well posed)
-    basis = np.stack([t * t * t, t * t, t, np.ones_like(t)])
-    cols = np.stack([p, la[idx], lb[idx]])
-    resid = cols - np.linalg.solve(basis @ basis.T, basis @ cols.T).T @ basis
-    norms = np.sqrt(np.einsum("ij,ij->i", resid, resid))
-    if not np.all(norms > 0):
-        return Agreement(math.nan, math.nan)
-    corr = (resid[1:] @ resid[0]) / (norms[0] * norms[1:])
-    return Agreement(float(-corr[0]), float(corr[1]))
+    # one compiled pass (vision.check_kernels): the samples inside the marks, every k-th of
+    # them, the cubic by its normal equations (t in [-1, 1]: well posed), the correlations
+    score_a, score_b = check_kernels.marks_agreement(
+        np.ascontiguousarray(la), np.ascontiguousarray(lb), np.ascontiguousarray(x),
+        np.ascontiguousarray(c), np.ascontiguousarray(b), int(max_samples))
+    return Agreement(float(score_a), float(score_b))
 
 
 def shift_within_slip(shift_px: float, encoder_shift_px: float, *, max_slip_px: float) -> bool:

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from core.checks import check_finite, check_positive
+from vision import check_kernels
 from vision.profile import overlap
 
 
@@ -123,22 +124,25 @@ def rows_disagreement(rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float, u
     # pairs of neighbouring columns, ~200 pairs over the overlap: the same statistics, at a
     # fraction of the cost on wide images
     step = max(2, (hi - lo) // 200)
-    devs = []
-    for first in (lo, lo + 1):  # the pairs' first and second columns
-        stop = first + step * ((hi - 1 - lo) // step)
-        ratio = cv2.subtract(_log_rows(rows_b[:, first + s: stop + s: step]),
-                             _log_rows(rows_a[:, first:stop:step]))
-        devs.append(ratio)
-    both = np.concatenate(devs, axis=1)
-    mean = both.mean(axis=0)
-    dev = both - mean[None, :]
-    total = float(np.mean(dev * dev))
-    half = devs[0].shape[1]
-    noise = 0.5 * float(np.mean(np.square(dev[:, half:] - dev[:, :half])))
-    marks = float(np.var(mean))
+    logs = np.empty((rows_a.shape[0], 2 * ((hi - 1 - lo) // step)), dtype=np.float32)
+    check_kernels.ratios_pairs(_compiled_rows(rows_a), _compiled_rows(rows_b), s, lo, step,
+                               logs)
+    total, noise, marks = check_kernels.disagreement_sums(cv2.log(logs, dst=logs))
     if not marks > 0:
         return math.nan
     return math.sqrt(max(total - noise, 0.0) / marks)
+
+
+def _compiled_rows(rows: np.ndarray) -> np.ndarray:
+    """The rows as the compiled loops take them: C-ordered ``uint16`` or ``float32``.
+
+    As they come (no copy) when they are; else copied (the loops are compiled for these
+    layouts only, at set-up).
+    """
+    r = np.asarray(rows)
+    if r.dtype not in (np.uint16, np.float32):
+        r = r.astype(np.float32)
+    return np.ascontiguousarray(r)
 
 
 def ridged_rows(width: int, rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float,
@@ -184,8 +188,8 @@ def _screened(a: np.ndarray, b: np.ndarray, d: float, u0: int, u1: int, limit: f
     """Whether any run of samples departs from its column's mean by ``limit`` mean deviations.
 
     B's rows are taken at the nearest column (the cusps' sharp steps half a pixel off are
-    single columns, which the run length drops), every second column; ``float32`` and OpenCV
-    throughout.
+    single columns, which the run length drops), every second column; ``float32``, the
+    departures and their runs in one compiled pass (:func:`vision.check_kernels.screen_hits`).
     """
     w = a.shape[1]
     s = int(round(d))
@@ -193,17 +197,12 @@ def _screened(a: np.ndarray, b: np.ndarray, d: float, u0: int, u1: int, limit: f
     if hi - lo < 16:
         return True
     # every second column: a run of min_run_px columns still shows as half as many samples
-    la = cv2.log(np.maximum(a[:, lo:hi:2].astype(np.float32), np.float32(0.5)))
-    lb = cv2.log(np.maximum(b[:, lo + s: hi + s: 2].astype(np.float32), np.float32(0.5)))
-    ratio = cv2.subtract(lb, la)
-    mean = cv2.reduce(ratio, 0, cv2.REDUCE_AVG)
-    mag = cv2.absdiff(ratio, np.repeat(mean, ratio.shape[0], axis=0))
-    scale = float(cv2.mean(mag)[0])
-    hits = (mag > limit * 0.8 * scale).astype(np.uint8)  # 0.8: mean |x| of a unit normal
-    run = (min_run_px + 1) // 2
-    if run > 1:
-        hits = cv2.morphologyEx(hits, cv2.MORPH_OPEN, np.ones((1, run), np.uint8))
-    return cv2.countNonZero(hits) >= (min_samples + 1) // 2
+    ratio = np.empty((a.shape[0], (hi - lo + 1) // 2), dtype=np.float32)
+    check_kernels.ratios_every_second(_compiled_rows(a), _compiled_rows(b), s, lo, ratio)
+    cv2.log(ratio, dst=ratio)
+    # 0.8: mean |x| of a unit normal
+    return bool(check_kernels.screen_hits(ratio, limit * 0.8, max(1, (min_run_px + 1) // 2),
+                                          (min_samples + 1) // 2))
 
 
 def defect_mask(rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float, *, u0: int, u1: int,

@@ -1,0 +1,270 @@
+"""Compiled loops (numba) for the measurement's own checks (each a chain of small numpy calls).
+
+The checks that keep defect boards honest (:mod:`vision.consistency`, :mod:`vision.defect_rows`,
+the roll estimate's clip in :mod:`vision.orientation`) run on every pair; as numpy chains they
+cost about a third of a clean pair's measurement, most of it call overhead and temporaries.
+The loops here compute the same statistics in one or two calls each:
+
+* :func:`ratios_every_second`, :func:`ratios_pairs` -- the row bins' intensity ratio
+  ``B_j(c + s) / A_j(c)`` at every second column or at pairs of neighbouring columns (the log
+  then by one ``cv2.log`` of the whole block, vectorised, which numba's scalar ``log`` is not);
+* :func:`screen_hits` -- the defect screen's departures from the column means and their runs
+  along the rows;
+* :func:`disagreement_sums` -- the row bins' disagreement from pairs of neighbouring columns;
+* :func:`marks_agreement` -- the marks' kinematic slope against both log-profiles, a cubic
+  removed (its normal equations, as :func:`vision.consistency.marks_shading_agreement`);
+* :func:`clip_robust` -- the clip of high-passed rows at a multiple of their robust deviation.
+
+Compiled with ``cache=True`` and warmed up by :func:`vision.kernels.warm_up` (a measurer's
+set-up), never on a frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from vision.kernels import solve_small
+
+_JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
+
+
+# reassociation lets the sums vectorise (statistics against thresholds: their last bits do not
+# matter); no finite-math assumptions (a NaN stays a NaN)
+_SUMS = {**_JIT, "fastmath": {"reassoc", "nsz", "arcp", "contract"}}
+
+
+@njit(**_SUMS)
+def ratios_every_second(rows_a: np.ndarray, rows_b: np.ndarray, shift: int, lo: int,
+                        out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``out[j, k] = max(B[j, c + shift], 0.5) / max(A[j, c], 0.5)``, ``c = lo + 2 k`` (float32).
+
+    ``out`` has shape ``(n_bins, m)``; ``A``'s columns ``lo .. lo + 2 (m - 1)`` and ``B``'s
+    ``shift`` further must exist.
+    """
+    half = np.float32(0.5)
+    m = out.shape[1]
+    for j in range(rows_a.shape[0]):
+        ra = rows_a[j, lo:]
+        rb = rows_b[j, lo + shift:]
+        o = out[j]
+        for k in range(m):  # the literal stride vectorises (a stride argument does not)
+            o[k] = max(np.float32(rb[2 * k]), half) / max(np.float32(ra[2 * k]), half)
+
+
+@njit(**_SUMS)
+def ratios_pairs(rows_a: np.ndarray, rows_b: np.ndarray, shift: int, lo: int, step: int,
+                 out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """The ratios (as :func:`ratios_every_second`) at pairs of neighbouring columns.
+
+    ``out`` has shape ``(n_bins, 2 m)``: columns ``c_k = lo + k step`` in ``0 .. m - 1``,
+    ``c_k + 1`` in ``m .. 2 m - 1``.
+    """
+    half = np.float32(0.5)
+    m = out.shape[1] // 2
+    for j in range(rows_a.shape[0]):
+        ra = rows_a[j]
+        rb = rows_b[j]
+        o = out[j]
+        for k in range(m):
+            c = lo + k * step
+            o[k] = max(np.float32(rb[c + shift]), half) / max(np.float32(ra[c]), half)
+            o[m + k] = (max(np.float32(rb[c + 1 + shift]), half)
+                        / max(np.float32(ra[c + 1]), half))
+
+
+@njit(**_SUMS)
+def screen_hits(ratio: np.ndarray, limit: float, run: int, needed: int
+                ) -> bool:  # pragma: no cover - compiled
+    """Whether ``needed`` samples lie in runs of ``run`` departing from their column's mean.
+
+    A sample departs when ``|r - mean(column)| > limit * mean |r - mean(column)|`` (the mean
+    over every sample); runs are along the rows (an opening by a ``1 x run`` line, counted).
+    """
+    n, m = ratio.shape
+    mean = np.zeros(m, dtype=np.float32)
+    for j in range(n):
+        row = ratio[j]
+        for k in range(m):
+            mean[k] += row[k]
+    inv = np.float32(1.0 / n)
+    for k in range(m):
+        mean[k] *= inv
+    total = 0.0
+    for j in range(n):
+        row = ratio[j]
+        part = np.float32(0.0)
+        for k in range(m):
+            part += abs(row[k] - mean[k])
+        total += part
+    level = np.float32(limit * total / (n * m))
+    hits = 0
+    for j in range(n):
+        row = ratio[j]
+        for k in range(m):
+            hits += abs(row[k] - mean[k]) > level
+    if hits < needed:  # the runs hold fewer (every clean pair stops here)
+        return False
+    count = 0
+    for j in range(n):
+        row = ratio[j]
+        length = 0
+        for k in range(m):
+            if abs(row[k] - mean[k]) > level:
+                length += 1
+                if length == run:
+                    count += run
+                elif length > run:
+                    count += 1
+            else:
+                length = 0
+        if count >= needed:
+            return True
+    return False
+
+
+@njit(**_SUMS)
+def disagreement_sums(logs: np.ndarray) -> tuple[float, float, float]:  # pragma: no cover
+    """Mean square of the bins' departures, the noise's share of it and the marks' variance.
+
+    ``logs`` (shape ``(n_bins, 2 m)``) holds the log-ratios of the pairs' first columns
+    (``0 .. m - 1``) and of their second columns (``m .. 2 m - 1``).  Returns
+    ``(total, noise, marks)``: the mean of the squared departures from each column's mean,
+    half the mean square of the departures' differences within the pairs, the variance of
+    the column means.
+    """
+    n, w = logs.shape
+    pairs = w // 2
+    mean = np.zeros(w)
+    for j in range(n):
+        row = logs[j]
+        for k in range(w):
+            mean[k] += row[k]
+    for k in range(w):
+        mean[k] /= n
+    total = 0.0
+    noise = 0.0
+    for j in range(n):
+        row = logs[j]
+        for k in range(pairs):
+            d0 = row[k] - mean[k]
+            d1 = row[pairs + k] - mean[pairs + k]
+            total += d0 * d0 + d1 * d1
+            noise += (d1 - d0) * (d1 - d0)
+    mu = 0.0
+    for k in range(w):
+        mu += mean[k]
+    mu /= w
+    marks = 0.0
+    for k in range(w):
+        marks += (mean[k] - mu) * (mean[k] - mu)
+    return total / (n * w), 0.5 * noise / (n * pairs), marks / w
+
+
+@njit(**_JIT)
+def marks_agreement(la: np.ndarray, lb: np.ndarray, x: np.ndarray, cusps: np.ndarray,
+                    bottoms: np.ndarray, max_samples: int
+                    ) -> tuple[float, float]:  # pragma: no cover - compiled
+    """``(-corr(la, p), corr(lb, p))`` inside the marks, a cubic in ``x`` removed from each.
+
+    As :func:`vision.consistency.marks_shading_agreement` (its validated arguments): ``p`` is
+    ``x - b_k`` in mark ``k`` (a position on a cusp belongs to the mark after it), the samples
+    inside ``cusps[0] .. cusps[-1]`` with a mark, every ``k``-th of them (at most
+    ``max_samples``); NaN for fewer than 16 samples or a residual without variance.
+    """
+    nan = (np.nan, np.nan)
+    c_lo, c_hi = cusps[0], cusps[-1]
+    m = bottoms.size
+    idx = np.empty(x.size, dtype=np.int64)
+    pv = np.empty(x.size)
+    inside = 0
+    ok = 0
+    for i in range(x.size):
+        xi = x[i]
+        if not (xi >= c_lo and xi <= c_hi):
+            continue
+        inside += 1
+        k = np.searchsorted(cusps, xi, side="right") - 1
+        if 0 <= k < m:
+            p = xi - bottoms[k]
+            if np.isfinite(p):
+                idx[ok] = i
+                pv[ok] = p
+                ok += 1
+    if inside < 16 or ok < 16:
+        return nan
+    step = max(1, -(-ok // max_samples))
+    first, last = x[idx[0]], x[idx[((ok - 1) // step) * step]]
+    mid = 0.5 * (first + last)
+    half = max(0.5 * (last - first), 1e-9)
+    gram = np.zeros((3, 4, 4))
+    rhs = np.zeros((3, 4))
+    basis = np.empty(4)
+    for s in range(0, ok, step):
+        t = (x[idx[s]] - mid) / half
+        basis[0], basis[1], basis[2], basis[3] = t * t * t, t * t, t, 1.0
+        ys = (pv[s], la[idx[s]], lb[idx[s]])
+        for r in range(4):
+            for c in range(4):
+                gram[0, r, c] += basis[r] * basis[c]
+            for q in range(3):
+                rhs[q, r] += basis[r] * ys[q]
+    gram[1] = gram[0]
+    gram[2] = gram[0]
+    if not solve_small(gram, rhs):
+        return nan
+    sxx = np.zeros(3)
+    sxy = np.zeros(2)
+    for s in range(0, ok, step):
+        t = (x[idx[s]] - mid) / half
+        r0 = pv[s] - (((rhs[0, 0] * t + rhs[0, 1]) * t + rhs[0, 2]) * t + rhs[0, 3])
+        r1 = la[idx[s]] - (((rhs[1, 0] * t + rhs[1, 1]) * t + rhs[1, 2]) * t + rhs[1, 3])
+        r2 = lb[idx[s]] - (((rhs[2, 0] * t + rhs[2, 1]) * t + rhs[2, 2]) * t + rhs[2, 3])
+        sxx[0] += r0 * r0
+        sxx[1] += r1 * r1
+        sxx[2] += r2 * r2
+        sxy[0] += r1 * r0
+        sxy[1] += r2 * r0
+    norms = np.sqrt(sxx)
+    if not (norms[0] > 0 and norms[1] > 0 and norms[2] > 0):
+        return nan
+    return -sxy[0] / (norms[0] * norms[1]), sxy[1] / (norms[0] * norms[2])
+
+
+@njit(**_JIT)
+def clip_robust(values: np.ndarray, step: int, sigmas: float) -> float:  # pragma: no cover
+    """Clip ``values`` (float32, 2-D, C order) in place at ``sigmas`` robust standard deviations.
+
+    The deviation is ``1.4826`` times the median of ``|v|`` over every ``step``-th value of the
+    flattened array; nothing is clipped when it is 0.  Returns the clip level.
+    """
+    flat = values.reshape(-1)
+    n = (flat.size + step - 1) // step
+    sample = np.empty(n, dtype=flat.dtype)
+    for i in range(n):
+        sample[i] = abs(flat[i * step])
+    limit = sigmas * 1.4826 * float(np.median(sample))
+    if limit > 0:
+        hi = np.float32(limit)  # as np.clip with a Python float: the bound in float32
+        lo = -hi
+        for i in range(flat.size):
+            v = flat[i]
+            if v > hi:
+                flat[i] = hi
+            elif v < lo:
+                flat[i] = lo
+    return limit
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) the kernels for the types the checks pass."""
+    ratio = np.ones((3, 4), dtype=np.float32)
+    for dtype in (np.uint16, np.float32):
+        rows = np.ones((3, 12), dtype=dtype)
+        ratios_every_second(rows, rows, 1, 0, ratio)
+        ratios_pairs(rows, rows, 1, 0, 3, ratio)
+    screen_hits(ratio, 4.8, 2, 2)
+    disagreement_sums(ratio)
+    x = np.arange(40.0)
+    marks_agreement(x, x, x, np.array([0.0, 20.0, 39.0]), np.array([10.0, 30.0]), 700)
+    clip_robust(np.ones((2, 4), dtype=np.float32), 1, 3.0)
