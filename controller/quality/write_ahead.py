@@ -284,7 +284,8 @@ class WriteAheadSink:
     def _entry(self, item: Any) -> JournalEntry:
         try:
             record = self._make(item)
-        except Exception as exc:  # noqa: BLE001 - a record that says why, never a lost pair
+        except (ValueError, TypeError, ArithmeticError, AttributeError, LookupError) as exc:
+            # odd values in a result: a failed record that says why, never a lost pair
             record = bare_failed(QualityRecord(t_s=0.0, wall_time="", seq=0, board_id=0,
                                                board_position_mm=0.0, ok=False), exc)
         rec = storable_record(record)
@@ -300,7 +301,7 @@ class WriteAheadSink:
             try:
                 start = self._append(b"".join(lines))
                 ok = True
-            except Exception as exc:  # noqa: BLE001 - the records stay in memory, said
+            except (OSError, ValueError) as exc:  # the records stay in memory, said
                 ok = False
                 err = f"journal {self.journal_path} not writable: {one_line(exc)}"
             with self._cond:

@@ -122,14 +122,8 @@ class ControlLoops:
         self._t_loops = -math.inf
         self.board_speed = BoardSpeedHistory()
         """The PLC's actual feed and knife passing rate (the feed per pass at a cut)."""
-        self.knife_condition: KnifeConditionTracker | None = None
-        """Each knife's wear from the tables in force against the board travelled."""
-        self.board_travel_m = 0.0
-        """Board travelled under the cutter since the service started (the PLC's actual feed), m."""
-        self._travel_t: float | None = None
-        self._jointing_said = False
-        self._condition: dict[str, Any] | None = None
-        self._condition_t = -math.inf
+        self.condition = KnifeConditionWatch(cfg, report)
+        """The knives' wear and the jointing forecast (:class:`KnifeConditionWatch`)."""
         self._lock: asyncio.Lock | None = None
         self._lock_loop: Any = None
 
@@ -410,10 +404,7 @@ class ControlLoops:
         return write
 
     def _record_speed(self, t: float, snap: PlcSnapshot) -> None:
-        if self._travel_t is not None and t > self._travel_t:
-            self.board_travel_m += max(float(snap.feed_actual_mm_s), 0.0) * (
-                t - self._travel_t) * 1e-3
-        self._travel_t = t
+        self.condition.travel(t, snap)
         self.board_speed.record(t, snap.feed_actual_mm_s, snap.spindle_rpm / 60.0 * snap.knives)
         if self.feed_loop is not None:  # the feed loop learns against what the drive did
             self.feed_loop.observe_drive(now_s=t, feed_actual_mm_s=snap.feed_actual_mm_s,
@@ -471,64 +462,21 @@ class ControlLoops:
             self._report.emit(t, EventKind.OFFSETS_NOT_SENT, f"piezo offsets not sent: {exc}")
             return False
         self._learned_offsets = np.asarray(sent, dtype=float)
-        self._note_condition(t, sent)
+        self.condition.note(t, sent, limit_um=self.uniformity_loop.limit_um)
         if chips is not None:
             chips.timeline.note(t, sent)
         for note in uni.take_notices():  # the actuator cannot help: said once
             self._report.emit(t, EventKind.UNIFORMITY_NO_AUTHORITY, note.text, data=note.data)
         return True
 
-    def _note_condition(self, t: float, table: Any) -> None:
-        """The table in force against the board travelled (the knife condition's history)."""
-        uni = self.uniformity_loop
-        kc = self.knife_condition
-        table = [float(v) for v in table]
-        if kc is None or kc.knives != len(table) or kc.stroke_um != uni.limit_um:
-            kc = self.knife_condition = KnifeConditionTracker(knives=len(table),
-                                                              stroke_um=uni.limit_um)
-            self._jointing_said = False
-        kc.update(board_m=self.board_travel_m, offsets_um=table)
-        if t - self._condition_t >= CONDITION_EVERY_S:
-            self._condition_t = t
-            self._condition = self._forecast_condition(t)
+    @property
+    def board_travel_m(self) -> float:
+        """Board travelled under the cutter since the service started (the PLC's feed), m."""
+        return self.condition.board_travel_m
 
     def describe_knife_condition(self) -> dict[str, Any] | None:
-        """Each knife's offset, wear and reserve, and the jointing forecast (for displays).
-
-        The forecast of the last :data:`CONDITION_EVERY_S` seconds (``None`` before the first
-        table was applied).
-        """
-        return None if self._condition is None else dict(self._condition)
-
-    def _forecast_condition(self, t: float) -> dict[str, Any] | None:
-        """The knives' condition now.
-
-        Says ``JOINTING_DUE`` once when it comes within :data:`JOINTING_WARN_BOARDS` boards.
-        """
-        kc, snap = self.knife_condition, self._snap
-        if kc is None or snap is None:
-            return None
-        q = self.cfg.quality
-        feed = max(float(snap.feed_actual_mm_s), 1.0)
-        fc = kc.forecast(pitch_mm=q.target_pitch_mm,
-                         radius_mm=float(snap["cutterhead_radius_mm"]),
-                         cv_max=q.uniformity_max_cv, feed_mm_s=feed,
-                         board_length_mm=q.board_length_mm)
-        if (fc.due_in_boards is not None and fc.due_in_boards <= JOINTING_WARN_BOARDS
-                and not self._jointing_said):
-            self._jointing_said = True
-            self._report.emit(t, EventKind.JOINTING_DUE, fc.text, data={
-                "knife": fc.knife, "due_in_m": fc.due_in_m, "due_in_boards": fc.due_in_boards,
-                "due_in_h": fc.due_in_h})
-        return {
-            "board_travel_m": self.board_travel_m,
-            "knives": [{"knife": c.knife, "offset_um": c.offset_um,
-                        "drift_um_per_m": None if math.isnan(c.drift_um_per_m)
-                        else c.drift_um_per_m, "reserve_um": c.reserve_um}
-                       for c in kc.conditions()],
-            "due_in_m": fc.due_in_m, "due_in_boards": fc.due_in_boards,
-            "due_in_h": fc.due_in_h, "knife": fc.knife, "text": fc.text,
-        }
+        """The knives' condition for displays (:meth:`KnifeConditionWatch.describe`)."""
+        return self.condition.describe()
 
     def amp_tracked(self, cut_at_s: float | None, t: float) -> bool:
         """Whether the board a measurement shows was cut while the amplifier played the offsets.
@@ -570,3 +518,85 @@ class ControlLoops:
                     self.uniformity_loop.reset(learned, now_s=t)
             except FieldbusError:
                 self._report.count("can_errors")
+
+
+class KnifeConditionWatch:
+    """The knives' wear from the tables in force against the board travelled, and when to joint.
+
+    Parameters
+    ----------
+    cfg : MachineConfig
+        ``[quality]``: the target pitch, ``uniformity_max_cv``, ``board_length_mm``.
+    report : EventLog
+        Where ``JOINTING_DUE`` is said.
+    """
+
+    def __init__(self, cfg: MachineConfig, report: EventLog) -> None:
+        self.cfg = cfg
+        self._report = report
+        self.tracker: KnifeConditionTracker | None = None
+        self.board_travel_m = 0.0
+        """Board travelled under the cutter since the service started (the PLC's feed), m."""
+        self._travel_t: float | None = None
+        self._snap: PlcSnapshot | None = None
+        self._said = False
+        self._condition: dict[str, Any] | None = None
+        self._condition_t = -math.inf
+
+    def travel(self, t: float, snap: PlcSnapshot) -> None:
+        """Add the board travelled since the last call at the PLC's actual feed."""
+        if self._travel_t is not None and t > self._travel_t:
+            self.board_travel_m += max(float(snap.feed_actual_mm_s), 0.0) * (
+                t - self._travel_t) * 1e-3
+        self._travel_t = t
+        self._snap = snap
+
+    def note(self, t: float, table: Any, *, limit_um: float) -> None:
+        """The table in force now; the forecast renewed every :data:`CONDITION_EVERY_S`."""
+        kc = self.tracker
+        table = [float(v) for v in table]
+        if kc is None or kc.knives != len(table) or kc.stroke_um != limit_um:
+            kc = self.tracker = KnifeConditionTracker(knives=len(table), stroke_um=limit_um)
+            self._said = False
+        kc.update(board_m=self.board_travel_m, offsets_um=table)
+        if t - self._condition_t >= CONDITION_EVERY_S:
+            self._condition_t = t
+            self._condition = self._forecast(t)
+
+    def describe(self) -> dict[str, Any] | None:
+        """Each knife's offset, wear and reserve, and the jointing forecast (for displays).
+
+        The forecast of the last :data:`CONDITION_EVERY_S` seconds (``None`` before the first
+        table was applied).
+        """
+        return None if self._condition is None else dict(self._condition)
+
+    def _forecast(self, t: float) -> dict[str, Any] | None:
+        """The knives' condition now.
+
+        Says ``JOINTING_DUE`` once when it comes within :data:`JOINTING_WARN_BOARDS` boards.
+        """
+        kc, snap = self.tracker, self._snap
+        if kc is None or snap is None:
+            return None
+        q = self.cfg.quality
+        fc = kc.forecast(pitch_mm=q.target_pitch_mm,
+                         radius_mm=float(snap["cutterhead_radius_mm"]),
+                         cv_max=q.uniformity_max_cv,
+                         feed_mm_s=max(float(snap.feed_actual_mm_s), 1.0),
+                         board_length_mm=q.board_length_mm)
+        if (fc.due_in_boards is not None and fc.due_in_boards <= JOINTING_WARN_BOARDS
+                and not self._said):
+            self._said = True
+            self._report.emit(t, EventKind.JOINTING_DUE, fc.text, data={
+                "knife": fc.knife, "due_in_m": fc.due_in_m, "due_in_boards": fc.due_in_boards,
+                "due_in_h": fc.due_in_h})
+        return {
+            "board_travel_m": self.board_travel_m,
+            "knives": [{"knife": c.knife, "offset_um": c.offset_um,
+                        "drift_um_per_m": None if math.isnan(c.drift_um_per_m)
+                        else c.drift_um_per_m, "reserve_um": c.reserve_um}
+                       for c in kc.conditions()],
+            "due_in_m": fc.due_in_m, "due_in_boards": fc.due_in_boards,
+            "due_in_h": fc.due_in_h, "knife": fc.knife, "text": fc.text,
+        }

@@ -380,6 +380,61 @@ def _height_function(source: HeightSource) -> Callable[[np.ndarray], np.ndarray]
     )
 
 
+def pixel_map(cam: Any, w: int, h: int, *, px_per_mm: float, px_per_mm_y: float,
+              roll_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The board-frame position every distorted pixel shows, through the lens model.
+
+    Returns
+    -------
+    K : ndarray, shape (3, 3)
+        The camera matrix.
+    dist : ndarray
+        The distortion coefficients.
+    x_phys_mm, y_phys_mm : ndarray, shape (h, w)
+        Along and across the feed, mm, from the optical centre (the camera rolled by
+        ``roll_deg``).
+
+    Raises
+    ------
+    ValueError
+        The lens model cannot be inverted over the image (it folds over).
+    """
+    ppm = px_per_mm
+    K = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
+    dist = np.asarray(cam.dist, dtype=float)
+    # undistorted position of every distorted pixel
+    cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pts = np.stack([cols.ravel(), rows.ravel()], axis=1).reshape(-1, 1, 2)
+    if np.any(dist != 0):
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
+        und = cv2.undistortPoints(pts, K, dist, None, K, criteria=crit)
+        # check the inversion: projecting back must land on the pixel
+        obj = np.empty((und.shape[0], 1, 3))
+        obj[:, 0, 0] = (und[:, 0, 0] - cam.cx) / cam.fx
+        obj[:, 0, 1] = (und[:, 0, 1] - cam.cy) / cam.fy
+        obj[:, 0, 2] = 1.0
+        back, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, dist)
+        err = float(np.max(np.abs(back - pts)))
+        if not err < 1e-3:
+            raise ValueError(
+                f"dist {tuple(cam.dist)} cannot be inverted over a {w}x{h} image (the lens "
+                f"model folds over; round-trip error {err:.3g} px)"
+            )
+        und = und.reshape(h, w, 2)
+    else:
+        und = pts.reshape(h, w, 2)
+    xc = (und[..., 0] - cam.cx) / ppm
+    yc = (und[..., 1] - cam.cy) / px_per_mm_y
+    roll = math.radians(roll_deg)
+    cr, sr = math.cos(roll), math.sin(roll)
+    # board-frame position shown by each pixel (the camera rolled by `roll`)
+    x_phys_mm = (xc * cr + yc * sr).astype(np.float64)
+    y_phys_mm = (yc * cr - xc * sr).astype(np.float64)
+    del xc, yc
+    return K, dist, x_phys_mm, y_phys_mm
+
+
+
 class Renderer:
     """Renders image pairs of a board for one rig, optics and wood; set up once.
 
@@ -429,7 +484,12 @@ class Renderer:
         exp = optics.exposure_ms if optics.exposure_ms is not None else (cam.exposure_ms or 0.0)
         self.exposure_s = float(exp) * 1e-3
         w, h = optics.width, optics.height
-        self._map_pixels(cam, w, h, fx.roll_deg)
+        self.K, self.dist, self.x_phys_mm, self.y_phys_mm = pixel_map(
+            cam, w, h, px_per_mm=self.px_per_mm, px_per_mm_y=self.px_per_mm_y,
+            roll_deg=fx.roll_deg)
+        self._x_lo = float(self.x_phys_mm.min())
+        self._x_hi = float(self.x_phys_mm.max())
+        self.field_width_mm = self._x_hi - self._x_lo
         n_rows, span_cols = self._board_grid(cam, optics)
         tiles = texture_tiles(
             wood, rows=n_rows, cols=self._period, dx_mm=self.dx_mm, dy_mm=self.dy_mm,
@@ -440,44 +500,6 @@ class Renderer:
         self._set_gains(optics, wood)
         self._noise_rng = np.random.default_rng([self.seed, 0x5EED])
         self._undistorted_cols = np.arange(w, dtype=np.float64)
-
-    def _map_pixels(self, cam: Any, w: int, h: int, roll_deg: float) -> None:
-        """The board-frame position (mm) every distorted pixel shows, through the lens model."""
-        ppm = self.px_per_mm
-        self.K = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
-        self.dist = np.asarray(cam.dist, dtype=float)
-        # undistorted position of every distorted pixel
-        cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-        pts = np.stack([cols.ravel(), rows.ravel()], axis=1).reshape(-1, 1, 2)
-        if np.any(self.dist != 0):
-            crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
-            und = cv2.undistortPoints(pts, self.K, self.dist, None, self.K, criteria=crit)
-            # check the inversion: projecting back must land on the pixel
-            obj = np.empty((und.shape[0], 1, 3))
-            obj[:, 0, 0] = (und[:, 0, 0] - cam.cx) / cam.fx
-            obj[:, 0, 1] = (und[:, 0, 1] - cam.cy) / cam.fy
-            obj[:, 0, 2] = 1.0
-            back, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), self.K, self.dist)
-            err = float(np.max(np.abs(back - pts)))
-            if not err < 1e-3:
-                raise ValueError(
-                    f"dist {tuple(cam.dist)} cannot be inverted over a {w}x{h} image (the lens "
-                    f"model folds over; round-trip error {err:.3g} px)"
-                )
-            und = und.reshape(h, w, 2)
-        else:
-            und = pts.reshape(h, w, 2)
-        xc = (und[..., 0] - cam.cx) / ppm
-        yc = (und[..., 1] - cam.cy) / self.px_per_mm_y
-        roll = math.radians(roll_deg)
-        cr, sr = math.cos(roll), math.sin(roll)
-        # board-frame position shown by each pixel (the camera rolled by `roll`)
-        self.x_phys_mm = (xc * cr + yc * sr).astype(np.float64)
-        self.y_phys_mm = (yc * cr - xc * sr).astype(np.float64)
-        del xc, yc
-        x_lo, x_hi = float(self.x_phys_mm.min()), float(self.x_phys_mm.max())
-        self.field_width_mm = x_hi - x_lo
-        self._x_lo, self._x_hi = x_lo, x_hi
 
     def _board_grid(self, cam: Any, optics: Optics) -> tuple[int, int]:
         """The fine board grid the texture is sampled on; its rows and its span in columns."""
