@@ -98,26 +98,40 @@ def screen_hits(ratio: np.ndarray, limit: float, run: int, needed: int
             part += abs(row[k] - mean[k])
         total += part
     level = np.float32(limit * total / (n * m))
-    hits = 0
+    flags = np.empty((n, m), dtype=np.uint8)
+    row_hits = np.zeros(n, dtype=np.int64)
     for j in range(n):
         row = ratio[j]
+        f = flags[j]
         for k in range(m):
-            hits += abs(row[k] - mean[k]) > level
-    if hits < needed:  # the runs hold fewer (every clean pair stops here)
+            f[k] = abs(row[k] - mean[k]) > level
+        h = 0
+        for k in range(m):
+            h += f[k]
+        row_hits[j] = h
+    if row_hits.sum() < needed:  # the runs hold fewer
         return False
+    # the opening by a 1 x run line, row by row, as byte operations (vectorised): an erosion
+    # (every sample of a window departs), then a dilation (the samples of such windows)
+    span = m - run + 1
+    ero = np.empty(max(span, 0), dtype=np.uint8)
+    dil = np.empty(m, dtype=np.uint8)
     count = 0
     for j in range(n):
-        row = ratio[j]
-        length = 0
+        if row_hits[j] < run or span <= 0:  # no run in this row
+            continue
+        f = flags[j]
+        for k in range(span):
+            ero[k] = f[k]
+        for r in range(1, run):
+            for k in range(span):
+                ero[k] &= f[k + r]
+        dil[:] = 0
+        for r in range(run):
+            for k in range(span):
+                dil[k + r] |= ero[k]
         for k in range(m):
-            if abs(row[k] - mean[k]) > level:
-                length += 1
-                if length == run:
-                    count += run
-                elif length > run:
-                    count += 1
-            else:
-                length = 0
+            count += dil[k]
         if count >= needed:
             return True
     return False
@@ -179,12 +193,19 @@ def marks_agreement(la: np.ndarray, lb: np.ndarray, x: np.ndarray, cusps: np.nda
     pv = np.empty(x.size)
     inside = 0
     ok = 0
+    k = -1  # the mark of the last sample: cusps[k] <= x < cusps[k + 1]
+    last = -np.inf
     for i in range(x.size):
         xi = x[i]
         if not (xi >= c_lo and xi <= c_hi):
             continue
         inside += 1
-        k = np.searchsorted(cusps, xi, side="right") - 1
+        if xi >= last:  # increasing positions: walk on (else search afresh)
+            while k + 1 < cusps.size and cusps[k + 1] <= xi:
+                k += 1
+        else:
+            k = np.searchsorted(cusps, xi, side="right") - 1
+        last = xi
         if 0 <= k < m:
             p = xi - bottoms[k]
             if np.isfinite(p):
@@ -197,20 +218,40 @@ def marks_agreement(la: np.ndarray, lb: np.ndarray, x: np.ndarray, cusps: np.nda
     first, last = x[idx[0]], x[idx[((ok - 1) // step) * step]]
     mid = 0.5 * (first + last)
     half = max(0.5 * (last - first), 1e-9)
-    gram = np.zeros((3, 4, 4))
-    rhs = np.zeros((3, 4))
-    basis = np.empty(4)
+    # the normal equations from power sums: sum t^e (e = 0..6) and sum t^e y (e = 0..3)
+    pw = np.zeros(7)
+    ty = np.zeros((3, 4))
     for s in range(0, ok, step):
         t = (x[idx[s]] - mid) / half
-        basis[0], basis[1], basis[2], basis[3] = t * t * t, t * t, t, 1.0
-        ys = (pv[s], la[idx[s]], lb[idx[s]])
-        for r in range(4):
-            for c in range(4):
-                gram[0, r, c] += basis[r] * basis[c]
-            for q in range(3):
-                rhs[q, r] += basis[r] * ys[q]
+        t2 = t * t
+        t3 = t2 * t
+        pw[1] += t
+        pw[2] += t2
+        pw[3] += t3
+        pw[4] += t2 * t2
+        pw[5] += t3 * t2
+        pw[6] += t3 * t3
+        pw[0] += 1.0
+        y0, y1, y2 = pv[s], la[idx[s]], lb[idx[s]]
+        ty[0, 0] += t3 * y0
+        ty[0, 1] += t2 * y0
+        ty[0, 2] += t * y0
+        ty[0, 3] += y0
+        ty[1, 0] += t3 * y1
+        ty[1, 1] += t2 * y1
+        ty[1, 2] += t * y1
+        ty[1, 3] += y1
+        ty[2, 0] += t3 * y2
+        ty[2, 1] += t2 * y2
+        ty[2, 2] += t * y2
+        ty[2, 3] += y2
+    gram = np.empty((3, 4, 4))
+    for r in range(4):
+        for c in range(4):
+            gram[0, r, c] = pw[6 - r - c]  # basis (t^3, t^2, t, 1)
     gram[1] = gram[0]
     gram[2] = gram[0]
+    rhs = ty
     if not solve_small(gram, rhs):
         return nan
     sxx = np.zeros(3)
