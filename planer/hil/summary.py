@@ -121,90 +121,17 @@ def summarize(
     faults = [f if f.at_s is not None else replace(f, at_s=0.0) for f in faults]  # "now": 0
     pos = _unwrapped_mm(results, counts_per_mm)
     lo, hi = feed_limits_mm_s
-    meas = []
-    for r, d in zip(results, pos, strict=True):
-        meas.append(
-            {
-                "seq": r.seq,
-                "t_s": round(r.t_s, 4),
-                "board_travel_mm": round(d, 2),
-                "ok": r.ok,
-                "error": r.error,
-                "state": r.state,
-                "applied": r.applied,
-                "pitch_mm": _num(r.reported_pitch_mm) if r.ok else None,
-                "uniformity_cv": _num(r.reported_uniformity_cv) if r.ok else None,
-                "true_pitch_mm": _truth(r, "pitch_mm"),
-                "true_uniformity_cv": _truth(r, "uniformity_cv"),
-                "feed_setpoint_mm_s": _num(r.feed_setpoint_mm_s),
-                "piezo_offsets_um": [round(float(v), 3) for v in r.offsets_um],
-                "knife_widths_mm": [_num(w) for w in r.knife_widths_mm],
-                "latency_ms": round(r.latency_s * 1e3, 3),
-            }
-        )
+    meas = _measurement_rows(results, pos)
     closed = next((i for i, r in enumerate(results) if r.applied), None)
     out: dict[str, Any] = {"target_pitch_mm": float(target_pitch_mm)}
-    with_truth = [i for i, r in enumerate(results) if _truth(r, "uniformity_cv") is not None]
-    if with_truth:
-        first = with_truth[0]
-        out["initial"] = {
-            "uniformity_cv": _truth(results[first], "uniformity_cv"),
-            "pitch_mm": _truth(results[first], "pitch_mm"),
-            "board_travel_mm": round(pos[first], 2),
-        }
-        tail = with_truth[-FINAL_MEASUREMENTS:]
-        out["final"] = {
-            "uniformity_cv": float(np.mean([_truth(results[i], "uniformity_cv") for i in tail])),
-            "pitch_mm": float(np.mean([_truth(results[i], "pitch_mm") for i in tail])),
-            "uniformity_cv_max": float(
-                np.max([_truth(results[i], "uniformity_cv") for i in tail])
-            ),
-            "pitch_error_max": float(
-                np.max([abs(_truth(results[i], "pitch_mm") / target_pitch_mm - 1) for i in tail])
-            ),
-            "measurements": len(tail),
-        }
-    else:
-        out["initial"] = {"uniformity_cv": None, "pitch_mm": None}
-        out["final"] = {"uniformity_cv": None, "pitch_mm": None}
+    out.update(_initial_and_final(results, pos, target_pitch_mm))
     out["measurements"] = meas
 
-    # convergence after the loop closed (true values, board travel from the closing measurement);
-    # with faults: after the recovery from the last one
-    conv: dict[str, Any] = {"loop_closed_at_mm": None}
-    ref, ref_name = closed, "loop closed"
-    if closed is not None and faults:
-        last_fault = max(f.at_s + _local_offset(results, f.at_s, time_offset_s) for f in faults)
-        recs = [e.t_s for e in events if e.kind is EventKind.RECOVERED and e.t_s >= last_fault]
-        if recs:
-            ref = next((i for i, r in enumerate(results) if r.t_s > recs[0] and r.applied), None)
-            ref_name = "recovery after the last fault"
-    chips = [e.t_s for e in events if e.kind is EventKind.KNIFE_CHIPPED]
-    if closed is not None and chips:  # the knives changed: settling counts from then
-        after_chip = next((i for i, r in enumerate(results) if r.t_s > chips[-1] and r.applied),
-                          None)
-        if after_chip is not None and (ref is None or after_chip > ref):
-            ref, ref_name = after_chip, "knife chip"
     reach = _reachable_pitch(events)
     pitch_goal = float(target_pitch_mm) if reach is None else reach
-    if closed is not None and ref is not None:
-        c0 = pos[ref]
-        after = list(range(ref, len(results)))
-        rel = [pos[i] - c0 for i in after]
-        cv_vals = [_truth(results[i], "uniformity_cv") for i in after]
-        p_vals = [_truth(results[i], "pitch_mm") for i in after]
-        cv_at = _settled_at(cv_vals, lambda v: v <= final_cv_max, rel)
-        p_at = _settled_at(
-            p_vals, lambda v: abs(v / pitch_goal - 1.0) <= PITCH_TOL, rel
-        )
-        conv = {
-            "loop_closed_at_mm": round(pos[closed], 2),
-            "reference": ref_name,
-            "reference_at_mm": round(c0, 2),
-            "uniformity_settled_after_mm": None if cv_at is None else round(cv_at, 1),
-            "pitch_settled_after_mm": None if p_at is None else round(p_at, 1),
-            "run_after_reference_mm": round(rel[-1], 1) if rel else 0.0,
-        }
+    conv = _convergence(results, pos, closed, faults=faults, events=events,
+                        time_offset_s=time_offset_s, pitch_goal=pitch_goal,
+                        final_cv_max=final_cv_max)
     out["converged"] = conv
 
     lat = [r.latency_s * 1e3 for r in results if r.ok]
@@ -230,6 +157,119 @@ def summarize(
     p1 = out["final"].get("pitch_mm")
     out["alerts"] = alert_counts(events)
     out["reachable_pitch_mm"] = reach
+    done = _done(out, conv, cv0=cv0, cv1=cv1, p1=p1, pitch_goal=pitch_goal,
+                 final_cv_max=final_cv_max)
+    out["done"] = done
+    out["checks"] = check_texts(done, out, final_cv_max=final_cv_max, pitch_goal=pitch_goal,
+                                target_pitch_mm=float(target_pitch_mm))
+    out["passed"] = all(done.values())
+    if extra:
+        out.update(extra)
+    return out
+
+
+def _measurement_rows(results: Sequence[FrameResult], pos: Sequence[float]) -> list[dict]:
+    """One row per measurement: measured and true pitch and CV, setpoints, latency."""
+    meas = []
+    for r, d in zip(results, pos, strict=True):
+        meas.append(
+            {
+                "seq": r.seq,
+                "t_s": round(r.t_s, 4),
+                "board_travel_mm": round(d, 2),
+                "ok": r.ok,
+                "error": r.error,
+                "state": r.state,
+                "applied": r.applied,
+                "pitch_mm": _num(r.reported_pitch_mm) if r.ok else None,
+                "uniformity_cv": _num(r.reported_uniformity_cv) if r.ok else None,
+                "true_pitch_mm": _truth(r, "pitch_mm"),
+                "true_uniformity_cv": _truth(r, "uniformity_cv"),
+                "feed_setpoint_mm_s": _num(r.feed_setpoint_mm_s),
+                "piezo_offsets_um": [round(float(v), 3) for v in r.offsets_um],
+                "knife_widths_mm": [_num(w) for w in r.knife_widths_mm],
+                "latency_ms": round(r.latency_s * 1e3, 3),
+            }
+        )
+    return meas
+
+
+def _initial_and_final(results: Sequence[FrameResult], pos: Sequence[float],
+                       target_pitch_mm: float) -> dict[str, Any]:
+    """The true finish at the first measurement and over the last ones."""
+    out: dict[str, Any] = {}
+    with_truth = [i for i, r in enumerate(results) if _truth(r, "uniformity_cv") is not None]
+    if with_truth:
+        first = with_truth[0]
+        out["initial"] = {
+            "uniformity_cv": _truth(results[first], "uniformity_cv"),
+            "pitch_mm": _truth(results[first], "pitch_mm"),
+            "board_travel_mm": round(pos[first], 2),
+        }
+        tail = with_truth[-FINAL_MEASUREMENTS:]
+        out["final"] = {
+            "uniformity_cv": float(np.mean([_truth(results[i], "uniformity_cv") for i in tail])),
+            "pitch_mm": float(np.mean([_truth(results[i], "pitch_mm") for i in tail])),
+            "uniformity_cv_max": float(
+                np.max([_truth(results[i], "uniformity_cv") for i in tail])
+            ),
+            "pitch_error_max": float(
+                np.max([abs(_truth(results[i], "pitch_mm") / target_pitch_mm - 1) for i in tail])
+            ),
+            "measurements": len(tail),
+        }
+    else:
+        out["initial"] = {"uniformity_cv": None, "pitch_mm": None}
+        out["final"] = {"uniformity_cv": None, "pitch_mm": None}
+    return out
+
+
+def _convergence(results: Sequence[FrameResult], pos: Sequence[float], closed: int | None, *,
+                 faults: Sequence[FaultEvent], events: Sequence[ServiceEvent],
+                 time_offset_s: float, pitch_goal: float, final_cv_max: float
+                 ) -> dict[str, Any]:
+    """Where the true finish settled after the loop closed (or recovered, or a knife chipped)."""
+    # convergence after the loop closed (true values, board travel from the closing measurement);
+    # with faults: after the recovery from the last one
+    conv: dict[str, Any] = {"loop_closed_at_mm": None}
+    ref, ref_name = closed, "loop closed"
+    if closed is not None and faults:
+        last_fault = max(f.at_s + _local_offset(results, f.at_s, time_offset_s) for f in faults)
+        recs = [e.t_s for e in events if e.kind is EventKind.RECOVERED and e.t_s >= last_fault]
+        if recs:
+            ref = next((i for i, r in enumerate(results) if r.t_s > recs[0] and r.applied), None)
+            ref_name = "recovery after the last fault"
+    chips = [e.t_s for e in events if e.kind is EventKind.KNIFE_CHIPPED]
+    if closed is not None and chips:  # the knives changed: settling counts from then
+        after_chip = next((i for i, r in enumerate(results) if r.t_s > chips[-1] and r.applied),
+                          None)
+        if after_chip is not None and (ref is None or after_chip > ref):
+            ref, ref_name = after_chip, "knife chip"
+    if closed is not None and ref is not None:
+        c0 = pos[ref]
+        after = list(range(ref, len(results)))
+        rel = [pos[i] - c0 for i in after]
+        cv_vals = [_truth(results[i], "uniformity_cv") for i in after]
+        p_vals = [_truth(results[i], "pitch_mm") for i in after]
+        cv_at = _settled_at(cv_vals, lambda v: v <= final_cv_max, rel)
+        p_at = _settled_at(
+            p_vals, lambda v: abs(v / pitch_goal - 1.0) <= PITCH_TOL, rel
+        )
+        conv = {
+            "loop_closed_at_mm": round(pos[closed], 2),
+            "reference": ref_name,
+            "reference_at_mm": round(c0, 2),
+            "uniformity_settled_after_mm": None if cv_at is None else round(cv_at, 1),
+            "pitch_settled_after_mm": None if p_at is None else round(p_at, 1),
+            "run_after_reference_mm": round(rel[-1], 1) if rel else 0.0,
+        }
+    return conv
+
+
+def _done(out: Mapping[str, Any], conv: Mapping[str, Any], *, cv0: float | None,
+          cv1: float | None, p1: float | None, pitch_goal: float, final_cv_max: float
+          ) -> dict[str, bool]:
+    """The run's checks, by key (the ``done`` object)."""
     done = {
         # a run that starts with something to correct, or one that starts within the band and
         # ends there: only a run that starts good and ends bad fails here
@@ -248,13 +288,7 @@ def summarize(
         "faults_handled": all(f.get("handled", True) for f in out["faults"]),
         "no_unexplained_safe_state": out["safe_entries"]["unexplained"] == 0,
     }
-    out["done"] = done
-    out["checks"] = check_texts(done, out, final_cv_max=final_cv_max, pitch_goal=pitch_goal,
-                                target_pitch_mm=float(target_pitch_mm))
-    out["passed"] = all(done.values())
-    if extra:
-        out.update(extra)
-    return out
+    return done
 
 
 ALERT_KINDS = {
