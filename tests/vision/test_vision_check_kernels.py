@@ -11,7 +11,7 @@ import pytest
 from vision import kernels
 from vision.consistency import marks_shading_agreement
 from vision.defect_rows import _screened, rows_disagreement
-from vision.orientation import CLIP_SIGMAS, _highpassed_log_rows
+from vision.orientation import CLIP_SAMPLES, CLIP_SIGMAS, _highpassed_log_rows
 
 kernels.warm_up()
 
@@ -111,7 +111,7 @@ def test_the_roll_rows_clip_at_the_robust_deviation():
     hp = _highpassed_log_rows(rows, 41)
     r = np.log(rows)
     raw = r - cv2.blur(r, (41, 1), borderType=cv2.BORDER_REFLECT)
-    step = max(1, raw.size // 4096)
+    step = max(1, raw.size // CLIP_SAMPLES)
     limit = CLIP_SIGMAS * 1.4826 * float(np.median(np.abs(raw.ravel()[::step])))
     np.testing.assert_array_equal(hp, np.clip(raw, -limit, limit))
     assert np.abs(raw).max() > limit  # the shadow was clipped
