@@ -1,6 +1,7 @@
 """Compiled loops (numba) for the measurement's own checks (each a chain of small numpy calls).
 
-The checks that keep defect boards honest (:mod:`vision.consistency`, :mod:`vision.defect_rows`,
+The checks that keep defect boards honest (:mod:`vision.registration.consistency`,
+:mod:`vision.registration.defect_rows`,
 the roll estimate's clip in :mod:`vision.orientation`) run on every pair; as numpy chains they
 cost about a third of a clean pair's measurement, most of it call overhead and temporaries.
 The loops here compute the same statistics in one or two calls each:
@@ -12,7 +13,8 @@ The loops here compute the same statistics in one or two calls each:
   along the rows;
 * :func:`disagreement_sums` -- the row bins' disagreement from pairs of neighbouring columns;
 * :func:`marks_agreement` -- the marks' kinematic slope against both log-profiles, a cubic
-  removed (its normal equations, as :func:`vision.consistency.marks_shading_agreement`);
+  removed (its normal equations, as
+  :func:`vision.registration.consistency.marks_shading_agreement`);
 * :func:`clip_robust` -- the clip of high-passed rows at a multiple of their robust deviation.
 
 Compiled with ``cache=True`` and warmed up by :func:`vision.kernels.warm_up` (a measurer's
@@ -181,7 +183,8 @@ def marks_agreement(la: np.ndarray, lb: np.ndarray, x: np.ndarray, cusps: np.nda
                     ) -> tuple[float, float]:  # pragma: no cover - compiled
     """``(-corr(la, p), corr(lb, p))`` inside the marks, a cubic in ``x`` removed from each.
 
-    As :func:`vision.consistency.marks_shading_agreement` (its validated arguments): ``p`` is
+    As :func:`vision.registration.consistency.marks_shading_agreement` (its validated arguments):
+    ``p`` is
     ``x - b_k`` in mark ``k`` (a position on a cusp belongs to the mark after it), the samples
     inside ``cusps[0] .. cusps[-1]`` with a mark, every ``k``-th of them (at most
     ``max_samples``); NaN for fewer than 16 samples or a residual without variance.

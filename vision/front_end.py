@@ -36,7 +36,7 @@ import numpy as np
 from config.rig import Camera
 from core.checks import check_image, check_int, check_positive
 from vision import kernels
-from vision.undistort import Undistorter
+from vision.calibration.undistort import Undistorter
 
 _ROLL_KEY_DEG = 0.005
 """Rolls are rounded to this grid for the cached tables (a shear error below 0.01 px)."""
@@ -135,7 +135,7 @@ class FrontEnd:
 
     Attributes
     ----------
-    undistort : vision.undistort.Undistorter
+    undistort : vision.calibration.undistort.Undistorter
         The ``k0``-row binning and its geometry (``bin_rows``, ``row_band``, ``columns``).
     width : int
         Columns of every output (the undistorted columns that see the image).

@@ -8,7 +8,8 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
 * :func:`bin_rows` -- an 8-bit image summed into ``k``-row bins, those summed ``m`` at a time
   over a band, and that band's column sums, in one pass over the image;
 * :func:`running_mean_1d`, :func:`running_mean_2d` -- running means of fractional length
-  (cumulative sums and linear interpolation, as :func:`vision.illumination.running_mean`);
+  (cumulative sums and linear interpolation, as
+  :func:`vision.calibration.illumination.running_mean`);
 * :func:`cusp_candidates` -- the candidate cusps of :func:`vision.marks.find_marks` and the
   slope's noise;
 * :func:`smooth_trend` -- the illumination polynomial fitted to running means;
@@ -108,7 +109,7 @@ def _interp_at(x: float, cum: np.ndarray, col: int) -> float:  # pragma: no cove
 
 @njit(**_JIT)
 def running_mean_2d(values: np.ndarray, length: float) -> np.ndarray:  # pragma: no cover
-    """:func:`vision.illumination.running_mean` of an ``(n, k)`` array along axis 0.
+    """:func:`vision.calibration.illumination.running_mean` of an ``(n, k)`` array along axis 0.
 
     Returns
     -------
@@ -136,7 +137,7 @@ def running_mean_2d(values: np.ndarray, length: float) -> np.ndarray:  # pragma:
 
 @njit(**_JIT)
 def running_mean_1d(values: np.ndarray, length: float) -> np.ndarray:  # pragma: no cover
-    """:func:`vision.illumination.running_mean` of a 1-D array."""
+    """:func:`vision.calibration.illumination.running_mean` of a 1-D array."""
     return running_mean_2d(values.reshape(values.size, 1), length)[:, 0]
 
 
@@ -145,7 +146,7 @@ def smooth_trend(values: np.ndarray, basis: np.ndarray,
                  length: float) -> tuple[bool, np.ndarray]:  # pragma: no cover - compiled
     """The polynomial fitted to the running means of ``values`` and of its ``basis``.
 
-    As :meth:`vision.illumination.Detrender.trend` with a period: the running mean over
+    As :meth:`vision.calibration.illumination.Detrender.trend` with a period: the running mean over
     ``length`` samples of the values and of each basis column, the normal equations of those,
     and the fitted polynomial ``basis @ coef`` over all samples.
 
@@ -304,7 +305,15 @@ def arc_model(h: np.ndarray, p: np.ndarray, gaps: np.ndarray, dx: float, guard: 
             cusp_h[q] = hr
         else:
             cusp_h[q] = np.interp(c, np.arange(n, dtype=np.float64), h)
-    # Bottoms: each complete mark's arc vertex, kept inside the mark.
+    bottoms, bottom_h = _arc_bottoms(h, b, e, half, cusp, j0)
+    return True, cusp, cusp_h, bottoms, bottom_h
+
+
+@njit(**_JIT)
+def _arc_bottoms(h: np.ndarray, b: np.ndarray, e: np.ndarray, half: float, cusp: np.ndarray,
+                 j0: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Bottoms of :func:`arc_model`: each complete mark's arc vertex, kept inside the mark."""
+    nc = cusp.size
     bottoms = np.empty(nc - 1)
     bottom_h = np.empty(nc - 1)
     for q in range(nc - 1):
@@ -322,7 +331,7 @@ def arc_model(h: np.ndarray, p: np.ndarray, gaps: np.ndarray, dx: float, guard: 
             bot, bh = float(i), h[i]
         bottoms[q] = bot
         bottom_h[q] = bh
-    return True, cusp, cusp_h, bottoms, bottom_h
+    return bottoms, bottom_h
 
 
 @njit(**_JIT)
@@ -530,7 +539,8 @@ def arc_slopes(x: np.ndarray, cusps: np.ndarray, bottoms: np.ndarray,
                radius: float) -> np.ndarray:  # pragma: no cover - compiled
     """``(x - b_k) / R`` inside mark ``k`` (between cusps ``k`` and ``k + 1``), NaN outside.
 
-    As :func:`vision.selfcal.kinematic_slope` (a position on a cusp belongs to the mark after
+    As :func:`vision.calibration.selfcal.kinematic_slope` (a position on a cusp belongs to the
+    mark after
     it).
     """
     k = np.searchsorted(cusps, x, side="right") - 1

@@ -9,17 +9,18 @@ Steps (all set-up done once per rig and image shape in :class:`Measurer`):
 2. column profiles (:mod:`vision.profile`) and shading-free textures (made on demand);
 3. registration: encoder shift (seed Eq. 5-6), refined from the images -- coarse on the albedo
    (2-D texture, or the 1-D column profiles), fine on the column profiles
-   (:mod:`vision.registration`);
+   (:mod:`vision.registration.registrar`);
 4. optional flat-field correction of each profile in the camera frame, then Wiener deblurring along
    the feed when the motion blur is sizeable (:mod:`vision.deblur`);
 5. B resampled onto A's columns over the overlap; log-ratio detrended against LED imbalance and
-   fall-off (:mod:`vision.illumination`); slope by seed Eq. 4 (:mod:`vision.slope`);
+   fall-off (:mod:`vision.calibration.illumination`); slope by seed Eq. 4 (:mod:`vision.slope`);
 6. frequency-domain integration to height in micrometres (:mod:`vision.integrate`);
 7. cusps, widths, depths, pitch, uniformity (:mod:`vision.marks`).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from typing import Any
@@ -29,21 +30,20 @@ import numpy as np
 from config.rig import Rig
 from core.checks import check_image, check_int, check_positive, check_range
 from core.errors import MeasurementError, RegistrationError
-from vision.checks import checked
-from vision.consistency import Agreement, honest_confidence, marks_shading_agreement
-from vision.deblur import Deblurrer, blur_length_px
-from vision.defect_rows import (
-    clean_columns,
-    defect_rows,
-    masked_pair,
-    ridged_rows,
-    weighted_profile,
+from vision.calibration.illumination import Detrender, flat_field_correct, running_mean
+from vision.calibration.selfcal import (
+    Calibration,
+    SelfCalibrator,
+    apply_calibration,
+    deblurs,
+    fit_calibration,
+    kinematic_depths_um,
+    kinematic_slope,
 )
-from vision.defects import Defect, DefectFinder
-from vision.encoder_fallback import encoder_registration
+from vision.deblur import Deblurrer, blur_length_px
+from vision.defects.detect import Defect, DefectFinder
+from vision.defects.grading import grade_pair
 from vision.front_end import Binned, FrontEnd, mean_profile
-from vision.grading import grade_pair
-from vision.illumination import Detrender, flat_field_correct, running_mean
 from vision.integrate import Integrator
 from vision.marks import (
     Marks,
@@ -54,16 +54,17 @@ from vision.marks import (
 )
 from vision.orientation import Orientation, RollEstimator
 from vision.profile import overlap, shift_profile
-from vision.registration import Registrar, Registration, encoder_shift_px
-from vision.selfcal import (
-    Calibration,
-    SelfCalibrator,
-    apply_calibration,
-    deblurs,
-    fit_calibration,
-    kinematic_depths_um,
-    kinematic_slope,
+from vision.registration.checks import checked
+from vision.registration.consistency import Agreement, honest_confidence, marks_shading_agreement
+from vision.registration.defect_rows import (
+    clean_columns,
+    defect_rows,
+    masked_pair,
+    ridged_rows,
+    weighted_profile,
 )
+from vision.registration.encoder_fallback import encoder_registration
+from vision.registration.registrar import Registrar, Registration, encoder_shift_px
 from vision.slope import RatioSlope
 
 
@@ -103,7 +104,7 @@ class Measurement:
     roll_confidence : float
         Confidence of the per-pair roll estimate in [0, 1] (below the measurer's threshold the
         rig's roll is used instead).
-    calibration : vision.selfcal.Calibration or None
+    calibration : vision.calibration.selfcal.Calibration or None
         Self-calibration from the kinematics (``None``: no cutting radius given, off).  When
         ``calibration.trusted`` the profile, slope and depths are calibrated with it.
     kinematic_depth_um : float
@@ -119,16 +120,17 @@ class Measurement:
         reports a ``confidence`` of at most the measurer's ``flagged_confidence`` (0.3).
     marks_agreement : float
         How well the marks found explain each image's own column profile
-        (:func:`vision.consistency.marks_shading_agreement`, the worse of A and B; 0.76-0.92 on
+        (:func:`vision.registration.consistency.marks_shading_agreement`, the worse of A and B;
+        0.76-0.92 on
         good pairs, <= 0.68 on misregistered ones).
     registration_source : str
         The coarse registration used: ``"texture"``, ``"profile"``, ``"shading"`` (or
         ``"encoder"`` when not registered).
-    defects : tuple of vision.defects.Defect, or None
+    defects : tuple of vision.defects.detect.Defect, or None
         Planing defects found on the pair's 2-D surface map (``None``: not looked for, the
         measurer's ``defects=False``).
     grade, grade_reason : int or None, str or None
-        ASTM D1666 grade of the pair (1 defect-free ... 5 very poor, :mod:`vision.grading`)
+        ASTM D1666 grade of the pair (1 defect-free ... 5 very poor, :mod:`vision.defects.grading`)
         and why (``None`` when the defects were not looked for).
     """
 
@@ -400,12 +402,13 @@ class Measurer:
         A per-pair roll estimate less confident than this is not used (the rig's roll is).
     radius_mm : float, optional
         Cutting radius of the knives, mm: turns the self-calibration from the kinematics on
-        (:mod:`vision.selfcal`) and gives the kinematic depth.
+        (:mod:`vision.calibration.selfcal`) and gives the kinematic depth.
     knives : int, optional
         Number of knives: per-knife mean widths (relative phase).
     min_agreement : float, optional
         The marks found must explain each image's own column profile at least this well
-        (:func:`vision.consistency.marks_shading_agreement`); below it the pair is registered
+        (:func:`vision.registration.consistency.marks_shading_agreement`); below it the pair is
+        registered
         once more without its texture (the column profiles alone), and when that does not
         explain the images either, the measurement is flagged.
     max_slip_px : float, optional
@@ -420,13 +423,14 @@ class Measurer:
         :func:`remove_slow`).
     defects : bool, optional
         Also map the pair's along-feed slope and albedo in 2-D and find planing defects on it
-        with their D1666 grade (:mod:`vision.defects`, :mod:`vision.grading`;
+        with their D1666 grade (:mod:`vision.defects.detect`, :mod:`vision.defects.grading`;
         ``Measurement.defects``, ``grade``); off by default (it costs CPU).
     encoder_fallback : bool, optional
         When the images do not register the pair (the albedo drowned in read noise), measure
         at the encoder's shift if the marks found there explain both images and no other
         shift within the slip bound explains them about as well
-        (:mod:`vision.encoder_fallback`; ``registration_source == "encoder"``, confidence at
+        (:mod:`vision.registration.encoder_fallback`; ``registration_source == "encoder"``,
+        confidence at
         most 0.5).  Off by default: the marks cannot tell two boards whose marks happen to
         line up from one board, so it is for pairs known to show one board (the service's
         hardware-triggered pairs, 2 ms apart).
@@ -674,61 +678,8 @@ class Measurer:
 
     # -- the measurement ----------------------------------------------------------------------
 
-    def measure(
-        self,
-        image_a: np.ndarray,
-        image_b: np.ndarray,
-        *,
-        counts_a: int,
-        counts_b: int,
-        speed_mm_s: float | None = None,
-        calibrator: SelfCalibrator | None = None,
-    ) -> Measurement:
-        """Measure one pair.
-
-        Parameters
-        ----------
-        image_a, image_b : ndarray, shape (height, width)
-            Grayscale images lit by light A and light B, B taken after A.
-        counts_a, counts_b : int
-            Encoder counts latched at the two triggers.
-        speed_mm_s : float, optional
-            Feed speed at capture, mm/s (for motion deblurring).
-        calibrator : vision.selfcal.SelfCalibrator, optional
-            The board's calibrator (kept by the caller per board): this pair's estimate is
-            folded in and the smoothed calibration applied (without ``radius_mm``, not); and
-            the board's roll, searched for only every ``calibrator.roll_every`` pairs, the last
-            confident estimate used in between.  Without it, this pair's own estimates.
-
-        Returns
-        -------
-        Measurement
-
-        Raises
-        ------
-        ValueError, MeasurementError, RegistrationError
-            Bad images or counts, a pair that cannot be registered, too few marks.
-        """
-        a = np.asarray(image_a)
-        b = np.asarray(image_b)
-        if a.shape != b.shape:
-            raise ValueError(f"image_a and image_b differ in size: {a.shape} vs {b.shape}")
-        enc = self.rig.encoder
-        d_enc = encoder_shift_px(
-            counts_a, counts_b, px_per_count=enc.px_per_count, counter_bits=enc.counter_bits
-        )
-        if abs(d_enc) > self.width - self.min_overlap_px:
-            raise MeasurementError(
-                f"encoder counts give a shift of {d_enc:.1f} px, larger than the image allows "
-                f"({self.width} px wide, {self.min_overlap_px} px of overlap needed)"
-            )
-        if speed_mm_s is not None:
-            speed_mm_s = float(speed_mm_s)
-            if not math.isfinite(speed_mm_s):
-                raise ValueError(f"speed_mm_s must be finite, got {speed_mm_s!r}")
-        binned_a = self._binned(a, "image_a")
-        binned_b = self._binned(b, "image_b")
-
+    def _orient(self, binned_a: Any, binned_b: Any, calibrator: Any) -> tuple[Orientation, float]:
+        """The marks' orientation (the board's, once known) and the roll the pair is read at."""
         known = None
         if calibrator is not None and self.roll_estimator is not None:
             known = calibrator.known_roll()  # the board's roll, searched for a few pairs ago
@@ -741,74 +692,52 @@ class Measurer:
                                      min_confidence=self.min_roll_confidence)
         roll = orient.roll_deg if orient.confidence >= self.min_roll_confidence else (
             self.rig.camera.roll_deg)
-        cos_roll = math.cos(math.radians(roll))
-        margin = self.front.margin_px(roll)
-        rows_a, factor = self.front.profile_rows(binned_a, roll)
-        rows_b, _ = self.front.profile_rows(binned_b, roll)
-        prof_a, prof_b = mean_profile(rows_a, factor), mean_profile(rows_b, factor)
-        d_enc_sheared = d_enc / cos_roll
+        return orient, roll
 
-        raw_profiles = (prof_a, prof_b)  # as registered: the second opinion sees the same
-        reg = Registration(shift_px=d_enc_sheared, confidence=math.nan,
-                           encoder_shift_px=d_enc_sheared, source="encoder")
-        unregistered: RegistrationError | None = None
+    def _prepared(self, d: float, *, rows: tuple[np.ndarray, np.ndarray],
+                  profiles: tuple[np.ndarray, np.ndarray], factor: Any, margin: int,
+                  blur: float) -> tuple[np.ndarray, np.ndarray, bool, tuple[int, int] | None]:
+        """The profiles at shift ``d`` and the columns to use.
+
+        A defect's rows left out (B then registered onto A), its columns too when it covers
+        most of their rows; the bins' ends tapered when they disagree (raised grain).
+        """
+        rows_a, rows_b = rows
+        pa, pb = profiles
+        registered, columns = False, None
+        mask = weights = None
         if self.register:
-            try:
-                reg = self._register(binned_a, binned_b, roll, prof_a, prof_b, d_enc_sheared)
-            except RegistrationError as exc:  # the encoder's shift, if the marks confirm it
-                if not self.encoder_fallback:
-                    raise
-                unregistered = exc
-        blur = self.blur_px(speed_mm_s)
-        if not blur > self.deblur_min_px:
-            blur = 0.0
-
-        def prepared(d: float) -> tuple[np.ndarray, np.ndarray, bool, tuple[int, int] | None]:
-            """The profiles at shift ``d`` and the columns to use.
-
-            A defect's rows left out (B then registered onto A), its columns too when it covers
-            most of their rows; the bins' ends tapered when they disagree (raised grain).
-            """
-            pa, pb, registered, columns = prof_a, prof_b, False, None
-            mask = weights = None
-            if self.register:
-                mask = defect_rows(self.width, rows_a, rows_b, d, margin)
-                weights = ridged_rows(self.width, rows_a, rows_b, d, margin)
-            if weights is not None and mask is None:  # the bins' ends tapered (raised grain)
-                pa, pb = (weighted_profile(rows_a, factor, weights),
-                          weighted_profile(rows_b, factor, weights))
-            if mask is not None:
-                columns = clean_columns(mask, min_width=self.min_overlap_px)
-                ra, rb = rows_a, rows_b
-                if self._flat is not None:  # the references in the camera's columns
-                    ones = np.ones(self.width)
-                    fa, fb = flat_field_correct(ones, ones, reference_a=self._flat[0],
-                                                reference_b=self._flat[1])
-                    ra, rb = ra * fa[None, :], rb * fb[None, :]
-                pa, pb = masked_pair(ra, rb, factor, mask, weights=weights)
-                registered = True
-            elif self._flat is not None:
-                pa, pb = flat_field_correct(pa, pb, reference_a=self._flat[0],
+            mask = defect_rows(self.width, rows_a, rows_b, d, margin)
+            weights = ridged_rows(self.width, rows_a, rows_b, d, margin)
+        if weights is not None and mask is None:  # the bins' ends tapered (raised grain)
+            pa, pb = (weighted_profile(rows_a, factor, weights),
+                      weighted_profile(rows_b, factor, weights))
+        if mask is not None:
+            columns = clean_columns(mask, min_width=self.min_overlap_px)
+            ra, rb = rows_a, rows_b
+            if self._flat is not None:  # the references in the camera's columns
+                ones = np.ones(self.width)
+                fa, fb = flat_field_correct(ones, ones, reference_a=self._flat[0],
                                             reference_b=self._flat[1])
-            if blur > 0:
-                both = self.deblurrer(np.stack([pa, pb]), blur_px=blur)
-                pa, pb = both[0], both[1]
-            return pa, pb, registered, columns
+                ra, rb = ra * fa[None, :], rb * fb[None, :]
+            pa, pb = masked_pair(ra, rb, factor, mask, weights=weights)
+            registered = True
+        elif self._flat is not None:
+            pa, pb = flat_field_correct(pa, pb, reference_a=self._flat[0],
+                                        reference_b=self._flat[1])
+        if blur > 0:
+            both = self.deblurrer(np.stack([pa, pb]), blur_px=blur)
+            pa, pb = both[0], both[1]
+        return pa, pb, registered, columns
 
-        if unregistered is not None:
-            reg, profile = encoder_registration(self, prepared, d_enc_sheared, margin, cos_roll,
-                                                unregistered)
-        else:
-            profile = self._registered_profile(*prepared(reg.shift_px), reg.shift_px, margin,
-                                               cos_roll)
-        reg, profile, reason = checked(self, raw_profiles, prepared, reg, profile,
-                                       margin, cos_roll)
+    def _result(self, profile: Any, reg: Any, *, confidence: float, reason: str | None,
+                d_enc: float, blur: float, roll: float, orient: Orientation, cos_roll: float,
+                calibrator: Any, binned: tuple[Any, Any]) -> Measurement:
+        """The measurement of a registered profile: self-calibrated, per knife, its defects."""
+        binned_a, binned_b = binned
         slope, height, marks, x_mm, period = (profile.slope, profile.height, profile.marks,
                                               profile.x_mm, profile.period)
         d = reg.shift_px
-        confidence, reason = honest_confidence(
-            reg.confidence, [reason] if reason else [],
-            flagged_confidence=self.flagged_confidence)
         cal: Calibration | None = None
         kin_depth = raw_depth = math.nan
         if self.radius_mm is not None:
@@ -853,6 +782,103 @@ class Measurer:
             grade=None if grade is None else grade.grade,
             grade_reason=None if grade is None else grade.reason,
         )
+
+    def measure(
+        self,
+        image_a: np.ndarray,
+        image_b: np.ndarray,
+        *,
+        counts_a: int,
+        counts_b: int,
+        speed_mm_s: float | None = None,
+        calibrator: SelfCalibrator | None = None,
+    ) -> Measurement:
+        """Measure one pair.
+
+        Parameters
+        ----------
+        image_a, image_b : ndarray, shape (height, width)
+            Grayscale images lit by light A and light B, B taken after A.
+        counts_a, counts_b : int
+            Encoder counts latched at the two triggers.
+        speed_mm_s : float, optional
+            Feed speed at capture, mm/s (for motion deblurring).
+        calibrator : vision.calibration.selfcal.SelfCalibrator, optional
+            The board's calibrator (kept by the caller per board): this pair's estimate is
+            folded in and the smoothed calibration applied (without ``radius_mm``, not); and
+            the board's roll, searched for only every ``calibrator.roll_every`` pairs, the last
+            confident estimate used in between.  Without it, this pair's own estimates.
+
+        Returns
+        -------
+        Measurement
+
+        Raises
+        ------
+        ValueError, MeasurementError, RegistrationError
+            Bad images or counts, a pair that cannot be registered, too few marks.
+        """
+        a = np.asarray(image_a)
+        b = np.asarray(image_b)
+        if a.shape != b.shape:
+            raise ValueError(f"image_a and image_b differ in size: {a.shape} vs {b.shape}")
+        enc = self.rig.encoder
+        d_enc = encoder_shift_px(
+            counts_a, counts_b, px_per_count=enc.px_per_count, counter_bits=enc.counter_bits
+        )
+        if abs(d_enc) > self.width - self.min_overlap_px:
+            raise MeasurementError(
+                f"encoder counts give a shift of {d_enc:.1f} px, larger than the image allows "
+                f"({self.width} px wide, {self.min_overlap_px} px of overlap needed)"
+            )
+        if speed_mm_s is not None:
+            speed_mm_s = float(speed_mm_s)
+            if not math.isfinite(speed_mm_s):
+                raise ValueError(f"speed_mm_s must be finite, got {speed_mm_s!r}")
+        binned_a = self._binned(a, "image_a")
+        binned_b = self._binned(b, "image_b")
+
+        orient, roll = self._orient(binned_a, binned_b, calibrator)
+        cos_roll = math.cos(math.radians(roll))
+        margin = self.front.margin_px(roll)
+        rows_a, factor = self.front.profile_rows(binned_a, roll)
+        rows_b, _ = self.front.profile_rows(binned_b, roll)
+        prof_a, prof_b = mean_profile(rows_a, factor), mean_profile(rows_b, factor)
+        d_enc_sheared = d_enc / cos_roll
+
+        raw_profiles = (prof_a, prof_b)  # as registered: the second opinion sees the same
+        reg = Registration(shift_px=d_enc_sheared, confidence=math.nan,
+                           encoder_shift_px=d_enc_sheared, source="encoder")
+        unregistered: RegistrationError | None = None
+        if self.register:
+            try:
+                reg = self._register(binned_a, binned_b, roll, prof_a, prof_b, d_enc_sheared)
+            except RegistrationError as exc:  # the encoder's shift, if the marks confirm it
+                if not self.encoder_fallback:
+                    raise
+                unregistered = exc
+        blur = self.blur_px(speed_mm_s)
+        if not blur > self.deblur_min_px:
+            blur = 0.0
+
+        prepared = functools.partial(self._prepared, rows=(rows_a, rows_b),
+                                     profiles=(prof_a, prof_b), factor=factor, margin=margin,
+                                     blur=blur)
+
+        if unregistered is not None:
+            reg, profile = encoder_registration(self, prepared, d_enc_sheared, margin, cos_roll,
+                                                unregistered)
+        else:
+            profile = self._registered_profile(*prepared(reg.shift_px), reg.shift_px, margin,
+                                               cos_roll)
+        reg, profile, reason = checked(self, raw_profiles, prepared, reg, profile,
+                                       margin, cos_roll)
+        confidence, reason = honest_confidence(
+            reg.confidence, [reason] if reason else [],
+            flagged_confidence=self.flagged_confidence)
+        return self._result(profile, reg, confidence=confidence, reason=reason, d_enc=d_enc,
+                            blur=blur, roll=roll, orient=orient, cos_roll=cos_roll,
+                            calibrator=calibrator, binned=(binned_a, binned_b))
 
 
 def measure_pair(

@@ -52,7 +52,7 @@ def slope_eq4(
     ----------
     intensity_a, intensity_b : array_like, same shape
         Intensities of the same surface points lit by light A and light B (any units, equal
-        light strengths assumed; see :mod:`vision.illumination` otherwise).
+        light strengths assumed; see :mod:`vision.calibration.illumination` otherwise).
     slant_deg : float
         Slant (zenith) angle of both lights from the camera axis, degrees.
     azimuth_a_deg, azimuth_b_deg : float, optional

@@ -6,7 +6,8 @@ a measurer in a worker process plugs in as another factory. A factory that says
 ``takes_facts = True`` (:class:`VisionMeasurers`, the service's default) is called as
 ``factory(shape, facts)`` with the machine's facts from the PLC's registers
 (:class:`MachineFacts`: cutting radius, knives) and rebuilt only when they change; its
-measurers get ``calibrator=`` too: one :class:`vision.selfcal.SelfCalibrator` per board, reset
+measurers get ``calibrator=`` too: one :class:`vision.calibration.selfcal.SelfCalibrator` per
+board, reset
 when the board changes (the self-calibration from the knife kinematics, ``docs/vision.md``).
 In real time the call (and a build) runs in a worker thread (the heartbeats go on meanwhile), or
 in worker processes (:meth:`MeasurementStage.use_workers`, :mod:`controller.workers.pool`):
@@ -49,7 +50,7 @@ from controller.service.pitch_check import (
 )
 from core.errors import RegistrationError
 from protocol.frames import Frame
-from vision.selfcal import SelfCalibrator
+from vision.calibration.selfcal import SelfCalibrator
 
 VISION_ERRORS: tuple[type[BaseException], ...] = (
     ValueError,  # MeasurementError, RegistrationError, numpy's LinAlgError, bad inputs

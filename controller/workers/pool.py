@@ -397,7 +397,7 @@ class MeasureWorkerPool:
             The pair (images, counts, speed).
         facts : MachineFacts, optional
             The machine's facts, for a factory that takes them.
-        calibrator : vision.selfcal.SelfCalibrator, optional
+        calibrator : vision.calibration.selfcal.SelfCalibrator, optional
             The board's calibrator as it stands (the worker measures with a copy).
 
         Returns

@@ -44,7 +44,7 @@ def _cpu_s(pid: int | None) -> float | None:
 
 async def _pool_rate(pool: Any, frames: list, facts: Any) -> float:
     """Pairs/s of ``pool`` fed as fast as it takes them, results taken in sequence order."""
-    from vision.selfcal import SelfCalibrator
+    from vision.calibration.selfcal import SelfCalibrator
 
     cal = SelfCalibrator()
     warm = [pool.submit(f, facts=facts, calibrator=cal) for f in frames[:pool.workers * 2]]
@@ -101,7 +101,7 @@ def scaling(frames: list, rig: Any, facts: Any, *, max_workers: int | None = Non
 
     from controller.service.measurement import MeasurementStage, VisionMeasurers
     from controller.workers.pool import MeasureWorkerPool, available_cores
-    from vision.selfcal import SelfCalibrator
+    from vision.calibration.selfcal import SelfCalibrator
 
     cores = available_cores()
     top = max(1, cores if max_workers is None else max_workers)

@@ -251,8 +251,8 @@ def run(quick: bool) -> list[dict[str, Any]]:
     """
     import cv2
 
+    from vision.calibration.selfcal import SelfCalibrator
     from vision.pipeline import Measurer
-    from vision.selfcal import SelfCalibrator
 
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)

@@ -1,7 +1,8 @@
 """``planer calibrate``: camera intrinsics from checkerboard photographs, into a rig file.
 
-Reads the images, finds the board in each (:func:`vision.calibration.find_corners`), calibrates
-(:func:`vision.calibration.calibrate`) and writes the rig file with the new ``[camera]``
+Reads the images, finds the board in each (:func:`vision.calibration.camera.find_corners`),
+calibrates
+(:func:`vision.calibration.camera.calibrate`) and writes the rig file with the new ``[camera]``
 intrinsics. Images that cannot be read or show no complete board are skipped with a one-line
 warning on stderr naming the file. The other values of the rig (``[lights]``, ``[encoder]``,
 ``px_per_mm``, ``exposure_ms``) come from ``--rig`` or, without it, from the shipped default
@@ -124,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     from core.errors import ConfigError
     from core.fileio import atomic_write_text
     from planer.cli import output_file
-    from vision.calibration import MIN_IMAGES, calibrate, find_corners, parse_pattern
+    from vision.calibration.camera import MIN_IMAGES, calibrate, find_corners, parse_pattern
 
     pattern = parse_pattern(args.pattern)
     square_mm = check_positive("--square-mm", args.square_mm)

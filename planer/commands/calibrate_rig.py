@@ -9,7 +9,8 @@ Usage::
 
 A reference run: a few pairs (5-20) of one planed board of known cutting radius R (a hardwood with
 little subsurface scattering), at a steady feed.  The command measures every pair with the rig
-file as it stands, estimates the camera roll and each light's slant (:mod:`vision.rigcal`),
+file as it stands, estimates the camera roll and each light's slant
+(:mod:`vision.calibration.rigcal`),
 writes them (``[camera] roll_deg``, ``width``, ``height``; ``[lights] slant_deg``,
 ``slant_a_deg``, ``slant_b_deg``) into ``--out`` atomically, and prints one JSON object with the
 estimate.  With ``--feed-mm-s``, ``--rpm`` and ``--knives`` it also reports the measured pitch
@@ -110,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the command: measure the reference run, estimate, write the rig file."""
     from config.rig import load_rig, rig_to_toml
     from core.fileio import atomic_write_text
-    from vision.rigcal import estimate_rig
+    from vision.calibration.rigcal import estimate_rig
 
     rig = load_rig(args.rig)
     speed = args.feed_mm_s

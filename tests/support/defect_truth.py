@@ -4,7 +4,8 @@ For each rendered board: its defects as the measurement's contract states them (
 ``x_mm``/``y_mm`` of the centre in image A's undistorted frame from its top-left corner, x along
 the feed; ``length_mm`` along the feed, ``width_mm`` across it; ``depth_um``), whether each is
 above the sizes the vision is required to find (``detectable``), and the board's true ASTM
-D1666 grade by :func:`vision.grading.grade` applied to the true defects.  Renders are cached on
+D1666 grade by :func:`vision.defects.grading.grade` applied to the true defects.  Renders are
+cached on
 disk (keyed by the renderer's source and the board's parameters) so repeated test runs only
 measure.
 """
@@ -24,8 +25,8 @@ import numpy as np
 
 from tests.support import defect_boards
 from tests.support.defect_boards import DefectBoard, Defects, render_defect_board
-from vision.defects import Defect, DefectKind
-from vision.grading import Grade, grade_pair
+from vision.defects.detect import Defect, DefectKind
+from vision.defects.grading import Grade, grade_pair
 
 #: kinds whose location is the whole field (matched by kind alone)
 FIELD_WIDE = ("raised_grain", "chatter", "snipe")
@@ -191,11 +192,11 @@ def board_spec(i: int, kind: str | None = None) -> dict[str, Any]:
 
 
 def true_defects(board: DefectBoard) -> tuple[Defect, ...]:
-    """The board's true defects as :class:`vision.defects.Defect` (confidence 1)."""
+    """The board's true defects as :class:`vision.defects.detect.Defect` (confidence 1)."""
     return tuple(Defect(DefectKind(t.kind), t.x_mm, t.y_mm, t.length_mm, t.width_mm,
                         t.depth_um, 1.0) for t in board_truth(board))
 
 
 def true_grade(board: DefectBoard) -> Grade:
-    """The board's true D1666 grade: :func:`vision.grading.grade_pair` on its true defects."""
+    """The board's true D1666 grade (:func:`vision.defects.grading.grade_pair` of its defects)."""
     return grade_pair(true_defects(board))

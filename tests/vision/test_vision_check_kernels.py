@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from vision import kernels
-from vision.consistency import marks_shading_agreement
-from vision.defect_rows import _screened, rows_disagreement
 from vision.orientation import CLIP_SAMPLES, CLIP_SIGMAS, _highpassed_log_rows
+from vision.registration.consistency import marks_shading_agreement
+from vision.registration.defect_rows import _screened, rows_disagreement
 
 kernels.warm_up()
 

@@ -9,9 +9,9 @@ import pytest
 import scipy.signal
 
 from vision import marks as vm
-from vision.illumination import Detrender, running_mean
+from vision.calibration.illumination import Detrender, running_mean
 from vision.orientation import RollEstimator
-from vision.registration import Registrar
+from vision.registration.registrar import Registrar
 from vision.slope import RatioSlope, slope_from_ratio
 
 
@@ -181,8 +181,8 @@ def test_a_gain_only_calibration_scales_the_profile_and_keeps_the_marks():
 
 def test_the_board_calibrator_searches_the_roll_every_few_pairs(monkeypatch):
     from tests.support.vision_boards import render_board
+    from vision.calibration.selfcal import SelfCalibrator
     from vision.pipeline import Measurer
-    from vision.selfcal import SelfCalibrator
 
     board = render_board(5, roll_deg=2.0, runout_um=(0.0, 2.0, -1.0, 1.0), height=240)
     m = Measurer(board.rig, board.image_a.shape, radius_mm=60.0)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from config.rig import Camera
+from vision.calibration.undistort import Undistorter
 from vision.front_end import FrontEnd
-from vision.undistort import Undistorter
 
 W, H = 400, 300
 

@@ -138,7 +138,7 @@ def test_without_radius_the_calibration_is_off_and_depth_is_photometric():
 
 
 def test_calibration_on_a_board_without_marks_shape_is_not_trusted():
-    from vision.selfcal import fit_calibration
+    from vision.calibration.selfcal import fit_calibration
 
     rng = np.random.default_rng(0)
     x = np.arange(400) * 0.08
@@ -154,7 +154,7 @@ def test_calibration_on_a_board_without_marks_shape_is_not_trusted():
 
 
 def test_self_calibrator_smooths_over_pairs_and_forgets_on_reset():
-    from vision.selfcal import Calibration, SelfCalibrator
+    from vision.calibration.selfcal import Calibration, SelfCalibrator
 
     cal = SelfCalibrator(weight=0.3, min_confidence=0.5)
     out = None
@@ -169,7 +169,7 @@ def test_self_calibrator_smooths_over_pairs_and_forgets_on_reset():
 
 
 def test_kinematic_depth_of_equal_marks_is_pitch_squared_over_8r():
-    from vision.selfcal import kinematic_depths_um
+    from vision.calibration.selfcal import kinematic_depths_um
 
     cusps = np.arange(6) * 1.5
     bottoms = cusps[:-1] + 0.75

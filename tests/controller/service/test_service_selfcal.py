@@ -112,7 +112,7 @@ def test_one_calibrator_per_board_fresh_for_each_new_board():
     changes = sum(a != b for a, b in zip(boards, boards[1:], strict=False))
     assert stage.calibrator_resets == 1 + changes
     # the calibrator of a board keeps what it learnt; a new board starts afresh
-    from vision.selfcal import Calibration
+    from vision.calibration.selfcal import Calibration
 
     cal = stage.calibrator(3, None)
     est = Calibration(gain=0.8, gain_confidence=0.9, scatter_mm=0.2, scatter_fraction=0.5,

@@ -24,7 +24,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.workers.pool import MeasurementWorkerError, MeasureWorkerPool, _RollPlan
-from vision.selfcal import SelfCalibrator
+from vision.calibration.selfcal import SelfCalibrator
 
 MIN_CONFIDENCE = 0.3
 BACKSTOP_S = 30.0  # a reply never matched to its pair fails the test instead of hanging it

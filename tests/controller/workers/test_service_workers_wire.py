@@ -31,7 +31,7 @@ from controller.workers.process import (
     _reply_from_slot,
     _reply_into_slot,
 )
-from vision.selfcal import Calibration, SelfCalibrator
+from vision.calibration.selfcal import Calibration, SelfCalibrator
 
 # ---------------------------------------------------------------------------------------------
 # the calibrator as values

@@ -91,7 +91,7 @@ def test_calibrate_creates_the_folder_of_out(tmp_path, monkeypatch, capsys):
     """`--out DIR/rig.toml` with DIR missing: the folder is made (docs/cli.md says so)."""
     import cv2
 
-    import vision.calibration as cal
+    import vision.calibration.camera as cal
     from config.rig import load_rig
 
     images = []
@@ -99,7 +99,8 @@ def test_calibrate_creates_the_folder_of_out(tmp_path, monkeypatch, capsys):
         p = tmp_path / f"b{k}.png"
         cv2.imwrite(str(p), np.full((40, 60), 128, np.uint8))
         images.append(str(p))
-    # corner finding and calibration are vision's (tests/vision/test_calibrate.py); stand-ins here
+    # corner finding and calibration are vision's (tests/vision/calibration/test_calibrate.py);
+    # stand-ins here
     monkeypatch.setattr(cal, "find_corners", lambda image, pattern: np.zeros((49, 1, 2)))
     result = cal.CalibrationResult(
         fx=500.0, fy=501.0, cx=30.0, cy=20.0, dist=(-0.1, 0.0, 0.0, 0.0, 0.0),

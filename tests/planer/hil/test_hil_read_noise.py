@@ -3,7 +3,8 @@
 The shipped plant at production feed (4 knives, 1.5 mm, 600 mm/s) with ``[camera.optics]
 read_noise_dn = 30``: the albedo drowns and the images no longer register the pairs; the
 service's measurers then take the encoder's shift where the marks confirm it
-(``vision.encoder_fallback``). Before, no pair of such a run was measured and the service went
+(``vision.registration.encoder_fallback``). Before, no pair of such a run was measured and the
+service went
 to its safe state; now more than half are, and the loop evens the knives.
 """
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from config.rig import Camera, Lights
-from vision.surface_map import SurfaceMapper, surface_map
+from vision.defects.surface_map import SurfaceMapper, surface_map
 
 PPM = 12.5
 SLANT = 82.0

@@ -54,7 +54,7 @@ import numpy as np
 from core.checks import check_finite, check_int, check_positive, check_range
 from core.errors import RegistrationError
 from core.units import counter_difference
-from vision.shift_estimators import (
+from vision.registration.shift_estimators import (
     FineShiftFit,
     TextureCorrelator,
     log_difference,
@@ -140,7 +140,7 @@ class ShiftStages:
     Each stage gives a :class:`Registration` or raises :class:`~core.errors.RegistrationError`
     naming why: :meth:`coarse` (the 2-D texture), :meth:`coarse_profile` (the 1-D column
     profiles), :meth:`fine` (the sign-free cross-spectrum fit); :class:`Registrar` decides
-    among them. The estimators themselves are in :mod:`vision.shift_estimators`.
+    among them. The estimators themselves are in :mod:`vision.registration.shift_estimators`.
 
     Parameters
     ----------

@@ -17,7 +17,8 @@ coarse grid.  On that grid the board's motion between the shots is a shift along
 alone, so B is registered with the measurement's shift (``Measurement.shift_px``, px along the
 feed) by a linear interpolation along the rows (``cv2.warpAffine``).  With ``bin_rows = 1`` and
 ``bin_cols = 1`` the map has the camera's full resolution; the
-:class:`vision.pipeline.Measurer`'s :class:`vision.defects.DefectFinder` builds it from the row
+:class:`vision.pipeline.Measurer`'s :class:`vision.defects.detect.DefectFinder` builds it from the
+row
 bins the Measurer has already summed, on ~0.16 x 0.4 mm samples, so the map costs one small
 remap per image and no further pass over the images.
 

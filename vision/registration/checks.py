@@ -1,10 +1,12 @@
 """The measurement's own checks on its registration, and the search when they fail.
 
 :func:`checked` runs after the pair has been measured at its registered shift: the marks found
-must explain each image's own shading (:func:`vision.consistency.marks_shading_agreement`) and
+must explain each image's own shading
+(:func:`vision.registration.consistency.marks_shading_agreement`) and
 the shift must lie within the slip bound of the encoder's.  When the texture registered the
 pair and the marks disagree, the column profiles register it a second time
-(:meth:`vision.registration.Registrar.without_texture`).  When that does not satisfy the checks
+(:meth:`vision.registration.registrar.Registrar.without_texture`).  When that does not satisfy the
+checks
 either -- a defect's shading outvoted the albedo in the texture *and* the profiles, or the
 registration is half a mark off -- or the registered shift lies beyond the slip bound of the
 encoder's (a pit's texture pulled it a whole mark off: its marks agree, its profile does not),
@@ -25,8 +27,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from core.errors import MeasurementError, RegistrationError
-from vision.registration import Registration
-from vision.shift_estimators import log_difference, mark_period_px
+from vision.registration.registrar import Registration
+from vision.registration.shift_estimators import log_difference, mark_period_px
 
 if TYPE_CHECKING:
     from vision.pipeline import Measurer, _Profile

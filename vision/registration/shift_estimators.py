@@ -1,7 +1,9 @@
-"""The shift estimators the registration composes (:class:`vision.registration.Registrar`).
+"""The shift estimators the registration composes.
+
+They serve :class:`vision.registration.registrar.Registrar`.
 
 Each works on one representation of the pair and gives a normalised score curve or a fitted
-delay (the method: :mod:`vision.registration`):
+delay (the method: :mod:`vision.registration.registrar`):
 
 - the **texture** stage's correlation (:func:`shading_free_texture`, :class:`TextureCorrelator`:
   the shading divided out, band-passed rows of A slid over B);

@@ -31,7 +31,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from core.checks import check_range
-from vision.defects import Defect, DefectKind
+from vision.defects.detect import Defect, DefectKind
 
 MIN_CONFIDENCE = 0.3
 """Defects less confident than this do not count toward the grade."""
@@ -95,7 +95,7 @@ def grade_pair(defects: Sequence[Defect], *, min_confidence: float = MIN_CONFIDE
     Parameters
     ----------
     defects : sequence of Defect
-        The pair's defects (:func:`vision.defects.detect_defects`).
+        The pair's defects (:func:`vision.defects.detect.detect_defects`).
     min_confidence : float, optional
         Less confident defects do not count.
 

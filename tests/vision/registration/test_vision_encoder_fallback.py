@@ -1,6 +1,6 @@
 """The encoder's shift when read noise drowns the albedo, and marks a few pixels wide.
 
-``vision.encoder_fallback``: at 30 DN the images no longer register the pair; with
+``vision.registration.encoder_fallback``: at 30 DN the images no longer register the pair; with
 ``Measurer(encoder_fallback=True)`` the encoder's shift is used when the marks found there
 explain both images and no other shift within the slip bound explains them clearly better --
 never when the belt slipped.  ``vision.marks.periodic_noise``: marks of 6 px whose cusps are
@@ -18,9 +18,9 @@ import pytest
 from core.errors import MeasurementError, RegistrationError
 from plant_sim.rendering.scenarios import board_pair
 from vision import kernels
-from vision.encoder_fallback import ENCODER_CONFIDENCE
 from vision.marks import find_marks, periodic_noise
 from vision.pipeline import Measurer
+from vision.registration.encoder_fallback import ENCODER_CONFIDENCE
 
 
 def _tolerance(true_cv: float) -> float:

@@ -18,9 +18,16 @@ from tests.support.defect_truth import (
     cached_board,
     true_grade,
 )
-from vision.defects import Defect, DefectKind, DefectSettings, chatter, detect_defects, residual
+from vision.defects.detect import (
+    Defect,
+    DefectKind,
+    DefectSettings,
+    chatter,
+    detect_defects,
+    residual,
+)
+from vision.defects.surface_map import SurfaceMap
 from vision.pipeline import Measurer
-from vision.surface_map import SurfaceMap
 
 PPM = 12.5
 ROWS, COLS, STEP = 48, 640, 5.0  # 0.4 mm rows, 51 mm along the feed

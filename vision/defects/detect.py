@@ -1,7 +1,7 @@
 """Planing defects (ASTM D1666) found on the 2-D surface map of one pair.
 
 Each kind has its own detector, all working from one :class:`Residual` of the map
-(:mod:`vision.surface_map`):
+(:mod:`vision.defects.surface_map`):
 
 - the cuttermarks run straight across the feed, so their slope -- and anything else that is a
   function of the position along the feed alone (illumination, the pair's imbalance) -- is the
@@ -46,7 +46,7 @@ import scipy.fft as sfft
 
 from config.rig import Camera, Lights
 from core.checks import check_positive
-from vision.surface_map import SurfaceMap, SurfaceMapper
+from vision.defects.surface_map import SurfaceMap, SurfaceMapper
 
 
 class DefectKind(enum.Enum):
@@ -561,7 +561,7 @@ def detect_defects(smap: SurfaceMap, *, bottoms_mm: np.ndarray | None = None,
     Parameters
     ----------
     smap : SurfaceMap
-        The pair's map (:class:`vision.surface_map.SurfaceMapper`).
+        The pair's map (:class:`vision.defects.surface_map.SurfaceMapper`).
     bottoms_mm : ndarray, optional
         The marks' lowest points (``Measurement.bottoms_mm``): chatter needs them.
     knives : int, optional
@@ -610,7 +610,7 @@ class DefectFinder:
     shape : tuple of int
         ``(height, width)`` of the images, pixels.
     bin_rows, first_row_px, columns, source_rows
-        The row bins the map is made from (:class:`vision.surface_map.SurfaceMapper`).
+        The row bins the map is made from (:class:`vision.defects.surface_map.SurfaceMapper`).
     knives : int, optional
         Knives on the cutterhead (chatter is looked for only with them).
     settings : DefectSettings, optional

@@ -19,13 +19,15 @@ import pytest
 
 from core.errors import MeasurementError
 from tests.support.defect_boards import Defects, render_defect_board
-from vision.consistency import (
+from vision.marks import corr2
+from vision.pipeline import Measurer
+from vision.registration.consistency import (
     honest_confidence,
     marks_shading_agreement,
     shift_within_slip,
     shifts_agree,
 )
-from vision.defect_rows import (
+from vision.registration.defect_rows import (
     RowMask,
     clean_columns,
     defect_mask,
@@ -35,8 +37,6 @@ from vision.defect_rows import (
     row_window,
     weighted_profile,
 )
-from vision.marks import corr2
-from vision.pipeline import Measurer
 
 SPECIES = ("pine", "oak", "beech")
 KINDS = ("torn along", "torn across", "raised", "fuzzy", "chips", "nick", "chatter", "snipe",

@@ -2,11 +2,13 @@
 
 At high read noise (25-30 DN on the shipped rig) the wood's albedo drowns: the texture and
 column-profile correlations fall to the level of two unrelated boards (0.03-0.15) and
-:class:`vision.registration.Registrar` refuses the pair.  The knife marks are still plain in the
+:class:`vision.registration.registrar.Registrar` refuses the pair.  The knife marks are still
+plain in the
 column profiles (400 rows averaged), and the encoder's shift is good to its count (0.625 px at
 12.5 px/mm and 20 counts/mm) unless the belt slipped.  A slipping belt makes the encoder's
 shift wrong, so it is used only when the marks found at that shift explain both images
-(:func:`vision.consistency.marks_shading_agreement`) *and* no other shift within the slip bound
+(:func:`vision.registration.consistency.marks_shading_agreement`) *and* no other shift within the
+slip bound
 explains them clearly better:
 
 - the agreement at the encoder's shift must reach the measurer's ``min_agreement``;
@@ -19,7 +21,8 @@ explains them clearly better:
   ``min_agreement`` or a clearly better shift in the grid, and the pair is refused.  When the
   marks are all alike (the loop has evened the knives) a whole mark's alias explains the
   images as well as the true shift; the encoder's is then kept, as
-  :func:`vision.checks.rescued` keeps the candidate nearest it, and an alias of alike marks
+  :func:`vision.registration.checks.rescued` keeps the candidate nearest it, and an alias of alike
+  marks
   measures alike widths.
 
 A registration accepted here reports ``source == "encoder"`` and a confidence of at most
@@ -37,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from core.errors import MeasurementError, RegistrationError
-from vision.registration import Registration
+from vision.registration.registrar import Registration
 
 if TYPE_CHECKING:
     from vision.pipeline import Measurer, _Profile
@@ -49,7 +52,7 @@ NEAR_PX = 2.5
 """Shifts this close to the encoder's belong to its own agreement peak (count, quantisation)."""
 
 TIE = 0.03
-"""Agreements this close explain the images equally well (as :mod:`vision.checks`)."""
+"""Agreements this close explain the images equally well (as :mod:`vision.registration.checks`)."""
 
 STEP_PX = 1.25
 """Grid step of the search for a better shift, pixels (the peak is ~2.5 px wide at 0.7)."""
@@ -88,7 +91,7 @@ def encoder_registration(measurer: Measurer, prepared: Callable[..., Any], encod
 
     Returns
     -------
-    registration : vision.registration.Registration
+    registration : vision.registration.registrar.Registration
         ``source == "encoder"``, the encoder's shift, confidence ``min(ENCODER_CONFIDENCE,
         agreement)``.
     profile : vision.pipeline._Profile

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from config.rig import Camera
-from vision.undistort import Undistorter, bin_factor_for
+from vision.calibration.undistort import Undistorter, bin_factor_for
 
 W, H = 320, 240
 

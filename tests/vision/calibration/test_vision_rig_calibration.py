@@ -1,4 +1,4 @@
-"""Rig calibration from a reference run: vision.rigcal and the command."""
+"""Rig calibration from a reference run: vision.calibration.rigcal and the command."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from config.rig import load_rig, rig_to_toml
 from planer.cli import main
 from tests.support.vision_boards import render_board
-from vision.rigcal import estimate_rig, fit_slants, log_ratio_from_slope
+from vision.calibration.rigcal import estimate_rig, fit_slants, log_ratio_from_slope
 
 RUNOUT = (0.0, 2.0, -1.0, 1.0)
 

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from core.errors import RegistrationError
-from vision.registration import (
+from vision.registration.registrar import (
     Registrar,
     Registration,
     encoder_shift_px,
     refine_shift,
 )
-from vision.shift_estimators import mark_period_px, shading_free_texture, shading_shift
+from vision.registration.shift_estimators import mark_period_px, shading_free_texture, shading_shift
 
 # -- encoder shift ---------------------------------------------------------------------------
 

@@ -16,7 +16,7 @@ import pytest
 from config.loading import default_path
 from config.rig import load_rig
 from planer.cli import main
-from vision.calibration import (
+from vision.calibration.camera import (
     CalibrationResult,
     board_points,
     calibrate,
@@ -25,7 +25,7 @@ from vision.calibration import (
     subpix_half_window_px,
 )
 
-WEBCAM = Path(__file__).resolve().parents[3] / "shared" / "data" / "checkerboard_webcam"
+WEBCAM = Path(__file__).resolve().parents[4] / "shared" / "data" / "checkerboard_webcam"
 PATTERN = (7, 7)
 K1_FLAGS = cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
 

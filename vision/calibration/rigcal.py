@@ -6,7 +6,8 @@ the rig file as it stands, the self-calibration off:
 
 - **Roll**: the median of the pairs' confident roll estimates (:mod:`vision.orientation`).
 - **Slants**: between the cusps the true slope is the kinematic ``p = (x - b_k) / R``
-  (:func:`vision.selfcal.kinematic_slope`).  With each light's intensity divided by its own
+  (:func:`vision.calibration.selfcal.kinematic_slope`).  With each light's intensity divided by
+  its own
   ``cos(sigma)`` (the illumination correction removes such constants), Lambert gives
   ``log(I_B / I_A) = c + log(1 + p t_B) - log(1 - p t_A)
   = c + (t_A + t_B) p + (t_A^2 - t_B^2) p^2 / 2 + O(p^3)`` with ``t = tan(sigma)``.
@@ -28,7 +29,7 @@ import numpy as np
 from config.rig import Rig
 from core.checks import check_positive
 from core.errors import MeasurementError
-from vision.selfcal import kinematic_slope
+from vision.calibration.selfcal import kinematic_slope
 
 
 @dataclass(frozen=True)

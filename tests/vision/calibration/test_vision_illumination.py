@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vision.illumination import Detrender, corrected_log_ratio, flat_field_correct, running_mean
+from vision.calibration.illumination import (
+    Detrender,
+    corrected_log_ratio,
+    flat_field_correct,
+    running_mean,
+)
 from vision.integrate import integrate_slope
 from vision.marks import corr2
 from vision.slope import lambert_intensity, slope_eq4, slope_from_ratio

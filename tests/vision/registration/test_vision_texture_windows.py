@@ -12,7 +12,7 @@ import pytest
 
 from tests.support.vision_boards import render_board
 from vision.pipeline import Measurer
-from vision.registration import Registrar
+from vision.registration.registrar import Registrar
 
 WIDE = 1320  # >= 2 x 640: the default windows apply
 

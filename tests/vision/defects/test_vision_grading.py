@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from vision.defects import Defect, DefectKind
-from vision.grading import grade_board, grade_pair, severity
+from vision.defects.detect import Defect, DefectKind
+from vision.defects.grading import grade_board, grade_pair, severity
 
 K = DefectKind
 

@@ -1,0 +1,4 @@
+"""Calibration of the camera and the rig.
+
+Lens correction, illumination correction, self-calibration from the knife kinematics.
+"""

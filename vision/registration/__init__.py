@@ -1,0 +1,1 @@
+"""Registration of the two images of a pair, and the measurement's own checks on it."""
