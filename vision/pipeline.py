@@ -678,111 +678,6 @@ class Measurer:
 
     # -- the measurement ----------------------------------------------------------------------
 
-    def _orient(self, binned_a: Any, binned_b: Any, calibrator: Any) -> tuple[Orientation, float]:
-        """The marks' orientation (the board's, once known) and the roll the pair is read at."""
-        known = None
-        if calibrator is not None and self.roll_estimator is not None:
-            known = calibrator.known_roll()  # the board's roll, searched for a few pairs ago
-        if known is not None:
-            orient = Orientation(*known)
-        else:
-            orient = self.orientation(binned_a, binned_b)
-            if calibrator is not None and self.roll_estimator is not None:
-                calibrator.note_roll(orient.roll_deg, orient.confidence,
-                                     min_confidence=self.min_roll_confidence)
-        roll = orient.roll_deg if orient.confidence >= self.min_roll_confidence else (
-            self.rig.camera.roll_deg)
-        return orient, roll
-
-    def _prepared(self, d: float, *, rows: tuple[np.ndarray, np.ndarray],
-                  profiles: tuple[np.ndarray, np.ndarray], factor: Any, margin: int,
-                  blur: float) -> tuple[np.ndarray, np.ndarray, bool, tuple[int, int] | None]:
-        """The profiles at shift ``d`` and the columns to use.
-
-        A defect's rows left out (B then registered onto A), its columns too when it covers
-        most of their rows; the bins' ends tapered when they disagree (raised grain).
-        """
-        rows_a, rows_b = rows
-        pa, pb = profiles
-        registered, columns = False, None
-        mask = weights = None
-        if self.register:
-            mask = defect_rows(self.width, rows_a, rows_b, d, margin)
-            weights = ridged_rows(self.width, rows_a, rows_b, d, margin)
-        if weights is not None and mask is None:  # the bins' ends tapered (raised grain)
-            pa, pb = (weighted_profile(rows_a, factor, weights),
-                      weighted_profile(rows_b, factor, weights))
-        if mask is not None:
-            columns = clean_columns(mask, min_width=self.min_overlap_px)
-            ra, rb = rows_a, rows_b
-            if self._flat is not None:  # the references in the camera's columns
-                ones = np.ones(self.width)
-                fa, fb = flat_field_correct(ones, ones, reference_a=self._flat[0],
-                                            reference_b=self._flat[1])
-                ra, rb = ra * fa[None, :], rb * fb[None, :]
-            pa, pb = masked_pair(ra, rb, factor, mask, weights=weights)
-            registered = True
-        elif self._flat is not None:
-            pa, pb = flat_field_correct(pa, pb, reference_a=self._flat[0],
-                                        reference_b=self._flat[1])
-        if blur > 0:
-            both = self.deblurrer(np.stack([pa, pb]), blur_px=blur)
-            pa, pb = both[0], both[1]
-        return pa, pb, registered, columns
-
-    def _result(self, profile: Any, reg: Any, *, confidence: float, reason: str | None,
-                d_enc: float, blur: float, roll: float, orient: Orientation, cos_roll: float,
-                calibrator: Any, binned: tuple[Any, Any]) -> Measurement:
-        """The measurement of a registered profile: self-calibrated, per knife, its defects."""
-        binned_a, binned_b = binned
-        slope, height, marks, x_mm, period = (profile.slope, profile.height, profile.marks,
-                                              profile.x_mm, profile.period)
-        d = reg.shift_px
-        cal: Calibration | None = None
-        kin_depth = raw_depth = math.nan
-        if self.radius_mm is not None:
-            cal, slope, height, marks, raw_depth = self._self_calibrated(
-                slope, height, marks, x_mm, cos_roll, period, calibrator)
-            kin_depth = float(np.mean(kinematic_depths_um(
-                marks.cusps_mm, marks.bottoms_mm, radius_mm=self.radius_mm)))
-        knife_widths = None
-        if self.knives is not None:
-            knife_widths = knife_means(marks.widths_mm, knives=self.knives, phase=0)
-        found = grade = None
-        if self.defect_finder is not None:
-            found = self.defect_finder(binned_a.bins, binned_b.bins, shift_px=d * cos_roll,
-                                       roll_deg=roll, bottoms_mm=marks.bottoms_mm,
-                                       pitch_mm=marks.pitch_mm)
-            grade = grade_pair(found)
-        return Measurement(
-            x_mm=x_mm,
-            height_um=height,
-            slope=slope,
-            pitch_mm=marks.pitch_mm,
-            mark_widths_mm=marks.widths_mm,
-            mark_depths_um=marks.depths_um,
-            cusps_mm=marks.cusps_mm,
-            bottoms_mm=marks.bottoms_mm,
-            uniformity_cv=marks.uniformity_cv,
-            depth_um=marks.depth_um,
-            shift_px=d * cos_roll,
-            encoder_shift_px=d_enc,
-            confidence=confidence,
-            blur_px=blur,
-            roll_deg=roll,
-            roll_confidence=orient.confidence,
-            calibration=cal,
-            kinematic_depth_um=kin_depth,
-            uncalibrated_depth_um=raw_depth,
-            knife_widths_mm=knife_widths,
-            flag_reason=reason,
-            marks_agreement=profile.agreement.score,
-            registration_source=reg.source,
-            defects=found,
-            grade=None if grade is None else grade.grade,
-            grade_reason=None if grade is None else grade.reason,
-        )
-
     def measure(
         self,
         image_a: np.ndarray,
@@ -838,7 +733,7 @@ class Measurer:
         binned_a = self._binned(a, "image_a")
         binned_b = self._binned(b, "image_b")
 
-        orient, roll = self._orient(binned_a, binned_b, calibrator)
+        orient, roll = _orient(self, binned_a, binned_b, calibrator)
         cos_roll = math.cos(math.radians(roll))
         margin = self.front.margin_px(roll)
         rows_a, factor = self.front.profile_rows(binned_a, roll)
@@ -861,7 +756,7 @@ class Measurer:
         if not blur > self.deblur_min_px:
             blur = 0.0
 
-        prepared = functools.partial(self._prepared, rows=(rows_a, rows_b),
+        prepared = functools.partial(_prepared, self, rows=(rows_a, rows_b),
                                      profiles=(prof_a, prof_b), factor=factor, margin=margin,
                                      blur=blur)
 
@@ -876,7 +771,7 @@ class Measurer:
         confidence, reason = honest_confidence(
             reg.confidence, [reason] if reason else [],
             flagged_confidence=self.flagged_confidence)
-        return self._result(profile, reg, confidence=confidence, reason=reason, d_enc=d_enc,
+        return _result(self, profile, reg, confidence=confidence, reason=reason, d_enc=d_enc,
                             blur=blur, roll=roll, orient=orient, cos_roll=cos_roll,
                             calibrator=calibrator, binned=(binned_a, binned_b))
 
@@ -899,3 +794,112 @@ def measure_pair(
     check_image("image_a", a)
     measurer = Measurer(rig, a.shape, flat_field=flat_field)  # type: ignore[arg-type]
     return measurer.measure(a, b, counts_a=counts_a, counts_b=counts_b, speed_mm_s=speed_mm_s)
+
+
+def _orient(m: Measurer, binned_a: Any, binned_b: Any,
+            calibrator: Any) -> tuple[Orientation, float]:
+    """The marks' orientation (the board's, once known) and the roll the pair is read at."""
+    known = None
+    if calibrator is not None and m.roll_estimator is not None:
+        known = calibrator.known_roll()  # the board's roll, searched for a few pairs ago
+    if known is not None:
+        orient = Orientation(*known)
+    else:
+        orient = m.orientation(binned_a, binned_b)
+        if calibrator is not None and m.roll_estimator is not None:
+            calibrator.note_roll(orient.roll_deg, orient.confidence,
+                                 min_confidence=m.min_roll_confidence)
+    roll = orient.roll_deg if orient.confidence >= m.min_roll_confidence else (
+        m.rig.camera.roll_deg)
+    return orient, roll
+
+
+def _prepared(m: Measurer, d: float, *, rows: tuple[np.ndarray, np.ndarray],
+              profiles: tuple[np.ndarray, np.ndarray], factor: Any, margin: int,
+              blur: float) -> tuple[np.ndarray, np.ndarray, bool, tuple[int, int] | None]:
+    """The profiles at shift ``d`` and the columns to use.
+
+    A defect's rows left out (B then registered onto A), its columns too when it covers
+    most of their rows; the bins' ends tapered when they disagree (raised grain).
+    """
+    rows_a, rows_b = rows
+    pa, pb = profiles
+    registered, columns = False, None
+    mask = weights = None
+    if m.register:
+        mask = defect_rows(m.width, rows_a, rows_b, d, margin)
+        weights = ridged_rows(m.width, rows_a, rows_b, d, margin)
+    if weights is not None and mask is None:  # the bins' ends tapered (raised grain)
+        pa, pb = (weighted_profile(rows_a, factor, weights),
+                  weighted_profile(rows_b, factor, weights))
+    if mask is not None:
+        columns = clean_columns(mask, min_width=m.min_overlap_px)
+        ra, rb = rows_a, rows_b
+        if m._flat is not None:  # the references in the camera's columns
+            ones = np.ones(m.width)
+            fa, fb = flat_field_correct(ones, ones, reference_a=m._flat[0],
+                                        reference_b=m._flat[1])
+            ra, rb = ra * fa[None, :], rb * fb[None, :]
+        pa, pb = masked_pair(ra, rb, factor, mask, weights=weights)
+        registered = True
+    elif m._flat is not None:
+        pa, pb = flat_field_correct(pa, pb, reference_a=m._flat[0],
+                                    reference_b=m._flat[1])
+    if blur > 0:
+        both = m.deblurrer(np.stack([pa, pb]), blur_px=blur)
+        pa, pb = both[0], both[1]
+    return pa, pb, registered, columns
+
+
+def _result(m: Measurer, profile: Any, reg: Any, *, confidence: float, reason: str | None,
+            d_enc: float, blur: float, roll: float, orient: Orientation, cos_roll: float,
+            calibrator: Any, binned: tuple[Any, Any]) -> Measurement:
+    """The measurement of a registered profile: self-calibrated, per knife, its defects."""
+    binned_a, binned_b = binned
+    slope, height, marks, x_mm, period = (profile.slope, profile.height, profile.marks,
+                                          profile.x_mm, profile.period)
+    d = reg.shift_px
+    cal: Calibration | None = None
+    kin_depth = raw_depth = math.nan
+    if m.radius_mm is not None:
+        cal, slope, height, marks, raw_depth = m._self_calibrated(
+            slope, height, marks, x_mm, cos_roll, period, calibrator)
+        kin_depth = float(np.mean(kinematic_depths_um(
+            marks.cusps_mm, marks.bottoms_mm, radius_mm=m.radius_mm)))
+    knife_widths = None
+    if m.knives is not None:
+        knife_widths = knife_means(marks.widths_mm, knives=m.knives, phase=0)
+    found = grade = None
+    if m.defect_finder is not None:
+        found = m.defect_finder(binned_a.bins, binned_b.bins, shift_px=d * cos_roll,
+                                   roll_deg=roll, bottoms_mm=marks.bottoms_mm,
+                                   pitch_mm=marks.pitch_mm)
+        grade = grade_pair(found)
+    return Measurement(
+        x_mm=x_mm,
+        height_um=height,
+        slope=slope,
+        pitch_mm=marks.pitch_mm,
+        mark_widths_mm=marks.widths_mm,
+        mark_depths_um=marks.depths_um,
+        cusps_mm=marks.cusps_mm,
+        bottoms_mm=marks.bottoms_mm,
+        uniformity_cv=marks.uniformity_cv,
+        depth_um=marks.depth_um,
+        shift_px=d * cos_roll,
+        encoder_shift_px=d_enc,
+        confidence=confidence,
+        blur_px=blur,
+        roll_deg=roll,
+        roll_confidence=orient.confidence,
+        calibration=cal,
+        kinematic_depth_um=kin_depth,
+        uncalibrated_depth_um=raw_depth,
+        knife_widths_mm=knife_widths,
+        flag_reason=reason,
+        marks_agreement=profile.agreement.score,
+        registration_source=reg.source,
+        defects=found,
+        grade=None if grade is None else grade.grade,
+        grade_reason=None if grade is None else grade.reason,
+    )
