@@ -760,7 +760,7 @@ def _merged(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def with_base(data: Mapping[str, Any], *, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
+def with_base(data: Mapping[str, Any]) -> dict[str, Any]:
     """The document with the shipped file its top-level ``base`` key names merged under it.
 
     ``base = "sim.toml"`` starts from the shipped ``config/sim.toml`` and changes only the
@@ -776,21 +776,7 @@ def with_base(data: Mapping[str, Any], *, _seen: tuple[str, ...] = ()) -> dict[s
     """
     if "base" not in data:
         return dict(data)
-    name = data["base"]
-    if (not isinstance(name, str) or not name.endswith(".toml") or Path(name).name != name):
-        raise ConfigError(f"base must name a simulator file of the shipped config folder "
-                          f"(e.g. \"sim.toml\"), got {name!r}")
-    if name in _seen:
-        raise ConfigError(f"base = {name!r} is circular ({' -> '.join((*_seen, name))})")
-    path = default_path(name)
-    if not path.is_file():
-        raise ConfigError(f"base = {name!r}: no such file in the shipped config folder "
-                          f"{path.parent}")
-    try:
-        below = with_base(load_toml(path), _seen=(*_seen, name))
-    except ConfigError as exc:
-        raise ConfigError(f"base = {name!r}: {exc}") from None
-    return _merged(below, {k: v for k, v in data.items() if k != "base"})
+    return over_shipped(data, "sim.toml")
 
 
 def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> SimConfig:
