@@ -122,9 +122,13 @@ class ProgressBar:
 CANCEL_NOISE = (
     ("distributed.worker.state_machine", "ended with CancelledError"),
     ("distributed.nanny", "Worker process still alive after"),
+    ("distributed.worker", "Failed to communicate with scheduler during heartbeat"),
+    ("distributed.worker", "Connection to scheduler broken"),
 )
 """Dask's own warnings when a sweep is stopped (Ctrl-C): the runs cancelled on the workers, the
-workers still busy with a run ended by their nanny. Stopping is asked for: nothing to warn."""
+workers still busy with a run ended by their nanny, a worker's heartbeat that found the local
+scheduler gone. Stopping is asked for: nothing to warn. (Attached to a local cluster's workers
+only: its scheduler is this process's, so it is gone only when the sweep stops.)"""
 
 
 class _DropCancelNoise(logging.Filter):
