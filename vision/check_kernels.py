@@ -17,7 +17,7 @@ The loops here compute the same statistics in one or two calls each:
   :func:`vision.registration.consistency.marks_shading_agreement`);
 * :func:`clip_robust` -- the clip of high-passed rows at a multiple of their robust deviation.
 
-Compiled with ``cache=True`` and warmed up by :func:`vision.kernels.warm_up` (a measurer's
+Compiled with ``cache=True`` and warmed up beside :func:`vision.kernels.warm_up` (a measurer's
 set-up), never on a frame.
 """
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from config.rig import Camera
 from core.checks import check_image, check_int, check_positive
-from vision import kernels
+from vision import check_kernels, kernels
 from vision.calibration.undistort import Undistorter
 
 _ROLL_KEY_DEG = 0.005
@@ -148,7 +148,9 @@ class FrontEnd:
                  max_bin_rows: int = 32, texture_rows: int = 96, groups: int = 16,
                  cache: int = 16) -> None:
         self.camera = camera
-        kernels.warm_up()  # compiled (or loaded from the cache) here, never on a frame
+        # compiled (or loaded from the cache) here, never on a frame; the checks' loops too
+        kernels.warm_up()
+        check_kernels.warm_up()
         self.roll_smear_px = check_positive("roll_smear_px", roll_smear_px)
         self.max_drift_px = check_positive("max_drift_px", max_drift_px)
         check_int("max_bin_rows", max_bin_rows, lo=1)

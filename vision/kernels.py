@@ -687,7 +687,4 @@ def warm_up() -> None:
     repeat_lag(v, v, 2.5, np.array([1.0, 2.0]), 0.02)
     blur_fits(np.eye(5), np.ones(5), 1.0, True, np.empty(3), np.empty(3), np.empty(3), 8,
               1.0)
-    from vision import check_kernels  # the checks' loops (they use solve_small from here)
-
-    check_kernels.warm_up()
     _WARM[0] = True

@@ -32,6 +32,7 @@ import threading
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from controller.quality.log import (
     QualityLog,
@@ -182,6 +183,28 @@ def one_line(exc: BaseException) -> str:
     return text if len(text) <= 300 else text[:297] + "..."
 
 
+def checked_sink_args(log: Any, journal_path: str | Path) -> tuple[bool, Path]:
+    """A sink's log and journal checked: whether the log stores uids, the journal's path.
+
+    Raises
+    ------
+    ValueError
+        ``log`` has no ``append``.
+    IsADirectoryError
+        ``journal_path`` is a folder.
+    """
+    if not hasattr(log, "append"):
+        raise ValueError(f"log must be a QualityLog, got {type(log).__name__}")
+    try:  # a log without identities (a test double) still works, without exactly-once
+        uid_ok = "uid" in inspect.signature(log.append).parameters
+    except (TypeError, ValueError):
+        uid_ok = False
+    path = Path(journal_path)
+    if path.is_dir():
+        raise IsADirectoryError(f"journal path is a directory: {path}")
+    return uid_ok, path
+
+
 class RecordSink:
     """Appends quality records to the log, or durably to a local journal when it cannot.
 
@@ -208,16 +231,8 @@ class RecordSink:
     """
 
     def __init__(self, log: QualityLog, *, journal_path: Path) -> None:
-        if not hasattr(log, "append"):
-            raise ValueError(f"log must be a QualityLog, got {type(log).__name__}")
         self.log = log
-        try:  # a log without identities (a test double) still works, without exactly-once
-            self._uid_ok = "uid" in inspect.signature(log.append).parameters
-        except (TypeError, ValueError):
-            self._uid_ok = False
-        self.journal_path = Path(journal_path)
-        if self.journal_path.is_dir():
-            raise IsADirectoryError(f"journal path is a directory: {self.journal_path}")
+        self._uid_ok, self.journal_path = checked_sink_args(log, journal_path)
         self._lock = threading.RLock()
         self._entries: list[JournalEntry] = []  # in the journal file, not known to be in the log
         self._bad_lines: list[str] = []  # journal lines that are not records (kept, never lost)

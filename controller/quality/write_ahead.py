@@ -29,7 +29,6 @@ held across I/O.
 from __future__ import annotations
 
 import contextlib
-import inspect
 import os
 import sys
 import threading
@@ -45,6 +44,7 @@ from typing import Any
 from controller.quality.journal import (
     JournalEntry,
     bare_failed,
+    checked_sink_args,
     log_unavailable,
     one_line,
     parse_line,
@@ -159,16 +159,8 @@ class WriteAheadSink:
                  make: Callable[[Any], QualityRecord] | None = None,
                  on_durable: Callable[[list[Any], bool], None] | None = None,
                  db_timeout_s: float = DB_TIMEOUT_S) -> None:
-        if not hasattr(log, "append"):
-            raise ValueError(f"log must be a QualityLog, got {type(log).__name__}")
         self.log = log
-        try:  # a log without identities (a test double) still works, without exactly-once
-            self._uid_ok = "uid" in inspect.signature(log.append).parameters
-        except (TypeError, ValueError):
-            self._uid_ok = False
-        self.journal_path = Path(journal_path)
-        if self.journal_path.is_dir():
-            raise IsADirectoryError(f"journal path is a directory: {self.journal_path}")
+        self._uid_ok, self.journal_path = checked_sink_args(log, journal_path)
         setter = getattr(log, "set_write_timeout", None)
         if setter is not None:
             with contextlib.suppress(OSError, ValueError):
