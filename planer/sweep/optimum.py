@@ -9,10 +9,18 @@ knives' bottom dead centres), the knives cut the exact tip circles
 the marks, averaged over where the camera's window falls. The table is limited like the loop's
 (``stroke - margin``, at most half the stroke kept back). The search starts from the width
 model's exact QP and refines it with Nelder-Mead.
+
+The amplifier heats with the slew of its output (``[piezo] heating_c_per_um_s`` per um/s, first
+order towards ``ambient_c + heating * slew``) and faults above ``max_temperature_c``; a table
+played every revolution slews ``n sum_k |o_k - o_(k-1)|`` um/s (:func:`steady_temperature_c`).
+The optimum is searched among the tables whose steady-state temperature stays within that limit:
+a table beyond it is scaled down onto the limit before its CV is taken (the slew is
+proportional to the table), so the search never leaves what the amplifier can play for good.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -37,12 +45,58 @@ class Optimum:
         The bound of the table, um.
     clipped_cv : float
         For comparison: the CV of the runout clipped into the bound (the earlier loop's end).
+    temperature_c : float
+        The amplifier's steady-state temperature while it plays ``offsets_um``, degrees C.
+    temperature_limit_c : float
+        The temperature the table was kept within (``inf``: not limited), degrees C.
     """
 
     cv: float
     offsets_um: tuple[float, ...]
     limit_um: float
     clipped_cv: float
+    temperature_c: float = float("nan")
+    temperature_limit_c: float = float("inf")
+
+
+def table_slew_um_s(table_um: Sequence[float], *, spindle_rpm: float) -> float:
+    """The amplifier's mean output slew while it plays ``table_um`` every revolution, um/s.
+
+    Each knife switch steps the (unshaped) output from the previous knife's offset to the next
+    one's; the amplifier's heating counts those steps (the input shaper splits a step in two
+    of the same sign: the same total).
+    """
+    o = np.asarray(table_um, dtype=float)
+    return float(np.sum(np.abs(o - np.roll(o, 1)))) * spindle_rpm / 60.0
+
+
+def steady_temperature_c(piezo_cfg, table_um: Sequence[float], *, spindle_rpm: float) -> float:
+    """The amplifier's steady-state temperature while it plays ``table_um``, degrees C.
+
+    ``ambient_c + heating_c_per_um_s * slew`` (:class:`plant_sim.model.piezo.PiezoAmplifier`,
+    ``cycle``), with the slew of :func:`table_slew_um_s`.
+    """
+    slew = table_slew_um_s(table_um, spindle_rpm=spindle_rpm)
+    return float(piezo_cfg.ambient_c + piezo_cfg.heating_c_per_um_s * slew)
+
+
+def within_temperature(piezo_cfg, table_um: Sequence[float], *, spindle_rpm: float,
+                       limit_c: float) -> np.ndarray:
+    """``table_um`` scaled down (if needed) so that its steady-state temperature is ``limit_c``.
+
+    Raises
+    ------
+    ValueError
+        ``limit_c`` not above the amplifier's ambient temperature (no table but zero fits).
+    """
+    o = np.asarray(table_um, dtype=float)
+    if not limit_c > piezo_cfg.ambient_c:
+        raise ValueError(
+            f"limit_c must exceed the ambient {piezo_cfg.ambient_c} C, got {limit_c!r}"
+        )
+    rise = steady_temperature_c(piezo_cfg, o, spindle_rpm=spindle_rpm) - piezo_cfg.ambient_c
+    allowed = limit_c - piezo_cfg.ambient_c
+    return o if rise <= allowed else o * (allowed / rise)
 
 
 def actuator_response_um(piezo_cfg, table_um: Sequence[float], *, spindle_rpm: float,
@@ -122,8 +176,9 @@ def true_cv(
     return float(np.mean([env.metrics(a, a + window_mm)["uniformity_cv"] for a in starts]))
 
 
-def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = None) -> Optimum:
-    """The best true CV of zero-mean tables within the loop's bound on this plant.
+def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = None,
+                           temperature_limit_c: float | None = None) -> Optimum:
+    """The best true CV of zero-mean tables within the loop's bound and the amplifier's heat.
 
     Parameters
     ----------
@@ -133,6 +188,9 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
         The service (``stroke_um``, ``[uniformity_loop] margin_um``, target pitch).
     feed_mm_s : float, optional
         Feed; default the target pitch times ``n Z``.
+    temperature_limit_c : float, optional
+        Steady-state temperature the table must keep the amplifier within, degrees C; default
+        the amplifier's ``max_temperature_c`` (it faults above); ``inf``: not limited.
 
     Returns
     -------
@@ -147,6 +205,7 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
     bound = offset_limit_um(machine_cfg.stroke_um, ucfg.margin_um)
     rpm = sim_cfg.spindle.rpm
     feed = feed_mm_s or machine_cfg.quality.target_pitch_mm * rpm / 60.0 * z
+    hot = sim_cfg.piezo.max_temperature_c if temperature_limit_c is None else temperature_limit_c
     k = np.arange(z)
     standout = np.asarray(ch.runout_um, float) + ch.eccentricity_um * np.cos(2 * np.pi * k / z)
     # the actuator's steady response as a matrix (columns: unit tables), for the QP start
@@ -159,7 +218,10 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
     clipped = project_zero_mean_box(standout - standout.mean(), bound=bound)
 
     def table(x: np.ndarray) -> np.ndarray:
-        return np.append(x, -np.sum(x))
+        o = np.append(x, -np.sum(x))
+        if math.isinf(hot):
+            return o
+        return within_temperature(sim_cfg.piezo, o, spindle_rpm=rpm, limit_c=hot)
 
     def cost(x: np.ndarray) -> float:
         o = table(x)
@@ -168,11 +230,14 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
             return 1.0 + excess
         return true_cv(sim_cfg, o, feed_mm_s=feed)
 
-    best_x, best_cv = start[:-1], cost(start[:-1])
+    best_x, best_cv = np.zeros(z - 1), cost(np.zeros(z - 1))
     for x0 in (start[:-1], clipped[:-1]):
         res = minimize(cost, x0, method="Nelder-Mead",
                        options={"xatol": 0.01, "fatol": 1e-5, "maxiter": 200 * z})
         if res.fun < best_cv:
             best_x, best_cv = res.x, float(res.fun)
-    return Optimum(cv=best_cv, offsets_um=tuple(float(v) for v in table(best_x)), limit_um=bound,
-                   clipped_cv=true_cv(sim_cfg, clipped, feed_mm_s=feed))
+    best = table(best_x)
+    return Optimum(cv=best_cv, offsets_um=tuple(float(v) for v in best), limit_um=bound,
+                   clipped_cv=true_cv(sim_cfg, clipped, feed_mm_s=feed),
+                   temperature_c=steady_temperature_c(sim_cfg.piezo, best, spindle_rpm=rpm),
+                   temperature_limit_c=float(hot))

@@ -8,7 +8,13 @@ import pytest
 from controller.laws.uniformity_loop import UniformityLoopConfig
 from planer.hil.scenario import load_scenario
 from planer.sweep.design import Point
-from planer.sweep.optimum import actuator_response_um, constrained_optimum_cv, true_cv
+from planer.sweep.optimum import (
+    actuator_response_um,
+    constrained_optimum_cv,
+    steady_temperature_c,
+    true_cv,
+    within_temperature,
+)
 from planer.sweep.point import build_machine_config, build_sim_config, make_job
 
 
@@ -47,3 +53,69 @@ def test_the_saturated_plant_s_optimum_beats_the_clipped_runout():
     feed = cfg.quality.target_pitch_mm * sim.spindle.rpm / 60.0 * 4
     for d in (np.array([1.0, 0.0, 0.0, -1.0]), np.array([-1.0, 0.0, 0.0, 1.0])):
         assert true_cv(sim, o + 0.2 * d, feed_mm_s=feed) >= opt.cv - 1e-4
+
+
+def _played_goal_c(piezo_cfg, table, *, rpm: float, knives: int) -> float:
+    """The temperature the simulated amplifier heads for after one second of ``table``."""
+    import math
+
+    from plant_sim.model.piezo import PiezoAmplifier
+
+    amp = PiezoAmplifier(piezo_cfg, knives, np.random.default_rng(0))
+    amp.command(0.0, enable=True, alive_counter=1)
+    amp.set_offsets(list(table))
+    period = 60.0 / rpm / knives
+    t = 0.0
+    for k in range(knives):  # one revolution to settle onto the table, then count one second
+        t += period
+        amp.switch(k, t)
+    amp.cycle(t, 1.0, spindle_turning=True)
+    amp.temperature_c = piezo_cfg.ambient_c
+    amp.last_command_s = math.inf  # no setpoint timeout
+    start = t
+    passes = round(1.0 / period)
+    for i in range(passes):
+        t = start + (i + 1) * period
+        amp.switch((i + knives) % knives, t)
+    amp.cycle(t, 1.0, spindle_turning=True)
+    rise = amp.temperature_c - piezo_cfg.ambient_c
+    return piezo_cfg.ambient_c + rise / (1.0 - math.exp(-1.0 / piezo_cfg.thermal_tau_s))
+
+
+def test_the_steady_temperature_is_what_the_simulated_amplifier_heads_for():
+    sim, _ = _plant({})
+    for table in ([0.0, 4.0, -2.0, -2.0], [20.0, -20.0, 20.0, -20.0], [3.0, 1.0, -1.0, -3.0]):
+        want = _played_goal_c(sim.piezo, table, rpm=sim.spindle.rpm, knives=4)
+        got = steady_temperature_c(sim.piezo, table, spindle_rpm=sim.spindle.rpm)
+        assert got == pytest.approx(want, rel=1e-3)
+    # the alternating full stroke: 160 um per revolution, 100 rev/s -> 25 + 0.005 * 16000
+    assert steady_temperature_c(sim.piezo, [20.0, -20.0, 20.0, -20.0],
+                                spindle_rpm=6000.0) == pytest.approx(105.0)
+
+
+def test_a_table_beyond_the_temperature_limit_is_scaled_onto_it():
+    sim, _ = _plant({})
+    hot = np.array([20.0, -20.0, 20.0, -20.0])
+    cool = within_temperature(sim.piezo, hot, spindle_rpm=6000.0, limit_c=70.0)
+    assert steady_temperature_c(sim.piezo, cool, spindle_rpm=6000.0) == pytest.approx(70.0)
+    assert np.allclose(cool / hot, cool[0] / hot[0])  # the same table, smaller
+    mild = np.array([1.0, -1.0, 0.0, 0.0])
+    assert within_temperature(sim.piezo, mild, spindle_rpm=6000.0, limit_c=70.0) is mild
+    with pytest.raises(ValueError, match="limit_c"):
+        within_temperature(sim.piezo, hot, spindle_rpm=6000.0, limit_c=sim.piezo.ambient_c)
+
+
+def test_the_optimum_of_a_slow_stack_keeps_the_amplifier_within_its_limit():
+    """60 Hz, no hysteresis, damping 0.01: the best table regardless of the heat needs about
+    92 C in steady state; the honest optimum stays within the amplifier's 70 C and is worse."""
+    sim, cfg = _plant({"sim.piezo.resonance_hz": 60.0, "sim.piezo.hysteresis": 0.0,
+                       "sim.piezo.damping": 0.01})
+    free = constrained_optimum_cv(sim, cfg, temperature_limit_c=float("inf"))
+    opt = constrained_optimum_cv(sim, cfg)
+    assert free.temperature_c > 80.0
+    assert opt.temperature_limit_c == sim.piezo.max_temperature_c
+    assert opt.temperature_c <= sim.piezo.max_temperature_c + 1e-9
+    assert opt.temperature_c == pytest.approx(
+        steady_temperature_c(sim.piezo, opt.offsets_um, spindle_rpm=sim.spindle.rpm))
+    assert free.cv < opt.cv
+    assert true_cv(sim, opt.offsets_um, feed_mm_s=600.0) == pytest.approx(opt.cv, abs=1e-9)
