@@ -49,6 +49,9 @@ OUTCOME_COLUMNS = (
     "ok_measurements",
     "sim_time_s",
     "board_travel_m",
+    "loop_closed_at_mm",
+    "ramp_end_mm",
+    "pitch_verdict",
     "error",
 )
 """The outcome columns of ``results.csv``, after ``run``, ``seed`` and the varied keys.
@@ -59,7 +62,14 @@ travel after the loop closed from which every true value stayed within CV <= 0.0
 (``cv_003_``, the closed-loop target) / pitch within 2 % (empty: never). ``feed_ratio`` = final feed
 setpoint / the fastest feed the quality class allows (target pitch under the depth ceiling
 times n Z, at most the machine's ``feed.max_mm_s``). ``offset_ratio`` = largest piezo offset /
-stroke. ``error``: why the run failed (then the outcome cells are empty)."""
+stroke. ``loop_closed_at_mm``: board travel of the measurement the settling distances count
+from. ``ramp_end_mm``: board travel at which the feed drive, at its acceleration limit and
+bandwidth, could be within 1 % of the fastest feed from the initial one (the physical ramp's
+earliest end, :func:`planer.sweep.judge.drive_ramp_end_mm`). ``pitch_verdict``: ``in band``
+within 1.5 m after that, ``late``, ``off``, or ``ramp not finished`` (the run shorter than
+the ramp and 1.5 m), ``capped, `` in front when the target pitch lies beyond the feed cap
+(:func:`planer.sweep.judge.pitch_verdict`). ``error``: why the run failed (then the outcome
+cells are empty)."""
 
 
 @dataclass(frozen=True)
@@ -311,6 +321,30 @@ def fastest_feed_mm_s(sim_cfg: Any, machine_cfg: Any) -> float:
     return float(min(pitch * sim_cfg.spindle.rpm / 60.0 * head.knives, sim_cfg.feed.max_mm_s))
 
 
+def _pitch_judgement(summary: Mapping[str, Any], sim_cfg: Any, machine_cfg: Any,
+                     fastest: float) -> dict[str, Any]:
+    """The cells ``loop_closed_at_mm``, ``ramp_end_mm``, ``pitch_verdict`` of a run."""
+    from controller.laws.feed_loop import pitch_ceiling_mm
+    from planer.sweep.judge import drive_ramp_end_mm, pitch_verdict
+
+    head, feed, q = sim_cfg.cutterhead, sim_cfg.feed, machine_cfg.quality
+    per_mm = sim_cfg.spindle.rpm / 60.0 * head.knives  # knife passes per mm/s of feed
+    wanted = min(q.target_pitch_mm, pitch_ceiling_mm(q.depth_max_um, head.radius_mm)) * per_mm
+    capped = wanted > fastest * (1.0 + 1e-9)
+    ramp = drive_ramp_end_mm(feed.initial_mm_s, fastest, accel_mm_s2=feed.accel_max_mm_s2,
+                             bandwidth_hz=feed.bandwidth_hz)
+    conv = summary.get("converged") or {}
+    ref, after = conv.get("reference_at_mm"), conv.get("pitch_settled_after_mm")
+    pitch = (summary.get("final") or {}).get("pitch_mm")
+    goal = (fastest if capped else wanted) / per_mm
+    travel = float(summary.get("board_travel_m") or 0.0) * 1e3
+    verdict = pitch_verdict(
+        travel_mm=travel, ramp_end_mm=ramp,
+        in_band_from_mm=None if ref is None or after is None else float(ref) + float(after),
+        final_pitch_error=None if pitch is None else float(pitch) / goal - 1.0, capped=capped)
+    return {"loop_closed_at_mm": ref, "ramp_end_mm": ramp, "pitch_verdict": verdict}
+
+
 def _cell(v: Any) -> str:
     if v is None:
         return ""
@@ -356,6 +390,7 @@ def outcome_row(summary: Mapping[str, Any], sim_cfg: Any, machine_cfg: Any) -> d
         "ok_measurements": sum(bool(m.get("ok")) for m in meas),
         "sim_time_s": summary.get("sim_time_s"),
         "board_travel_m": summary.get("board_travel_m"),
+        **_pitch_judgement(summary, sim_cfg, machine_cfg, fastest),
         "error": None,
     }
     return {k: _cell(cells[k]) for k in OUTCOME_COLUMNS}

@@ -1,6 +1,6 @@
 """A PLC whose drive ramps slowly: the feed loop follows the PLC's limits (in-process HIL).
 
-The simulated drive accelerates at 25 or 50 mm/s^2 (``config/sim.toml [feed]
+The simulated drive accelerates at 10, 25 or 50 mm/s^2 (``config/sim.toml [feed]
 accel_max_mm_s2``), the shipped ``machine.toml`` says nothing of it: the loop must read the
 limit from the PLC, not learn the drive's lag as a model error (no wind-down of the setpoint),
 and not freeze on steps below the write deadband.
@@ -58,7 +58,7 @@ def _ramp_end_mm(drive) -> float:
     return last_out
 
 
-@pytest.mark.parametrize("accel", [25.0, 50.0])
+@pytest.mark.parametrize("accel", [10.0, 25.0, 50.0])
 def test_slow_plc_ramp_pitch_in_band_within_1_5_m_after_the_ramp(tmp_path, accel):
     plant = _plant(tmp_path, accel=accel)
     pairs, drive = asyncio.run(_run(plant, 700.0 * 100.0 / accel + 3000.0))

@@ -133,6 +133,28 @@ def test_outcome_row_reduces_the_summary():
     assert row["cv_003_settled_after_mm"] == ""  # no reference in this summary
     assert (row["safe_entries"], row["measurements"], row["ok_measurements"]) == ("2", "9", "8")
     assert row["error"] == ""
+    # default plant: 800 -> 600 mm/s at 2000 mm/s^2, 8 Hz: the ramp ends within 0.2 m; the
+    # pitch never settled in this summary
+    assert 0.0 < float(row["ramp_end_mm"]) < 200.0
+    assert row["loop_closed_at_mm"] == "" and row["pitch_verdict"] == "off"
+
+
+def test_the_pitch_verdict_of_a_slow_plc_and_of_a_capped_target():
+    summary = {"target_pitch_mm": 1.5, "final": {"uniformity_cv": 0.001, "pitch_mm": 1.75},
+               "converged": {"reference_at_mm": 300.0, "pitch_settled_after_mm": None},
+               "measurements": [], "limits": {}, "board_travel_m": 8.0}
+    job = _job({"sim.feed.accel_max_mm_s2": 10.0})
+    row = outcome_row(summary, build_sim_config(job), build_machine_config(job))
+    assert float(row["ramp_end_mm"]) == pytest.approx(13638.2, abs=0.1)
+    assert row["pitch_verdict"] == "ramp not finished"
+    assert row["loop_closed_at_mm"] == "300"
+    # 8 knives at 1.5 mm need 1200 mm/s, the cap is 1000: judged at the reachable 1.25 mm
+    job = _job({"sim.cutterhead.knives": 8, "sim.cutterhead.runout_um": [0.0] * 8})
+    summary = {**summary, "final": {"uniformity_cv": 0.001, "pitch_mm": 1.251},
+               "converged": {"reference_at_mm": 300.0, "pitch_settled_after_mm": 400.0}}
+    row = outcome_row(summary, build_sim_config(job), build_machine_config(job))
+    assert float(row["final_pitch_error"]) == pytest.approx(1.251 / 1.5 - 1)
+    assert row["pitch_verdict"] == "capped, in band"
 
 
 @pytest.mark.parametrize(
