@@ -129,7 +129,8 @@ class DefectSettings:
     min_confidence : float
         Less confident detections are not reported.
     nick_ratio : float
-        A knife nick's rows stand out from the median row by at least this factor.
+        A knife nick's rows: the mean square of their residual folded at one revolution stands
+        out from the median row's by at least this factor (:func:`knife_nicks`).
     nick_max_mm : float
         Widest band across the feed that is still one nick, mm.
     raised_coherence, raised_strong : float
@@ -158,7 +159,7 @@ class DefectSettings:
     min_blob_mm2: float = 1.0
     min_fuzzy_mm2: float = 10.0
     min_confidence: float = 0.3
-    nick_ratio: float = 3.0
+    nick_ratio: float = 12.0
     nick_max_mm: float = 2.0
     raised_coherence: float = 0.4
     raised_strong: float = 0.8
@@ -226,37 +227,49 @@ class Residual:
     median: float = 1.0
 
 
-def _column_profile(p: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """The robust mean of each column: the median of groups of rows, then the samples near it.
+def _column_profile(p: np.ndarray, valid: np.ndarray, shadow_slope: float) -> np.ndarray:
+    """The robust mean of each column: the densest of the row groups, then the samples near it.
 
-    A defect covering less than half the groups of a column does not move it.
+    The rows are averaged in groups (shadowed samples, ``|p| >= shadow_slope / 2``, left
+    out); each column's location is the mean of the tightest run of ``~35 %`` of its sorted
+    group means (the *shorth*), so a defect covering even most of a column does not move it
+    as long as its rows do not agree with each other as tightly as clean ones do (a pit's
+    walls, rough bottom and cast shadows never do).  Then the mean of the column's samples
+    near that location.
     """
     rows, cols = p.shape
     g = max(1, rows // 16)
     n_g = rows // g
-    w = valid.astype(np.float32)
-    ps = p[:n_g * g].reshape(n_g, g, cols).sum(axis=1)
+    ok = valid & (np.abs(p) < np.float32(0.5 * shadow_slope))
+    w = ok.astype(np.float32)
+    pw = np.where(ok, p, np.float32(0.0))
+    ps = pw[:n_g * g].reshape(n_g, g, cols).sum(axis=1)
     ws = w[:n_g * g].reshape(n_g, g, cols).sum(axis=1)
-    # groups mostly outside split evenly above and below the median
-    big = np.where(np.arange(n_g) % 2 == 0, np.float32(1e3), np.float32(-1e3))[:, None]
-    gm = np.where(ws >= 0.5 * g, ps / np.maximum(ws, 1.0), big)
-    med = np.partition(gm, n_g // 2, axis=0)[n_g // 2]
+    # groups mostly outside or shadowed: spread far apart, so no run of them is tight
+    far = (np.float32(1e3) + np.float32(10.0) * np.arange(n_g, dtype=np.float32))[:, None]
+    gm = np.sort(np.where(ws >= 0.5 * g, ps / np.maximum(ws, 1.0), far), axis=0)
+    k = max(2, int(math.ceil(0.35 * n_g)))
+    spans = gm[k - 1:] - gm[:n_g - k + 1]
+    j = np.argmin(spans, axis=0)
+    cum = np.concatenate([np.zeros((1, cols), np.float32), np.cumsum(gm, axis=0)])
+    ci = np.arange(cols)
+    loc = (cum[j + k, ci] - cum[j, ci]) / np.float32(k)
     count = w.sum(axis=0)
-    mean = p.sum(axis=0) / np.maximum(count, 1.0)
-    med = np.where(np.abs(med) < 10.0, med, mean)  # a column mostly outside: its plain mean
-    dev = np.abs(p - med[None, :])
-    sample = dev[::3, ::3][valid[::3, ::3]]
+    mean = pw.sum(axis=0) / np.maximum(count, 1.0)
+    loc = np.where(np.abs(loc) < 10.0, loc, mean)  # a column mostly outside: its plain mean
+    dev = np.abs(p - loc[None, :])
+    sample = dev[::3, ::3][ok[::3, ::3]]
     scale = float(np.median(sample)) if sample.size else 0.0
-    keep = valid & (dev <= np.float32(5.0 * 1.4826 * scale + 1e-4))
+    keep = ok & (dev <= np.float32(5.0 * 1.4826 * scale + 1e-4))
     kc = keep.sum(axis=0)
-    profile = np.where(kc > 0, np.where(keep, p, 0.0).sum(axis=0) / np.maximum(kc, 1), med)
+    profile = np.where(kc > 0, np.where(keep, p, 0.0).sum(axis=0) / np.maximum(kc, 1), loc)
     return np.where(count > 0, profile, 0.0)
 
 
 def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
     """Residual slope, cell excess and marked cells of a map (see the module's docstring)."""
     p, valid = smap.slope_along_feed, smap.valid
-    profile = _column_profile(p, valid)
+    profile = _column_profile(p, valid, smap.shadow_slope)
     r = (p - profile[None, :].astype(np.float32))
     r[~valid] = 0.0
     cell = max(1, int(round(settings.cell_mm * smap.cols_per_mm)))
@@ -363,54 +376,83 @@ def _confidence(strength: float, settings: DefectSettings) -> float:
     return 1.0 - math.exp(-max(0.0, strength / settings.excess - 1.0) * 1.5)
 
 
-def knife_nicks(res: Residual, settings: DefectSettings) -> tuple[list[Defect], set[int]]:
-    """Bands of rows whose cells stand out along the whole field: knife nicks.
+def _folded(res: Residual, period_cols: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's residual folded at ``period_cols``: the median over the periods per phase.
 
-    A nick is a ridge along the feed on one knife's marks; returned with the map rows taken.
-
-    Per row, the 70th percentile of its cells' excess (a local defect covering less than a
-    third of the row does not raise it) against the rows' median of the same.
+    Returns ``(F, n_valid)``: ``F`` of shape ``(rows, bins)`` (NaN where no period saw the
+    phase), bins of about one map column; ``n_valid`` the valid samples per row.
     """
-    vc = res.valid_cells
-    # relative to the cells' median (the floor does not apply: the rows are compared)
-    ex = np.where(vc, res.excess, np.float32(0.0)) * np.float32(res.base / res.median)
-    thirds = np.array_split(np.arange(ex.shape[1]), 3)
-    # evenly along the feed: the weakest third of the row decides (invalid cells count as 0)
-    level = np.min([np.partition(ex[:, t], int(0.7 * (t.size - 1)), axis=1)[
-        :, int(0.7 * (t.size - 1))] for t in thirds], axis=0)
-    base = float(np.median(level)) if level.size else 0.0
-    peak = float(level.max()) if level.size else 0.0
-    if peak < settings.excess or peak < settings.nick_ratio * max(base, 1e-9):
+    smap = res.smap
+    valid = smap.valid
+    cols = np.flatnonzero(valid.any(axis=0))
+    c0 = int(cols[0])
+    n_per = int((int(cols[-1]) + 1 - c0) // period_cols)
+    nb = max(4, int(round(period_cols)))
+    x = np.arange(c0, c0 + int(n_per * period_cols))
+    ph = (x - c0) / period_cols
+    cell = np.floor(ph).astype(np.int64) * nb + np.minimum(
+        np.floor((ph - np.floor(ph)) * nb).astype(np.int64), nb - 1)
+    starts = np.r_[0, np.flatnonzero(np.diff(cell)) + 1]
+    sums = np.add.reduceat(res.r[:, x], starts, axis=1)
+    counts = np.add.reduceat(valid[:, x].astype(np.float32), starts, axis=1)
+    cells = np.full((res.r.shape[0], n_per * nb), np.nan, np.float32)
+    cells[:, cell[starts]] = np.where(counts > 0, sums / np.maximum(counts, 1.0), np.nan)
+    cells = np.sort(cells.reshape(-1, n_per, nb), axis=1)  # NaN last
+    n = (~np.isnan(cells)).sum(axis=1)
+    lo = np.take_along_axis(cells, np.maximum(n - 1, 0)[:, None, :] // 2, axis=1)[:, 0]
+    hi = np.take_along_axis(cells, (n // 2)[:, None, :], axis=1)[:, 0]
+    folded = np.where(n > 0, 0.5 * (lo + hi), np.nan)
+    return folded, valid.sum(axis=1)
+
+
+def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None = None,
+                knives: int | None = None) -> tuple[list[Defect], set[int]]:
+    """Bands of rows whose residual repeats every revolution: knife nicks.
+
+    A nick is one knife cutting short in a band across the feed: there that knife's marks
+    differ from the others' by a ridge along the feed, the same on every revolution.  Each
+    row's residual is folded at one revolution (``knives * pitch``; at one pitch when the
+    knives are not known, where a nick on one of ``k`` knives stands out ``k`` times less) as
+    the median over the revolutions per phase (a pit within one revolution does not move
+    it); a nick's rows carry a folded profile whose mean square stands out ``nick_ratio``
+    times from the median row's.  Returned with the map rows taken.
+    """
+    smap = res.smap
+    if pitch_mm is None or not math.isfinite(pitch_mm) or pitch_mm <= 0:
         return [], set()
-    hot = level >= max(0.5 * peak, settings.nick_ratio * base)
-    rows_mm = res.smap.row_step_px / res.smap.px_per_mm
-    bands = []
-    i, n = 0, hot.size
-    while i < n:
-        if hot[i]:
-            j = i
-            while j < n and hot[j]:
-                j += 1
-            bands.append((i, j))
-            i = j
-        else:
-            i += 1
+    period = (knives or 1) * pitch_mm * smap.cols_per_mm
+    cols = np.flatnonzero(smap.valid.any(axis=0))
+    if cols.size == 0 or (int(cols[-1]) + 1 - int(cols[0])) < 3 * period:
+        return [], set()  # fewer than three revolutions: no median over them
+    folded, n_valid = _folded(res, period)
+    energy = np.nanmean(np.where(np.isnan(folded), np.nan, folded * folded), axis=1)
+    rows_ok = (n_valid >= 0.5 * cols.size) & np.isfinite(energy)
+    if np.count_nonzero(rows_ok) < 8:
+        return [], set()
+    ratio = np.where(rows_ok, energy / max(float(np.median(energy[rows_ok])), 1e-18), 0.0)
+    hot = ratio >= settings.nick_ratio
+    if not hot.any():
+        return [], set()
+    edges = np.flatnonzero(np.diff(np.r_[0, hot.astype(np.int8), 0]))
+    bands = list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
     if len(bands) > 2:
         return [], set()  # many bands: ridges of raised grain, not a nick
+    rows_mm = smap.row_step_px / smap.px_per_mm
+    dx_um = 1000.0 / smap.cols_per_mm
     found, taken = [], set()
     for r0, r1 in bands:
         if (r1 - r0) * rows_mm > settings.nick_max_mm + 2 * rows_mm:
             continue
-        strength = float(level[r0:r1].max())
-        cols = np.flatnonzero(vc[r0:r1].any(axis=0))
-        c0, c1 = int(cols[0]) * res.cell_px, (int(cols[-1]) + 1) * res.cell_px
-        # height of the ridge: the band's residual integrated along the feed, peak to peak
-        seg = res.r[r0:r1, c0:c1].mean(axis=0).astype(np.float64)
-        h = np.cumsum(seg) * 1000.0 / res.smap.cols_per_mm
-        h = h - np.polyval(np.polyfit(np.arange(h.size), h, 1), np.arange(h.size))
-        depth = -float(np.percentile(h, 98) - np.percentile(h, 2))
-        found.append(_defect(res, DefectKind.KNIFE_NICK, (c0, c1), (r0, r1), depth,
-                             _confidence(strength, settings)))
+        # height of the ridge: the band's folded residual integrated along the feed
+        f = np.nan_to_num(folded[r0:r1].mean(axis=0).astype(np.float64))
+        h = np.cumsum(f - f.mean()) * dx_um
+        depth = -float(h.max() - h.min())
+        w = ratio[r0:r1]
+        rc = float((np.arange(r0, r1) * w).sum() / w.sum())
+        conf = 1.0 - math.exp(-max(0.0, float(w.max()) / settings.nick_ratio - 1.0) * 1.5)
+        d = _defect(res, DefectKind.KNIFE_NICK, (float(cols[0]), float(cols[-1]) + 1),
+                    (rc - 0.5 * (r1 - r0) + 0.5, rc + 0.5 * (r1 - r0) + 0.5), depth, conf)
+        found.append(d)
         taken.update(range(r0, r1))
     return found, taken
 
@@ -468,7 +510,8 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
 
     The marks' slope profile (the map's row mean) is integrated; its heights at the marks'
     lowest points, less each knife's mean (the runout repeats every revolution), are fitted
-    with a sinusoid over periods of 2.2-16 passes away from the revolution's harmonics.
+    with a sinusoid over periods of 2.2-16 passes (at most 40 % of the marks seen) away from the
+    revolution's harmonics.
     """
     if bottoms_mm is None or knives is None or len(bottoms_mm) < 3 * knives + 2:
         return []
@@ -487,7 +530,9 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
     e = b - (per_knife @ b)[knife]
     f = 1.0 / np.linspace(2.2, 16.0, 139)
     near = np.min(np.abs(f[:, None] - np.arange(knives + 1)[None, :] / knives), axis=1)
-    f = f[near >= 0.6 / m]
+    # 2.5 periods at least over the marks: a longer wave is what the field's quartic detrend
+    # leaves of its slow bends (snipe, drift), not a waviness it can tell
+    f = f[(near >= 0.6 / m) & (f >= 2.5 / m)]
     if f.size == 0:
         return []
     ph = 2 * np.pi * f[:, None] * j[None, :]
@@ -578,7 +623,7 @@ def detect_defects(smap: SurfaceMap, *, bottoms_mm: np.ndarray | None = None,
     """
     s = DefectSettings() if settings is None else settings
     res = residual(smap, s)
-    nicks, taken = knife_nicks(res, s)
+    nicks, taken = knife_nicks(res, s, pitch_mm, knives)
     if taken:
         res = dataclasses.replace(res, marked=_unmark(res.marked, taken))
     raised = raised_grain(res, s)
