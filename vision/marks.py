@@ -410,6 +410,8 @@ def find_marks(
         else:
             cand = cand[size >= min_step * typical]
     gaps = cand.astype(np.float64) + 0.5  # cusp between samples i and i + 1
+    if refine and gaps.size >= 3:
+        gaps = without_false_cusps(p, gaps, cum_p, guard=guard, min_step=min_step)
     if gaps.size < min_marks + 1:
         _too_few(gaps.size - 1, x, min_marks)
     if refine:
@@ -434,6 +436,82 @@ def find_marks(
         uniformity_cv=float(widths.std() / pitch),
         depth_um=float(depths.sum() / depths.size),
     )
+
+
+def without_false_cusps(slope: np.ndarray, gaps: np.ndarray, cum_p: np.ndarray, *,
+                        guard: int = 2, min_step: float = 0.35) -> np.ndarray:
+    """The candidate cusps without those the noise put inside a mark.
+
+    At a true cusp the slope falls from one arc's line to the next, ``kappa (x - b_k)`` to
+    ``kappa (x - b_(k+1))``, by the distance between the two marks' lowest points: at least
+    one knife pass.  A cusp the noise made (a fall of two samples' means that the read noise
+    pushed over ``min_step`` of the typical one) splits one arc: the lines either side are the
+    same, ``b_(k+1) = b_k``.  Each piece's lowest point ``b`` comes from all its samples (the
+    fit of :func:`vision.kernels.arc_model`: one common ``kappa``, pooled over the pieces, the
+    samples next to a cusp left out, or, in a piece too short for that, kept), so its noise is
+    a fraction of the two-sample step's.  A cusp whose pieces' lowest points lie less than
+    ``min_step`` times the median distance apart is dropped.
+
+    Parameters
+    ----------
+    slope : ndarray, shape (n,)
+        Slope profile.
+    gaps : ndarray, shape (g,)
+        Candidate cusps to a sample, ascending (between samples ``i`` and ``i + 1``:
+        ``i + 0.5``).
+    cum_p : ndarray, shape (n + 1,)
+        ``[0, cumsum(slope)]``.
+    guard : int, optional
+        As in :func:`find_marks`.
+    min_step : float, optional
+        Smallest distance of neighbouring lowest points as a fraction of their median one.
+
+    Returns
+    -------
+    ndarray, shape (g',)
+        The cusps kept (all of them when fewer than three distances can be measured or the
+        pieces show no common curvature).
+    """
+    p = np.asarray(slope, dtype=np.float64)
+    n = p.size
+    g = gaps.size
+    cut = (gaps + 0.5).astype(np.int64)  # first sample after each cusp
+    start = np.concatenate(([0], cut))
+    end = np.concatenate((cut, [n]))  # exclusive
+    ex = max(int(guard) - 1, 0)  # samples left out next to a cusp (as the arc model does)
+    lo = start + ex
+    hi = end - ex
+    lo[0], hi[-1] = 1, n - 1
+    regular = hi - lo >= 2
+    short = ~regular & (end - start >= 2)
+    lo = np.where(short, start, lo)
+    hi = np.where(short, end, hi)
+    fit = regular | short
+    if np.count_nonzero(fit) < 4:
+        return gaps
+    lo_f, hi_f = lo[fit].astype(np.float64), hi[fit].astype(np.float64)
+    cnt = hi_f - lo_f
+    sx = (hi_f * (hi_f - 1) - lo_f * (lo_f - 1)) / 2
+    sxx = ((hi_f - 1) * hi_f * (2 * hi_f - 1) - (lo_f - 1) * lo_f * (2 * lo_f - 1)) / 6
+    cum_xp = _cumsum0(np.arange(n) * p)
+    sp = cum_p[hi[fit]] - cum_p[lo[fit]]
+    sxp = cum_xp[hi[fit]] - cum_xp[lo[fit]]
+    reg = regular[fit]
+    den = float(np.sum((sxx - sx * sx / cnt)[reg]))
+    kappa = float(np.sum((sxp - sx * sp / cnt)[reg])) / den if den > 0 else 0.0
+    if not kappa > 0:
+        return gaps
+    b = np.full(g + 1, np.nan)
+    b[fit] = (sx - sp / kappa) / cnt  # p = kappa (s - b)
+    apart = b[1:] - b[:-1]
+    measured = np.isfinite(apart)
+    if np.count_nonzero(measured) < 3:
+        return gaps
+    typical = _median(apart[measured])
+    if not typical > 0:
+        return gaps
+    false = measured & (apart < min_step * typical)
+    return gaps[~false] if false.any() else gaps
 
 
 def _too_few(found: int, x: np.ndarray, need: int) -> None:
