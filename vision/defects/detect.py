@@ -167,7 +167,7 @@ class DefectSettings:
     rough: float = 0.12
     fuzzy_rough: float = 0.55
     torn_shadow: float = 0.05
-    chatter_um: float = 0.45
+    chatter_um: float = 0.5
     snipe_um: float = 3.0
 
     def __post_init__(self) -> None:
@@ -508,37 +508,42 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
             settings: DefectSettings) -> list[Defect]:
     """A waviness of the marks' lowest points whose period is not the revolution's.
 
-    The marks' slope profile (the map's row mean) is integrated; its heights at the marks'
-    lowest points, less each knife's mean (the runout repeats every revolution), are fitted
-    with a sinusoid over periods of 2.2-16 passes (at most 40 % of the marks seen) away from the
-    revolution's harmonics.
+    The marks' slope profile (the map's row mean) is integrated to the heights of the marks'
+    lowest points; their *differences* from one mark to the next are fitted (the profile's
+    noise integrates to a random walk, red in the heights and white in their differences),
+    less each knife's mean (the runout repeats every revolution) and a linear trend (a slow
+    bend: snipe, drift), with a sinusoid over periods of 2.2-16 passes away from the
+    revolution's harmonics and at most 40 % of the marks seen (2.5 periods at least).  The
+    amplitude of the heights is the differences' over ``2 sin(pi / period)``.
     """
-    if bottoms_mm is None or knives is None or len(bottoms_mm) < 3 * knives + 2:
+    if bottoms_mm is None or knives is None or len(bottoms_mm) < 3 * knives + 3:
         return []
     smap = res.smap
     prof = res.profile
     h = np.cumsum(prof) * 1000.0 / smap.cols_per_mm
     xs = smap.feed_mm(np.arange(prof.size)) + smap.cx / smap.px_per_mm  # Measurement.x_mm
-    t = np.linspace(-1, 1, h.size)
-    h = h - np.polyval(np.polyfit(t, h, 4), t)  # slow bends (snipe, drift) are not chatter
-    b = np.interp(np.asarray(bottoms_mm, dtype=np.float64), xs, h)
-    m = b.size
+    d = np.diff(np.interp(np.asarray(bottoms_mm, dtype=np.float64), xs, h))
+    m = d.size
     j = np.arange(m)
     knife = j % knives
     onehot = (knife[None, :] == np.arange(knives)[:, None]).astype(np.float64)
     per_knife = onehot / onehot.sum(axis=1, keepdims=True)  # (knives, m): each knife's mean
-    e = b - (per_knife @ b)[knife]
+    trend = (j - 0.5 * (m - 1)) / m
+    trend = trend - (per_knife @ trend)[knife]
+    tt = float(trend @ trend)
+    e = d - (per_knife @ d)[knife]
+    e = e - trend * float(trend @ e) / tt
     f = 1.0 / np.linspace(2.2, 16.0, 139)
     near = np.min(np.abs(f[:, None] - np.arange(knives + 1)[None, :] / knives), axis=1)
-    # 2.5 periods at least over the marks: a longer wave is what the field's quartic detrend
-    # leaves of its slow bends (snipe, drift), not a waviness it can tell
+    # 2.5 periods at least over the marks: a longer wave is what the slow bends leave
     f = f[(near >= 0.6 / m) & (f >= 2.5 / m)]
     if f.size == 0:
         return []
-    ph = 2 * np.pi * f[:, None] * j[None, :]
+    ph = 2 * np.pi * f[:, None] * (j[None, :] + 0.5)
     sn, cs = np.sin(ph), np.cos(ph)
-    sn -= (sn @ per_knife.T)[:, knife]  # each knife's mean removed, as from e
-    cs -= (cs @ per_knife.T)[:, knife]
+    for basis in (sn, cs):  # the same knife means and trend removed as from e
+        basis -= (basis @ per_knife.T)[:, knife]
+        basis -= np.outer(basis @ trend, trend) / tt
     gss, gsc, gcc = (sn * sn).sum(1), (sn * cs).sum(1), (cs * cs).sum(1)
     bs, bc = sn @ e, cs @ e
     det = np.maximum(gss * gcc - gsc * gsc, 1e-18)
@@ -546,11 +551,11 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
     fitted = a_s * bs + a_c * bc  # |fit|^2 of the least-squares fit
     ee = max(float(e @ e), 1e-18)
     k = int(np.argmax(fitted))
-    rest = max(ee - float(fitted[k]), 0.0)
-    best = (float(fitted[k]) / ee, float(np.hypot(a_s[k], a_c[k])), float(1.0 / f[k]),
-            math.sqrt(rest / m) * math.sqrt(2.0 / m))
-    explained, amp, _period, amp_noise = best
-    if amp < settings.chatter_um or explained < 0.5 or amp < 4.0 * amp_noise:
+    explained = float(fitted[k]) / ee
+    amp_d = float(np.hypot(a_s[k], a_c[k]))
+    noise = math.sqrt(max(ee - float(fitted[k]), 0.0) / m) * math.sqrt(2.0 / m)
+    amp = amp_d / (2.0 * math.sin(math.pi * float(f[k])))
+    if amp < settings.chatter_um or explained < 0.5 or amp_d < 4.5 * noise:
         return []
     cols = np.flatnonzero(smap.valid.any(axis=0))
     rows = np.flatnonzero(smap.valid.any(axis=1))
