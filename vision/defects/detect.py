@@ -139,8 +139,8 @@ class DefectSettings:
     dent_um : float
         A blob whose integrated depth exceeds this is a dent (chip mark or torn grain), um.
     rough : float
-        Roughness (share of the residual's power at short periods) above which a dent is torn
-        grain.
+        Texture (:func:`_texture`: share of the residual's power at periods below ~0.8 mm away
+        from cast shadows, the noise's removed) above which a dent is torn grain.
     fuzzy_rough : float
         Roughness above which a patch without shadows is fuzzy grain.
     torn_shadow : float
@@ -164,7 +164,7 @@ class DefectSettings:
     raised_coherence: float = 0.4
     raised_strong: float = 0.8
     dent_um: float = 8.0
-    rough: float = 0.12
+    rough: float = 0.15
     fuzzy_rough: float = 0.55
     torn_shadow: float = 0.05
     chatter_um: float = 0.5
@@ -191,6 +191,7 @@ class Blob:
     rough: float  # share of the residual power at short periods
     shadow: float  # share of its samples at >= 0.7 of the shadow slope
     strength: float  # mean excess of its cells over the median
+    texture: float = 0.0  # share of short-period power away from shadows, noise's removed
 
 
 @dataclass(frozen=True)
@@ -340,6 +341,7 @@ def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
     # short periods: the residual minus its running mean over ~1 mm along the feed
     k = max(3, int(round(1.0 * smap.cols_per_mm)) | 1)
     hp = res.r - cv2.blur(res.r, (k, 1), borderType=cv2.BORDER_REFLECT)
+    hp5 = res.r - cv2.blur(res.r, (5, 1), borderType=cv2.BORDER_REFLECT)
     for lab in keep:
         x, y, w, h, a = (int(v) for v in stats[lab])
         cells = labels[y:y + h, x:x + w] == lab
@@ -353,12 +355,35 @@ def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
         r_in = res.r[y:y + h, c0:c1][mask]
         tot = float((r_in ** 2).sum())
         rough = float((hp[y:y + h, c0:c1][mask] ** 2).sum()) / max(tot, 1e-12)
-        shadow = float(np.mean(np.abs(smap.slope_along_feed[y:y + h, c0:c1][mask])
-                               >= 0.7 * smap.shadow_slope))
+        p_in = smap.slope_along_feed[y:y + h, c0:c1]
+        shadow = float(np.mean(np.abs(p_in[mask]) >= 0.7 * smap.shadow_slope))
+        texture = _texture(res, hp5, p_in, (y, y + h, c0, c1), mask)
         out.append(Blob((x * res.cell_px, (x + w) * res.cell_px), (y, y + h),
                         a * cell_mm * row_mm, a / float(w * h), depth, rough, shadow,
-                        float(strength[lab])))
+                        float(strength[lab]), texture))
     return out
+
+
+def _texture(res: Residual, hp: np.ndarray, p_in: np.ndarray,
+             box: tuple[int, int, int, int], mask: np.ndarray) -> float:
+    """Share of a blob's residual power at periods below ~0.8 mm, away from cast shadows.
+
+    ``hp``: the residual less its running mean over 5 map columns.  Samples within one
+    column of a shadow (``|p| >= shadow_slope / 2``: the saturated walls, whose steps would
+    look rough) are left out, and the noise's share of the high-pass power (the cells' median
+    mean square, ``1 - 1/5`` of it) is removed: a smooth dent (a chip mark) keeps almost none,
+    the fibrous bottom of torn grain much.
+    """
+    y0, y1, c0, c1 = box
+    sat = (np.abs(p_in) >= np.float32(0.5 * res.smap.shadow_slope)).astype(np.uint8)
+    near = cv2.dilate(sat, np.ones((1, 3), np.uint8)).astype(bool)
+    keep = mask & ~near & res.smap.valid[y0:y1, c0:c1]
+    n = int(np.count_nonzero(keep))
+    if n == 0:
+        return 0.0
+    tot = float(np.square(res.r[y0:y1, c0:c1][keep], dtype=np.float64).sum())
+    high = float(np.square(hp[y0:y1, c0:c1][keep], dtype=np.float64).sum())
+    return (high - n * res.median * (1.0 - 1.0 / 5.0)) / max(tot, 1e-12)
 
 
 def _defect(res: Residual, kind: DefectKind, cols: tuple[float, float],
@@ -482,8 +507,9 @@ def raised_grain(res: Residual, settings: DefectSettings) -> list[Defect]:
 def pits(res: Residual, found: list[Blob], settings: DefectSettings) -> list[Defect]:
     """Compact blobs: chip marks, torn grain, fuzzy grain.
 
-    A smooth dent is a chip mark, a rough or shadowed pit torn grain, a rough patch without
-    shadows fuzzy grain.
+    A dent whose bottom is smooth is a chip mark (even a deep one that casts shadows), one
+    with a fibrous bottom (:attr:`Blob.texture`) or a shadowed pit without a measurable
+    depth torn grain, a rough patch without shadows fuzzy grain.
     """
     out = []
     for b in found:
@@ -493,11 +519,11 @@ def pits(res: Residual, found: list[Blob], settings: DefectSettings) -> list[Def
             if b.area_mm2 < settings.min_fuzzy_mm2:
                 continue  # a few fibres: not a patch
             kind, depth = DefectKind.FUZZY_GRAIN, None
-        elif b.shadow >= settings.torn_shadow or (b.depth_um >= settings.dent_um
-                                                  and b.rough >= settings.rough):
-            kind = DefectKind.TORN_GRAIN
-        elif b.depth_um >= settings.dent_um:
-            kind = DefectKind.CHIP_MARK
+        elif b.depth_um >= settings.dent_um:  # a dent: a fibrous bottom is torn grain
+            kind = DefectKind.TORN_GRAIN if b.texture >= settings.rough else (
+                DefectKind.CHIP_MARK)
+        elif b.shadow >= settings.torn_shadow:
+            kind = DefectKind.TORN_GRAIN  # a pit whose depth its shadows hide
         else:
             continue  # a smooth bump or a weak dent: nothing D1666 names
         out.append(_defect(res, kind, b.cols, b.rows, depth, conf))
