@@ -20,6 +20,7 @@ Pure: numbers in, numbers out; no clock, no I/O.
 
 from __future__ import annotations
 
+import enum
 import math
 from collections import deque
 from collections.abc import Sequence
@@ -31,7 +32,19 @@ from controller.laws.limits import project_zero_mean_box
 from controller.laws.uniformity_loop import linear_widths_mm, width_cv
 from core.checks import check_finite, check_int, check_positive
 
-__all__ = ["KnifeCondition", "KnifeConditionTracker", "JointingForecast"]
+__all__ = ["JointingForecast", "JointingState", "KnifeCondition", "KnifeConditionTracker"]
+
+
+class JointingState(enum.Enum):
+    """What the jointing forecast says (the value is a stable name for logs and JSON)."""
+
+    FITTING = "fitting"
+    """Not enough board travelled yet to fit the knives' drift: no forecast."""
+    NOT_DUE = "not_due"
+    """The finish stays in its class within the forecast's horizon at the present wear."""
+    DUE = "due"
+    """The finish leaves its class after ``due_in_m`` of board (0: now, a knife's offset at
+    the end of its stroke)."""
 
 
 @dataclass(frozen=True)
@@ -75,6 +88,8 @@ class JointingForecast:
         The predicted CV there.
     text : str
         One line for the operator ("jointing due in 37 boards / 0.41 h at this feed").
+    state : JointingState
+        Fitting, not due within the horizon, or due (the figures above set).
     """
 
     due_in_m: float | None
@@ -83,6 +98,7 @@ class JointingForecast:
     knife: int | None
     cv_at_due: float | None
     text: str
+    state: JointingState
 
 
 class KnifeConditionTracker:
@@ -181,7 +197,8 @@ class KnifeConditionTracker:
         if rates is None:
             return JointingForecast(None, None, None, None, None,
                                     f"knife condition: fitting ({self.span_m:.1f} of "
-                                    f"{self.min_span_m:.1f} m of board)")
+                                    f"{self.min_span_m:.1f} m of board)",
+                                    JointingState.FITTING)
         now = np.array(self._points[-1][1])
 
         def cv_at(d_m: float) -> float:
@@ -194,20 +211,21 @@ class KnifeConditionTracker:
         if np.any(at_bound):  # the reserve is gone: the loop cannot follow the wear any more
             knife = int(np.argmax(np.abs(now)))
             return JointingForecast(0.0, 0.0, 0.0, knife, None,
-                                    f"jointing due now: knife {knife + 1} at the end of its "
-                                    "stroke")
+                                    f"jointing due now: knife {knife} at the end of its "
+                                    "stroke", JointingState.DUE)
         due = _first_crossing(lambda d_m: cv_at(d_m) > cv_max, step, self.horizon_m)
         if due is None:
             return JointingForecast(None, None, None, None, None,
                                     f"knife condition: no jointing due within "
-                                    f"{self.horizon_m:.0f} m at this wear")
+                                    f"{self.horizon_m:.0f} m at this wear",
+                                    JointingState.NOT_DUE)
         needed = now + rates * due
         knife = int(np.argmax(np.abs(needed - needed.mean())))
         boards = due * 1000.0 / board
         hours = due * 1000.0 / feed / 3600.0
         return JointingForecast(due, boards, hours, knife, cv_at(due),
                                 f"jointing due in {boards:.0f} boards / {hours:.2f} h at this "
-                                f"feed (knife {knife + 1})")
+                                f"feed (knife {knife})", JointingState.DUE)
 
 
 def _first_crossing(crossed, step_m: float, horizon_m: float) -> float | None:

@@ -17,6 +17,11 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from controller.quality.knife_report import (
+    format_knife_summary,
+    knife_condition_figure,
+    knife_summary,
+)
 from controller.quality.log import QualityClass, QualityRecord
 
 __all__ = [
@@ -106,8 +111,9 @@ def summarise(
         ``n_judged``, ``pass_rate``, ``mean_true_pitch_mm``, ``mean_true_uniformity_cv``,
         ``mean_kinematic_depth_um``), ``setpoints`` (``feed_mm_s`` min/max/last,
         ``piezo_offsets_um`` per knife), ``mean_kinematic_depth_um``, ``vision`` (see
-        :func:`vision_summary`). Means are over successful measurements; missing values are
-        ``None``.
+        :func:`vision_summary`), ``knife_condition`` (the last jointing forecast, wear and
+        reserve per knife: :func:`controller.quality.knife_report.knife_summary`; ``None``
+        without it). Means are over successful measurements; missing values are ``None``.
     """
     recs = list(records)
     ok = [r for r in recs if r.ok]
@@ -164,6 +170,7 @@ def summarise(
             "feed_mm_s": _range([r.feed_setpoint_mm_s for r in recs]),
             "piezo_offsets_um": piezo,
         },
+        "knife_condition": knife_summary(recs),
     }
 
 
@@ -269,6 +276,10 @@ def format_summary(summary: dict[str, Any], *, title: str = "Quality log") -> st
             continue
         lines.append(f"  piezo offset knife {k['knife']}: {k['min']:+.2f} .. {k['max']:+.2f} µm, "
                      f"last {k['last']:+.2f}")
+    knife_lines = format_knife_summary(s.get("knife_condition"))
+    if knife_lines:
+        lines.append("")
+        lines.extend(knife_lines)
     return "\n".join(lines)
 
 
@@ -757,9 +768,12 @@ def build_figures(
     dict of str to Figure
         ``"pitch_uniformity"`` (pitch, uniformity and, when measured, depth along the boards;
         each point coloured by the verdict on that quantity), ``"setpoints"`` (feed and piezo
-        offsets per knife over machine time) and, when a record carries ``extra["profile"]``,
-        ``"profile"`` (the newest one). Both along-the-run figures shade the periods the
-        records were taken in the safe state (:func:`record_state`). Empty for no records.
+        offsets per knife over machine time), when a record carries ``extra["profile"]``,
+        ``"profile"`` (the newest one), and when records carry the knife condition (schema
+        version 6), ``"knife_condition"`` (reserve, wear and the jointing forecast along the
+        board travelled: :func:`controller.quality.knife_report.knife_condition_figure`).
+        Both along-the-run figures shade the periods the records were taken in the safe state
+        (:func:`record_state`). Empty for no records.
     """
     recs = list(records)
     if not recs:
@@ -771,10 +785,13 @@ def build_figures(
     prof = last_profile(recs)
     if prof is not None:
         figs["profile"] = _profile_figure(*prof)
+    knives = knife_condition_figure(recs)
+    if knives is not None:
+        figs["knife_condition"] = knives
     return figs
 
 
-FIGURE_NAMES = ("pitch_uniformity", "setpoints", "profile")
+FIGURE_NAMES = ("pitch_uniformity", "setpoints", "profile", "knife_condition")
 """The figures :func:`build_figures` may draw (``<stem>_<name>.png``)."""
 
 

@@ -21,7 +21,7 @@ from core.checks import check_finite, check_int, check_positive
 from core.errors import PlanerError
 
 #: Version of the table layout this code writes; logs with a higher version are refused.
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 #: SQLite ``application_id`` marking a file as a planer quality log ("PLQL").
 APPLICATION_ID = 0x504C514C
 #: Longest machine id (``[machine] id``), characters.
@@ -208,6 +208,24 @@ class QualityRecord:
         and spindle the PLC reports beyond slip and ripple. A flagged record is a failed one
         (``ok=False``; ``error`` says ``flagged: ...``); ``None`` = not flagged (records
         before schema version 5 hold ``None``).
+    board_travel_m : float or None
+        Board travelled under the cutter since the service started, m (the knife condition's
+        abscissa); ``None`` before the first table was applied and before schema version 6.
+    knife_drift_um_per_m : tuple of float, shape (Z,)
+        Each knife's wear: the fitted drift of its piezo offset per metre of board, um/m
+        (negative: the knife wears back; NaN before enough board was fitted; empty when not
+        known). Schema version 6, as the fields below.
+    knife_reserve_um : tuple of float, shape (Z,)
+        Each knife's offset-table reserve: the stroke left in the direction it drifts, um.
+    jointing_state : {"fitting", "not_due", "due"} or None
+        The jointing forecast (:class:`controller.laws.knife_condition.JointingState`):
+        still fitting the wear, not due within its horizon, or due after the figures below.
+    jointing_due_m, jointing_due_boards, jointing_due_h : float or None
+        When the finish leaves its quality class at the present wear: in m of board, boards
+        of ``[quality] board_length_mm`` and hours at the feed then (0: now); ``None`` unless
+        ``jointing_state`` is ``due``.
+    jointing_knife : int or None
+        The knife whose reserve runs out first (0-based, as the offset table).
     """
 
     t_s: float
@@ -242,6 +260,14 @@ class QualityRecord:
     kinematic_depth_um: float | None = None
     uncalibrated_depth_um: float | None = None
     flag_reason: str | None = None
+    board_travel_m: float | None = None
+    knife_drift_um_per_m: tuple[float, ...] = ()
+    knife_reserve_um: tuple[float, ...] = ()
+    jointing_state: str | None = None
+    jointing_due_m: float | None = None
+    jointing_due_boards: float | None = None
+    jointing_due_h: float | None = None
+    jointing_knife: int | None = None
 
     def __post_init__(self) -> None:
         def put(name: str, value: Any) -> None:
@@ -272,6 +298,7 @@ class QualityRecord:
             if self.ok:
                 raise ValueError("a flagged pair (flag_reason set) is not a successful "
                                  "measurement: ok must be false")
+        _check_jointing(self)
         if self.calibration_state not in (None, *CALIBRATION_STATES):
             raise ValueError(f"calibration_state must be one of {', '.join(CALIBRATION_STATES)} "
                              f"or None, got {self.calibration_state!r:.80}")
@@ -299,6 +326,31 @@ class QualityRecord:
                 raise ValueError(f"a failed measurement carries no metrics, got {carried[0]}")
 
 
+def _check_jointing(rec: QualityRecord) -> None:
+    """The knife condition's fields of a record: the state known, its figures only when due."""
+    if rec.jointing_state not in (None, *JOINTING_STATES):
+        raise ValueError(f"jointing_state must be one of {', '.join(JOINTING_STATES)} or None, "
+                         f"got {rec.jointing_state!r:.80}")
+    if rec.jointing_knife is not None:
+        object.__setattr__(rec, "jointing_knife",
+                           check_int("jointing_knife", rec.jointing_knife, lo=0, hi=7))
+    if rec.jointing_state != "due":
+        given = [n for n in JOINTING_FIELDS if getattr(rec, n) is not None]
+        if given:
+            raise ValueError(f"{given[0]} needs jointing_state due, got "
+                             f"{rec.jointing_state!r}")
+    for name in ("jointing_due_m", "jointing_due_boards", "jointing_due_h"):
+        v = getattr(rec, name)
+        if v is not None and v < 0:
+            raise ValueError(f"{name} must be >= 0, got {v!r}")
+
+
+#: The jointing forecast's states (``jointing_state``; the values of
+#: :class:`controller.laws.knife_condition.JointingState`).
+JOINTING_STATES = ("fitting", "not_due", "due")
+#: The forecast's figures, set only with state ``due``.
+JOINTING_FIELDS = ("jointing_due_m", "jointing_due_boards", "jointing_due_h", "jointing_knife")
+
 #: The self-calibration's states (``calibration_state``).
 CALIBRATION_STATES = ("off", "applied", "untrusted")
 #: The self-calibration's values, set only with state ``applied`` or ``untrusted``.
@@ -309,12 +361,18 @@ CALIBRATION_FIELDS = (
 _OPT_FLOATS = (
     "pitch_mm", "uniformity_cv", "depth_um", "shift_px", "confidence", "feed_setpoint_mm_s",
     "target_pitch_mm", "true_pitch_mm", "true_uniformity_cv", "roll_deg", "roll_confidence",
-    *CALIBRATION_FIELDS, "kinematic_depth_um", "uncalibrated_depth_um",
+    *CALIBRATION_FIELDS, "kinematic_depth_um", "uncalibrated_depth_um", "board_travel_m",
+    "jointing_due_m", "jointing_due_boards", "jointing_due_h",
 )
-_TUPLES = ("mark_widths_mm", "piezo_offsets_um")
+_TUPLES = ("mark_widths_mm", "piezo_offsets_um", "knife_drift_um_per_m", "knife_reserve_um")
+#: Tuples stored in columns added later (NULL in older records reads back as empty).
+_LATE_TUPLES = ("knife_drift_um_per_m", "knife_reserve_um")
 _FIELD_NAMES = tuple(f.name for f in fields(QualityRecord))
 _INT_FIELDS = ("seq", "board_id")
 _TEXT_FIELDS = ("wall_time", "error", "flag_reason")
+#: The knife condition's record fields (schema version 6), as :func:`knife_condition_fields`.
+KNIFE_CONDITION_FIELDS = ("board_travel_m", "knife_drift_um_per_m", "knife_reserve_um",
+                          "jointing_state", *JOINTING_FIELDS)
 
 
 def _finite(value: Any) -> float | None:
@@ -363,6 +421,47 @@ def vision_fields(measurement: Any, *, ok: bool) -> dict[str, Any]:
         for name in ("kinematic_depth_um", "uncalibrated_depth_um"):
             if hasattr(measurement, name):
                 out[name] = _finite(getattr(measurement, name))
+    return out
+
+
+def knife_condition_fields(condition: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The record fields of the service's knife condition (schema version 6).
+
+    Parameters
+    ----------
+    condition : mapping or None
+        ``controller.service.loops.KnifeConditionWatch.describe()``: ``board_travel_m``,
+        ``knives`` (each with ``drift_um_per_m``, ``reserve_um``), ``state``, ``due_in_m``,
+        ``due_in_boards``, ``due_in_h``, ``knife``; ``None`` (no table applied yet) gives no
+        field.
+
+    Returns
+    -------
+    dict
+        ``board_travel_m``, ``knife_drift_um_per_m``, ``knife_reserve_um`` (per knife, NaN for
+        a drift not fitted yet), ``jointing_state`` and, when due, ``jointing_due_m``,
+        ``jointing_due_boards``, ``jointing_due_h``, ``jointing_knife``.
+    """
+    if not condition:
+        return {}
+    knives = list(condition.get("knives") or ())
+
+    def per_knife(key: str) -> tuple[float, ...]:
+        return tuple(math.nan if _finite(k.get(key)) is None else float(k[key]) for k in knives)
+
+    state = condition.get("state")
+    out: dict[str, Any] = {
+        "board_travel_m": _finite(condition.get("board_travel_m")),
+        "knife_drift_um_per_m": per_knife("drift_um_per_m"),
+        "knife_reserve_um": per_knife("reserve_um"),
+        "jointing_state": state if state in JOINTING_STATES else None,
+    }
+    if out["jointing_state"] == "due":
+        out["jointing_due_m"] = _finite(condition.get("due_in_m"))
+        out["jointing_due_boards"] = _finite(condition.get("due_in_boards"))
+        out["jointing_due_h"] = _finite(condition.get("due_in_h"))
+        knife = condition.get("knife")
+        out["jointing_knife"] = knife if isinstance(knife, int) else None
     return out
 
 
@@ -441,7 +540,7 @@ def storable_record(record: QualityRecord) -> QualityRecord:
         "t_s", "wall_time", "seq", "board_id", "board_position_mm", "shift_px", "confidence",
         "feed_setpoint_mm_s", "piezo_offsets_um", "target_pitch_mm", "true_pitch_mm",
         "true_uniformity_cv", "roll_deg", "roll_confidence", "calibration_state",
-        *CALIBRATION_FIELDS, "flag_reason")}
+        *CALIBRATION_FIELDS, "flag_reason", *KNIFE_CONDITION_FIELDS)}
     out = QualityRecord(**kept, ok=False, error=error, extra=extra)
     check_storable(out)
     return out
@@ -574,6 +673,8 @@ def _required(metrics: Any, name: str) -> Any:
 
 _STATE_CHECK = ("TEXT CHECK (calibration_state IN ("
                 + ", ".join(f"'{v}'" for v in CALIBRATION_STATES) + "))")
+_JOINTING_CHECK = ("TEXT CHECK (jointing_state IN ("
+                   + ", ".join(f"'{v}'" for v in JOINTING_STATES) + "))")
 #: Columns in record-field order: (field, SQLite type, PostgreSQL type).
 _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("t_s", "REAL NOT NULL", "DOUBLE PRECISION NOT NULL"),
@@ -608,6 +709,15 @@ _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("kinematic_depth_um", "REAL", "DOUBLE PRECISION"),
     ("uncalibrated_depth_um", "REAL", "DOUBLE PRECISION"),
     ("flag_reason", "TEXT", "TEXT"),
+    ("board_travel_m", "REAL", "DOUBLE PRECISION"),
+    ("knife_drift_um_per_m", "TEXT", "TEXT"),
+    ("knife_reserve_um", "TEXT", "TEXT"),
+    ("jointing_state", _JOINTING_CHECK, _JOINTING_CHECK),
+    ("jointing_due_m", "REAL", "DOUBLE PRECISION"),
+    ("jointing_due_boards", "REAL", "DOUBLE PRECISION"),
+    ("jointing_due_h", "REAL", "DOUBLE PRECISION"),
+    ("jointing_knife", "INTEGER CHECK (jointing_knife BETWEEN 0 AND 7)",
+     "INTEGER CHECK (jointing_knife BETWEEN 0 AND 7)"),
 )
 assert tuple(c for c, _, _ in _COLUMNS) == _FIELD_NAMES, "schema and record differ"
 
@@ -616,17 +726,20 @@ _COLUMN_OF = {"wall_time": "wall_time_utc", "extra": "extra_json"}
 _V3 = _FIELD_NAMES[:_FIELD_NAMES.index("machine_id") + 1]
 _V1 = tuple(n for n in _V3 if n != "machine_id")
 _V4 = _FIELD_NAMES[:_FIELD_NAMES.index("uncalibrated_depth_um") + 1]
+_V5 = _FIELD_NAMES[:_FIELD_NAMES.index("flag_reason") + 1]
 #: Column names by schema version: (id column, record columns in field order). Version 1
 #: used the field names; version 2 the CSV header's (``record_id``, ``wall_time_utc``,
 #: ``extra_json``); version 3 added ``machine_id``; version 4 the orientation, the
 #: self-calibration and the kinematic depth (``roll_deg`` ... ``uncalibrated_depth_um``);
-#: version 5 ``flag_reason``.
+#: version 5 ``flag_reason``; version 6 the knife condition (``board_travel_m`` ...
+#: ``jointing_knife``).
 _NAMES = {
     1: ("id", _V1),
     2: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V1)),
     3: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V3)),
     4: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V4)),
-    5: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
+    5: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V5)),
+    6: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
 }
 assert SCHEMA_VERSION == max(_NAMES)
 
@@ -635,7 +748,10 @@ assert SCHEMA_VERSION == max(_NAMES)
 ADDED_IN_V4: tuple[tuple[str, str, str], ...] = tuple(
     c for c in _COLUMNS if c[0] not in _V3 and c[0] in _V4)
 #: The columns version 5 added (``flag_reason``), for the migrations.
-ADDED_IN_V5: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V4)
+ADDED_IN_V5: tuple[tuple[str, str, str], ...] = tuple(
+    c for c in _COLUMNS if c[0] not in _V4 and c[0] in _V5)
+#: The columns version 6 added (the knife condition), for the migrations.
+ADDED_IN_V6: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V5)
 
 
 def column_names(version: int) -> tuple[str, tuple[str, ...]]:
@@ -782,7 +898,8 @@ def _from_row(row: Sequence[Any]) -> QualityRecord:
     try:
         kw = dict(zip(_FIELD_NAMES, vals, strict=True))
         for name in _TUPLES:
-            kw[name] = _list_from_json(kw[name])
+            kw[name] = (() if kw[name] is None and name in _LATE_TUPLES
+                        else _list_from_json(kw[name]))
         kw["extra"] = json.loads(kw["extra"])
         kw["ok"] = bool(kw["ok"])
         kw["passed"] = None if kw["passed"] is None else bool(kw["passed"])

@@ -21,6 +21,7 @@ from typing import Any
 from controller.quality.schema import (
     ADDED_IN_V4,
     ADDED_IN_V5,
+    ADDED_IN_V6,
     SCHEMA_VERSION,
     QualityLogError,
     RecordRefusedError,
@@ -43,9 +44,9 @@ _SCHEMA_LOCK = 0x504C514C
 _NUL_CHECKED = ("error", "flag_reason")
 #: Columns that are BOOLEAN in PostgreSQL (0/1 integers in SQLite).
 _BOOLEANS = ("ok", "passed")
-#: Layout versions read in PostgreSQL (3 and 4 are brought to 5 by a writer; a reader reads
-#: them as they are).
-_READABLE = (3, 4, SCHEMA_VERSION)
+#: Layout versions read in PostgreSQL (3 to 5 are brought to the current one by a writer; a
+#: reader reads them as they are).
+_READABLE = (3, 4, 5, SCHEMA_VERSION)
 
 
 def describe_url(url: str) -> str:
@@ -237,8 +238,10 @@ class PostgresStore:
                         "PostgreSQL)")
                 version = int(rows[0][0])
                 if version < SCHEMA_VERSION and create:
-                    # v4: orientation, self-calibration, depths; v5: flag_reason
-                    added = (ADDED_IN_V4 if version == 3 else ()) + ADDED_IN_V5
+                    # v4: orientation, self-calibration, depths; v5: flag_reason; v6: the
+                    # knife condition
+                    added = ((ADDED_IN_V4 if version == 3 else ())
+                             + (ADDED_IN_V5 if version <= 4 else ()) + ADDED_IN_V6)
                     for name, _, pg_type in added:
                         conn.execute(f"ALTER TABLE records ADD COLUMN IF NOT EXISTS {name} "
                                      f"{pg_type}")

@@ -17,6 +17,7 @@ from typing import Any
 from controller.quality.schema import (
     ADDED_IN_V4,
     ADDED_IN_V5,
+    ADDED_IN_V6,
     APPLICATION_ID,
     SCHEMA_VERSION,
     QualityLogError,
@@ -155,7 +156,8 @@ class SqliteStore:
         """Bring an older log to the current layout.
 
         v2: the CSV header's names; v3: ``machine_id``; v4: orientation, self-calibration and
-        kinematic depth (records before it read ``None`` there); v5: ``flag_reason``.
+        kinematic depth (records before it read ``None`` there); v5: ``flag_reason``; v6: the
+        knife condition.
         """
         conn = self._connection()
         try:
@@ -179,6 +181,10 @@ class SqliteStore:
                     for name, sqlite_type, _ in ADDED_IN_V5:
                         conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
                     version = 5
+                if version == 5:
+                    for name, sqlite_type, _ in ADDED_IN_V6:
+                        conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
+                    version = 6
                 conn.execute("UPDATE schema_version SET version = ?", (version,))
                 conn.execute("COMMIT")
             except BaseException:

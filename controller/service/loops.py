@@ -46,7 +46,10 @@ for four) and mostly by 2 (two for one)."""
 
 
 CONDITION_EVERY_S = 2.0
-"""The knife condition's forecast is renewed at most this often (about 2 ms of CPU each)."""
+"""The knife condition's forecast is renewed at most this often (1-2 ms of CPU each, between
+pairs: :meth:`KnifeConditionWatch.renew`)."""
+CONDITION_LATE_S = 10.0
+"""A forecast this overdue is renewed after a pair even when the next pair already waits."""
 JOINTING_WARN_BOARDS = 20.0
 """The operator is told (``JOINTING_DUE``) when the finish leaves its class within this many
 boards at the knives' present wear."""
@@ -478,6 +481,14 @@ class ControlLoops:
         """The knives' condition for displays (:meth:`KnifeConditionWatch.describe`)."""
         return self.condition.describe()
 
+    def between_pairs(self, t: float, *, idle: bool) -> None:
+        """Work that must not delay a pair, done after a pair's record.
+
+        ``idle``: no later pair waits for this one. The knife condition's forecast is renewed
+        here when due (:meth:`KnifeConditionWatch.renew`), never inside a pair's control.
+        """
+        self.condition.renew(t, idle=idle)
+
     def amp_tracked(self, cut_at_s: float | None, t: float) -> bool:
         """Whether the board a measurement shows was cut while the amplifier played the offsets.
 
@@ -542,6 +553,7 @@ class KnifeConditionWatch:
         self._said = False
         self._condition: dict[str, Any] | None = None
         self._condition_t = -math.inf
+        self._due_since: float | None = None  # a new table waits for its forecast since then
 
     def travel(self, t: float, snap: PlcSnapshot) -> None:
         """Add the board travelled since the last call at the PLC's actual feed."""
@@ -552,22 +564,42 @@ class KnifeConditionWatch:
         self._snap = snap
 
     def note(self, t: float, table: Any, *, limit_um: float) -> None:
-        """The table in force now; the forecast renewed every :data:`CONDITION_EVERY_S`."""
+        """The table in force now (cheap: the forecast is :meth:`renew`'s, between pairs)."""
         kc = self.tracker
         table = [float(v) for v in table]
         if kc is None or kc.knives != len(table) or kc.stroke_um != limit_um:
             kc = self.tracker = KnifeConditionTracker(knives=len(table), stroke_um=limit_um)
             self._said = False
         kc.update(board_m=self.board_travel_m, offsets_um=table)
-        if t - self._condition_t >= CONDITION_EVERY_S:
-            self._condition_t = t
-            self._condition = self._forecast(t)
+        if self._due_since is None:
+            self._due_since = t
+
+    @property
+    def due(self) -> bool:
+        """Whether a table came since the last forecast (:meth:`renew` would compute one)."""
+        return self._due_since is not None
+
+    def renew(self, t: float, *, idle: bool = True) -> bool:
+        """Renew the forecast when due; whether it was computed (1-2 ms).
+
+        Due: a table came since the last one and :data:`CONDITION_EVERY_S` passed. Computed
+        only when ``idle`` (no pair waits), or when it is :data:`CONDITION_LATE_S` overdue.
+        """
+        since = self._due_since
+        if since is None or t - self._condition_t < CONDITION_EVERY_S:
+            return False
+        if not idle and t - max(since, self._condition_t + CONDITION_EVERY_S) < CONDITION_LATE_S:
+            return False
+        self._condition_t = t
+        self._due_since = None
+        self._condition = self._forecast(t)
+        return True
 
     def describe(self) -> dict[str, Any] | None:
         """Each knife's offset, wear and reserve, and the jointing forecast (for displays).
 
-        The forecast of the last :data:`CONDITION_EVERY_S` seconds (``None`` before the first
-        table was applied).
+        The last forecast :meth:`renew` computed, at most :data:`CONDITION_EVERY_S` plus a pair
+        old while tables come (``None`` before the first table was applied).
         """
         return None if self._condition is None else dict(self._condition)
 
@@ -599,4 +631,5 @@ class KnifeConditionWatch:
                        for c in kc.conditions()],
             "due_in_m": fc.due_in_m, "due_in_boards": fc.due_in_boards,
             "due_in_h": fc.due_in_h, "knife": fc.knife, "text": fc.text,
+            "state": fc.state.value, "t_s": t,
         }

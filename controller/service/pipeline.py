@@ -244,6 +244,7 @@ class PairPipeline:
                 "safe_reason": keeper.safe_reason(),
                 "piezo": out.record_fields(),  # limit in force, refused tables, safe entries
                 "plc_feed_setpoint_mm_s": plc_feed,  # in force before the service wrote one
+                "knife_condition": self.loops.describe_knife_condition(),  # the last forecast
                 **({"passes": att.to_json()} if att is not None else {}),
                 **({"profile": profile} if profile is not None else {}),
             },
@@ -256,7 +257,9 @@ class PairPipeline:
             self.results.append(result)
         if self.on_result is not None:
             self.on_result(result)
-        if len(self._in_flight) <= 1:  # no later pair waits for this one: a pause costs nothing
+        idle = len(self._in_flight) <= 1
+        self.loops.between_pairs(t_arr, idle=idle)  # the knife condition's forecast, when due
+        if idle:  # no later pair waits for this one: a pause costs nothing
             collect_between_pairs()
         return result
 

@@ -37,6 +37,7 @@ import numpy as np
 from config.machine import MachineConfig
 from controller.quality.journal import RecordSink, default_journal_path
 from controller.quality.log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
+from controller.quality.schema import knife_condition_fields
 from controller.quality.write_ahead import CLOSE_TIMEOUT_S, WriteAheadSink
 from controller.service.events import EventKind, EventLog
 from controller.service.frame_result import FrameResult
@@ -243,6 +244,7 @@ class QualityRecords:
             "target_pitch_mm": self.cfg.quality.target_pitch_mm,
             "true_pitch_mm": finite_or_none(truth.get(true_keys[0])),
             "true_uniformity_cv": finite_or_none(truth.get(true_keys[1])),
+            **knife_condition_fields(r.extra.get("knife_condition")),  # schema version 6
             "extra": {
                 "state": r.state,
                 "safe_reason": r.extra.get("safe_reason"),

@@ -396,7 +396,8 @@ def test_planer_hil_text_summary_prints_the_figures(tmp_path):
     shown = [ln.split()[-1] for ln in out.stdout.splitlines() if ln.strip().startswith("figure")]
     names = {Path(p).name for p in shown}
     assert {"h_pitch_uniformity.png", "h_setpoints.png"} <= names
-    assert names <= {"h_pitch_uniformity.png", "h_setpoints.png", "h_profile.png"}
+    assert names <= {"h_pitch_uniformity.png", "h_setpoints.png", "h_profile.png",
+                     "h_knife_condition.png"}
     assert all(Path(p).parent == tmp_path and Path(p).is_file() for p in shown)
 
 
