@@ -143,7 +143,10 @@ def test_without_a_vanished_knife_the_measurement_is_reported_as_it_is():
     meas.pitch_mm, meas.uniformity_cv = 1.503, 0.0123  # the vision's own numbers
     att = attribute(meas, frame, snap, rig)
     assert att.complete and att.vanished_knives == ()
-    assert att.pitch_mm == 1.503 and att.uniformity_cv == 0.0123
+    assert att.pitch_mm == 1.503 and att.marks_cv == 0.0123
+    # the CV reported: that of the widths as the knives cut them (all 1.5 mm here)
+    assert att.uniformity_cv == att.knife_cv == pytest.approx(0.0, abs=1e-9)
+    assert att.to_json()["marks_cv"] == 0.0123
     assert np.allclose(att.knife_widths_mm, 1.5)
     assert att.kinematic_cv == pytest.approx(0.0, abs=1e-9)
 
