@@ -21,7 +21,7 @@ from asyncua import Server, ua
 from asyncua.common.node import Node
 from asyncua.common.structures104 import new_enum
 
-from controller.opcua.view import FLAG_NAMES, MANUFACTURER_NAMES, VALUE_NAMES
+from controller.opcua.view import FLAG_NAMES, MANUFACTURER_INITIAL, MANUFACTURER_NAMES, VALUE_NAMES
 
 __all__ = [
     "DI_URI",
@@ -381,7 +381,7 @@ async def _manufacturer(machine: Node, nodes: MachineNodes, machine_name: str, k
         elif vtype == ua.VariantType.Boolean:
             init = ua.Variant(False, vtype)
         else:
-            init = ua.Variant(0, vtype)
+            init = ua.Variant(MANUFACTURER_INITIAL.get(name, 0), vtype)
         var = await ms.add_variable(ua.NodeId(f"{machine_name}.{path.replace('/', '.')}", own),
                                     _qn(name, own), init, varianttype=vtype)
         if rank == 1:

@@ -94,8 +94,14 @@ MANUFACTURER_NAMES: Mapping[str, str] = {
     "MeasurementError": "String", "SafeReason": "String", "FeedSetpointMmS": "Double",
     "LastBoardPairs": "Int64", "LastBoardPairsOk": "Int64", "LastBoardPassRate": "Double",
     "LastBoardMeanPitchMm": "Double", "LastBoardMeanUniformityCv": "Double",
+    "BoardTravelM": "Double", "KnifeWearUmPerM": "Double[]", "KnifeReserveUm": "Double[]",
+    "JointingState": "String", "JointingForecast": "String", "JointingDueM": "Double",
+    "JointingDueBoards": "Double", "JointingDueH": "Double", "JointingKnife": "Int64",
+    "KnifeChips": "Int64", "LastChippedKnife": "Int64", "LastChipRunoutStepUm": "Double",
 }
 """``ManufacturerSpecific`` variables (our namespace) and their data types; NaN = not known."""
+MANUFACTURER_INITIAL: Mapping[str, int] = {"JointingKnife": -1, "LastChippedKnife": -1}
+"""Integer variables whose "none" is -1 (a knife index), not 0."""
 
 _EVENT_CATEGORY = {
     EventKind.SAFE_STATE: WwEventCategory.ERROR,
@@ -115,9 +121,41 @@ _EVENT_CATEGORY = {
     EventKind.CAMERA_CLOCK_WENT_BACK: WwEventCategory.WARNING,
     EventKind.CLOSE_PROBLEM: WwEventCategory.WARNING,
     EventKind.RECORDS_SAVED: WwEventCategory.WARNING,
+    EventKind.KNIFE_CHIPPED: WwEventCategory.ALARM,
+    EventKind.JOINTING_DUE: WwEventCategory.WARNING,
 }
 """Service events that become Woodworking events; the rest (``RECOVERED``, ``*_HEALTHY``,
 ``*_VALID``, ``FEED_ACCEPTED``, ``LOG_RECOVERED``, ``PIEZO_LIMITS``) are ``INFORMATION``."""
+
+def knife_condition_values(s: ServiceStatus | None) -> dict[str, Any]:
+    """The knife condition's ``ManufacturerSpecific`` values of a status (NaN / -1: none).
+
+    ``BoardTravelM``, ``KnifeWearUmPerM`` and ``KnifeReserveUm`` (per knife), the jointing
+    forecast (``JointingState``: ``fitting``, ``not_due``, ``due`` or "" before the first
+    table; ``JointingForecast`` its line; ``JointingDueM``, ``JointingDueBoards``,
+    ``JointingDueH``, ``JointingKnife`` when due), and the chipped knives (``KnifeChips``
+    counted, the last one's ``LastChippedKnife`` and ``LastChipRunoutStepUm``).
+    """
+    kc = (s.knife_condition if s is not None else None) or {}
+    knives = kc.get("knives") or ()
+    chip = ((s.alerts or {}).get("knife_chipped") if s is not None else None) or {}
+    knife = kc.get("knife")
+    last_chip = chip.get("knife")
+    return {
+        "BoardTravelM": _num(kc.get("board_travel_m")),
+        "KnifeWearUmPerM": [_num(k.get("drift_um_per_m")) for k in knives],
+        "KnifeReserveUm": [_num(k.get("reserve_um")) for k in knives],
+        "JointingState": str(kc.get("state") or ""),
+        "JointingForecast": str(kc.get("text") or ""),
+        "JointingDueM": _num(kc.get("due_in_m")),
+        "JointingDueBoards": _num(kc.get("due_in_boards")),
+        "JointingDueH": _num(kc.get("due_in_h")),
+        "JointingKnife": int(knife) if isinstance(knife, int) else -1,
+        "KnifeChips": int(s.counters.get("knife_chips", 0)) if s is not None else 0,
+        "LastChippedKnife": int(last_chip) if isinstance(last_chip, int) else -1,
+        "LastChipRunoutStepUm": _num(chip.get("runout_step_um")),
+    }
+
 
 _SEVERITY = {
     WwEventCategory.ERROR: 800, WwEventCategory.ALARM: 700, WwEventCategory.WARNING: 500,
@@ -329,6 +367,7 @@ class MachineView:
             "LastBoardPassRate": self._last_board.get("pass_rate", math.nan),
             "LastBoardMeanPitchMm": self._last_board.get("mean_pitch_mm", math.nan),
             "LastBoardMeanUniformityCv": self._last_board.get("mean_uniformity_cv", math.nan),
+            **knife_condition_values(s),
         }
 
     def all_values(self) -> dict[str, Any]:

@@ -118,6 +118,50 @@ function drawKnives(last, status) {
     cls: cls(offsets.length), ylabel: "offset (µm)" });
 }
 
+const JOINTING_WARN_BOARDS = 20; // as the service's JOINTING_DUE (controller/service/loops.py)
+
+function drawKnifeCondition(status) {
+  const kc = status ? status.knife_condition : null;
+  const chip = status && status.alerts ? status.alerts.knife_chipped : null;
+  setText("kc-chip", chip ? `knife ${chip.knife} chipped or nicked at t=${num(chip.t_s, 1)} s: ` +
+    `runout ${chip.runout_step_um >= 0 ? "+" : ""}${num(chip.runout_step_um, 1)} µm, ` +
+    `marks ${chip.width_change_mm >= 0 ? "+" : ""}${num(chip.width_change_mm, 3)} mm` : "");
+  const forecast = $("kc-forecast");
+  if (!kc) {
+    setText("kc-forecast", "no offset table applied yet");
+    forecast.className = "forecast";
+    setText("kc-travel", "");
+    $("kc-table").tBodies[0].replaceChildren();
+    Plot.bars($("reserve-chart"), { values: [], labels: [], cls: [], ylabel: "reserve (µm)" });
+    return;
+  }
+  setText("kc-forecast", kc.text);
+  const soon = kc.state === "due" && Plot.finite(kc.due_in_boards) &&
+    kc.due_in_boards <= JOINTING_WARN_BOARDS;
+  forecast.className = `forecast ${kc.state}${soon ? " soon" : ""}`;
+  setText("kc-travel", `(${num(kc.board_travel_m, 1)} m of board)`);
+  const knives = kc.knives || [];
+  const key = JSON.stringify(knives);
+  const body = $("kc-table").tBodies[0];
+  if (body.dataset.key !== key) {
+    body.dataset.key = key;
+    body.replaceChildren(...knives.map((k) => {
+      const tr = document.createElement("tr");
+      if (kc.state === "due" && kc.knife === k.knife) tr.className = "selected";
+      for (const text of [`knife ${k.knife}`, num(k.drift_um_per_m, 3), num(k.reserve_um, 2),
+                          num(k.offset_um, 2)]) {
+        const td = document.createElement("td");
+        td.textContent = text;
+        tr.append(td);
+      }
+      return tr;
+    }));
+  }
+  Plot.bars($("reserve-chart"), { values: knives.map((k) => k.reserve_um),
+    labels: knives.map((k) => `knife ${k.knife}`),
+    cls: knives.map((k) => `bar k${k.knife % KNIFE_COLOURS}`), ylabel: "reserve (µm)" });
+}
+
 function drawFeed() {
   const t = feedHistory.map((r) => r.t);
   Plot.lines($("feed-chart"), { series: [
@@ -149,6 +193,7 @@ function draw(snap) {
   drawProfile(snap.last);
   drawTraces(snap.trace || [], qc);
   drawKnives(snap.last, snap.status);
+  drawKnifeCondition(snap.status);
   drawFeed();
   drawEvents(snap.events || []);
   document.body.dataset.version = String(snap.version);
