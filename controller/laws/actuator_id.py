@@ -31,6 +31,12 @@ lie anywhere on the phase circle: a resonance below the knife passing frequency 
 60-180 degrees (at 100 Hz and 400 knife passes per second the alternating mode's gain is about
 -0.2), and a hysteretic stack shrinks small cycles to a few per cent.
 
+Beside each mode's gain the accepted differences give its dependence on the amplitude
+``|O_m|`` they were taken at (:meth:`ActuatorIdentifier.amplitude_slope`: the slope of an affine
+describing function ``a_m(A)``, counted only beyond two standard errors), which a hysteretic
+stack shows and a linear actuator does not; :meth:`ActuatorIdentifier.gains_at` gives the gains
+at given amplitudes, within the amplitudes seen.
+
 The fit is exponentially weighted least squares over the accepted differences (forgetting only
 when something new is learnt, so a settled loop keeps its estimate) with a prior ``a_m = 1``
 of weight ``prior_um2``. Beside the estimate it keeps what the fit knows: the weighted number
@@ -180,6 +186,13 @@ class ActuatorIdentifier:
         self._soy = [0j] * z
         self._syy = [0.0] * z  # weighted sum of |dY|^2 (the fit's residual)
         self._n = [0.0] * z  # weighted number of accepted differences
+        # the same sums weighted by the difference's amplitude (mean |O_m| of its two ends):
+        # the gain's dependence on the amplitude (a hysteretic stack)
+        self._sao = [0.0] * z  # sum A |dO|^2
+        self._saao = [0.0] * z  # sum A^2 |dO|^2
+        self._saoy = [0j] * z  # sum A conj(dO) dY
+        self._amp_lo = [math.inf] * z  # the amplitudes the accepted differences reached, um
+        self._amp_hi = [0.0] * z
         self._rejected = [0] * z  # consecutive differences left out as outliers
         self._confident = [False] * z  # confident once since learnt (afresh)
         self._still = [0] * z  # large moves in a row that moved nothing (ratio ~ 0)
@@ -252,6 +265,7 @@ class ActuatorIdentifier:
                 do, dy = om[m] - o0[m], ym[m] - y0[m]
                 if abs(do) < self.min_step_um:
                     continue
+                amp = 0.5 * (abs(om[m]) + abs(o0[m]))
                 ratio = dy / do
                 if abs(ratio) < 0.25 * self.gain_min and abs(do) >= 4.0 * self.min_step_um:
                     self._still[m] += 1  # a large move that moved nothing
@@ -260,7 +274,7 @@ class ActuatorIdentifier:
                         or abs(cmath.phase(ratio)) > self.gate_phase):
                     continue
                 self._still[m] = 0
-                if not self._consistent(m, do, dy):
+                if not self._consistent(m, do, dy, amp):
                     self._rejected[m] += 1
                     if self._rejected[m] >= self.reject_reset:  # the actuator changed: relearn
                         self._forget_mode(m)
@@ -270,10 +284,19 @@ class ActuatorIdentifier:
                 soy[m] = lam * soy[m] + do.conjugate() * dy
                 syy[m] = lam * syy[m] + abs(dy) ** 2
                 n[m] = lam * n[m] + 1.0
+                w2 = abs(do) ** 2
+                self._sao[m] = lam * self._sao[m] + amp * w2
+                self._saao[m] = lam * self._saao[m] + amp * amp * w2
+                self._saoy[m] = lam * self._saoy[m] + amp * do.conjugate() * dy
+                self._amp_lo[m] = min(self._amp_lo[m], abs(om[m]), abs(o0[m]))
+                self._amp_hi[m] = max(self._amp_hi[m], abs(om[m]), abs(o0[m]))
                 any_moved = True
             for m in range(z // 2 + 1, z):  # mode Z - m: the conjugate of mode m
                 c = z - m
                 soo[m], soy[m], syy[m], n[m] = soo[c], soy[c].conjugate(), syy[c], n[c]
+                self._sao[m], self._saao[m] = self._sao[c], self._saao[c]
+                self._saoy[m] = self._saoy[c].conjugate()
+                self._amp_lo[m], self._amp_hi[m] = self._amp_lo[c], self._amp_hi[c]
                 self._rejected[m] = self._rejected[c]
                 self._still[m] = self._still[c]
             if any_moved:
@@ -299,24 +322,26 @@ class ActuatorIdentifier:
         return any(abs((ym[m] - y1[m]) - complex(self._gains[m]) * (om[m] - o1[m])) > self.jump_um
                    for m in range(1, z))
 
-    def _consistent(self, m: int, do: complex, dy: complex) -> bool:
+    def _consistent(self, m: int, do: complex, dy: complex, amp: float) -> bool:
         """Whether a difference agrees with a confident estimate of mode ``m`` (else an outlier).
 
         Before the mode is confident every difference counts (the first learning steps are what
         identify a turned or weak actuator). After, ``|dY - a dO|`` must stay within half the
         predicted move (three uncertainties of the gain, when larger) plus three residual
         standard deviations: a step of the runout
-        (``dS``, a knife changed) is left out whatever its phase.
+        (``dS``, a knife changed) is left out whatever its phase. A gain that depends on the
+        amplitude (:meth:`amplitude_slope`) is judged at the difference's amplitude ``amp``.
         """
         n = self._n[m]
         if n < self.min_samples - 1e-9:
             return True
-        a = complex(self._raw[m])
+        slope, centre = self.amplitude_slope(m)
+        a_c = complex(self._raw[m])
+        a = a_c + slope * (amp - centre)
         se = self._stderr(m)
-        if 2.0 * se >= abs(a):
+        if 2.0 * se >= abs(a_c):
             return True  # not confident: nothing to judge by
-        res = self._syy[m] - 2.0 * (a.conjugate() * self._soy[m]).real + abs(a) ** 2 * self._soo[m]
-        sigma = math.sqrt(max(res, 0.0) / max(n - 1.0, 1.0))
+        sigma = math.sqrt(self._residual(m) / max(n - 1.0, 1.0))
         return abs(dy - a * do) <= max(0.5 * abs(a), 3.0 * se) * abs(do) + 3.0 * sigma
 
     def _relearn_lost(self) -> None:
@@ -336,6 +361,8 @@ class ActuatorIdentifier:
         """Forget what mode ``m`` (and its conjugate) learnt: back to the prior."""
         for k in {m, (self.knives - m) % self.knives}:
             self._soo[k], self._soy[k], self._syy[k], self._n[k] = 0.0, 0j, 0.0, 0.0
+            self._sao[k], self._saao[k], self._saoy[k] = 0.0, 0.0, 0j
+            self._amp_lo[k], self._amp_hi[k] = math.inf, 0.0
             self._rejected[k] = 0
             self._confident[k] = False
             self._still[k] = 0
@@ -354,6 +381,11 @@ class ActuatorIdentifier:
         for m in range(1, (z + 1) // 2):  # a real map: mode Z - m is the conjugate of mode m
             a[z - m] = np.conj(a[m])
         self._raw = a.copy()
+        return self._bounded(a)
+
+    def _bounded(self, a: np.ndarray) -> np.ndarray:
+        """Raw gains per mode bounded for planning (magnitude, phase), a real map."""
+        z = self.knives
         # a gain not yet confirmed is planned with at least ``unconfirmed_gain_min``: a few
         # differences that say "small" must not blow the table up to the stroke
         low = np.where(self.confidence() > 0.0, self.gain_min,
@@ -377,6 +409,72 @@ class ActuatorIdentifier:
     def raw_gains(self) -> np.ndarray:
         """The least-squares estimate per mode before the bounds, shape (Z,), complex."""
         return self._raw.copy()
+
+    def amplitude_slope(self, m: int) -> tuple[complex, float]:
+        """How mode ``m``'s gain changes with its amplitude: ``(slope per um, centre um)``.
+
+        A hysteretic stack moves a small cycle by a few per cent of the table and a large one
+        by most of it: the gain of a difference grows with the amplitude ``A`` (``|O_m|``, the
+        mean of its two ends) it was taken at. Beside the estimate ``a_m`` (the gain at the
+        weighted mean amplitude, the ``centre``) the accepted differences give the slope of
+        ``a_m(A) = a_m + slope (A - centre)`` by least squares on the centred amplitudes. The
+        slope counts only when it is larger than two of its standard errors (the residual of
+        the affine fit over the amplitudes' spread): a linear actuator has slope 0.
+
+        Returns
+        -------
+        (complex, float)
+            The slope, 1/um (0 when not significant), and the centre amplitude, um.
+        """
+        soo, n = self._soo[m], self._n[m]
+        if m == 0 or soo <= 0.0 or n < self.min_samples + 1 - 1e-9:
+            return 0j, 0.0
+        centre = self._sao[m] / soo
+        spread = self._saao[m] - self._sao[m] * centre
+        if spread <= 1e-12 * max(self._saao[m], 1.0):
+            return 0j, centre
+        cov = self._saoy[m] - centre * self._soy[m]
+        slope = cov / spread
+        res = max(self._residual(m) - abs(cov) ** 2 / spread, 0.0)
+        se = math.sqrt(res / max(n - 2.0, 1.0) / spread)
+        return (slope if abs(slope) > 2.0 * se else 0j), centre
+
+    def amplitude_dependent(self) -> bool:
+        """Whether some mode's gain depends on its amplitude (:meth:`amplitude_slope`)."""
+        return any(self.amplitude_slope(m)[0] != 0 for m in range(1, self.knives // 2 + 1))
+
+    def mode_amplitudes(self, table_um: Sequence[float]) -> np.ndarray:
+        """``|O_m|`` of a table per mode (the amplitude :meth:`gains_at` takes), um, shape (Z,)."""
+        o = np.asarray(table_um, dtype=float)
+        return np.abs(np.fft.fft(o, norm="ortho"))
+
+    def gains_at(self, amplitudes_um: Sequence[float]) -> np.ndarray:
+        """The planning gains with each mode's gain taken at its amplitude, shape (Z,).
+
+        ``a_m + slope_m (A_m - centre_m)`` (:meth:`amplitude_slope`), ``A_m`` kept within the
+        amplitudes the accepted differences reached (no extrapolation), then bounded as
+        :attr:`mode_gains` are. Without an amplitude dependence: :attr:`mode_gains`.
+        """
+        amps = np.asarray(amplitudes_um, dtype=float)
+        z = self.knives
+        if amps.shape != (z,) or not np.all(np.isfinite(amps)):
+            raise ValueError(f"amplitudes_um must be {z} finite values, got {amplitudes_um!r}")
+        a = self._raw.copy()
+        changed = False
+        for m in range(1, z // 2 + 1):
+            slope, centre = self.amplitude_slope(m)
+            if slope == 0:
+                continue
+            amp = min(max(float(amps[m]), self._amp_lo[m]), self._amp_hi[m])
+            a[m] = a[m] + slope * (amp - centre)
+            if 2 * m == z:
+                a[m] = a[m].real
+            changed = True
+        if not changed:
+            return self.mode_gains
+        for m in range(1, (z + 1) // 2):
+            a[z - m] = np.conj(a[m])
+        return self._bounded(a)
 
     @property
     def excitation_um2(self) -> np.ndarray:
@@ -406,10 +504,16 @@ class ActuatorIdentifier:
             out[m] = self._stderr(m)
         return out
 
+    def _residual(self, m: int) -> float:
+        """``sum |dY - a dO|^2`` of mode ``m``'s accepted differences at its estimate, um^2."""
+        a = complex(self._raw[m])
+        res = self._syy[m] - 2.0 * (a.conjugate() * self._soy[m]).real + abs(a) ** 2 * self._soo[m]
+        return max(res, 0.0)
+
     def _stderr(self, m: int) -> float:
         a = complex(self._raw[m])
         n = self._n[m]
-        res = self._syy[m] - 2.0 * (a.conjugate() * self._soy[m]).real + abs(a) ** 2 * self._soo[m]
+        res = self._residual(m)
         w = self._soo[m] + self.prior_um2
         fit = max(res, 0.0) / max(n - 1.0, 1.0) / w
         pull = self.prior_um2 * abs(complex(self._prior[m]) - a) / w

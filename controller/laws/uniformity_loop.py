@@ -36,6 +36,14 @@ the loop is the feed loop's ``C = g / (z - 1 + g - g z^-d)`` around ``alpha z^-d
 are the same at every feed (``controller.laws.design``). The stored offsets are always a convex
 combination of feasible tables: zero mean, inside the stroke, no windup.
 
+A hysteretic stack is not linear: a small cycle moves the cut by a few per cent of the table, a
+full-stroke one by most of it (hysteresis 0.35: 0.05 for a 1 um cycle, 0.4-0.7 at 15 um). When
+the identification finds a pattern's gain growing with the amplitude at which it was measured
+(``ActuatorIdentifier.amplitude_slope``, a describing function affine in the amplitude), each
+step is planned twice: with the gains at the measured table's amplitudes, then with the gains
+at the middle of that step (the secant of the response over it), so that a gain learnt on
+small moves does not throw the table far past the one the plant needs (``id_amplitude``).
+
 Never worse than doing nothing. The identification covers the whole phase circle (a resonance
 below the knife passing frequency turns a knife pattern around) with a confidence per pattern;
 a pattern the actuator cannot move (gain confidently below ``gain_min``, or large moves that
@@ -172,6 +180,11 @@ class UniformityLoopConfig:
         The identification's parameters (:class:`controller.laws.actuator_id.ActuatorIdentifier`);
         a knife pattern whose gain is confidently below ``gain_min`` is held (the actuator
         cannot move it).
+    id_amplitude : bool
+        Plan with each pattern's gain taken at the table's amplitude when the identification
+        finds that the gain depends on it (a hysteretic stack: ``ActuatorIdentifier.
+        amplitude_slope``): a step is planned with the gains at its middle amplitude, the
+        secant of the actuator's response over the step.
     guard : bool
         Watch the measured result of the learning (:class:`controller.laws.uniformity_guard.
         TableGuard`): undo a step that made the board worse, hold the best table.
@@ -193,6 +206,7 @@ class UniformityLoopConfig:
     id_min_step_um: float = 0.5
     id_memory: float = 200.0
     id_prior_um2: float = 1.0
+    id_amplitude: bool = True
     gain_min: float = 0.1
     gain_max: float = 2.0
     guard: bool = True
@@ -216,6 +230,8 @@ class UniformityLoopConfig:
         check_positive("history_s", self.history_s)
         if not isinstance(self.identify, bool):
             raise ValueError(f"identify must be true or false, got {self.identify!r}")
+        if not isinstance(self.id_amplitude, bool):
+            raise ValueError(f"id_amplitude must be true or false, got {self.id_amplitude!r}")
         check_int("id_lag_pairs", self.id_lag_pairs, lo=1)
         check_positive("id_min_step_um", self.id_min_step_um)
         check_range("id_memory", self.id_memory, 1.0, 1e9)
@@ -273,6 +289,7 @@ class UniformityLoop:
         self._d_pinv = np.linalg.pinv(self._d)
         self._d_pinv_rows = _rows(self._d_pinv)
         self._plan: tuple[tuple, OffsetPlanner, tuple[tuple[float, ...], ...]] | None = None
+        self._a_plan: np.ndarray | None = None  # the matrix planned with, when not the model's
         self._stroke = cfg.stroke_um
         self._ident = ActuatorIdentifier(
             z,
@@ -574,9 +591,12 @@ class UniformityLoop:
         elif cfg.identify:
             self._ident.interrupt()  # outside the linear model: no difference across it
         planner, a_rows = self._planner()
-        s_est = [v - e for v, e in zip(_matvec(a_rows, o_c), y, strict=True)]
-        s_mean = _mean(s_est)
-        s_est = [v - s_mean for v in s_est]
+        amps = None
+        if cfg.identify and cfg.id_amplitude and self._ident.amplitude_dependent():
+            # a gain that grows with the amplitude (hysteresis): the gains where the table is
+            amps = self._ident.mode_amplitudes(o_c)
+            planner, a_rows = self._planner(self._ident.gains_at(amps))
+        s_est = _runout_estimate(a_rows, o_c, y)
         g = min(integral_gain(cfg.ki, cfg.sample_time_s, delay_s), 1.0)
         if self._open_table is not None and _allclose(o_c, self._open_table):
             # board cut with the table the loop started from: open-loop estimates of the same
@@ -594,6 +614,13 @@ class UniformityLoop:
         hold = self._hold_table() if self._held else None
         best_a = planner.best_offsets_um(s_est, bound_um=bound, start_um=self._offsets,
                                          hold_um=hold)
+        if amps is not None:  # the secant over the step: the gains at its middle amplitude
+            mid = 0.5 * (amps + self._ident.mode_amplitudes(best_a))
+            planner, a_rows = self._planner(self._ident.gains_at(mid))
+            s_est = _runout_estimate(a_rows, o_c, y)
+            self._estimate = np.array(s_est)
+            best_a = planner.best_offsets_um(s_est, bound_um=bound, start_um=self._offsets,
+                                             hold_um=hold)
         if hold is not None:  # the penalty holds nearly: the held patterns exactly where held
             p = _mode_projector(cfg.knives, self._held)
             best_a = project_zero_mean_box(best_a - p @ best_a + p @ hold, bound=bound)
@@ -681,18 +708,26 @@ class UniformityLoop:
         """
         if self._estimate is None:
             return 0.0
-        z = self._ident.shared_matrix() @ np.asarray(offsets_um, float) - self._estimate
+        a_hat = self._a_plan if self._a_plan is not None else self._ident.shared_matrix()
+        z = a_hat @ np.asarray(offsets_um, float) - self._estimate
         return float(np.linalg.norm(self._d @ z))
 
-    def _planner(self) -> tuple[OffsetPlanner, tuple[tuple[float, ...], ...]]:
-        """The QP set up for the identified actuator, and its matrix by rows (once per estimate)."""
+    def _planner(
+        self, gains: np.ndarray | None = None
+    ) -> tuple[OffsetPlanner, tuple[tuple[float, ...], ...]]:
+        """The QP set up for the identified actuator, and its matrix by rows (once per estimate).
+
+        ``gains``: plan with these mode gains instead (the identified ones taken at the
+        table's amplitudes, :meth:`controller.laws.actuator_id.ActuatorIdentifier.gains_at`).
+        """
         ident = self._ident
-        key = (ident.version, self._held)
+        key = (ident.version, self._held, None if gains is None else tuple(gains.tolist()))
         if self._plan is None or self._plan[0] != key:
-            a_hat = ident.shared_matrix()
+            a_hat = ident.shared_matrix() if gains is None else circulant_from_mode_gains(gains)
             hold = _mode_projector(self.cfg.knives, self._held) if self._held else None
             planner = OffsetPlanner(width_operator=self._d, actuator=a_hat, hold=hold)
             self._plan = (key, planner, _rows(a_hat))
+            self._a_plan = None if gains is None else a_hat
         return self._plan[1], self._plan[2]
 
     def predicted_widths_mm(self, pitch_mm: float) -> np.ndarray | None:
@@ -728,6 +763,14 @@ def _monotone_step(
             return cand, g * frac
         frac *= 0.5
     return old.copy(), 0.0
+
+
+def _runout_estimate(a_rows: tuple[tuple[float, ...], ...], o_cut: list[float],
+                     y: list[float]) -> list[float]:
+    """``A_hat o_cut - y`` less its mean: the runout as the model sees it, um."""
+    s_est = [v - e for v, e in zip(_matvec(a_rows, o_cut), y, strict=True)]
+    s_mean = _mean(s_est)
+    return [v - s_mean for v in s_est]
 
 
 def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
