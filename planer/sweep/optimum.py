@@ -231,7 +231,14 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
         return true_cv(sim_cfg, o, feed_mm_s=feed)
 
     best_x, best_cv = np.zeros(z - 1), cost(np.zeros(z - 1))
-    for x0 in (start[:-1], clipped[:-1]):
+    # starts: the QP's table, the clipped runout, and the best of the runout scaled up to the
+    # bound (a hysteretic stack moves a small table by a few per cent: its optimum table is
+    # several times the runout, far from the small-signal QP's)
+    shape = standout - standout.mean()
+    peak = float(np.max(np.abs(shape)))
+    scaled = [shape * c for c in np.linspace(1.0, bound / peak, 12)] if peak > 0 else []
+    ranked = sorted(scaled, key=lambda o: cost(o[:-1]))[:1]
+    for x0 in (start[:-1], clipped[:-1], *(o[:-1] for o in ranked)):
         res = minimize(cost, x0, method="Nelder-Mead",
                        options={"xatol": 0.01, "fatol": 1e-5, "maxiter": 200 * z})
         if res.fun < best_cv:
