@@ -7,7 +7,10 @@ nothing the caller's thread (the event loop) can be held up by:
   (``make``), appends them to the journal (``<log>.journal.jsonl``, JSON lines) with one
   ``fsync`` per batch, says so (``on_durable``) and hands them on. It never waits for the
   database: a record is durable on local disk within one fsync of its pair, whatever the log
-  does.
+  does. A batch the journal could not take is answered ``on_durable(items, False)`` and, once
+  its records are durable after all (the journal's retry, or the log took them), answered
+  again with ``True``: every item is answered durable exactly once, or never (nowhere durable
+  at :meth:`~WriteAheadSink.close`).
 * the **database thread** writes the journalled records to the log, in order, each batch in
   one transaction with the records' UUIDs (the log skips a uid it holds, so a journal that
   still holds logged records is replayed safely). A failed write is tried again after a
@@ -150,7 +153,9 @@ class WriteAheadSink:
     on_durable : callable, keyword-only, optional
         ``on_durable(items, durable)`` on the journal thread after each batch: ``durable`` is
         ``False`` when the journal could not be written (the records are then only in memory
-        until the log takes them).
+        until the log takes them). Items answered ``False`` are answered again, ``True``, once
+        their records are durable (on the journal thread after a journal retry, or on the
+        database thread when the log took them); no lock of the sink is held during the call.
     db_timeout_s : float, keyword-only
         Time limit of one database write.
     """
@@ -173,6 +178,7 @@ class WriteAheadSink:
         self._todo: deque[JournalEntry] = deque()  # for the database thread, in order
         self._spill: tuple[int, int] | None = (0, end) if end else None  # journal bytes
         self._unsaved: dict[str, JournalEntry] = {}  # not journalled, not logged (memory)
+        self._unsaved_items: dict[str, Any] = {}  # their items, answered when durable at last
         self._bad_lines: list[str] = []
         self._pending = lines  # handed in (or left in the journal), not yet logged
         self._in_journal = 0  # with the journal thread now
@@ -269,9 +275,12 @@ class WriteAheadSink:
                 self._in_journal = len(items)
                 retry = list(self._unsaved.values())
             entries = [self._entry(item) for item in items]
-            ok = self._journal(retry, entries)
-            if self._on_durable is not None and items:
-                self._on_durable(items, ok)
+            ok, late = self._journal(retry, entries, items)
+            if self._on_durable is not None:
+                if items:
+                    self._on_durable(items, ok)
+                if late:
+                    self._on_durable(late, True)
 
     def _entry(self, item: Any) -> JournalEntry:
         try:
@@ -286,8 +295,12 @@ class WriteAheadSink:
                 self._counts["rewritten"] += 1
         return JournalEntry(uuid.uuid4().hex, rec)
 
-    def _journal(self, retry: list[JournalEntry], entries: list[JournalEntry]) -> bool:
-        """Append and fsync; hand the entries to the database thread. Whether it worked."""
+    def _journal(self, retry: list[JournalEntry], entries: list[JournalEntry],
+                 items: list[Any]) -> tuple[bool, list[Any]]:
+        """Append and fsync; hand the entries to the database thread.
+
+        Returns whether it worked, and the items of ``retry`` now durable at last.
+        """
         lines = [e.line().encode("utf-8") for e in retry + entries]
         with self._file_lock:
             try:
@@ -298,10 +311,12 @@ class WriteAheadSink:
                 err = f"journal {self.journal_path} not writable: {one_line(exc)}"
             with self._cond:
                 self._in_journal = 0
+                late: list[Any] = []
                 if ok:
                     self._journal_error = None
                     for e in retry:
-                        self._unsaved.pop(e.uid, None)
+                        if self._unsaved.pop(e.uid, None) is not None:
+                            late += self._take_unsaved_items([e])
                     first = start + sum(len(b) for b in lines[:len(retry)])
                     end = start + sum(len(b) for b in lines)
                     self._counts["journalled"] += len(entries) + len(retry)
@@ -312,13 +327,18 @@ class WriteAheadSink:
                         self._spill = (self._spill[0] if self._spill else first, end)
                 else:
                     self._journal_error = err
-                    for e in entries:
+                    for e, item in zip(entries, items, strict=True):
                         self._unsaved[e.uid] = e
+                        self._unsaved_items[e.uid] = item
                     self._todo.extend(entries)  # the log may still take them
                 self._last_put = time.monotonic()
                 self._publish()
                 self._cond.notify_all()
-        return ok
+        return ok, late
+
+    def _take_unsaved_items(self, entries: list[JournalEntry]) -> list[Any]:
+        """The items of entries that were only in memory and are durable now (``_cond``)."""
+        return [self._unsaved_items.pop(e.uid) for e in entries if e.uid in self._unsaved_items]
 
     def _append(self, body: bytes) -> int:
         """Write ``body`` at the journal's end and fsync; its offset. Nothing torn on failure."""
@@ -366,16 +386,21 @@ class WriteAheadSink:
                 self._compact(force=False)
                 continue
             written = self._write(batch)
+            late: list[Any] = []
             with self._cond:
                 for e in batch[:written]:
                     self._todo.popleft()
-                    self._unsaved.pop(e.uid, None)
+                    if self._unsaved.pop(e.uid, None) is not None:
+                        late += self._take_unsaved_items([e])
                 self._pending -= written
                 self._counts["logged"] += written
                 if written == len(batch):
                     self._log_error = None
                 self._publish()
                 self._cond.notify_all()
+            if late and self._on_durable is not None:
+                self._on_durable(late, True)  # in the log: durable at last (no lock held)
+            with self._cond:
                 if written < len(batch):
                     if self._stop_db:
                         return  # closing: what is left stays in the journal
@@ -573,6 +598,7 @@ class WriteAheadSink:
             sys.stderr.flush()
             self._pending -= len(self._unsaved)
             self._unsaved.clear()
+            self._unsaved_items.clear()  # never answered durable: never handled
             self._publish()
             left = self._pending > 0 or bool(self._bad_lines)
         return self.journal_path if left and self.journal_path.exists() else None

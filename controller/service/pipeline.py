@@ -12,6 +12,11 @@ and the
    (CAN) and the feed (Modbus) out through :mod:`controller.service.actuators`;
 6. :mod:`controller.service.records` — the pair's record, durable (log or journal).
 
+A pair is *handled* when its record is durable: only then is it counted (``ok`` / ``failed``),
+shown as the last measurement and told to ``on_result``. Inline that is before
+:meth:`PairPipeline.handle` returns; in real time the journal thread says so milliseconds
+after the setpoints went out (the setpoints never wait for the disk).
+
 Every pair gets exactly one record, whatever happens: a pair that cannot be measured changes
 no setpoint and is logged with ``ok = false`` and the reason; an unexpected error of the
 control code goes to the supervisor boundary (safe state), and the pair is still logged.
@@ -95,6 +100,7 @@ class PairPipeline:
         self.on_result: Callable[[FrameResult], None] | None = None
         self._tail: asyncio.Task | None = None  # the last submitted pair's stages 3-6
         self._in_flight: set[asyncio.Task] = set()
+        records.on_handled = self._handled_later  # real time: handled once durable
 
     async def handle(self, frame: Frame, now_s: float | None = None) -> FrameResult:
         """Measure one pair, control, write setpoints, log it (see the module docstring)."""
@@ -204,15 +210,14 @@ class PairPipeline:
         profile = None
         keeper = self.keeper
         if ok:
-            self.report.count("ok")
             keeper.supervisor.measurement_valid(t_arr)
             if keeper.state is SafetyState.RUN and snap is not None:
                 t_ctrl = self.clock.now() if now_s is None else t_arr  # loops need forward time
                 with keeper.boundary(t_ctrl, f"control of pair {frame.seq}"):
                     applied = await self.loops.apply(att, measured_at, snap, t_ctrl)
-        else:
-            self.report.count("failed")
         self.loops.alerts.failures.pair(t_arr, ok, error)  # a measurement that keeps failing
+        if meas is not None:  # a nicked knife: the defect detector's ridge (when it looks)
+            self.loops.nicks.pair(t_arr, getattr(meas, "defects", None), seq=frame.seq)
         wall1 = time.perf_counter()  # the setpoints are out: what follows is for the record
         if ok:
             profile = self.records.profile_of(meas, frame)  # up to 0.5 ms: after the setpoints
@@ -252,16 +257,27 @@ class PairPipeline:
         rid = await self.records.append(result, frame, t_arr)
         if rid is not None:
             result = replace(result, record_id=rid)
-        self.last = result
-        if self.keep_results:
-            self.results.append(result)
-        if self.on_result is not None:
-            self.on_result(result)
+        if not self.records.defers_handling:  # the record is durable (or there is no log)
+            self._handled(result)
         idle = len(self._in_flight) <= 1
         self.loops.between_pairs(t_arr, idle=idle)  # the knife condition's forecast, when due
         if idle:  # no later pair waits for this one: a pause costs nothing
             collect_between_pairs()
         return result
+
+    def _handled(self, result: FrameResult) -> None:
+        """The pair is handled (its record durable): count it, show it, tell ``on_result``."""
+        self.report.count("ok" if result.ok else "failed")
+        self.last = result
+        if self.keep_results:
+            self.results.append(result)
+        if self.on_result is not None:
+            self.on_result(result)
+
+    def _handled_later(self, result: FrameResult) -> None:
+        """Real time: :meth:`_handled` when the journal says the record is durable."""
+        with self.keeper.boundary(result.t_s, f"result of pair {result.seq}"):
+            self._handled(result)
 
     async def _measured(
         self, pending: PendingMeasurement, frame: Frame, snap: PlcSnapshot

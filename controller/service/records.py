@@ -13,7 +13,14 @@ In real time (``threaded``) the record is made after the pair's setpoints went o
 control path, by a :class:`~controller.quality.write_ahead.WriteAheadSink`:
 :meth:`QualityRecords.append` only queues it; the journal thread makes the records and appends
 what queued up meanwhile to the journal with one fsync (durable: :attr:`on_stored`), and the
-database thread writes them to the log, in batches, whatever time the log takes. Nothing the
+database thread writes them to the log, in batches, whatever time the log takes.
+
+A pair is **handled** once its record is durable (fsync'ed to the journal, or in the log):
+only then does :attr:`QualityRecords.on_handled` hear of it (the pipeline then counts it,
+shows it as the last measurement and calls ``on_result``). So a pair anyone was told of has
+a record that survives a SIGKILL; the setpoints never wait for the disk (they went out
+before the record was made). Inline (not ``threaded``) a record is durable when
+:meth:`~QualityRecords.append` returns. Nothing the
 event loop does waits for the database: the log's state is read from the sink's published
 snapshot. At most :data:`MAX_QUEUED` records wait for the *journal* (local disk slower than the
 camera); beyond that the next pair waits for it. A log that is locked or does not answer only
@@ -106,6 +113,18 @@ def quality_class_of(cfg: MachineConfig) -> QualityClass:
     )
 
 
+class _Queued:
+    """A pair waiting for its record to be durable (real time): with the write-ahead sink."""
+
+    __slots__ = ("answered", "frame", "result", "t")
+
+    def __init__(self, result: FrameResult, frame: Frame | None, t: float) -> None:
+        self.result = result
+        self.frame = frame  # dropped once the record is made (its images are not kept)
+        self.t = t
+        self.answered = False  # the journal's first answer taken (health, counters)
+
+
 class QualityRecords:
     """Records of every pair, through a journal-backed sink into the quality log.
 
@@ -161,14 +180,25 @@ class QualityRecords:
             else:
                 self.sink = RecordSink(log, journal_path=Path(journal_path))
         # real time: the journal thread's answers, and who waits for room
-        self._answers: deque[tuple[float, Any, bool, float]] = deque()
+        self._answers: deque[tuple[_Queued, bool, float]] = deque()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._room: asyncio.Event | None = None
+        self._unanswered = 0  # queued pairs the journal has not answered yet
+        self._answered_all: asyncio.Event | None = None  # set while none is unanswered
         self.writer_nice: int | None = None
         """Nice value of the writer thread (``None``: as started)."""
         self.on_stored: Callable[[Any, float], None] | None = None
         """Called on the event loop with ``(seq, monotonic time)`` when a pair's record is
         durable (real time; for benchmarks and tests)."""
+        self.on_handled: Callable[[FrameResult], None] | None = None
+        """Real time: called on the event loop with a pair's result once its record is
+        durable (after :attr:`on_stored`), exactly once per pair; never for a pair whose
+        record was nowhere durable at :meth:`close`."""
+
+    @property
+    def defers_handling(self) -> bool:
+        """Whether a pair is handled later than :meth:`append` returns (:attr:`on_handled`)."""
+        return self.writer is not None
 
     @property
     def problem(self) -> str | None:
@@ -331,21 +361,29 @@ class QualityRecords:
         loop = asyncio.get_running_loop()
         if self._loop is not loop:
             self._loop, self._room = loop, asyncio.Event()
-        writer.put((r, frame, t))
+            self._answered_all = asyncio.Event()
+        self._unanswered += 1
+        assert self._answered_all is not None
+        self._answered_all.clear()
+        writer.put(_Queued(r, frame, t))
         while writer.queued > MAX_QUEUED:
             assert self._room is not None
             self._room.clear()
             await self._room.wait()  # the local disk is slower than the camera: pairs wait
 
-    def _make(self, item: tuple[FrameResult, Frame, float]) -> QualityRecord:
+    def _make(self, item: _Queued) -> QualityRecord:
         """On the journal thread: the record of a queued pair."""
-        r, frame, _ = item
-        return self.record_of(r, frame)
+        frame, item.frame = item.frame, None
+        assert frame is not None
+        return self.record_of(item.result, frame)
 
-    def _durable(self, items: list[tuple[FrameResult, Frame, float]], durable: bool) -> None:
-        """On the journal thread: a batch is on disk (or, ``durable`` False, only in memory)."""
+    def _durable(self, items: list[_Queued], durable: bool) -> None:
+        """On a writer thread: a batch is on disk (or, ``durable`` False, only in memory).
+
+        Items first answered ``False`` come again with ``True`` once durable after all.
+        """
         now = time.monotonic()
-        self._answers.extend((t, r.seq, durable, now) for r, _, t in items)
+        self._answers.extend((item, durable, now) for item in items)
         loop = self._loop
         if loop is not None and not loop.is_closed():
             try:
@@ -357,13 +395,40 @@ class QualityRecords:
         """On the event loop: the journal's answers (health, counters, room for more)."""
         writer = self.writer
         while self._answers:
-            t, seq, durable, at = self._answers.popleft()
-            logged = durable and writer is not None and writer.state.problem is None
-            self._answered(t, seq, logged)
-            if self.on_stored is not None and durable:
-                self.on_stored(seq, at)
+            item, durable, at = self._answers.popleft()
+            seq = item.result.seq
+            if item.answered:  # durable at last: health only (counted when first answered)
+                self._health(item.t, seq)
+            else:
+                item.answered = True
+                self._unanswered -= 1
+                logged = durable and writer is not None and writer.state.problem is None
+                self._answered(item.t, seq, logged)
+            if durable:
+                if self.on_stored is not None:
+                    self.on_stored(seq, at)
+                if self.on_handled is not None:
+                    self.on_handled(item.result)
         if self._room is not None and (writer is None or writer.queued <= MAX_QUEUED):
             self._room.set()
+        if self._answered_all is not None and self._unanswered <= 0:
+            self._answered_all.set()
+
+    async def settle(self, timeout_s: float = CLOSE_TIMEOUT_S) -> bool:
+        """Wait until the journal answered every queued pair, at most ``timeout_s`` (real time).
+
+        For the end of a run (never the control loop): the last pairs are handled (their
+        records fsync'ed to the journal, milliseconds) before the run's counts are read.
+        Returns whether every queued pair was answered (inline: at once, ``True``).
+        """
+        done = self._answered_all
+        if self.writer is None or done is None or self._unanswered <= 0:
+            return True
+        try:
+            await asyncio.wait_for(done.wait(), timeout_s)
+        except asyncio.TimeoutError:
+            return False
+        return True
 
     def flush(self, timeout_s: float = 60.0) -> bool:
         """Block until every queued record is in the log, at most ``timeout_s`` (tests, tools).

@@ -167,7 +167,11 @@ class Service:
 
     @property
     def on_result(self) -> Callable[[FrameResult], None] | None:
-        """Called with each pair's :class:`FrameResult`."""
+        """Called with each pair's :class:`FrameResult` once the pair is handled.
+
+        Handled: its quality record is durable (in real time: on the event loop, milliseconds
+        after the pair's setpoints went out).
+        """
         return self.pipeline.on_result
 
     @on_result.setter
@@ -391,6 +395,7 @@ class Service:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             await self.pipeline.drain()  # pairs still with the workers get their records
+            await self.records.settle()  # ... and the last pairs are handled (journal, ms)
             self._report_skips(source)  # the run's last files too: a record or a named skip
 
     async def _next_frame(self, source: Any) -> Frame | None:

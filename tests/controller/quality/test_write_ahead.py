@@ -236,7 +236,45 @@ def test_a_journal_that_cannot_be_written_keeps_records_in_memory_and_fails(tmp_
     gate.set()  # the log still takes them
     assert sink.wait_logged(BACKSTOP_S)
     assert not sink.state.failing and sink.state.unsaved == 0
+    durable.wait(6)  # in the log: durable at last, each answered so once
+    assert durable.flags == [False] * 3 + [True] * 3
+    assert sorted(r.seq for r in durable.items[3:]) == [0, 1, 2]
     assert sink.close() is None and capsys.readouterr().err == ""
+    log.log.close()
+    assert _seqs(tmp_path / "q.db") == [0, 1, 2]
+
+
+def test_records_only_in_memory_are_answered_durable_once_the_journal_takes_them(tmp_path,
+                                                                                  monkeypatch):
+    gate = threading.Event()
+    log = GatedLog(tmp_path / "q.db", gate)  # the log takes nothing meanwhile
+    append = write_ahead.WriteAheadSink._append
+    failing = threading.Event()
+    failing.set()
+
+    def flaky_append(self, body):  # the local disk refuses the journal's writes, then takes them
+        if failing.is_set():
+            raise OSError(28, "No space left on device")
+        return append(self, body)
+
+    monkeypatch.setattr(write_ahead.WriteAheadSink, "_append", flaky_append)
+    durable = Durable()
+    sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl", on_durable=durable)
+    for i in range(3):
+        sink.put(_rec(i))
+    durable.wait(3)
+    assert durable.flags == [False] * 3 and sink.state.unsaved == 3
+    failing.clear()  # the journal's retry (every second while records are only in memory)
+    durable.wait(6)
+    assert durable.flags == [False] * 3 + [True] * 3  # each answered durable exactly once
+    assert sorted(r.seq for r in durable.items[3:]) == [0, 1, 2]
+    held, bad = read_journal(tmp_path / "j.jsonl")
+    assert sorted(r.seq for r in held) == [0, 1, 2] and bad == 0
+    assert sink.state.unsaved == 0 and not sink.state.failing
+    gate.set()
+    assert sink.wait_logged(BACKSTOP_S)
+    assert sink.close() is None
+    assert len(durable.items) == 6  # the log taking them later answers nothing again
     log.log.close()
     assert _seqs(tmp_path / "q.db") == [0, 1, 2]
 
