@@ -132,6 +132,9 @@ class QualityConfig:
     depth_max_um: float = 20.0
     board_length_mm: float = 4000.0
     """A typical board, mm: the knife condition's forecast in boards."""
+    defects: bool = False
+    """Look for planing defects on every pair (the vision's defect detector: a nicked knife
+    is told at once, ``KNIFE_CHIPPED``); costs CPU per pair (docs/vision.md)."""
 
 
 @dataclass(frozen=True)
@@ -403,6 +406,7 @@ def _quality_table(root: Section, d: MachineConfig) -> QualityConfig:
         depth_max_um=q.number("depth_max_um", dq.depth_max_um, lo=0.0, lo_open=True),
         board_length_mm=q.number("board_length_mm", dq.board_length_mm, lo=0.0, lo_open=True,
                                  hi=100_000.0),
+        defects=q.boolean("defects", dq.defects),
     )
     q.reject_unknown()
 

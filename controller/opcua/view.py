@@ -98,6 +98,7 @@ MANUFACTURER_NAMES: Mapping[str, str] = {
     "JointingState": "String", "JointingForecast": "String", "JointingDueM": "Double",
     "JointingDueBoards": "Double", "JointingDueH": "Double", "JointingKnife": "Int64",
     "KnifeChips": "Int64", "LastChippedKnife": "Int64", "LastChipRunoutStepUm": "Double",
+    "LastChipCause": "String",
 }
 """``ManufacturerSpecific`` variables (our namespace) and their data types; NaN = not known."""
 MANUFACTURER_INITIAL: Mapping[str, int] = {"JointingKnife": -1, "LastChippedKnife": -1}
@@ -134,7 +135,8 @@ def knife_condition_values(s: ServiceStatus | None) -> dict[str, Any]:
     forecast (``JointingState``: ``fitting``, ``not_due``, ``due`` or "" before the first
     table; ``JointingForecast`` its line; ``JointingDueM``, ``JointingDueBoards``,
     ``JointingDueH``, ``JointingKnife`` when due), and the chipped knives (``KnifeChips``
-    counted, the last one's ``LastChippedKnife`` and ``LastChipRunoutStepUm``).
+    counted, the last one's ``LastChipCause``: ``runout_step`` or ``nick``, ``LastChippedKnife``
+    (-1 for a nick: not told apart) and ``LastChipRunoutStepUm``).
     """
     kc = (s.knife_condition if s is not None else None) or {}
     knives = kc.get("knives") or ()
@@ -154,6 +156,7 @@ def knife_condition_values(s: ServiceStatus | None) -> dict[str, Any]:
         "KnifeChips": int(s.counters.get("knife_chips", 0)) if s is not None else 0,
         "LastChippedKnife": int(last_chip) if isinstance(last_chip, int) else -1,
         "LastChipRunoutStepUm": _num(chip.get("runout_step_um")),
+        "LastChipCause": str(chip.get("cause") or ""),
     }
 
 

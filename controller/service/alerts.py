@@ -214,7 +214,8 @@ class KnifeChipMonitor:
         runout_step = float(ds[k]) * self.knives / (self.knives - 1)
         g = width_sensitivity_mm_per_um(pitch_mm, self.radius_mm)
         self.chips += 1
-        self.last = {"knife": k, "runout_step_um": round(runout_step, 3),
+        self.last = {"knife": k, "cause": "runout_step",
+                     "runout_step_um": round(runout_step, 3),
                      "width_change_mm": round(2.0 * g * runout_step, 4), "seq": seq,
                      "t_s": t}
         self._report.count("knife_chips")

@@ -101,8 +101,13 @@ class EventKind(enum.Enum):
     TARGET_REACHABLE = "target_reachable"
     """The target pitch is reachable again (the condition of ``TARGET_UNREACHABLE`` cleared)."""
     KNIFE_CHIPPED = "knife_chipped"
-    """One knife's mark width changed suddenly and stays changed (a chipped or moved knife).
-    ``data``: ``knife``, ``width_change_mm``, ``runout_step_um`` (its estimate), ``seq``."""
+    """A knife chipped, moved or nicked (``data["cause"]``): ``runout_step``, one knife's mark
+    width changed suddenly and stays changed (``controller.service.alerts.KnifeChipMonitor``;
+    ``data``: ``knife``, ``width_change_mm``, ``runout_step_um`` (its estimate), ``seq``,
+    ``t_s``), or ``nick``, the defect detector's ridge along the board at one place on
+    consecutive pairs (``controller.service.knife_nicks.KnifeNickMonitor``; ``data``:
+    ``knife`` ``None`` (not told apart), ``y_mm`` across the camera's field, ``ridge_um``,
+    ``seq``, ``t_s``)."""
     JOINTING_DUE = "jointing_due"
     """The knives' wear takes the finish out of its class soon: the forecast of
     :class:`controller.laws.knife_condition.KnifeConditionTracker` came within

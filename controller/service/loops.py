@@ -31,6 +31,7 @@ from controller.service.actuators import Actuators
 from controller.service.alerts import OperatorAlerts
 from controller.service.attribution import Attributed
 from controller.service.events import EventKind, EventLog
+from controller.service.knife_nicks import KnifeNickMonitor
 from controller.service.supervisor import AmplifierMonitor
 from core.errors import FieldbusError
 from protocol.registers import MachineState
@@ -120,6 +121,8 @@ class ControlLoops:
         self.alerts = OperatorAlerts(report, target_pitch_mm=cfg.quality.target_pitch_mm,
                                      tolerance=cfg.quality.tolerance)
         """What the operator is told: an unreachable target, a chipped knife, failing pairs."""
+        self.nicks = KnifeNickMonitor(report)
+        """A nicked knife, from the defect detector's ridges (``KNIFE_CHIPPED`` too)."""
         self._learned_offsets: np.ndarray | None = None
         self._stroke_limit_um: float | None = None
         self._t_loops = -math.inf
@@ -480,6 +483,19 @@ class ControlLoops:
     def describe_knife_condition(self) -> dict[str, Any] | None:
         """The knives' condition for displays (:meth:`KnifeConditionWatch.describe`)."""
         return self.condition.describe()
+
+    def describe_alerts(self) -> dict[str, Any]:
+        """The alerts for the status (:meth:`OperatorAlerts.describe`).
+
+        ``knife_chipped``: the newest knife told, chipped (a runout step) or nicked
+        (:class:`KnifeNickMonitor`).
+        """
+        out = self.alerts.describe()
+        nick = self.nicks.last
+        chip = out.get("knife_chipped")
+        if nick is not None and (chip is None or nick["t_s"] >= chip.get("t_s", -math.inf)):
+            out["knife_chipped"] = dict(nick)
+        return out
 
     def between_pairs(self, t: float, *, idle: bool) -> None:
         """Work that must not delay a pair, done after a pair's record.

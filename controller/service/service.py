@@ -109,7 +109,7 @@ class Service:
         self.pairs_per_s = float(pairs_per_s)
         self.report = EventLog()
         if measurer_factory is None:
-            measurer_factory = VisionMeasurers(rig)
+            measurer_factory = VisionMeasurers(rig, defects=cfg.quality.defects)
         self.measurement = MeasurementStage(cfg.plausibility, measurer_factory, threaded=threaded)
         fr = cfg.frames
         if fr.image_width > 0 and fr.image_height > 0:
@@ -235,7 +235,7 @@ class Service:
             counters=ServiceStatus.freeze(self.report.counters),
             log_problem=self.records.problem,
             records_pending=self.records.pending,
-            alerts=self.loops.alerts.describe(),
+            alerts=self.loops.describe_alerts(),  # the newest knife chipped or nicked
             piezo_limits=self.out.limits() if self.piezo is not None else None,
             uniformity=(None if self.loops.uniformity_loop is None
                         else self.loops.uniformity_loop.describe()),
@@ -537,7 +537,7 @@ def open_service(
         log=log,
         clock=clock,
         threaded=threaded,
-        measurer_factory=VisionMeasurers(rig),
+        measurer_factory=VisionMeasurers(rig, defects=cfg.quality.defects),
         pairs_per_s=cfg.frames.pairs_per_s,
     )
     log.set_quality_class(service.quality_class)

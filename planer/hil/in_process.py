@@ -100,7 +100,7 @@ class InProcessPlant:
         if measurer_factory is None:  # the vision with the PLC's R and Z, self-calibrating
             from controller.service.measurement import VisionMeasurers
 
-            measurer_factory = VisionMeasurers(self.rig)
+            measurer_factory = VisionMeasurers(self.rig, defects=cfg.quality.defects)
         self._measurer_factory = measurer_factory
         opened_log = log == "config"
         if opened_log:  # before the buses: an unusable log path leaves nothing open

@@ -62,6 +62,9 @@ class Scenario:
         The true CV the run must end at or below (and settle to) to pass: the default
         :data:`UNIFORMITY_MAX_CV`; larger for a plant whose best reachable CV is above it (a
         stroke too small for its runout: ``planer/sweep/optimum.py`` computes that CV).
+    defects : bool or None
+        The service looks for planing defects on every pair (overrides ``machine.toml``'s
+        ``[quality] defects``).
     """
 
     name: str = "default"
@@ -78,6 +81,7 @@ class Scenario:
     amp_stroke_um: float | None = None
     stroke_um: float | None = None
     final_cv_max: float = UNIFORMITY_MAX_CV
+    defects: bool | None = None
 
 
 def _fault_list(raw: Any, key: str) -> tuple[FaultEvent, ...]:
@@ -137,6 +141,8 @@ def scenario_from_table(
         kw["stroke_um"] = s.number("stroke_um", lo=0.0, lo_open=True, hi=32.767)
     if s.has("final_cv_max"):
         kw["final_cv_max"] = s.number("final_cv_max", lo=0.0, lo_open=True, hi=1.0)
+    if s.has("defects"):
+        kw["defects"] = s.boolean("defects")
     s.reject_unknown()
     return replace(base, **kw)
 
@@ -241,6 +247,8 @@ def machine_config_for(scenario: Scenario, *, log_path: Path | None = None) -> M
         cfg = cfg.with_changes(
             quality=replace(cfg.quality, target_pitch_mm=scenario.target_pitch_mm)
         )
+    if scenario.defects is not None:
+        cfg = cfg.with_changes(quality=replace(cfg.quality, defects=scenario.defects))
     if log_path is not None:
         cfg = cfg.with_changes(log=replace(cfg.log, path=Path(log_path)))
     return cfg

@@ -46,7 +46,11 @@ import scipy.fft as sfft
 
 from config.rig import Camera, Lights
 from core.checks import check_positive
+from vision.defects import kernels
 from vision.defects.surface_map import SurfaceMap, SurfaceMapper
+
+_NICK_SLACK = 1.0 / 3.0
+"""Rows whose plain mean fold stands out this share of ``nick_ratio`` get the median fold."""
 
 
 class DefectKind(enum.Enum):
@@ -228,69 +232,39 @@ class Residual:
     median: float = 1.0
 
 
-def _column_profile(p: np.ndarray, valid: np.ndarray, shadow_slope: float) -> np.ndarray:
-    """The robust mean of each column: the densest of the row groups, then the samples near it.
-
-    The rows are averaged in groups (shadowed samples, ``|p| >= shadow_slope / 2``, left
-    out); each column's location is the mean of the tightest run of ``~35 %`` of its sorted
-    group means (the *shorth*), so a defect covering even most of a column does not move it
-    as long as its rows do not agree with each other as tightly as clean ones do (a pit's
-    walls, rough bottom and cast shadows never do).  Then the mean of the column's samples
-    near that location.
-    """
-    rows, cols = p.shape
-    g = max(1, rows // 16)
-    n_g = rows // g
-    ok = valid & (np.abs(p) < np.float32(0.5 * shadow_slope))
-    w = ok.astype(np.float32)
-    pw = np.where(ok, p, np.float32(0.0))
-    ps = pw[:n_g * g].reshape(n_g, g, cols).sum(axis=1)
-    ws = w[:n_g * g].reshape(n_g, g, cols).sum(axis=1)
-    # groups mostly outside or shadowed: spread far apart, so no run of them is tight
-    far = (np.float32(1e3) + np.float32(10.0) * np.arange(n_g, dtype=np.float32))[:, None]
-    gm = np.sort(np.where(ws >= 0.5 * g, ps / np.maximum(ws, 1.0), far), axis=0)
-    k = max(2, int(math.ceil(0.35 * n_g)))
-    spans = gm[k - 1:] - gm[:n_g - k + 1]
-    j = np.argmin(spans, axis=0)
-    cum = np.concatenate([np.zeros((1, cols), np.float32), np.cumsum(gm, axis=0)])
-    ci = np.arange(cols)
-    loc = (cum[j + k, ci] - cum[j, ci]) / np.float32(k)
-    count = w.sum(axis=0)
-    mean = pw.sum(axis=0) / np.maximum(count, 1.0)
-    loc = np.where(np.abs(loc) < 10.0, loc, mean)  # a column mostly outside: its plain mean
-    dev = np.abs(p - loc[None, :])
-    sample = dev[::3, ::3][ok[::3, ::3]]
-    scale = float(np.median(sample)) if sample.size else 0.0
-    keep = ok & (dev <= np.float32(5.0 * 1.4826 * scale + 1e-4))
-    kc = keep.sum(axis=0)
-    profile = np.where(kc > 0, np.where(keep, p, 0.0).sum(axis=0) / np.maximum(kc, 1), loc)
-    return np.where(count > 0, profile, 0.0)
-
-
 def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
-    """Residual slope, cell excess and marked cells of a map (see the module's docstring)."""
+    """Residual slope, cell excess and marked cells of a map (see the module's docstring).
+
+    The marks' profile is each column's robust mean: the rows are averaged in groups
+    (shadowed samples, ``|p| >= shadow_slope / 2``, left out); the column's location is the
+    mean of the tightest run of ~35 % of its sorted group means (the *shorth*), so a defect
+    covering even most of a column does not move it as long as its rows do not agree with
+    each other as tightly as clean ones do (a pit's walls, rough bottom and cast shadows never
+    do); then the mean of the column's samples near that location.  One compiled pass
+    (:func:`vision.defects.kernels.residual_map`).
+    """
     p, valid = smap.slope_along_feed, smap.valid
-    profile = _column_profile(p, valid, smap.shadow_slope)
-    r = (p - profile[None, :].astype(np.float32))
-    r[~valid] = 0.0
-    cell = max(1, int(round(settings.cell_mm * smap.cols_per_mm)))
-    rows, cols = r.shape
-    n_cells = cols // cell
-    used = n_cells * cell
-    w_cells = valid[:, :used].reshape(rows, n_cells, cell).sum(axis=2, dtype=np.float32)
-    valid_cells = w_cells >= 0.5 * cell
-    r2 = r[:, :used] * r[:, :used]
-    e = r2.reshape(rows, n_cells, cell).sum(axis=2) / np.maximum(w_cells, 1.0)
-    ev = e[valid_cells]
-    base = float(np.partition(ev, ev.size // 2)[ev.size // 2]) if ev.size else 1.0
-    median = max(base, 1e-12)
-    base = max(base, settings.floor_slope ** 2)
-    smooth = cv2.blur(np.where(valid_cells, e, np.float32(0.0)), (3, 3),
-                      borderType=cv2.BORDER_REFLECT)
+    rows, cols = p.shape
+    group = max(1, rows // 16)
+    n_g = rows // group
+    cell = max(1, min(cols, int(round(settings.cell_mm * smap.cols_per_mm))))
+    profile = np.empty(cols)
+    r = np.empty((rows, cols), dtype=np.float32)
+    e = np.empty((rows, cols // cell), dtype=np.float32)
+    valid_cells = np.empty((rows, cols // cell), dtype=bool)
+    sat = 0.5 * smap.shadow_slope if math.isfinite(smap.shadow_slope) else 1e30
+    _scale, n_cells = kernels.residual_map(
+        np.ascontiguousarray(p, dtype=np.float32), np.ascontiguousarray(valid), sat, group,
+        max(2, min(n_g, int(math.ceil(0.35 * n_g)))), cell, profile, r, e, valid_cells)
+    median = 1.0
+    if n_cells:  # the valid cells' (upper) median mean square
+        median = float(np.partition(e[valid_cells], n_cells // 2)[n_cells // 2])
+    median = max(median, 1e-12)
+    base = max(median, settings.floor_slope ** 2)
+    smooth = cv2.blur(e, (3, 3), borderType=cv2.BORDER_REFLECT)
     excess = smooth * np.float32(1.0 / base)
     marked = (excess > settings.excess) & valid_cells
-    return Residual(smap, r, profile.astype(np.float64), excess, marked, valid_cells, cell,
-                    base, median)
+    return Residual(smap, r, profile, excess, marked, valid_cells, cell, base, median)
 
 
 def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.ndarray
@@ -310,17 +284,22 @@ def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.nd
     right = h[:, -edge:].mean(axis=1, keepdims=True)
     t = np.linspace(0.0, 1.0, n)[None, :]
     h = h - (left + (right - left) * t)  # the rim on both sides at zero
-    inside = mask
-    if not np.any(inside):
+    v = -h[mask]
+    if v.size == 0:
         return 0.0
-    return float(np.percentile(-h[inside], 90))
+    q = 0.9 * (v.size - 1)  # the 90th percentile (linear, as np.percentile)
+    lo, hi = int(math.floor(q)), int(math.ceil(q))
+    part = np.partition(v, (lo, hi))
+    return float(part[lo] + (part[hi] - part[lo]) * (q - lo))
 
 
 def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
     """The marked cells' connected groups, with their extent, depth and roughness.
 
-    Area and strength of every group at once (``np.bincount`` over the labels); depth,
-    roughness and shadows only for the groups large and strong enough to be reported.
+    Area and strength of every group at once (``np.bincount`` over the labels); depth and
+    shadows only for the groups large and strong enough to be reported, roughness and texture
+    only for those that can be a D1666 defect (a dent, shadowed, or as large as a patch of
+    fuzzy grain: the others are not returned).
     """
     smap = res.smap
     cell_mm = res.cell_px / smap.cols_per_mm
@@ -338,10 +317,7 @@ def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
     keep = keep[keep > 0]
     if keep.size == 0:
         return out
-    # short periods: the residual minus its running mean over ~1 mm along the feed
-    k = max(3, int(round(1.0 * smap.cols_per_mm)) | 1)
-    hp = res.r - cv2.blur(res.r, (k, 1), borderType=cv2.BORDER_REFLECT)
-    hp5 = res.r - cv2.blur(res.r, (5, 1), borderType=cv2.BORDER_REFLECT)
+    hp = hp5 = None
     for lab in keep:
         x, y, w, h, a = (int(v) for v in stats[lab])
         cells = labels[y:y + h, x:x + w] == lab
@@ -352,11 +328,19 @@ def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
         m0 = x * res.cell_px - c0
         mask[:, m0:m0 + w * res.cell_px] = np.repeat(cells, res.cell_px, axis=1)
         depth = _row_depth_um(res, c0, c1, y, y + h, mask)
+        p_in = smap.slope_along_feed[y:y + h, c0:c1]
+        shadow = float(np.mean(np.abs(p_in[mask]) >= 0.7 * smap.shadow_slope))
+        if (depth < settings.dent_um and shadow < settings.torn_shadow
+                and a * cell_mm * row_mm < settings.min_fuzzy_mm2):
+            continue  # a weak dent or a bump without shadows, smaller than a fuzzy patch
+        if hp is None or hp5 is None:
+            # short periods: the residual minus its running mean over ~1 mm (and 5 columns)
+            k = max(3, int(round(1.0 * smap.cols_per_mm)) | 1)
+            hp = res.r - cv2.blur(res.r, (k, 1), borderType=cv2.BORDER_REFLECT)
+            hp5 = res.r - cv2.blur(res.r, (5, 1), borderType=cv2.BORDER_REFLECT)
         r_in = res.r[y:y + h, c0:c1][mask]
         tot = float((r_in ** 2).sum())
         rough = float((hp[y:y + h, c0:c1][mask] ** 2).sum()) / max(tot, 1e-12)
-        p_in = smap.slope_along_feed[y:y + h, c0:c1]
-        shadow = float(np.mean(np.abs(p_in[mask]) >= 0.7 * smap.shadow_slope))
         texture = _texture(res, hp5, p_in, (y, y + h, c0, c1), mask)
         out.append(Blob((x * res.cell_px, (x + w) * res.cell_px), (y, y + h),
                         a * cell_mm * row_mm, a / float(w * h), depth, rough, shadow,
@@ -401,35 +385,6 @@ def _confidence(strength: float, settings: DefectSettings) -> float:
     return 1.0 - math.exp(-max(0.0, strength / settings.excess - 1.0) * 1.5)
 
 
-def _folded(res: Residual, period_cols: float) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's residual folded at ``period_cols``: the median over the periods per phase.
-
-    Returns ``(F, n_valid)``: ``F`` of shape ``(rows, bins)`` (NaN where no period saw the
-    phase), bins of about one map column; ``n_valid`` the valid samples per row.
-    """
-    smap = res.smap
-    valid = smap.valid
-    cols = np.flatnonzero(valid.any(axis=0))
-    c0 = int(cols[0])
-    n_per = int((int(cols[-1]) + 1 - c0) // period_cols)
-    nb = max(4, int(round(period_cols)))
-    x = np.arange(c0, c0 + int(n_per * period_cols))
-    ph = (x - c0) / period_cols
-    cell = np.floor(ph).astype(np.int64) * nb + np.minimum(
-        np.floor((ph - np.floor(ph)) * nb).astype(np.int64), nb - 1)
-    starts = np.r_[0, np.flatnonzero(np.diff(cell)) + 1]
-    sums = np.add.reduceat(res.r[:, x], starts, axis=1)
-    counts = np.add.reduceat(valid[:, x].astype(np.float32), starts, axis=1)
-    cells = np.full((res.r.shape[0], n_per * nb), np.nan, np.float32)
-    cells[:, cell[starts]] = np.where(counts > 0, sums / np.maximum(counts, 1.0), np.nan)
-    cells = np.sort(cells.reshape(-1, n_per, nb), axis=1)  # NaN last
-    n = (~np.isnan(cells)).sum(axis=1)
-    lo = np.take_along_axis(cells, np.maximum(n - 1, 0)[:, None, :] // 2, axis=1)[:, 0]
-    hi = np.take_along_axis(cells, (n // 2)[:, None, :], axis=1)[:, 0]
-    folded = np.where(n > 0, 0.5 * (lo + hi), np.nan)
-    return folded, valid.sum(axis=1)
-
-
 def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None = None,
                 knives: int | None = None) -> tuple[list[Defect], set[int]]:
     """Bands of rows whose residual repeats every revolution: knife nicks.
@@ -440,7 +395,9 @@ def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None 
     knives are not known, where a nick on one of ``k`` knives stands out ``k`` times less) as
     the median over the revolutions per phase (a pit within one revolution does not move
     it); a nick's rows carry a folded profile whose mean square stands out ``nick_ratio``
-    times from the median row's.  Returned with the map rows taken.
+    times from the median row's (of every fourth row).  The medians are taken only on the
+    rows whose plain mean fold stands out a third as much, and on the reference rows
+    (:func:`vision.defects.kernels.fold_rows`).  Returned with the map rows taken.
     """
     smap = res.smap
     if pitch_mm is None or not math.isfinite(pitch_mm) or pitch_mm <= 0:
@@ -449,12 +406,21 @@ def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None 
     cols = np.flatnonzero(smap.valid.any(axis=0))
     if cols.size == 0 or (int(cols[-1]) + 1 - int(cols[0])) < 3 * period:
         return [], set()  # fewer than three revolutions: no median over them
-    folded, n_valid = _folded(res, period)
-    energy = np.nanmean(np.where(np.isnan(folded), np.nan, folded * folded), axis=1)
-    rows_ok = (n_valid >= 0.5 * cols.size) & np.isfinite(energy)
-    if np.count_nonzero(rows_ok) < 8:
+    rows = res.r.shape[0]
+    c0, c1 = int(cols[0]), int(cols[-1]) + 1
+    nb = max(4, int(round(period)))
+    folded = np.empty((rows, nb))
+    energy = np.empty(rows)
+    # the median fold on every 4th row (the reference) and on the rows that may stand out
+    every = 4
+    kernels.fold_rows(res.r, np.ascontiguousarray(smap.valid), c0, float(period), nb,
+                      int((c1 - c0) // period), int(math.ceil(0.5 * cols.size)), every,
+                      _NICK_SLACK * settings.nick_ratio, folded, energy)
+    ref = energy[::every]
+    ref = ref[np.isfinite(ref)]
+    if ref.size < 8:
         return [], set()
-    ratio = np.where(rows_ok, energy / max(float(np.median(energy[rows_ok])), 1e-18), 0.0)
+    ratio = np.nan_to_num(energy / max(float(np.median(ref)), 1e-18), nan=0.0)
     hot = ratio >= settings.nick_ratio
     if not hot.any():
         return [], set()

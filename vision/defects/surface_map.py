@@ -15,11 +15,11 @@ along the feed every ``bin_cols`` px, rows across it every ``bin_rows * merge_ro
 ``bin_cols`` columns (``cv2.resize``, area), so the remap and every step after it run on the
 coarse grid.  On that grid the board's motion between the shots is a shift along the columns
 alone, so B is registered with the measurement's shift (``Measurement.shift_px``, px along the
-feed) by a linear interpolation along the rows (``cv2.warpAffine``).  With ``bin_rows = 1`` and
+feed) by a linear interpolation along the rows, in one compiled pass with the ratio and the
+albedo (:func:`vision.defects.kernels.register_ratio`).  With ``bin_rows = 1`` and
 ``bin_cols = 1`` the map has the camera's full resolution; the
-:class:`vision.pipeline.Measurer`'s :class:`vision.defects.detect.DefectFinder` builds it from the
-row
-bins the Measurer has already summed, on ~0.16 x 0.4 mm samples, so the map costs one small
+:class:`vision.pipeline.Measurer`'s :class:`vision.defects.detect.DefectFinder` builds it from
+the row bins the Measurer has already summed, on ~0.16 x 0.4 mm samples, so the map costs one small
 remap per image and no further pass over the images.
 
 Map coordinates: column ``j`` lies ``col0_px + j * col_step_px - cx`` px from the optical axis
@@ -39,6 +39,7 @@ import numpy as np
 
 from config.rig import Camera, Lights
 from core.checks import check_finite, check_int
+from vision.defects import kernels
 
 _ROLL_KEY_DEG = 0.05
 """Rolls are rounded to this grid for the cached tables (a row moves < 0.3 px over 659 px)."""
@@ -212,6 +213,7 @@ class SurfaceMapper:
         self._cache_size = check_int("cache", cache, lo=1)
         self._tables: OrderedDict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = (
             OrderedDict())
+        kernels.warm_up()  # compiled (or loaded from the cache) here, never on a frame
 
     @property
     def col0_px(self) -> float:
@@ -305,30 +307,11 @@ class SurfaceMapper:
                       borderMode=cv2.BORDER_REPLICATE)
         b = cv2.remap(self._coarse(rows_b), mx, my, cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_REPLICATE)
-        rows, width = a.shape
-        # B registered onto A: b_reg[:, j] = b[:, j + d] (linear), where j + d is inside
-        b_reg = cv2.warpAffine(b, np.array([[1.0, 0.0, d], [0.0, 1.0, 0.0]]), (width, rows),
-                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-        k = int(math.floor(d))
-        lo, hi = max(0, -k), min(width, width - k - 1)
-        both = np.zeros_like(valid)
-        if hi > lo:
-            both[:, lo:hi] = (valid[:, lo:hi] & valid[:, lo + k:hi + k]
-                              & valid[:, lo + k + 1:hi + k + 1])
-        both &= (a > 0) & (b_reg > 0)
-        n = max(int(np.count_nonzero(both)), 1)
-        a = np.where(both, a, np.float32(1.0))
-        b_reg = np.where(both, b_reg, np.float32(1.0))
-        sa, sb = float(cv2.sumElems(a)[0]) - (a.size - n), float(cv2.sumElems(b_reg)[0]) - (
-            a.size - n)
-        if not (sa > 0 and sb > 0):
-            sa = sb = 1.0
-        r = b_reg * np.float32(sa / sb)  # the pair's constant imbalance removed
-        slope = (r - a) / (r * np.float32(self._ka) - a * np.float32(self._kb))
-        slope[~both] = 0.0
-        albedo = (a + r) * np.float32(n / (2.0 * sa))
-        albedo[~both] = 0.0
+        slope = np.empty_like(a)
+        albedo = np.empty_like(a)
+        both = np.empty(a.shape, dtype=bool)
+        # B registered onto A (b_reg[:, j] = b[:, j + d], linear), Eq. 4, the albedo
+        kernels.register_ratio(a, b, valid, d, self._ka, self._kb, slope, albedo, both)
         return SurfaceMap(
             slope_along_feed=slope, albedo=albedo, valid=both,
             col0_px=self.col0_px, row0_px=self.row0_px,

@@ -123,9 +123,13 @@ const JOINTING_WARN_BOARDS = 20; // as the service's JOINTING_DUE (controller/se
 function drawKnifeCondition(status) {
   const kc = status ? status.knife_condition : null;
   const chip = status && status.alerts ? status.alerts.knife_chipped : null;
-  setText("kc-chip", chip ? `knife ${chip.knife} chipped or nicked at t=${num(chip.t_s, 1)} s: ` +
-    `runout ${chip.runout_step_um >= 0 ? "+" : ""}${num(chip.runout_step_um, 1)} µm, ` +
-    `marks ${chip.width_change_mm >= 0 ? "+" : ""}${num(chip.width_change_mm, 3)} mm` : "");
+  const sign = (v) => (v >= 0 ? "+" : "");
+  setText("kc-chip", !chip ? "" : chip.cause === "nick"
+    ? `a knife is nicked (t=${num(chip.t_s, 1)} s): a ridge along the board at ` +
+      `${num(chip.y_mm, 1)} mm across the field, ${num(chip.ridge_um, 0)} µm high`
+    : `knife ${chip.knife} chipped or moved at t=${num(chip.t_s, 1)} s: ` +
+      `runout ${sign(chip.runout_step_um)}${num(chip.runout_step_um, 1)} µm, ` +
+      `marks ${sign(chip.width_change_mm)}${num(chip.width_change_mm, 3)} mm`);
   const forecast = $("kc-forecast");
   if (!kc) {
     setText("kc-forecast", "no offset table applied yet");

@@ -3,7 +3,7 @@
 A real asyncua server (127.0.0.1, ephemeral port) fed service snapshots and events, read by a
 real asyncua client: before any offset table there is no forecast (state "", knife -1, NaN);
 with one, the wear and reserve per knife, the forecast's state, line and figures; a chipped
-knife is counted and named, and its event arrives as an ALARM.
+or nicked knife is counted and named, and its event arrives as an ALARM.
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ from tests.controller.opcua.test_opcua_server import (  # noqa: E402, F401
 
 NAMES = ("BoardTravelM", "KnifeWearUmPerM", "KnifeReserveUm", "JointingState",
          "JointingForecast", "JointingDueM", "JointingDueBoards", "JointingDueH",
-         "JointingKnife", "KnifeChips", "LastChippedKnife", "LastChipRunoutStepUm")
+         "JointingKnife", "KnifeChips", "LastChippedKnife", "LastChipRunoutStepUm",
+         "LastChipCause")
 KC = {"board_travel_m": 21.25,
       "knives": [{"knife": k, "offset_um": o, "drift_um_per_m": d, "reserve_um": r}
                  for k, o, d, r in ((0, -4.1, -0.21, 1.9), (1, 1.3, 0.07, 4.7),
@@ -38,7 +39,8 @@ KC = {"board_travel_m": 21.25,
       "due_in_m": 50.0, "due_in_boards": 12.5, "due_in_h": 0.0231, "knife": 0,
       "text": "jointing due in 12 boards / 0.02 h at this feed (knife 0)", "state": "due",
       "t_s": 35.2}
-CHIP = {"knife": 1, "runout_step_um": 6.02, "width_change_mm": 0.031, "seq": 41, "t_s": 4.1}
+CHIP = {"knife": 1, "cause": "runout_step", "runout_step_um": 6.02, "width_change_mm": 0.031,
+        "seq": 41, "t_s": 4.1}
 
 
 def _status(t_s, *, kc=None, chip=None, chips=0) -> ServiceStatus:
@@ -87,6 +89,14 @@ def test_a_client_reads_the_knife_condition_and_the_chipped_knife(served):  # no
     v = _read_all(srv)
     assert v["KnifeChips"] == 1 and v["LastChippedKnife"] == 1
     assert v["LastChipRunoutStepUm"] == pytest.approx(6.02)
+    assert v["LastChipCause"] == "runout_step"
+
+    nick = {"knife": None, "cause": "nick", "y_mm": 0.49, "ridge_um": 12.8,
+            "runout_step_um": None, "width_change_mm": None, "seq": 68, "t_s": 8.3}
+    feed_and_wait(served, lambda: srv.update(_status(202.0, kc=KC, chip=nick, chips=2)))
+    v = _read_all(srv)
+    assert v["KnifeChips"] == 2 and v["LastChipCause"] == "nick"
+    assert v["LastChippedKnife"] == -1 and math.isnan(v["LastChipRunoutStepUm"])
 
 
 def test_a_chipped_knife_is_an_alarm_and_jointing_due_a_warning():

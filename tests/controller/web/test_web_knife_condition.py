@@ -1,10 +1,10 @@
 """The operator page's knife condition card in a real browser (headless Chromium).
 
 The page is served from a :class:`LiveView` holding a service snapshot with a knife condition
-(wear, reserve and offset per knife, the jointing forecast) and the last chipped knife; the card
-must show them, mark the knife that runs out first, and turn the forecast red once jointing is
-due within the service's warning. Skips with the reason when Chromium or the packages are
-missing (the ``chrome`` fixture of ``test_web_browser.py``).
+(wear, reserve and offset per knife, the jointing forecast) and the last chipped or nicked
+knife; the card must show them, mark the knife that runs out first, and turn the forecast red
+once jointing is due within the service's warning. Skips with the reason when Chromium or the
+packages are missing (the ``chrome`` fixture of ``test_web_browser.py``).
 """
 
 from __future__ import annotations
@@ -84,10 +84,17 @@ def test_the_card_shows_wear_reserve_forecast_and_a_chipped_knife(chrome):  # no
         live.update(_status(boards=JOINTING_WARN_BOARDS - 8.0, chip=chip))
         wait.until(lambda d: _card(d)["chip"] != "")
         card = _card(chrome)
-        assert card["chip"] == ("knife 1 chipped or nicked at t=4.1 s: runout +6.0 µm, "
+        assert card["chip"] == ("knife 1 chipped or moved at t=4.1 s: runout +6.0 µm, "
                                 "marks +0.031 mm")
         assert card["forecast"].startswith("jointing due in 12 boards")
         assert {"due", "soon"} <= set(card["forecast_class"].split())
+
+        nick = {"knife": None, "cause": "nick", "y_mm": 0.49, "ridge_um": 12.8,
+                "runout_step_um": None, "width_change_mm": None, "seq": 68, "t_s": 8.3}
+        live.update(_status(boards=JOINTING_WARN_BOARDS - 8.0, chip=nick))
+        wait.until(lambda d: "nicked" in _card(d)["chip"])
+        assert _card(chrome)["chip"] == ("a knife is nicked (t=8.3 s): a ridge along the board "
+                                         "at 0.5 mm across the field, 13 µm high")
         errors = [e for e in chrome.get_log("browser") if e["level"] == "SEVERE"]
         assert errors == []
     finally:

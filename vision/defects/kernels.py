@@ -1,0 +1,395 @@
+"""Compiled loops (numba) of the defects' per-pair steps (the surface map and its residual).
+
+The map of a pair is ~330 x 100 samples; as numpy chains, its steps were dozens of calls over
+it each (masks, sums, a sort per column), which cost more than their arithmetic.  The loops
+here do each step in one call, with the arithmetic of the numpy code they replace:
+
+* :func:`register_ratio` -- B registered onto A along the rows (linear), the samples both
+  shots see, the pair's constant imbalance removed, the slope by seed Eq. 4 and the albedo
+  (:class:`vision.defects.surface_map.SurfaceMapper`);
+* :func:`residual_map` -- the marks' robust column profile (the densest row groups, then the
+  samples near it), the residual slope, its cells' mean squares and their median
+  (:func:`vision.defects.detect.residual`);
+* :func:`fold_rows` -- each row's residual folded at one revolution, the median over the
+  revolutions per phase, and its mean square (:func:`vision.defects.detect.knife_nicks`).
+
+Compiled with ``cache=True`` on first use; :func:`warm_up` compiles every one with the types
+the map passes, so a :class:`vision.defects.detect.DefectFinder` does that at set-up, never on
+a frame.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
+
+
+@njit(**_JIT)
+def register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka: float,
+                   kb: float, slope: np.ndarray, albedo: np.ndarray,
+                   both: np.ndarray) -> int:  # pragma: no cover - compiled
+    """Slope and albedo of a pair on the map grid (B shifted by ``d`` columns onto A).
+
+    Parameters
+    ----------
+    a, b : ndarray of float32, shape (rows, cols)
+        A and B on the map grid (B where the board was when B was taken).
+    valid : ndarray of bool, shape (rows, cols)
+        Grid samples inside the image.
+    d : float
+        Board motion from A to B, map columns: ``b_reg[:, j] = b[:, j + d]`` (linear).
+    ka, kb : float
+        ``cos(azimuth) tan(slant)`` of light A and B (seed Eq. 4).
+    slope, albedo : ndarray of float32, shape (rows, cols)
+        Out: ``dz/dx`` with the pair's constant imbalance removed, and the albedo relative to
+        the map's mean; 0 where not ``both``.
+    both : ndarray of bool, shape (rows, cols)
+        Out: both shots see the sample.
+
+    Returns
+    -------
+    int
+        Samples both shots see.
+    """
+    rows, cols = a.shape
+    k = int(math.floor(d))
+    t = np.float32(d - k)
+    sa = 0.0
+    sb = 0.0
+    n = 0
+    for i in range(rows):
+        for j in range(cols):
+            jj = j + k
+            ok = False
+            bv = np.float32(0.0)
+            if valid[i, j] and jj >= 0 and jj + 1 < cols and valid[i, jj] and valid[i, jj + 1]:
+                bv = b[i, jj] * (np.float32(1.0) - t) + b[i, jj + 1] * t
+                ok = a[i, j] > 0 and bv > 0
+            both[i, j] = ok
+            if ok:
+                slope[i, j] = bv  # B registered, kept here for the second pass
+                sa += a[i, j]
+                sb += bv
+                n += 1
+    if not (sa > 0 and sb > 0):
+        sa = 1.0
+        sb = 1.0
+    gain = np.float32(sa / sb)
+    fka, fkb = np.float32(ka), np.float32(kb)
+    scale = np.float32(max(n, 1) / (2.0 * sa))
+    for i in range(rows):
+        for j in range(cols):
+            if both[i, j]:
+                av = a[i, j]
+                r = slope[i, j] * gain
+                slope[i, j] = (r - av) / (r * fka - av * fkb)
+                albedo[i, j] = (av + r) * scale
+            else:
+                slope[i, j] = 0.0
+                albedo[i, j] = 0.0
+    return n
+
+
+@njit(**_JIT)
+def _insertion_sort(v: np.ndarray, n: int) -> None:  # pragma: no cover - compiled
+    for i in range(1, n):
+        x = v[i]
+        j = i - 1
+        while j >= 0 and v[j] > x:
+            v[j + 1] = v[j]
+            j -= 1
+        v[j + 1] = x
+
+
+@njit(**_JIT)
+def _select(v: np.ndarray, n: int, k: int) -> float:  # pragma: no cover - compiled
+    """The k-th smallest of ``v[:n]`` (reorders it; Hoare's selection)."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = v[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while v[i] < pivot:
+                i += 1
+            while v[j] > pivot:
+                j -= 1
+            if i <= j:
+                v[i], v[j] = v[j], v[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return v[k]
+
+
+@njit(**_JIT)
+def _median(v: np.ndarray, n: int) -> float:  # pragma: no cover - compiled
+    """The median of ``v[:n]`` (the mean of the two middle values for even ``n``)."""
+    hi = _select(v, n, n // 2)
+    if n % 2:
+        return hi
+    lo = v[0]
+    for i in range(1, n // 2):  # the largest of the lower half, after the selection
+        if v[i] > lo:
+            lo = v[i]
+    return 0.5 * (lo + hi)
+
+
+@njit(**_JIT)
+def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int, k: int,
+                 cell: int, profile: np.ndarray, r: np.ndarray, e: np.ndarray,
+                 valid_cells: np.ndarray) -> tuple[float, int]:  # pragma: no cover
+    """The marks' robust column profile, the residual and its cells (see ``residual``).
+
+    Parameters
+    ----------
+    p : ndarray of float32, shape (rows, cols)
+        Slope along the feed.
+    valid : ndarray of bool, shape (rows, cols)
+    sat_limit : float
+        Samples with ``|p| >= sat_limit`` (cast shadows) do not enter the profile.
+    group, k : int
+        Rows per group, and groups in the shorth's run.
+    cell : int
+        Map columns per cell.
+    profile : ndarray of float64, shape (cols,)
+        Out: the marks' slope profile.
+    r : ndarray of float32, shape (rows, cols)
+        Out: ``p - profile`` (0 outside ``valid``).
+    e : ndarray of float32, shape (rows, cols // cell)
+        Out: each cell's mean square of ``r`` (0 where not ``valid_cells``).
+    valid_cells : ndarray of bool, shape (rows, cols // cell)
+        Out: at least half the cell's samples valid.
+
+    Returns
+    -------
+    tuple
+        The median absolute deviation of the samples from the profile's first estimate
+        (every third row and column), and the number of valid cells.
+    """
+    rows, cols = p.shape
+    n_g = rows // group
+    lim = np.float32(sat_limit)
+    # group sums, row-major (the rows are contiguous)
+    gs = np.zeros((cols, n_g))
+    gw = np.zeros((cols, n_g), dtype=np.int64)
+    total = np.zeros(cols)
+    count = np.zeros(cols, dtype=np.int64)
+    for i in range(rows):
+        g = i // group
+        for c in range(cols):
+            v = p[i, c]
+            if valid[i, c] and abs(v) < lim:
+                total[c] += v
+                count[c] += 1
+                if g < n_g:
+                    gs[c, g] += v
+                    gw[c, g] += 1
+    gm = np.empty(n_g, dtype=np.float64)
+    loc = np.empty(cols, dtype=np.float64)
+    for c in range(cols):
+        for g in range(n_g):
+            w = gw[c, g]
+            # groups mostly outside or shadowed: spread far apart, no run of them is tight
+            gm[g] = gs[c, g] / w if w >= 0.5 * group and w > 0 else 1e3 + 10.0 * g
+        _insertion_sort(gm, n_g)
+        best = 0
+        span = np.inf
+        for j in range(n_g - k + 1):
+            sp = gm[j + k - 1] - gm[j]
+            if sp < span:
+                span = sp
+                best = j
+        s = 0.0
+        for j in range(best, best + k):
+            s += gm[j]
+        m = s / k
+        if not abs(m) < 10.0:  # a column mostly outside: its plain mean
+            m = total[c] / count[c] if count[c] > 0 else 0.0
+        loc[c] = m
+    # the deviations' robust scale (every third row and column)
+    buf = np.empty(((rows + 2) // 3) * ((cols + 2) // 3), dtype=np.float64)
+    nb = 0
+    for i in range(0, rows, 3):
+        for c in range(0, cols, 3):
+            v = p[i, c]
+            if valid[i, c] and abs(v) < lim:
+                buf[nb] = abs(v - loc[c])
+                nb += 1
+    scale = _median(buf, nb) if nb > 0 else 0.0
+    limit = 5.0 * 1.4826 * scale + 1e-4
+    near = np.zeros(cols)
+    n_near = np.zeros(cols, dtype=np.int64)
+    for i in range(rows):
+        for c in range(cols):
+            v = p[i, c]
+            if valid[i, c] and abs(v) < lim and abs(v - loc[c]) <= limit:
+                near[c] += v
+                n_near[c] += 1
+    for c in range(cols):
+        if count[c] == 0:
+            profile[c] = 0.0  # no sample of the column enters the profile
+        else:
+            profile[c] = near[c] / n_near[c] if n_near[c] > 0 else loc[c]
+    n_cells = cols // cell
+    nc = 0
+    for i in range(rows):
+        for j in range(n_cells):
+            s = 0.0
+            w = 0
+            for c in range(j * cell, (j + 1) * cell):
+                if valid[i, c]:
+                    x = np.float32(p[i, c] - np.float32(profile[c]))
+                    r[i, c] = x
+                    s += x * x
+                    w += 1
+                else:
+                    r[i, c] = 0.0
+            ok = w >= 0.5 * cell
+            valid_cells[i, j] = ok
+            e[i, j] = s / max(w, 1) if ok else 0.0
+            nc += ok
+        for c in range(n_cells * cell, cols):
+            r[i, c] = np.float32(p[i, c] - np.float32(profile[c])) if valid[i, c] else 0.0
+    return scale, nc
+
+
+@njit(**_JIT)
+def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int, n_per: int,
+              min_valid: int, every: int, slack: float, folded: np.ndarray,
+              energy: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Rows of the residual folded at ``period`` columns from column ``c0``.
+
+    Per row, the mean of its valid samples in each (period, phase bin) cell, then per phase
+    bin the median over the periods that saw it.  The medians are taken on every
+    ``every``-th row (the reference) and on the rows whose residual folded as the plain mean
+    over all periods (cheap) has a mean square above ``slack`` times the median row's: a
+    row whose median fold stands out has a mean fold that does too.
+
+    Parameters
+    ----------
+    r : ndarray of float32, shape (rows, cols)
+    valid : ndarray of bool, shape (rows, cols)
+    c0 : int
+        First column of the first period.
+    period : float
+        Columns per period.
+    nb, n_per : int
+        Phase bins per period, and periods.
+    min_valid : int
+        Rows with fewer valid samples are left out (``energy`` NaN).
+    every : int
+        The median fold is taken on every ``every``-th row.
+    slack : float
+        ... and on the rows whose mean fold's mean square is above ``slack`` times the
+        median row's.
+    folded : ndarray of float64, shape (rows, nb)
+        Out: the median fold (NaN where not taken or no period saw the bin).
+    energy : ndarray of float64, shape (rows,)
+        Out: the mean square of ``folded`` over its bins (NaN where not taken).
+    """
+    rows, cols = r.shape
+    x1 = min(cols, c0 + int(n_per * period))
+    where = np.empty(max(x1 - c0, 0), dtype=np.int64)  # (period, bin) cell of each column
+    for c in range(c0, x1):
+        ph = (c - c0) / period
+        per = int(math.floor(ph))
+        b = min(int(math.floor((ph - per) * nb)), nb - 1)
+        where[c - c0] = per * nb + b if per < n_per else -1
+    sums = np.zeros(n_per * nb)
+    counts = np.zeros(n_per * nb, dtype=np.int64)
+    vals = np.empty(n_per)
+    # the plain mean fold of every row
+    plain = np.full(rows, np.nan)
+    bsum = np.zeros(nb)
+    bcount = np.zeros(nb, dtype=np.int64)
+    for i in range(rows):
+        nv = 0
+        for c in range(cols):
+            if valid[i, c]:
+                nv += 1
+        if nv < min_valid:
+            continue
+        bsum[:] = 0.0
+        bcount[:] = 0
+        for c in range(c0, x1):
+            q = where[c - c0]
+            if valid[i, c] and q >= 0:
+                bsum[q % nb] += r[i, c]
+                bcount[q % nb] += 1
+        s2 = 0.0
+        n = 0
+        for b in range(nb):
+            if bcount[b] > 0:
+                m = bsum[b] / bcount[b]
+                s2 += m * m
+                n += 1
+        if n > 0:
+            plain[i] = s2 / n
+    buf = np.empty(rows)
+    n_ok = 0
+    for i in range(rows):
+        if not np.isnan(plain[i]):
+            buf[n_ok] = plain[i]
+            n_ok += 1
+    limit = slack * _median(buf, n_ok) if n_ok > 0 else np.inf
+    for i in range(rows):
+        energy[i] = np.nan
+        for b in range(nb):
+            folded[i, b] = np.nan
+        if np.isnan(plain[i]) or (i % every != 0 and plain[i] < limit):
+            continue
+        sums[:] = 0.0
+        counts[:] = 0
+        for c in range(c0, x1):
+            q = where[c - c0]
+            if valid[i, c] and q >= 0:
+                sums[q] += r[i, c]
+                counts[q] += 1
+        s2 = 0.0
+        nbins = 0
+        for b in range(nb):
+            m = 0
+            for per in range(n_per):
+                q = per * nb + b
+                if counts[q] > 0:
+                    vals[m] = sums[q] / counts[q]
+                    m += 1
+            if m == 0:
+                continue
+            med = _median(vals, m)
+            folded[i, b] = med
+            s2 += med * med
+            nbins += 1
+        if nbins > 0:
+            energy[i] = s2 / nbins
+
+
+_WARM = [False]
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel for the types the map passes.
+
+    Called by :class:`vision.defects.detect.DefectFinder` at set-up; idempotent and cheap
+    after the first call in a process.
+    """
+    if _WARM[0]:
+        return
+    a = np.ones((8, 12), dtype=np.float32)
+    valid = np.ones((8, 12), dtype=np.bool_)
+    out = np.empty_like(a)
+    register_ratio(a, a, valid, 1.5, 7.1, -7.1, out, np.empty_like(a), np.empty_like(valid))
+    cells = np.empty((8, 4), dtype=np.float32)
+    residual_map(a, valid, 0.07, 2, 2, 3, np.empty(12), out, cells,
+                 np.empty((8, 4), dtype=np.bool_))
+    fold_rows(a, valid, 0, 4.0, 4, 3, 6, 4, 0.3, np.empty((8, 4)), np.empty(8))
+    _WARM[0] = True
