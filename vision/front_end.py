@@ -403,6 +403,11 @@ class FrontEnd:
     def _groups(self, bins: np.ndarray) -> np.ndarray:
         """Sums of the orientation's row groups, shape (groups, width), float32."""
         g, size = self._group_count, self._group_size
+        if bins.dtype == np.uint16 and size <= 256 and bins.flags.c_contiguous:
+            # one compiled pass, the same float32 sums (integers below 2**24: exact)
+            out = np.empty((g, bins.shape[1]), dtype=np.float32)
+            kernels.group_sums(bins, self._group_rows.start, size, out)
+            return out
         part = bins[self._group_rows]
         return part.reshape(g, size, part.shape[1]).sum(axis=1, dtype=np.float32)
 
@@ -532,7 +537,12 @@ class FrontEnd:
 
 def mean_profile(rows: np.ndarray, factor: int) -> np.ndarray:
     """The column means of :meth:`FrontEnd.profile_rows` (in units of one ``k0``-row bin)."""
-    total = cv2.reduce(rows, 0, cv2.REDUCE_SUM, dtype=cv2.CV_64F).ravel()
+    if rows.dtype == np.uint16 and rows.flags.c_contiguous and rows.shape[0] < 65537:
+        # integer sums in one compiled pass: the same float64 values as cv2.reduce's
+        total = np.empty(rows.shape[1])
+        kernels.column_sums(rows, np.empty(rows.shape[1], dtype=np.uint32), total)
+    else:
+        total = cv2.reduce(rows, 0, cv2.REDUCE_SUM, dtype=cv2.CV_64F).ravel()
     return total / (rows.shape[0] * factor)
 
 
@@ -570,7 +580,8 @@ class TextureRows:
         self._rows = rows
         self.shape = (int(count), int(width))
         self.ndim = 2
-        self._inv = None if profile is None else _inverse(profile)
+        self._profile = profile
+        self._inv: np.ndarray | None = None  # 1 / profile, made when rows are first taken
 
     def __getitem__(self, key: slice) -> np.ndarray:
         if not isinstance(key, slice):
@@ -578,7 +589,10 @@ class TextureRows:
         rows = self._rows(key)  # type: ignore[operator]
         inv = self._inv
         if inv is None:
-            inv = _inverse(cv2.reduce(rows, 0, cv2.REDUCE_AVG, dtype=cv2.CV_64F).ravel())
+            if self._profile is not None:
+                inv = self._inv = _inverse(self._profile)
+            else:
+                inv = _inverse(cv2.reduce(rows, 0, cv2.REDUCE_AVG, dtype=cv2.CV_64F).ravel())
         tex = np.multiply(rows, inv[None, :], dtype=np.float32)
         tex -= np.float32(1.0)
         return tex

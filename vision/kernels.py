@@ -7,6 +7,8 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
 
 * :func:`bin_rows` -- an 8-bit image summed into ``k``-row bins, those summed ``m`` at a time
   over a band, and that band's column sums, in one pass over the image;
+* :func:`group_sums` -- the orientation's groups of adjacent bins summed (``float32``);
+* :func:`column_sums` -- the column sums of ``uint16`` rows (the profile's), exact;
 * :func:`running_mean_1d`, :func:`running_mean_2d` -- running means of fractional length
   (cumulative sums and linear interpolation, as
   :func:`vision.calibration.illumination.running_mean`);
@@ -93,6 +95,49 @@ def bin_rows(image: np.ndarray, r0: int, k: int, bins: np.ndarray, start: int, m
                 acc[c] += part[c]
     for c in range(c1 - c0):
         columns[c] = acc[c]
+
+
+@njit(**_JIT)
+def group_sums(bins: np.ndarray, first: int, size: int,
+               out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``out[q] = sum(bins[first + q size : first + (q + 1) size])`` in ``float32``.
+
+    As ``bins[first:first + g size].reshape(g, size, w).sum(axis=1, dtype=np.float32)`` for
+    ``out`` of shape ``(g, w)``: integer bins whose sums stay below ``2**24`` (``uint16``
+    bins, ``size <= 256``) are exact in ``float32`` in any order, so the result is the same;
+    one pass, no ``uint16`` to ``float32`` temporaries.
+    """
+    g, w = out.shape
+    for q in range(g):
+        o = out[q]
+        r0 = first + q * size
+        row = bins[r0]
+        for c in range(w):
+            o[c] = np.float32(row[c])
+        for s in range(1, size):
+            row = bins[r0 + s]
+            for c in range(w):
+                o[c] += np.float32(row[c])
+
+
+@njit(**_JIT)
+def column_sums(rows: np.ndarray, acc: np.ndarray,
+                out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``out[c] = sum(rows[:, c])`` of ``uint16`` rows, added up as integers (exact).
+
+    ``acc`` (``uint32``, shape ``(width,)``) is scratch: fewer than 65,537 rows cannot
+    overflow it, and integer sums are the same in any order (``cv2.reduce``'s float64 sums
+    of the same integers are exact too), vectorised.
+    """
+    n, w = rows.shape
+    for c in range(w):
+        acc[c] = 0
+    for j in range(n):
+        row = rows[j]
+        for c in range(w):
+            acc[c] += row[c]
+    for c in range(w):
+        out[c] = acc[c]
 
 
 @njit(**_JIT)
@@ -670,6 +715,8 @@ def warm_up() -> None:
              np.empty(8, dtype=np.uint32), cols)
     bin_rows(img, 0, 2, bins, 0, 1, np.empty((2, 8), dtype=np.float32), 0, 2, 0, 8, cols,
              cols)
+    group_sums(bins, 0, 1, np.empty((2, 8), dtype=np.float32))
+    column_sums(bins, np.empty(8, dtype=np.uint32), cols)
     v = np.arange(8.0)
     running_mean_1d(v, 2.5)
     running_mean_2d(np.ones((8, 3)), 2.5)
@@ -687,4 +734,7 @@ def warm_up() -> None:
     repeat_lag(v, v, 2.5, np.array([1.0, 2.0]), 0.02)
     blur_fits(np.eye(5), np.ones(5), 1.0, True, np.empty(3), np.empty(3), np.empty(3), 8,
               1.0)
+    from vision import marks_kernels  # the cusps' choice (find_marks), compiled beside these
+
+    marks_kernels.warm_up()
     _WARM[0] = True

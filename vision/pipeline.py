@@ -58,9 +58,8 @@ from vision.registration.checks import checked
 from vision.registration.consistency import Agreement, honest_confidence, marks_shading_agreement
 from vision.registration.defect_rows import (
     clean_columns,
-    defect_rows,
     masked_pair,
-    ridged_rows,
+    row_checks,
     weighted_profile,
 )
 from vision.registration.encoder_fallback import encoder_registration
@@ -827,8 +826,7 @@ def _prepared(m: Measurer, d: float, *, rows: tuple[np.ndarray, np.ndarray],
     registered, columns = False, None
     mask = weights = None
     if m.register:
-        mask = defect_rows(m.width, rows_a, rows_b, d, margin)
-        weights = ridged_rows(m.width, rows_a, rows_b, d, margin)
+        mask, weights = row_checks(m.width, rows_a, rows_b, d, margin)
     if weights is not None and mask is None:  # the bins' ends tapered (raised grain)
         pa, pb = (weighted_profile(rows_a, factor, weights),
                   weighted_profile(rows_b, factor, weights))

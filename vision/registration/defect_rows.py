@@ -145,8 +145,12 @@ def _compiled_rows(rows: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(r)
 
 
+RIDGED = 1.0
+"""Row bins disagreeing by more than this (:func:`rows_disagreement`) are weighted."""
+
+
 def ridged_rows(width: int, rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float,
-                margin: int, *, threshold: float = 1.0) -> np.ndarray | None:
+                margin: int, *, threshold: float = RIDGED) -> np.ndarray | None:
     """The row bins' weights when they disagree (:func:`rows_disagreement` > ``threshold``).
 
     Returns :func:`row_window` of the bins, or ``None`` (the plain mean) when they agree.
@@ -361,6 +365,31 @@ def clean_columns(mask: RowMask, *, min_kept: float = 0.5, min_width: int = 1
     if stops[k] - starts[k] < min_width:
         return None
     return mask.u0 + int(starts[k]), mask.u0 + int(stops[k])
+
+
+def row_checks(width: int, rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float,
+               margin: int) -> tuple[RowMask | None, np.ndarray | None]:
+    """:func:`defect_rows` and :func:`ridged_rows` of one pair at one shift, in one call.
+
+    The overlap is found once and the rows made ready for the compiled loops once (no copy
+    when they are C-ordered ``uint16`` or ``float32``, as the front end gives them); the
+    results are those of the two functions.
+
+    Returns
+    -------
+    mask : RowMask or None
+        :func:`defect_rows`.
+    weights : ndarray or None
+        :func:`ridged_rows` (at its default threshold).
+    """
+    u0, u1 = overlap(width, shift_px, columns=(margin, width - margin))
+    a, b = np.asarray(rows_a), np.asarray(rows_b)
+    if a.dtype == b.dtype and a.dtype in (np.uint16, np.float32):
+        a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)  # as _screened would
+    mask = defect_mask(a, b, shift_px, u0=u0, u1=u1) if u1 - u0 >= 16 else None
+    ridged = rows_disagreement(a, b, shift_px, u0, u1) > RIDGED
+    weights = row_window(a.shape[0]) if ridged else None
+    return mask, weights
 
 
 def defect_rows(width: int, rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float,
