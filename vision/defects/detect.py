@@ -219,6 +219,9 @@ class Residual:
         ``floor_slope**2`` where that is larger.
     median : float
         The cells' median mean square.
+    scale : float
+        The residual's robust scale (1.4826 x the median absolute deviation of the samples
+        from the profile's first estimate, shadows left out).
     """
 
     smap: SurfaceMap
@@ -230,6 +233,7 @@ class Residual:
     cell_px: int
     base: float = 1.0
     median: float = 1.0
+    scale: float = 0.0
 
 
 def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
@@ -253,7 +257,7 @@ def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
     e = np.empty((rows, cols // cell), dtype=np.float32)
     valid_cells = np.empty((rows, cols // cell), dtype=bool)
     sat = 0.5 * smap.shadow_slope if math.isfinite(smap.shadow_slope) else 1e30
-    _scale, n_cells = kernels.residual_map(
+    mad, n_cells = kernels.residual_map(
         np.ascontiguousarray(p, dtype=np.float32), np.ascontiguousarray(valid), sat, group,
         max(2, min(n_g, int(math.ceil(0.35 * n_g)))), cell, profile, r, e, valid_cells)
     median = 1.0
@@ -264,7 +268,8 @@ def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
     smooth = cv2.blur(e, (3, 3), borderType=cv2.BORDER_REFLECT)
     excess = smooth * np.float32(1.0 / base)
     marked = (excess > settings.excess) & valid_cells
-    return Residual(smap, r, profile, excess, marked, valid_cells, cell, base, median)
+    return Residual(smap, r, profile, excess, marked, valid_cells, cell, base, median,
+                    1.4826 * mad)
 
 
 def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.ndarray
@@ -576,8 +581,7 @@ def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> li
         if k < y.size // 3:
             y = np.convolve(y, np.ones(k) / k, mode="valid")
     x_mm = (np.arange(y.size) - 0.5 * (y.size - 1)) / smap.cols_per_mm
-    coef = np.polyfit(x_mm, y, 2)
-    c2, c1_, _ = coef
+    c2, c1_, _ = _quadratic_fit(x_mm, y)
     half = 0.5 * (c1 - c0) / smap.cols_per_mm
     xs = np.linspace(-half, half, 201)
     hz = 1000.0 * (c1_ * xs ** 2 / 2 + c2 * xs ** 3 / 3)  # um
@@ -593,6 +597,16 @@ def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> li
     cs = (c0, c0 + span) if left else (c1 - span, c1)
     conf = min(1.0, sag / (2 * settings.snipe_um))
     return [_defect(res, DefectKind.SNIPE, cs, (int(rows[0]), int(rows[-1]) + 1), sag, conf)]
+
+
+def _quadratic_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares ``c2 x^2 + c1 x + c0`` (as ``np.polyfit(x, y, 2)``; ``x`` centred)."""
+    x2 = x * x
+    sx, sx2, sx3, sx4 = x.sum(), x2.sum(), (x2 * x).sum(), (x2 * x2).sum()
+    gram = np.array([[sx4, sx3, sx2], [sx3, sx2, sx], [sx2, sx, float(x.size)]])
+    rhs = np.array([x2 @ y, x @ y, y.sum()])
+    c2, c1, c0 = np.linalg.solve(gram, rhs)
+    return float(c2), float(c1), float(c0)
 
 
 def detect_defects(smap: SurfaceMap, *, bottoms_mm: np.ndarray | None = None,
@@ -691,7 +705,8 @@ def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, f
 
     Ridges on the growth rings cross the rows at the rings' angle: row ``i + 1`` repeats row
     ``i`` shifted by ``row_step / tan(angle)``.  The residual is clipped at 4 of its robust
-    scales (a deep pit does not dominate) and the rows' cross-correlations summed (FFT).
+    scales (:attr:`Residual.scale`: a deep pit does not dominate) and the rows'
+    cross-correlations summed (FFT).
 
     Returns
     -------
@@ -699,17 +714,15 @@ def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, f
         ``(peak correlation, correlation at lag 0, lag of the peak in map columns)``.
     """
     max_lag_px = max(2, int(round(max_lag_mm * res.smap.cols_per_mm)))
-    r = res.r
-    sample = np.abs(r[res.smap.valid][::7])
-    scale = 1.4826 * float(np.median(sample)) if sample.size else 0.0
-    if scale <= 0:
+    scale = res.scale
+    if not scale > 0:
         return 0.0, 0.0, 0
-    r = np.clip(r, -4 * scale, 4 * scale)
+    r = np.clip(res.r, np.float32(-4 * scale), np.float32(4 * scale))
     n = r.shape[1]
     size = sfft.next_fast_len(n + max_lag_px, real=True)
     f = sfft.rfft(r, size, axis=1, workers=1)
-    x = sfft.irfft((np.conj(f[:-1]) * f[1:]).sum(axis=0), size)
-    r2 = (r * r).sum(axis=1, dtype=np.float64)
+    x = sfft.irfft(np.einsum("ij,ij->j", np.conj(f[:-1]), f[1:]), size)
+    r2 = np.einsum("ij,ij->i", r, r, dtype=np.float64)
     norm = float(r2[:-1].sum() * r2[1:].sum()) ** 0.5
     if norm <= 0:
         return 0.0, 0.0, 0
