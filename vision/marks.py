@@ -26,7 +26,7 @@ import scipy.signal
 
 from core.checks import check_int
 from core.errors import MeasurementError
-from vision import kernels
+from vision import kernels, marks_kernels
 
 
 @dataclass(frozen=True)
@@ -333,7 +333,8 @@ def find_marks(
     1. Cusps, to a sample: the large negative steps of the slope (:func:`cusp_steps`), every
        step larger than ``min_step`` times the typical one (90th percentile of the candidates),
        at least 3 samples apart, provided the typical step stands ``min_snr`` times above the
-       slope's noise.
+       slope's noise; without those the noise put inside a mark (:func:`without_false_cusps`),
+       with the smaller steps that bound a narrow mark (:func:`with_narrow_marks`).
     2. Arcs: between cusps the surface is an arc of the common tip radius R, so the slope is a
        line of one common gradient ``kappa = 1/R``: ``p = kappa (x - b_k)`` with ``b_k`` the
        mark's lowest point.  ``kappa`` is the pooled within-mark regression of slope on x, ``b_k``
@@ -406,12 +407,9 @@ def find_marks(
         if typical < min_snr * noise:  # fine marks: their own cusps may be the differences
             noise = min(noise, periodic_noise(p))
         if typical < min_snr * noise:  # the steps are noise: no cuttermarks to be seen
-            cand = cand[:0]
-        else:
-            cand = cand[size >= min_step * typical]
-    gaps = cand.astype(np.float64) + 0.5  # cusp between samples i and i + 1
-    if refine and gaps.size >= 3:
-        gaps = without_false_cusps(p, gaps, cum_p, guard=guard, min_step=min_step)
+            cand, size = cand[:0], size[:0]
+    gaps = _cusp_gaps(p, cum_p, cand, size, typical, noise, min_step=min_step, guard=guard,
+                      refine=refine)
     if gaps.size < min_marks + 1:
         _too_few(gaps.size - 1, x, min_marks)
     if refine:
@@ -436,6 +434,38 @@ def find_marks(
         uniformity_cv=float(widths.std() / pitch),
         depth_um=float(depths.sum() / depths.size),
     )
+
+
+WEAK_STEP = 0.12
+"""Smallest step (fraction of the typical one) of a cusp that :func:`with_narrow_marks` tests."""
+NARROW_MARK_Z = 5.0
+"""How many standard errors the lowest points either side of such a cusp must lie apart."""
+
+
+def _cusp_gaps(p: np.ndarray, cum_p: np.ndarray, cand: np.ndarray, size: np.ndarray,
+               typical: float, noise: float, *, min_step: float, guard: int, refine: bool
+               ) -> np.ndarray:
+    """The cusps to a sample (``i + 0.5``: between samples ``i`` and ``i + 1``) of the candidates.
+
+    The steps of at least ``min_step`` of the typical one; refined: without the false ones
+    (:func:`without_false_cusps`) and with the weaker ones of narrow marks
+    (:func:`with_narrow_marks`).
+    """
+    strong = size >= min_step * typical
+    gaps = cand[strong].astype(np.float64) + 0.5
+    if not refine or gaps.size < 3:
+        return gaps
+    gaps = without_false_cusps(p, gaps, cum_p, guard=guard, min_step=min_step)
+    weak = ~strong & (size >= WEAK_STEP * typical)
+    if not weak.any() or gaps.size < 3:
+        return gaps
+    order = np.argsort(-size[weak], kind="stable")
+    more = with_narrow_marks(p, gaps, cand[weak][order] + 0.5, cum_p,
+                             all_gaps=cand[size >= WEAK_STEP * typical] + 0.5,
+                             typical_step=typical, noise=noise, guard=guard)
+    if more.size == gaps.size:
+        return gaps
+    return without_false_cusps(p, more, cum_p, guard=guard, min_step=min_step)
 
 
 def without_false_cusps(slope: np.ndarray, gaps: np.ndarray, cum_p: np.ndarray, *,
@@ -472,46 +502,69 @@ def without_false_cusps(slope: np.ndarray, gaps: np.ndarray, cum_p: np.ndarray, 
         The cusps kept (all of them when fewer than three distances can be measured or the
         pieces show no common curvature).
     """
-    p = np.asarray(slope, dtype=np.float64)
-    n = p.size
-    g = gaps.size
-    cut = (gaps + 0.5).astype(np.int64)  # first sample after each cusp
-    start = np.concatenate(([0], cut))
-    end = np.concatenate((cut, [n]))  # exclusive
-    ex = max(int(guard) - 1, 0)  # samples left out next to a cusp (as the arc model does)
-    lo = start + ex
-    hi = end - ex
-    lo[0], hi[-1] = 1, n - 1
-    regular = hi - lo >= 2
-    short = ~regular & (end - start >= 2)
-    lo = np.where(short, start, lo)
-    hi = np.where(short, end, hi)
-    fit = regular | short
-    if np.count_nonzero(fit) < 4:
-        return gaps
-    lo_f, hi_f = lo[fit].astype(np.float64), hi[fit].astype(np.float64)
-    cnt = hi_f - lo_f
-    sx = (hi_f * (hi_f - 1) - lo_f * (lo_f - 1)) / 2
-    sxx = ((hi_f - 1) * hi_f * (2 * hi_f - 1) - (lo_f - 1) * lo_f * (2 * lo_f - 1)) / 6
-    cum_xp = _cumsum0(np.arange(n) * p)
-    sp = cum_p[hi[fit]] - cum_p[lo[fit]]
-    sxp = cum_xp[hi[fit]] - cum_xp[lo[fit]]
-    reg = regular[fit]
-    den = float(np.sum((sxx - sx * sx / cnt)[reg]))
-    kappa = float(np.sum((sxp - sx * sp / cnt)[reg])) / den if den > 0 else 0.0
-    if not kappa > 0:
-        return gaps
-    b = np.full(g + 1, np.nan)
-    b[fit] = (sx - sp / kappa) / cnt  # p = kappa (s - b)
-    apart = b[1:] - b[:-1]
-    measured = np.isfinite(apart)
-    if np.count_nonzero(measured) < 3:
-        return gaps
-    typical = _median(apart[measured])
-    if not typical > 0:
-        return gaps
-    false = measured & (apart < min_step * typical)
+    p = np.ascontiguousarray(slope, dtype=np.float64)
+    g = np.ascontiguousarray(gaps, dtype=np.float64)
+    false = marks_kernels.false_cusps(p, np.ascontiguousarray(cum_p, dtype=np.float64), g,
+                                      int(guard), float(min_step))
     return gaps[~false] if false.any() else gaps
+
+
+def with_narrow_marks(slope: np.ndarray, gaps: np.ndarray, weak: np.ndarray,
+                      cum_p: np.ndarray, *, all_gaps: np.ndarray, typical_step: float,
+                      noise: float, guard: int = 2, min_fall: float = WEAK_STEP,
+                      z: float = NARROW_MARK_Z) -> np.ndarray:
+    """The cusps with those of the weaker candidates that bound a mark of their own.
+
+    A mark of a few samples (0.36 mm at 0.5 mm pitch, 12.5 px/mm: a knife cutting shallower
+    than its neighbours) has both its cusps within the two samples either side that the step
+    of :func:`cusp_steps` averages: each fall is measured at a quarter to a third of a full
+    one and fails ``min_step``, while a vanished knife's neighbours make falls of two passes
+    the typical one. Each weaker candidate (largest first) is put to the arc model instead:
+    the piece of the profile it would split, fitted either side as a line of the common
+    gradient ``kappa`` (pooled over the pieces between *all* candidates, so that marks not
+    yet resolved do not flatten it), must show lowest points ``b`` that advance by at least
+    ``min_fall`` of the typical fall (over ``kappa``) and by ``z`` standard errors of their
+    difference (the slope's noise over the pieces' samples); such a candidate is added.
+    Both pieces must hold ``2 guard`` samples: a shorter one may straddle a cusp already found
+    (the noise's candidate a sample or two beside a true cusp), whose two lines would make
+    its lowest point advance as a mark's does.
+    A candidate that splits a piece holding a mark not yet resolved passes too; the caller's
+    :func:`without_false_cusps` then drops it once the marks either side are resolved.
+
+    Parameters
+    ----------
+    slope : ndarray, shape (n,)
+        Slope profile.
+    gaps : ndarray, shape (g,)
+        The cusps so far, to a sample, ascending.
+    weak : ndarray, shape (w,)
+        Weaker candidates to a sample, in the order to try them.
+    cum_p : ndarray, shape (n + 1,)
+        ``[0, cumsum(slope)]``.
+    all_gaps : ndarray
+        Every candidate (``gaps`` and ``weak``), ascending: the pieces for ``kappa``.
+    typical_step : float
+        The typical fall of the slope at a cusp (:func:`find_marks`).
+    noise : float
+        The slope's noise, one sample.
+    guard : int, optional
+        As in :func:`find_marks`.
+    min_fall, z : float, optional
+        See above.
+
+    Returns
+    -------
+    ndarray
+        The cusps, ascending (``gaps`` itself when none is added).
+    """
+    out = marks_kernels.narrow_cusps(
+        np.ascontiguousarray(slope, dtype=np.float64),
+        np.ascontiguousarray(cum_p, dtype=np.float64),
+        np.ascontiguousarray(gaps, dtype=np.float64),
+        np.ascontiguousarray(weak, dtype=np.float64),
+        np.ascontiguousarray(all_gaps, dtype=np.float64), int(guard), float(typical_step),
+        float(noise), float(min_fall), float(z))
+    return gaps if out.size == gaps.size else out
 
 
 def _too_few(found: int, x: np.ndarray, need: int) -> None:
