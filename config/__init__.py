@@ -1,7 +1,7 @@
 """Configuration: TOML files loaded into frozen, validated dataclasses.
 
 The TOML files shipped with the product live beside this module (``rig.toml``, ``sim.toml``,
-``machine.toml``, ``registers.toml``, ``piezo.dbc``); :func:`default_path` finds them when the
+``machine.toml``, ``registers.toml``, ``piezo_amp.eds``); :func:`default_path` finds them when the
 package is installed. Loaders raise :class:`core.errors.ConfigError` naming the bad key.
 """
 

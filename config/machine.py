@@ -79,11 +79,13 @@ class CanConfig:
     options : mapping
         Extra keyword arguments for ``can.Bus``.
     command_period_s : float
-        Period of ``PIEZO_COMMAND`` (enable, knives, alive counter), seconds.
+        Period of the amplifier's command (RPDO3: enable, knives, alive counter), seconds.
     offsets_period_s : float
-        ``PIEZO_OFFSETS_*`` are sent on change and at least this often, seconds.
-    dbc : Path or None
-        DBC file; ``None`` means the shipped ``config/piezo.dbc``.
+        The offset table (RPDO1/2) is sent on change and at least this often, seconds.
+    node_id : int
+        The piezo amplifier's CANopen node id (1..127).
+    eds : Path or None
+        The amplifier's EDS file; ``None`` means the shipped ``config/piezo_amp.eds``.
     """
 
     interface: str = "virtual"
@@ -91,7 +93,8 @@ class CanConfig:
     options: Mapping[str, Any] = field(default_factory=_frozen)
     command_period_s: float = 0.02
     offsets_period_s: float = 0.2
-    dbc: Path | None = None
+    node_id: int = 2
+    eds: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -360,8 +363,12 @@ def _can_table(root: Section, d: MachineConfig, base: Path | None) -> CanConfig:
         offsets_period_s=can.number(
             "offsets_period_s", dc.offsets_period_s, lo=0.0, lo_open=True, hi=10.0
         ),
-        dbc=_path_or_none(can, "dbc", base),
+        node_id=can.integer("node_id", dc.node_id, lo=1, hi=127),
+        eds=_path_or_none(can, "eds", base),
     )
+    if _path_or_none(can, "dbc", base) is not None:  # "" (as once shipped) is let through
+        raise ConfigError(f"{can.key('dbc')}: the amplifier is a CANopen node described by its "
+                          f"EDS file: set {can.key('eds')} (\"\" = config/piezo_amp.eds)")
     can.reject_unknown()
 
     return can_cfg
@@ -556,9 +563,9 @@ def registers_path(cfg: MachineConfig) -> Path:
     return cfg.plc.registers or default_path("registers.toml")
 
 
-def dbc_path(cfg: MachineConfig) -> Path:
-    """The DBC file this configuration uses."""
-    return cfg.can.dbc or default_path("piezo.dbc")
+def eds_path(cfg: MachineConfig) -> Path:
+    """The amplifier's EDS file this configuration uses."""
+    return cfg.can.eds or default_path("piezo_amp.eds")
 
 
 def rig_path(cfg: MachineConfig) -> Path:

@@ -185,7 +185,7 @@ class PiezoConfig:
         The setpoint switches to knife k's offset this fraction of a knife period before
         knife k reaches bottom dead centre.
     timeout_s : float
-        Setpoint timeout: with no new PIEZO_COMMAND for longer, the offsets ramp to zero.
+        Setpoint timeout: with no new command (RPDO3) for longer, the offsets ramp to zero.
     ramp_um_s : float
         Rate of that ramp, micrometres per second.
     sensor_noise_um : float
@@ -407,11 +407,17 @@ class ModbusConfig:
 
 @dataclass(frozen=True)
 class CanConfig:
-    """The piezo amplifier's CAN bus (python-can ``interface``, ``channel``, extra options)."""
+    """The piezo amplifier's CAN bus and the amplifier on it.
+
+    python-can ``interface``, ``channel``, extra ``options``; the amplifier's CANopen
+    ``node_id`` and its ``eds`` file (``None``: the shipped ``config/piezo_amp.eds``).
+    """
 
     interface: str = "virtual"
     channel: str = "planer-piezo"
     options: Mapping[str, Any] = field(default_factory=dict)
+    node_id: int = 2
+    eds: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -719,11 +725,17 @@ def _modbus(s: Section) -> ModbusConfig:
     return ModbusConfig(host=host, port=port, unit_id=unit_id)
 
 
-def _can(s: Section) -> CanConfig:
+def _can(s: Section, base: Path | None) -> CanConfig:
     d = CanConfig()
     interface, channel, options = can_bus_keys(s, interface=d.interface, channel=d.channel)
+    node_id = s.integer("node_id", d.node_id, lo=1, hi=127)
+    eds = s.string("eds", "")
     s.reject_unknown()
-    return CanConfig(interface=interface, channel=channel, options=options)
+    eds_path = Path(eds).expanduser() if eds else None
+    if eds_path is not None and not eds_path.is_absolute() and base is not None:
+        eds_path = base / eds_path
+    return CanConfig(interface=interface, channel=channel, options=options, node_id=node_id,
+                     eds=eds_path)
 
 
 def _frames(s: Section) -> FramesConfig:
@@ -812,7 +824,7 @@ def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> S
         plc=_plc(sec("plc")),
         faults=_faults(root.raw("faults", None)),
         modbus=_modbus(sec("modbus")),
-        can=_can(sec("can")),
+        can=_can(sec("can"), base_dir),
         frames=_frames(sec("frames")),
         run=_run(sec("run")),
         defects=defects_table(sec("defects")),

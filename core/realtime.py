@@ -1,7 +1,7 @@
 """Scheduling priority of the threads that talk to the machine: raise, lower, guard.
 
 A real PLC does not stop answering because a PC is busy, and a service must send its
-``PIEZO_COMMAND`` every 20 ms whatever else the host runs (the amplifier's setpoint timeout is
+``RPDO3`` every 20 ms whatever else the host runs (the amplifier's setpoint timeout is
 100 ms). So the threads that serve or drive a fieldbus ask the OS to run them first:
 
 * :func:`raise_priority`: ``SCHED_FIFO`` at a low real-time priority, else a raised nice value,

@@ -21,11 +21,26 @@ from typing import Any
 
 import canopen
 from canopen.objectdictionary import ObjectDictionary
+from canopen.sdo.constants import (
+    EXPEDITED,
+    REQUEST_UPLOAD,
+    RESPONSE_ABORTED,
+    RESPONSE_UPLOAD,
+    SDO_STRUCT,
+    SIZE_SPECIFIED,
+)
 
 from config.loading import default_path
 
 __all__ = [
     "EMCY_CODES",
+    "HEARTBEAT_TIME",
+    "STATUS_PERIOD_S",
+    "Frame",
+    "SdoProblem",
+    "expected_lengths",
+    "sdo_upload_request",
+    "sdo_upload_value",
     "LIMITS",
     "OFFSETS",
     "STATUS",
@@ -55,6 +70,8 @@ LIMITS = 0x2200
 (nm), 4 slew maximum (um/ms, 0: not limited), 5 setpoint timeout (ms)."""
 HEARTBEAT_TIME = 0x1017
 """Producer heartbeat time, ms."""
+STATUS_PERIOD_S = 0.010
+"""TPDO1 (the status) leaves every 10 ms (the EDS's event timer, 0x1800 sub 5)."""
 NM_PER_UM = 1000.0
 DECI_C_PER_C = 10.0
 MAX_KNIVES = 8
@@ -96,6 +113,10 @@ EMCY_CODES: Mapping[AmpFault, int] = {
 """The EMCY error code the amplifier sends when a fault bit rises (0x0000 when all clear)."""
 
 
+Frame = tuple[int, bytes]
+"""A CAN frame as ``(arbitration_id, data)``."""
+
+
 def load_od(node_id: int, path: str | Path | None = None) -> ObjectDictionary:
     """The amplifier's object dictionary for ``node_id`` (1..127) from the EDS file.
 
@@ -132,6 +153,58 @@ def cob_ids(node_id: int) -> dict[str, int]:
     return {"emcy": 0x080 + node_id, "tpdo1": 0x180 + node_id, "rpdo1": 0x200 + node_id,
             "rpdo2": 0x300 + node_id, "rpdo3": 0x400 + node_id, "sdo_tx": 0x580 + node_id,
             "sdo_rx": 0x600 + node_id, "heartbeat": 0x700 + node_id}
+
+
+def expected_lengths(od: ObjectDictionary, node_id: int, *, receiver: str) -> dict[int, int]:
+    """The COB-IDs one end of node ``node_id`` takes, each with its data length (DLC).
+
+    ``receiver="master"``: what the amplifier sends (heartbeat, EMCY, SDO responses, TPDO1);
+    ``receiver="node"``: what the master sends (NMT, SDO requests, RPDO1..3). A frame of
+    another id, or of one of these with another length, is no frame of this node's services.
+    """
+    ids = cob_ids(node_id)
+    if receiver == "master":
+        return {ids["heartbeat"]: 1, ids["emcy"]: 8, ids["sdo_tx"]: 8,
+                ids["tpdo1"]: pdo_length(od, 0x1A00)}
+    if receiver == "node":
+        return {0x000: 2, ids["sdo_rx"]: 8, ids["rpdo1"]: pdo_length(od, 0x1600),
+                ids["rpdo2"]: pdo_length(od, 0x1601), ids["rpdo3"]: pdo_length(od, 0x1602)}
+    raise ValueError(f"receiver must be 'master' or 'node', got {receiver!r}")
+
+
+class SdoProblem(ValueError):
+    """An SDO response that is no value of the object asked for (an abort, another object)."""
+
+
+def sdo_upload_request(index: int, subindex: int) -> bytes:
+    """The 8 bytes of an SDO upload (read) request of ``index``/``subindex`` (CiA 301)."""
+    return SDO_STRUCT.pack(REQUEST_UPLOAD, index, subindex) + bytes(4)
+
+
+def sdo_upload_value(response: bytes, index: int, subindex: int) -> bytes:
+    """The value bytes of an expedited SDO upload response to ``index``/``subindex``.
+
+    Raises
+    ------
+    SdoProblem
+        An abort (naming its code), a response of another object or service, a segmented
+        transfer (the amplifier's limits are 16-bit values: always expedited), not 8 bytes.
+    """
+    data = bytes(response)
+    if len(data) != 8:
+        raise SdoProblem(f"SDO response of {len(data)} bytes, expected 8")
+    command, idx, sub = SDO_STRUCT.unpack_from(data)
+    if command & 0xE0 == RESPONSE_ABORTED:
+        (code,) = struct.unpack_from("<L", data, 4)
+        raise SdoProblem(f"SDO abort 0x{code:08X} reading 0x{idx:04X}[{sub}]")
+    if command & 0xE0 != RESPONSE_UPLOAD or (idx, sub) != (index, subindex):
+        raise SdoProblem(f"SDO response 0x{command:02X} to 0x{idx:04X}[{sub}], expected an "
+                         f"upload of 0x{index:04X}[{subindex}]")
+    if not command & EXPEDITED:
+        raise SdoProblem(f"SDO upload of 0x{index:04X}[{subindex}] is segmented, expected "
+                         "an expedited one")
+    size = 4 - ((command >> 2) & 0x3) if command & SIZE_SPECIFIED else 4
+    return data[4:4 + size]
 
 
 def _pdo_layout(od: ObjectDictionary, map_index: int) -> list[tuple[int, int, int]]:

@@ -1,13 +1,17 @@
 """The service's CANopen master of the piezo amplifiers: one bus, one node per head.
 
-:class:`AmpBus` owns the CAN bus and a ``canopen`` network on it; every frame the bus delivers
+:class:`AmpBus` owns the CAN bus and a ``canopen`` network on it. It runs no thread of its own:
+:meth:`AmpBus.poll` drains the bus without blocking, with the service's time, and every frame
 passes its gate first (:class:`_Gate`): a frame of no service of a known node is counted as
-``foreign``, a frame of a known service with the wrong length as ``malformed``, and neither
-reaches the library (so neither changes anything). :meth:`AmpBus.amplifier` gives the
-:class:`CanopenAmplifier` of one node (a head's amplifier), built from the EDS file:
+``foreign``, a frame of a known service with the wrong length as ``malformed``, the master's own
+frames echoed by the transport as ``own``, and none of them reaches the library (so none changes
+anything). :meth:`AmpBus.amplifier` gives the :class:`CanopenAmplifier` of one node (a head's
+amplifier), built from the EDS file:
 
-* start: the limits read by SDO (stroke, offset range, slew, setpoint timeout: ``0x2200``) and
-  the producer heartbeat time (``0x1017``), then NMT start (operational);
+* start: once it is heard (boot-up or heartbeat) the limits are read by SDO (stroke, offset
+  range, slew, setpoint timeout: ``0x2200``) and the producer heartbeat time (``0x1017``), one
+  expedited upload after the other, never blocking; then NMT start (operational). A node that
+  boots again, or is heard again after it was lost, is read and started anew;
 * heartbeat consumer: the node's state and when it was last heard, on the service's clock; it
   is lost when it has been silent for ``heartbeat_lost_after`` heartbeat periods;
 * RPDO1/2 the offset table (1 nm per bit), RPDO3 the command (enable, knives, alive counter);
@@ -15,15 +19,15 @@ reaches the library (so neither changes anything). :meth:`AmpBus.amplifier` give
 * EMCY consumer: each emergency with its code and the fault it names.
 
 Object indices, units and codes: :mod:`protocol.piezo_canopen`; the dictionary and PDO map:
-``docs/piezo_canopen.md``. Callbacks run on the bus's notifier thread and only assign values
-(the service's cycle reads them); the clock is injected.
+``docs/piezo_canopen.md``. Sends go out with a time limit (a full transmit queue raises
+``FieldbusError`` instead of holding up the service's cycle).
 """
 
 from __future__ import annotations
 
-import threading
-import time
-from collections.abc import Callable, Sequence
+import queue
+import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,17 +46,27 @@ from protocol.piezo_canopen import (
     AmpFault,
     AmpState,
     NmtState,
+    SdoProblem,
     cob_ids,
     describe_frame,
+    expected_lengths,
     load_od,
     nm_from_um,
-    pdo_length,
+    sdo_upload_request,
+    sdo_upload_value,
     um_from_nm,
 )
 
 __all__ = ["AmpBus", "CanopenAmplifier", "CanopenStatus", "Emergency"]
 
 _FAULT_OF_CODE = {code: fault for fault, code in EMCY_CODES.items()}
+_LIMIT_READS = ((LIMITS, 1), (LIMITS, 2), (LIMITS, 3), (LIMITS, 4), (LIMITS, 5),
+                (HEARTBEAT_TIME, 0))
+"""What the master reads by SDO before it starts a node, in this order."""
+_LIMIT_SIGNALS = {1: "stroke_um", 2: "offset_min_um", 3: "offset_max_um", 4: "slew_max_um_ms",
+                  5: "setpoint_timeout_ms"}
+SEND_TIMEOUT_S = 0.005
+"""Longest a send waits for room in the transmit queue by default, s."""
 
 
 @dataclass(frozen=True)
@@ -93,62 +107,84 @@ class Emergency:
         return self.code == 0
 
 
-class _Gate(can.Listener):
+class _MasterNetwork(canopen.Network):
+    """canopen's network without a notifier: :class:`AmpBus` feeds it; sends are time-limited."""
+
+    def __init__(self, bus: Any, send_timeout_s: float) -> None:
+        super().__init__(bus)
+        self.send_timeout_s = send_timeout_s
+        self.sent = 0
+        self.own: set[int] = set()
+        """COB-IDs this master sends (a transport that echoes them delivers them back)."""
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        """Send one frame within :attr:`send_timeout_s` (``FieldbusError`` if it cannot)."""
+        msg = can.Message(arbitration_id=can_id, data=bytes(data), is_extended_id=False,
+                          is_remote_frame=remote)
+        try:
+            self.bus.send(msg, timeout=self.send_timeout_s)
+        except (can.CanError, OSError) as exc:
+            raise FieldbusError(f"CAN send of 0x{can_id:03X} failed: {exc}") from None
+        self.own.add(can_id)
+        self.sent += 1
+
+
+class _Gate:
     """Lets a frame through to the network only when it fits a service of a known node."""
 
-    def __init__(self, network: canopen.Network) -> None:
+    def __init__(self, network: _MasterNetwork) -> None:
         self.network = network
-        self.expected: dict[int, int | None] = {0x000: 2}  # COB-ID -> DLC (None: any)
-        self.counts = {"frames": 0, "foreign": 0, "malformed": 0}
+        self.expected: dict[int, tuple[int, int]] = {}  # COB-ID -> (DLC, node id)
+        self.counts = {"frames": 0, "foreign": 0, "malformed": 0, "own": 0}
         self.last_problem: str | None = None
 
-    def expect(self, can_id: int, dlc: int | None) -> None:
-        self.expected[can_id] = dlc
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.is_error_frame or msg.is_remote_frame:
-            return
+    def pass_frame(self, can_id: Any, data: Any, timestamp: float, *,
+                   extended: bool = False) -> int | None:
+        """Deliver a frame to the library if it fits; the node id it was of, else ``None``."""
         self.counts["frames"] += 1
-        cid = msg.arbitration_id
-        if msg.is_extended_id or cid not in self.expected:
+        if isinstance(can_id, bool) or not isinstance(can_id, int) or extended:
             self.counts["foreign"] += 1
-            return
-        want = self.expected[cid]
-        if want is not None and msg.dlc != want:
+            return None
+        if can_id not in self.expected:
+            self.counts["own" if can_id in self.network.own else "foreign"] += 1
+            return None
+        want, node_id = self.expected[can_id]
+        if not isinstance(data, (bytes, bytearray, memoryview)) or len(data) != want:
             self.counts["malformed"] += 1
-            self.last_problem = f"COB-ID 0x{cid:03X}: {msg.dlc} bytes, expected {want}"
-            return
-        self.network.notify(cid, msg.data, msg.timestamp)
+            n = len(data) if isinstance(data, (bytes, bytearray, memoryview)) else type(data)
+            self.last_problem = f"COB-ID 0x{can_id:03X}: {n} bytes, expected {want}"
+            return None
+        self.network.notify(can_id, bytes(data), timestamp)
+        return node_id
 
 
 class AmpBus:
-    """One CAN bus with the heads' amplifiers on it (owns the bus and its notifier thread).
+    """One CAN bus with the heads' amplifiers on it (owns the bus; no thread of its own).
 
     Parameters
     ----------
     bus : can.BusABC
         The bus (python-can); shut down by :meth:`close`.
-    clock : callable, keyword-only
-        Monotonic seconds of the service (heartbeats and statuses are stamped with it).
     eds : Path, optional, keyword-only
         The amplifiers' EDS file (default ``config/piezo_amp.eds``).
+    send_timeout_s : float, keyword-only
+        Longest a send may wait for room in the transmit queue, s.
     """
 
-    def __init__(self, bus: Any, *, clock: Callable[[], float] = time.monotonic,
-                 eds: str | Path | None = None) -> None:
+    def __init__(self, bus: Any, *, eds: str | Path | None = None,
+                 send_timeout_s: float = SEND_TIMEOUT_S) -> None:
         self.bus = bus
-        self.clock = clock
         self.eds = eds
-        self.network = canopen.Network(bus)
+        self.network = _MasterNetwork(bus, check_positive("send_timeout_s", send_timeout_s))
         self.gate = _Gate(self.network)
-        self.network.listeners = [self.gate]
-        self.network.connect()  # the notifier on the given bus
+        self.now_s = 0.0
+        """The service's time of the frames being handled (set by :meth:`poll`)."""
         self.amplifiers: dict[int, CanopenAmplifier] = {}
 
     @property
     def counts(self) -> dict[str, int]:
-        """Frames the bus delivered, and those refused: ``foreign``, ``malformed``."""
-        return dict(self.gate.counts)
+        """Frames delivered, refused (``foreign``, ``malformed``), echoed (``own``), sent."""
+        return {**self.gate.counts, "sent": self.network.sent}
 
     def amplifier(self, node_id: int, **options: Any) -> CanopenAmplifier:
         """The amplifier at ``node_id`` (options: :class:`CanopenAmplifier`'s)."""
@@ -159,10 +195,63 @@ class AmpBus:
         self.amplifiers[node_id] = amp
         return amp
 
+    def deliver(self, can_id: Any, data: Any, now_s: float, *,
+                extended: bool = False) -> int | None:
+        """One received frame at ``now_s`` through the gate; the node id it was of, or ``None``.
+
+        Never raises for what a bus may deliver.
+        """
+        self.now_s = float(now_s)
+        node = self.gate.pass_frame(can_id, data, self.now_s, extended=extended)
+        if node is not None:
+            amp = self.amplifiers[node]
+            amp.last_frame_s = max(self.now_s, amp.last_frame_s or self.now_s)
+        return node
+
+    def poll(self, now_s: float, *, max_frames: int = 1000) -> dict[int, int]:
+        """Drain the bus without blocking, then let each amplifier do what is due (SDO, NMT).
+
+        Returns
+        -------
+        dict
+            Frames received from each node, by node id.
+
+        Raises
+        ------
+        FieldbusError
+            The bus cannot be read, or a request cannot be sent.
+        """
+        heard: dict[int, int] = {}
+        for _ in range(max_frames):
+            try:
+                msg = self.bus.recv(timeout=0.0)
+            except (can.CanError, OSError, ValueError) as exc:  # a broken bus
+                raise FieldbusError(f"CAN receive failed: {exc}") from None
+            if msg is None:
+                break
+            if msg.is_error_frame or msg.is_remote_frame:
+                continue
+            node = self.deliver(msg.arbitration_id, bytes(msg.data), now_s,
+                                extended=msg.is_extended_id)
+            if node is not None:
+                heard[node] = heard.get(node, 0) + 1
+        self.serve(now_s)
+        return heard
+
+    def serve(self, now_s: float) -> None:
+        """What each amplifier has due at ``now_s``: SDO answers and requests, NMT start."""
+        self.now_s = float(now_s)
+        for amp in self.amplifiers.values():
+            amp.serve(self.now_s)
+
     def close(self) -> None:
-        """Stop the notifier and shut the bus down (idempotent)."""
+        """Shut the bus down (idempotent)."""
         if self.network.bus is not None:
-            self.network.disconnect()
+            try:
+                self.bus.shutdown()
+            except (can.CanError, OSError, ValueError, AttributeError):  # closing goes on
+                pass
+            self.network.bus = None
 
 
 class CanopenAmplifier:
@@ -179,75 +268,136 @@ class CanopenAmplifier:
     heartbeat_lost_after : float, keyword-only
         Heartbeat periods of silence after which the amplifier counts as lost.
     sdo_timeout_s : float, keyword-only
-        Time limit of each SDO request at start, s.
+        An SDO request not answered within this time (service clock) is asked again, s.
     """
 
     def __init__(self, ampbus: AmpBus, node_id: int, *, knives: int = 4,
-                 heartbeat_lost_after: float = 3.0, sdo_timeout_s: float = 0.5) -> None:
+                 heartbeat_lost_after: float = 3.0, sdo_timeout_s: float = 0.1) -> None:
         self.ampbus = ampbus
         self.node_id = node_id
         self.knives = check_int("knives", knives, lo=1, hi=MAX_KNIVES)
         self.heartbeat_lost_after = check_positive("heartbeat_lost_after", heartbeat_lost_after)
+        self.sdo_timeout_s = check_positive("sdo_timeout_s", sdo_timeout_s)
         od = load_od(node_id, ampbus.eds)
         self.od = od
         self.node = ampbus.network.add_node(node_id, od)
-        self.node.sdo.RESPONSE_TIMEOUT = check_positive("sdo_timeout_s", sdo_timeout_s)
-        ids = cob_ids(node_id)
-        gate = ampbus.gate
-        gate.expect(ids["heartbeat"], 1)
-        gate.expect(ids["emcy"], 8)
-        gate.expect(ids["sdo_tx"], 8)
-        gate.expect(ids["tpdo1"], pdo_length(od, 0x1A00))
+        for cob, dlc in expected_lengths(od, node_id, receiver="master").items():
+            ampbus.gate.expected[cob] = (dlc, node_id)
+        self.cob_ids = cob_ids(node_id)
         self.node.rpdo.read(from_od=True)
         self.node.tpdo.read(from_od=True)
         self.node.tpdo[1].add_callback(self._on_status)
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
         self.node.emcy.add_callback(self._on_emcy)
-        self._lock = threading.Lock()
         self.limits: AmpLimits | None = None
-        """What the amplifier enforces, read at :meth:`start`."""
-        self.heartbeat_period_s: float | None = None
+        """What the amplifier enforces, read by SDO once it was heard (``None`` until then)."""
+        self.limits_problem: str | None = None
+        """Why the limits it reported make no sense (``AmpLimits.from_signals``), or ``None``."""
+        self.limits_read = 0
+        """Completed reads of the limits (valid or not): a new one when this grows."""
+        self.restarts = 0
+        """Times it booted again or was heard again after it was lost."""
+        self.heartbeat_period_s: float | None = int(od[HEARTBEAT_TIME].default) / 1000.0
+        """Its producer heartbeat time (the EDS's until read by SDO), s."""
         self.nmt_state: NmtState | None = None
         self.last_heard_s: float | None = None
+        """When its last heartbeat came (service clock), s: the heartbeat consumer's."""
+        self.last_frame_s: float | None = None
+        """When its last frame of any service came (heartbeat, status, EMCY, SDO), s."""
         self.status: CanopenStatus | None = None
         self.emergencies: list[Emergency] = []
+        self.wanted = NmtState.OPERATIONAL
+        """The NMT state the master keeps it in (:meth:`stop` makes it STOPPED)."""
+        self._reads: list[tuple[int, int]] = []  # SDO reads to do, the first one asked
+        self._values: dict[tuple[int, int], Any] = {}
+        self._asked_s = 0.0
+        self._start_sent_at = -1  # the heartbeat count at which NMT start last went out
+        self.sdo_problem: str | None = None
         self.counts = {"heartbeats": 0, "statuses": 0, "emergencies": 0, "tables": 0,
-                       "commands": 0}
+                       "commands": 0, "sdo_reads": 0, "sdo_retries": 0, "sdo_errors": 0,
+                       "nmt_starts": 0}
 
-    # -- start ---------------------------------------------------------------------------------
+    # -- start: SDO reads, then NMT start ------------------------------------------------------
 
-    def start(self) -> AmpLimits:
-        """Read the limits and the heartbeat time by SDO, then start the node (operational).
+    def start(self) -> None:
+        """Read the limits and the heartbeat time by SDO, then start the node (non-blocking).
 
-        Raises
-        ------
-        FieldbusError
-            The node does not answer (SDO time-out or abort), naming the object.
-        ValueError
-            The limits it reports make no sense (``AmpLimits.from_signals``).
+        The reads go out one after the other as :meth:`serve` (called by :meth:`AmpBus.poll`)
+        finds the answers; :attr:`limits` is set and NMT start sent when the last one is in.
         """
-        sdo = self.node.sdo
-        try:
-            lim = sdo[LIMITS]
-            signals = {
-                "stroke_um": um_from_nm(lim[1].raw),
-                "offset_min_um": um_from_nm(lim[2].raw),
-                "offset_max_um": um_from_nm(lim[3].raw),
-                "slew_max_um_ms": float(lim[4].raw),
-                "setpoint_timeout_ms": float(lim[5].raw),
-            }
-            period_ms = int(sdo[HEARTBEAT_TIME].raw)
-        except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as exc:
-            raise FieldbusError(f"piezo amplifier node {self.node_id}: SDO read of its limits "
-                                f"failed: {exc}") from None
-        self.limits = AmpLimits.from_signals(signals)
-        self.heartbeat_period_s = period_ms / 1000.0 if period_ms > 0 else None
-        self.node.nmt.state = "OPERATIONAL"
-        return self.limits
+        self.limits = None
+        self.limits_problem = None
+        self._values = {}
+        self._reads = list(_LIMIT_READS)
+        self.wanted = NmtState.OPERATIONAL
+        self._ask(self.ampbus.now_s)
 
     def stop(self) -> None:
         """NMT stop: the node leaves operational (PDOs no longer acted on)."""
+        self.wanted = NmtState.STOPPED
         self.node.nmt.state = "STOPPED"
+
+    def _ask(self, now_s: float) -> None:
+        index, sub = self._reads[0]
+        self._asked_s = now_s
+        self.ampbus.network.send_message(self.node.sdo.rx_cobid, sdo_upload_request(index, sub))
+        self.counts["sdo_reads"] += 1
+
+    def serve(self, now_s: float) -> None:
+        """Take the SDO answers received, ask what is next or again, start the node when due."""
+        sdo = self.node.sdo
+        while True:
+            try:
+                response = sdo.responses.get_nowait()
+            except queue.Empty:
+                break
+            self._answer(response, now_s)
+        if self.last_heard_s is None:
+            return  # never heard: nothing to ask
+        if self.limits is None and self.limits_problem is None and not self._reads:
+            self.start()
+        elif self._reads and now_s - self._asked_s > self.sdo_timeout_s:
+            self.counts["sdo_retries"] += 1
+            self._ask(now_s)
+        beats = self.counts["heartbeats"]
+        if (self.limits is not None and self.wanted is NmtState.OPERATIONAL
+                and self.nmt_state in (NmtState.PRE_OPERATIONAL, NmtState.STOPPED)
+                and beats != self._start_sent_at):
+            self._start_sent_at = beats  # once per heartbeat that says it is not operational
+            self.node.nmt.state = "OPERATIONAL"
+            self.counts["nmt_starts"] += 1
+
+    def _answer(self, response: bytes, now_s: float) -> None:
+        if not self._reads:
+            return  # a late answer to a request asked again: the first one was taken
+        index, sub = self._reads[0]
+        try:
+            raw = sdo_upload_value(response, index, sub)
+            value = self.od.get_variable(index, sub).decode_raw(raw)
+        except (SdoProblem, struct.error) as exc:  # asked again after the time-out
+            self.counts["sdo_errors"] += 1
+            self.sdo_problem = f"node {self.node_id}: {exc}"
+            return
+        self._values[(index, sub)] = value
+        self._reads.pop(0)
+        if self._reads:
+            self._ask(now_s)
+        else:
+            self._limits_in()
+
+    def _limits_in(self) -> None:
+        v = self._values
+        signals = {name: float(v[(LIMITS, sub)]) for sub, name in _LIMIT_SIGNALS.items()}
+        for sub in (1, 2, 3):  # lengths in nm
+            signals[_LIMIT_SIGNALS[sub]] = um_from_nm(int(v[(LIMITS, sub)]))
+        period_ms = int(v[(HEARTBEAT_TIME, 0)])
+        self.heartbeat_period_s = period_ms / 1000.0 if period_ms > 0 else None
+        try:
+            self.limits = AmpLimits.from_signals(signals)
+        except ValueError as exc:
+            self.limits, self.limits_problem = None, str(exc)
+        self.limits_read += 1
+        self._start_sent_at = -1  # start it at once (its last heartbeat said pre-operational)
 
     # -- outputs -------------------------------------------------------------------------------
 
@@ -257,7 +407,7 @@ class CanopenAmplifier:
         for var, value in zip(pdo, (int(bool(enable)), self.knives, int(alive_counter) & 0xFF),
                               strict=True):
             var.raw = value
-        self._send(pdo)
+        pdo.transmit()
         self.counts["commands"] += 1
 
     def set_offsets(self, offsets_um: Sequence[float]) -> None:
@@ -267,6 +417,8 @@ class CanopenAmplifier:
         ------
         ValueError
             Not one value per knife, or a value outside the wire's +-32.767 um (naming it).
+        FieldbusError
+            The bus refused a frame.
         """
         vals = [float(v) for v in offsets_um]
         if len(vals) != self.knives:
@@ -279,45 +431,44 @@ class CanopenAmplifier:
             pdo = self.node.rpdo[pdo_no]
             for var, raw in zip(pdo, raws[first:first + 4], strict=True):
                 var.raw = raw
-            self._send(pdo)
+            pdo.transmit()
         self.counts["tables"] += 1
 
-    def _send(self, pdo: Any) -> None:
-        try:
-            pdo.transmit()
-        except can.CanError as exc:
-            raise FieldbusError(f"piezo amplifier node {self.node_id}: {exc}") from None
-
-    # -- inputs (the notifier's thread) --------------------------------------------------------
+    # -- inputs (handed over by AmpBus, at its now_s) ------------------------------------------
 
     def _on_heartbeat(self, state: int) -> None:
-        now = self.ampbus.clock()
-        with self._lock:
-            self.nmt_state = (NmtState(state) if state in NmtState._value2member_map_
-                              else None)
-            self.last_heard_s = now
-            self.counts["heartbeats"] += 1
+        now = self.ampbus.now_s
+        heard_before = self.last_heard_s is not None
+        if heard_before and (state == NmtState.BOOT_UP or self.lost(now)):
+            self._restarted()
+        self.nmt_state = (NmtState(state) if state in NmtState._value2member_map_ else None)
+        self.last_heard_s = now if self.last_heard_s is None else max(self.last_heard_s, now)
+        self.counts["heartbeats"] += 1
+
+    def _restarted(self) -> None:
+        """Booted again, or heard again after it was lost: read and start it anew."""
+        self.restarts += 1
+        self.limits = None
+        self.limits_problem = None
+        self._reads = []
 
     def _on_status(self, pdo: Any) -> None:
         disp, temp, fault, state = (var.raw for var in pdo)  # STATUS' four objects, in order
-        status = CanopenStatus(
+        self.status = CanopenStatus(
             displacement_um=um_from_nm(disp),
             temperature_c=temp / 10.0,
             fault=AmpFault(fault & 0x0F),
             state=AmpState(min(state, AmpState.FAULT)),
-            t_s=self.ampbus.clock(),
+            t_s=self.ampbus.now_s,
         )
-        with self._lock:
-            self.status = status
-            self.counts["statuses"] += 1
+        self.counts["statuses"] += 1
 
     def _on_emcy(self, err: Any) -> None:
         e = Emergency(code=int(err.code), register=int(err.register),
-                      fault=_FAULT_OF_CODE.get(int(err.code)), t_s=self.ampbus.clock())
-        with self._lock:
-            self.emergencies.append(e)
-            del self.emergencies[:-100]  # the newest hundred
-            self.counts["emergencies"] += 1
+                      fault=_FAULT_OF_CODE.get(int(err.code)), t_s=self.ampbus.now_s)
+        self.emergencies.append(e)
+        del self.emergencies[:-100]  # the newest hundred
+        self.counts["emergencies"] += 1
 
     # -- what the service asks -----------------------------------------------------------------
 
@@ -329,8 +480,7 @@ class CanopenAmplifier:
 
     def take_emergencies(self) -> list[Emergency]:
         """The emergencies received since the last call, oldest first."""
-        with self._lock:
-            out, self.emergencies = self.emergencies, []
+        out, self.emergencies = self.emergencies, []
         return out
 
     def describe(self, can_id: int, data: bytes) -> str:

@@ -1,24 +1,29 @@
-"""The service's CAN client of the piezo amplifier: python-can bus + the DBC codec.
+"""The service's CAN client of the piezo amplifier: a CANopen master of one node over python-can.
 
-The service owns one :class:`PiezoClient`. Every control cycle it calls :meth:`PiezoClient.tick`
-with its heartbeat: ``PIEZO_COMMAND`` (enable, knives, alive counter) goes out every
-``command_period_s``; ``PIEZO_OFFSETS_*`` go out when the offsets change and at least every
-``offsets_period_s``. :meth:`PiezoClient.poll` drains received frames without blocking and keeps
-the last ``PIEZO_STATUS`` / ``AMP_HEARTBEAT`` and the time the amplifier was last heard; when it
-falls silent, :meth:`PiezoClient.silent_for` grows and the supervisor declares CAN gone.
+The service owns one :class:`PiezoClient`. Under it is :mod:`controller.fieldbus.canopen_amp`
+(:class:`~controller.fieldbus.canopen_amp.AmpBus` and the amplifier's
+:class:`~controller.fieldbus.canopen_amp.CanopenAmplifier`, built from ``config/piezo_amp.eds``).
+Every control cycle the service calls :meth:`PiezoClient.tick` with its alive counter: the
+command (RPDO3: enable, knives, alive counter) goes out every ``command_period_s``; the offset
+table (RPDO1, and RPDO2 for more than four knives) when it changes and at least every
+``offsets_period_s``. :meth:`PiezoClient.poll` drains received frames without blocking, reads
+the amplifier's limits by SDO once it is heard and starts it (NMT), and keeps the last status
+(TPDO1), its heartbeat and when it was last heard: when it falls silent,
+:meth:`PiezoClient.silent_for` grows and the supervisor declares CAN gone. Its loss as a node
+is its heartbeat's (the heartbeat consumer): heard again after that, it is a reconnect.
 
 Limits (``controller/laws/limits.py``'s :class:`~controller.laws.limits.OffsetLimit`): the amplifier
-reports its stroke and accepted offsets in ``PIEZO_LIMITS`` (with every heartbeat); the client
+reports its stroke and accepted offsets in its dictionary (``0x2200``, read by SDO); the client
 sends offsets within the smaller of that and ``machine.toml``'s stroke, and zeros until the
-amplifier has reported (at start, and again after every reconnect: silent for longer than
-``reconnect_after_s``). A table the amplifier refuses (stroke-limit bit in ``PIEZO_STATUS``
-once the table had ``refusal_grace_s`` to arrive) narrows the bound below it and is re-planned
-from the offsets asked for: never resent unchanged. What changed is queued in :attr:`notes`
-for the service to report.
+amplifier has reported (at start, and again after every reconnect: booted again, or heard
+again after its heartbeat was lost). A table the amplifier refuses (stroke-limit bit in its
+status once the table had ``refusal_grace_s`` to arrive) narrows the bound below it and is
+re-planned from the offsets asked for: never resent unchanged. What changed is queued in
+:attr:`notes` for the service to report, with the amplifier's emergencies (EMCY).
 
-The bus is any ``can.BusABC``: from the configuration through
-:func:`open_bus` (``protocol/can_transport.py`` when present, else ``can.Bus``), or a
-``virtual`` bus in tests. Time is passed in (``now_s``); nothing here reads a clock.
+The bus is any ``can.BusABC``: from the configuration through :func:`open_bus`
+(``protocol/can_transport.py``), or a ``virtual`` bus in tests. Time is passed in (``now_s``);
+nothing here reads a clock or runs a thread.
 """
 
 from __future__ import annotations
@@ -26,26 +31,21 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import can
 
+from controller.fieldbus.canopen_amp import SEND_TIMEOUT_S, AmpBus, CanopenAmplifier
 from controller.laws.limits import AmpLimits, OffsetLimit
 from core.checks import check_finite, check_int, check_positive
 from core.errors import FieldbusError
-from protocol.piezo_can import (
-    FAULT_SETPOINT_TIMEOUT,
-    FAULT_STROKE_LIMIT,
-    HEARTBEAT,
-    LIMITS,
-    OFFSETS,
-    STATUS,
-    PiezoCodec,
-)
+from protocol.piezo_canopen import MAX_KNIVES, AmpFault
 
-RECONNECT_AFTER_S = 0.3
-"""Silent for longer than this (the default CAN timeout), the amplifier is taken as reconnected
-when heard again: its limits are read anew, s."""
+DEFAULT_NODE_ID = 2
+"""The amplifier's node id unless configured (``[can] node_id``)."""
+WIRE_BOUND_UM = 32.767
+"""The largest offset the table carries (INTEGER16, 1 nm per bit), um."""
 REFUSAL_GRACE_S = 0.05
 """A stroke-limit bit counts as a refusal of the table in force once it has been out this long
 (a status sent before the table arrived speaks of the one before), s."""
@@ -58,8 +58,8 @@ class LimitNote:
     Attributes
     ----------
     kind : str
-        ``"limits"`` (the bound changed: reported, lost at a reconnect, invalid report) or
-        ``"refused"`` (a table was refused).
+        ``"limits"`` (the bound changed: reported, lost at a reconnect, invalid report),
+        ``"refused"`` (a table was refused) or ``"emergency"`` (the amplifier sent an EMCY).
     t_s : float
         When, s.
     text : str
@@ -77,7 +77,7 @@ class LimitNote:
 
 @dataclass(frozen=True)
 class AmpStatus:
-    """The amplifier's last ``PIEZO_STATUS``.
+    """The amplifier's last status (TPDO1).
 
     Attributes
     ----------
@@ -87,8 +87,6 @@ class AmpStatus:
         Fault bits (over-temperature, stroke limit, setpoint timeout, overcurrent).
     state : int
         0 disabled, 1 enabled, 2 ramping to zero, 3 fault.
-    alive_counter : int
-        The amplifier's own counter.
     t_s : float
         Time received, seconds.
     """
@@ -97,13 +95,12 @@ class AmpStatus:
     temperature_c: float
     fault: int
     state: int
-    alive_counter: int
     t_s: float
 
     @property
     def setpoint_timeout(self) -> bool:
         """Whether the amplifier reports a setpoint timeout (it ramps to zero)."""
-        return bool(self.fault & FAULT_SETPOINT_TIMEOUT)
+        return bool(self.fault & AmpFault.SETPOINT_TIMEOUT)
 
 
 _OPEN_ERRORS: tuple[type[BaseException], ...] = (
@@ -119,26 +116,18 @@ _OPEN_ERRORS: tuple[type[BaseException], ...] = (
 def open_bus(interface: str, channel: str, options: dict[str, Any] | None = None) -> Any:
     """Open a python-can bus from configuration values.
 
-    Uses ``protocol.can_transport.open_bus`` when that module provides it (it knows the
-    project's transports: udp_multicast in a private network namespace, remote, socketcan),
-    else ``can.Bus(interface=..., channel=..., **options)``.
+    Uses ``protocol.can_transport.open_bus`` (it knows the project's transports: udp_multicast
+    in a private network namespace, remote, socketcan).
 
     Raises
     ------
     FieldbusError
         The bus cannot be opened.
     """
-    opts = dict(options or {})
-    try:
-        from protocol import can_transport  # type: ignore[attr-defined]
+    from protocol import can_transport
 
-        opener = getattr(can_transport, "open_bus", None)
-    except ImportError:
-        opener = None
     try:
-        if opener is not None:
-            return opener(interface=interface, channel=channel, **opts)
-        return can.Bus(interface=interface, channel=channel, **opts)
+        return can_transport.open_bus(interface=interface, channel=channel, **dict(options or {}))
     except FieldbusError:
         raise
     except _OPEN_ERRORS as exc:  # what python-can and the transports raise for a bad bus
@@ -146,25 +135,28 @@ def open_bus(interface: str, channel: str, options: dict[str, Any] | None = None
 
 
 class PiezoClient:
-    """Offsets and enable to the amplifier; its status and heartbeat back.
+    """Offsets and enable to the amplifier; its status and heartbeat back (a CANopen master).
 
     Parameters
     ----------
     bus : can.BusABC
         An open python-can bus (the client owns it; :meth:`close` shuts it down).
-    codec : PiezoCodec
-        The DBC codec (``PiezoCodec.load()``).
     knives : int
         Number of knives Z (1..8).
+    node_id : int
+        The amplifier's node id (1..127, ``[can] node_id``).
+    eds : Path, optional
+        The amplifier's EDS file (default ``config/piezo_amp.eds``).
     command_period_s : float
-        Period of ``PIEZO_COMMAND``, s.
+        Period of the command (RPDO3), s.
     offsets_period_s : float
-        Longest interval between two ``PIEZO_OFFSETS`` transmissions, s.
+        Longest interval between two transmissions of the offset table, s.
     stroke_um : float
         ``machine.toml``'s stroke: offsets stay within the smaller of it and the amplifier's
         (:attr:`limit`), um.
-    reconnect_after_s : float
-        Silence after which the amplifier's limits are read anew when it is heard again, s.
+    heartbeat_lost_after : float
+        Heartbeat periods of silence after which the amplifier is lost: heard again, it is a
+        reconnect and its limits are read anew.
     refusal_grace_s : float
         Time a table has to reach the amplifier before a stroke-limit bit refuses it, s.
     send_timeout_s : float
@@ -176,32 +168,34 @@ class PiezoClient:
     def __init__(
         self,
         bus: Any,
-        codec: PiezoCodec,
         *,
         knives: int,
+        node_id: int = DEFAULT_NODE_ID,
+        eds: str | Path | None = None,
         command_period_s: float = 0.02,
         offsets_period_s: float = 0.2,
         stroke_um: float = 20.0,
-        reconnect_after_s: float = RECONNECT_AFTER_S,
+        heartbeat_lost_after: float = 3.0,
         refusal_grace_s: float = REFUSAL_GRACE_S,
         send_timeout_s: float | None = None,
     ) -> None:
-        self.bus = bus
-        self.codec = codec
-        self.knives = check_int("knives", knives, lo=1, hi=8)
+        self.knives = check_int("knives", knives, lo=1, hi=MAX_KNIVES)
         self.command_period_s = check_positive("command_period_s", command_period_s)
         self.offsets_period_s = check_positive("offsets_period_s", offsets_period_s)
         self.send_timeout_s = (
-            min(0.005, self.command_period_s / 4)
+            min(SEND_TIMEOUT_S, self.command_period_s / 4)
             if send_timeout_s is None
             else min(check_positive("send_timeout_s", send_timeout_s), self.command_period_s / 2)
         )
-        lo, hi = codec.signal_range(OFFSETS[0], "offset_knife_0")
         self.limit = OffsetLimit(check_positive("stroke_um", stroke_um),
-                                 wire_bound_um=min(-lo, hi))
+                                 wire_bound_um=WIRE_BOUND_UM)
         """The bound on the offsets in force (machine.toml, the amplifier, refusals)."""
-        self.reconnect_after_s = check_positive("reconnect_after_s", reconnect_after_s)
         self.refusal_grace_s = check_positive("refusal_grace_s", refusal_grace_s, allow_zero=True)
+        self.bus = bus
+        self.ampbus = AmpBus(bus, eds=eds, send_timeout_s=self.send_timeout_s)
+        self.amp: CanopenAmplifier = self.ampbus.amplifier(
+            node_id, knives=self.knives, heartbeat_lost_after=heartbeat_lost_after)
+        """The amplifier's node (SDO, NMT, PDOs, heartbeat, EMCY)."""
         self.enable = False
         self.offsets_um: tuple[float, ...] = (0.0,) * self.knives
         self._wanted: tuple[float, ...] = self.offsets_um  # as asked for, before the bound
@@ -209,17 +203,30 @@ class PiezoClient:
         self._table_since_s: float | None = None  # when the table in force first went out
         self._table_refused = False  # the table in force was refused (re-planned once)
         self.notes: list[LimitNote] = []
-        """Changes of the bound and refusals not yet reported (the service drains them)."""
+        """Changes of the bound, refusals and emergencies not yet reported (the service drains
+        them)."""
         self.reconnects = 0
         self.tables_refused = 0
         self._last_command_s = float("-inf")
         self._last_offsets_s = float("-inf")
+        self._seen = {"restarts": 0, "limits_read": 0, "status": None}
         self.last_heard_s: float | None = None
+        """When the amplifier was last heard (its heartbeat, status or any frame of its
+        services), s (``None``: never): the supervisor's CAN timeout counts from it."""
         self.status: AmpStatus | None = None
         self.nmt_state: int | None = None
-        self.sent = 0
         self.received = 0
         self.send_errors = 0
+
+    @property
+    def sent(self) -> int:
+        """Frames sent."""
+        return self.ampbus.network.sent
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """The bus's frames (``foreign``, ``malformed``...) and the amplifier's services."""
+        return {**self.ampbus.counts, **self.amp.counts}
 
     # ------------------------------------------------------------------ setpoints
     @property
@@ -229,9 +236,10 @@ class PiezoClient:
 
     def set_knives(self, knives: int) -> None:
         """Change the number of knives (offsets reset to zero)."""
-        k = check_int("knives", knives, lo=1, hi=8)
+        k = check_int("knives", knives, lo=1, hi=MAX_KNIVES)
         if k != self.knives:
             self.knives = k
+            self.amp.knives = k
             self.offsets_um = (0.0,) * k
             self._wanted = self.offsets_um
             self._sent_offsets = None
@@ -289,19 +297,15 @@ class PiezoClient:
             self._last_command_s = float("-inf")
 
     # ------------------------------------------------------------------ wire
-    def _send(self, frame: tuple[int, bytes]) -> None:
-        arb, data = frame
-        msg = can.Message(arbitration_id=arb, data=data, is_extended_id=False)
+    def _sending(self, send: Any, *args: Any) -> None:
         try:
-            self.bus.send(msg, timeout=self.send_timeout_s)
-        except (can.CanError, OSError) as exc:
+            send(*args)
+        except FieldbusError:
             self.send_errors += 1
-            raise FieldbusError(f"CAN send of 0x{arb:X} failed: {exc}") from None
-        self.sent += 1
+            raise
 
     def _send_offsets(self, now_s: float) -> None:
-        for frame in self.codec.encode_offsets(self.offsets_um):
-            self._send(frame)
+        self._sending(self.amp.set_offsets, self.offsets_um)
         if self.offsets_um != self._sent_offsets:  # a new table (not the periodic repeat)
             self._table_since_s = now_s
             self._table_refused = False
@@ -309,12 +313,9 @@ class PiezoClient:
         self._last_offsets_s = now_s
 
     def send_command(self, *, alive_counter: int, now_s: float) -> None:
-        """Send ``PIEZO_COMMAND`` now (enable, knives, alive counter mod 256)."""
-        self._send(
-            self.codec.encode_command(
-                enable=self.enable, knives=self.knives, alive_counter=int(alive_counter) & 0xFF
-            )
-        )
+        """Send the command now (RPDO3: enable, knives, alive counter mod 256)."""
+        self._sending(lambda: self.amp.command(enable=self.enable,
+                                               alive_counter=int(alive_counter) & 0xFF))
         self._last_command_s = now_s
 
     def tick(self, *, alive_counter: int, now_s: float) -> None:
@@ -335,63 +336,74 @@ class PiezoClient:
             self._send_offsets(t)
 
     def poll(self, *, now_s: float, max_frames: int = 1000) -> int:
-        """Drain received frames without blocking; return how many were from the amplifier."""
-        heard = 0
-        for _ in range(max_frames):
-            try:
-                msg = self.bus.recv(timeout=0.0)
-            except (can.CanError, OSError, ValueError) as exc:  # a broken bus
-                raise FieldbusError(f"CAN receive failed: {exc}") from None
-            if msg is None:
-                break
-            heard += self.handle(msg.arbitration_id, bytes(msg.data), now_s=now_s)
+        """Drain received frames, then SDO and NMT as due; frames from the amplifier.
+
+        Raises
+        ------
+        FieldbusError
+            The bus cannot be read, or a request cannot be sent.
+        """
+        try:
+            heard = self.ampbus.poll(now_s, max_frames=max_frames).get(self.amp.node_id, 0)
+        finally:
+            self._after(now_s)
+        self.received += heard
         return heard
 
-    def handle(self, arbitration_id: int, data: bytes, *, now_s: float) -> int:
-        """Process one received frame (pure); 1 if it came from the amplifier, else 0."""
+    def handle(self, arbitration_id: Any, data: Any, *, now_s: float) -> int:
+        """Process one received frame as :meth:`poll` does; 1 if it came from the amplifier.
+
+        Anything a bus may deliver is taken: a frame of no service of the amplifier (foreign,
+        malformed, our own echoed) changes nothing and is counted (:attr:`counts`).
+        """
+        node = self.ampbus.deliver(arbitration_id, data, now_s)
         try:
-            name, sig = self.codec.decode(arbitration_id, data)
-        except ValueError:
-            return 0  # foreign or malformed frame: ignore
-        if name not in (STATUS, HEARTBEAT, LIMITS):
-            return 0  # our own frames echoed by some transports
-        if self.last_heard_s is not None and now_s - self.last_heard_s > self.reconnect_after_s:
+            self.ampbus.serve(now_s)
+        finally:
+            self._after(now_s)
+        heard = int(node == self.amp.node_id)
+        self.received += heard
+        return heard
+
+    def _after(self, now_s: float) -> None:
+        """What the frames handed over changed: reconnects, limits, the status, emergencies."""
+        amp, seen = self.amp, self._seen
+        if amp.restarts != seen["restarts"]:
+            seen["restarts"] = amp.restarts
             self._reconnected(now_s)
-        if name == STATUS:
-            self.status = AmpStatus(
-                displacement_um=float(sig["displacement_um"]),
-                temperature_c=float(sig["temperature_c"]),
-                fault=int(sig["fault"]),
-                state=int(sig["state"]),
-                alive_counter=int(sig["alive_counter"]),
-                t_s=now_s,
-            )
-            if self.status.fault & FAULT_STROKE_LIMIT:
+        if amp.limits_read != seen["limits_read"]:
+            seen["limits_read"] = amp.limits_read
+            self._limits_reported(amp.limits, amp.limits_problem, now_s)
+        st = amp.status
+        if st is not None and st is not seen["status"]:
+            seen["status"] = st
+            self.status = AmpStatus(displacement_um=st.displacement_um,
+                                    temperature_c=st.temperature_c, fault=int(st.fault),
+                                    state=int(st.state), t_s=st.t_s)
+            if st.fault & AmpFault.STROKE_LIMIT:
                 self._refused(now_s)
-        elif name == HEARTBEAT:
-            self.nmt_state = int(sig["nmt_state"])
-        else:
-            self._limits_reported(sig, now_s)
-        self.received += 1
-        self.last_heard_s = now_s if self.last_heard_s is None else max(self.last_heard_s, now_s)
-        return 1
+        for e in amp.take_emergencies():
+            what = "cleared" if e.cleared else (e.fault.name.lower().replace("_", "-")
+                                                if e.fault is not None else "unknown")
+            self._note("emergency", e.t_s, f"piezo amplifier emergency 0x{e.code:04X}: {what}",
+                       {"code": e.code, "register": e.register, "fault": what})
+        self.nmt_state = None if amp.nmt_state is None else int(amp.nmt_state)
+        self.last_heard_s = amp.last_frame_s
 
     # ------------------------------------------------------------------ limits
-    def _limits_reported(self, sig: dict[str, float | int], now_s: float) -> None:
-        try:
-            lim = AmpLimits.from_signals(sig)
-        except ValueError as exc:  # a report that makes no sense: as if none came
+    def _limits_reported(self, lim: AmpLimits | None, problem: str | None, now_s: float) -> None:
+        if lim is None:  # a report that makes no sense: as if none came (said each time)
             if self.limit.amp_lost():
                 self._replan()
-                self._note("limits", now_s, f"piezo amplifier's limits invalid ({exc}): "
-                           f"{self.limit.describe()}", self.limit.to_dict())
+            self._note("limits", now_s, f"piezo amplifier's limits invalid ({problem}): "
+                       f"{self.limit.describe()}", self.limit.to_dict())
             return
         if self.limit.amp_reported(lim):
             self._replan()
             self._note("limits", now_s, self.limit.describe(), self.limit.to_dict())
 
     def _reconnected(self, now_s: float) -> None:
-        """Heard again after a silence: the amplifier may have restarted or been replaced."""
+        """Booted again or heard again after it was lost: it may have been replaced."""
         self.reconnects += 1
         if self.limit.amp_lost():
             self._replan()
@@ -428,7 +440,4 @@ class PiezoClient:
 
     def close(self) -> None:
         """Shut the bus down."""
-        try:
-            self.bus.shutdown()
-        except (can.CanError, OSError, ValueError, AttributeError):  # a broken bus: closing goes on
-            pass
+        self.ampbus.close()

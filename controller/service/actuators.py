@@ -8,7 +8,7 @@ reported once (``FEED_REFUSED`` ... ``FEED_ACCEPTED``); nothing here decides *wh
 The piezo offsets stay within the bound the CAN client holds (``controller/laws/limits.py``: the
 smaller of the amplifier's reported stroke and ``machine.toml``'s, narrowed by refused tables,
 zero until the amplifier has reported). Each change of that bound is reported once
-(``PIEZO_LIMITS``, one line saying which stroke is used and why), each refused table too
+(``PIEZO_LIMITS`` events, one line saying which stroke is used and why), each refused table too
 (``OFFSETS_REFUSED``, counter ``tables_refused``), and the control loops are told the bound in
 force (``on_stroke``: ``ControlLoops.set_limit_um``, see :meth:`Actuators.sync_loop_limit`).
 """
@@ -42,7 +42,7 @@ class Actuators:
     report : EventLog
         Events and counters.
     amp_monitor : AmplifierMonitor
-        Told what the amplifier is commanded to do at each ``PIEZO_COMMAND``.
+        Told what the amplifier is commanded to do at each command (RPDO3).
     stroke_um : float
         ``machine.toml``'s stroke, um; the bound in force is the CAN client's
         (:attr:`PiezoClient.limit`), never above the smaller of this and the amplifier's.
@@ -69,7 +69,7 @@ class Actuators:
         self.heartbeat = 0
         """The PLC heartbeat register's value (16 bits), one step per PLC cycle."""
         self.alive = 0
-        """The CAN alive counter (8 bits), one step per ``PIEZO_COMMAND``."""
+        """The CAN alive counter (8 bits), one step per command (RPDO3)."""
         self.feed_setpoint_mm_s: float | None = None
         """The feed setpoint in force (the last one the PLC took, or read back), mm/s."""
         self.offsets_um: tuple[float, ...] = ()
@@ -152,7 +152,7 @@ class Actuators:
         self.offsets_um = self.piezo.set_offsets(offs, now_s=t)
 
     def command(self, t: float) -> None:
-        """``PIEZO_COMMAND`` with a new alive counter (the amplifier's setpoint timeout).
+        """The command (RPDO3) with a new alive counter (the amplifier's setpoint timeout).
 
         A bus that refuses it is counted (``can_errors``), not raised: the amplifier's own
         timeout ramps its offsets to zero.
@@ -169,9 +169,12 @@ class Actuators:
 
     # ------------------------------------------------------------------ limits
     def report_limits(self, t: float) -> None:
-        """Report what the CAN client noted: the bound changed, a table refused."""
+        """Report what the CAN client noted: the bound changed, a table refused, an EMCY."""
         for note in self.piezo.take_notes():
-            if note.kind == "refused":
+            if note.kind == "emergency":  # the amplifier's EMCY; its status bits drive safety
+                self._report.count("amp_emergencies")
+                _LOG.warning("%s", note.text)
+            elif note.kind == "refused":
                 self._report.count("tables_refused")
                 _LOG.warning("%s", note.text)
                 self._report.emit(t, EventKind.OFFSETS_REFUSED, note.text, data=note.data)

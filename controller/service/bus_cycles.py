@@ -4,7 +4,7 @@
   built for the machine it describes), then the feed in the supervisor's state: feed-forward in
   RUN, hold or ramp down in SAFE.
 * CAN cycle (never waits): drain the amplifier's frames, judge its status, step the supervisor,
-  enable or zero offsets and disable, ``PIEZO_COMMAND`` with a new alive counter.
+  enable or zero offsets and disable, the command (RPDO3) with a new alive counter.
 
 The composition root (:class:`controller.service.service.Service`) runs them inside the supervisor
 boundary, in one task each in real time or one after the other on simulated time.
@@ -123,7 +123,7 @@ class BusCycles:
 
     # ------------------------------------------------------------------ CAN
     def can_cycle(self, t: float) -> SafetyStatus:
-        """Drain, judge, step the supervisor, enable or go safe, ``PIEZO_COMMAND``."""
+        """Drain, judge, step the supervisor, enable or go safe, the command (RPDO3)."""
         piezo = self.out.piezo
         keeper = self.keeper
         try:

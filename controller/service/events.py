@@ -30,6 +30,7 @@ COUNTERS = (
     "errors",
     "missed",
     "amp_faults",
+    "amp_emergencies",
     "uniformity_skipped",
     "tables_refused",
     "knife_chips",

@@ -297,7 +297,7 @@ class Service:
 
         Drains the amplifier's frames (non-blocking), judges its status, steps the supervisor,
         enables the amplifier in RUN or sends zero offsets and a disable in SAFE, and sends
-        ``PIEZO_COMMAND`` with a new alive counter. Never raises.
+        the amplifier's command (RPDO3) with a new alive counter. Never raises.
         """
         return self._can_cycle(self.service_clock.now(now_s))
 
@@ -340,7 +340,7 @@ class Service:
         One owner per bus, no coupling: a PLC task calls :meth:`plc_cycle` every
         ``safety.cycle_s`` and a CAN task :meth:`can_cycle` every ``can.command_period_s`` (at
         most ``safety.cycle_s``), each on its own schedule, so a Modbus connect or request
-        that takes its full timeout never delays ``PIEZO_COMMAND`` (the amplifier's setpoint
+        that takes its full timeout never delays the amplifier's command (its setpoint
         timeout is 100 ms). The frame task awaits ``source.next()`` and calls
         :meth:`handle_frame`; the measurement runs in a worker thread. Requests to the PLC from
         the PLC task and the frame task go through the one client, one at a time.
@@ -491,12 +491,11 @@ def open_service(
     log_path : Path or str, optional
         Override ``[log] path`` (a file, or a ``postgresql://`` URL).
     """
-    from config.machine import dbc_path, registers_path, rig_path
+    from config.machine import eds_path, registers_path, rig_path
     from config.rig import load_rig
     from controller.fieldbus.piezo_client import open_bus
     from controller.fieldbus.plc_protocol import Backoff
     from controller.quality.log import database_url, is_database_url, open_quality_log
-    from protocol.piezo_can import PiezoCodec
     from protocol.registers import RegisterMap
 
     rig = load_rig(rig_path(cfg))
@@ -515,8 +514,9 @@ def open_service(
     )
     piezo = PiezoClient(
         bus,
-        PiezoCodec.load(dbc_path(cfg)),
         knives=4,  # replaced by the PLC's knives register on the first read
+        node_id=cfg.can.node_id,
+        eds=eds_path(cfg),
         command_period_s=cfg.can.command_period_s,
         offsets_period_s=cfg.can.offsets_period_s,
         stroke_um=cfg.stroke_um,

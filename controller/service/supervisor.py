@@ -23,7 +23,7 @@ be in and what to command in the safe state:
 The supervisor starts in ``SAFE`` (nothing heard yet). Time is always passed in (``now_s``,
 seconds on any monotonic clock); the supervisor never reads a clock.
 
-:class:`AmplifierMonitor` judges the piezo amplifier's own word (``PIEZO_STATUS``): a fault
+:class:`AmplifierMonitor` judges the piezo amplifier's own word (its status, TPDO1): a fault
 (state 3 or fault bits: over-temperature, stroke limit = offsets refused, setpoint timeout,
 overcurrent) or a state that is not what the service commands (not enabled and tracking while
 enable is commanded), confirmed for ``AMP_CONFIRM_S``, is the ``amplifier`` condition failing. A
@@ -43,13 +43,11 @@ from typing import Any
 
 from config.machine import SafetyConfig
 from core.checks import check_finite, check_positive
-from protocol.piezo_can import (
-    FAULT_STROKE_LIMIT,
-    STATE_DISABLED,
-    STATE_ENABLED,
-    STATE_FAULT,
-    STATE_RAMPING,
-)
+from protocol.piezo_canopen import AmpFault, AmpState
+
+FAULT_STROKE_LIMIT = int(AmpFault.STROKE_LIMIT)
+STATE_DISABLED, STATE_ENABLED, STATE_RAMPING, STATE_FAULT = (
+    int(AmpState.DISABLED), int(AmpState.ENABLED), int(AmpState.RAMPING), int(AmpState.FAULT))
 
 TIMED_SOURCES = ("plc", "can", "measurement")
 """Sources that must be heard within their timeout."""
@@ -86,14 +84,14 @@ AMP_FAULT_BITS = {
     2: "setpoint timeout",
     3: "overcurrent",
 }
-"""Names of the ``PIEZO_STATUS`` fault bits (``docs/piezo_can.md``)."""
+"""Names of the status's fault bits (``docs/piezo_canopen.md``)."""
 AMP_STATES = {
     STATE_DISABLED: "disabled",
     STATE_ENABLED: "enabled",
     STATE_RAMPING: "ramping to zero",
     STATE_FAULT: "fault",
 }
-"""Names of the ``PIEZO_STATUS`` states."""
+"""Names of the status's states."""
 
 
 class SafetyState(str, enum.Enum):
@@ -349,7 +347,7 @@ def _state_text(state: int) -> str:
 
 
 def amp_problem(*, state: int, fault: int, enable: bool) -> str | None:
-    """What is wrong with one ``PIEZO_STATUS`` given what the service commands (pure).
+    """What is wrong with one amplifier status given what the service commands (pure).
 
     Parameters
     ----------

@@ -323,10 +323,9 @@ def _amplifier(machine: Any, channel: str) -> tuple[Any, Any]:
     import can
 
     from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
-    from protocol.piezo_can import PiezoCodec
 
     amp = AmpNode(can.Bus(interface="virtual", channel=channel),
-                  AmpNodeCore(machine, PiezoCodec.load(), knives=machine.knives), own_bus=True)
+                  AmpNodeCore(machine, knives=machine.knives), own_bus=True)
     return can.Bus(interface="virtual", channel=channel), amp
 
 

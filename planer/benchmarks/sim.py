@@ -1,7 +1,7 @@
 """``planer bench`` part ``sim``: real-time factor of the machine model (simulated s per wall s).
 
 Two runs of the shipped ``config/sim.toml`` with the service's traffic played in-process (a
-PIEZO_COMMAND, the offset table and a heartbeat every 10 ms, as the controller sends them):
+the command, the offset table and a heartbeat every 10 ms, as the controller sends them):
 the model alone (``render_images=False``: frames carry counts and truth, no images) and with
 image rendering at the configured 10 pairs/s. Timing starts once a board is under the camera,
 so every pair is assembled (and rendered); set-up (the renderer's maps) is reported apart.

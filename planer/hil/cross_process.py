@@ -277,7 +277,8 @@ def _configs(scenario: Scenario, tmp: Path, log_path: Path) -> tuple[Path, Any, 
         can=CanConfig(interface="udp_multicast", channel=group,
                       options={"port": can_port},
                       command_period_s=cfg.can.command_period_s,
-                      offsets_period_s=cfg.can.offsets_period_s, dbc=cfg.can.dbc),
+                      offsets_period_s=cfg.can.offsets_period_s, node_id=cfg.can.node_id,
+                      eds=cfg.can.eds),
         frames=replace(cfg.frames, source="spool", spool_dir=spool,
                        pairs_per_s=sim_cfg.camera.pairs_per_s,
                        image_width=optics.width, image_height=optics.height),
@@ -408,7 +409,7 @@ HIL_MEASURE_WORKERS = 1
 """Worker processes measuring for the service in the cross-process HIL (at least; more if
 ``[service] workers`` asks). In the service's own process the measurement thread holds the
 interpreter lock most of the time; descheduled by a CPU hog while holding it, it kept the
-real-time bus thread from sending ``PIEZO_COMMAND`` for up to 90-210 ms (measured under six
+real-time bus thread from sending the amplifier's command for up to 90-210 ms (measured under six
 hogs: over the amplifier's 100 ms setpoint timeout). In a process of its own it cannot."""
 
 
@@ -423,7 +424,7 @@ def _say_priority(say: Progress, runtime: Any) -> None:
 def _command_gaps(lines: Sequence[str]) -> dict[str, float | int] | None:
     """The service's commands as the simulator received them, from its progress lines.
 
-    ``max``: the longest wall gap between two ``PIEZO_COMMAND`` frames, ms; ``over_100``: the
+    ``max``: the longest wall gap between two commands (RPDO3), ms; ``over_100``: the
     progress lines (one per machine second) with a gap over 100 ms.
     """
     gaps = []

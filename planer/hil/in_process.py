@@ -64,7 +64,6 @@ class InProcessPlant:
 
         from config.machine import registers_path, rig_path
         from config.rig import load_rig
-        from controller.fieldbus.piezo_client import PiezoClient
         from controller.fieldbus.plc_client import PlcClient
         from controller.fieldbus.plc_protocol import Backoff
         from controller.quality.log import is_database_url, open_quality_log
@@ -72,7 +71,6 @@ class InProcessPlant:
         from plant_sim.interfaces.register_bus import MachineRegisterBus
         from plant_sim.machine.machine import Machine
         from plant_sim.run.driver import PlantDriver
-        from protocol.piezo_can import PiezoCodec
         from protocol.registers import RegisterMap
 
         if plc_transport not in ("direct", "tcp"):
@@ -95,7 +93,6 @@ class InProcessPlant:
                                     port=0, queue_writes=True)
             self.plc = None  # type: ignore[assignment]
             self._backoff = backoff
-        codec = PiezoCodec.load()
         self.rig = load_rig(rig_path(cfg))
         if measurer_factory is None:  # the vision with the PLC's R and Z, self-calibrating
             from controller.service.measurement import VisionMeasurers
@@ -115,7 +112,6 @@ class InProcessPlant:
             self.start_id = log.last_id if log is not None else 0
             channel = f"planer-hil-{os.getpid()}-{next(_channels)}"
             self._channel = channel
-            self._codec = codec
             self._opened_log = opened_log
             self.svc_bus = can.Bus(interface="virtual", channel=channel)
             buses.append(self.svc_bus)
@@ -123,12 +119,10 @@ class InProcessPlant:
             buses.append(amp_bus)
             knives = sim_cfg.cutterhead.knives
             self.amp = AmpNode(amp_bus,
-                               AmpNodeCore(self.machine, codec, knives=knives, seed=seed),
+                               AmpNodeCore(self.machine, knives=knives, node_id=sim_cfg.can.node_id,
+                                           eds=sim_cfg.can.eds, seed=seed),
                                own_bus=True)
-            self.piezo = PiezoClient(
-                self.svc_bus, codec, knives=knives, command_period_s=cfg.can.command_period_s,
-                offsets_period_s=cfg.can.offsets_period_s, stroke_um=cfg.stroke_um,
-            )
+            self.piezo = self._piezo_client()
             self._io: Any = None
             self.driver = PlantDriver(self.machine, amp=self.amp, plc=self.server,
                                       plc_switch=self)
@@ -141,6 +135,18 @@ class InProcessPlant:
             if opened_log and log is not None:
                 log.close()
             raise
+
+    def _piezo_client(self) -> Any:
+        """The service's CANopen master of the amplifier on :attr:`svc_bus`."""
+        from config.machine import eds_path
+        from controller.fieldbus.piezo_client import PiezoClient
+
+        cfg = self.cfg
+        return PiezoClient(
+            self.svc_bus, knives=self.sim_cfg.cutterhead.knives, node_id=cfg.can.node_id,
+            eds=eds_path(cfg), command_period_s=cfg.can.command_period_s,
+            offsets_period_s=cfg.can.offsets_period_s, stroke_um=cfg.stroke_um,
+        )
 
     def clock(self) -> float:
         """Machine time, s (the service's injected clock)."""
@@ -218,7 +224,6 @@ class InProcessPlant:
         """A new service on the same plant, quality log and bus channels (a restart)."""
         import can
 
-        from controller.fieldbus.piezo_client import PiezoClient
         from controller.fieldbus.plc_client import PlcClient
         from controller.fieldbus.plc_protocol import Backoff
         from controller.quality.log import open_quality_log
@@ -229,11 +234,7 @@ class InProcessPlant:
         if self._opened_log:
             self.log = open_quality_log(Path(cfg.log.path), machine_id=cfg.log.machine_id or None)
         self.svc_bus = can.Bus(interface="virtual", channel=self._channel)
-        self.piezo = PiezoClient(
-            self.svc_bus, self._codec, knives=self.sim_cfg.cutterhead.knives,
-            command_period_s=cfg.can.command_period_s, offsets_period_s=cfg.can.offsets_period_s,
-            stroke_um=cfg.stroke_um,
-        )
+        self.piezo = self._piezo_client()
         backoff = Backoff(cfg.plc.backoff_initial_s, cfg.plc.backoff_max_s)
         if self.plc_transport == "direct":
             self.direct_bus = MachineRegisterBus(self.machine, self.regmap)

@@ -1,21 +1,24 @@
-"""The piezo amplifier's CAN node: the machine's piezo side on a python-can bus.
+"""The piezo amplifier's CAN node: the machine's piezo side as a CANopen slave on a python-can bus.
 
-:class:`AmpNodeCore` is sans-I/O: it takes received frames (or decoded messages) with the machine
-time and returns the frames to send. :class:`AmpNode` pumps a python-can bus through it.
+:class:`AmpNodeCore` is sans-I/O: it takes received frames with the machine time and returns the
+frames to send. Inside it the amplifier is a ``canopen`` local node built from
+``config/piezo_amp.eds`` (:class:`~plant_sim.interfaces.canopen_node.CanopenAmpNode`; more than
+one can share the core's network, :meth:`AmpNodeCore.add_node`). :class:`AmpNode` pumps a
+python-can bus through it.
 
-Behaviour (see ``docs/piezo_can.md``):
+Behaviour (see ``docs/piezo_canopen.md``):
 
-* ``PIEZO_COMMAND`` -> ``machine.piezo_command(enable=, alive_counter=)`` (resets the machine's
-  setpoint timeout; when commands stop, the machine ramps the offsets to zero by itself); a
-  command whose ``knives`` differs from the head's is refused (not forwarded, so it does not
-  keep the amplifier alive);
-* ``PIEZO_OFFSETS_0_3`` / ``_4_7`` -> the node's offset table (8 knives) is updated and
-  ``machine.set_piezo_offsets(table[:knives])`` called; offsets the machine refuses (beyond the
-  stroke) are not applied and raise the stroke-limit fault bit in the status until valid offsets
-  arrive;
-* ``PIEZO_STATUS`` every 10 ms and ``AMP_HEARTBEAT`` every 100 ms of machine time, from
-  ``machine.piezo_status()``, with the node's own alive counter;
-* frames the node sends itself (status, heartbeat) and unknown ids are ignored on receive.
+* boot-up, then pre-operational; the master reads the limits by SDO and starts it (NMT);
+* RPDO3 (the command: enable, knives, alive counter) -> ``machine.piezo_command(enable=,
+  alive_counter=)`` (resets the machine's setpoint timeout; when commands stop, the machine
+  ramps the offsets to zero by itself); a command whose ``knives`` differs from the head's is
+  refused (not forwarded, so it does not keep the amplifier alive);
+* RPDO1/RPDO2 (the offset table) -> ``machine.set_piezo_offsets(table[:knives])``; offsets the
+  machine refuses (beyond the stroke) are not applied and raise the stroke-limit fault bit in
+  the status (and an EMCY) until valid offsets arrive;
+* TPDO1 (the status) every 10 ms and the heartbeat every 100 ms of machine time, from
+  ``machine.piezo_status()``;
+* frames of no service of its nodes (its own echoed, unknown ids, wrong lengths) are ignored.
 
 :meth:`AmpNode.start_receiving` reads the bus on a thread of its own (``planer sim``), so frames
 leave the bus at once whatever the stepping thread does. That thread stamps each frame with its
@@ -40,10 +43,11 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
-from protocol import piezo_can
-from protocol.piezo_can import Frame, PiezoCodec
+from plant_sim.interfaces.canopen_node import CanopenAmpNode, OutboxNetwork
+from protocol.piezo_canopen import Frame, expected_lengths
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +57,8 @@ RX_START_TIMEOUT_S = 10.0
 """How long :meth:`AmpNode.start_receiving` waits for its thread to have set its priority, s."""
 ARRIVAL_TOLERANCE_S = 1e-9
 """A frame whose machine arrival time is this close after ``now_s`` is delivered now, s."""
+DEFAULT_NODE_ID = 2
+"""The amplifier's node id unless configured (``[can] node_id``)."""
 
 
 class AmpMachine(Protocol):
@@ -74,58 +80,82 @@ class _Window:
 
 
 class AmpNodeCore:
-    """Sans-I/O amplifier node.
+    """Sans-I/O amplifier node(s): CANopen slaves on one network, with the bus's faults.
 
     Parameters
     ----------
     machine : AmpMachine
-        The machine model.
-    codec : PiezoCodec, optional
-        Default: ``PiezoCodec.load()``.
+        The machine model (the head's).
     knives : int
         Number of knives Z whose offsets go to the machine (1..8).
-    status_period_s, heartbeat_period_s : float
-        Send periods in machine time (10 ms and 100 ms by the DBC file's comments).
+    node_id : int
+        The amplifier's node id (1..127).
+    eds : Path, optional
+        The EDS file (default ``config/piezo_amp.eds``).
     seed : int
         Seed of the random frame dropping.
 
     Attributes
     ----------
-    received, dropped, ignored, refused, sent : int
+    received, dropped, ignored, sent : int
         Counts of frames received (before dropping), dropped by the fault, ignored (own or
-        unknown ids, undecodable), offsets refused by the machine, frames sent.
+        unknown ids, wrong lengths), frames sent.
     """
 
     def __init__(
         self,
         machine: AmpMachine,
-        codec: PiezoCodec | None = None,
         *,
         knives: int,
-        status_period_s: float = piezo_can.STATUS_PERIOD_S,
-        heartbeat_period_s: float = piezo_can.HEARTBEAT_PERIOD_S,
+        node_id: int = DEFAULT_NODE_ID,
+        eds: str | Path | None = None,
         seed: int = 0,
     ) -> None:
-        if not 1 <= int(knives) <= piezo_can.MAX_KNIVES:
-            raise ValueError(f"knives must be in 1..{piezo_can.MAX_KNIVES}, got {knives!r}")
-        if not status_period_s > 0 or not heartbeat_period_s > 0:
-            raise ValueError("status_period_s and heartbeat_period_s must be > 0")
+        self.network = OutboxNetwork()
+        self.nodes: list[CanopenAmpNode] = []
+        self._expected: dict[int, int] = {}
+        self.node = self.add_node(node_id, machine, knives=knives, eds=eds)
+        """The head's amplifier (the first node)."""
         self.machine = machine
-        self.codec = codec if codec is not None else PiezoCodec.load()
-        self.knives = int(knives)
-        self.status_period_s = float(status_period_s)
-        self.heartbeat_period_s = float(heartbeat_period_s)
-        self.offsets_um = [0.0] * piezo_can.MAX_KNIVES
-        self._next_status_s: float | None = None
-        self._next_heartbeat_s: float | None = None
-        self._alive = 0
-        self._stroke_fault = False
         self._rng = random.Random(seed)
         self._drop: list[_Window] = []
         self._silence: list[_Window] = []
-        self.last_command: dict[str, float | int] | None = None
-        self.received = self.dropped = self.ignored = self.refused = self.sent = 0
-        self._own_ids = {self.codec.status_id, self.codec.heartbeat_id}
+        self.received = self.dropped = self.ignored = self.sent = 0
+
+    def add_node(self, node_id: int, machine: AmpMachine, *, knives: int,
+                 eds: str | Path | None = None) -> CanopenAmpNode:
+        """Another amplifier on the same bus (another head), node ``node_id``."""
+        if any(n.node_id == node_id for n in self.nodes):
+            raise ValueError(f"node_id {node_id} is already an amplifier on this bus")
+        node = CanopenAmpNode(self.network, node_id, machine, knives=knives, eds=eds)
+        self.nodes.append(node)
+        self._expected.update(expected_lengths(node.od, node_id, receiver="node"))
+        return node
+
+    @property
+    def knives(self) -> int:
+        """Knives of the head (the first node's)."""
+        return self.node.knives
+
+    @property
+    def command_id(self) -> int:
+        """COB-ID of the head's command (RPDO3)."""
+        return self.node.cob_ids["rpdo3"]
+
+    @property
+    def offsets_um(self) -> list[float]:
+        """The head's offset table as received, um (eight values)."""
+        return self.node.offsets_um
+
+    @property
+    def last_command(self) -> dict[str, int] | None:
+        """The head's last command received (``enable``, ``knives``, ``alive_counter``)."""
+        return self.node.last_command
+
+    @property
+    def refused(self) -> int:
+        """Commands and tables the amplifiers refused."""
+        return sum(n.refused for n in self.nodes)
 
     # ------------------------------------------------------------------ faults
     def inject(self, fault: str, **params: float) -> None:
@@ -169,119 +199,34 @@ class AmpNodeCore:
         return False
 
     # ------------------------------------------------------------------ receive
-    def on_frame(self, arbitration_id: int, data: bytes, now_s: float) -> str | None:
-        """Handle one received frame; returns the message name acted on, or ``None``."""
+    def on_frame(self, arbitration_id: int, data: bytes, now_s: float) -> bool:
+        """Handle one received frame; whether it reached a node (a service of its nodes)."""
         self.received += 1
         if self._dropping(now_s):
             self.dropped += 1
-            return None
-        if arbitration_id in self._own_ids:
-            self.ignored += 1
-            return None
-        try:
-            name, signals = self.codec.decode(arbitration_id, data)
-        except ValueError:
-            self.ignored += 1
-            return None
-        return name if self.on_message(name, signals, now_s) else None
-
-    def on_message(self, name: str, signals: dict[str, float | int], now_s: float) -> bool:
-        """Act on a decoded message; returns whether it was one the amplifier takes."""
-        if name == piezo_can.COMMAND:
-            self.last_command = dict(signals)
-            if int(signals["knives"]) != self.knives:
-                self.refused += 1  # a service configured for another head: not a valid command
-                log.info(
-                    "PIEZO_COMMAND for %s knives refused (head has %d)",
-                    signals["knives"],
-                    self.knives,
-                )
-                return True
-            try:
-                self.machine.piezo_command(
-                    enable=bool(signals["enable"]), alive_counter=int(signals["alive_counter"])
-                )
-            except ValueError as exc:
-                self.refused += 1
-                log.info("PIEZO_COMMAND refused: %s", exc)
-            return True
-        if name in piezo_can.OFFSETS:
-            table = list(self.offsets_um)
-            for k, v in self.codec.offsets_from(name, signals).items():
-                table[k] = v
-            try:
-                self.machine.set_piezo_offsets(table[: self.knives])
-            except ValueError as exc:
-                self.refused += 1
-                self._stroke_fault = True
-                log.info("piezo offsets refused: %s", exc)
-                return True
-            self.offsets_um = table
-            self._stroke_fault = False
-            return True
-        self.ignored += 1
-        return False
+            return False
+        want = self._expected.get(arbitration_id)
+        if want is None or len(data) != want:
+            self.ignored += 1  # its own frames echoed, unknown ids, wrong lengths
+            return False
+        self.network.notify(arbitration_id, bytes(data), now_s)
+        return True
 
     # ------------------------------------------------------------------ send
     def poll(self, now_s: float) -> list[Frame]:
-        """Frames due at machine time ``now_s`` (status every 10 ms, heartbeat every 100 ms).
+        """Frames due at machine time ``now_s`` and the answers to what was received.
+
+        The status every 10 ms, the heartbeat every 100 ms, SDO answers; none while silenced.
 
         A late call sends each frame once and re-aligns its schedule (no bursts of backlog).
         """
-        out: list[Frame] = []
-        if self._next_status_s is None:
-            self._next_status_s = now_s
-            self._next_heartbeat_s = now_s
-        silent = any(w.active(now_s) for w in self._silence)
-        if now_s >= self._next_status_s - 1e-9:
-            self._next_status_s = _next(self._next_status_s, self.status_period_s, now_s)
-            if not silent:
-                out.append(self._status())
-        if now_s >= self._next_heartbeat_s - 1e-9:  # type: ignore[operator]
-            self._next_heartbeat_s = _next(self._next_heartbeat_s, self.heartbeat_period_s, now_s)
-            if not silent:
-                out.append(self.codec.encode_heartbeat(nmt_state=piezo_can.NMT_OPERATIONAL))
-                out.extend(self._limits())  # PIEZO_LIMITS rides with the heartbeat
+        for node in self.nodes:
+            node.pump(now_s)
+        out = self.network.take()
+        if any(w.active(now_s) for w in self._silence):
+            return []
         self.sent += len(out)
         return out
-
-    def _status(self) -> Frame:
-        st = self.machine.piezo_status()
-        fault = int(getattr(st, "fault", 0))
-        if self._stroke_fault:
-            fault |= piezo_can.FAULT_STROKE_LIMIT
-        frame = self.codec.encode_status(
-            displacement_um=float(st.displacement_um),
-            temperature_c=float(st.temperature_c),
-            fault=fault & 0xFF,
-            state=int(st.state),
-            alive_counter=self._alive,
-        )
-        self._alive = (self._alive + 1) % 256
-        return frame
-
-    def _limits(self) -> list[Frame]:
-        """PIEZO_LIMITS from the amplifier's own limits (none if its machine reports none).
-
-        The machine's ``piezo_limits()``, else its amplifier's ``limits()``
-        (``plant_sim/model/piezo.py``): stroke, accepted offsets, slew limit, setpoint timeout.
-        """
-        report = getattr(self.machine, "piezo_limits", None) or getattr(
-            getattr(self.machine, "amp", None), "limits", None)
-        if report is None:
-            return []
-        lim = report()
-        return [self.codec.encode_limits(
-            stroke_um=lim.stroke_um, offset_min_um=lim.offset_min_um,
-            offset_max_um=lim.offset_max_um, slew_max_um_ms=lim.slew_max_um_ms,
-            setpoint_timeout_ms=lim.setpoint_timeout_ms)]
-
-
-def _next(scheduled: float | None, period: float, now_s: float) -> float:
-    nxt = (scheduled if scheduled is not None else now_s) + period
-    if nxt <= now_s:  # fell behind: next one a period from now
-        nxt = now_s + period
-    return nxt
 
 
 class AmpNode:
@@ -308,7 +253,7 @@ class AmpNode:
         self._to_machine: Callable[[float], float] | None = None
         self._last_command_stamp: float | None = None
         self.command_gap_max_s = 0.0
-        """Longest wall gap between two ``PIEZO_COMMAND`` frames received on the receiving
+        """Longest wall gap between two commands (RPDO3) received on the receiving
         thread since :meth:`take_command_gap` (the service's side of the setpoint timeout)."""
         self._rx_stop = threading.Event()
         self._rx_thread: threading.Thread | None = None
@@ -365,7 +310,7 @@ class AmpNode:
                 return
             if msg is not None:
                 stamp = self._stamp()
-                if msg.arbitration_id == self.core.codec.command_id:
+                if msg.arbitration_id == self.core.command_id:
                     last = self._last_command_stamp
                     if last is not None and stamp - last > self.command_gap_max_s:
                         self.command_gap_max_s = stamp - last
@@ -410,6 +355,10 @@ class AmpNode:
                     break
             n += 1
             if msg.is_error_frame or msg.is_remote_frame:
+                continue
+            if msg.is_extended_id:  # CANopen's predefined connection set is 11-bit
+                self.core.received += 1
+                self.core.ignored += 1
                 continue
             self.core.on_frame(msg.arbitration_id, bytes(msg.data), now_s)
         return n

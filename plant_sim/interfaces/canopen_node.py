@@ -2,10 +2,11 @@
 
 :class:`CanopenAmpNode` puts one head's amplifier (the machine's ``piezo_command``,
 ``set_piezo_offsets``, ``piezo_status`` and its amplifier's ``limits()``) on a CAN bus as node
-``node_id`` of ``config/piezo_amp.eds``, several on one :class:`SlaveBus`:
+``node_id`` of ``config/piezo_amp.eds``; several share one :class:`OutboxNetwork`:
 
 * NMT: it boots (boot-up message), waits pre-operational, acts on PDOs only when operational;
-  NMT start / stop / pre-operational / reset from the master as CiA 301 says;
+  NMT start / stop / pre-operational / reset from the master as CiA 301 says (a reset boots it
+  again);
 * heartbeat every ``0x1017`` ms of machine time (its NMT state), sent by :meth:`pump`;
 * SDO server: the whole dictionary, the limits (``0x2200``) and status (``0x2100``) read live
   from the amplifier model;
@@ -14,15 +15,15 @@
 * TPDO1 the status every 10 ms of machine time; an EMCY when a fault bit rises, and the
   "no error" EMCY when all have cleared.
 
-Time is the machine's: :meth:`pump` is called with it, as :class:`~plant_sim.interfaces.amp_node.
-AmpNode` is. Received frames are handled on the bus's notifier thread and only reach the
-machine through its thread-safe setters (the same calls the frame-set node makes).
+Sans-I/O: :class:`OutboxNetwork` is a ``canopen`` network without a bus; frames reach it through
+:meth:`~canopen.Network.notify` (``plant_sim.interfaces.amp_node.AmpNodeCore.on_frame``) and what
+the nodes send is collected in its outbox for the caller to put on a bus. Time is the
+machine's, passed in; nothing here runs a thread or reads a clock.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -35,47 +36,60 @@ from protocol.piezo_canopen import (
     LIMITS,
     MAX_KNIVES,
     STATUS,
+    STATUS_PERIOD_S,
     AmpFault,
+    Frame,
     NmtState,
+    cob_ids,
     load_od,
     nm_from_um,
     um_from_nm,
 )
 
-__all__ = ["CanopenAmpNode", "SlaveBus"]
+__all__ = ["CanopenAmpNode", "OutboxNetwork"]
 
 log = logging.getLogger(__name__)
 
-STATUS_PERIOD_S = 0.01
-"""TPDO1 period (the EDS's event timer, 10 ms)."""
+
+class _NoTask:
+    """What ``send_periodic`` returns here: heartbeats run on machine time (:meth:`pump`)."""
+
+    def stop(self) -> None:  # noqa: D102
+        pass
+
+    def update(self, data: bytes) -> None:  # noqa: D102
+        pass
 
 
-class SlaveBus:
-    """A CAN bus with the simulator's amplifier nodes on it (owns the bus and its notifier)."""
+class OutboxNetwork(canopen.Network):
+    """A ``canopen`` network with no bus: what its nodes send is kept in :attr:`outbox`."""
 
-    def __init__(self, bus: Any) -> None:
-        self.network = canopen.Network(bus)
-        self.network.connect()
-        self.nodes: list[CanopenAmpNode] = []
+    def __init__(self) -> None:
+        super().__init__(None)
+        self.outbox: list[Frame] = []
 
-    def pump(self, now_s: float) -> None:
-        """Every node's frames due at machine time ``now_s``."""
-        for node in self.nodes:
-            node.pump(now_s)
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        """Keep the frame for :meth:`take`."""
+        self.outbox.append((int(can_id), bytes(data)))
 
-    def close(self) -> None:
-        """Stop the notifier and shut the bus down (idempotent)."""
-        if self.network.bus is not None:
-            self.network.disconnect()
+    def send_periodic(self, can_id: int, data: bytes, period: float,
+                      remote: bool = False) -> Any:
+        """No wall-clock task: the nodes send their heartbeats from :meth:`CanopenAmpNode.pump`."""
+        return _NoTask()
+
+    def take(self) -> list[Frame]:
+        """The frames sent since the last call, in order."""
+        out, self.outbox = self.outbox, []
+        return out
 
 
 class CanopenAmpNode:
-    """One amplifier on a :class:`SlaveBus`.
+    """One amplifier on an :class:`OutboxNetwork`.
 
     Parameters
     ----------
-    slaves : SlaveBus
-        The bus.
+    network : OutboxNetwork
+        The network (the bus) it is on.
     node_id : int
         Its node id (1..127).
     machine : object
@@ -88,30 +102,32 @@ class CanopenAmpNode:
         The EDS file (default ``config/piezo_amp.eds``).
     """
 
-    def __init__(self, slaves: SlaveBus, node_id: int, machine: Any, *, knives: int = 4,
+    def __init__(self, network: OutboxNetwork, node_id: int, machine: Any, *, knives: int = 4,
                  eds: str | Path | None = None) -> None:
-        self.slaves = slaves
+        if not 1 <= int(knives) <= MAX_KNIVES:
+            raise ValueError(f"knives must be in 1..{MAX_KNIVES}, got {knives!r}")
         self.machine = machine
         self.knives = int(knives)
         od = load_od(node_id, eds)
         self.od = od
+        self.node_id = node_id
+        self.cob_ids = cob_ids(node_id)
         self.node = canopen.LocalNode(node_id, od)
-        slaves.network.add_node(self.node)
-        slaves.nodes.append(self)
+        network.add_node(self.node)
+        self.network = network
         self.node.add_read_callback(self._on_read)
         self.node.rpdo.read(from_od=True)
         self.node.tpdo.read(from_od=True)
         for n in (1, 2, 3):
             self.node.rpdo[n].add_callback(self._on_rpdo)
-        self._lock = threading.Lock()
         self.offsets_um = [0.0] * MAX_KNIVES
+        """The offset table received, um (all eight; the head plays its first ``knives``)."""
+        self.last_command: dict[str, int] | None = None
+        """The last command received: ``enable``, ``knives``, ``alive_counter``."""
         self._stroke_fault = False
         self._faults_sent = AmpFault(0)
-        self.heartbeat_period_s = int(od[HEARTBEAT_TIME].default) / 1000.0
         self._next_status_s: float | None = None
         self._next_heartbeat_s: float | None = None
-        self.silent = False
-        """While set the node sends nothing (a lost amplifier, for tests and faults)."""
         self.refused = 0
         self.pdos = 0
         self._boot()
@@ -120,9 +136,8 @@ class CanopenAmpNode:
 
     def _boot(self) -> None:
         """Boot-up message, then pre-operational (heartbeats from :meth:`pump`, machine time)."""
-        self.node.network.send_message(0x700 + self.node.id, [NmtState.BOOT_UP])
-        # the state is set directly: NmtSlave's own transition would start a heartbeat on a
-        # wall-clock thread, and this node's heartbeats run on machine time
+        self.network.send_message(self.cob_ids["heartbeat"], bytes([NmtState.BOOT_UP]))
+        # the state is set directly: NmtSlave's own transition starts a heartbeat task
         self.node.nmt._state = int(NmtState.PRE_OPERATIONAL)
 
     @property
@@ -130,23 +145,28 @@ class CanopenAmpNode:
         """The node's NMT state."""
         return NmtState(self.node.nmt._state if self.node.nmt._state else NmtState.BOOT_UP)
 
-    # -- received (the notifier's thread) ------------------------------------------------------
+    @property
+    def heartbeat_period_s(self) -> float:
+        """Its producer heartbeat time (0x1017, writable by SDO), s (0: none)."""
+        return int(self.node.sdo[HEARTBEAT_TIME].raw) / 1000.0
+
+    # -- received (handed over by the network's notify) ----------------------------------------
 
     def _on_rpdo(self, pdo: Any) -> None:
         if self.nmt_state is not NmtState.OPERATIONAL:
             return  # PDOs are acted on only when operational
-        with self._lock:
-            self.pdos += 1
-            if pdo is self.node.rpdo[3]:
-                self._command([v.raw for v in pdo])
-            else:
-                first = 0 if pdo is self.node.rpdo[1] else 4
-                for k, var in enumerate(pdo):
-                    self.offsets_um[first + k] = um_from_nm(var.raw)
-                self._table()
+        self.pdos += 1
+        if pdo is self.node.rpdo[3]:
+            self._command([v.raw for v in pdo])
+        else:
+            first = 0 if pdo is self.node.rpdo[1] else 4
+            for k, var in enumerate(pdo):
+                self.offsets_um[first + k] = um_from_nm(var.raw)
+            self._table()
 
     def _command(self, values: Sequence[int]) -> None:
         enable, knives, alive = (int(v) for v in values[:3])
+        self.last_command = {"enable": enable, "knives": knives, "alive_counter": alive}
         if knives != self.knives:
             self.refused += 1
             log.info("command for %d knives refused (the head has %d)", knives, self.knives)
@@ -200,21 +220,23 @@ class CanopenAmpNode:
                 3: int(self._fault()), 4: int(st.state)}
 
     def pump(self, now_s: float) -> None:
-        """Send what is due at machine time ``now_s``: heartbeat, TPDO1 status, EMCY."""
-        if self._next_status_s is None:
+        """Send what is due at machine time ``now_s``: heartbeat, TPDO1 status, EMCY.
+
+        A late call sends each once and re-aligns its schedule (no burst of backlog).
+        """
+        if self.node.nmt._state == 0:  # reset by the master: boot again
+            self._boot()
+        if self._next_status_s is None or self._next_heartbeat_s is None:
             self._next_status_s = self._next_heartbeat_s = now_s
-        if self.silent:
-            return
-        net = self.node.network
-        node_id = self.node.id
-        if now_s >= self._next_heartbeat_s - 1e-9:  # type: ignore[operator]
-            self._next_heartbeat_s = max(self._next_heartbeat_s + self.heartbeat_period_s,
-                                         now_s)
-            net.send_message(0x700 + node_id, [int(self.nmt_state)])
+        if now_s >= self._next_heartbeat_s - 1e-9:
+            period = self.heartbeat_period_s
+            if period > 0:
+                self._next_heartbeat_s = _next(self._next_heartbeat_s, period, now_s)
+                self.network.send_message(self.cob_ids["heartbeat"], bytes([self.nmt_state]))
         if self.nmt_state is not NmtState.OPERATIONAL:
             return
         if now_s >= self._next_status_s - 1e-9:
-            self._next_status_s = max(self._next_status_s + STATUS_PERIOD_S, now_s)
+            self._next_status_s = _next(self._next_status_s, STATUS_PERIOD_S, now_s)
             raw = self._status_raw()
             pdo = self.node.tpdo[1]
             for sub, var in enumerate(pdo, 1):
@@ -230,3 +252,10 @@ class CanopenAmpNode:
         if self._faults_sent and not fault:
             self.node.emcy.reset()  # code 0x0000: no error any more
         self._faults_sent = fault
+
+
+def _next(scheduled: float, period: float, now_s: float) -> float:
+    nxt = scheduled + period
+    if nxt <= now_s:  # fell behind: the next one a period from now
+        nxt = now_s + period
+    return nxt

@@ -256,7 +256,7 @@ class Machine:
 
     # ------------------------------------------------------------------ piezo amplifier side
     def piezo_command(self, *, enable: bool, alive_counter: int, knives: int | None = None) -> None:
-        """PIEZO_COMMAND: enable and alive counter (a new counter restarts the timeout).
+        """The command (RPDO3): enable and alive counter (a new counter restarts the timeout).
 
         Raises
         ------

@@ -21,10 +21,10 @@ when the spindle reaches ``lead_fraction`` of a knife period before knife k's bo
 and the output steps to knife k's offset. With ``input_shaper`` every step is split into two
 (zero-vibration shaper: ``1/(1+K)`` now and ``K/(1+K)`` half a damped period later,
 ``K = exp(-zeta pi / sqrt(1 - zeta^2))``), which cancels the resonance's ringing, so the
-displacement has settled when the knife cuts. States (CAN ``PIEZO_STATUS.state``): 0 disabled,
+displacement has settled when the knife cuts. States (CANopen status ``0x2100`` sub 4): 0 disabled,
 1 enabled and tracking, 2 ramping to zero after a setpoint timeout, 3 fault. Fault bits: 0
 over-temperature, 1 stroke limit reached, 2 setpoint timeout, 3 overcurrent. Its limits
-(:meth:`PiezoAmplifier.limits`, CAN ``PIEZO_LIMITS``) come from its own configuration: the stroke,
+(:meth:`PiezoAmplifier.limits`, CANopen ``0x2200``) come from its own configuration: the stroke,
 the offsets it accepts (``+-stroke``), no slew limit (0) and its setpoint timeout.
 """
 
@@ -56,7 +56,7 @@ FAULT_OVERTEMP, FAULT_STROKE, FAULT_TIMEOUT, FAULT_OVERCURRENT = 1, 2, 4, 8
 
 @dataclass(frozen=True)
 class PiezoStatus:
-    """What the amplifier reports (CAN ``PIEZO_STATUS``).
+    """What the amplifier reports (its CANopen status, TPDO1).
 
     Attributes
     ----------
@@ -81,7 +81,7 @@ class PiezoStatus:
 
 @dataclass(frozen=True)
 class PiezoLimits:
-    """The limits the amplifier enforces and reports (CAN ``PIEZO_LIMITS``).
+    """The limits the amplifier enforces and reports (CANopen ``0x2200``).
 
     Attributes
     ----------
@@ -92,7 +92,7 @@ class PiezoLimits:
     slew_max_um_ms : float
         Largest output slew rate, um/ms; 0: not limited (the simulated amplifier steps).
     setpoint_timeout_ms : float
-        Without a new ``PIEZO_COMMAND`` for this long it ramps to zero, ms.
+        Without a new command (RPDO3) for this long it ramps to zero, ms.
     """
 
     stroke_um: float
@@ -250,7 +250,7 @@ class PiezoAmplifier:
     # -- commands (CAN side) -------------------------------------------------------------
 
     def command(self, t_s: float, *, enable: bool, alive_counter: int) -> None:
-        """A PIEZO_COMMAND frame; a new alive counter restarts the setpoint timeout."""
+        """A command (RPDO3); a new alive counter restarts the setpoint timeout."""
         alive = check_int("alive_counter", alive_counter, lo=0, hi=255)
         self.commands += 1
         if alive == self.last_alive and enable:

@@ -1,8 +1,8 @@
 """Wiring a :class:`~plant_sim.run.runner.SimRunner` from a ``SimConfig`` (``planer sim``'s way).
 
-The PLC in its own process, the amplifier node on the configured CAN bus, the spool writer and
-the render workers: built here, closed again (our bus) if any later part fails. Kept apart from
-the runner, which only steps and serves what it is given.
+The PLC in its own process, the amplifier (a CANopen node) on the configured CAN bus, the spool
+writer and the render workers: built here, closed again (our bus) if any later part fails. Kept
+apart from the runner, which only steps and serves what it is given.
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ from core.realtime import RENDER_NICE
 from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
 from plant_sim.interfaces.plc_process import PlcProcess
 from protocol.can_transport import bus_from_config, describe_bus
-from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
 
 __all__ = ["wire_runner"]
@@ -94,8 +93,8 @@ def wire_runner(
     own_bus = can_bus is None
     bus = bus_from_config(cfg.can) if own_bus else can_bus
     try:  # a failure from here on (unusable spool folder, bad option) closes our bus
-        core = AmpNodeCore(machine, PiezoCodec.load(), knives=cfg.cutterhead.knives,
-                           seed=seed)
+        core = AmpNodeCore(machine, knives=cfg.cutterhead.knives, node_id=cfg.can.node_id,
+                           eds=cfg.can.eds, seed=seed)
         amp = AmpNode(bus, core, own_bus=own_bus)
         if sink is None:
             directory = Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir)

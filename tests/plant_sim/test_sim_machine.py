@@ -30,7 +30,7 @@ def replace(cfg, **tables):
 
 
 def keep_piezo_alive(m: Machine, duration_s: float, offsets=None, step_s: float = 0.01):
-    """Advance while sending PIEZO_COMMANDs (and offsets) like the service would."""
+    """Advance while sending commands (and offsets) like the service would."""
     frames = []
     n = int(round(duration_s / step_s))
     for i in range(n):

@@ -18,10 +18,10 @@ from plant_sim.run.driver import PlantDriver
 from plant_sim.run.runner import SimRunner
 from protocol import can_transport
 from protocol.frame_queue import InProcessSource
-from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
 from tests.plant_sim.test_sim_plc import read_adu
 from tests.plant_sim.test_sim_runner import FakeClock
+from tests.support import canopen_frames
 from tests.support.fake_machine import FakeMachine
 
 RMAP = RegisterMap.load()
@@ -275,17 +275,16 @@ def test_render_backlog_slows_the_machine_instead_of_dropping_frames():
 # ------------------------------------------------------------------ CAN on its own thread
 def test_amp_node_receiving_thread_hands_frames_over_at_machine_time():
     m = FakeMachine()
-    codec = PiezoCodec.load()
     bus = can_transport.open_bus("virtual", "rt-rx")
     svc = can_transport.open_bus("virtual", "rt-rx")
-    node = AmpNode(bus, AmpNodeCore(m, codec, knives=4), own_bus=True)
+    node = AmpNode(bus, AmpNodeCore(m, knives=4), own_bus=True)
     node.start_receiving()
     driver = PlantDriver(m, amp=node)
     try:
         import can
 
-        for alive in (5, 6, 7):
-            fid, data = codec.encode_command(enable=True, knives=4, alive_counter=alive)
+        frames = [canopen_frames.start()] + [canopen_frames.command(True, 4, a) for a in (5, 6, 7)]
+        for fid, data in frames:
             svc.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
         for _ in range(100_000):  # the thread queues them; the machine sees them on a step
             driver.step(0.001)
@@ -507,26 +506,25 @@ def test_amp_node_hands_a_frame_over_only_once_the_machine_reached_its_arrival()
     import can
 
     m = FakeMachine()
-    codec = PiezoCodec.load()
     bus = can_transport.open_bus("virtual", "rt-stamp")
     svc = can_transport.open_bus("virtual", "rt-stamp")
-    node = AmpNode(bus, AmpNodeCore(m, codec, knives=4), own_bus=True)
-    arrivals = iter([10.010, 10.020, 10.030])
+    node = AmpNode(bus, AmpNodeCore(m, knives=4), own_bus=True)
+    arrivals = iter([10.000, 10.010, 10.020, 10.030])  # NMT start, then three commands
     node.set_timebase(lambda: next(arrivals), lambda wall: wall - 10.0)
     node.start_receiving()
     try:
-        for alive in (5, 6, 7):
-            fid, data = codec.encode_command(enable=True, knives=4, alive_counter=alive)
+        frames = [canopen_frames.start()] + [canopen_frames.command(True, 4, a) for a in (5, 6, 7)]
+        for fid, data in frames:
             svc.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
         for _ in range(100_000):  # the thread takes them off the bus (no timing asserted)
-            if node._rx.qsize() == 3:
+            if node._rx.qsize() == 4:
                 break
             threading.Event().wait(0.001)
         delivered = []
         for now in (0.005, 0.015, 0.0199, 0.020, 0.5):
             m.t_s = now
             delivered.append(node.receive(now))
-        assert delivered == [0, 1, 0, 1, 1]
+        assert delivered == [1, 1, 0, 1, 1]  # the start and the first command, ...
         assert m.alive_counters == [5, 6, 7]
         assert node.take_command_gap() == pytest.approx(0.010)  # the longest gap, once
         assert node.take_command_gap() == 0.0

@@ -23,9 +23,9 @@ from plant_sim.run.runner import SimRunner, parse_banner
 from protocol import can_transport
 from protocol.frame_queue import InProcessSource
 from protocol.frames import Frame
-from protocol.piezo_can import PiezoCodec
 from protocol.registers import RegisterMap
 from protocol.spool import SpoolReader, SpoolWriter
+from tests.support import canopen_frames
 from tests.support.fake_machine import FakeMachine
 
 REPO = Path(__file__).resolve().parents[2]
@@ -62,7 +62,7 @@ def _runner(
     plc=True,
 ):
     bus = can_transport.open_bus("virtual", channel)
-    amp = AmpNode(bus, AmpNodeCore(machine, PiezoCodec.load(), knives=machine.knives), own_bus=True)
+    amp = AmpNode(bus, AmpNodeCore(machine, knives=machine.knives), own_bus=True)
     return SimRunner(
         machine,
         plc=PlcServer(machine, port=0) if plc else None,
@@ -92,7 +92,7 @@ def test_machine_time_follows_scaled_clock(time_scale):
     assert summary.real_time_factor == pytest.approx(time_scale, rel=0.01)
     frames = [sink.poll() for _ in range(len(sink))]
     assert [f.seq for f in frames] == [1, 2, 3, 4, 5] and summary.frames == 5
-    assert summary.can_sent == 50 + 5  # status every 10 ms, heartbeat every 100 ms
+    assert summary.can_sent == 1 + 5  # no master starts it: boot-up, heartbeat every 100 ms
     banner = parse_banner(lines)
     assert banner["modbus"] == f"127.0.0.1:{runner.plc.port}"
     assert banner["can"] and banner["frames"] == "in-process"
@@ -107,7 +107,6 @@ def test_modbus_and_can_served_while_running():
 
     m, clock = FakeMachine(), FakeClock()
     runner = _runner(m, clock, step_s=0.01, channel="run-io")
-    codec = PiezoCodec.load()
     service_bus = can_transport.open_bus("virtual", "run-io")
 
     async def client():
@@ -126,9 +125,10 @@ def test_modbus_and_can_served_while_running():
         c.close()
         import can
 
-        for fid, data in [
-            codec.encode_command(enable=True, knives=4, alive_counter=9),
-            *codec.encode_offsets([1.0, 2.0, 3.0, 4.0]),
+        for fid, data in [  # the amplifier is a CANopen node: started, then commanded
+            canopen_frames.start(),
+            canopen_frames.command(True, 4, 9),
+            *canopen_frames.offsets([1.0, 2.0, 3.0, 4.0]),
         ]:
             service_bus.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
         while m.alive_counters != [9] or list(m.offsets_um) != [1.0, 2.0, 3.0, 4.0]:
@@ -172,14 +172,20 @@ def test_from_config_plays_the_interface_faults_the_machine_hands_over(tmp_path)
         up.append((m.t_s, runner.plc.running))
 
     runner._step = spy
+    import can
+
+    master = can_transport.open_bus("virtual", "run-faults")
+    fid, data = canopen_frames.start()  # the amplifier starts sending its status
+    master.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
     summary = asyncio.run(runner.run(duration_s=0.7))
+    master.shutdown()
     assert summary.faults == ["modbus_restart@0.200", "can_silence@0.400"]
     assert m.injected == [("belt_slip", {"at_s": 0.1, "px": 3})]
     down = [t for t, running in up if not running]
     assert down and min(down) == pytest.approx(0.201, abs=1e-6)
     assert max(down) == pytest.approx(0.300, abs=1e-6)
     assert any("down at t=0.200" in line for line in lines)
-    assert summary.can_sent == 70 + 7 - 10 - 1  # 100 ms of silence: 10 status, 1 heartbeat
+    assert summary.can_sent == 1 + 70 + 7 - 10 - 1  # boot-up; 100 ms of silence: 10 + 1 fewer
     spool = sorted(p.name for p in (tmp_path / "spool").iterdir())
     assert spool == [f"pair-{k:012d}.{s}" for k in (4, 5, 6) for s in ("a.png", "b.png", "json")]
 

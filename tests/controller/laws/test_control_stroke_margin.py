@@ -17,19 +17,14 @@ from config.sim import default_sim
 from controller.laws.limits import project_zero_mean_box
 from controller.laws.uniformity_loop import DEFAULT_MARGIN_UM, UniformityLoopConfig, offset_limit_um
 from plant_sim.model.piezo import FAULT_STROKE, PiezoAmplifier
-from protocol.piezo_can import PiezoCodec
+from protocol.piezo_canopen import nm_from_um, um_from_nm
 
-CODEC = PiezoCodec.load()
-STEP_UM = 0.001  # the offsets' resolution on the wire (config/piezo.dbc)
+STEP_UM = 0.001  # the offsets' resolution on the wire (config/piezo_amp.eds: INTEGER16 nm)
 
 
 def _on_the_wire(table_um):
-    """The table as the amplifier decodes it."""
-    out = []
-    for arb, data in CODEC.encode_offsets(list(table_um)):
-        _, sig = CODEC.decode(arb, data)
-        out += [sig[name] for k in range(len(table_um)) if (name := f"offset_knife_{k}") in sig]
-    return np.array(out[: len(table_um)])
+    """The table as the amplifier decodes it (1 nm per bit, rounded to the nearest)."""
+    return np.array([um_from_nm(nm_from_um(v)) for v in table_um])
 
 
 def _play(piezo_cfg, tables, *, revolutions=12, rpm=6000.0, samples=25):

@@ -2,7 +2,7 @@
 
 ``Service.run`` (real time) drives the PLC and the amplifier from separate tasks, each with its
 own period. Here the PLC's connect or its requests hang for ever (a switch that swallows the
-packets); the amplifier must still get a ``PIEZO_COMMAND`` with a new alive counter every cycle
+packets); the amplifier must still get a command (RPDO3) with a new alive counter every cycle
 (its setpoint timeout is 100 ms). The test counts frames, it does not time them: it stops as soon
 as enough commands arrived, the wall-clock limit is a backstop for a loaded machine.
 """
@@ -22,10 +22,9 @@ from controller.fieldbus.piezo_client import PiezoClient
 from controller.fieldbus.plc_client import PlcClient
 from controller.frames.source import QueueFrameSource
 from controller.service.service import Service
-from protocol.piezo_can import COMMAND, PiezoCodec
 from protocol.registers import RegisterMap
+from tests.support import canopen_frames
 
-CODEC = PiezoCodec.load()
 N_COMMANDS = 15
 _chan = itertools.count()
 
@@ -73,7 +72,7 @@ def test_plc_that_never_answers_does_not_delay_the_can_heartbeat(tmp_path, where
         regmap = RegisterMap.load()
         plc_bus = HangingBus(where)
         channel = f"planer-buses-{next(_chan)}"
-        piezo = PiezoClient(can.Bus(interface="virtual", channel=channel), CODEC, knives=4,
+        piezo = PiezoClient(can.Bus(interface="virtual", channel=channel), knives=4,
                             command_period_s=cfg.can.command_period_s)
         amp = can.Bus(interface="virtual", channel=channel)
         svc = Service(cfg, plc=PlcClient(plc_bus, regmap), piezo=piezo,
@@ -84,9 +83,8 @@ def test_plc_that_never_answers_does_not_delay_the_can_heartbeat(tmp_path, where
         async def amplifier() -> None:
             while len(alive) < N_COMMANDS:
                 while (msg := amp.recv(timeout=0.0)) is not None:
-                    name, sig = CODEC.decode(msg.arbitration_id, bytes(msg.data))
-                    if name == COMMAND:
-                        alive.append(int(sig["alive_counter"]))
+                    if msg.arbitration_id == canopen_frames.command(True, 4, 0)[0]:
+                        alive.append(msg.data[2])  # RPDO3: enable, knives, alive counter
                 await asyncio.sleep(0.005)
             stop.set()
 

@@ -24,7 +24,6 @@ async def _run(frames, machine, tmp_path):
     from controller.service.service import open_service
     from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
     from plant_sim.interfaces.plc_server import PlcServer
-    from protocol.piezo_can import PiezoCodec
 
     server = PlcServer(machine, host="127.0.0.1", port=0)
     host, port = await server.start()
@@ -36,7 +35,7 @@ async def _run(frames, machine, tmp_path):
     channel = f"planer-rt-{id(frames)}"
     amp = AmpNode(
         can.Bus(interface="virtual", channel=channel),
-        AmpNodeCore(machine, PiezoCodec.load(), knives=machine.knives),
+        AmpNodeCore(machine, knives=machine.knives),
         own_bus=True,
     )
     service = open_service(cfg, can_bus=can.Bus(interface="virtual", channel=channel))

@@ -42,7 +42,7 @@ STATUS_EVERY_S = 0.2
 def _child(port: int, log: str) -> None:  # pragma: no cover - runs in the service process
     import can
 
-    from config.machine import dbc_path, load_machine, registers_path, rig_path
+    from config.machine import load_machine, registers_path, rig_path
     from config.rig import load_rig
     from controller.fieldbus.piezo_client import PiezoClient
     from controller.fieldbus.plc_client import PlcClient
@@ -52,7 +52,6 @@ def _child(port: int, log: str) -> None:  # pragma: no cover - runs in the servi
     from controller.service.service import Service
     from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
     from plant_sim.machine.machine import Machine
-    from protocol.piezo_can import PiezoCodec
     from protocol.registers import RegisterMap
     from tests.support.plant_support import truth_measurer
 
@@ -74,13 +73,12 @@ def _child(port: int, log: str) -> None:  # pragma: no cover - runs in the servi
                         regmap=RegisterMap.load(registers_path(cfg)),
                         backoff=Backoff(cfg.plc.backoff_initial_s, cfg.plc.backoff_max_s))
     channel = f"records-fault-{os.getpid()}"
-    piezo = PiezoClient(can.Bus(interface="virtual", channel=channel),
-                        PiezoCodec.load(dbc_path(cfg)), knives=4,
+    piezo = PiezoClient(can.Bus(interface="virtual", channel=channel), knives=4,
                         command_period_s=cfg.can.command_period_s,
                         offsets_period_s=cfg.can.offsets_period_s, stroke_um=cfg.stroke_um)
     amp_machine = Machine(sim, seed=3, render_images=False)
     amp = AmpNode(can.Bus(interface="virtual", channel=channel),
-                  AmpNodeCore(amp_machine, PiezoCodec.load(), knives=amp_machine.knives),
+                  AmpNodeCore(amp_machine, knives=amp_machine.knives),
                   own_bus=True)
     service = Service(cfg, plc=plc, piezo=piezo, rig=rig, log=open_quality_log(log),
                       threaded=True, measurer_factory=lambda shape: truth_measurer(frames),

@@ -13,7 +13,10 @@ from controller.service.supervisor import (
     SafetyState,
     Supervisor,
 )
-from protocol.piezo_can import FAULT_OVERCURRENT, FAULT_STROKE_LIMIT, STATE_ENABLED, STATE_FAULT
+from protocol.piezo_canopen import AmpFault, AmpState
+
+FAULT_OVERCURRENT, FAULT_STROKE_LIMIT = int(AmpFault.OVERCURRENT), int(AmpFault.STROKE_LIMIT)
+STATE_ENABLED, STATE_FAULT = int(AmpState.ENABLED), int(AmpState.FAULT)
 
 CFG = SafetyConfig(cycle_s=0.02, plc_timeout_s=0.5, can_timeout_s=0.3,
                    measurement_timeout_s=2.0, recovery_s=0.25)

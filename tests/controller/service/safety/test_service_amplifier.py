@@ -1,6 +1,6 @@
 """The service and the piezo amplifier's own word: faults, refusals, a ramp it was not asked for.
 
-The amplifier reports in ``PIEZO_STATUS`` whether it plays the offsets (state 1, no fault bits).
+The amplifier reports in its status (TPDO1) whether it plays the offsets (state 1, no fault bits).
 An amplifier that faults, refuses the table (stroke-limit bit) or ramps to zero (setpoint
 timeout) while the service commands enable is, after a short confirmation time, a CAN-side
 failure: safe state (offsets 0, disable), reported once, RUN again once it reports healthy. And

@@ -241,7 +241,7 @@ def test_service_clock_going_backwards_keeps_heartbeats_and_timeouts(tmp_path):
             plant.machine.advance(0.02)
             plant.amp.transmit(plant.clock())
             await svc.tick(t - 5.0 + 0.02 * i)
-        # a PIEZO_COMMAND every cycle (plus the periodic offsets), the PLC heartbeat moved
+        # a command (RPDO3) every cycle (plus the periodic offsets), the PLC heartbeat moved
         assert plant.piezo.sent - sent >= 9
         assert plant.machine.heartbeat_service != hb
         assert svc.state is SafetyState.RUN
