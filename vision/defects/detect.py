@@ -400,7 +400,7 @@ def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None 
     knives are not known, where a nick on one of ``k`` knives stands out ``k`` times less) as
     the median over the revolutions per phase (a pit within one revolution does not move
     it); a nick's rows carry a folded profile whose mean square stands out ``nick_ratio``
-    times from the median row's (of every fourth row).  The medians are taken only on the
+    times from the median row's (of every eighth row).  The medians are taken only on the
     rows whose plain mean fold stands out a third as much, and on the reference rows
     (:func:`vision.defects.kernels.fold_rows`).  Returned with the map rows taken.
     """
@@ -416,14 +416,14 @@ def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None 
     nb = max(4, int(round(period)))
     folded = np.empty((rows, nb))
     energy = np.empty(rows)
-    # the median fold on every 4th row (the reference) and on the rows that may stand out
-    every = 4
+    # the median fold on every 8th row (the reference) and on the rows that may stand out
+    every = 8
     kernels.fold_rows(res.r, np.ascontiguousarray(smap.valid), c0, float(period), nb,
                       int((c1 - c0) // period), int(math.ceil(0.5 * cols.size)), every,
                       _NICK_SLACK * settings.nick_ratio, folded, energy)
     ref = energy[::every]
     ref = ref[np.isfinite(ref)]
-    if ref.size < 8:
+    if ref.size < 4:
         return [], set()
     ratio = np.nan_to_num(energy / max(float(np.median(ref)), 1e-18), nan=0.0)
     hot = ratio >= settings.nick_ratio

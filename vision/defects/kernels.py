@@ -179,27 +179,29 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     n_g = rows // group
     lim = np.float32(sat_limit)
     # group sums, row-major (the rows are contiguous)
-    gs = np.zeros((cols, n_g))
-    gw = np.zeros((cols, n_g), dtype=np.int64)
+    gs = np.zeros((n_g, cols))
+    gw = np.zeros((n_g, cols), dtype=np.int32)
     total = np.zeros(cols)
-    count = np.zeros(cols, dtype=np.int64)
+    count = np.zeros(cols, dtype=np.int32)
     for i in range(rows):
         g = i // group
+        grouped = g < n_g
         for c in range(cols):
             v = p[i, c]
             if valid[i, c] and abs(v) < lim:
                 total[c] += v
                 count[c] += 1
-                if g < n_g:
-                    gs[c, g] += v
-                    gw[c, g] += 1
+                if grouped:
+                    gs[g, c] += v
+                    gw[g, c] += 1
     gm = np.empty(n_g, dtype=np.float64)
     loc = np.empty(cols, dtype=np.float64)
+    half = 0.5 * group
     for c in range(cols):
         for g in range(n_g):
-            w = gw[c, g]
+            w = gw[g, c]
             # groups mostly outside or shadowed: spread far apart, no run of them is tight
-            gm[g] = gs[c, g] / w if w >= 0.5 * group and w > 0 else 1e3 + 10.0 * g
+            gm[g] = gs[g, c] / w if w >= half and w > 0 else 1e3 + 10.0 * g
         _insertion_sort(gm, n_g)
         best = 0
         span = np.inf
@@ -227,7 +229,7 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     scale = _median(buf, nb) if nb > 0 else 0.0
     limit = 5.0 * 1.4826 * scale + 1e-4
     near = np.zeros(cols)
-    n_near = np.zeros(cols, dtype=np.int64)
+    n_near = np.zeros(cols, dtype=np.int32)
     for i in range(rows):
         for c in range(cols):
             v = p[i, c]
@@ -241,24 +243,22 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
             profile[c] = near[c] / n_near[c] if n_near[c] > 0 else loc[c]
     n_cells = cols // cell
     nc = 0
+    prof32 = profile.astype(np.float32)
     for i in range(rows):
+        for c in range(cols):
+            r[i, c] = p[i, c] - prof32[c] if valid[i, c] else np.float32(0.0)
         for j in range(n_cells):
             s = 0.0
             w = 0
             for c in range(j * cell, (j + 1) * cell):
                 if valid[i, c]:
-                    x = np.float32(p[i, c] - np.float32(profile[c]))
-                    r[i, c] = x
+                    x = r[i, c]
                     s += x * x
                     w += 1
-                else:
-                    r[i, c] = 0.0
             ok = w >= 0.5 * cell
             valid_cells[i, j] = ok
             e[i, j] = s / max(w, 1) if ok else 0.0
             nc += ok
-        for c in range(n_cells * cell, cols):
-            r[i, c] = np.float32(p[i, c] - np.float32(profile[c])) if valid[i, c] else 0.0
     return scale, nc
 
 
@@ -299,11 +299,13 @@ def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
     rows, cols = r.shape
     x1 = min(cols, c0 + int(n_per * period))
     where = np.empty(max(x1 - c0, 0), dtype=np.int64)  # (period, bin) cell of each column
+    phase = np.empty(max(x1 - c0, 0), dtype=np.int64)  # and its bin alone
     for c in range(c0, x1):
         ph = (c - c0) / period
         per = int(math.floor(ph))
         b = min(int(math.floor((ph - per) * nb)), nb - 1)
         where[c - c0] = per * nb + b if per < n_per else -1
+        phase[c - c0] = b if per < n_per else -1
     sums = np.zeros(n_per * nb)
     counts = np.zeros(n_per * nb, dtype=np.int64)
     vals = np.empty(n_per)
@@ -321,10 +323,10 @@ def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
         bsum[:] = 0.0
         bcount[:] = 0
         for c in range(c0, x1):
-            q = where[c - c0]
-            if valid[i, c] and q >= 0:
-                bsum[q % nb] += r[i, c]
-                bcount[q % nb] += 1
+            b = phase[c - c0]
+            if valid[i, c] and b >= 0:
+                bsum[b] += r[i, c]
+                bcount[b] += 1
         s2 = 0.0
         n = 0
         for b in range(nb):
