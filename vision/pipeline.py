@@ -26,10 +26,12 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+import scipy.fft
 
 from config.rig import Rig
 from core.checks import check_image, check_int, check_positive, check_range
 from core.errors import MeasurementError, RegistrationError
+from vision import kernels
 from vision.calibration.illumination import Detrender, flat_field_correct, running_mean
 from vision.calibration.selfcal import (
     Calibration,
@@ -47,7 +49,6 @@ from vision.front_end import Binned, FrontEnd, mean_profile
 from vision.integrate import Integrator
 from vision.marks import (
     Marks,
-    dominant_period_px,
     find_marks,
     knife_means,
     repeat_period_px,
@@ -272,12 +273,41 @@ def revolution_px(slope: np.ndarray, period_px: float, knives: int | None) -> fl
     """
     if knives is None or not math.isfinite(period_px) or period_px <= 0:
         return period_px
-    pitch = dominant_period_px(slope)
+    pitch = _pitch_px(slope)
     if not math.isfinite(pitch) or pitch <= 0:
         return period_px
     k = max(1, round(period_px / pitch))
     window = period_px * (int(knives) // k)
     return window if int(knives) % k == 0 and window <= slope.size / 2 else period_px
+
+
+_PITCH_WINDOWS: dict[int, np.ndarray] = {}
+
+
+def _pitch_px(slope: np.ndarray) -> float:
+    """The slope's dominant period at its periodogram's own resolution, samples (NaN: none).
+
+    :func:`vision.marks.dominant_period_px` (Hann window, parabolic peak, at least two periods
+    of at least 4 samples) without its 4x zero-padding, a quarter of the FFT: the window of
+    :func:`revolution_px` needs only the whole number of pitches in the repeat period, which
+    the peak's fraction of a bin does not move.
+    """
+    s = np.asarray(slope, dtype=np.float64)
+    n = s.size
+    if n < 8:
+        return math.nan
+    window = _PITCH_WINDOWS.get(n)
+    if window is None:
+        if len(_PITCH_WINDOWS) > 64:
+            _PITCH_WINDOWS.clear()
+        window = _PITCH_WINDOWS[n] = np.hanning(n)
+    nfft = scipy.fft.next_fast_len(n, real=True)
+    spec = np.fft.rfft((s - s.sum() / n) * window, n=nfft)
+    k_lo = max(1, int(math.ceil(2.0 * nfft / n)))
+    k_hi = min(spec.size - 2, int(nfft / 4.0))
+    if k_hi <= k_lo:
+        return math.nan
+    return nfft / kernels.spectrum_peak(spec, k_lo, k_hi)
 
 
 def vertical_shift(rows: np.ndarray, shift_rows: float) -> np.ndarray:
