@@ -18,6 +18,11 @@ any other exception (a bug): ``internal error``        3
 =====================================================  =========
 
 Set ``PLANER_TRACEBACK=1`` to get the full traceback of an error instead (for developers).
+
+Ctrl-C (SIGINT) stops every command, also one started with SIGINT ignored (a background command
+of a script: ``planer hil --http ... &``, which Python would otherwise leave deaf to it), and
+``kill -USR1 PID`` writes the stack of every thread to stderr without stopping the command (for
+a command that seems stuck).
 """
 
 from __future__ import annotations
@@ -27,7 +32,9 @@ import importlib
 import logging
 import os
 import select
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from typing import NoReturn
 
@@ -265,7 +272,32 @@ def _printable_units() -> None:
             continue
 
 
+def _signals() -> None:
+    """Ctrl-C stops the command whatever it inherited; SIGUSR1 dumps every thread's stack.
+
+    A shell without job control (a script, ``sh -c``) starts a background command with SIGINT
+    ignored, and Python keeps an ignored SIGINT ignored: such a ``planer hil --http`` or
+    ``planer sweep`` would go on after ``kill -INT``/Ctrl-C. The command's own contract is that
+    Ctrl-C stops it (exit code 130), so SIGINT raises ``KeyboardInterrupt`` again. Only from the
+    main thread of a process whose command line this is (``main()`` without ``argv``: the
+    ``planer`` script, ``python -m planer.cli``); ``main(argv)`` called by another program (a
+    test) leaves that program's signals alone.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        import faulthandler
+
+        faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True, chain=False)
+    except (AttributeError, ValueError, OSError, RuntimeError):  # no usable stderr descriptor
+        pass
+
+
 def _main(argv: Sequence[str] | None) -> int:
+    if argv is None:
+        _signals()
     argv = list(sys.argv[1:] if argv is None else argv)
     _printable_units()
     parser = build_parser(chosen_command(argv))
