@@ -517,7 +517,7 @@ def with_narrow_marks(slope: np.ndarray, gaps: np.ndarray, weak: np.ndarray,
 
     A mark of a few samples (0.36 mm at 0.5 mm pitch, 12.5 px/mm: a knife cutting shallower
     than its neighbours) has both its cusps within the two samples either side that the step
-    of :func:`cusp_steps` averages: each fall is measured at a quarter to a third of a full
+    of :func:`cusp_steps` averages: each fall is measured at a fifth to a third of a full
     one and fails ``min_step``, while a vanished knife's neighbours make falls of two passes
     the typical one. Each weaker candidate (largest first) is put to the arc model instead:
     the piece of the profile it would split, fitted either side as a line of the common
