@@ -200,3 +200,150 @@ def true_defects(board: DefectBoard) -> tuple[Defect, ...]:
 def true_grade(board: DefectBoard) -> Grade:
     """The board's true D1666 grade (:func:`vision.defects.grading.grade_pair` of its defects)."""
     return grade_pair(true_defects(board))
+
+
+# -- scoring: the acceptance's criteria, shared by the test and the command line -----------------
+
+#: the tuning split (the boards the detectors' thresholds were looked at on) and a held-out
+#: split of other seeds (board indices; :func:`board_spec`)
+TUNING = range(0, 240)
+HELD_OUT = range(1000, 1240)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One board's measurement: its truth, what was found (``None``: the pair was refused)."""
+
+    index: int
+    kind: str  # the board's kind (:data:`KINDS`)
+    truth: tuple[TrueDefect, ...]
+    found: tuple[Defect, ...] | None
+    true_grade: int
+    grade: int | None
+
+
+def matches(t: TrueDefect, d: Defect) -> bool:
+    """Whether a found defect is the true one: same kind, centre within 2 mm (a knife nick's
+    band within 2 mm across the feed; raised grain, chatter and snipe by kind alone)."""
+    if d.kind.value != t.kind:
+        return False
+    if t.kind in FIELD_WIDE:
+        return True
+    if t.kind == "knife_nick":
+        return abs(d.y_mm - t.y_mm) <= 2.0
+    return math.hypot(d.x_mm - t.x_mm, d.y_mm - t.y_mm) <= 2.0
+
+
+def measure_boards(indices: Any) -> list[Outcome]:
+    """Measure the boards ``indices`` (:func:`board_spec`) with ``Measurer(defects=True)``."""
+    from core.errors import MeasurementError
+    from vision.pipeline import Measurer
+
+    measurers: dict[tuple[int, ...], Measurer] = {}
+    out = []
+    for i in indices:
+        b = cached_board(**board_spec(i))
+        m = measurers.get(b.image_a.shape)
+        if m is None:
+            m = measurers[b.image_a.shape] = Measurer(b.rig, b.image_a.shape, knives=4,
+                                                      defects=True)
+        try:
+            r = m.measure(b.image_a, b.image_b, counts_a=b.counts_a, counts_b=b.counts_b,
+                          speed_mm_s=b.speed_mm_s)
+            found, grade = r.defects, r.grade
+        except MeasurementError:
+            found, grade = None, None  # the measurement itself refused the pair
+        out.append(Outcome(i, KINDS[i % len(KINDS)], board_truth(b), found,
+                           true_grade(b).grade, grade))
+    return out
+
+
+@dataclass(frozen=True)
+class Score:
+    """Per kind: true positives, misses (of the detectable defects), false positives; clean
+    boards and how many gave no defect; graded boards and how many within one step; refused."""
+
+    tp: dict[str, int]
+    fn: dict[str, int]
+    fp: dict[str, int]
+    clean: int
+    clean_ok: int
+    graded: int
+    grade_ok: int
+    refused: int
+    boards: int
+
+    def recall(self, kind: str) -> float:
+        """Found / (found + missed detectable), 1 without any."""
+        n = self.tp.get(kind, 0) + self.fn.get(kind, 0)
+        return self.tp.get(kind, 0) / n if n else 1.0
+
+    def precision(self, kind: str) -> float:
+        """Right / reported, 1 without any reported."""
+        n = self.tp.get(kind, 0) + self.fp.get(kind, 0)
+        return self.tp.get(kind, 0) / n if n else 1.0
+
+    def table(self) -> str:
+        """The Markdown table of docs/vision.md."""
+        lines = ["| kind | recall | precision |", "|---|---|---|"]
+        for k in KINDS[:-1]:
+            tp, fn, fp = self.tp.get(k, 0), self.fn.get(k, 0), self.fp.get(k, 0)
+            lines.append(f"| {k} | {tp}/{tp + fn} = {self.recall(k):.2f} | "
+                         f"{tp}/{tp + fp} = {self.precision(k):.2f} |")
+        lines.append(f"| clean: no defect | {self.clean_ok}/{self.clean} | |")
+        lines.append(f"| D1666 grade within one step | {self.grade_ok}/{self.graded} = "
+                     f"{self.grade_ok / max(self.graded, 1):.3f} | |")
+        lines.append(f"| refused by the measurement | {self.refused}/{self.boards} | |")
+        return "\n".join(lines)
+
+
+def score(outcomes: list[Outcome]) -> Score:
+    """The acceptance's counts over measured boards (refused pairs are counted apart)."""
+    tp: dict[str, int] = {}
+    fn: dict[str, int] = {}
+    fp: dict[str, int] = {}
+    clean = clean_ok = graded = grade_ok = refused = 0
+    for o in outcomes:
+        if o.found is None:
+            refused += 1
+            continue
+        if o.kind == "clean":
+            clean += 1
+            clean_ok += len(o.found) == 0
+        graded += 1
+        grade_ok += o.grade is not None and abs(o.grade - o.true_grade) <= 1
+        used: set[int] = set()
+        for t in o.truth:
+            hit = next((j for j, d in enumerate(o.found) if j not in used and matches(t, d)),
+                       None)
+            if hit is not None:
+                used.add(hit)
+                tp[t.kind] = tp.get(t.kind, 0) + 1
+            elif t.detectable:
+                fn[t.kind] = fn.get(t.kind, 0) + 1
+        for j, d in enumerate(o.found):
+            if j not in used:
+                fp[d.kind.value] = fp.get(d.kind.value, 0) + 1
+    return Score(tp, fn, fp, clean, clean_ok, graded, grade_ok, refused, len(outcomes))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tests.support.defect_truth [tuning|held-out|LO:HI ...]``: the tables."""
+    import sys
+
+    args = sys.argv[1:] if argv is None else argv
+    for name in args or ["tuning", "held-out"]:
+        if name == "tuning":
+            idx: Any = TUNING
+        elif name == "held-out":
+            idx = HELD_OUT
+        else:
+            lo, hi = (int(v) for v in name.split(":"))
+            idx = range(lo, hi)
+        print(f"## {name} (boards {idx.start}..{idx.stop - 1})")
+        print(score(measure_boards(idx)).table())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,141 @@
+"""The defects' compiled loops against plain numpy computations of the same steps."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from vision.defects import kernels
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 8, 35, 1000])
+def test_median_and_selection_as_numpy(n):
+    rng = np.random.default_rng(n)
+    for ties in (False, True):
+        v = rng.standard_normal(n)
+        if ties:
+            v = np.round(v, 1)
+        assert kernels._median(v.copy(), n) == np.median(v)
+        assert kernels._select(v.copy(), n, n // 2) == np.partition(v, n // 2)[n // 2]
+
+
+def _reference_map(a, b, valid, d, ka, kb):
+    """The map's registration and ratio as numpy/OpenCV steps."""
+    rows, width = a.shape
+    b_reg = cv2.warpAffine(b, np.array([[1.0, 0.0, d], [0.0, 1.0, 0.0]]), (width, rows),
+                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    k = int(math.floor(d))
+    both = np.zeros_like(valid)
+    lo, hi = max(0, -k), min(width, width - k - 1)
+    both[:, lo:hi] = (valid[:, lo:hi] & valid[:, lo + k:hi + k]
+                      & valid[:, lo + k + 1:hi + k + 1])
+    both &= (a > 0) & (b_reg > 0)
+    n = int(both.sum())
+    sa, sb = float(a[both].sum()), float(b_reg[both].sum())
+    r = b_reg * (sa / sb)
+    slope = np.where(both, (r - a) / (r * ka - a * kb), 0.0)
+    albedo = np.where(both, (a + r) * n / (2 * sa), 0.0)
+    return slope, albedo, both
+
+
+@pytest.mark.parametrize("d", [0.0, 7.3, -4.6])
+def test_register_ratio_as_numpy(d):
+    rng = np.random.default_rng(3)
+    a = (100 + 20 * rng.random((40, 90))).astype(np.float32)
+    b = (110 + 20 * rng.random((40, 90))).astype(np.float32)
+    valid = np.ones(a.shape, bool)
+    valid[:, :3] = False
+    valid[5, 40:44] = False
+    ka = math.tan(math.radians(82))
+    slope, albedo = np.empty_like(a), np.empty_like(a)
+    both = np.empty(a.shape, bool)
+    n = kernels.register_ratio(a, b, valid, d, ka, -ka, slope, albedo, both)
+    ref = _reference_map(a, b, valid, d, ka, -ka)
+    assert n == int(ref[2].sum())
+    assert np.array_equal(both, ref[2])
+    np.testing.assert_allclose(slope, ref[0], atol=2e-6)
+    np.testing.assert_allclose(albedo, ref[1], rtol=2e-5, atol=1e-6)
+
+
+def _reference_profile(p, valid, sat, group, k):
+    """The shorth of the row groups, then the mean of the samples near it (numpy)."""
+    rows, cols = p.shape
+    n_g = rows // group
+    ok = valid & (np.abs(p) < sat)
+    w = ok.astype(np.float64)
+    pw = np.where(ok, p, 0.0).astype(np.float64)
+    ps = pw[:n_g * group].reshape(n_g, group, cols).sum(axis=1)
+    ws = w[:n_g * group].reshape(n_g, group, cols).sum(axis=1)
+    far = (1e3 + 10.0 * np.arange(n_g))[:, None]
+    gm = np.sort(np.where(ws >= 0.5 * group, ps / np.maximum(ws, 1.0), far), axis=0)
+    j = np.argmin(gm[k - 1:] - gm[:n_g - k + 1], axis=0)
+    loc = np.array([gm[j[c]:j[c] + k, c].mean() for c in range(cols)])
+    count = w.sum(axis=0)
+    loc = np.where(np.abs(loc) < 10.0, loc, pw.sum(axis=0) / np.maximum(count, 1.0))
+    dev = np.abs(p - loc[None, :])
+    scale = float(np.median(dev[::3, ::3][ok[::3, ::3]]))
+    keep = ok & (dev <= 5.0 * 1.4826 * scale + 1e-4)
+    kc = keep.sum(axis=0)
+    prof = np.where(kc > 0, np.where(keep, p, 0.0).sum(axis=0) / np.maximum(kc, 1), loc)
+    return np.where(count > 0, prof, 0.0), scale
+
+
+def test_residual_map_as_numpy():
+    rng = np.random.default_rng(4)
+    rows, cols, cell = 50, 120, 3
+    x = np.arange(cols)
+    p = (0.01 * np.sin(x / 5.0)[None, :] + 0.003 * rng.standard_normal((rows, cols)))
+    p[10:40, 50:60] += 0.05 * rng.standard_normal((30, 10))  # a rough pit over most rows
+    p[12:30, 52] = 0.2  # its shadow
+    p = p.astype(np.float32)
+    valid = np.ones((rows, cols), bool)
+    valid[:, :4] = False
+    valid[45:, 100:] = False
+    profile = np.empty(cols)
+    r = np.empty_like(p)
+    e = np.empty((rows, cols // cell), np.float32)
+    vc = np.empty((rows, cols // cell), bool)
+    mad, n_cells = kernels.residual_map(p, valid, 0.07, 3, 6, cell, profile, r, e, vc)
+    ref_profile, ref_mad = _reference_profile(p, valid, 0.07, 3, 6)
+    assert mad == pytest.approx(ref_mad, rel=1e-5)
+    np.testing.assert_allclose(profile, ref_profile, atol=1e-6)
+    assert np.abs(profile[50:60] - 0.01 * np.sin(x[50:60] / 5.0)).max() < 0.004
+    ref_r = np.where(valid, p - profile.astype(np.float32)[None, :], 0.0)
+    np.testing.assert_allclose(r, ref_r, atol=1e-7)
+    w = valid[:, :cols // cell * cell].reshape(rows, -1, cell).sum(axis=2)
+    ref_e = (ref_r[:, :cols // cell * cell] ** 2).reshape(rows, -1, cell).sum(axis=2)
+    ref_vc = w >= 0.5 * cell
+    assert np.array_equal(vc, ref_vc) and n_cells == int(ref_vc.sum())
+    np.testing.assert_allclose(e, np.where(ref_vc, ref_e / np.maximum(w, 1), 0.0),
+                               rtol=1e-5, atol=1e-9)
+
+
+def test_fold_rows_as_numpy():
+    rng = np.random.default_rng(5)
+    rows, cols, period = 24, 200, 18.5
+    r = rng.standard_normal((rows, cols)).astype(np.float32)
+    r[7] += np.where((np.arange(cols) % period) < 4, 3.0, 0.0)  # stands out every period
+    valid = np.ones((rows, cols), bool)
+    valid[3, 20:60] = False
+    nb, n_per, c0 = 18, 10, 5
+    folded, energy = np.empty((rows, nb)), np.empty(rows)
+    kernels.fold_rows(r, valid, c0, period, nb, n_per, 100, 4, 4.0, folded, energy)
+    cols_used = np.arange(c0, c0 + int(n_per * period))
+    ph = (cols_used - c0) / period
+    per, b = np.floor(ph).astype(int), np.minimum(np.floor((ph % 1) * nb).astype(int), nb - 1)
+    taken = [i for i in range(rows) if np.isfinite(energy[i])]
+    assert set(range(0, rows, 4)) | {7} == set(taken)  # the reference rows and the one out
+    for i in taken:
+        cells = np.full((n_per, nb), np.nan)
+        for q in range(n_per):
+            for j in range(nb):
+                sel = (per == q) & (b == j) & valid[i, cols_used]
+                if sel.any():
+                    cells[q, j] = r[i, cols_used[sel]].mean()
+        ref = np.nanmedian(cells, axis=0)
+        np.testing.assert_allclose(folded[i], ref, atol=1e-6)
+        assert energy[i] == pytest.approx(np.mean(ref ** 2), rel=1e-6)
