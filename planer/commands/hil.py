@@ -342,6 +342,7 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
 
     from controller.edge.compose import serving
     from controller.opcua.compose import server_for
+    from planer.hil.interrupt import raise_if_cancel_lost
 
     cfg = hil.machine_config_for(scenario, log_path=log_path)
     server_for(cfg, getattr(args, "opcua", None))  # bad endpoint / security: one line, early
@@ -356,6 +357,7 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
         async with serving(cfg, get_service, opcua=getattr(args, "opcua", None),
                            http=getattr(args, "http", None), say=progress) as servers:
             summary = await run()
+            raise_if_cancel_lost()  # a Ctrl-C during the run ends it here, never in serving
             if servers is None or tell is None:
                 return summary
             tell(summary)

@@ -11,6 +11,7 @@ from typing import Any
 
 from config.machine import MachineConfig
 from controller.service.service import FrameResult, Service
+from planer.hil.interrupt import raise_if_cancel_lost
 from planer.hil.pacing import Pacer
 from planer.hil.run_end import note_run_end
 from planer.hil.scenario import Progress, Scenario, machine_config_for, sim_config_for
@@ -362,6 +363,7 @@ class InProcessHil:
                     # machine faults are in the simulator's [faults] table already
                 await plant.step()
                 await pacer.wait(plant.clock())  # a real suspension: Ctrl-C lands here
+                raise_if_cancel_lost()  # or was lost on its way (in a wait_for): end all the same
                 n = len(service.results)
                 for r in service.results[n_seen:]:
                     travel.add(r)

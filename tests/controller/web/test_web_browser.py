@@ -17,7 +17,6 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
 from dataclasses import replace
@@ -35,6 +34,8 @@ from selenium.common.exceptions import WebDriverException  # noqa: E402
 from selenium.webdriver.chrome.service import Service as ChromeService  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
+
+from tests.support.interrupt import ended_or_stacks, planer_argv  # noqa: E402
 
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
 BROWSERS = ("/usr/lib/chromium/chromium", "/usr/bin/chromium", "/usr/bin/chromium-browser")
@@ -153,11 +154,13 @@ class _PlanerHilHttp:
     """``planer hil --in-process --http 127.0.0.1:0`` as a process; the URL from its stderr."""
 
     def __init__(self, log_path: Path, *, distance_m: float = 200.0) -> None:
-        self.argv = [sys.executable, "-m", "planer.cli", "hil", "--in-process", "--plc", "direct",
-                     "--distance-m", str(distance_m), "--log", str(log_path),
-                     "--http", "127.0.0.1:0"]
+        # SIGINT as from a terminal, whatever the test runner inherited (the Ctrl-C at the end)
+        self.argv = planer_argv("hil", "--in-process", "--plc", "direct",
+                                "--distance-m", str(distance_m), "--log", str(log_path),
+                                "--http", "127.0.0.1:0", sigint="default")
         self.lines: queue.Queue = queue.Queue()
         self.stderr: list[str] = []
+        self.reader = threading.Thread(target=self._read, daemon=True)
 
     def _read(self) -> None:
         for line in self.proc.stderr:
@@ -165,10 +168,16 @@ class _PlanerHilHttp:
             self.lines.put(line)
         self.lines.put(None)
 
+    def _said(self) -> str:
+        """Its stderr: all of it once the process has ended (the reader meets the pipe's end)."""
+        if self.proc.poll() is not None:
+            self.reader.join(TIMEOUT_S)
+        return "".join(self.stderr)
+
     def __enter__(self) -> str:
         self.proc = subprocess.Popen(self.argv, cwd=ROOT, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True)
-        threading.Thread(target=self._read, daemon=True).start()
+        self.reader.start()
         while True:
             line = self.lines.get(timeout=TIMEOUT_S)
             if line is None:
@@ -177,14 +186,20 @@ class _PlanerHilHttp:
             if m:
                 return m.group(1)
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: object, *exc: object) -> None:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)  # Ctrl-C: the run stops and cleans up
         try:
-            self.proc.wait(TIMEOUT_S)
+            _, said = ended_or_stacks(self.proc, "planer hil --http after Ctrl-C",
+                                      stderr=self._said)
         finally:
             if self.proc.poll() is None:
                 self.proc.kill()
+                self.proc.wait()
+        if exc_type is None:  # mid-run: interrupted (130); after it: the summary's code
+            assert self.proc.returncode in (0, 1, 130), said
+            last = said.strip().splitlines()[-1:]
+            assert last in (["planer hil: interrupted"], ["planer hil: stopped serving"]), said
 
 
 def test_operator_and_quality_pages_live_during_planer_hil_http(chrome, tmp_path):

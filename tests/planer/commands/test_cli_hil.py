@@ -15,6 +15,7 @@ import pytest
 
 from planer.hil.cross_process import free_port
 from tests.support import pg_support
+from tests.support.interrupt import ended_or_stacks, planer_argv
 
 SCENARIO = """
 [{name}]
@@ -69,9 +70,11 @@ def test_a_run_that_goes_its_distance_says_so_in_json(tmp_path):
 def test_with_http_the_run_is_paced_and_its_end_served_until_ctrl_c(tmp_path):
     sc = _scenario(tmp_path, "short", 0.5, 30.0)
     port = free_port()
+    # started as a background command of a script (SIGINT ignored): Ctrl-C stops it all the same
     proc = subprocess.Popen(
-        _hil("--json", "--scenario", str(sc), "--log", str(tmp_path / "w.sqlite"),
-             "--http", f"127.0.0.1:{port}", "--pace", "2"),
+        planer_argv("hil", "--in-process", "--plc", "direct", "--json", "--scenario", str(sc),
+                    "--log", str(tmp_path / "w.sqlite"), "--http", f"127.0.0.1:{port}",
+                    "--pace", "2", sigint="ignored"),
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
         env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
@@ -83,7 +86,7 @@ def test_with_http_the_run_is_paced_and_its_end_served_until_ctrl_c(tmp_path):
                 break
         assert said and f"serving its final state at http://127.0.0.1:{port}/" in said[-1], said
         assert proc.poll() is None  # still serving
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/live", timeout=30) as r:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/live", timeout=120) as r:
             live = json.load(r)
         last = live["status"]["last_measurement"]
         assert last["seq"] == summary["measurements"][-1]["seq"]
@@ -91,7 +94,7 @@ def test_with_http_the_run_is_paced_and_its_end_served_until_ctrl_c(tmp_path):
         # paced: the wall clock went at least half the simulated time (a busy host only slows)
         assert summary["wall_time_s"] >= summary["sim_time_s"] / 2.0 - 0.05
         proc.send_signal(signal.SIGINT)
-        rest = proc.communicate(timeout=60)[1]
+        rest = ended_or_stacks(proc, "planer hil --http after Ctrl-C")[1]
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -103,7 +106,7 @@ def test_with_http_the_run_is_paced_and_its_end_served_until_ctrl_c(tmp_path):
 @pytest.mark.parametrize("pace", ["0", "-1", "nan"])
 def test_a_pace_that_is_not_a_positive_number_is_refused(tmp_path, pace):
     out = subprocess.run(_hil("--pace", pace, "--distance-m", "0.1"),
-                         capture_output=True, text=True, cwd=tmp_path, timeout=120)
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert out.returncode == 2 and f"--pace must be a number > 0, got {float(pace)}" in out.stderr
 
 
@@ -134,7 +137,7 @@ def test_a_busy_port_is_one_error_line_and_nothing_else(tmp_path, server):
         where = f"opc.tcp://127.0.0.1:{port}" if server == "--opcua" else f"127.0.0.1:{port}"
         out = subprocess.run(_hil("--distance-m", "0.1", "--log", str(tmp_path / "b.sqlite"),
                                   server, where),
-                             capture_output=True, text=True, cwd=tmp_path, timeout=120)
+                             capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert out.returncode == 2, out.stderr
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("planer hil: error:"), out.stderr

@@ -8,7 +8,6 @@ import io
 import os
 import signal
 import subprocess
-import sys
 
 import pytest
 
@@ -16,6 +15,7 @@ from planer.sweep.design import sweep_from_dict
 from planer.sweep.driver import read_results, run_sweep
 from planer.sweep.plots import OUTCOMES, outcome_figure
 from planer.sweep.point import OUTCOME_COLUMNS, error_row, prepare
+from tests.support.interrupt import ended_or_stacks, planer_argv
 
 
 def _pitch_sweep():
@@ -71,13 +71,18 @@ def test_every_plot_title_lies_inside_its_figure(n_keys):
 
 
 def test_ctrl_c_of_a_sweep_on_a_local_cluster_says_nothing_of_dask(tmp_path):
-    """Ctrl-C reaches the whole process group, as in a terminal: one line, exit code 130."""
+    """Ctrl-C reaches the whole process group, as in a terminal: one line, exit code 130.
+
+    Started with SIGINT ignored (a background command of a script; a test runner started with
+    ``&`` passes that on to what it starts): one Ctrl-C stops it all the same. From a terminal
+    (SIGINT default) the command takes the same path once the CLI has started.
+    """
     sweep = tmp_path / "s.toml"
     sweep.write_text('base = "default"\nseeds = [0]\n[fixed]\ndistance_m = 1.0\n'
                      '[grid]\n"target_pitch_mm" = [1.4, 1.5, 1.6]\n')
     proc = subprocess.Popen(
-        [sys.executable, "-m", "planer.cli", "sweep", str(sweep), "--workers", "1",
-         "--out", str(tmp_path / "out")],
+        planer_argv("sweep", str(sweep), "--workers", "1", "--out", str(tmp_path / "out"),
+                    sigint="ignored"),
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
         start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
@@ -88,7 +93,7 @@ def test_ctrl_c_of_a_sweep_on_a_local_cluster_says_nothing_of_dask(tmp_path):
                 break
         assert said and said[-1].startswith("sweep [") and " 1/3 runs" in said[-1], said
         os.killpg(proc.pid, signal.SIGINT)
-        _, rest = proc.communicate(timeout=120)
+        _, rest = ended_or_stacks(proc, "planer sweep after Ctrl-C")
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
