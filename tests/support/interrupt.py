@@ -17,9 +17,11 @@ import subprocess
 import sys
 from collections.abc import Callable
 
-STOP_TIMEOUT_S = 300.0
-"""How long a process told to stop may take: about 5x the slowest stop seen on the loaded
-2-core VM (a sweep's local Dask cluster closing, about 10-60 s); a lost signal still fails."""
+STOP_TIMEOUT_S = 120.0
+"""How long a process told to stop may take. Measured on the shared 2-core VM at load average
+20-24: a sweep on a local Dask cluster 5.0-6.4 s from Ctrl-C to its exit (7 runs), ``planer hil
+--http`` mid-run 1.9-3.1 s (5 runs); a 5x slower machine stays well inside, a lost signal fails
+(with the stacks) after this long."""
 
 DUMP_GRACE_S = 5.0
 """How long a hung process is given to write its stacks before it is killed."""
