@@ -11,8 +11,12 @@ only, bounded in count and time:
 - ``--opcua-readers N`` OPC UA clients reading a variable in a loop, and one client with a
   subscription of ``--opcua-sub-ms`` to every ``State/Machine`` variable.
 
-This process raises its own ``RLIMIT_NOFILE`` soft limit to the hard one and keeps 256
-descriptors for itself (the idle sockets get the rest, at most ``--idle``).
+The clients run in a process of their own (:func:`load_for`), ``--load-nice N`` added to its
+nice value: on a plant the clients are other machines, here they share the cores with the
+service, and at nice 0 they take as much CPU as the service's loop. That process raises its
+own ``RLIMIT_NOFILE`` soft limit to the hard one and keeps 256 descriptors for itself (the idle
+sockets get the rest, at most ``--idle``). Each run's ``cpu_s`` says who used the CPU while the
+run went: the service's process (``planer hil``), the servers' process and the clients.
 """
 
 from __future__ import annotations
@@ -61,6 +65,7 @@ class Load:
             "nofile_soft": soft, "idle_target": self.idle_target, "idle_opened": 0,
             "idle_closed_by_server": 0, "idle_connect_failed": 0, "idle_held_max": 0,
             "sse_200": 0, "sse_503": 0, "sse_other": 0, "sse_events": 0, "sse_failed": 0,
+            "sse_no_answer": 0, "sse_cut": 0,
             "opcua_connected": 0, "opcua_refused": 0, "opcua_reads": 0, "opcua_read_errors": 0,
             "opcua_sub_changes": 0, "opcua_sub_ok": False, "opcua_sub_revised_ms": None,
         }
@@ -114,7 +119,11 @@ class Load:
             writer.write(b"GET /api/live/stream HTTP/1.1\r\nHost: 127.0.0.1\r\n"
                          b"Accept: text/event-stream\r\n\r\n")
             await writer.drain()
-            status = await asyncio.wait_for(reader.readline(), 30.0)
+            try:
+                status = await asyncio.wait_for(reader.readline(), 30.0)
+            except (OSError, asyncio.TimeoutError):  # closed unanswered, or no answer in 30 s
+                self.counts["sse_no_answer"] += 1
+                return
             code = status.split()[1] if len(status.split()) > 1 else b""
             key = {b"200": "sse_200", b"503": "sse_503"}.get(code, "sse_other")
             self.counts[key] += 1
@@ -125,7 +134,7 @@ class Load:
                 if line.startswith(b"data: "):
                     self.counts["sse_events"] += 1
         except (OSError, asyncio.TimeoutError, IndexError):
-            pass
+            self.counts["sse_cut"] += 1  # the stream ended before the run did
         finally:
             writer.close()
 
@@ -195,14 +204,64 @@ class Load:
 
 
 def load_for(http_port: int | None, opcua_port: int | None, seconds: float,
-             kwargs: dict[str, Any], out: Any) -> None:
-    """Run a :class:`Load` for ``seconds`` and put its counts on ``out`` (a process target)."""
-    import logging
+             kwargs: dict[str, Any], out: Any, *, stop: Any = None, nice: int = 0) -> None:
+    """Run a :class:`Load` (a process target); put its counts on ``out``.
 
+    It runs for ``seconds`` or until ``stop`` (a ``multiprocessing`` event) is set, with
+    ``nice`` added to this process's nice value. The counts carry ``cpu_s``: the CPU time
+    (user + system) the clients used, s.
+    """
+    import logging
+    import resource
+
+    if nice:
+        os.nice(nice)
     logging.getLogger("asyncua").setLevel(logging.CRITICAL)
     clients = Load(http_port, opcua_port, **kwargs)
-    asyncio.run(clients.run(time.monotonic() + seconds))
+    until = time.monotonic() + seconds
+
+    async def until_done() -> None:
+        task = asyncio.create_task(clients.run(until))
+        while not task.done() and not (stop is not None and stop.is_set()):
+            await asyncio.sleep(0.5)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        for sock in clients.held:  # cancelled before it closed them
+            sock.close()
+
+    started = time.monotonic()
+    asyncio.run(until_done())
+    use = resource.getrusage(resource.RUSAGE_SELF)
+    clients.counts["load_s"] = round(time.monotonic() - started, 1)
+    clients.counts["cpu_s"] = round(use.ru_utime + use.ru_stime, 1)
+    clients.counts["nice"] = os.nice(0)
     out.put(clients.counts)
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU time (user + system) process ``pid`` used so far, s (0 when gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid``."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                if int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    out.append(int(entry.name))
+    return out
+
+
+def _tree_cpu_s(pid: int) -> dict[str, float]:
+    """CPU time so far of ``planer hil`` (``service``) and its servers' process (``servers``)."""
+    servers = sum(_cpu_s(c) for c in _children(pid))
+    return {"service": _cpu_s(pid), "servers": servers}
 
 
 async def _find(client: Any, path: str) -> Any:
@@ -213,13 +272,16 @@ async def _find(client: Any, path: str) -> Any:
 
 
 def run_hil(distance_m: float, log: Path, *, http_port: int, opcua_port: int,
-            load: dict[str, Any] | None, max_s: float = 900.0) -> dict[str, Any]:
+            load: dict[str, Any] | None, max_s: float = 900.0,
+            load_nice: int = 0) -> dict[str, Any]:
     """``planer hil --in-process`` with the servers on (paced at real time), under load.
 
-    The load (if any) runs while the run goes; Ctrl-C once its summary is out (the command
-    then serves its final state). Returns the run's JSON summary's key figures and the
-    load's counts.
+    The load (if any) runs in a process of its own (``load_nice`` added to its nice value)
+    while the run goes; Ctrl-C once its summary is out (the command then serves its final
+    state). Returns the run's JSON summary's key figures, the load's counts and ``cpu_s``
+    (CPU time from the servers' start to the summary, s: ``service``, ``servers``, ``load``).
     """
+    import multiprocessing
     import signal
     import threading
 
@@ -240,24 +302,33 @@ def run_hil(distance_m: float, log: Path, *, http_port: int, opcua_port: int,
 
     threading.Thread(target=read, daemon=True).start()
     counts = None
+    cpu: dict[str, Any] = {}
     try:
         _wait_port(http_port, proc, 120.0)
         _wait_port(opcua_port, proc, 120.0)
-        started = time.monotonic()
+        cpu0 = _tree_cpu_s(proc.pid)
         if load is not None:
-            clients = Load(http_port, opcua_port, **load)
-
-            async def until_done() -> None:
-                task = asyncio.create_task(clients.run(started + max_s))
-                while not over.is_set() and not task.done():
-                    await asyncio.sleep(0.5)
-                clients.counts["load_s"] = round(time.monotonic() - started, 1)
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
-
-            asyncio.run(until_done())
-            counts = clients.counts
-        over.wait(max_s)
+            ctx = multiprocessing.get_context("spawn")
+            out, stop = ctx.Queue(), ctx.Event()
+            clients = ctx.Process(target=load_for, args=(http_port, opcua_port, max_s, load,
+                                                         out), kwargs={"stop": stop,
+                                                                       "nice": load_nice},
+                                  daemon=True)
+            clients.start()
+            over.wait(max_s)
+            cpu1 = _tree_cpu_s(proc.pid)
+            stop.set()
+            try:
+                counts = out.get(timeout=120.0)
+            finally:
+                clients.join(30.0)
+                if clients.is_alive():
+                    clients.kill()
+            cpu["load"] = counts.get("cpu_s")
+        else:
+            over.wait(max_s)
+            cpu1 = _tree_cpu_s(proc.pid)
+        cpu.update({k: round(cpu1[k] - cpu0[k], 1) for k in cpu1})
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)  # stop serving the final state
         proc.wait(60.0)
@@ -281,6 +352,8 @@ def run_hil(distance_m: float, log: Path, *, http_port: int, opcua_port: int,
         "pace_behind_s": summary.get("pace_behind_s"),
         "quality_log": {k: summary["quality_log"][k] for k in ("records", "expected", "ok")},
         "passed": summary["passed"],
+        "wall_time_s": summary.get("wall_time_s"),
+        "cpu_s": cpu,
         "servers_lines": [ln for ln in err.splitlines() if "planer servers" in ln][-20:],
         "load": counts,
     }
@@ -309,6 +382,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--opcua-readers", type=int, default=50)
     p.add_argument("--opcua-sub-ms", type=float, default=10.0)
     p.add_argument("--skip-quiet", action="store_true")
+    p.add_argument("--load-nice", type=int, default=0, metavar="N",
+                   help="added to the clients' process's nice value (0..19; default 0)")
     args = p.parse_args(argv)
     import logging
 
@@ -316,8 +391,11 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("idle", "sse", "opcua_readers"):
         if getattr(args, name) < 0:
             raise SystemExit(f"--{name.replace('_', '-')} must be >= 0")
+    if not 0 <= args.load_nice <= 19:
+        raise SystemExit(f"--load-nice must be within 0..19, got {args.load_nice}")
     with tempfile.TemporaryDirectory(prefix="planer-load-") as tmp:
-        out: dict[str, Any] = {"host": {"cores": os.cpu_count()}}
+        out: dict[str, Any] = {"host": {"cores": os.cpu_count(),
+                                        "loadavg_start": list(os.getloadavg())}}
         if not args.skip_quiet:
             out["quiet"] = run_hil(args.distance_m, Path(tmp) / "quiet.sqlite",
                                    http_port=free_port(), opcua_port=free_port(), load=None)
@@ -325,7 +403,12 @@ def main(argv: list[str] | None = None) -> int:
             args.distance_m, Path(tmp) / "loaded.sqlite", http_port=free_port(),
             opcua_port=free_port(),
             load={"idle": args.idle, "sse": args.sse, "opcua_readers": args.opcua_readers,
-                  "opcua_sub_ms": args.opcua_sub_ms, "idle_rate": args.idle_rate})
+                  "opcua_sub_ms": args.opcua_sub_ms, "idle_rate": args.idle_rate},
+            load_nice=args.load_nice)
+        if "quiet" in out:
+            q, loaded = out["quiet"]["latency_ms"], out["loaded"]["latency_ms"]
+            with contextlib.suppress(KeyError, TypeError, ZeroDivisionError):
+                out["p99_ratio"] = round(loaded["p99"] / q["p99"], 2)
     print(json.dumps(out, indent=1))
     return 0
 
