@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -523,27 +524,12 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
     xs = smap.feed_mm(np.arange(prof.size)) + smap.cx / smap.px_per_mm  # Measurement.x_mm
     d = np.diff(np.interp(np.asarray(bottoms_mm, dtype=np.float64), xs, h))
     m = d.size
-    j = np.arange(m)
-    knife = j % knives
-    onehot = (knife[None, :] == np.arange(knives)[:, None]).astype(np.float64)
-    per_knife = onehot / onehot.sum(axis=1, keepdims=True)  # (knives, m): each knife's mean
-    trend = (j - 0.5 * (m - 1)) / m
-    trend = trend - (per_knife @ trend)[knife]
-    tt = float(trend @ trend)
-    e = d - (per_knife @ d)[knife]
-    e = e - trend * float(trend @ e) / tt
-    f = 1.0 / np.linspace(2.2, 16.0, 139)
-    near = np.min(np.abs(f[:, None] - np.arange(knives + 1)[None, :] / knives), axis=1)
-    # 2.5 periods at least over the marks: a longer wave is what the slow bends leave
-    f = f[(near >= 0.6 / m) & (f >= 2.5 / m)]
-    if f.size == 0:
+    basis = _chatter_basis(m, knives)
+    if basis is None:
         return []
-    ph = 2 * np.pi * f[:, None] * (j[None, :] + 0.5)
-    sn, cs = np.sin(ph), np.cos(ph)
-    for basis in (sn, cs):  # the same knife means and trend removed as from e
-        basis -= (basis @ per_knife.T)[:, knife]
-        basis -= np.outer(basis @ trend, trend) / tt
-    gss, gsc, gcc = (sn * sn).sum(1), (sn * cs).sum(1), (cs * cs).sum(1)
+    knife, per_knife, trend, f, sn, cs, gss, gsc, gcc = basis
+    e = d - (per_knife @ d)[knife]
+    e = e - trend * float(trend @ e) / float(trend @ trend)
     bs, bc = sn @ e, cs @ e
     det = np.maximum(gss * gcc - gsc * gsc, 1e-18)
     a_s, a_c = (gcc * bs - gsc * bc) / det, (gss * bc - gsc * bs) / det
@@ -561,6 +547,38 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
     conf = min(1.0, explained) * min(1.0, amp / (2 * settings.chatter_um))
     return [_defect(res, DefectKind.CHATTER, (int(cols[0]), int(cols[-1]) + 1),
                     (int(rows[0]), int(rows[-1]) + 1), amp, conf)]
+
+
+@functools.lru_cache(maxsize=32)
+def _chatter_basis(m: int, knives: int) -> tuple[np.ndarray, ...] | None:
+    """The sinusoids :func:`chatter` fits to ``m`` differences (``knives`` knives), set up once.
+
+    Each knife's mean and a linear trend removed from them as from the data; returns
+    ``(knife, per_knife, trend, f, sin, cos, gss, gsc, gcc)`` or ``None`` without a frequency.
+    """
+    j = np.arange(m)
+    knife = j % knives
+    onehot = (knife[None, :] == np.arange(knives)[:, None]).astype(np.float64)
+    per_knife = onehot / onehot.sum(axis=1, keepdims=True)  # (knives, m): each knife's mean
+    trend = (j - 0.5 * (m - 1)) / m
+    trend = trend - (per_knife @ trend)[knife]
+    tt = float(trend @ trend)
+    f = 1.0 / np.linspace(2.2, 16.0, 139)
+    near = np.min(np.abs(f[:, None] - np.arange(knives + 1)[None, :] / knives), axis=1)
+    # 2.5 periods at least over the marks: a longer wave is what the slow bends leave
+    f = f[(near >= 0.6 / m) & (f >= 2.5 / m)]
+    if f.size == 0:
+        return None
+    ph = 2 * np.pi * f[:, None] * (j[None, :] + 0.5)
+    sn, cs = np.sin(ph), np.cos(ph)
+    for b in (sn, cs):  # the same knife means and trend removed as from the data
+        b -= (b @ per_knife.T)[:, knife]
+        b -= np.outer(b @ trend, trend) / tt
+    out = (knife, per_knife, trend, f, sn, cs, (sn * sn).sum(1), (sn * cs).sum(1),
+           (cs * cs).sum(1))
+    for a in out:
+        a.flags.writeable = False
+    return out
 
 
 def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> list[Defect]:
