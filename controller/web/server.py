@@ -11,14 +11,49 @@ idle keep-alive connection after ``keep_alive_s``, and refuses a request head ov
 
 from __future__ import annotations
 
+import array
 import asyncio
+import fcntl
 import ipaddress
 import socket
+import termios
 import threading
 import time
 from typing import Any
 
 __all__ = ["WebServer", "bind", "bounded_h11", "parse_listen"]
+
+EVICT_LOOK_AT = 64
+"""Most waiting connections looked at (one ``FIONREAD`` each) to find one to evict whose
+socket holds no bytes of a request yet."""
+
+
+def _unread_bytes(transport: Any) -> int:
+    """Bytes in a connection's socket the server has not read yet (0 when unknown)."""
+    sock = transport.get_extra_info("socket")
+    if sock is None:
+        return 0
+    buf = array.array("i", [0])
+    try:
+        fcntl.ioctl(sock.fileno(), termios.FIONREAD, buf, True)
+    except (OSError, ValueError):
+        return 0
+    return int(buf[0])
+
+
+def _to_evict(waiting: dict[Any, None]) -> Any:
+    """The oldest waiting connection with nothing in its socket (else the oldest).
+
+    A loop that accepted a batch of connections before reading any of them (a flood on a busy
+    host) would otherwise close a client whose request already arrived.
+    """
+    oldest = next(iter(waiting))
+    for n, proto in enumerate(waiting):
+        if n >= EVICT_LOOK_AT:
+            break
+        if _unread_bytes(proto.transport) == 0:
+            return proto
+    return oldest
 
 
 def parse_listen(text: str) -> tuple[str, int]:
@@ -80,8 +115,9 @@ def bounded_h11(max_connections: int, header_timeout_s: float,
     ----------
     max_connections : int
         Connections at once. One more evicts the oldest connection still waiting for its
-        request head (``evicted``: a flood of idle sockets cannot starve a client that sends
-        its request); when every connection is busy, the new one is aborted (``refused``).
+        request head with no bytes of it in its socket yet (``evicted``: a flood of idle
+        sockets cannot starve a client that sends its request, even when the loop accepted
+        it unread); when every connection is busy, the new one is aborted (``refused``).
     header_timeout_s : float
         The request head must be complete this long after the connection opened or its last
         response completed; else the connection is closed (``header_timeouts``). Bytes
@@ -102,7 +138,7 @@ def bounded_h11(max_connections: int, header_timeout_s: float,
             super().connection_made(transport)
             if len(self.connections) > max_connections:
                 if waiting:
-                    oldest = next(iter(waiting))
+                    oldest = _to_evict(waiting)
                     oldest._cancel_head_timer()
                     oldest.connections.discard(oldest)
                     counters["evicted"] += 1
