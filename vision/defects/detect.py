@@ -702,10 +702,16 @@ class DefectFinder:
         merge = max(1, int(round(self.settings.row_mm * ppm / bin_rows)))
         n_src = source_rows if source_rows is not None else shape[0] // bin_rows
         merge = min(merge, max(1, n_src // 8))
+        bin_cols = max(1, int(round(self.settings.col_mm * ppm)))
+        # where the middle bin of an odd block alone still averages >= 3 x the pixels of a
+        # 659 x 493 map's sample (2 columns x 5 rows), only it is read (1920 x 1200: 6 x 5
+        # of 6 x 15 pixels, a third of the data)
         self.mapper = SurfaceMapper(camera, lights, shape, bin_rows=bin_rows,
                                     first_row_px=first_row_px, columns=columns,
                                     source_rows=source_rows, merge_rows=merge,
-                                    bin_cols=max(1, int(round(self.settings.col_mm * ppm))))
+                                    bin_cols=bin_cols,
+                                    middle_row=merge >= 3 and merge % 2 == 1
+                                    and bin_rows * bin_cols >= 3 * 10)
         self.knives = knives
 
     def __call__(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,

@@ -167,6 +167,10 @@ class SurfaceMapper:
         Source rows per image (default: as many whole bins as fit below ``first_row_px``).
     merge_rows : int, optional
         Source rows averaged into one map row.
+    middle_row : bool, optional
+        Take only the middle source row of each ``merge_rows`` block (odd ``merge_rows``;
+        the map's rows keep their centres and spacing), where the source rows average more
+        pixels than the map needs.
     bin_cols : int, optional
         Image columns averaged into one map column.
     cache : int, optional
@@ -176,7 +180,8 @@ class SurfaceMapper:
     def __init__(self, camera: Camera, lights: Lights, shape: tuple[int, int], *,
                  bin_rows: int = 1, first_row_px: float | None = None,
                  columns: tuple[int, int] | None = None, source_rows: int | None = None,
-                 merge_rows: int = 1, bin_cols: int = 1, cache: int = 8) -> None:
+                 merge_rows: int = 1, bin_cols: int = 1, middle_row: bool = False,
+                 cache: int = 8) -> None:
         if len(shape) != 2:
             raise ValueError(f"shape must be (height, width), got {shape!r}")
         self.height = check_int("shape[0] (height)", shape[0], lo=2)
@@ -184,6 +189,9 @@ class SurfaceMapper:
         self.bin_rows = check_int("bin_rows", bin_rows, lo=1)
         self.merge_rows = check_int("merge_rows", merge_rows, lo=1)
         self.bin_cols = check_int("bin_cols", bin_cols, lo=1, hi=self.width // 8)
+        if middle_row and self.merge_rows % 2 == 0:
+            raise ValueError(f"middle_row needs an odd merge_rows, got {merge_rows}")
+        self.middle_row = bool(middle_row) and self.merge_rows > 1
         self.first_row_px = ((self.bin_rows - 1) / 2.0 if first_row_px is None
                              else check_finite("first_row_px", first_row_px))
         c0, c1 = (0, self.width) if columns is None else (int(columns[0]), int(columns[1]))
@@ -273,7 +281,12 @@ class SurfaceMapper:
         r = np.asarray(rows)
         if r.dtype not in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
             r = r.astype(np.float32)
-        if self.merge_rows > 1 or self.bin_cols > 1:
+        if self.middle_row:  # the middle source row of each block: a strided view
+            m = self.merge_rows
+            r = r[(m - 1) // 2:self._n_red * m:m, :self._w_red * self.bin_cols]
+            if self.bin_cols > 1:
+                r = cv2.resize(r, (self._w_red, self._n_red), interpolation=cv2.INTER_AREA)
+        elif self.merge_rows > 1 or self.bin_cols > 1:
             r = cv2.resize(r[:self._n_red * self.merge_rows, :self._w_red * self.bin_cols],
                            (self._w_red, self._n_red), interpolation=cv2.INTER_AREA)
         return r.astype(np.float32, copy=False)

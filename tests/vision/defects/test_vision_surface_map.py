@@ -132,3 +132,23 @@ def test_a_coarse_map_is_the_fine_map_averaged_in_blocks():
     assert (x, y) == (pytest.approx(20.5 / PPM), pytest.approx(17.0 / PPM))
     with pytest.raises(ValueError, match="merge_rows"):
         SurfaceMapper(_camera(), Lights(slant_deg=SLANT), a.shape, merge_rows=100)
+
+
+def test_the_middle_row_of_each_block_keeps_the_maps_geometry():
+    """``middle_row``: one source row of each odd block, the map's samples where they were."""
+    a, b, _, _ = _pair(17)
+    lights = Lights(slant_deg=SLANT)
+    full = SurfaceMapper(_camera(), lights, a.shape, merge_rows=5, bin_cols=2)
+    thin = SurfaceMapper(_camera(), lights, a.shape, merge_rows=5, bin_cols=2, middle_row=True)
+    # rows alike within each block of 5: averaging them or taking the middle one agree
+    a5, b5 = (np.repeat(x[2::5], 5, axis=0) for x in (a, b))
+    m_full, m_thin = full(a5, b5, shift_px=17.0), thin(a5, b5, shift_px=17.0)
+    assert (m_thin.row0_px, m_thin.row_step_px) == (m_full.row0_px, m_full.row_step_px)
+    assert np.array_equal(m_thin.valid, m_full.valid)
+    np.testing.assert_allclose(m_thin.slope_along_feed, m_full.slope_along_feed, atol=1e-5)
+    # on the real pair it reads only the middle rows: what a mapper of those rows alone gives
+    m = thin(a, b, shift_px=17.0)
+    ref = full(a5, b5, shift_px=17.0)
+    np.testing.assert_allclose(m.slope_along_feed, ref.slope_along_feed, atol=1e-5)
+    with pytest.raises(ValueError, match="middle_row"):
+        SurfaceMapper(_camera(), lights, a.shape, merge_rows=4, middle_row=True)
