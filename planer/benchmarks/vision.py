@@ -247,7 +247,10 @@ def run(quick: bool) -> list[dict[str, Any]]:
         ``cpu_ms``, ``selfcal_cpu_ms``, ``remap_cpu_ms``, ``orientation_ms``, ``selfcal_ms``;
         a rolled camera: ``rolled_pairs_per_s``, ``rolled_cpu_ms``; the floor ratios
         ``remap_ratio``, ``selfcal_remap_ratio``, ``rolled_remap_ratio``,
-        ``target_remap_ratio``, ``meets_target`` (see the module docstring).
+        ``target_remap_ratio``, ``meets_target`` (see the module docstring); the 2-D surface
+        map and the planing defects (``Measurer(defects=True)``, no knives: chatter is not
+        looked for): ``defects_pairs_per_s``, ``defects_cpu_ms`` and ``defects_overhead``
+        (its CPU time over ``cpu_ms``, less 1).
     """
     import cv2
 
