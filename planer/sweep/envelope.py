@@ -144,8 +144,15 @@ def _label(values: Mapping[str, Any]) -> str:
 
 
 def envelope_table(sweep_path: str | Path, results_path: str | Path,
-                   *, progress: Any = None) -> list[dict[str, Any]]:
-    """One dict per plant: label, references, the cells of :func:`judge_plant`."""
+                   *, progress: Any = None, cache: str | Path | None = None
+                   ) -> list[dict[str, Any]]:
+    """One dict per plant: label, references, the cells of :func:`judge_plant`.
+
+    ``cache``: a JSON file of the references by plant label, read when it exists and written
+    after (the references depend on the plant only, not on the runs).
+    """
+    import json
+
     from planer.sweep.design import load_sweep
     from planer.sweep.driver import read_results
     from planer.sweep.point import build_machine_config, build_sim_config, prepare
@@ -160,11 +167,20 @@ def envelope_table(sweep_path: str | Path, results_path: str | Path,
             continue
         label = _label({k: v for k, v in job.point.values.items() if k in sweep.keys})
         plants.setdefault(label, (job, []))[1].append(row)
+    known: dict[str, Any] = {}
+    if cache is not None and Path(cache).exists():
+        known = json.loads(Path(cache).read_text())
     out = []
     for label, (job, rows) in plants.items():
-        if progress is not None:
-            progress(label)
-        refs = references(build_sim_config(job), build_machine_config(job))
+        if label in known:
+            refs = PlantRefs(**known[label])
+        else:
+            if progress is not None:
+                progress(label)
+            refs = references(build_sim_config(job), build_machine_config(job))
+            known[label] = refs.__dict__
+            if cache is not None:
+                Path(cache).write_text(json.dumps(known, indent=1))
         values = {k: v for k, v in job.point.values.items() if k in sweep.keys}
         out.append({"plant": label, "values": values, "refs": refs,
                     "rows": rows, **judge_plant(rows, refs)})
@@ -228,8 +244,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("sweep", help="the sweep file (config/sweeps/envelope.toml)")
     ap.add_argument("results", help="its results.csv")
     ap.add_argument("--plot", help="write the piezo corners' figure here (PNG)")
+    ap.add_argument("--cache", help="keep the plants' references in this JSON file")
     args = ap.parse_args(argv)
-    table = envelope_table(args.sweep, args.results,
+    table = envelope_table(args.sweep, args.results, cache=args.cache,
                            progress=lambda s: print(f"references: {s}", file=sys.stderr))
     print(markdown(table))
     if args.plot:

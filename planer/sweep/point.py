@@ -334,15 +334,31 @@ def _pitch_judgement(summary: Mapping[str, Any], sim_cfg: Any, machine_cfg: Any,
     ramp = drive_ramp_end_mm(feed.initial_mm_s, fastest, accel_mm_s2=feed.accel_max_mm_s2,
                              bandwidth_hz=feed.bandwidth_hz)
     conv = summary.get("converged") or {}
-    ref, after = conv.get("reference_at_mm"), conv.get("pitch_settled_after_mm")
     pitch = (summary.get("final") or {}).get("pitch_mm")
     goal = (fastest if capped else wanted) / per_mm
     travel = float(summary.get("board_travel_m") or 0.0) * 1e3
     verdict = pitch_verdict(
         travel_mm=travel, ramp_end_mm=ramp,
-        in_band_from_mm=None if ref is None or after is None else float(ref) + float(after),
+        in_band_from_mm=_in_band_from_mm(summary.get("measurements") or [], goal),
         final_pitch_error=None if pitch is None else float(pitch) / goal - 1.0, capped=capped)
-    return {"loop_closed_at_mm": ref, "ramp_end_mm": ramp, "pitch_verdict": verdict}
+    return {"loop_closed_at_mm": conv.get("reference_at_mm"), "ramp_end_mm": ramp,
+            "pitch_verdict": verdict}
+
+
+def _in_band_from_mm(measurements: Sequence[Mapping[str, Any]], goal_mm: float,
+                     tol: float = 0.02) -> float | None:
+    """Board travel from which every true pitch is within ``tol`` of ``goal_mm``, mm.
+
+    Counted from the start of the run, not from the loop's reference (which a later event
+    moves); ``None`` when the last one is not within.
+    """
+    vals = [(float(m["board_travel_mm"]), float(m["true_pitch_mm"])) for m in measurements
+            if m.get("board_travel_mm") is not None and m.get("true_pitch_mm") is not None]
+    if not vals or abs(vals[-1][1] / goal_mm - 1.0) > tol:
+        return None
+    last_bad = max((i for i, (_, p) in enumerate(vals) if abs(p / goal_mm - 1.0) > tol),
+                   default=None)
+    return vals[0][0] if last_bad is None else vals[last_bad + 1][0]
 
 
 def _cell(v: Any) -> str:

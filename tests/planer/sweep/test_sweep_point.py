@@ -150,11 +150,18 @@ def test_the_pitch_verdict_of_a_slow_plc_and_of_a_capped_target():
     assert row["loop_closed_at_mm"] == "300"
     # 8 knives at 1.5 mm need 1200 mm/s, the cap is 1000: judged at the reachable 1.25 mm
     job = _job({"sim.cutterhead.knives": 8, "sim.cutterhead.runout_um": [0.0] * 8})
+    meas = [{"board_travel_mm": 100.0 * i, "true_pitch_mm": 1.3 if i < 7 else 1.251}
+            for i in range(1, 60)]
     summary = {**summary, "final": {"uniformity_cv": 0.001, "pitch_mm": 1.251},
-               "converged": {"reference_at_mm": 300.0, "pitch_settled_after_mm": 400.0}}
+               "converged": {"reference_at_mm": 300.0, "pitch_settled_after_mm": 400.0},
+               "measurements": meas}
     row = outcome_row(summary, build_sim_config(job), build_machine_config(job))
     assert float(row["final_pitch_error"]) == pytest.approx(1.251 / 1.5 - 1)
-    assert row["pitch_verdict"] == "capped, in band"
+    assert row["pitch_verdict"] == "capped, in band"  # from 0.7 m, the ramp ends at 0.3 m
+    late = [{**m, "true_pitch_mm": 1.3} if m["board_travel_mm"] < 2000.0 else m for m in meas]
+    row = outcome_row({**summary, "measurements": late}, build_sim_config(job),
+                      build_machine_config(job))
+    assert row["pitch_verdict"] == "capped, late"
 
 
 @pytest.mark.parametrize(
