@@ -9,6 +9,7 @@ The loops here compute the same statistics in one or two calls each:
 * :func:`ratios_every_second`, :func:`ratios_pairs` -- the row bins' intensity ratio
   ``B_j(c + s) / A_j(c)`` at every second column or at pairs of neighbouring columns (the log
   then by one ``cv2.log`` of the whole block, vectorised, which numba's scalar ``log`` is not);
+  :func:`check_ratios` both from one pass (every column's ratio once);
 * :func:`screen_hits` -- the defect screen's departures from the column means and their runs
   along the rows;
 * :func:`disagreement_sums` -- the row bins' disagreement from pairs of neighbouring columns;
@@ -73,6 +74,36 @@ def ratios_pairs(rows_a: np.ndarray, rows_b: np.ndarray, shift: int, lo: int, st
             o[k] = max(np.float32(rb[c + shift]), half) / max(np.float32(ra[c]), half)
             o[m + k] = (max(np.float32(rb[c + 1 + shift]), half)
                         / max(np.float32(ra[c + 1]), half))
+
+
+@njit(**_SUMS)
+def check_ratios(rows_a: np.ndarray, rows_b: np.ndarray, shift: int, lo: int, step: int,
+                 screen: np.ndarray, pairs: np.ndarray) -> None:  # pragma: no cover - compiled
+    """:func:`ratios_every_second` into ``screen`` and :func:`ratios_pairs` into ``pairs``.
+
+    Every column's ratio ``max(B[j, c + shift], 0.5) / max(A[j, c], 0.5)`` over the span
+    both need is computed once per row (a contiguous, vectorised loop) and both samplings
+    are picked from it: the same float32 values as the two loops give.
+    """
+    half = np.float32(0.5)
+    m2 = screen.shape[1]
+    m = pairs.shape[1] // 2
+    span = 2 * m2 - 1
+    if m > 0:
+        span = max(span, (m - 1) * step + 2)
+    full = np.empty(max(span, 0), dtype=np.float32)
+    for j in range(rows_a.shape[0]):
+        ra = rows_a[j, lo:lo + span]
+        rb = rows_b[j, lo + shift:lo + shift + span]
+        for c in range(span):
+            full[c] = max(np.float32(rb[c]), half) / max(np.float32(ra[c]), half)
+        o = screen[j]
+        for k in range(m2):
+            o[k] = full[2 * k]
+        p = pairs[j]
+        for k in range(m):
+            p[k] = full[k * step]
+            p[m + k] = full[k * step + 1]
 
 
 @njit(**_SUMS)
@@ -307,6 +338,7 @@ def warm_up() -> None:
         rows = np.ones((3, 12), dtype=dtype)
         ratios_every_second(rows, rows, 1, 0, ratio)
         ratios_pairs(rows, rows, 1, 0, 3, ratio)
+        check_ratios(rows, rows, 1, 0, 3, ratio, ratio)
     screen_hits(ratio, 4.8, 2, 2)
     disagreement_sums(ratio)
     x = np.arange(40.0)

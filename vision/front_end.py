@@ -608,5 +608,5 @@ class TextureRows:
 def _inverse(profile: np.ndarray) -> np.ndarray:
     """``1 / profile`` (0 where it is not positive), ``float32``."""
     prof = np.asarray(profile, dtype=np.float32)
-    safe = np.where(prof > 0, prof, np.float32(1.0))
-    return np.where(prof > 0, np.float32(1.0) / safe, np.float32(0.0)).astype(np.float32)
+    out = np.zeros(prof.shape, dtype=np.float32)
+    return np.divide(np.float32(1.0), prof, out=out, where=prof > 0)

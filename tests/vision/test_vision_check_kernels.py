@@ -8,9 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from vision import kernels
+from vision import check_kernels, kernels
+from vision.calibration.illumination import running_mean
 from vision.orientation import CLIP_SAMPLES, CLIP_SIGMAS, _highpassed_log_rows
-from vision.registration.consistency import marks_shading_agreement
+from vision.registration.consistency import _without_slow, marks_shading_agreement
 from vision.registration.defect_rows import _screened, rows_disagreement
 
 kernels.warm_up()
@@ -42,14 +43,44 @@ def test_marks_agreement_is_the_correlation_after_a_cubic():
         la = rng.normal(size=n) + np.sin(x)
         lb = rng.normal(size=n) - np.sin(x)
         max_samples = int(rng.integers(50, 800))
-        got = marks_shading_agreement(la, lb, x, c, b, max_samples=max_samples)
+        # the compiled loop against its numpy definition
+        got = check_kernels.marks_agreement(la, lb, x, c, b, max_samples)
         if not np.count_nonzero((x >= c[0]) & (x <= c[-1])) >= 16:
-            assert math.isnan(got.score)
+            assert math.isnan(got[0]) and math.isnan(got[1])
             continue
         want = _agreement_by_numpy(la, lb, x, c, b, max_samples)
         # the residuals' means are ~0 after the cubic, so corrcoef is the same correlation
-        assert got.score_a == pytest.approx(want[0], abs=1e-9), trial
-        assert got.score_b == pytest.approx(want[1], abs=1e-9), trial
+        assert got[0] == pytest.approx(want[0], abs=1e-9), trial
+        assert got[1] == pytest.approx(want[1], abs=1e-9), trial
+        # the check is that loop on the log-profiles less their slow part
+        whole = marks_shading_agreement(la, lb, x, c, b, max_samples=max_samples)
+        slow_free = check_kernels.marks_agreement(*_without_slow(la, lb, x, c), x, c, b,
+                                                  max_samples)
+        assert (whole.score_a, whole.score_b) == slow_free, trial
+
+
+def _without_slow_by_definition(log_profile, x, cusps):
+    """The log-profile less its running mean over 8 marks, its ends' values held."""
+    length = 8.0 * (cusps[-1] - cusps[0]) / (cusps.size - 1) / ((x[-1] - x[0]) / (x.size - 1))
+    if not 1.0 <= length <= log_profile.size:
+        return log_profile
+    mean = running_mean(log_profile, length)
+    lead = (log_profile.size - mean.size) // 2
+    full = np.concatenate([np.full(lead, mean[0]), mean,
+                           np.full(log_profile.size - lead - mean.size, mean[-1])])
+    return log_profile - full
+
+
+def test_the_slow_part_is_each_profiles_running_mean_exactly():
+    rng = np.random.default_rng(17)
+    for trial in range(30):
+        n = int(rng.integers(20, 1500))
+        x = np.cumsum(rng.uniform(0.05, 0.1, n))
+        c = np.sort(rng.uniform(x[0], x[-1], int(rng.integers(2, 60))))
+        la, lb = rng.normal(size=n) + x, rng.normal(size=n) - 0.3 * x
+        got_a, got_b = _without_slow(la, lb, x, c)
+        np.testing.assert_array_equal(got_a, _without_slow_by_definition(la, x, c), str(trial))
+        np.testing.assert_array_equal(got_b, _without_slow_by_definition(lb, x, c), str(trial))
 
 
 def _log_ratio(a, b, s, cols):
@@ -115,3 +146,24 @@ def test_the_roll_rows_clip_at_the_robust_deviation():
     limit = CLIP_SIGMAS * 1.4826 * float(np.median(np.abs(raw.ravel()[::step])))
     np.testing.assert_array_equal(hp, np.clip(raw, -limit, limit))
     assert np.abs(raw).max() > limit  # the shadow was clipped
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_check_ratios_are_both_samplings_exactly(dtype):
+    rng = np.random.default_rng(13)
+    for _ in range(25):
+        n, w = int(rng.integers(1, 12)), int(rng.integers(40, 900))
+        a = rng.uniform(0, 3000, (n, w)).astype(dtype)
+        b = rng.uniform(0, 3000, (n, w)).astype(dtype)
+        a[0, :3] = 0  # below the 0.5 floor
+        s = int(rng.integers(-15, 16))
+        lo, hi = max(3, -s), min(w - 5, w - s)
+        step = max(2, (hi - lo) // int(rng.integers(5, 200)))
+        screen = np.empty((n, (hi - lo + 1) // 2), dtype=np.float32)
+        pairs = np.empty((n, 2 * ((hi - 1 - lo) // step)), dtype=np.float32)
+        check_kernels.check_ratios(a, b, s, lo, step, screen, pairs)
+        want_screen, want_pairs = np.empty_like(screen), np.empty_like(pairs)
+        check_kernels.ratios_every_second(a, b, s, lo, want_screen)
+        check_kernels.ratios_pairs(a, b, s, lo, step, want_pairs)
+        np.testing.assert_array_equal(screen, want_screen)
+        np.testing.assert_array_equal(pairs, want_pairs)

@@ -30,8 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.checks import check_finite, check_positive, check_range
-from vision import check_kernels
-from vision.calibration.illumination import running_mean
+from vision import check_kernels, kernels
 
 
 @dataclass(frozen=True)
@@ -105,7 +104,7 @@ def marks_shading_agreement(
         return Agreement(math.nan, math.nan)
     # the marks' shading, not the wood's: the log-profiles lose their running mean over 8
     # marks (the albedo's slow part, which a cubic leaves; 0.5 mm marks: 0.44-0.91 -> 0.76-0.9)
-    la, lb = _without_slow(la, x, c), _without_slow(lb, x, c)
+    la, lb = _without_slow(la, lb, x, c)
     # one compiled pass (vision.check_kernels): the samples inside the marks, every k-th of
     # them, the cubic by its normal equations (t in [-1, 1]: well posed), the correlations
     score_a, score_b = check_kernels.marks_agreement(
@@ -114,20 +113,30 @@ def marks_shading_agreement(
     return Agreement(float(score_a), float(score_b))
 
 
-def _without_slow(log_profile: np.ndarray, x: np.ndarray, cusps: np.ndarray) -> np.ndarray:
-    """The log-profile less its running mean over 8 marks (held at its ends' values)."""
-    if cusps.size < 2 or x.size < 2 or not x[-1] > x[0]:
-        return log_profile
-    length = 8.0 * (cusps[-1] - cusps[0]) / (cusps.size - 1) / ((x[-1] - x[0]) / (x.size - 1))
-    if not 1.0 <= length <= log_profile.size:
-        return log_profile
-    mean = running_mean(log_profile, length)
-    lead = (log_profile.size - mean.size) // 2
-    full = np.empty_like(log_profile)
+def _without_slow(log_a: np.ndarray, log_b: np.ndarray, x: np.ndarray, cusps: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Both log-profiles less their running mean over 8 marks (held at its ends' values).
+
+    One compiled running mean of the two as columns (:func:`vision.kernels.running_mean_2d`:
+    each column's sums as :func:`vision.calibration.illumination.running_mean` of it alone).
+    """
+    n = log_a.size
+    if cusps.size < 2 or n < 2 or not x[-1] > x[0]:
+        return log_a, log_b
+    length = 8.0 * (cusps[-1] - cusps[0]) / (cusps.size - 1) / ((x[-1] - x[0]) / (n - 1))
+    if not 1.0 <= length <= n:
+        return log_a, log_b
+    both = np.empty((n, 2))
+    both[:, 0] = log_a
+    both[:, 1] = log_b
+    mean = kernels.running_mean_2d(both, float(length))
+    lead = (n - mean.shape[0]) // 2
+    full = np.empty_like(both)
     full[:lead] = mean[0]
-    full[lead:lead + mean.size] = mean
-    full[lead + mean.size:] = mean[-1]
-    return log_profile - full
+    full[lead:lead + mean.shape[0]] = mean
+    full[lead + mean.shape[0]:] = mean[-1]
+    both -= full
+    return both[:, 0], both[:, 1]
 
 
 def shift_within_slip(shift_px: float, encoder_shift_px: float, *, max_slip_px: float) -> bool:

@@ -116,18 +116,32 @@ def rows_disagreement(rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float, u
     defects (up to 20 DN of noise), 1.0-1.5 with pits and chips, 2.1-2.5 with raised grain at
     60-70 deg; NaN when the overlap is too small.
     """
-    s = int(round(shift_px))
-    w = rows_a.shape[1]
-    lo, hi = max(u0, -s), min(u1, w - s)
+    s, lo, hi = _columns(shift_px, u0, u1, rows_a.shape[1])
     if hi - lo < 16 or rows_a.shape[0] < 2:
         return math.nan
     # pairs of neighbouring columns, ~200 pairs over the overlap: the same statistics, at a
     # fraction of the cost on wide images
-    step = max(2, (hi - lo) // 200)
+    step = _pair_step(lo, hi)
     logs = np.empty((rows_a.shape[0], 2 * ((hi - 1 - lo) // step)), dtype=np.float32)
     check_kernels.ratios_pairs(_compiled_rows(rows_a), _compiled_rows(rows_b), s, lo, step,
                                logs)
-    total, noise, marks = check_kernels.disagreement_sums(cv2.log(logs, dst=logs))
+    return _disagreement(cv2.log(logs, dst=logs))
+
+
+def _columns(shift_px: float, u0: int, u1: int, width: int) -> tuple[int, int, int]:
+    """B's whole-column offset and A's columns ``lo .. hi - 1`` the row checks compare."""
+    s = int(round(shift_px))
+    return s, max(u0, -s), min(u1, width - s)
+
+
+def _pair_step(lo: int, hi: int) -> int:
+    """Columns between the disagreement's pairs (~200 pairs over ``lo .. hi - 1``)."""
+    return max(2, (hi - lo) // 200)
+
+
+def _disagreement(logs: np.ndarray) -> float:
+    """:func:`rows_disagreement` from the pairs' log-ratios (NaN without marks' variance)."""
+    total, noise, marks = check_kernels.disagreement_sums(logs)
     if not marks > 0:
         return math.nan
     return math.sqrt(max(total - noise, 0.0) / marks)
@@ -195,24 +209,34 @@ def _screened(a: np.ndarray, b: np.ndarray, d: float, u0: int, u1: int, limit: f
     single columns, which the run length drops), every second column; ``float32``, the
     departures and their runs in one compiled pass (:func:`vision.check_kernels.screen_hits`).
     """
-    w = a.shape[1]
-    s = int(round(d))
-    lo, hi = max(u0, -s), min(u1, w - s)
+    s, lo, hi = _columns(d, u0, u1, a.shape[1])
     if hi - lo < 16:
         return True
     # every second column: a run of min_run_px columns still shows as half as many samples
     ratio = np.empty((a.shape[0], (hi - lo + 1) // 2), dtype=np.float32)
     check_kernels.ratios_every_second(_compiled_rows(a), _compiled_rows(b), s, lo, ratio)
-    cv2.log(ratio, dst=ratio)
+    return _screen_hit(cv2.log(ratio, dst=ratio), limit, min_run_px, min_samples)
+
+
+def _screen_hit(logs: np.ndarray, limit: float, min_run_px: int, min_samples: int) -> bool:
+    """:func:`_screened` from the log-ratios at every second column."""
     # 0.8: mean |x| of a unit normal
-    return bool(check_kernels.screen_hits(ratio, limit * 0.8, max(1, (min_run_px + 1) // 2),
+    return bool(check_kernels.screen_hits(logs, limit * 0.8, max(1, (min_run_px + 1) // 2),
                                           (min_samples + 1) // 2))
 
 
+THRESHOLD = 6.0
+"""Default of :func:`defect_mask`'s ``threshold`` (robust standard deviations)."""
+MIN_RUN_PX = 5
+"""Default of :func:`defect_mask`'s ``min_run_px``."""
+MIN_SAMPLES = 4
+"""Default of :func:`defect_mask`'s ``min_samples``."""
+
+
 def defect_mask(rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float, *, u0: int, u1: int,
-                threshold: float = 6.0, floor: float = 0.02, grow_px: int = 3,
-                weak_fraction: float = 0.4, min_run_px: int = 5, min_samples: int = 4,
-                screen: float = 1.0) -> RowMask | None:
+                threshold: float = THRESHOLD, floor: float = 0.02, grow_px: int = 3,
+                weak_fraction: float = 0.4, min_run_px: int = MIN_RUN_PX,
+                min_samples: int = MIN_SAMPLES, screen: float = 1.0) -> RowMask | None:
     """The row-bin samples whose log-ratio departs from their column's (a defect's shading).
 
     Parameters
@@ -260,6 +284,15 @@ def defect_mask(rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float, *, u0: 
         raise ValueError(f"columns {u0}..{u1} must lie within the rows ({w} wide)")
     if n < 3 or not _screened(a, b, d, u0, u1, screen * threshold, min_run_px, min_samples):
         return None
+    return _mask(a, b, d, u0, u1, threshold=threshold, floor=floor, grow_px=grow_px,
+                 weak_fraction=weak_fraction, min_run_px=min_run_px, min_samples=min_samples)
+
+
+def _mask(a: np.ndarray, b: np.ndarray, d: float, u0: int, u1: int, *, threshold: float,
+          floor: float = 0.02, grow_px: int = 3, weak_fraction: float = 0.4,
+          min_run_px: int = MIN_RUN_PX, min_samples: int = MIN_SAMPLES) -> RowMask | None:
+    """:func:`defect_mask` of rows its screen did not pass (the medians' statistics)."""
+    n = a.shape[0]
     ratio = _log_rows(registered_rows(b, d, u0, u1)) - _log_rows(a[:, u0:u1])
     dev = ratio - np.median(ratio, axis=0)[None, :]
     mag = np.abs(dev)
@@ -371,9 +404,11 @@ def row_checks(width: int, rows_a: np.ndarray, rows_b: np.ndarray, shift_px: flo
                margin: int) -> tuple[RowMask | None, np.ndarray | None]:
     """:func:`defect_rows` and :func:`ridged_rows` of one pair at one shift, in one call.
 
-    The overlap is found once and the rows made ready for the compiled loops once (no copy
-    when they are C-ordered ``uint16`` or ``float32``, as the front end gives them); the
-    results are those of the two functions.
+    The overlap is found once, and the intensity ratios of the screen (every second column)
+    and of the disagreement (pairs of neighbouring columns) come from one compiled pass over
+    the rows (:func:`vision.check_kernels.check_ratios`: every column's ratio once, both
+    samplings picked from it; the same values, logs and statistics as the two functions
+    compute).
 
     Returns
     -------
@@ -384,12 +419,25 @@ def row_checks(width: int, rows_a: np.ndarray, rows_b: np.ndarray, shift_px: flo
     """
     u0, u1 = overlap(width, shift_px, columns=(margin, width - margin))
     a, b = np.asarray(rows_a), np.asarray(rows_b)
-    if a.dtype == b.dtype and a.dtype in (np.uint16, np.float32):
-        a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)  # as _screened would
-    mask = defect_mask(a, b, shift_px, u0=u0, u1=u1) if u1 - u0 >= 16 else None
-    ridged = rows_disagreement(a, b, shift_px, u0, u1) > RIDGED
-    weights = row_window(a.shape[0]) if ridged else None
-    return mask, weights
+    if a.ndim != 2 or a.shape != b.shape:
+        raise ValueError(f"rows_a and rows_b must be 2-D of one shape, got {a.shape}, {b.shape}")
+    d = check_finite("shift_px", shift_px)
+    n, w = a.shape
+    s, lo, hi = _columns(d, u0, u1, w)
+    if n < 3 or u1 - u0 < 16 or hi - lo < 16 or not 0 <= u0 < u1 <= w:
+        # small or odd cases: the two functions as they are
+        return (defect_rows(width, a, b, d, margin),
+                ridged_rows(width, a, b, d, margin))
+    step = _pair_step(lo, hi)
+    screen = np.empty((n, (hi - lo + 1) // 2), dtype=np.float32)
+    pairs = np.empty((n, 2 * ((hi - 1 - lo) // step)), dtype=np.float32)
+    check_kernels.check_ratios(_compiled_rows(a), _compiled_rows(b), s, lo, step, screen,
+                               pairs)
+    mask = None
+    if _screen_hit(cv2.log(screen, dst=screen), THRESHOLD, MIN_RUN_PX, MIN_SAMPLES):
+        mask = _mask(a, b, d, u0, u1, threshold=THRESHOLD)
+    ridged = _disagreement(cv2.log(pairs, dst=pairs)) > RIDGED
+    return mask, (row_window(n) if ridged else None)
 
 
 def defect_rows(width: int, rows_a: np.ndarray, rows_b: np.ndarray, shift_px: float,

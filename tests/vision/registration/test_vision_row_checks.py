@@ -37,10 +37,14 @@ def _pair(rng: np.random.Generator, n: int, w: int, dtype: type, *, pit: bool, r
 def test_row_checks_are_defect_rows_and_ridged_rows(dtype):
     rng = np.random.default_rng(5)
     seen_mask, seen_weights = set(), set()
-    for trial in range(12):
-        n, w = int(rng.integers(4, 30)), int(rng.integers(200, 900))
+    for trial in range(16):
+        n, w = int(rng.integers(1, 30)), int(rng.integers(200, 900))
+        if trial >= 12:  # the small cases: too few bins, or too little overlap
+            n, w = (2, 300) if trial % 2 else (8, int(rng.integers(40, 60)))
         a, b = _pair(rng, n, w, dtype, pit=trial % 2 == 1, ridges=trial % 3 == 0)
         d, margin = 9.0 + rng.uniform(-0.3, 0.3), int(rng.integers(0, 12))
+        if trial >= 12 and w < 100:
+            margin = 12
         mask, weights = row_checks(w, a, b, d, margin)
         want_mask = defect_rows(w, a, b, d, margin)
         want_weights = ridged_rows(w, a, b, d, margin)
