@@ -10,7 +10,8 @@ amplifier), built from the EDS file:
 
 * start: once it is heard (boot-up or heartbeat) the limits are read by SDO (stroke, offset
   range, slew, setpoint timeout: ``0x2200``) and the producer heartbeat time (``0x1017``), one
-  expedited upload after the other, never blocking; then NMT start (operational). A node that
+  expedited upload after the other (a poll waits a few milliseconds for the answers, no more);
+  then NMT start (operational). A node that
   boots again, or is heard again after it was lost, is read and started anew;
 * heartbeat consumer: the node's state and when it was last heard, on the service's clock; it
   is lost when it has been silent for ``heartbeat_lost_after`` heartbeat periods;
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import queue
 import struct
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +69,9 @@ _LIMIT_SIGNALS = {1: "stroke_um", 2: "offset_min_um", 3: "offset_max_um", 4: "sl
                   5: "setpoint_timeout_ms"}
 SEND_TIMEOUT_S = 0.005
 """Longest a send waits for room in the transmit queue by default, s."""
+SDO_WAIT_S = 0.01
+"""Longest a poll waits for SDO answers while the limits are read, s: the simulated node over
+UDP multicast answers in 2-6 ms (a 2-core VM), so the six reads take one or two cycles."""
 
 
 @dataclass(frozen=True)
@@ -169,12 +174,16 @@ class AmpBus:
         The amplifiers' EDS file (default ``config/piezo_amp.eds``).
     send_timeout_s : float, keyword-only
         Longest a send may wait for room in the transmit queue, s.
+    sdo_wait_s : float, keyword-only
+        Longest :meth:`poll` waits for SDO answers while a read is under way, s (0: never).
     """
 
     def __init__(self, bus: Any, *, eds: str | Path | None = None,
-                 send_timeout_s: float = SEND_TIMEOUT_S) -> None:
+                 send_timeout_s: float = SEND_TIMEOUT_S,
+                 sdo_wait_s: float = SDO_WAIT_S) -> None:
         self.bus = bus
         self.eds = eds
+        self.sdo_wait_s = check_positive("sdo_wait_s", sdo_wait_s, allow_zero=True)
         self.network = _MasterNetwork(bus, check_positive("send_timeout_s", send_timeout_s))
         self.gate = _Gate(self.network)
         self.now_s = 0.0
@@ -209,7 +218,11 @@ class AmpBus:
         return node
 
     def poll(self, now_s: float, *, max_frames: int = 1000) -> dict[int, int]:
-        """Drain the bus without blocking, then let each amplifier do what is due (SDO, NMT).
+        """Drain the bus, then let each amplifier do what is due (SDO, NMT).
+
+        Draining never blocks, except while an SDO read is under way (at start and after a
+        reconnect): then answers are waited for, :attr:`sdo_wait_s` at most per call in all,
+        so a node that answers within milliseconds has its limits read in one or two cycles.
 
         Returns
         -------
@@ -223,20 +236,33 @@ class AmpBus:
         """
         heard: dict[int, int] = {}
         for _ in range(max_frames):
-            try:
-                msg = self.bus.recv(timeout=0.0)
-            except (can.CanError, OSError, ValueError) as exc:  # a broken bus
-                raise FieldbusError(f"CAN receive failed: {exc}") from None
-            if msg is None:
+            if not self._take(self._recv(0.0), now_s, heard):
                 break
-            if msg.is_error_frame or msg.is_remote_frame:
-                continue
+        self.serve(now_s)
+        end = time.monotonic() + self.sdo_wait_s
+        while any(a.reading for a in self.amplifiers.values()):
+            left = end - time.monotonic()
+            if left <= 0.0 or not self._take(self._recv(left), now_s, heard):
+                break
+            self.serve(now_s)
+        return heard
+
+    def _recv(self, timeout_s: float) -> Any:
+        try:
+            return self.bus.recv(timeout=timeout_s)
+        except (can.CanError, OSError, ValueError) as exc:  # a broken bus
+            raise FieldbusError(f"CAN receive failed: {exc}") from None
+
+    def _take(self, msg: Any, now_s: float, heard: dict[int, int]) -> bool:
+        """One received message through the gate (counted in ``heard``); ``False``: none."""
+        if msg is None:
+            return False
+        if not (msg.is_error_frame or msg.is_remote_frame):
             node = self.deliver(msg.arbitration_id, bytes(msg.data), now_s,
                                 extended=msg.is_extended_id)
             if node is not None:
                 heard[node] = heard.get(node, 0) + 1
-        self.serve(now_s)
-        return heard
+        return True
 
     def serve(self, now_s: float) -> None:
         """What each amplifier has due at ``now_s``: SDO answers and requests, NMT start."""
@@ -331,6 +357,11 @@ class CanopenAmplifier:
         self._reads = list(_LIMIT_READS)
         self.wanted = NmtState.OPERATIONAL
         self._ask(self.ampbus.now_s)
+
+    @property
+    def reading(self) -> bool:
+        """Whether an SDO read of its limits is under way."""
+        return bool(self._reads)
 
     def stop(self) -> None:
         """NMT stop: the node leaves operational (PDOs no longer acted on)."""

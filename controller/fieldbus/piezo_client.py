@@ -23,7 +23,8 @@ re-planned from the offsets asked for: never resent unchanged. What changed is q
 
 The bus is any ``can.BusABC``: from the configuration through :func:`open_bus`
 (``protocol/can_transport.py``), or a ``virtual`` bus in tests. Time is passed in (``now_s``);
-nothing here reads a clock or runs a thread.
+nothing here runs a thread, and a poll blocks only while the limits are read, a few
+milliseconds at most (``AmpBus.sdo_wait_s``).
 """
 
 from __future__ import annotations
