@@ -339,3 +339,31 @@ def test_describe_frame_names_what_does_not_fit():
 def test_a_bad_node_id_is_refused_naming_it(node_id):
     with pytest.raises(ValueError, match="node_id"):
         load_od(node_id)
+
+
+def test_a_poll_waits_for_the_sdo_answers_while_the_limits_are_read(rig):
+    """A node that answers at once (here served on a thread of its own, as ``planer sim`` does)
+    has its limits read within one poll; the wait ends with the last answer, not a fixed time."""
+    rig.sim.pump(0.0)  # boot-up and the first heartbeat
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            msg = rig.sim.bus.recv(timeout=0.05)
+            if msg is not None:
+                rig.core.on_frame(msg.arbitration_id, bytes(msg.data), 0.0)
+                for fid, data in rig.core.poll(0.0):
+                    rig.sim.bus.send(can.Message(arbitration_id=fid, data=data,
+                                                 is_extended_id=False))
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    try:
+        rig.master.sdo_wait_s = 30.0  # a backstop for a loaded host
+        rig.master.poll(0.0)
+        amp = rig.amps[0]
+        assert amp.limits is not None and not amp.reading
+        assert amp.counts["sdo_reads"] == 6 and amp.counts["nmt_starts"] == 1
+    finally:
+        stop.set()
+        server.join(5)
