@@ -203,14 +203,17 @@ def dask_client(*, workers: int, scheduler: str | None) -> Iterator[Any]:
         finally:
             client.close()
         return
-    # no dashboard; the scheduler's and workers' HTTP servers (health, metrics) still start,
-    # so give them a free port on the loopback interface
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", dashboard_address="127.0.0.1:0",
-                           worker_dashboard_address="127.0.0.1:0",
-                           scheduler_kwargs={"dashboard": False})
-    quiet_cancel_noise()  # the nannies run in this process
+    loop = _loop_without_ctrl_c()
+    cluster = None
     try:
+        with _ctrl_c_held():  # a Ctrl-C now stops the sweep once the cluster can be closed
+            # no dashboard; the scheduler's and workers' HTTP servers (health, metrics) still
+            # start, so give them a free port on the loopback interface
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                                   worker_dashboard_address="127.0.0.1:0",
+                                   scheduler_kwargs={"dashboard": False}, loop=loop.loop)
+        quiet_cancel_noise()  # the nannies run in this process
         client = Client(cluster)
         client.register_plugin(_quiet_workers())  # our own workers only, not a shared cluster's
         try:
@@ -218,7 +221,68 @@ def dask_client(*, workers: int, scheduler: str | None) -> Iterator[Any]:
         finally:
             client.close()
     finally:
-        cluster.close()
+        if cluster is not None:
+            cluster.close()
+        loop.stop()
+
+
+def _loop_without_ctrl_c() -> Any:
+    """A running Dask event loop (``LoopRunner``) on a thread that never takes SIGINT.
+
+    Its thread starts with SIGINT blocked; a thread inherits its creator's signal mask and a
+    process the mask of the thread that forked it, so the local cluster's worker processes
+    (started from this loop's threads) are born deaf to the terminal's Ctrl-C too: not only
+    once :func:`_quiet_workers` ran in them, also while they import (a Ctrl-C in a sweep's
+    first seconds otherwise left a worker's ``KeyboardInterrupt`` traceback). Ctrl-C goes to
+    this process's main thread, which stops the sweep.
+    """
+    import signal
+    from multiprocessing import resource_tracker
+
+    from distributed.utils import LoopRunner
+
+    # started now, from this thread: multiprocessing starts its resource tracker from the
+    # thread of the first spawn and unblocks SIGINT in that thread afterwards (bpo-33613)
+    resource_tracker.ensure_running()
+    runner = LoopRunner()
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})  # pending, not lost
+    try:
+        runner.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+    return runner
+
+
+@contextmanager
+def _ctrl_c_held() -> Iterator[None]:
+    """Hold a Ctrl-C until the block ends, then raise ``KeyboardInterrupt``; a second one at once.
+
+    Dask's ``LocalCluster`` interrupted while it starts is left half-started (its exit handler
+    then fails with ``AssertionError: Status.init``); held, the first Ctrl-C ends the sweep as
+    soon as the cluster is up and can be closed. Outside the main thread, or where SIGINT is
+    not Python's default handler (ignored by the caller, or the caller's own), nothing is held.
+    """
+    import signal
+    import threading
+
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield
+        return
+    presses: list[int] = []
+
+    def hold(signum: int, frame: object) -> None:
+        presses.append(signum)
+        if len(presses) > 1:  # asked twice: do not wait any longer
+            raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if presses:
+        raise KeyboardInterrupt
 
 
 def _dask_results(jobs: Sequence[Job], client: Any) -> Iterator[tuple[int, dict[str, str]]]:

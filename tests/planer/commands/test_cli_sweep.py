@@ -70,6 +70,57 @@ def test_every_plot_title_lies_inside_its_figure(n_keys):
         assert "over the sweep (3 runs, 0 failed" in " ".join(fig.get_suptitle().split())
 
 
+def _sweep_file(tmp_path):
+    sweep = tmp_path / "s.toml"
+    sweep.write_text('base = "default"\nseeds = [0]\n[fixed]\ndistance_m = 1.0\n'
+                     '[grid]\n"target_pitch_mm" = [1.4, 1.5, 1.6]\n')
+    return sweep
+
+
+def test_ctrl_c_while_the_local_cluster_starts_says_nothing_of_dask(tmp_path):
+    """Ctrl-C to the group in the sweep's first seconds, while Dask's cluster and its worker
+    process start: the workers are born deaf to it, the cluster is closed once up."""
+    proc = subprocess.Popen(
+        planer_argv("sweep", str(_sweep_file(tmp_path)), "--workers", "1",
+                    "--out", str(tmp_path / "out")),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+        start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        first = proc.stderr.readline()
+        assert " runs of default " in first, first
+        os.killpg(proc.pid, signal.SIGINT)
+        _, rest = ended_or_stacks(proc, "planer sweep after an early Ctrl-C")
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, rest
+    assert rest.strip().splitlines() == ["planer sweep: interrupted"], rest
+
+
+def test_a_ctrl_c_held_while_the_cluster_starts_is_raised_after_it_and_a_second_at_once():
+    from planer.sweep.driver import _ctrl_c_held
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        done = []
+        with pytest.raises(KeyboardInterrupt):
+            with _ctrl_c_held():
+                signal.raise_signal(signal.SIGINT)
+                done.append("the block went on")
+        assert done == ["the block went on"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        with pytest.raises(KeyboardInterrupt):
+            with _ctrl_c_held():
+                signal.raise_signal(signal.SIGINT)
+                signal.raise_signal(signal.SIGINT)
+                done.append("not reached")
+        assert done == ["the block went on"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 def test_ctrl_c_of_a_sweep_on_a_local_cluster_says_nothing_of_dask(tmp_path):
     """Ctrl-C reaches the whole process group, as in a terminal: one line, exit code 130.
 
@@ -77,12 +128,9 @@ def test_ctrl_c_of_a_sweep_on_a_local_cluster_says_nothing_of_dask(tmp_path):
     ``&`` passes that on to what it starts): one Ctrl-C stops it all the same. From a terminal
     (SIGINT default) the command takes the same path once the CLI has started.
     """
-    sweep = tmp_path / "s.toml"
-    sweep.write_text('base = "default"\nseeds = [0]\n[fixed]\ndistance_m = 1.0\n'
-                     '[grid]\n"target_pitch_mm" = [1.4, 1.5, 1.6]\n')
     proc = subprocess.Popen(
-        planer_argv("sweep", str(sweep), "--workers", "1", "--out", str(tmp_path / "out"),
-                    sigint="ignored"),
+        planer_argv("sweep", str(_sweep_file(tmp_path)), "--workers", "1",
+                    "--out", str(tmp_path / "out"), sigint="ignored"),
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
         start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
