@@ -150,6 +150,9 @@ class DefectSettings:
         Roughness above which a patch without shadows is fuzzy grain.
     torn_shadow : float
         Share of a blob's samples near the shadow slope above which it is torn grain.
+    torn_gap_mm : float
+        Torn-grain blobs on common rows closer than this along the feed are one pit (its two
+        ends), mm.
     chatter_um : float
         Smallest chatter amplitude reported, um.
     snipe_um : float
@@ -172,6 +175,7 @@ class DefectSettings:
     rough: float = 0.15
     fuzzy_rough: float = 0.55
     torn_shadow: float = 0.05
+    torn_gap_mm: float = 4.0
     chatter_um: float = 0.5
     snipe_um: float = 3.0
 
@@ -179,7 +183,8 @@ class DefectSettings:
         for name in ("cell_mm", "col_mm", "row_mm", "excess", "floor_slope", "min_blob_mm2",
                      "min_fuzzy_mm2", "min_confidence",
                      "nick_ratio", "nick_max_mm", "raised_coherence", "raised_strong",
-                     "dent_um", "rough", "fuzzy_rough", "torn_shadow", "chatter_um",
+                     "dent_um", "rough", "fuzzy_rough", "torn_shadow", "torn_gap_mm",
+                     "chatter_um",
                      "snipe_um"):
             check_positive(name, getattr(self, name))
 
@@ -485,9 +490,8 @@ def pits(res: Residual, found: list[Blob], settings: DefectSettings) -> list[Def
     with a fibrous bottom (:attr:`Blob.texture`) or a shadowed pit without a measurable
     depth torn grain, a rough patch without shadows fuzzy grain.
     """
-    out = []
+    kept: list[tuple[DefectKind, Blob, float | None]] = []
     for b in found:
-        conf = _confidence(b.strength, settings)
         depth: float | None = b.depth_um
         if b.rough >= settings.fuzzy_rough and b.shadow < settings.torn_shadow:
             if b.area_mm2 < settings.min_fuzzy_mm2:
@@ -500,8 +504,32 @@ def pits(res: Residual, found: list[Blob], settings: DefectSettings) -> list[Def
             kind = DefectKind.TORN_GRAIN  # a pit whose depth its shadows hide
         else:
             continue  # a smooth bump or a weak dent: nothing D1666 names
-        out.append(_defect(res, kind, b.cols, b.rows, depth, conf))
-    return out
+        kept.append((kind, b, depth))
+    return [_defect(res, kind, cols, rows, depth, _confidence(strength, settings))
+            for kind, cols, rows, depth, strength in _joined_torn(res, kept, settings)]
+
+
+def _joined_torn(res: Residual, kept: list[tuple[DefectKind, Blob, float | None]],
+                 settings: DefectSettings) -> list[tuple[Any, ...]]:
+    """Torn-grain blobs on common rows less than ``torn_gap_mm`` apart along the feed: one pit.
+
+    A long pit's flat bottom between its walls leaves no residual, so its two ends can be two
+    blobs.  Returns ``(kind, cols, rows, depth, strength)`` per defect.
+    """
+    gap = settings.torn_gap_mm * res.smap.cols_per_mm
+    out: list[list[Any]] = []
+    for kind, b, depth in sorted(kept, key=lambda k: k[1].cols[0]):
+        last = next((o for o in reversed(out) if o[0] is DefectKind.TORN_GRAIN), None)
+        if (kind is DefectKind.TORN_GRAIN and last is not None
+                and b.cols[0] - last[1][1] <= gap
+                and min(b.rows[1], last[2][1]) > max(b.rows[0], last[2][0])):
+            last[1] = (last[1][0], max(last[1][1], b.cols[1]))
+            last[2] = (min(last[2][0], b.rows[0]), max(last[2][1], b.rows[1]))
+            last[3] = max(last[3] or 0.0, depth or 0.0)
+            last[4] = max(last[4], b.strength)
+            continue
+        out.append([kind, b.cols, b.rows, depth, b.strength])
+    return [tuple(o) for o in out]
 
 
 def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,

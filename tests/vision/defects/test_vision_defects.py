@@ -12,11 +12,13 @@ import pytest
 
 from tests.support.defect_truth import KINDS, measure_boards, score
 from vision.defects.detect import (
+    Blob,
     Defect,
     DefectKind,
     DefectSettings,
     chatter,
     detect_defects,
+    pits,
     residual,
 )
 from vision.defects.surface_map import SurfaceMap
@@ -175,6 +177,24 @@ def test_a_torn_pit_across_most_rows_does_not_move_the_marks_profile():
     assert _kinds(found) == ["torn_grain"], found
     assert math.hypot(found[0].x_mm - 25.0, found[0].y_mm - 9.6) <= 2.0
     assert found[0].width_mm <= 14.0  # the pit's rows, not the whole field's
+
+
+def test_the_two_ends_of_a_long_torn_pit_are_one_defect():
+    # a long pit's flat bottom leaves no residual between its walls: two blobs, one pit
+    res = residual(_smap(_marks()), DefectSettings())
+
+    def torn(c0: int, c1: int, r0: int, r1: int) -> Blob:
+        return Blob((c0, c1), (r0, r1), 5.0, 0.8, 150.0, 0.3, 0.2, 500.0, 0.4)
+
+    chip = Blob((300, 330), (10, 20), 5.0, 0.8, 60.0, 0.02, 0.0, 300.0, 0.02)
+    found = pits(res, [torn(100, 160, 10, 20), torn(190, 210, 14, 24), chip,
+                       torn(400, 420, 10, 20), torn(500, 520, 30, 40)], DefectSettings())
+    # 30 columns (2.4 mm) apart on common rows: joined; 190 apart, or on other rows: not
+    assert _kinds(found) == ["torn_grain", "chip_mark", "torn_grain", "torn_grain"], found
+    centres = [d.x_mm * PPM for d in found]  # map column (c0 + c1 - 1) / 2
+    assert centres == pytest.approx([154.5, 314.5, 409.5, 509.5])
+    assert found[0].length_mm == pytest.approx(110 / PPM)
+    assert found[0].width_mm == pytest.approx(14 * STEP / PPM)
 
 
 def test_ridges_across_the_rows_at_an_angle_are_raised_grain():
