@@ -272,7 +272,8 @@ def test_acceptance_on_independent_boards():
     report = sc.table()
     # what holds on these boards (docs/vision.md), on the pairs the measurement returns;
     # measured (2-core VM): 16 of 72 refused, every kind 1.00 / 1.00, clean 9/9,
-    # grade 56/56 (the 480-board tables: every kind >= 0.97)
+    # grade 56/56 (the 240-board tables: every kind >= 0.97 on the tuning and held-out
+    # splits, >= 0.90 on the fresh one)
     assert sc.refused <= 0.3 * sc.boards, report
     assert sc.clean_ok == sc.clean, report
     assert sc.grade_ok >= 0.95 * sc.graded, report
