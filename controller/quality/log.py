@@ -506,6 +506,8 @@ def csv_row(record_id: int, record: QualityRecord) -> list[str]:
         v = getattr(record, name)
         if name in _TUPLES:
             row.append(";".join(csv_float(x) for x in v))
+        elif name in ("defects", "board_defect_counts"):  # JSON text (schema version 7)
+            row.append("" if v is None else json.dumps(list(v) if name == "defects" else v))
         elif name == "extra":
             slim = {k: val for k, val in v.items() if k != "profile"}
             row.append(json.dumps(slim, default=_json_default) if slim else "")

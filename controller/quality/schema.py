@@ -17,11 +17,12 @@ from datetime import datetime, timezone
 from typing import Any
 
 from config.loading import Section
+from controller.quality.defect_fields import check_defect_fields
 from core.checks import check_finite, check_int, check_positive
 from core.errors import PlanerError
 
 #: Version of the table layout this code writes; logs with a higher version are refused.
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 #: SQLite ``application_id`` marking a file as a planer quality log ("PLQL").
 APPLICATION_ID = 0x504C514C
 #: Longest machine id (``[machine] id``), characters.
@@ -226,6 +227,22 @@ class QualityRecord:
         ``jointing_state`` is ``due``.
     jointing_knife : int or None
         The knife whose reserve runs out first (0-based, as the offset table).
+    defects : tuple of dict or None
+        The pair's planing defects (schema version 7), the contract's objects (``kind``,
+        ``x_mm``, ``y_mm``, ``length_mm``, ``width_mm``, ``depth_um`` or ``None``,
+        ``confidence``; :mod:`controller.quality.defect_fields`); ``()`` none found, ``None``
+        not looked for (``[quality] defects = false``, a pair the vision could not measure).
+    grade : int or None
+        The pair's ASTM D1666 grade, 1 (defect-free) ... 5 (very poor); with ``defects``.
+    grade_reason : str or None
+        Why (the worst defect, the rule's steps); with ``defects``.
+    board_grade : int or None
+        The grade of the board (``board_id``) over its pairs up to this one: the board's last
+        record holds the whole board's grade.
+    board_grade_reason : str or None
+        Why (the worst pair, widespread defects).
+    board_defect_counts : dict or None
+        Defects per kind on the board's pairs up to this one: a count for every kind.
     """
 
     t_s: float
@@ -268,6 +285,12 @@ class QualityRecord:
     jointing_due_boards: float | None = None
     jointing_due_h: float | None = None
     jointing_knife: int | None = None
+    defects: tuple[dict[str, Any], ...] | None = None
+    grade: int | None = None
+    grade_reason: str | None = None
+    board_grade: int | None = None
+    board_grade_reason: str | None = None
+    board_defect_counts: dict[str, int] | None = None
 
     def __post_init__(self) -> None:
         def put(name: str, value: Any) -> None:
@@ -299,6 +322,8 @@ class QualityRecord:
                 raise ValueError("a flagged pair (flag_reason set) is not a successful "
                                  "measurement: ok must be false")
         _check_jointing(self)
+        for name, value in check_defect_fields(self).items():  # schema version 7
+            put(name, value)
         if self.calibration_state not in (None, *CALIBRATION_STATES):
             raise ValueError(f"calibration_state must be one of {', '.join(CALIBRATION_STATES)} "
                              f"or None, got {self.calibration_state!r:.80}")
@@ -369,7 +394,9 @@ _TUPLES = ("mark_widths_mm", "piezo_offsets_um", "knife_drift_um_per_m", "knife_
 _LATE_TUPLES = ("knife_drift_um_per_m", "knife_reserve_um")
 _FIELD_NAMES = tuple(f.name for f in fields(QualityRecord))
 _INT_FIELDS = ("seq", "board_id")
-_TEXT_FIELDS = ("wall_time", "error", "flag_reason")
+_TEXT_FIELDS = ("wall_time", "error", "flag_reason", "grade_reason", "board_grade_reason")
+#: Fields stored as JSON text (schema version 7; NULL = ``None``).
+_JSON_FIELDS = ("defects", "board_defect_counts")
 #: The knife condition's record fields (schema version 6), as :func:`knife_condition_fields`.
 KNIFE_CONDITION_FIELDS = ("board_travel_m", "knife_drift_um_per_m", "knife_reserve_um",
                           "jointing_state", *JOINTING_FIELDS)
@@ -718,6 +745,13 @@ _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("jointing_due_h", "REAL", "DOUBLE PRECISION"),
     ("jointing_knife", "INTEGER CHECK (jointing_knife BETWEEN 0 AND 7)",
      "INTEGER CHECK (jointing_knife BETWEEN 0 AND 7)"),
+    ("defects", "TEXT", "TEXT"),
+    ("grade", "INTEGER CHECK (grade BETWEEN 1 AND 5)", "INTEGER CHECK (grade BETWEEN 1 AND 5)"),
+    ("grade_reason", "TEXT", "TEXT"),
+    ("board_grade", "INTEGER CHECK (board_grade BETWEEN 1 AND 5)",
+     "INTEGER CHECK (board_grade BETWEEN 1 AND 5)"),
+    ("board_grade_reason", "TEXT", "TEXT"),
+    ("board_defect_counts", "TEXT", "TEXT"),
 )
 assert tuple(c for c, _, _ in _COLUMNS) == _FIELD_NAMES, "schema and record differ"
 
@@ -727,19 +761,22 @@ _V3 = _FIELD_NAMES[:_FIELD_NAMES.index("machine_id") + 1]
 _V1 = tuple(n for n in _V3 if n != "machine_id")
 _V4 = _FIELD_NAMES[:_FIELD_NAMES.index("uncalibrated_depth_um") + 1]
 _V5 = _FIELD_NAMES[:_FIELD_NAMES.index("flag_reason") + 1]
+_V6 = _FIELD_NAMES[:_FIELD_NAMES.index("jointing_knife") + 1]
 #: Column names by schema version: (id column, record columns in field order). Version 1
 #: used the field names; version 2 the CSV header's (``record_id``, ``wall_time_utc``,
 #: ``extra_json``); version 3 added ``machine_id``; version 4 the orientation, the
 #: self-calibration and the kinematic depth (``roll_deg`` ... ``uncalibrated_depth_um``);
 #: version 5 ``flag_reason``; version 6 the knife condition (``board_travel_m`` ...
-#: ``jointing_knife``).
+#: ``jointing_knife``); version 7 the planing defects and grades (``defects`` ...
+#: ``board_defect_counts``).
 _NAMES = {
     1: ("id", _V1),
     2: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V1)),
     3: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V3)),
     4: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V4)),
     5: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V5)),
-    6: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
+    6: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V6)),
+    7: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
 }
 assert SCHEMA_VERSION == max(_NAMES)
 
@@ -751,7 +788,10 @@ ADDED_IN_V4: tuple[tuple[str, str, str], ...] = tuple(
 ADDED_IN_V5: tuple[tuple[str, str, str], ...] = tuple(
     c for c in _COLUMNS if c[0] not in _V4 and c[0] in _V5)
 #: The columns version 6 added (the knife condition), for the migrations.
-ADDED_IN_V6: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V5)
+ADDED_IN_V6: tuple[tuple[str, str, str], ...] = tuple(
+    c for c in _COLUMNS if c[0] not in _V5 and c[0] in _V6)
+#: The columns version 7 added (the planing defects and grades), for the migrations.
+ADDED_IN_V7: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V6)
 
 
 def column_names(version: int) -> tuple[str, tuple[str, ...]]:
@@ -841,6 +881,8 @@ def record_to_dict(record: QualityRecord) -> dict[str, Any]:
             v = [None if math.isnan(x) else x for x in v]
         elif name == "extra":
             v = _finite_json(v)
+        elif name in _JSON_FIELDS and v is not None:
+            v = list(v) if name == "defects" else dict(v)
         out[name] = v
     return out
 
@@ -882,6 +924,8 @@ def _to_row(rec: QualityRecord) -> tuple[Any, ...]:
         v = getattr(rec, name)
         if name in _TUPLES:
             v = _list_to_json(v)
+        elif name in _JSON_FIELDS:
+            v = None if v is None else json.dumps(list(v) if name == "defects" else v)
         elif name == "extra":
             try:
                 v = json.dumps(v, default=_json_default)
@@ -901,6 +945,8 @@ def _from_row(row: Sequence[Any]) -> QualityRecord:
             kw[name] = (() if kw[name] is None and name in _LATE_TUPLES
                         else _list_from_json(kw[name]))
         kw["extra"] = json.loads(kw["extra"])
+        for name in _JSON_FIELDS:
+            kw[name] = None if kw[name] is None else json.loads(kw[name])
         kw["ok"] = bool(kw["ok"])
         kw["passed"] = None if kw["passed"] is None else bool(kw["passed"])
         return QualityRecord(**kw)

@@ -22,6 +22,7 @@ from controller.quality.schema import (
     ADDED_IN_V4,
     ADDED_IN_V5,
     ADDED_IN_V6,
+    ADDED_IN_V7,
     SCHEMA_VERSION,
     QualityLogError,
     RecordRefusedError,
@@ -46,7 +47,7 @@ _NUL_CHECKED = ("error", "flag_reason")
 _BOOLEANS = ("ok", "passed")
 #: Layout versions read in PostgreSQL (3 to 5 are brought to the current one by a writer; a
 #: reader reads them as they are).
-_READABLE = (3, 4, 5, SCHEMA_VERSION)
+_READABLE = (3, 4, 5, 6, SCHEMA_VERSION)
 
 
 def describe_url(url: str) -> str:
@@ -239,9 +240,10 @@ class PostgresStore:
                 version = int(rows[0][0])
                 if version < SCHEMA_VERSION and create:
                     # v4: orientation, self-calibration, depths; v5: flag_reason; v6: the
-                    # knife condition
+                    # knife condition; v7: the planing defects and grades
                     added = ((ADDED_IN_V4 if version == 3 else ())
-                             + (ADDED_IN_V5 if version <= 4 else ()) + ADDED_IN_V6)
+                             + (ADDED_IN_V5 if version <= 4 else ())
+                             + (ADDED_IN_V6 if version <= 5 else ()) + ADDED_IN_V7)
                     for name, _, pg_type in added:
                         conn.execute(f"ALTER TABLE records ADD COLUMN IF NOT EXISTS {name} "
                                      f"{pg_type}")

@@ -18,6 +18,7 @@ from controller.quality.schema import (
     ADDED_IN_V4,
     ADDED_IN_V5,
     ADDED_IN_V6,
+    ADDED_IN_V7,
     APPLICATION_ID,
     SCHEMA_VERSION,
     QualityLogError,
@@ -185,6 +186,10 @@ class SqliteStore:
                     for name, sqlite_type, _ in ADDED_IN_V6:
                         conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
                     version = 6
+                if version == 6:
+                    for name, sqlite_type, _ in ADDED_IN_V7:
+                        conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
+                    version = 7
                 conn.execute("UPDATE schema_version SET version = ?", (version,))
                 conn.execute("COMMIT")
             except BaseException:

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from config.machine import MachineConfig
+from controller.quality.defect_fields import BoardGrades, pair_fields
 from controller.quality.journal import RecordSink, default_journal_path
 from controller.quality.log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
 from controller.quality.schema import knife_condition_fields
@@ -165,6 +166,7 @@ class QualityRecords:
         self.threaded = threaded
         self._ok_count = 0  # successful measurements so far (profile every PROFILE_EVERY-th)
         self._profile_board: int | None = None
+        self._board_grades = BoardGrades()  # records are made in pair order (one thread)
         self._failing = False  # LOG_FAILED said, LOG_RECOVERED not yet
         self._unhealthy = False  # the supervisor's log condition failed by this stage
         self._rewritten = 0
@@ -298,6 +300,12 @@ class QualityRecords:
             cal = getattr(m, "calibration", None)
             if cal is not None and getattr(cal, "deblurred", False):
                 fields["extra"]["calibration_deblurred"] = True
+            # planing defects, the pair's grade and its board's so far (schema version 7;
+            # flagged pairs too: a defect is often why the vision's checks disagreed)
+            defect = pair_fields(m)
+            fields.update(defect)
+            fields.update(self._board_grades.add(int_or(fields.get("board_id"), 0),
+                                                 defect.get("defects")))
         if r.ok:
             fields.update(
                 # a vanished knife: the kinematic pitch and CV, not the marks found's

@@ -35,7 +35,7 @@ from controller.quality.log import (
     quality_class_from_section,
     utc_iso,
 )
-from controller.quality.schema import ADDED_IN_V4, ADDED_IN_V5, ADDED_IN_V6
+from controller.quality.schema import ADDED_IN_V4, ADDED_IN_V5, ADDED_IN_V6, ADDED_IN_V7
 from core.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[3]
@@ -259,7 +259,7 @@ def test_table_columns_are_the_csv_header(tmp_path):
     QualityLog(p).close()
     with sqlite3.connect(p) as conn:
         cols = tuple(r[1] for r in conn.execute("PRAGMA table_info(records)"))
-    assert cols == CSV_COLUMNS and SCHEMA_VERSION == 6 and cols[-1] == "jointing_knife"
+    assert cols == CSV_COLUMNS and SCHEMA_VERSION == 7 and cols[-1] == "board_defect_counts"
     renamed = {"wall_time": "wall_time_utc", "extra": "extra_json"}
     assert cols[1:] == tuple(renamed.get(f.name, f.name) for f in dataclasses.fields(QualityRecord))
 
@@ -274,7 +274,7 @@ def _make_v1_log(p: Path, n: int) -> list[QualityRecord]:
                          ("extra_json", "extra")):
             conn.execute(f"ALTER TABLE records RENAME COLUMN {old} TO {new}")
         conn.execute("DROP INDEX records_machine_time")
-        for name, _, _ in ADDED_IN_V6 + ADDED_IN_V5 + ADDED_IN_V4:
+        for name, _, _ in ADDED_IN_V7 + ADDED_IN_V6 + ADDED_IN_V5 + ADDED_IN_V4:
             conn.execute(f"ALTER TABLE records DROP COLUMN {name}")
         conn.execute("ALTER TABLE records DROP COLUMN machine_id")
         conn.execute("UPDATE schema_version SET version = 1")

@@ -17,6 +17,7 @@ from controller.quality.log import CSV_COLUMNS, SCHEMA_VERSION, QualityLog, Qual
 from controller.quality.schema import (
     ADDED_IN_V5,
     ADDED_IN_V6,
+    ADDED_IN_V7,
     RecordRefusedError,
     check_storable,
     record_from_dict,
@@ -53,7 +54,7 @@ def _key(rec: QualityRecord) -> tuple:
 def test_flag_reason_is_the_column_version_5_added():
     assert SCHEMA_VERSION >= 5
     assert tuple(n for n, _, _ in ADDED_IN_V5) == ("flag_reason",)
-    assert CSV_COLUMNS[-1 - len(ADDED_IN_V6)] == "flag_reason"  # version 6's columns follow
+    assert CSV_COLUMNS[-1 - len(ADDED_IN_V6) - len(ADDED_IN_V7)] == "flag_reason"  # 6, 7 follow
 
 
 @pytest.mark.parametrize("kw, message", [
@@ -97,7 +98,7 @@ def _make_v4_log(path, recs) -> None:
         for r in recs:
             log.append(r)
     with sqlite3.connect(path) as conn:
-        for name, _, _ in ADDED_IN_V6 + ADDED_IN_V5:
+        for name, _, _ in ADDED_IN_V7 + ADDED_IN_V6 + ADDED_IN_V5:
             conn.execute(f"ALTER TABLE records DROP COLUMN {name}")
         conn.execute("UPDATE schema_version SET version = 4")
 
@@ -127,7 +128,7 @@ def test_version_4_database_is_migrated_by_a_writer(fresh_db):
         for r in old:
             log.append(r)
     with psycopg.connect(fresh_db, autocommit=True) as conn:  # the layout of version 4
-        for name, _, _ in ADDED_IN_V6 + ADDED_IN_V5:
+        for name, _, _ in ADDED_IN_V7 + ADDED_IN_V6 + ADDED_IN_V5:
             conn.execute(f"ALTER TABLE records DROP COLUMN {name}")
         conn.execute("UPDATE schema_version SET version = 4")
     with QualityLog(fresh_db, create=False) as reader:
