@@ -17,6 +17,12 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from controller.quality.defect_report import (
+    defect_map_figure,
+    defect_summary,
+    format_defect_summary,
+    grade_histogram_figure,
+)
 from controller.quality.knife_report import (
     format_knife_summary,
     knife_condition_figure,
@@ -113,7 +119,10 @@ def summarise(
         ``piezo_offsets_um`` per knife), ``mean_kinematic_depth_um``, ``vision`` (see
         :func:`vision_summary`), ``knife_condition`` (the last jointing forecast, wear and
         reserve per knife: :func:`controller.quality.knife_report.knife_summary`; ``None``
-        without it). Means are over successful measurements; missing values are ``None``.
+        without it), ``defects`` (the planing defects and D1666 grades: per kind, the pairs'
+        and boards' grade histograms, each board's grade, reason and counts:
+        :func:`controller.quality.defect_report.defect_summary`; ``None`` when no record
+        looked for defects). Means are over successful measurements; missing values are ``None``.
     """
     recs = list(records)
     ok = [r for r in recs if r.ok]
@@ -171,6 +180,7 @@ def summarise(
             "piezo_offsets_um": piezo,
         },
         "knife_condition": knife_summary(recs),
+        "defects": defect_summary(recs),
     }
 
 
@@ -280,6 +290,10 @@ def format_summary(summary: dict[str, Any], *, title: str = "Quality log") -> st
     if knife_lines:
         lines.append("")
         lines.extend(knife_lines)
+    defect_lines = format_defect_summary(s.get("defects"))
+    if defect_lines:
+        lines.append("")
+        lines.extend(defect_lines)
     return "\n".join(lines)
 
 
@@ -771,7 +785,10 @@ def build_figures(
         offsets per knife over machine time), when a record carries ``extra["profile"]``,
         ``"profile"`` (the newest one), and when records carry the knife condition (schema
         version 6), ``"knife_condition"`` (reserve, wear and the jointing forecast along the
-        board travelled: :func:`controller.quality.knife_report.knife_condition_figure`).
+        board travelled: :func:`controller.quality.knife_report.knife_condition_figure`), and
+        when records carry planing defects (schema version 7), ``"defect_map"`` (each board's
+        defects where they were, by kind) and ``"grades"`` (the pairs' and boards' D1666
+        grades): :mod:`controller.quality.defect_report`.
         Both along-the-run figures shade the periods the records were taken in the safe state
         (:func:`record_state`). Empty for no records.
     """
@@ -788,10 +805,17 @@ def build_figures(
     knives = knife_condition_figure(recs)
     if knives is not None:
         figs["knife_condition"] = knives
+    defect_map = defect_map_figure(recs)
+    if defect_map is not None:
+        figs["defect_map"] = defect_map
+    grades = grade_histogram_figure(recs)
+    if grades is not None:
+        figs["grades"] = grades
     return figs
 
 
-FIGURE_NAMES = ("pitch_uniformity", "setpoints", "profile", "knife_condition")
+FIGURE_NAMES = ("pitch_uniformity", "setpoints", "profile", "knife_condition", "defect_map",
+                "grades")
 """The figures :func:`build_figures` may draw (``<stem>_<name>.png``)."""
 
 

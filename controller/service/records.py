@@ -43,6 +43,7 @@ import numpy as np
 
 from config.machine import MachineConfig
 from controller.quality.defect_fields import BoardGrades, pair_fields
+from controller.quality.defect_report import FRAME_CENTRE_KEY
 from controller.quality.journal import RecordSink, default_journal_path
 from controller.quality.log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
 from controller.quality.schema import knife_condition_fields
@@ -100,6 +101,15 @@ def decimated_profile(
         "x_mm": [round(float(v), 3) for v in x],
         "height_um": [round(float(v), 1) for v in h],
     }
+
+
+def frame_centre_mm(meas: Any) -> float | None:
+    """Along-feed centre of image A in its frame, mm: the middle of the measured profile."""
+    try:
+        x = np.asarray(meas.x_mm, dtype=float)
+        return round(float(0.5 * (x[0] + x[-1])), 2) if x.size else None
+    except (AttributeError, TypeError, ValueError, IndexError):
+        return None
 
 
 def quality_class_of(cfg: MachineConfig) -> QualityClass:
@@ -304,6 +314,8 @@ class QualityRecords:
             # flagged pairs too: a defect is often why the vision's checks disagreed)
             defect = pair_fields(m)
             fields.update(defect)
+            if defect:  # where image A's centre is: the report places the defects on the board
+                fields["extra"][FRAME_CENTRE_KEY] = frame_centre_mm(m)
             fields.update(self._board_grades.add(int_or(fields.get("board_id"), 0),
                                                  defect.get("defects")))
         if r.ok:
