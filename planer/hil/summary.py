@@ -757,8 +757,39 @@ def _service_summary(
         "text": f"Every measurement is in the quality log once, none torn "
                 f"({summary['quality_log']['records']} records).",
     }
+    summary["defects"] = defects_of_run(Path(log_path), results, after_id=start_id)
     summary["passed"] = all(summary["done"].values())
     return summary
+
+
+def defects_of_run(path: Path, results: Sequence[FrameResult], *,
+                   after_id: int = 0) -> dict[str, Any] | None:
+    """The run's planing defects and D1666 grades from its quality log, beside the truth.
+
+    Returns
+    -------
+    dict or None
+        :func:`controller.quality.defect_report.defect_summary` of the run's records
+        (defects per kind, the pairs' and boards' grade histograms, each board's grade and
+        counts) with ``truth_counts`` (the simulator's defects per kind over the pairs, each
+        seen once per pair it is in: ``Frame.truth["defects"]``); ``None`` when the service
+        did not look for defects.
+    """
+    from controller.quality.defect_fields import DEFECT_KINDS
+    from controller.quality.defect_report import defect_summary
+    from controller.quality.log import QualityLog
+
+    with QualityLog(path, create=False) as log:
+        records = [r for _, r in log.entries(after_id=after_id)]
+    out = defect_summary(records)
+    if out is None:
+        return None
+    truth = dict.fromkeys(DEFECT_KINDS, 0)
+    for r in results:
+        for d in (r.truth or {}).get("defects") or ():
+            if d.get("kind") in truth:
+                truth[d["kind"]] += 1
+    return {**out, "truth_counts": truth}
 
 
 

@@ -1,0 +1,99 @@
+"""HIL with wood defects and the defect detector on: the log's per-board grades against the truth.
+
+The ``defects`` scenario (torn and raised grain on every other board, config/sim_defects.toml)
+with ``defects = true`` (the service looks for planing defects on every pair), 10 m of board in
+process on simulated time. The run's summary counts the defects per kind (found and true) and
+the grades; the quality log's board grades are the grading rule over the log's own pairs, and
+the simulator's defects (``Frame.truth["defects"]``) are found on their boards and only there.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+
+import pytest
+
+from controller.quality.defect_fields import defects_of
+from controller.quality.defect_report import board_grades
+from controller.quality.log import QualityLog
+from planer.hil import InProcessHil, load_scenario
+from vision.defects.detect import Defect, DefectKind
+from vision.defects.grading import grade_board
+
+pytestmark = pytest.mark.slow
+
+TRUE_KINDS = ("torn_grain", "raised_grain")
+"""The kinds config/sim_defects.toml places."""
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    sc = dataclasses.replace(load_scenario("defects"), defects=True)
+    path = tmp_path_factory.mktemp("hil") / "hil.sqlite"
+    hil = InProcessHil(sc, log_path=path)
+    summary = asyncio.run(hil.run())
+    with QualityLog(path, create=False) as log:
+        records = log.records()
+    return summary, hil.service.results, records
+
+
+def _truth_boards(results, records) -> dict[int, list[list[Defect]]]:
+    """Each board's pairs' true defects (the pairs the service looked at)."""
+    looked = {r.seq: r.board_id for r in records if r.defects is not None and r.board_id > 0}
+    out: dict[int, list[list[Defect]]] = {}
+    for r in results:
+        if r.seq not in looked:
+            continue
+        out.setdefault(looked[r.seq], []).append([
+            Defect(DefectKind(d["kind"]), d["x_mm"], d["y_mm"], d["length_mm"], d["width_mm"],
+                   d["depth_um"], 1.0) for d in (r.truth or {}).get("defects") or ()])
+    return out
+
+
+def test_the_summary_counts_the_defects_and_grades_per_kind(run):
+    summary, results, records = run
+    d = summary["defects"]
+    looked = [r for r in records if r.defects is not None]
+    assert d["n_pairs"] == len(looked) >= 100
+    for kind in d["defect_counts"]:
+        assert d["defect_counts"][kind] == sum(x["kind"] == kind for r in looked
+                                               for x in r.defects)
+    assert d["truth_counts"]["torn_grain"] > 0 and d["truth_counts"]["raised_grain"] > 0
+    assert sum(d["pair_grades"].values()) == len(looked)
+    assert sum(d["board_grades"].values()) == len(d["boards"]) >= 3
+
+
+def test_the_logs_board_grades_are_the_rule_over_its_pairs(run):
+    _, _, records = run
+    boards = board_grades(records)
+    for b in boards:
+        pairs = [defects_of(r.defects) for r in records
+                 if r.board_id == b["board_id"] and r.defects is not None]
+        want = grade_board(pairs)
+        assert (b["grade"], b["grade_reason"]) == (want.grade, want.reason), b["board_id"]
+
+
+def test_the_true_defects_are_found_on_their_boards_and_only_there(run):
+    _, results, records = run
+    truth = _truth_boards(results, records)
+    found = {b["board_id"]: b for b in board_grades(records)}
+    defect_boards = [bid for bid, pairs in truth.items() if any(pairs)]
+    clean_boards = [bid for bid, pairs in truth.items() if not any(pairs)]
+    assert defect_boards and clean_boards
+    for bid in defect_boards:  # a torn pit is very severe: the board's grade is the truth's
+        assert found[bid]["grade"] == grade_board(truth[bid]).grade == 5, bid
+        assert found[bid]["defect_counts"]["torn_grain"] > 0, bid
+    for bid in clean_boards:  # none of the simulator's kinds where it placed none
+        assert all(found[bid]["defect_counts"][k] == 0 for k in TRUE_KINDS), found[bid]
+
+
+@pytest.mark.xfail(strict=True, reason="vision/defects reports a snipe of ~85 um sag at the left "
+                   "edge of every in-process HIL frame (confidence 1.0): clean boards grade 5")
+def test_clean_boards_grade_as_the_truth(run):
+    _, results, records = run
+    truth = _truth_boards(results, records)
+    found = {b["board_id"]: b for b in board_grades(records)}
+    for bid, pairs in truth.items():
+        if not any(pairs):
+            assert found[bid]["grade"] == grade_board(pairs).grade == 1, found[bid]
