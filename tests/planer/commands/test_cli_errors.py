@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -290,19 +291,31 @@ def test_sim_into_a_pipe_that_closes_ends_quietly(tmp_path):
 
 
 _DRIVER = r"""
-import json, signal, subprocess, sys
+import json, re, signal, subprocess, sys
 cmd = [sys.executable, "-m", "planer.cli"]
 sim = subprocess.Popen(cmd + ["sim", "--config", "sim_udp.toml"],
                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 for line in sim.stdout:
     if line.strip() == "ready":
         break
-serve = subprocess.run(cmd + ["serve", "--max-frames", "12"], capture_output=True, text=True,
-                       timeout=240)
+# events, not a count of pairs: a service that starts on a loaded host may measure a backlog of
+# pairs before its recovery time has passed; stop it once control resumed and a progress line
+# (20 measurements) came after it
+serve = subprocess.Popen(cmd + ["serve"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+said, resumed = [], False
+for line in serve.stdout:
+    said.append(line)
+    if "recovered: control resumed" in line:
+        resumed = True
+    elif resumed and re.search(r"#\d+ +run +ok ", line):
+        break
+serve.send_signal(signal.SIGINT)
+rest, serve_err = serve.communicate(timeout=120)
 sim.send_signal(signal.SIGINT)
 sim_out = sim.communicate(timeout=120)[0]
-print(json.dumps({"serve_rc": serve.returncode, "serve_out": serve.stdout,
-                  "serve_err": serve.stderr, "sim_rc": sim.returncode, "sim_out": sim_out}))
+print(json.dumps({"serve_rc": serve.returncode, "serve_out": "".join(said) + rest,
+                  "serve_err": serve_err, "sim_rc": sim.returncode, "sim_out": sim_out}))
 """
 
 
@@ -331,10 +344,11 @@ def test_serve_against_sim_as_the_docs_say(tmp_path):
     res = json.loads(out)
     assert res["serve_rc"] == 0 and res["sim_rc"] == 0, res
     assert "recovered: control resumed" in res["serve_out"]
-    assert "stopped: 12 pairs, " in res["serve_err"]
+    stopped = re.search(r"stopped: (\d+) pairs, (\d+) measured, 0 failed", res["serve_err"])
+    assert stopped, res["serve_err"]
     with QualityLog(tmp_path / "runs" / "quality.sqlite", create=False) as log:
         records = log.records()
-    assert len(records) == 12  # every pair logged
+    assert len(records) == int(stopped.group(1)) >= 20  # every pair logged
     errors = [r.error for r in records if not r.ok]
     assert errors == []  # every pair measured (with the interfaces at real-time priority: 12
     # of 12 in each of 4 runs under six CPU hogs, docs/simulator.md)
