@@ -17,6 +17,8 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import numpy as np
+
 from vision.defects.detect import Defect, DefectKind
 from vision.defects.grading import grade_board
 
@@ -176,6 +178,19 @@ def pair_fields(measurement: Any) -> dict[str, Any]:
         return {}
     return {"defects": tuple(d.to_json() for d in found),
             "grade": int(measurement.grade), "grade_reason": str(measurement.grade_reason)}
+
+
+def frame_centre_mm(measurement: Any) -> float | None:
+    """Along-feed centre of image A in its frame, mm: the middle of the measured profile.
+
+    A defect's ``x_mm`` minus it, added to the pair's ``board_position_mm``, places the
+    defect along the board (``None`` without a profile).
+    """
+    try:
+        x = np.asarray(measurement.x_mm, dtype=float).ravel()
+        return round(float(0.5 * (x[0] + x[-1])), 2) if x.size else None
+    except (AttributeError, TypeError, ValueError, IndexError):
+        return None
 
 
 class BoardGrades:

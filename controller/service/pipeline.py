@@ -250,6 +250,9 @@ class PairPipeline:
                 "piezo": out.record_fields(),  # limit in force, refused tables, safe entries
                 "plc_feed_setpoint_mm_s": plc_feed,  # in force before the service wrote one
                 "knife_condition": self.loops.describe_knife_condition(),  # the last forecast
+                # the board under the camera (the page's board strip, OPC UA's board grade)
+                "board_id": int_or(frame.board_id, 0),
+                "board_position_mm": finite_or_none(frame.board_position_mm),
                 **({"passes": att.to_json()} if att is not None else {}),
                 **({"profile": profile} if profile is not None else {}),
             },

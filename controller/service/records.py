@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from config.machine import MachineConfig
-from controller.quality.defect_fields import BoardGrades, pair_fields
+from controller.quality.defect_fields import BoardGrades, frame_centre_mm, pair_fields
 from controller.quality.defect_report import FRAME_CENTRE_KEY
 from controller.quality.journal import RecordSink, default_journal_path
 from controller.quality.log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
@@ -101,15 +101,6 @@ def decimated_profile(
         "x_mm": [round(float(v), 3) for v in x],
         "height_um": [round(float(v), 1) for v in h],
     }
-
-
-def frame_centre_mm(meas: Any) -> float | None:
-    """Along-feed centre of image A in its frame, mm: the middle of the measured profile."""
-    try:
-        x = np.asarray(meas.x_mm, dtype=float)
-        return round(float(0.5 * (x[0] + x[-1])), 2) if x.size else None
-    except (AttributeError, TypeError, ValueError, IndexError):
-        return None
 
 
 def quality_class_of(cfg: MachineConfig) -> QualityClass:

@@ -24,6 +24,7 @@ from controller.quality.schema import QualityClass
 from controller.service.events import ServiceEvent
 from controller.service.frame_result import FrameResult
 from controller.service.status import ServiceStatus
+from controller.web.board_strip import BoardStrip, defect_fields_json
 
 __all__ = [
     "PROFILE_MAX_POINTS",
@@ -164,7 +165,9 @@ def result_json(r: FrameResult, *, max_points: int = PROFILE_MAX_POINTS) -> dict
         ``marks`` (each ``{"lo_mm", "hi_mm", "bottom_mm", "width_mm", "depth_um",
         "knife"}``) and ``knife_source`` (``"attribution"`` when the service named the knife of
         each mark, ``"widths"`` when inferred by :func:`mark_knives`, ``"widths-ambiguous"``
-        when the knives' widths are too alike for that).
+        when the knives' widths are too alike for that); the board and the planing defects:
+        ``board_id``, ``board_position_mm``, ``defects``, ``grade``, ``grade_reason``,
+        ``frame_centre_x_mm`` (:func:`controller.web.board_strip.defect_fields_json`).
     """
     m = r.measurement
     pitch = r.reported_pitch_mm
@@ -190,6 +193,7 @@ def result_json(r: FrameResult, *, max_points: int = PROFILE_MAX_POINTS) -> dict
         "profile": None,
         "marks": [],
         "knife_source": None,
+        **defect_fields_json(r),
     }
     if m is None:
         return out
@@ -288,6 +292,7 @@ class LiveView:
         self._trace: deque[dict[str, Any]] = deque(maxlen=history)
         self._events: deque[dict[str, Any]] = deque(maxlen=max_events)
         self._counts0: int | None = None
+        self._board = BoardStrip()
         self._version = 0
         self.changed = threading.Condition(self._lock)
         """Notified on every change (the server's streams wait on it)."""
@@ -339,6 +344,7 @@ class LiveView:
             d["board_m"] = (None if cpm is None
                             else round((d["counts_a"] - self._counts0) / cpm / 1000.0, 5))
             self._last = d
+            self._board.take(d)
             self._trace.append({k: d[k] for k in ("seq", "t_s", "board_m", "ok", "state",
                                                   "pitch_mm", "uniformity_cv", "depth_um",
                                                   "confidence", "feed_setpoint_mm_s")})
@@ -363,7 +369,9 @@ class LiveView:
             ``version``, ``status`` (:func:`status_json` or ``None``), ``last`` (the newest
             :func:`result_json` with ``board_m``, or ``None``), ``trace`` (the recent pairs'
             ``t_s``, ``board_m``, ``pitch_mm``, ``uniformity_cv``, ``depth_um``, ...),
-            ``events`` (newest last) and ``quality_class`` (band limits or ``None``).
+            ``events`` (newest last), ``quality_class`` (band limits or ``None``) and
+            ``board`` (the current board's defects and grade so far, the last board's:
+            :meth:`controller.web.board_strip.BoardStrip.json`).
         """
         with self._lock:
             return {
@@ -373,6 +381,7 @@ class LiveView:
                 "trace": list(self._trace),
                 "events": list(self._events),
                 "quality_class": _quality_class_json(self._qc),
+                "board": self._board.json(),
             }
 
     def wait_changed(self, version: int, timeout_s: float) -> int:

@@ -166,6 +166,71 @@ function drawKnifeCondition(status) {
     cls: knives.map((k) => `bar k${k.knife % KNIFE_COLOURS}`), ylabel: "reserve (µm)" });
 }
 
+const GRADE_WORDS = ["", "defect-free", "good", "fair", "poor", "very poor"]; // ASTM D1666
+
+function countsText(counts) {
+  const parts = Object.entries(counts || {}).filter(([, n]) => n > 0)
+    .map(([k, n]) => `${k.replace("_", " ")} ${n}`);
+  return parts.length ? parts.join(", ") : "no defects";
+}
+
+function drawBoardStrip(board) {
+  const cur = board ? board.current : null;
+  const last = board ? board.last : null;
+  const badge = $("bs-grade");
+  const svg = $("board-strip");
+  setText("bs-last", last ? `; last board ${last.board_id}: grade ${last.grade} ` +
+    `(${countsText(last.defect_counts)})` : "");
+  if (!cur) {
+    badge.className = "grade g0"; setText("bs-grade", "grade -");
+    setText("bs-board", ""); setText("bs-counts", "");
+    if (svg.dataset.key !== "") { svg.dataset.key = ""; svg.replaceChildren(); }
+    return;
+  }
+  badge.className = `grade g${cur.grade}`;
+  setText("bs-grade", `grade ${cur.grade} ${GRADE_WORDS[cur.grade] || ""}`);
+  setText("bs-reason", cur.grade_reason || "");
+  setText("bs-board", `(board ${cur.board_id}, ${cur.pairs} pairs so far)`);
+  setText("bs-counts", countsText(cur.defect_counts));
+  const key = `${cur.board_id}:${cur.pairs}:${cur.defects.length}`;
+  if (svg.dataset.key === key) return;
+  svg.dataset.key = key;
+  svg.replaceChildren();
+  const ns = "http://www.w3.org/2000/svg";
+  const add = (name, attrs, text) => {
+    const e = document.createElementNS(ns, name);
+    for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+    if (text !== undefined) e.textContent = text;
+    svg.append(e);
+    return e;
+  };
+  const w = svg.clientWidth || 800, h = svg.clientHeight || 130, pad = 34;
+  const xs = cur.defects.map((d) => d.board_x_mm);
+  const lo = Math.min(0, cur.from_mm ?? 0, ...xs);
+  const hi = Math.max(lo + 500, (cur.to_mm ?? 0) + 50, ...xs);
+  const ys = cur.defects.map((d) => d.y_mm + d.width_mm / 2);
+  const across = Math.max(40, ...ys);
+  const X = (v) => pad + (v - lo) / (hi - lo) * (w - 2 * pad);
+  const Y = (v) => 6 + v / across * (h - 30);
+  add("rect", { class: "board", x: X(lo), y: Y(0), width: X(hi) - X(lo), height: Y(across) - Y(0) });
+  add("line", { class: "pair", x1: X(cur.from_mm ?? lo), x2: X(cur.to_mm ?? lo),
+                y1: Y(across) + 4, y2: Y(across) + 4 });
+  for (const d of cur.defects) {
+    const len = Math.max(3, X(d.board_x_mm + d.length_mm / 2) - X(d.board_x_mm - d.length_mm / 2));
+    const hgt = Math.max(3, Y(d.y_mm + d.width_mm / 2) - Y(d.y_mm - d.width_mm / 2));
+    const r = add("rect", { class: `defect d-${d.kind}`, x: X(d.board_x_mm) - len / 2,
+                            y: Y(d.y_mm) - hgt / 2, width: len, height: hgt,
+                            "data-kind": d.kind });
+    const depth = Plot.finite(d.depth_um) ? `, ${num(d.depth_um, 0)} µm` : "";
+    const title = document.createElementNS(ns, "title");
+    title.textContent = `${d.kind.replace("_", " ")} at ${num(d.board_x_mm, 0)} mm: ` +
+      `${num(d.length_mm, 1)} x ${num(d.width_mm, 1)} mm${depth} (pair ${d.seq})`;
+    r.append(title);
+  }
+  add("text", { x: X(lo), y: h - 4 }, "0 mm");
+  add("text", { x: X(hi) - 60, y: h - 4 }, `${num(hi, 0)} mm along the board`);
+}
+
 function drawFeed() {
   const t = feedHistory.map((r) => r.t);
   Plot.lines($("feed-chart"), { series: [
@@ -198,6 +263,7 @@ function draw(snap) {
   drawTraces(snap.trace || [], qc);
   drawKnives(snap.last, snap.status);
   drawKnifeCondition(snap.status);
+  drawBoardStrip(snap.board);
   drawFeed();
   drawEvents(snap.events || []);
   document.body.dataset.version = String(snap.version);
