@@ -319,8 +319,14 @@ class PiezoClient:
                                                alive_counter=int(alive_counter) & 0xFF))
         self._last_command_s = now_s
 
-    def tick(self, *, alive_counter: int, now_s: float) -> None:
+    def tick(self, *, alive_counter: int, now_s: float) -> bool:
         """Cyclic transmissions due at ``now_s``: the command, and the offsets if stale.
+
+        Returns
+        -------
+        bool
+            Whether the command went out (with ``alive_counter``); the caller moves its
+            counter on only then, so the amplifier sees every value in turn.
 
         Raises
         ------
@@ -328,13 +334,15 @@ class PiezoClient:
             The bus refused a frame.
         """
         t = check_finite("now_s", now_s)
-        if t - self._last_command_s >= self.command_period_s * 0.5:  # jitter never skips one
+        sent = t - self._last_command_s >= self.command_period_s * 0.5  # jitter never skips one
+        if sent:
             self.send_command(alive_counter=alive_counter, now_s=t)
         if (
             self._sent_offsets != self.offsets_um
             or t - self._last_offsets_s >= self.offsets_period_s
         ):
             self._send_offsets(t)
+        return sent
 
     def poll(self, *, now_s: float, max_frames: int = 1000) -> int:
         """Drain received frames, then SDO and NMT as due; frames from the amplifier.

@@ -158,9 +158,10 @@ class Actuators:
         timeout ramps its offsets to zero.
         """
         self._amp_monitor.commanded(self.piezo.enable, now_s=t)
-        self.alive = (self.alive + 1) & 0xFF
+        following = (self.alive + 1) & 0xFF
         try:
-            self.piezo.tick(alive_counter=self.alive, now_s=t)
+            if self.piezo.tick(alive_counter=following, now_s=t):
+                self.alive = following  # only a command sent moves it: none skipped
         except FieldbusError:
             self._report.count("can_errors")
         self.offsets_um = self.piezo.offsets_um  # a re-planned table is the one in force

@@ -103,3 +103,38 @@ def test_plc_that_never_answers_does_not_delay_the_can_heartbeat(tmp_path, where
         assert svc.state.value == "safe" and "plc" in svc.status().missing
 
     asyncio.run(main())
+
+
+@pytest.mark.parametrize("gaps_s", [(0.02,) * 30, (0.02, 0.001, 0.004, 0.02, 0.0, 0.013) * 5,
+                                    (0.005,) * 40, (0.05, 0.001) * 15])
+def test_every_command_carries_the_next_alive_counter_however_the_cycles_fall(gaps_s):
+    """Cycles closer than half a command period send nothing: the counter waits for a send.
+
+    A loaded host runs late cycles back to back; the amplifier must still see each counter
+    value in turn (before, the counter moved on every cycle and skipped values).
+    """
+    from controller.service.actuators import Actuators
+    from controller.service.events import EventLog
+    from controller.service.supervisor import AmplifierMonitor
+
+    cfg = load_machine()
+    channel = f"planer-buses-{next(_chan)}"
+    piezo = PiezoClient(can.Bus(interface="virtual", channel=channel), knives=4,
+                        command_period_s=cfg.can.command_period_s)
+    amp = can.Bus(interface="virtual", channel=channel)
+    try:
+        out = Actuators(None, piezo, EventLog(), AmplifierMonitor(), stroke_um=20.0)
+        rpdo3 = canopen_frames.command(True, 4, 0)[0]
+        t, alive = 0.0, []
+        for gap in gaps_s:
+            t += gap
+            out.command(t)
+            while (msg := amp.recv(timeout=0.0)) is not None:
+                if msg.arbitration_id == rpdo3:
+                    alive.append(msg.data[2])
+        assert len(alive) >= 10
+        assert all(b == (a + 1) % 256 for a, b in zip(alive[:-1], alive[1:], strict=True))
+        assert out.alive == alive[-1]  # the counter in force is the last one sent
+    finally:
+        piezo.close()
+        amp.shutdown()
