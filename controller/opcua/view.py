@@ -24,6 +24,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from controller.quality.defect_fields import DEFECT_KINDS, BoardGrades, pair_fields
 from controller.quality.schema import QualityClass, judge
 from controller.service.events import EventKind, ServiceEvent
 from controller.service.frame_result import FrameResult
@@ -99,8 +100,17 @@ MANUFACTURER_NAMES: Mapping[str, str] = {
     "JointingDueBoards": "Double", "JointingDueH": "Double", "JointingKnife": "Int64",
     "KnifeChips": "Int64", "LastChippedKnife": "Int64", "LastChipRunoutStepUm": "Double",
     "LastChipCause": "String",
+    "BoardGrade": "Int64", "LastBoardId": "Int64", "LastBoardGrade": "Int64",
+    "LastBoardGradeReason": "String", "LastBoardDefects": "Int64",
+    **{"LastBoard" + "".join(w.title() for w in k.split("_")): "Int64" for k in DEFECT_KINDS},
 }
-"""``ManufacturerSpecific`` variables (our namespace) and their data types; NaN = not known."""
+"""``ManufacturerSpecific`` variables (our namespace) and their data types; NaN = not known.
+The planing defects (``[quality] defects = true``): ``BoardGrade`` (the board under the camera
+so far) and ``LastBoardGrade`` (the last finished board), ASTM D1666 1..5, 0 = not graded;
+``LastBoardDefects`` and one count per kind (``LastBoardTornGrain`` ... ``LastBoardSnipe``)."""
+#: The per-kind count variables, by defect kind.
+DEFECT_COUNT_NAMES: Mapping[str, str] = {
+    k: "LastBoard" + "".join(w.title() for w in k.split("_")) for k in DEFECT_KINDS}
 MANUFACTURER_INITIAL: Mapping[str, int] = {"JointingKnife": -1, "LastChippedKnife": -1}
 """Integer variables whose "none" is -1 (a knife index), not 0."""
 
@@ -242,6 +252,9 @@ class MachineView:
         self._last_board: dict[str, float] = {}
         self._last_result: FrameResult | None = None
         self._passed: bool | None = None
+        self._grades = BoardGrades()
+        self._board_grade: dict[str, Any] | None = None  # the board under the camera so far
+        self._last_board_grade: dict[str, Any] | None = None
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -270,6 +283,7 @@ class MachineView:
         self._last_pair_t_s = float(r.t_s)
         self._board.append(r)
         self._last_result = r
+        self._grade(r)
         self._runs_total += 1
         self._passed = self._judge(r)
         if self._passed:
@@ -371,6 +385,29 @@ class MachineView:
             "LastBoardMeanPitchMm": self._last_board.get("mean_pitch_mm", math.nan),
             "LastBoardMeanUniformityCv": self._last_board.get("mean_uniformity_cv", math.nan),
             **knife_condition_values(s),
+            **self._grade_values(),
+        }
+
+    def _grade(self, r: FrameResult) -> None:
+        """The board's grade so far with this pair's defects (when looked for, on a board)."""
+        board = r.extra.get("board_id")
+        found = pair_fields(r.measurement) if r.measurement is not None else {}
+        if not isinstance(board, int) or board <= 0 or not found:
+            return
+        if self._board_grade is not None and self._board_grade["board_id"] != board:
+            self._last_board_grade = self._board_grade
+        self._board_grade = {"board_id": board, **self._grades.add(board, found["defects"])}
+
+    def _grade_values(self) -> dict[str, Any]:
+        cur, last = self._board_grade, self._last_board_grade
+        counts = (last or {}).get("board_defect_counts") or dict.fromkeys(DEFECT_KINDS, 0)
+        return {
+            "BoardGrade": int(cur["board_grade"]) if cur else 0,
+            "LastBoardId": int(last["board_id"]) if last else 0,
+            "LastBoardGrade": int(last["board_grade"]) if last else 0,
+            "LastBoardGradeReason": last["board_grade_reason"] if last else "",
+            "LastBoardDefects": int(sum(counts.values())),
+            **{name: int(counts[k]) for k, name in DEFECT_COUNT_NAMES.items()},
         }
 
     def all_values(self) -> dict[str, Any]:
@@ -401,6 +438,8 @@ class MachineView:
             self._pieces_out += 1
             self._last_board = self._summarise(self._board)
             self._board = []
+            if self._board_grade is not None:  # the graded board left too
+                self._last_board_grade, self._board_grade = self._board_grade, None
 
     def _summarise(self, board: Sequence[FrameResult]) -> dict[str, float]:
         ok = [r for r in board if r.ok]
