@@ -45,6 +45,7 @@ from vision.calibration.selfcal import (
 from vision.deblur import Deblurrer, blur_length_px
 from vision.defects.detect import Defect, DefectFinder
 from vision.defects.grading import grade_pair
+from vision.defects.refused import attach, refused_pair
 from vision.front_end import Binned, FrontEnd, mean_profile
 from vision.integrate import Integrator
 from vision.marks import (
@@ -707,7 +708,25 @@ class Measurer:
 
     # -- the measurement ----------------------------------------------------------------------
 
-    def measure(
+    def measure(self, image_a: np.ndarray, image_b: np.ndarray, *, counts_a: int,
+                counts_b: int, speed_mm_s: float | None = None,
+                calibrator: SelfCalibrator | None = None) -> Measurement:
+        """Measure one pair (:meth:`measured`: parameters, result, refusals).
+
+        With ``defects=True`` a refusal carries the pair's defects all the same, found at the
+        encoder's shift refined on the map (:func:`vision.defects.refused.surface_of`).
+        """
+        try:
+            return self.measured(image_a, image_b, counts_a=counts_a, counts_b=counts_b,
+                                 speed_mm_s=speed_mm_s, calibrator=calibrator)
+        except MeasurementError as exc:
+            surface = refused_pair(self, image_a, image_b, counts_a=counts_a,
+                                   counts_b=counts_b) if self.defect_finder else None
+            if surface is not None:
+                attach(exc, surface)
+            raise
+
+    def measured(
         self,
         image_a: np.ndarray,
         image_b: np.ndarray,

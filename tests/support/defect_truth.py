@@ -12,6 +12,7 @@ measure.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
@@ -212,7 +213,11 @@ HELD_OUT = range(1000, 1240)
 
 @dataclass(frozen=True)
 class Outcome:
-    """One board's measurement: its truth, what was found (``None``: the pair was refused)."""
+    """One board's measurement: its truth, what was found (``None``: no defects reported).
+
+    ``refused``: the cuttermark measurement refused the pair (its defects, if any, came with
+    the refusal: :func:`vision.defects.refused.surface_of`).
+    """
 
     index: int
     kind: str  # the board's kind (:data:`KINDS`)
@@ -220,6 +225,7 @@ class Outcome:
     found: tuple[Defect, ...] | None
     true_grade: int
     grade: int | None
+    refused: bool = False
 
 
 def matches(t: TrueDefect, d: Defect) -> bool:
@@ -237,6 +243,7 @@ def matches(t: TrueDefect, d: Defect) -> bool:
 def measure_boards(indices: Any) -> list[Outcome]:
     """Measure the boards ``indices`` (:func:`board_spec`) with ``Measurer(defects=True)``."""
     from core.errors import MeasurementError
+    from vision.defects.refused import surface_of
     from vision.pipeline import Measurer
 
     measurers: dict[tuple[int, ...], Measurer] = {}
@@ -247,21 +254,27 @@ def measure_boards(indices: Any) -> list[Outcome]:
         if m is None:
             m = measurers[b.image_a.shape] = Measurer(b.rig, b.image_a.shape, knives=4,
                                                       defects=True)
+        refused = False
         try:
             r = m.measure(b.image_a, b.image_b, counts_a=b.counts_a, counts_b=b.counts_b,
                           speed_mm_s=b.speed_mm_s)
             found, grade = r.defects, r.grade
-        except MeasurementError:
-            found, grade = None, None  # the measurement itself refused the pair
+        except MeasurementError as exc:  # the measurement itself refused the pair
+            refused = True
+            surface = surface_of(exc)  # its defects all the same, where a map was made
+            found, grade = (None, None) if surface is None else (surface.defects, surface.grade)
         out.append(Outcome(i, KINDS[i % len(KINDS)], board_truth(b), found,
-                           true_grade(b).grade, grade))
+                           true_grade(b).grade, grade, refused))
     return out
 
 
 @dataclass(frozen=True)
 class Score:
     """Per kind: true positives, misses (of the detectable defects), false positives; clean
-    boards and how many gave no defect; graded boards and how many within one step; refused."""
+    boards and how many gave no defect; graded boards and how many within one step; pairs
+    whose cuttermark measurement was refused (``refused``) and of those, the ones whose
+    defects came with the refusal (``refused_mapped``, judged with the others); boards of
+    each kind judged (``judged``)."""
 
     tp: dict[str, int]
     fn: dict[str, int]
@@ -272,6 +285,8 @@ class Score:
     grade_ok: int
     refused: int
     boards: int
+    judged: dict[str, int] = dataclasses.field(default_factory=dict)
+    refused_mapped: int = 0
 
     def recall(self, kind: str) -> float:
         """Found / (found + missed detectable), 1 without any."""
@@ -285,15 +300,16 @@ class Score:
 
     def table(self) -> str:
         """The Markdown table of docs/vision.md."""
-        lines = ["| kind | recall | precision |", "|---|---|---|"]
+        lines = ["| kind | boards judged | recall | precision |", "|---|---|---|---|"]
         for k in KINDS[:-1]:
             tp, fn, fp = self.tp.get(k, 0), self.fn.get(k, 0), self.fp.get(k, 0)
-            lines.append(f"| {k} | {tp}/{tp + fn} = {self.recall(k):.2f} | "
-                         f"{tp}/{tp + fp} = {self.precision(k):.2f} |")
-        lines.append(f"| clean: no defect | {self.clean_ok}/{self.clean} | |")
-        lines.append(f"| D1666 grade within one step | {self.grade_ok}/{self.graded} = "
-                     f"{self.grade_ok / max(self.graded, 1):.3f} | |")
-        lines.append(f"| refused by the measurement | {self.refused}/{self.boards} | |")
+            lines.append(f"| {k} | {self.judged.get(k, 0)} | {tp}/{tp + fn} = "
+                         f"{self.recall(k):.2f} | {tp}/{tp + fp} = {self.precision(k):.2f} |")
+        lines.append(f"| clean: no defect | {self.clean} | {self.clean_ok}/{self.clean} | |")
+        lines.append(f"| D1666 grade within one step | {self.graded} | {self.grade_ok}/"
+                     f"{self.graded} = {self.grade_ok / max(self.graded, 1):.3f} | |")
+        lines.append(f"| refused by the measurement (defects reported) | | {self.refused}/"
+                     f"{self.boards} ({self.refused_mapped}) | |")
         return "\n".join(lines)
 
 
@@ -302,11 +318,14 @@ def score(outcomes: list[Outcome]) -> Score:
     tp: dict[str, int] = {}
     fn: dict[str, int] = {}
     fp: dict[str, int] = {}
-    clean = clean_ok = graded = grade_ok = refused = 0
+    judged: dict[str, int] = {}
+    clean = clean_ok = graded = grade_ok = refused = mapped = 0
     for o in outcomes:
+        refused += o.refused or o.found is None
         if o.found is None:
-            refused += 1
             continue
+        mapped += o.refused
+        judged[o.kind] = judged.get(o.kind, 0) + 1
         if o.kind == "clean":
             clean += 1
             clean_ok += len(o.found) == 0
@@ -324,7 +343,8 @@ def score(outcomes: list[Outcome]) -> Score:
         for j, d in enumerate(o.found):
             if j not in used:
                 fp[d.kind.value] = fp.get(d.kind.value, 0) + 1
-    return Score(tp, fn, fp, clean, clean_ok, graded, grade_ok, refused, len(outcomes))
+    return Score(tp, fn, fp, clean, clean_ok, graded, grade_ok, refused, len(outcomes), judged,
+                 mapped)
 
 
 def main(argv: list[str] | None = None) -> int:
