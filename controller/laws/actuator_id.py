@@ -33,8 +33,8 @@ lie anywhere on the phase circle: a resonance below the knife passing frequency 
 
 Beside each mode's gain the accepted differences give its dependence on the amplitude
 ``|O_m|`` they were taken at (:meth:`ActuatorIdentifier.amplitude_slope`: the slope of an affine
-describing function ``a_m(A)``, counted only beyond three standard errors and when it changes
-the gain by a quarter over the amplitudes seen), which a hysteretic
+describing function ``a_m(A)``, counted only beyond three standard errors and when the gain
+at the largest amplitude seen is twice the one at the smallest), which a hysteretic
 stack shows and a linear actuator does not; :meth:`ActuatorIdentifier.gains_at` gives the gains
 at given amplitudes, within the amplitudes seen.
 
@@ -420,8 +420,9 @@ class ActuatorIdentifier:
         weighted mean amplitude, the ``centre``) the accepted differences give the slope of
         ``a_m(A) = a_m + slope (A - centre)`` by least squares on the centred amplitudes. The
         slope counts only when it is larger than three of its standard errors (the residual of
-        the affine fit over the amplitudes' spread) and changes the gain by a quarter or more
-        over the amplitudes seen: a linear actuator, or one with little hysteresis, has slope 0.
+        the affine fit over the amplitudes' spread) and the gain at the largest amplitude seen
+        is at least twice the one at the smallest: a linear actuator, or one with little
+        hysteresis, has slope 0.
 
         Returns
         -------
@@ -439,11 +440,13 @@ class ActuatorIdentifier:
         slope = cov / spread
         res = max(self._residual(m) - abs(cov) ** 2 / spread, 0.0)
         se = math.sqrt(res / max(n - 2.0, 1.0) / spread)
-        # it counts when it is beyond three standard errors and changes the gain over the
-        # amplitudes seen by a quarter or more (a stack with a little hysteresis is linear
-        # enough: planning at amplitudes would only add the slope's noise)
-        change = abs(slope) * (self._amp_hi[m] - self._amp_lo[m])
-        keep = abs(slope) > 3.0 * se and change >= 0.25 * abs(complex(self._raw[m]))
+        # it counts when it is beyond three standard errors and the gain at the largest
+        # amplitude seen is at least twice the gain at the smallest (the mark of hysteresis:
+        # small cycles shrink); a feed transient or a little hysteresis does not plan by it
+        a_c = complex(self._raw[m])
+        lo = abs(a_c + slope * (self._amp_lo[m] - centre))
+        hi = abs(a_c + slope * (self._amp_hi[m] - centre))
+        keep = abs(slope) > 3.0 * se and hi >= 2.0 * lo
         return (slope if keep else 0j), centre
 
     def amplitude_dependent(self) -> bool:
