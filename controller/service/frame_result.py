@@ -50,7 +50,8 @@ class FrameResult:
         to_json`: ``vanished_knives``, ``kinematic_cv``, ``pitch_mm``, ``uniformity_cv``, ...),
         ``profile`` (a decimated profile, some pairs),
         ``plc_feed_setpoint_mm_s`` (the PLC's setpoint in force, for the record while the
-        service has written none).
+        service has written none), ``board_id`` and ``board_position_mm`` (the frame's board
+        and place on it: the page's board strip, OPC UA's board grade).
     """
 
     seq: int
