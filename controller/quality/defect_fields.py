@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from vision.defects.detect import Defect, DefectKind
-from vision.defects.grading import grade_board
+from vision.defects.grading import MIN_CONFIDENCE, Grade, grade_pair, severity
 
 #: The defect kinds, in the order the counts, the report and the servers list them.
 DEFECT_KINDS: tuple[str, ...] = tuple(k.value for k in DefectKind)
@@ -197,16 +197,22 @@ class BoardGrades:
     """The running D1666 grade of the board under the camera, pair by pair.
 
     Records are made in pair order (one thread); each pair whose defects were looked for
-    adds to its board's list (a board = the PLC's / simulator's ``board_id`` of the frame;
-    0 = no board, not graded). The board's grade after a pair is
-    :func:`vision.defects.grading.grade_board` over the board's pairs so far, so the board's
-    last record carries the whole board's grade and counts.
+    adds to its board (a board = the PLC's / simulator's ``board_id`` of the frame; 0 = no
+    board, not graded). The board's grade after a pair is
+    :func:`vision.defects.grading.grade_board` over the board's pairs so far (so the board's
+    last record carries the whole board's grade and counts), kept up pair by pair: each pair
+    is graded once (:func:`~vision.defects.grading.grade_pair`) and the board's rule applied
+    to the worst pair and the count of pairs with moderate defects, O(1) per pair (the whole
+    list re-graded cost 0.35 ms at the 67th pair of a board, 1.1 ms at the 200th). The tests
+    hold it equal to ``grade_board`` of the whole list, reason included.
     """
 
     def __init__(self) -> None:
         self.board_id = 0
-        self._pairs: list[list[Defect]] = []
-        self._objects: list[Sequence[Mapping[str, Any]]] = []
+        self._n = 0
+        self._worst: tuple[int, Grade] | None = None  # (index, grade) of the first worst pair
+        self._hit = 0  # pairs with a counted defect of severity >= 2
+        self._counts = dict.fromkeys(DEFECT_KINDS, 0)
 
     def add(self, board_id: int, defects: Sequence[Mapping[str, Any]] | None) -> dict[str, Any]:
         """Add one pair; the record's board fields (empty without defects or board).
@@ -227,10 +233,31 @@ class BoardGrades:
         if defects is None or board_id <= 0:
             return {}
         if board_id != self.board_id:
-            self.board_id = board_id
-            self._pairs, self._objects = [], []
-        self._pairs.append(defects_of(defects))
-        self._objects.append(defects)
-        g = grade_board(self._pairs)
-        return {"board_grade": g.grade, "board_grade_reason": g.reason,
-                "board_defect_counts": count_kinds(self._objects)}
+            self.board_id, self._n, self._worst, self._hit = board_id, 0, None, 0
+            self._counts = dict.fromkeys(DEFECT_KINDS, 0)
+        found = defects_of(defects)
+        g = grade_pair(found)
+        if self._worst is None or g.grade > self._worst[1].grade:
+            self._worst = (self._n, g)
+        if any(d.confidence >= MIN_CONFIDENCE and severity(
+                d.kind, length_mm=d.length_mm, width_mm=d.width_mm, depth_um=d.depth_um) >= 2
+               for d in found):
+            self._hit += 1
+        self._n += 1
+        for d in defects:
+            self._counts[d["kind"]] += 1
+        board = self._board_grade()
+        return {"board_grade": board.grade, "board_grade_reason": board.reason,
+                "board_defect_counts": dict(self._counts)}
+
+    def _board_grade(self) -> Grade:
+        """Rule 3 of :mod:`vision.defects.grading` (``grade_board``) on the running figures."""
+        worst_i, worst = self._worst  # type: ignore[misc]
+        if worst.grade == 1:
+            return Grade(1, f"defect-free: no defect found on {self._n} pairs")
+        g = worst.grade
+        reason = f"worst pair {worst_i}: {worst.reason}"
+        if self._hit > self._n / 4 and g < 5:
+            g += 1
+            reason += f"; defects on {self._hit} of {self._n} pairs: one step worse"
+        return Grade(g, f"grade {g}: {reason}")

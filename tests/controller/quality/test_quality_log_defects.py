@@ -14,6 +14,7 @@ import math
 import sqlite3
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from controller.quality.defect_fields import (
@@ -21,6 +22,7 @@ from controller.quality.defect_fields import (
     DEFECT_KINDS,
     BoardGrades,
     count_kinds,
+    defects_of,
     pair_fields,
 )
 from controller.quality.log import CSV_COLUMNS, SCHEMA_VERSION, QualityLog, QualityRecord, utc_iso
@@ -215,3 +217,26 @@ def test_version_6_database_is_migrated_by_a_writer_and_round_trips(fresh_db):
         back = writer.records()
     assert [_key(r) for r in back] == [_key(r) for r in old + recs]
     assert count_kinds([r.defects for r in back if r.defects]) == back[-2].board_defect_counts
+
+
+def _random_defect(rng: np.random.Generator) -> Defect:
+    kind = DefectKind(DEFECT_KINDS[rng.integers(len(DEFECT_KINDS))])
+    depth = None if rng.random() < 0.2 else float(rng.uniform(0.5, 400.0))
+    return Defect(kind, float(rng.uniform(0, 45)), float(rng.uniform(0, 40)),
+                  float(rng.uniform(0.2, 20)), float(rng.uniform(0.2, 15)), depth,
+                  float(rng.uniform(0.1, 1.0)))  # some below the grade's 0.3
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_running_grade_is_grade_board_of_the_whole_list(seed):
+    """Kept up pair by pair, the board's grade and reason are ``grade_board``'s every time."""
+    rng = np.random.default_rng(seed)
+    grades, pairs = BoardGrades(), []
+    for _ in range(int(rng.integers(1, 60))):
+        n = int(rng.choice([0, 0, 0, 1, 1, 2, 4]))
+        objs = tuple(_random_defect(rng).to_json() for _ in range(n))  # as the log has them
+        pairs.append(defects_of(objs))
+        f = grades.add(3, objs)
+        want = grade_board(pairs)
+        assert (f["board_grade"], f["board_grade_reason"]) == (want.grade, want.reason)
+    assert f["board_defect_counts"] == count_kinds([[d.to_json() for d in p] for p in pairs])
