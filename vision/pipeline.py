@@ -655,7 +655,7 @@ class Measurer:
 
     def _registered_profile(self, prof_a: np.ndarray, prof_b: np.ndarray, registered: bool,
                             columns: tuple[int, int] | None, d: float, margin: int,
-                            cos_roll: float) -> _Profile:
+                            cos_roll: float, *, slow_removed: bool = True) -> _Profile:
         """Slope, height and marks of the pair registered at ``d`` px, and their agreement.
 
         ``registered``: ``prof_b`` is already B at ``u + d`` in A's columns; ``columns``: only
@@ -687,7 +687,8 @@ class Measurer:
         cols = self._c0 + u0 + np.arange(count)
         x_mm = (self._cx + (cols - self._cx) * cos_roll) / self.px_per_mm
         marks = find_marks(x_mm, height, slope=slope, min_marks=self.min_marks)
-        agreement = marks_shading_agreement(log_a, log_b, x_mm, marks.cusps_mm, marks.bottoms_mm)
+        agreement = marks_shading_agreement(log_a, log_b, x_mm, marks.cusps_mm, marks.bottoms_mm,
+                                            slow_removed=slow_removed)
         return _Profile(slope, height, marks, x_mm, period, agreement)
 
     def _register(self, binned_a: Binned, binned_b: Binned, roll: float, prof_a: np.ndarray,

@@ -94,7 +94,11 @@ def rescued(measurer: Measurer, raw: tuple[np.ndarray, np.ndarray], prepared: Ca
             continue
         tried.append(shift)
         try:
-            profile = measurer._registered_profile(*prepared(shift), shift, margin, cos_roll)
+            # judged without removing the shading's slow part: that removal may keep a right
+            # shift (0.5 mm marks), never choose another one (an alias two marks off scored
+            # above the right shift with it on a clean board)
+            profile = measurer._registered_profile(*prepared(shift), shift, margin, cos_roll,
+                                                   slow_removed=False)
         except MeasurementError:
             continue
         if math.isfinite(profile.agreement.score):
