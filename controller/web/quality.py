@@ -28,8 +28,9 @@ from controller.quality.log import (
 
 __all__ = ["FIGURE_NAMES", "QualityBrowser"]
 
-FIGURE_NAMES = ("pitch_uniformity", "setpoints", "profile")
-"""Figures a board may have (``controller.quality.report.build_figures``)."""
+FIGURE_NAMES = ("pitch_uniformity", "setpoints", "profile", "defect_map")
+"""Figures a board may have (``controller.quality.report.build_figures``; ``defect_map`` when
+its records carry planing defects)."""
 
 
 def _mean(values: list[float | None]) -> float | None:
@@ -39,6 +40,15 @@ def _mean(values: list[float | None]) -> float | None:
 
 def _round(v: float | None, digits: int) -> float | None:
     return None if v is None or not math.isfinite(v) else round(float(v), digits)
+
+
+def _board_grade(recs: list[QualityRecord]) -> dict[str, Any]:
+    """A board's grade and defects from its last record that carries them."""
+    last = next((r for r in reversed(recs) if r.board_grade is not None), None)
+    counts = None if last is None else dict(last.board_defect_counts or {})
+    return {"grade": None if last is None else last.board_grade,
+            "defects": None if counts is None else sum(counts.values()),
+            "defect_counts": counts}
 
 
 class QualityBrowser:
@@ -102,7 +112,9 @@ class QualityBrowser:
         list of dict
             ``board_id``, ``machine_id``, ``records``, ``ok`` (measured), ``passed``,
             ``judged``, ``first_time`` / ``last_time`` (UTC text), ``length_mm`` (span of
-            board positions), ``mean_pitch_mm``, ``mean_uniformity_cv``, ``mean_depth_um``.
+            board positions), ``mean_pitch_mm``, ``mean_uniformity_cv``, ``mean_depth_um``,
+            ``grade`` (the board's D1666 grade: its last record's ``board_grade``; ``None``
+            without defects looked for), ``defects`` (their number) and ``defect_counts``.
         """
         self.refresh()
         with self._lock:
@@ -128,6 +140,7 @@ class QualityBrowser:
                 "mean_pitch_mm": _round(_mean([r.pitch_mm for r in ok]), 4),
                 "mean_uniformity_cv": _round(_mean([r.uniformity_cv for r in ok]), 4),
                 "mean_depth_um": _round(_mean([r.depth_um for r in ok]), 2),
+                **_board_grade(recs),
             })
         return out
 
@@ -156,10 +169,14 @@ class QualityBrowser:
             "feed_setpoint_mm_s": _round(r.feed_setpoint_mm_s, 1),
             "passed": r.passed,
             "state": (r.extra or {}).get("state"),
+            "grade": r.grade,
+            "defects": None if r.defects is None else [d["kind"] for d in r.defects],
         } for rid, r in entries]
         qc = self._qc
         has_profile = any(isinstance((r.extra or {}).get("profile"), dict) for _, r in entries)
-        figures = [n for n in FIGURE_NAMES if n != "profile" or has_profile]
+        has_defects = any(r.defects is not None for _, r in entries)
+        figures = [n for n in FIGURE_NAMES if (n != "profile" or has_profile)
+                   and (n != "defect_map" or has_defects)]
         return {"board_id": board_id, "records": rows, "figures": figures,
                 "quality_class": None if qc is None else qc.to_dict()}
 

@@ -38,7 +38,8 @@ async function loadBoards() {
   body.replaceChildren(...data.boards.map((b) => {
     const tr = cells(document.createElement("tr"), [b.board_id, b.machine_id || "-", b.records, b.ok,
       b.judged ? `${b.passed}/${b.judged}` : "-", fmt(b.length_mm, 0), fmt(b.mean_pitch_mm, 3),
-      fmt(b.mean_uniformity_cv, 3), fmt(b.mean_depth_um, 1), when(b.first_time), when(b.last_time)]);
+      fmt(b.mean_uniformity_cv, 3), fmt(b.mean_depth_um, 1), b.grade ?? "-", b.defects ?? "-",
+      when(b.first_time), when(b.last_time)]);
     tr.className = "clickable";
     tr.dataset.board = String(b.board_id);
     tr.addEventListener("click", () => showBoard(b.board_id));
@@ -67,7 +68,8 @@ async function showBoard(id) {
   $("records").tBodies[0].replaceChildren(...data.records.map((r) => {
     const tr = cells(document.createElement("tr"), [r.id, r.seq, fmt(r.board_position_mm, 1), r.state || "-",
       fmt(r.pitch_mm, 3), fmt(r.uniformity_cv, 3), fmt(r.depth_um, 1), fmt(r.confidence, 2),
-      fmt(r.feed_setpoint_mm_s, 0), r.passed === null ? "-" : (r.passed ? "yes" : "no"), r.error || ""]);
+      fmt(r.feed_setpoint_mm_s, 0), r.passed === null ? "-" : (r.passed ? "yes" : "no"),
+      r.grade ?? "-", r.defects === null ? "-" : (r.defects.join(", ") || "none"), r.error || ""]);
     if (!r.ok || r.passed === false) tr.lastChild.className = "fail";
     return tr;
   }));

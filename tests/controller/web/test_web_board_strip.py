@@ -120,3 +120,69 @@ def test_the_strip_shows_the_defects_as_they_pass_and_the_grade(chrome):  # noqa
 
 
 from tests.controller.web.test_web_browser import chrome  # noqa: E402, F401
+
+
+def _graded_log(tmp_path):
+    from controller.quality.log import QualityLog
+    from tests.controller.quality.test_report_defects import _records
+
+    recs, _ = _records()  # boards 1 (clean), 2 (a torn pit: 5), 3 (a chip mark: 2)
+    path = tmp_path / "q.sqlite"
+    with QualityLog(path) as log:
+        for r in recs:
+            log.append(r)
+    return path
+
+
+def test_the_quality_page_data_has_each_boards_grade_and_defect_map(tmp_path):
+    from controller.web.quality import QualityBrowser
+
+    qb = QualityBrowser(_graded_log(tmp_path))
+    try:
+        boards = {b["board_id"]: b for b in qb.boards()}
+        assert [(b, boards[b]["grade"], boards[b]["defects"]) for b in (1, 2, 3)] == [
+            (1, 1, 0), (2, 5, 3), (3, 2, 1)]
+        assert boards[2]["defect_counts"]["torn_grain"] == 1
+        board = qb.board(2)
+        assert "defect_map" in board["figures"]
+        assert [r["grade"] for r in board["records"]][2] == 5
+        assert board["records"][5]["defects"] == ["raised_grain", "chip_mark"]
+        assert qb.figure_png(2, "defect_map").startswith(b"\x89PNG")
+    finally:
+        qb.close()
+
+
+def test_the_quality_page_shows_the_grades_in_the_browser(chrome, tmp_path):  # noqa: F811
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    from controller.web.app import make_app
+    from controller.web.quality import QualityBrowser
+    from controller.web.server import WebServer
+    from tests.controller.web.test_web_browser import TIMEOUT_S
+
+    qb = QualityBrowser(_graded_log(tmp_path))
+    server = WebServer(make_app(None, qb), "127.0.0.1:0")
+    server.start()
+    try:
+        chrome.get(server.url + "quality?board=2")
+        wait = WebDriverWait(chrome, TIMEOUT_S)
+        wait.until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "#records tbody tr")) == 8)
+        table = chrome.execute_script("""
+            const col = (id, name) => Array.from(document.querySelectorAll(`#${id} thead th`))
+              .findIndex((th) => th.textContent === name);
+            const rows = (id) => Array.from(document.querySelectorAll(`#${id} tbody tr`))
+              .map((r) => Array.from(r.cells).map((c) => c.textContent));
+            return {boards: rows('boards'), records: rows('records'),
+                    bg: col('boards', 'grade'), rg: col('records', 'grade'),
+                    rd: col('records', 'defects')};""")
+        assert [r[table["bg"]] for r in table["boards"]] == ["1", "5", "2"]
+        assert table["records"][2][table["rg"]] == "5"
+        assert table["records"][2][table["rd"]] == "torn_grain"
+        assert table["records"][0][table["rd"]] == "none"
+        wait.until(lambda d: d.execute_script(
+            "return Array.from(document.querySelectorAll('#figures img'))"
+            ".some((i) => i.alt.startsWith('defect_map') && i.complete && i.naturalWidth > 0);"))
+    finally:
+        server.stop()
+        qb.close()
