@@ -18,7 +18,8 @@ defects of such a pair anyway, from the encoder's shift refined on the map itsel
   known, so chatter is not looked for.
 
 The refusal stands (the caller re-raises the measurement's error); the defects ride on it
-(:func:`attach`, :func:`surface_of`).
+(:func:`attach`, :func:`surface_of`; an attribute of the exception, so it survives pickling to
+another process).
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from core.checks import check_finite, check_positive
-from core.errors import MeasurementError
 from vision.defects.detect import Defect, Residual, detect_defects, residual
 from vision.defects.grading import grade_pair
 from vision.marks import dominant_period_px
@@ -216,20 +216,20 @@ def refused_pair(measurer: Measurer, image_a: np.ndarray, image_b: np.ndarray, *
     -------
     RefusedSurface or None
         ``None`` also when the encoder's shift leaves too little overlap or the images are
-        too dark to map.
+        too dark or clipped to map.
     """
     finder = measurer.defect_finder
     if finder is None:
         return None
     enc = measurer.rig.encoder
-    d_enc = encoder_shift_px(counts_a, counts_b, px_per_count=enc.px_per_count,
-                             counter_bits=enc.counter_bits)
-    if abs(d_enc) > measurer.width - measurer.min_overlap_px:
-        return None
-    try:
+    try:  # a pair that cannot be mapped either: the refusal goes out as it is
+        d_enc = encoder_shift_px(counts_a, counts_b, px_per_count=enc.px_per_count,
+                                 counter_bits=enc.counter_bits)
+        if abs(d_enc) > measurer.width - measurer.min_overlap_px:
+            return None
         ba = measurer._binned(np.asarray(image_a), "image_a")
         bb = measurer._binned(np.asarray(image_b), "image_b")
-    except MeasurementError:
+    except ValueError:  # MeasurementError included: too dark, clipped, bad counts
         return None
     orient = measurer.orientation(ba, bb)
     roll = (orient.roll_deg if orient.confidence >= measurer.min_roll_confidence

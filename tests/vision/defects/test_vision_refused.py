@@ -4,7 +4,9 @@ on boards of the independent renderer (``tests/support/defect_boards.py``)."""
 from __future__ import annotations
 
 import math
+import pickle
 
+import numpy as np
 import pytest
 
 from core.errors import MeasurementError, RegistrationError
@@ -55,6 +57,9 @@ def test_a_refused_pair_carries_its_defects(index):
     assert len(surface.defects) == len(truth), surface.defects
     assert surface.grade >= 2 and surface.grade_reason
     assert surface.encoder_shift_px == pytest.approx(_encoder_px(board))
+    # a worker process's refusal reaches the service with its defects
+    again = surface_of(pickle.loads(pickle.dumps(exc)))
+    assert again == surface
     # the refusal itself stands: the same error the measurement raised without the defects
     plain = _refusal(board, _measurer(board, defects=False))
     assert type(plain) is type(exc) and str(plain) == str(exc)
@@ -103,3 +108,16 @@ def test_attach_and_surface_of():
         ba = m._binned(board.image_a, "a")
         refused_surface(m.defect_finder, ba.bins, ba.bins, encoder_shift_px=1.0,
                         roll_deg=0.0, slip_px=-1.0)
+
+
+def test_a_pair_that_cannot_be_mapped_is_refused_as_it_is():
+    board = cached_board(**board_spec(REFUSED_FUZZY))
+    m = _measurer(board)
+    dark = np.zeros_like(board.image_a)
+    with pytest.raises(MeasurementError) as info:  # too dark: no map either
+        m.measure(dark, dark, counts_a=board.counts_a, counts_b=board.counts_b)
+    assert surface_of(info.value) is None
+    far = (board.counts_a + 10 ** 6) % (1 << 32)  # the encoder's shift leaves no overlap
+    with pytest.raises(MeasurementError) as info:
+        m.measure(board.image_a, board.image_b, counts_a=board.counts_a, counts_b=far)
+    assert surface_of(info.value) is None
