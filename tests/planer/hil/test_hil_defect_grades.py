@@ -1,7 +1,7 @@
 """HIL with wood defects and the defect detector on: the log's per-board grades against the truth.
 
-The ``defects`` scenario (torn and raised grain on every other board, config/sim_defects.toml)
-with ``defects = true`` (the service looks for planing defects on every pair), 10 m of board in
+The ``defects`` scenario (torn and raised grain on every other board, config/sim_defects.toml;
+``defects = true``: the service looks for planing defects on every pair), 10 m of board in
 process on simulated time. The run's summary counts the defects per kind (found and true) and
 the grades; the quality log's board grades are the grading rule over the log's own pairs, and
 the simulator's defects (``Frame.truth["defects"]``) are found on their boards and only there.
@@ -10,7 +10,6 @@ the simulator's defects (``Frame.truth["defects"]``) are found on their boards a
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 
 import pytest
 
@@ -29,7 +28,8 @@ TRUE_KINDS = ("torn_grain", "raised_grain")
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    sc = dataclasses.replace(load_scenario("defects"), defects=True)
+    sc = load_scenario("defects")
+    assert sc.defects is True  # config/hil.toml: the service looks for defects on every pair
     path = tmp_path_factory.mktemp("hil") / "hil.sqlite"
     hil = InProcessHil(sc, log_path=path)
     summary = asyncio.run(hil.run())
