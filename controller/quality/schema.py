@@ -397,6 +397,10 @@ _INT_FIELDS = ("seq", "board_id")
 _TEXT_FIELDS = ("wall_time", "error", "flag_reason", "grade_reason", "board_grade_reason")
 #: Fields stored as JSON text (schema version 7; NULL = ``None``).
 _JSON_FIELDS = ("defects", "board_defect_counts")
+#: The board's grade fields (schema version 7; set together, only on a board).
+_BOARD_GRADE_FIELDS = ("board_grade", "board_grade_reason", "board_defect_counts")
+#: The planing defects' record fields (schema version 7), kept on a refused record.
+DEFECT_FIELDS = ("defects", "grade", "grade_reason", *_BOARD_GRADE_FIELDS)
 #: The knife condition's record fields (schema version 6), as :func:`knife_condition_fields`.
 KNIFE_CONDITION_FIELDS = ("board_travel_m", "knife_drift_um_per_m", "knife_reserve_um",
                           "jointing_state", *JOINTING_FIELDS)
@@ -547,10 +551,11 @@ def storable_record(record: QualityRecord) -> QualityRecord:
             if name in _INT_FIELDS:
                 refused[name] = str(value)
                 changes[name] = 0
+                if name == "board_id":  # no board: no board grade either
+                    changes.update(dict.fromkeys(_BOARD_GRADE_FIELDS))
             elif name in _TEXT_FIELDS:
                 refused[name] = value.encode("utf-8", "backslashreplace").decode("utf-8")
-                changes[name] = (refused[name] if name in ("error", "flag_reason")
-                                 else utc_iso(0.0))
+                changes[name] = (utc_iso(0.0) if name == "wall_time" else refused[name])
             else:
                 refused[name] = repr(value)[:2000]
                 changes[name] = {}
@@ -567,7 +572,7 @@ def storable_record(record: QualityRecord) -> QualityRecord:
         "t_s", "wall_time", "seq", "board_id", "board_position_mm", "shift_px", "confidence",
         "feed_setpoint_mm_s", "piezo_offsets_um", "target_pitch_mm", "true_pitch_mm",
         "true_uniformity_cv", "roll_deg", "roll_confidence", "calibration_state",
-        *CALIBRATION_FIELDS, "flag_reason", *KNIFE_CONDITION_FIELDS)}
+        *CALIBRATION_FIELDS, "flag_reason", *KNIFE_CONDITION_FIELDS, *DEFECT_FIELDS)}
     out = QualityRecord(**kept, ok=False, error=error, extra=extra)
     check_storable(out)
     return out

@@ -9,6 +9,7 @@ records reading no defects.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sqlite3
@@ -26,7 +27,12 @@ from controller.quality.defect_fields import (
     pair_fields,
 )
 from controller.quality.log import CSV_COLUMNS, SCHEMA_VERSION, QualityLog, QualityRecord, utc_iso
-from controller.quality.schema import ADDED_IN_V7, record_from_dict, record_to_dict
+from controller.quality.schema import (
+    ADDED_IN_V7,
+    record_from_dict,
+    record_to_dict,
+    storable_record,
+)
 from tests.support import pg_support
 from vision.defects.detect import Defect, DefectKind
 from vision.defects.grading import grade_board, grade_pair
@@ -240,3 +246,18 @@ def test_the_running_grade_is_grade_board_of_the_whole_list(seed):
         want = grade_board(pairs)
         assert (f["board_grade"], f["board_grade_reason"]) == (want.grade, want.reason)
     assert f["board_defect_counts"] == count_kinds([[d.to_json() for d in p] for p in pairs])
+
+
+def test_a_refused_record_keeps_its_defects_and_drops_a_board_it_cannot_store(tmp_path):
+    rec = _board_records()[0]
+    huge = dataclasses.replace(rec, board_id=2**64)  # beyond SQLite's integers
+    kept = storable_record(huge)
+    assert not kept.ok and kept.error.startswith("record refused: board_id")
+    assert kept.board_id == 0 and kept.board_grade is None and kept.board_defect_counts is None
+    assert kept.defects == rec.defects and kept.grade == rec.grade
+    odd = storable_record(dataclasses.replace(rec, grade_reason="worst \udc80"))
+    assert odd.grade_reason == "worst \\udc80" and odd.board_grade == rec.board_grade
+    with QualityLog(tmp_path / "q.sqlite") as log:
+        log.append(kept)
+        log.append(odd)
+        assert [r.defects for r in log.records()] == [rec.defects, rec.defects]
