@@ -17,8 +17,9 @@ from controller.service.frame_result import FrameResult
 
 __all__ = ["MAX_STRIP_DEFECTS", "BoardStrip", "defect_fields_json"]
 
-MAX_STRIP_DEFECTS = 400
-"""Most defects of one board kept for the strip (the first ones; the counts count all)."""
+MAX_STRIP_DEFECTS = 200
+"""Most defects of one board kept for the strip (the first ones; the counts count all): at
+about 200 bytes of JSON each, at most 40 kB more in every page message."""
 
 
 def _num(v: Any, digits: int) -> float | None:
