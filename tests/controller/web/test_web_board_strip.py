@@ -68,6 +68,18 @@ def test_the_live_view_grades_the_board_so_far_and_keeps_the_last():
     assert board["current"]["board_id"] == 4 and board["current"]["grade"] == 1
 
 
+def test_the_strip_keeps_the_first_defects_and_counts_them_all():
+    from controller.web.board_strip import MAX_STRIP_DEFECTS
+
+    live = LiveView()
+    for seq in range(MAX_STRIP_DEFECTS // 2 + 25):  # two nicks a pair
+        live.take_result(result_json(_result(seq, 9, 60.0 * seq, [NICK, NICK])))
+    cur = live.snapshot()["board"]["current"]
+    assert len(cur["defects"]) == MAX_STRIP_DEFECTS
+    assert cur["defect_counts"]["knife_nick"] == MAX_STRIP_DEFECTS + 50
+    assert cur["defects"][-1]["seq"] == MAX_STRIP_DEFECTS // 2 - 1
+
+
 def _strip(driver) -> dict:
     return driver.execute_script("""
         const rects = Array.from(document.querySelectorAll('#board-strip rect.defect'));
