@@ -174,6 +174,26 @@ function countsText(counts) {
   return parts.length ? parts.join(", ") : "no defects";
 }
 
+function drawCounts(counts) {
+  // the board's defects per kind, each in its kind's colour (the strip's legend)
+  const box = $("bs-counts");
+  const key = counts ? JSON.stringify(counts) : "";
+  if (box.dataset.key === key) return;
+  box.dataset.key = key;
+  if (!counts) { box.replaceChildren(); return; }
+  const parts = Object.entries(counts).filter(([, n]) => n > 0);
+  if (!parts.length) { box.replaceChildren("no defects"); return; }
+  const nodes = [];
+  parts.forEach(([k, n], i) => {
+    const span = document.createElement("span");
+    span.className = `kind d-${k}`;
+    span.textContent = `${k.replace("_", " ")} ${n}`;
+    if (i) nodes.push(", ");
+    nodes.push(span);
+  });
+  box.replaceChildren(...nodes);
+}
+
 function drawBoardStrip(board) {
   const cur = board ? board.current : null;
   const last = board ? board.last : null;
@@ -183,7 +203,7 @@ function drawBoardStrip(board) {
     `(${countsText(last.defect_counts)})` : "");
   if (!cur) {
     badge.className = "grade g0"; setText("bs-grade", "grade -");
-    setText("bs-board", ""); setText("bs-counts", "");
+    setText("bs-board", ""); drawCounts(null);
     if (svg.dataset.key !== "") { svg.dataset.key = ""; svg.replaceChildren(); }
     return;
   }
@@ -191,7 +211,7 @@ function drawBoardStrip(board) {
   setText("bs-grade", `grade ${cur.grade} ${GRADE_WORDS[cur.grade] || ""}`);
   setText("bs-reason", cur.grade_reason || "");
   setText("bs-board", `(board ${cur.board_id}, ${cur.pairs} pairs so far)`);
-  setText("bs-counts", countsText(cur.defect_counts));
+  drawCounts(cur.defect_counts);
   const key = `${cur.board_id}:${cur.pairs}:${cur.defects.length}`;
   if (svg.dataset.key === key) return;
   svg.dataset.key = key;
@@ -228,7 +248,7 @@ function drawBoardStrip(board) {
     r.append(title);
   }
   add("text", { x: X(lo), y: h - 4 }, "0 mm");
-  add("text", { x: X(hi) - 60, y: h - 4 }, `${num(hi, 0)} mm along the board`);
+  add("text", { x: X(hi), y: h - 4, "text-anchor": "end" }, `${num(hi, 0)} mm along the board`);
 }
 
 function drawFeed() {
