@@ -183,14 +183,24 @@ def pair_fields(measurement: Any) -> dict[str, Any]:
 def frame_centre_mm(measurement: Any) -> float | None:
     """Along-feed centre of image A in its frame, mm: the middle of the measured profile.
 
-    A defect's ``x_mm`` minus it, added to the pair's ``board_position_mm``, places the
-    defect along the board (``None`` without a profile).
+    The fallback of the optical axis (the rig's ``cx / px_per_mm``, which the service puts in
+    ``FrameResult.extra["frame_centre_x_mm"]``); ``None`` without a profile.
     """
     try:
         x = np.asarray(measurement.x_mm, dtype=float).ravel()
         return round(float(0.5 * (x[0] + x[-1])), 2) if x.size else None
     except (AttributeError, TypeError, ValueError, IndexError):
         return None
+
+
+def along_board_mm(board_position_mm: float, x_mm: float, centre_mm: float | None) -> float:
+    """Where a defect was along its board, mm from the board's leading end.
+
+    ``board_position_mm`` is image A's optical axis from the leading end; image x runs along
+    the feed, toward the leading end (the rig's convention), so a defect ``x_mm - centre_mm``
+    further along the image is that much nearer the leading end.
+    """
+    return board_position_mm - (x_mm - (0.0 if centre_mm is None else centre_mm))
 
 
 class BoardGrades:

@@ -18,7 +18,7 @@ from typing import Any
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from controller.quality.defect_fields import DEFECT_KINDS
+from controller.quality.defect_fields import DEFECT_KINDS, along_board_mm
 from controller.quality.schema import QualityRecord
 
 __all__ = ["board_grades", "defect_map_figure", "defect_summary", "format_defect_summary",
@@ -36,8 +36,9 @@ KIND_STYLE: dict[str, tuple[str, str]] = {
     "chatter": ("tab:cyan", "|"),
     "snipe": ("tab:brown", "_"),
 }
-#: The extra key of a record holding the along-feed centre of image A, mm (the defects'
-#: ``x_mm`` minus it is their distance from the pair's ``board_position_mm``).
+#: The extra key of a record holding image A's optical axis along the feed, mm (the defects'
+#: ``x_mm`` minus it is their distance from the pair's ``board_position_mm`` toward the board's
+#: leading end: :func:`controller.quality.defect_fields.along_board_mm`).
 FRAME_CENTRE_KEY = "frame_centre_x_mm"
 
 
@@ -123,14 +124,15 @@ def format_defect_summary(summary: dict[str, Any] | None) -> list[str]:
 
 def _along_board(rec: QualityRecord, x_mm: float) -> float:
     centre = rec.extra.get(FRAME_CENTRE_KEY)
-    return rec.board_position_mm + x_mm - (float(centre) if centre is not None else 0.0)
+    return along_board_mm(rec.board_position_mm, x_mm,
+                          None if centre is None else float(centre))
 
 
 def defect_map_figure(records: Sequence[QualityRecord]) -> Figure | None:
     """The defects of each board where they were (``None`` when no record looked for defects).
 
-    One panel per board (the last :data:`MAP_BOARDS`), x along the board (the pair's
-    ``board_position_mm`` plus the defect's offset from image A's centre), y across it (the
+    One panel per board (the last :data:`MAP_BOARDS`), x along the board from its leading end
+    (:func:`controller.quality.defect_fields.along_board_mm`), y across it (the
     defect's ``y_mm`` in image A), one marker and colour per kind, its extent as a box; the
     pairs looked at as grey ticks along the bottom; the board's grade in the title.
     """

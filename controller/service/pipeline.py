@@ -93,6 +93,9 @@ class PairPipeline:
         self.records = records
         self.report = report
         self.rig = rig
+        cam = getattr(rig, "camera", None)
+        self._frame_centre_mm = (None if cam is None
+                                 else finite_or_none(cam.cx / cam.px_per_mm))
         self.last: FrameResult | None = None
         """The last pair's result."""
         self.keep_results = False
@@ -253,6 +256,7 @@ class PairPipeline:
                 # the board under the camera (the page's board strip, OPC UA's board grade)
                 "board_id": int_or(frame.board_id, 0),
                 "board_position_mm": finite_or_none(frame.board_position_mm),
+                "frame_centre_x_mm": self._frame_centre_mm,  # the optical axis in image A, mm
                 **({"passes": att.to_json()} if att is not None else {}),
                 **({"profile": profile} if profile is not None else {}),
             },

@@ -306,7 +306,8 @@ class QualityRecords:
             defect = pair_fields(m)
             fields.update(defect)
             if defect:  # where image A's centre is: the report places the defects on the board
-                fields["extra"][FRAME_CENTRE_KEY] = frame_centre_mm(m)
+                fields["extra"][FRAME_CENTRE_KEY] = (r.extra.get(FRAME_CENTRE_KEY)
+                                                     or frame_centre_mm(m))
             fields.update(self._board_grades.add(int_or(fields.get("board_id"), 0),
                                                  defect.get("defects")))
         if r.ok:

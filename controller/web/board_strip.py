@@ -12,7 +12,12 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from controller.quality.defect_fields import BoardGrades, frame_centre_mm, pair_fields
+from controller.quality.defect_fields import (
+    BoardGrades,
+    along_board_mm,
+    frame_centre_mm,
+    pair_fields,
+)
 from controller.service.frame_result import FrameResult
 
 __all__ = ["MAX_STRIP_DEFECTS", "BoardStrip", "defect_fields_json"]
@@ -50,8 +55,10 @@ def defect_fields_json(r: FrameResult) -> dict[str, Any]:
     m = r.measurement
     found = pair_fields(m) if m is not None else {}
     if found:
+        centre = _num(r.extra.get("frame_centre_x_mm"), 3)
         out.update(defects=list(found["defects"]), grade=found["grade"],
-                   grade_reason=found["grade_reason"], frame_centre_x_mm=frame_centre_mm(m))
+                   grade_reason=found["grade_reason"],
+                   frame_centre_x_mm=centre if centre is not None else frame_centre_mm(m))
     return out
 
 
@@ -84,12 +91,12 @@ class BoardStrip:
             return
         cur["from_mm"] = pos if cur["from_mm"] is None else min(cur["from_mm"], pos)
         cur["to_mm"] = pos if cur["to_mm"] is None else max(cur["to_mm"], pos)
-        centre = d.get("frame_centre_x_mm") or 0.0
+        centre = d.get("frame_centre_x_mm")
         for item in defects:
             if len(cur["defects"]) >= MAX_STRIP_DEFECTS:
                 break
-            cur["defects"].append({**item, "board_x_mm": round(pos + item["x_mm"] - centre, 2),
-                                   "seq": d.get("seq")})
+            along = along_board_mm(pos, item["x_mm"], centre)
+            cur["defects"].append({**item, "board_x_mm": round(along, 2), "seq": d.get("seq")})
 
     def json(self) -> dict[str, Any]:
         """The strip as JSON: ``{"current": ..., "last": ...}``.

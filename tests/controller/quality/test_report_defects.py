@@ -81,10 +81,11 @@ def test_the_map_draws_each_defect_where_it_was_on_its_board():
     fig = defect_map_figure(recs)
     axes = fig.axes
     assert len(axes) == 3 and axes[1].get_title(loc="left").startswith("board 2: grade 5")
-    # board 2: the torn pit of pair 2 at 1040 mm + (30 - 22) mm, 12 mm across
+    # board 2: the torn pit of pair 2, 8 mm past the optical axis (22 mm) in image A: 8 mm
+    # nearer the leading end than the pair's 1040 mm; 12 mm across
     points = [(line.get_xdata()[0], line.get_ydata()[0]) for line in axes[1].get_lines()
               if line.get_label() == "torn grain"]
-    assert points == [(pytest.approx(1048.0), pytest.approx(12.0))]
+    assert points == [(pytest.approx(1032.0), pytest.approx(12.0))]
     assert defect_map_figure([QualityRecord(t_s=0, wall_time=utc_iso(1.7e9), seq=0,
                                             board_id=1, board_position_mm=0, ok=True)]) is None
 

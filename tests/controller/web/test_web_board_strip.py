@@ -22,10 +22,12 @@ from vision.defects.grading import grade_board, grade_pair  # noqa: E402
 
 TORN = Defect(DefectKind.TORN_GRAIN, 30.0, 12.0, 12.0, 4.0, 250.0, 0.9)
 NICK = Defect(DefectKind.KNIFE_NICK, 22.0, 30.0, 44.0, 0.4, 9.0, 0.8)
-CENTRE = 22.0  # image A's along-feed centre: the profile runs 0..44 mm
+CENTRE = 22.0  # the middle of the profile (0..44 mm): the fallback of the optical axis
+AXIS = 26.0  # the optical axis in image A (the rig's cx / px_per_mm, as the pipeline gives it)
 
 
-def _result(seq: int, board: int, pos: float, found: list[Defect] | None) -> FrameResult:
+def _result(seq: int, board: int, pos: float, found: list[Defect] | None, *,
+            axis: float | None = AXIS) -> FrameResult:
     g = grade_pair(found) if found is not None else None
     m = SimpleNamespace(x_mm=np.linspace(0.0, 2 * CENTRE, 50), height_um=np.zeros(50),
                         defects=None if found is None else tuple(found),
@@ -34,7 +36,8 @@ def _result(seq: int, board: int, pos: float, found: list[Defect] | None) -> Fra
     return FrameResult(seq=seq, ok=True, error=None, measurement=m, knife_widths_mm=(),
                        applied=True, feed_setpoint_mm_s=600.0, offsets_um=(0.0,) * 4,
                        state="run", t_s=0.1 * seq, latency_s=0.01, counts_a=100 * seq,
-                       extra={"board_id": board, "board_position_mm": pos})
+                       extra={"board_id": board, "board_position_mm": pos,
+                              "frame_centre_x_mm": axis})
 
 
 #: board 3: four pairs, a torn pit on the second, a nick on the fourth; then board 4 begins
@@ -46,7 +49,8 @@ def test_the_page_json_carries_the_pairs_board_and_defects():
     d = result_json(_result(1, 3, 400.0, [TORN]))
     assert d["board_id"] == 3 and d["board_position_mm"] == 400.0
     assert d["defects"] == [TORN.to_json()] and d["grade"] == 5
-    assert d["frame_centre_x_mm"] == CENTRE
+    assert d["frame_centre_x_mm"] == AXIS
+    assert result_json(_result(1, 3, 400.0, [TORN], axis=None))["frame_centre_x_mm"] == CENTRE
     none = result_json(_result(2, 3, 700.0, None))  # not looked for
     assert none["defects"] is None and none["grade"] is None
 
@@ -60,7 +64,8 @@ def test_the_live_view_grades_the_board_so_far_and_keeps_the_last():
     assert (cur["grade"], cur["grade_reason"]) == (want.grade, want.reason)
     assert cur["pairs"] == 3 and (cur["from_mm"], cur["to_mm"]) == (100.0, 1000.0)
     assert [(d["kind"], d["board_x_mm"], d["seq"]) for d in cur["defects"]] == [
-        ("torn_grain", 400.0 + 30.0 - CENTRE, 1), ("knife_nick", 1000.0, 3)]
+        # image x runs toward the board's leading end: 4 mm past the axis is 4 mm nearer it
+        ("torn_grain", 400.0 - (30.0 - AXIS), 1), ("knife_nick", 1000.0 - (22.0 - AXIS), 3)]
     assert cur["defect_counts"]["torn_grain"] == 1 and cur["defect_counts"]["knife_nick"] == 1
     live.take_result(result_json(_result(*PAIRS[4])))
     board = live.snapshot()["board"]
@@ -121,7 +126,7 @@ def test_the_strip_shows_the_defects_as_they_pass_and_the_grade(chrome):  # noqa
         assert s["reason"].startswith("grade 5: worst pair 1: grade 5: worst: torn_grain")
         assert s["board"] == "(board 3, 3 pairs so far)"
         assert s["counts"] == "torn grain 1, knife nick 1"
-        assert s["titles"][0] == "torn grain at 408 mm: 12.0 x 4.0 mm, 250 µm (pair 1)"
+        assert s["titles"][0] == "torn grain at 396 mm: 12.0 x 4.0 mm, 250 µm (pair 1)"
         live.take_result(result_json(_result(*PAIRS[4])))  # board 4 begins, clean
         wait.until(lambda d: _strip(d)["last"] != "")
         s = _strip(chrome)
