@@ -51,7 +51,8 @@ class FrameResult:
         ``profile`` (a decimated profile, some pairs),
         ``plc_feed_setpoint_mm_s`` (the PLC's setpoint in force, for the record while the
         service has written none), ``board_id`` and ``board_position_mm`` (the frame's board
-        and place on it: the page's board strip, OPC UA's board grade).
+        and place on it: the page's board strip, OPC UA's board grade), ``frame_centre_x_mm``
+        (the optical axis in image A along the feed, the rig's ``cx / px_per_mm``).
     """
 
     seq: int
