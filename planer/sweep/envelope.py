@@ -231,7 +231,8 @@ def plot_piezo_corners(table: Sequence[Mapping[str, Any]], path: str | Path) -> 
     ax.set_xticklabels([p["plant"].replace("resonance_hz ", "").replace(", hysteresis ", " Hz\nh ")
                         .replace(", damping ", ", z ") for p in rows], fontsize=7)
     ax.legend(fontsize=7, loc="upper right")
-    ax.set_title("Envelope sweep, piezo corners (8 m, 3 seeds)", fontsize=9)
+    ax.set_title("Envelope sweep, piezo corners (8 m, 3 seeds; a CV of 0 drawn at 1e-4)",
+                 fontsize=9)
     fig.tight_layout()
     out = Path(path)
     fig.savefig(out)
