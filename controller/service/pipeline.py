@@ -94,8 +94,10 @@ class PairPipeline:
         self.report = report
         self.rig = rig
         cam = getattr(rig, "camera", None)
-        self._frame_centre_mm = (None if cam is None
-                                 else finite_or_none(cam.cx / cam.px_per_mm))
+        try:  # the optical axis in image A along the feed, mm (where a defect is on the board)
+            self._frame_centre_mm = finite_or_none(cam.cx / cam.px_per_mm)
+        except (AttributeError, TypeError, ZeroDivisionError):
+            self._frame_centre_mm = None
         self.last: FrameResult | None = None
         """The last pair's result."""
         self.keep_results = False
