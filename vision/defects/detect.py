@@ -628,15 +628,10 @@ def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> li
         k = max(1, int(round(pitch_mm * smap.cols_per_mm)))
         if k < y.size // 3:
             y = np.convolve(y, np.ones(k) / k, mode="valid")
-    x_mm = (np.arange(y.size) - 0.5 * (y.size - 1)) / smap.cols_per_mm
-    c2, c1_, _ = _quadratic_fit(x_mm, y)
+    c2, c1_ = _centred_quadratic(y, 1.0 / smap.cols_per_mm)
     half = 0.5 * (c1 - c0) / smap.cols_per_mm
-    xs = np.linspace(-half, half, 201)
-    hz = 1000.0 * (c1_ * xs ** 2 / 2 + c2 * xs ** 3 / 3)  # um
-    chord = hz[0] + (hz[-1] - hz[0]) * (xs + half) / (2 * half)
-    dev = hz - chord
-    sag = float(dev.max())  # concave: the middle above the chord
-    if sag < settings.snipe_um or dev.min() < -0.5 * sag:
+    sag, dip = _sag_um(c1_, c2, half)  # concave: the middle above the chord
+    if sag < settings.snipe_um or dip < -0.5 * sag:
         return []
     slope_ends = c1_ + 2 * c2 * np.array([-half, half])
     left = abs(slope_ends[0]) >= abs(slope_ends[1])
@@ -647,14 +642,38 @@ def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> li
     return [_defect(res, DefectKind.SNIPE, cs, (int(rows[0]), int(rows[-1]) + 1), sag, conf)]
 
 
-def _quadratic_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
-    """Least-squares ``c2 x^2 + c1 x + c0`` (as ``np.polyfit(x, y, 2)``; ``x`` centred)."""
-    x2 = x * x
-    sx, sx2, sx3, sx4 = x.sum(), x2.sum(), (x2 * x).sum(), (x2 * x2).sum()
-    gram = np.array([[sx4, sx3, sx2], [sx3, sx2, sx], [sx2, sx, float(x.size)]])
-    rhs = np.array([x2 @ y, x @ y, y.sum()])
-    c2, c1, c0 = np.linalg.solve(gram, rhs)
-    return float(c2), float(c1), float(c0)
+def _centred_quadratic(y: np.ndarray, dx: float) -> tuple[float, float]:
+    """``(c2, c1)`` of the least-squares ``c2 x^2 + c1 x + c0`` through ``y``.
+
+    ``x`` spaced ``dx`` apart and centred on the middle sample (as ``np.polyfit(x, y, 2)``;
+    the grid's odd moments vanish, its even ones are closed sums).
+    """
+    n = y.size
+    m = 0.5 * (n - 1)
+    i = np.arange(n, dtype=np.float64) - m
+    s2 = n * (n * n - 1.0) / 12.0 * dx ** 2  # sum x^2
+    s4 = n * (n * n - 1.0) * (3.0 * n * n - 7.0) / 240.0 * dx ** 4  # sum x^4
+    sy = float(y.sum())
+    sxy = float(i @ y) * dx
+    sx2y = float((i * i) @ y) * dx ** 2
+    det = s4 * n - s2 * s2
+    return (n * sx2y - s2 * sy) / det, sxy / s2
+
+
+def _sag_um(c1: float, c2: float, half: float) -> tuple[float, float]:
+    """Largest and smallest distance above its chord of ``h = c1 x^2 / 2 + c2 x^3 / 3``, um.
+
+    On ``[-half, half]`` (slope ``c1 x + c2 x^2``, x in mm).  ``h`` less its chord is
+    ``(x^2 - half^2) (c1 / 2 + c2 x / 3)``: zero at the ends, its extremes where
+    ``c2 x^2 + c1 x - c2 half^2 / 3 = 0``.
+    """
+    a, b = 0.5 * c1, c2 / 3.0
+    points = [0.0] if b == 0 else []
+    if b != 0:
+        root = math.sqrt(a * a + 3.0 * b * b * half * half)
+        points = [(-a + root) / (3.0 * b), (-a - root) / (3.0 * b)]
+    dev = [1000.0 * (x * x - half * half) * (a + b * x) for x in points if abs(x) <= half]
+    return max(dev + [0.0]), min(dev + [0.0])
 
 
 def detect_defects(smap: SurfaceMap, *, bottoms_mm: np.ndarray | None = None,
@@ -784,7 +803,7 @@ def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, f
     norm = float(r2[0::2].sum() * r2[1::2].sum()) ** 0.5
     if norm <= 0:
         return 0.0, 0.0, 0
-    lags = np.r_[np.arange(0, max_lag_px + 1), np.arange(-max_lag_px, 0)]
-    vals = np.r_[x[:max_lag_px + 1], x[-max_lag_px:]] / norm
-    k = int(np.argmax(vals))
-    return float(vals[k]), float(vals[0]), int(lags[k])
+    vals = np.concatenate((x[:max_lag_px + 1], x[-max_lag_px:])) / norm
+    k = int(np.argmax(vals))  # lags 0 .. max_lag_px, then -max_lag_px .. -1
+    lag = k if k <= max_lag_px else k - (2 * max_lag_px + 1)
+    return float(vals[k]), float(vals[0]), int(lag)
