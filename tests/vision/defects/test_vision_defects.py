@@ -287,3 +287,25 @@ def test_acceptance_on_independent_boards():
     found = sum(sc.tp.values())
     assert found >= 0.95 * (found + sum(sc.fn.values())), report
     assert found >= 0.95 * (found + sum(sc.fp.values())), report
+
+
+@pytest.mark.parametrize("n", [17, 50, 331])
+def test_snipes_fit_and_sag_as_polyfit_and_dense_sampling(n):
+    from vision.defects.detect import _centred_quadratic, _sag_um
+
+    rng = np.random.default_rng(n)
+    y = 0.002 * rng.standard_normal(n) + 1e-4 * np.arange(n) ** 2 / n
+    dx = 0.16
+    x = (np.arange(n) - 0.5 * (n - 1)) * dx
+    c2, c1, _ = np.polyfit(x, y, 2)
+    got = _centred_quadratic(y, dx)
+    assert got == pytest.approx((c2, c1), rel=1e-9, abs=1e-15)
+    half = 0.5 * n * dx
+    for a, b in ((c1, c2), (0.001, 0.0003), (-0.002, 1e-4), (0.003, 0.0)):
+        xs = np.linspace(-half, half, 100001)
+        hz = 1000.0 * (a * xs ** 2 / 2 + b * xs ** 3 / 3)
+        dev = hz - (hz[0] + (hz[-1] - hz[0]) * (xs + half) / (2 * half))
+        sag, dip = _sag_um(a, b, half)
+        scale = max(abs(dev).max(), 1e-9)
+        assert sag == pytest.approx(max(dev.max(), 0.0), abs=1e-6 * scale)
+        assert dip == pytest.approx(min(dev.min(), 0.0), abs=1e-6 * scale)
