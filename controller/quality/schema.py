@@ -797,6 +797,19 @@ ADDED_IN_V6: tuple[tuple[str, str, str], ...] = tuple(
     c for c in _COLUMNS if c[0] not in _V5 and c[0] in _V6)
 #: The columns version 7 added (the planing defects and grades), for the migrations.
 ADDED_IN_V7: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V6)
+_ADDED_IN = {4: ADDED_IN_V4, 5: ADDED_IN_V5, 6: ADDED_IN_V6, 7: ADDED_IN_V7}
+assert max(_ADDED_IN) == SCHEMA_VERSION
+
+
+def columns_added_since(version: int) -> tuple[tuple[str, str, str], ...]:
+    """The columns the versions after ``version`` (3 or later) added, in order.
+
+    ``(name, SQLite type, PostgreSQL type)`` each: what a writer adds to bring a log of
+    ``version`` to :data:`SCHEMA_VERSION`.
+    """
+    if not 3 <= version <= SCHEMA_VERSION:
+        raise ValueError(f"version must be in 3..{SCHEMA_VERSION}, got {version!r}")
+    return tuple(c for v in range(version + 1, SCHEMA_VERSION + 1) for c in _ADDED_IN[v])
 
 
 def column_names(version: int) -> tuple[str, tuple[str, ...]]:

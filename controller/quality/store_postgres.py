@@ -19,15 +19,12 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from controller.quality.schema import (
-    ADDED_IN_V4,
-    ADDED_IN_V5,
-    ADDED_IN_V6,
-    ADDED_IN_V7,
     SCHEMA_VERSION,
     QualityLogError,
     RecordRefusedError,
     Selection,
     column_names,
+    columns_added_since,
     create_statements,
 )
 from core.checks import check_positive
@@ -241,10 +238,7 @@ class PostgresStore:
                 if version < SCHEMA_VERSION and create:
                     # v4: orientation, self-calibration, depths; v5: flag_reason; v6: the
                     # knife condition; v7: the planing defects and grades
-                    added = ((ADDED_IN_V4 if version == 3 else ())
-                             + (ADDED_IN_V5 if version <= 4 else ())
-                             + (ADDED_IN_V6 if version <= 5 else ()) + ADDED_IN_V7)
-                    for name, _, pg_type in added:
+                    for name, _, pg_type in columns_added_since(version):
                         conn.execute(f"ALTER TABLE records ADD COLUMN IF NOT EXISTS {name} "
                                      f"{pg_type}")
                     conn.execute("UPDATE schema_version SET version = %s", (SCHEMA_VERSION,))

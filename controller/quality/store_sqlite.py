@@ -15,16 +15,13 @@ from pathlib import Path
 from typing import Any
 
 from controller.quality.schema import (
-    ADDED_IN_V4,
-    ADDED_IN_V5,
-    ADDED_IN_V6,
-    ADDED_IN_V7,
     APPLICATION_ID,
     SCHEMA_VERSION,
     QualityLogError,
     RecordRefusedError,
     Selection,
     column_names,
+    columns_added_since,
     create_statements,
 )
 from core.checks import check_positive
@@ -158,7 +155,7 @@ class SqliteStore:
 
         v2: the CSV header's names; v3: ``machine_id``; v4: orientation, self-calibration and
         kinematic depth (records before it read ``None`` there); v5: ``flag_reason``; v6: the
-        knife condition.
+        knife condition; v7: the planing defects and grades.
         """
         conn = self._connection()
         try:
@@ -174,22 +171,11 @@ class SqliteStore:
                     conn.execute("CREATE INDEX IF NOT EXISTS records_machine_time "
                                  "ON records (machine_id, wall_time_utc)")
                     version = 3
-                if version == 3:
-                    for name, sqlite_type, _ in ADDED_IN_V4:
-                        conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
-                    version = 4
-                if version == 4:
-                    for name, sqlite_type, _ in ADDED_IN_V5:
-                        conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
-                    version = 5
-                if version == 5:
-                    for name, sqlite_type, _ in ADDED_IN_V6:
-                        conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
-                    version = 6
-                if version == 6:
-                    for name, sqlite_type, _ in ADDED_IN_V7:
-                        conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
-                    version = 7
+                # v4: orientation, self-calibration, depths; v5: flag_reason; v6: the knife
+                # condition; v7: the planing defects and grades
+                for name, sqlite_type, _ in columns_added_since(version):
+                    conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
+                version = SCHEMA_VERSION
                 conn.execute("UPDATE schema_version SET version = ?", (version,))
                 conn.execute("COMMIT")
             except BaseException:

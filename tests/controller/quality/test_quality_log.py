@@ -596,3 +596,21 @@ def test_machine_toml_machine_id():
                      ({"name": "x"}, "machine.name")]:
         with pytest.raises(ConfigError, match=key):
             machine_from_dict({"machine": bad})
+
+
+@pytest.mark.parametrize("version", [3, 4, 5, 6, 7])
+def test_columns_added_since_a_version_are_the_later_versions_columns_in_order(version):
+    from controller.quality.schema import SCHEMA_VERSION, columns_added_since
+
+    by_version = {4: ADDED_IN_V4, 5: ADDED_IN_V5, 6: ADDED_IN_V6, 7: ADDED_IN_V7}
+    want = tuple(c for v in range(version + 1, SCHEMA_VERSION + 1) for c in by_version[v])
+    assert columns_added_since(version) == want
+    assert len({name for name, _, _ in want}) == len(want)  # each column added once
+
+
+@pytest.mark.parametrize("version", [0, 1, 2, 8, -1])
+def test_columns_added_since_refuses_a_version_it_cannot_migrate_from(version):
+    from controller.quality.schema import columns_added_since
+
+    with pytest.raises(ValueError, match="version must be in 3..7"):
+        columns_added_since(version)
