@@ -433,7 +433,10 @@ def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None 
     ref = ref[np.isfinite(ref)]
     if ref.size < 4:
         return [], set()
-    ratio = np.nan_to_num(energy / max(float(np.median(ref)), 1e-18), nan=0.0)
+    ref = np.sort(ref)  # its median (np.median's, without its overhead)
+    k = ref.size // 2
+    median = float(ref[k]) if ref.size % 2 else 0.5 * (float(ref[k - 1]) + float(ref[k]))
+    ratio = energy / max(median, 1e-18)  # NaN on rows without samples: never hot
     hot = ratio >= settings.nick_ratio
     if not hot.any():
         return [], set()
