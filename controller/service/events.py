@@ -106,7 +106,7 @@ class EventKind(enum.Enum):
     width changed suddenly and stays changed (``controller.service.alerts.KnifeChipMonitor``;
     ``data``: ``knife``, ``width_change_mm``, ``runout_step_um`` (its estimate), ``seq``,
     ``t_s``), or ``nick``, the defect detector's ridge along the board at one place on
-    consecutive pairs (``controller.service.knife_nicks.KnifeNickMonitor``; ``data``:
+    consecutive pairs (``controller.service.alerts.KnifeNickMonitor``; ``data``:
     ``knife`` ``None`` (not told apart), ``y_mm`` across the camera's field, ``ridge_um``,
     ``seq``, ``t_s``)."""
     JOINTING_DUE = "jointing_due"

@@ -28,10 +28,9 @@ from controller.laws.limits import project_zero_mean_box
 from controller.laws.uniformity_loop import UniformityLoop, UniformityLoopConfig
 from controller.quality.learned_state import KnifeSet, LearnedMemory, LearnedState
 from controller.service.actuators import Actuators
-from controller.service.alerts import OperatorAlerts
+from controller.service.alerts import KnifeNickMonitor, OperatorAlerts
 from controller.service.attribution import Attributed
 from controller.service.events import EventKind, EventLog
-from controller.service.knife_nicks import KnifeNickMonitor
 from controller.service.supervisor import AmplifierMonitor
 from core.errors import FieldbusError
 from protocol.registers import MachineState

@@ -6,13 +6,13 @@ from types import SimpleNamespace
 
 import pytest
 
-from controller.service.events import EventKind, EventLog
-from controller.service.knife_nicks import (
+from controller.service.alerts import (
     NICK_FORGET_PAIRS,
     NICK_MIN_CONFIDENCE,
     NICK_Y_TOL_MM,
     KnifeNickMonitor,
 )
+from controller.service.events import EventKind, EventLog
 
 
 def _nick(y, depth=-12.5, confidence=1.0):
