@@ -57,7 +57,11 @@ from vision.marks import (
 from vision.orientation import Orientation, RollEstimator
 from vision.profile import overlap, shift_profile
 from vision.registration.checks import checked
-from vision.registration.consistency import Agreement, honest_confidence, marks_shading_agreement
+from vision.registration.consistency import (
+    RegisteredProfile,
+    honest_confidence,
+    marks_shading_agreement,
+)
 from vision.registration.defect_rows import (
     clean_columns,
     masked_pair,
@@ -375,18 +379,6 @@ def check_rig_size(rig: Rig, shape: tuple[int, int]) -> None:
         )
 
 
-@dataclass(frozen=True)
-class _Profile:
-    """The pair registered at one shift: slope, height, marks and the marks' agreement."""
-
-    slope: np.ndarray
-    height: np.ndarray
-    marks: Marks
-    x_mm: np.ndarray
-    period: float
-    agreement: Agreement
-
-
 class Measurer:
     """Measures image pairs of one rig and one image shape (all set-up done here, once).
 
@@ -655,7 +647,7 @@ class Measurer:
 
     def _registered_profile(self, prof_a: np.ndarray, prof_b: np.ndarray, registered: bool,
                             columns: tuple[int, int] | None, d: float, margin: int,
-                            cos_roll: float, *, slow_removed: bool = True) -> _Profile:
+                            cos_roll: float, *, slow_removed: bool = True) -> RegisteredProfile:
         """Slope, height and marks of the pair registered at ``d`` px, and their agreement.
 
         ``registered``: ``prof_b`` is already B at ``u + d`` in A's columns; ``columns``: only
@@ -689,7 +681,7 @@ class Measurer:
         marks = find_marks(x_mm, height, slope=slope, min_marks=self.min_marks)
         agreement = marks_shading_agreement(log_a, log_b, x_mm, marks.cusps_mm, marks.bottoms_mm,
                                             slow_removed=slow_removed)
-        return _Profile(slope, height, marks, x_mm, period, agreement)
+        return RegisteredProfile(slope, height, marks, x_mm, period, agreement)
 
     def _register(self, binned_a: Binned, binned_b: Binned, roll: float, prof_a: np.ndarray,
                   prof_b: np.ndarray, d_enc: float) -> Registration:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -38,7 +38,25 @@ from vision.registration.registrar import encoder_shift_px
 
 if TYPE_CHECKING:
     from vision.defects.detect import DefectFinder
-    from vision.pipeline import Measurer
+
+
+
+class MapMeasurer(Protocol):
+    """What a refused pair's map needs of the measurer (:class:`vision.pipeline.Measurer`)."""
+
+    defect_finder: DefectFinder | None
+    rig: Any
+    width: int
+    min_overlap_px: int
+    min_roll_confidence: float
+    px_per_mm: float
+    max_slip_px: float
+
+    def _binned(self, image: np.ndarray, name: str) -> Any: ...
+
+    def orientation(self, binned_a: Any, binned_b: Any) -> Any:  # noqa: D102
+        ...
+
 
 COARSE_STEP = 1.0
 """Step of the shift search's first grid, map columns."""
@@ -195,7 +213,7 @@ def surface_of(exc: BaseException) -> RefusedSurface | None:
     return found if isinstance(found, RefusedSurface) else None
 
 
-def refused_pair(measurer: Measurer, image_a: np.ndarray, image_b: np.ndarray, *,
+def refused_pair(measurer: MapMeasurer, image_a: np.ndarray, image_b: np.ndarray, *,
                  counts_a: int, counts_b: int) -> RefusedSurface | None:
     """The defects of a pair the measurer refused (``None``: not looked for, or no map).
 
@@ -205,7 +223,8 @@ def refused_pair(measurer: Measurer, image_a: np.ndarray, image_b: np.ndarray, *
 
     Parameters
     ----------
-    measurer : vision.pipeline.Measurer
+    measurer : MapMeasurer
+        A :class:`vision.pipeline.Measurer`.
         The measurer that refused the pair (``defects=True``, else ``None`` is returned).
     image_a, image_b : ndarray
         The pair.

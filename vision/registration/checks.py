@@ -22,16 +22,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from core.errors import MeasurementError, RegistrationError
+from vision.registration.consistency import RegisteredProfile, ShiftChecker
 from vision.registration.registrar import Registration
 from vision.registration.shift_estimators import log_difference, mark_period_px
-
-if TYPE_CHECKING:
-    from vision.pipeline import Measurer, _Profile
 
 RESCUED_CONFIDENCE = 0.5
 """The most a registration chosen by the marks check alone reports."""
@@ -39,14 +37,15 @@ RESCUED_CONFIDENCE = 0.5
 _TIE = 0.03  # agreements this close explain the images equally well
 
 
-def rescued(measurer: Measurer, raw: tuple[np.ndarray, np.ndarray], prepared: Callable[..., Any],
-            seeds: list[float], encoder_px: float, margin: int, cos_roll: float,
-            ) -> tuple[Registration, _Profile] | None:
+def rescued(measurer: ShiftChecker, raw: tuple[np.ndarray, np.ndarray],
+            prepared: Callable[..., Any], seeds: list[float], encoder_px: float,
+            margin: int, cos_roll: float,
+            ) -> tuple[Registration, RegisteredProfile] | None:
     """The shift, among a defect's aliases, whose marks explain the images best.
 
     Parameters
     ----------
-    measurer : vision.pipeline.Measurer
+    measurer : ShiftChecker (a vision.pipeline.Measurer)
         The measurer (its registrar, thresholds and profile).
     raw : tuple of ndarray
         A's and B's column profiles as registered (camera frame).
@@ -135,9 +134,10 @@ def _refined(reg: Any, pa: np.ndarray, pb: np.ndarray, prep: tuple, guess: float
     return guess + residual, score
 
 
-def checked(measurer: Measurer, raw: tuple[np.ndarray, np.ndarray], prepared: Callable[..., Any],
-            reg: Registration, profile: _Profile, margin: int, cos_roll: float,
-            ) -> tuple[Registration, _Profile, str | None]:
+def checked(measurer: ShiftChecker, raw: tuple[np.ndarray, np.ndarray],
+            prepared: Callable[..., Any], reg: Registration, profile: RegisteredProfile,
+            margin: int, cos_roll: float,
+            ) -> tuple[Registration, RegisteredProfile, str | None]:
     """The measurement's own checks; a second registration, then a search, when they fail.
 
     Returns the registration and profile kept and the reason the checks still fail

@@ -26,11 +26,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from core.checks import check_finite, check_positive, check_range
 from vision import check_kernels, kernels
+
+if TYPE_CHECKING:  # types only: marks and registrar do not import this module
+    from vision.marks import Marks
+    from vision.registration.registrar import Registrar
 
 
 @dataclass(frozen=True)
@@ -53,6 +58,32 @@ class Agreement:
         if not (math.isfinite(self.score_a) and math.isfinite(self.score_b)):
             return math.nan
         return min(self.score_a, self.score_b)
+
+
+@dataclass(frozen=True)
+class RegisteredProfile:
+    """The pair registered at one shift: slope, height, marks and the marks' agreement."""
+
+    slope: np.ndarray
+    height: np.ndarray
+    marks: Marks
+    x_mm: np.ndarray
+    period: float
+    agreement: Agreement
+
+
+class ShiftChecker(Protocol):
+    """What the measurement's checks need of the measurer (:class:`vision.pipeline.Measurer`)."""
+
+    registrar: Registrar
+    register: bool
+    min_agreement: float
+    max_slip_px: float
+
+    def _registered_profile(self, prof_a: np.ndarray, prof_b: np.ndarray, registered: bool,
+                            columns: tuple[int, int] | None, d: float, margin: int,
+                            cos_roll: float, *, slow_removed: bool = True
+                            ) -> RegisteredProfile: ...
 
 
 def marks_shading_agreement(

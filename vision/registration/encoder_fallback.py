@@ -35,15 +35,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from core.errors import MeasurementError, RegistrationError
+from vision.registration.consistency import RegisteredProfile, ShiftChecker
 from vision.registration.registrar import Registration
-
-if TYPE_CHECKING:
-    from vision.pipeline import Measurer, _Profile
 
 ENCODER_CONFIDENCE = 0.5
 """The most a registration taken from the encoder alone reports."""
@@ -58,8 +56,8 @@ STEP_PX = 1.25
 """Grid step of the search for a better shift, pixels (the peak is ~2.5 px wide at 0.7)."""
 
 
-def _agreement(measurer: Measurer, prepared: Callable[..., Any], shift: float, margin: int,
-               cos_roll: float) -> tuple[float, _Profile | None]:
+def _agreement(measurer: ShiftChecker, prepared: Callable[..., Any], shift: float, margin: int,
+               cos_roll: float) -> tuple[float, RegisteredProfile | None]:
     """The marks' agreement at ``shift`` and its profile (``-inf, None``: no marks there)."""
     try:
         profile = measurer._registered_profile(*prepared(shift), shift, margin, cos_roll)
@@ -69,14 +67,14 @@ def _agreement(measurer: Measurer, prepared: Callable[..., Any], shift: float, m
     return (score, profile) if math.isfinite(score) else (-math.inf, None)
 
 
-def encoder_registration(measurer: Measurer, prepared: Callable[..., Any], encoder_px: float,
+def encoder_registration(measurer: ShiftChecker, prepared: Callable[..., Any], encoder_px: float,
                          margin: int, cos_roll: float, failure: RegistrationError,
-                         ) -> tuple[Registration, _Profile]:
+                         ) -> tuple[Registration, RegisteredProfile]:
     """The pair registered at the encoder's shift, when the marks confirm that shift.
 
     Parameters
     ----------
-    measurer : vision.pipeline.Measurer
+    measurer : ShiftChecker (a vision.pipeline.Measurer)
         The measurer (``min_agreement``, ``max_slip_px`` and its profile).
     prepared : callable
         ``prepared(d)``: the profiles the measurement uses at shift ``d``.
@@ -94,7 +92,7 @@ def encoder_registration(measurer: Measurer, prepared: Callable[..., Any], encod
     registration : vision.registration.registrar.Registration
         ``source == "encoder"``, the encoder's shift, confidence ``min(ENCODER_CONFIDENCE,
         agreement)``.
-    profile : vision.pipeline._Profile
+    profile : vision.pipeline.RegisteredProfile
         The pair's profile at that shift.
 
     Raises
