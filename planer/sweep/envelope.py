@@ -7,8 +7,11 @@
 - the zero table's true CV at the target pitch (the loop's "initial" finish, at the pitch the
   feed loop drives to; :func:`planer.sweep.optimum.true_cv`);
 - the constrained optimum (:func:`planer.sweep.optimum.constrained_optimum_cv`): the best table
-  within the stroke that keeps the amplifier within its temperature limit in steady state; where
-  the limit binds, the optimum regardless of the heat and its temperature are given too.
+  the loop may command (the knife patterns whose gain reaches the loop's ``[uniformity_loop]
+  gain_min``, the others held at zero as the loop holds them) within the stroke that keeps the
+  amplifier within its temperature limit in steady state; where the limit binds, the optimum
+  regardless of the heat and its temperature are given too; where patterns are held, the
+  optimum over every pattern (within the heat) beside it.
 
 Criteria (``docs/control_design.md``, section 8): in every run the final true CV at most 10 %
 above the zero table's and the optimum's (:data:`CV_REL_TOL`, plus :data:`CV_ABS_TOL` for
@@ -51,6 +54,10 @@ class PlantRefs:
     hot_cv: float | None  # the optimum regardless of the heat, where the limit binds
     hot_c: float | None
     camera_mm: float
+    patterns: tuple[int, ...] = ()  # the knife patterns the optimum may use
+    held: tuple[int, ...] = ()  # the patterns below the loop's gain_min, held at zero
+    every_cv: float | None = None  # the optimum over every pattern, where some are held
+    every_c: float | None = None
 
 
 def references(sim_cfg: Any, machine_cfg: Any) -> PlantRefs:
@@ -61,13 +68,19 @@ def references(sim_cfg: Any, machine_cfg: Any) -> PlantRefs:
     feed = machine_cfg.quality.target_pitch_mm * sim_cfg.spindle.rpm / 60.0 * z
     zero = true_cv(sim_cfg, np.zeros(z), feed_mm_s=feed)
     opt = constrained_optimum_cv(sim_cfg, machine_cfg)
-    hot_cv = hot_c = None
+    hot_cv = hot_c = every_cv = every_c = None
     if opt.temperature_c >= opt.temperature_limit_c - HOT_MARGIN_C:
         free = constrained_optimum_cv(sim_cfg, machine_cfg, temperature_limit_c=math.inf)
         hot_cv, hot_c = free.cv, free.temperature_c
+    held = tuple(m for m in range(1, z // 2 + 1) if m not in opt.patterns)
+    if held:
+        every = constrained_optimum_cv(sim_cfg, machine_cfg, gain_min=0.0)
+        every_cv, every_c = every.cv, every.temperature_c
     return PlantRefs(zero_cv=zero, optimum_cv=opt.cv, optimum_c=opt.temperature_c,
                      hot_cv=hot_cv, hot_c=hot_c,
-                     camera_mm=float(sim_cfg.camera.cutter_to_camera_mm))
+                     camera_mm=float(sim_cfg.camera.cutter_to_camera_mm),
+                     patterns=tuple(opt.patterns), held=held, every_cv=every_cv,
+                     every_c=every_c)
 
 
 def _f(text: str) -> float | None:
@@ -170,10 +183,13 @@ def envelope_table(sweep_path: str | Path, results_path: str | Path,
     known: dict[str, Any] = {}
     if cache is not None and Path(cache).exists():
         known = json.loads(Path(cache).read_text())
+    fields = set(PlantRefs.__dataclass_fields__)
     out = []
     for label, (job, rows) in plants.items():
-        if label in known:
-            refs = PlantRefs(**known[label])
+        if label in known and set(known[label]) == fields:  # else an older cache: again
+            entry = dict(known[label])
+            entry["patterns"], entry["held"] = tuple(entry["patterns"]), tuple(entry["held"])
+            refs = PlantRefs(**entry)
         else:
             if progress is not None:
                 progress(label)
@@ -195,8 +211,15 @@ def markdown(table: Sequence[Mapping[str, Any]]) -> str:
     for p in table:
         r: PlantRefs = p["refs"]
         opt = f"{r.optimum_cv:.3f}"
+        notes = []
+        if r.held:
+            notes.append("pattern " + ", ".join(str(m) for m in r.held) + " held")
         if r.hot_cv is not None:
-            opt += f" ({r.optimum_c:.0f} °C; {r.hot_cv:.3f} at {r.hot_c:.0f} °C)"
+            notes.append(f"{r.optimum_c:.0f} °C; {r.hot_cv:.3f} at {r.hot_c:.0f} °C")
+        if r.every_cv is not None:
+            notes.append(f"every pattern: {r.every_cv:.3f} at {r.every_c:.0f} °C")
+        if notes:
+            opt += " (" + "; ".join(notes) + ")"
         lines.append(f"| {p['plant']} | {r.zero_cv:.3f} | {opt} | {p['final']} | {p['settled']} "
                      f"| {p['safe']} | {p['offset']} | {p['pitch']} | {p['verdict']} |")
     return "\n".join(lines)
@@ -219,7 +242,11 @@ def plot_piezo_corners(table: Sequence[Mapping[str, Any]], path: str | Path) -> 
         ax.scatter([i + 0.15], [r.zero_cv], marker="x", color="tab:gray",
                    label="zero table" if i == 0 else None)
         ax.scatter([i - 0.15], [max(r.optimum_cv, 1e-4)], marker="D", color="tab:green",
-                   label="optimum within 70 °C" if i == 0 else None)
+                   label="optimum: patterns the loop moves, within 70 °C" if i == 0 else None)
+        if r.every_cv is not None:
+            ax.scatter([i - 0.3], [max(r.every_cv, 1e-4)], marker="s", facecolors="none",
+                       edgecolors="tab:orange", label="optimum over every pattern" if not any(
+                           q["refs"].every_cv is not None for q in rows[:i]) else None)
         if r.hot_cv is not None:
             ax.scatter([i - 0.15], [max(r.hot_cv, 1e-4)], marker="D", facecolors="none",
                        edgecolors="tab:red", label="optimum that overheats" if not any(

@@ -16,6 +16,15 @@ played every revolution slews ``n sum_k |o_k - o_(k-1)|`` um/s (:func:`steady_te
 The optimum is searched among the tables whose steady-state temperature stays within that limit:
 a table beyond it is scaled down onto the limit before its CV is taken (the slew is
 proportional to the table), so the search never leaves what the amplifier can play for good.
+
+The optimum is the best table the loop is allowed to command: a knife pattern (a Fourier mode
+``m`` of the table over the knives) whose gain is below the loop's "can help" threshold
+(``[uniformity_loop] gain_min``, :class:`controller.laws.uniformity_loop.UniformityLoopConfig`,
+the same number the identifier holds a pattern at zero with) is held at zero by the loop, so
+the search holds it at zero too. A pattern's gain is the largest ``|R_m / O_m|`` the simulated
+actuator shows on a table of that pattern alone, over amplitudes up to the table's bound and
+the temperature limit (:func:`pattern_gains`: a hysteretic stack moves a large cycle more than a
+small one, and the loop plans at the amplitudes it sees).
 """
 
 from __future__ import annotations
@@ -49,6 +58,11 @@ class Optimum:
         The amplifier's steady-state temperature while it plays ``offsets_um``, degrees C.
     temperature_limit_c : float
         The temperature the table was kept within (``inf``: not limited), degrees C.
+    patterns : tuple of int
+        The knife patterns (modes ``1 .. Z // 2``) the table may use: those whose gain reaches
+        the threshold it was searched with; the others are zero in ``offsets_um``.
+    pattern_gains : tuple of float
+        Each pattern's gain (:func:`pattern_gains`), modes ``1 .. Z // 2``.
     """
 
     cv: float
@@ -57,6 +71,8 @@ class Optimum:
     clipped_cv: float
     temperature_c: float = float("nan")
     temperature_limit_c: float = float("inf")
+    patterns: tuple[int, ...] = ()
+    pattern_gains: tuple[float, ...] = ()
 
 
 def table_slew_um_s(table_um: Sequence[float], *, spindle_rpm: float) -> float:
@@ -123,6 +139,81 @@ def actuator_response_um(piezo_cfg, table_um: Sequence[float], *, spindle_rpm: f
     return row
 
 
+def pattern_gains(piezo_cfg, knives: int, *, spindle_rpm: float, bound_um: float,
+                  temperature_limit_c: float = math.inf, amplitudes: int = 8) -> np.ndarray:
+    """Each knife pattern's gain on the simulated actuator, modes ``1 .. Z // 2``.
+
+    The gain of mode ``m`` is ``|R_m / O_m|`` for a table of that mode alone (a cosine and a
+    sine over the knives, peak ``A``), ``R`` the actuator's steady response at the knives'
+    bottom dead centres; the largest over ``amplitudes`` peaks up to ``bound_um``, each table
+    scaled down onto ``temperature_limit_c`` where it would heat the amplifier beyond it.
+
+    Parameters
+    ----------
+    piezo_cfg : config.sim.PiezoConfig
+        The simulated amplifier and actuator.
+    knives : int
+        Knives ``Z``.
+    spindle_rpm : float
+        Spindle speed, rpm.
+    bound_um : float
+        Largest offset of a table, um.
+    temperature_limit_c : float
+        Steady-state temperature the tables keep within, degrees C (``inf``: not limited).
+    amplitudes : int
+        Peaks tried, evenly spaced from ``bound_um / amplitudes`` to ``bound_um``.
+
+    Returns
+    -------
+    numpy.ndarray, shape (Z // 2,)
+        The gains of modes ``1 .. Z // 2``.
+    """
+    z = int(knives)
+    if z < 2:
+        return np.zeros(0)
+    if not bound_um > 0:
+        raise ValueError(f"bound_um must be > 0, got {bound_um!r}")
+    k = np.arange(z)
+    out = np.zeros(z // 2)
+    for m in range(1, z // 2 + 1):
+        shapes = [np.cos(2 * np.pi * m * k / z)]
+        if 2 * m != z:
+            shapes.append(np.sin(2 * np.pi * m * k / z))
+        best = 0.0
+        for shape in shapes:
+            shape = shape / np.max(np.abs(shape))
+            for peak in np.linspace(bound_um / amplitudes, bound_um, amplitudes):
+                table = shape * peak
+                if math.isfinite(temperature_limit_c):
+                    table = within_temperature(piezo_cfg, table, spindle_rpm=spindle_rpm,
+                                               limit_c=temperature_limit_c)
+                cmd = np.fft.fft(table)[m]
+                if abs(cmd) < 1e-9:
+                    continue
+                resp = actuator_response_um(piezo_cfg, table, spindle_rpm=spindle_rpm)
+                best = max(best, float(abs(np.fft.fft(resp)[m] / cmd)))
+        out[m - 1] = best
+    return out
+
+
+def pattern_basis(knives: int, patterns: Sequence[int]) -> np.ndarray:
+    """An orthonormal basis of the real zero-mean tables made of ``patterns`` only, (Z, r).
+
+    ``patterns``: modes ``1 .. Z // 2`` (mode ``m`` brings ``Z - m``, its conjugate, along).
+    """
+    z = int(knives)
+    mask = np.zeros(z)
+    for m in patterns:
+        if not 1 <= int(m) <= z // 2:
+            raise ValueError(f"patterns must lie in 1..{z // 2}, got {m!r}")
+        mask[int(m)] = mask[z - int(m)] = 1.0
+    k = np.arange(z)
+    f = np.exp(-2j * np.pi * np.outer(k, k) / z) / math.sqrt(z)
+    proj = (f.conj().T @ np.diag(mask) @ f).real
+    w, v = np.linalg.eigh(proj)
+    return v[:, w > 0.5]
+
+
 WINDOW_MM = 40.0
 """The camera's field along the board (``config/rig.toml``): the marks one true CV covers, mm."""
 WINDOW_PHASES = 12
@@ -177,8 +268,9 @@ def true_cv(
 
 
 def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = None,
-                           temperature_limit_c: float | None = None) -> Optimum:
-    """The best true CV of zero-mean tables within the loop's bound and the amplifier's heat.
+                           temperature_limit_c: float | None = None,
+                           gain_min: float | None = None) -> Optimum:
+    """The best true CV of the tables the loop may command, within its bound and the heat.
 
     Parameters
     ----------
@@ -191,6 +283,10 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
     temperature_limit_c : float, optional
         Steady-state temperature the table must keep the amplifier within, degrees C; default
         the amplifier's ``max_temperature_c`` (it faults above); ``inf``: not limited.
+    gain_min : float, optional
+        The knife patterns whose gain (:func:`pattern_gains`) is below this are held at zero;
+        default the loop's own threshold, ``[uniformity_loop] gain_min`` of ``machine_cfg``
+        (0: every pattern).
 
     Returns
     -------
@@ -206,6 +302,17 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
     rpm = sim_cfg.spindle.rpm
     feed = feed_mm_s or machine_cfg.quality.target_pitch_mm * rpm / 60.0 * z
     hot = sim_cfg.piezo.max_temperature_c if temperature_limit_c is None else temperature_limit_c
+    threshold = ucfg.gain_min if gain_min is None else gain_min
+    if not (isinstance(threshold, int | float) and math.isfinite(threshold) and threshold >= 0):
+        raise ValueError(f"gain_min must be a number >= 0, got {gain_min!r}")
+    gains = pattern_gains(sim_cfg.piezo, z, spindle_rpm=rpm, bound_um=bound,
+                          temperature_limit_c=hot)
+    patterns = tuple(m + 1 for m in range(len(gains)) if gains[m] >= threshold)
+    if len(patterns) == len(gains):  # every pattern: the free entries (the earlier search's)
+        basis = np.vstack([np.eye(z - 1), -np.ones((1, z - 1))])
+    else:
+        basis = pattern_basis(z, patterns)
+    proj = basis @ np.linalg.pinv(basis)
     k = np.arange(z)
     standout = np.asarray(ch.runout_um, float) + ch.eccentricity_um * np.cos(2 * np.pi * k / z)
     # the actuator's steady response as a matrix (columns: unit tables), for the QP start
@@ -217,8 +324,11 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
                             bound_um=bound)
     clipped = project_zero_mean_box(standout - standout.mean(), bound=bound)
 
+    def coords(o: np.ndarray) -> np.ndarray:
+        return np.linalg.lstsq(basis, proj @ np.asarray(o, float), rcond=None)[0]
+
     def table(x: np.ndarray) -> np.ndarray:
-        o = np.append(x, -np.sum(x))
+        o = basis @ x
         if math.isinf(hot):
             return o
         return within_temperature(sim_cfg.piezo, o, spindle_rpm=rpm, limit_c=hot)
@@ -230,16 +340,17 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
             return 1.0 + excess
         return true_cv(sim_cfg, o, feed_mm_s=feed)
 
-    best_x, best_cv = np.zeros(z - 1), cost(np.zeros(z - 1))
-    # starts: the QP's table, the clipped runout, and the best of the runout scaled up to the
-    # bound (a hysteretic stack moves a small table by a few per cent: its optimum table is
-    # several times the runout, far from the small-signal QP's)
-    shape = standout - standout.mean()
+    r = basis.shape[1]
+    best_x, best_cv = np.zeros(r), cost(np.zeros(r))
+    # starts (within the patterns): the QP's table, the clipped runout, and the best of the
+    # runout scaled up to the bound (a hysteretic stack moves a small table by a few per cent:
+    # its optimum table is several times the runout, far from the small-signal QP's)
+    shape = proj @ (standout - standout.mean())
     peak = float(np.max(np.abs(shape)))
-    scaled = [shape * c for c in np.linspace(1.0, bound / peak, 12)] if peak > 0 else []
-    ranked = sorted(scaled, key=lambda o: cost(o[:-1]))[:1]
-    for x0 in (start[:-1], clipped[:-1], *(o[:-1] for o in ranked)):
-        res = minimize(cost, x0, method="Nelder-Mead",
+    scaled = [shape * c for c in np.linspace(1.0, bound / peak, 12)] if peak > 1e-12 else []
+    ranked = sorted(scaled, key=lambda o: cost(coords(o)))[:1]
+    for o0 in (start, clipped, *ranked) if r else ():
+        res = minimize(cost, coords(o0), method="Nelder-Mead",
                        options={"xatol": 0.01, "fatol": 1e-5, "maxiter": 200 * z})
         if res.fun < best_cv:
             best_x, best_cv = res.x, float(res.fun)
@@ -247,4 +358,5 @@ def constrained_optimum_cv(sim_cfg, machine_cfg, *, feed_mm_s: float | None = No
     return Optimum(cv=best_cv, offsets_um=tuple(float(v) for v in best), limit_um=bound,
                    clipped_cv=true_cv(sim_cfg, clipped, feed_mm_s=feed),
                    temperature_c=steady_temperature_c(sim_cfg.piezo, best, spindle_rpm=rpm),
-                   temperature_limit_c=float(hot))
+                   temperature_limit_c=float(hot), patterns=patterns,
+                   pattern_gains=tuple(float(g) for g in gains))

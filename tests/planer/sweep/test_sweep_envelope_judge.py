@@ -51,3 +51,13 @@ def test_the_label_names_the_varied_keys_and_leaves_runouts_out():
         "resonance_hz 60, hysteresis 0.35")
     assert _label({"sim.cutterhead.knives,sim.cutterhead.runout_um,sim.feed.max_mm_s":
                    [8, [0.0] * 8, 1500.0]}) == "knives 8, max_mm_s 1500"
+
+
+def test_a_held_pattern_is_named_and_the_optimum_over_every_pattern_shown_beside():
+    refs = PlantRefs(zero_cv=0.224, optimum_cv=0.213, optimum_c=33.0, hot_cv=None, hot_c=None,
+                     camera_mm=300.0, patterns=(1,), held=(2,), every_cv=0.198, every_c=70.0)
+    # judged against the optimum the loop may reach (0.213), not the one over every pattern
+    assert judge_plant([_row("0.2119", settled="")], refs)["verdict"] == "pass"
+    assert "CV above the optimum" in judge_plant([_row("0.240", settled="")], refs)["verdict"]
+    text = markdown([{"plant": "60 Hz", "refs": refs, **judge_plant([_row("0.2119")], refs)}])
+    assert "0.213 (pattern 2 held; every pattern: 0.198 at 70 °C)" in text

@@ -107,11 +107,12 @@ def test_a_table_beyond_the_temperature_limit_is_scaled_onto_it():
 
 def test_the_optimum_of_a_slow_stack_keeps_the_amplifier_within_its_limit():
     """60 Hz, no hysteresis, damping 0.01: the best table regardless of the heat needs about
-    92 C in steady state; the honest optimum stays within the amplifier's 70 C and is worse."""
+    92 C in steady state; the honest optimum stays within the amplifier's 70 C and is worse
+    (every pattern allowed, the alternating one the loop holds included)."""
     sim, cfg = _plant({"sim.piezo.resonance_hz": 60.0, "sim.piezo.hysteresis": 0.0,
                        "sim.piezo.damping": 0.01})
-    free = constrained_optimum_cv(sim, cfg, temperature_limit_c=float("inf"))
-    opt = constrained_optimum_cv(sim, cfg)
+    free = constrained_optimum_cv(sim, cfg, temperature_limit_c=float("inf"), gain_min=0.0)
+    opt = constrained_optimum_cv(sim, cfg, gain_min=0.0)
     assert free.temperature_c > 80.0
     assert opt.temperature_limit_c == sim.piezo.max_temperature_c
     assert opt.temperature_c <= sim.piezo.max_temperature_c + 1e-9
@@ -130,3 +131,61 @@ def test_the_optimum_of_a_hysteretic_stack_is_found_beyond_the_small_signal_tabl
     assert opt.cv < 0.01
     assert np.ptp(opt.offsets_um) > 2.5 * np.ptp(sim.cutterhead.runout_um)
     assert opt.temperature_c <= sim.piezo.max_temperature_c
+
+
+SLOW_60HZ = {"sim.piezo.resonance_hz": 60.0, "sim.piezo.hysteresis": 0.0,
+             "sim.piezo.damping": 0.01}
+
+
+def _mode_size(table, m: int) -> float:
+    return float(abs(np.fft.fft(np.asarray(table, float))[m]))
+
+
+def test_the_pattern_gains_are_the_actuator_s_per_pattern():
+    """A fast linear stack moves every pattern by 1; 60 Hz moves the alternating one by about
+    0.01; a hysteretic stack moves a pattern more with a larger bound (larger cycles)."""
+    from planer.sweep.optimum import pattern_gains
+
+    fast, _ = _plant({"sim.piezo.resonance_hz": 2000.0, "sim.piezo.hysteresis": 0.0})
+    assert pattern_gains(fast.piezo, 4, spindle_rpm=6000.0, bound_um=10.0) == pytest.approx(
+        [1.0, 1.0], abs=0.02)
+    slow, _ = _plant(SLOW_60HZ)
+    g = pattern_gains(slow.piezo, 4, spindle_rpm=6000.0, bound_um=17.0)
+    assert g[0] > 0.3 and g[1] < 0.03
+    hyst, _ = _plant({"sim.piezo.resonance_hz": 2000.0, "sim.piezo.hysteresis": 0.35})
+    small = pattern_gains(hyst.piezo, 4, spindle_rpm=6000.0, bound_um=2.0)
+    large = pattern_gains(hyst.piezo, 4, spindle_rpm=6000.0, bound_um=16.0)
+    assert np.all(large > 2.0 * small)
+    assert len(pattern_gains(slow.piezo, 8, spindle_rpm=6000.0, bound_um=4.0)) == 4
+
+
+def test_the_optimum_holds_the_patterns_the_loop_cannot_move_at_zero():
+    """60 Hz: the alternating pattern (gain 0.01) is below the loop's gain_min (0.1), the
+    first one (0.44) above: the optimum uses the first and not the alternating one; with every
+    pattern allowed it does use the alternating one; with the loop's threshold above both it
+    is the zero table."""
+    sim, cfg = _plant(SLOW_60HZ)
+    ucfg = UniformityLoopConfig.from_mapping(dict(cfg.uniformity_loop), knives=4)
+    opt = constrained_optimum_cv(sim, cfg)
+    assert opt.patterns == (1,)
+    assert opt.pattern_gains[1] < ucfg.gain_min <= opt.pattern_gains[0]
+    assert _mode_size(opt.offsets_um, 2) < 1e-9  # the alternating pattern not used
+    assert _mode_size(opt.offsets_um, 1) > 1.0  # the first one used
+    feed = cfg.quality.target_pitch_mm * sim.spindle.rpm / 60.0 * 4
+    zero = true_cv(sim, np.zeros(4), feed_mm_s=feed)
+    assert opt.cv < zero - 0.005
+    every = constrained_optimum_cv(sim, cfg, gain_min=0.0)
+    assert every.patterns == (1, 2)
+    assert _mode_size(every.offsets_um, 2) > 1.0
+    assert every.cv < opt.cv
+    with pytest.raises(ValueError, match="gain_min"):
+        constrained_optimum_cv(sim, cfg, gain_min=-1.0)
+
+
+def test_the_optimum_s_threshold_is_the_loop_s_configured_gain_min():
+    sim, cfg = _plant({**SLOW_60HZ, "machine.uniformity_loop.gain_min": 0.5})
+    opt = constrained_optimum_cv(sim, cfg)
+    assert opt.patterns == ()
+    assert np.allclose(opt.offsets_um, 0.0)
+    feed = cfg.quality.target_pitch_mm * sim.spindle.rpm / 60.0 * 4
+    assert opt.cv == pytest.approx(true_cv(sim, np.zeros(4), feed_mm_s=feed))
