@@ -16,6 +16,8 @@ The loops here compute the same statistics in one or two calls each:
 * :func:`marks_agreement` -- the marks' kinematic slope against both log-profiles, a cubic
   removed (its normal equations, as
   :func:`vision.registration.consistency.marks_shading_agreement`);
+  :func:`marks_agreement_slow_removed` the same after :func:`without_slow` (the log-profiles'
+  running mean over 8 marks removed), in one call;
 * :func:`clip_robust` -- the clip of high-passed rows at a multiple of their robust deviation.
 
 Compiled with ``cache=True`` and warmed up beside :func:`vision.kernels.warm_up` (a measurer's
@@ -27,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from vision.kernels import solve_small
+from vision.kernels import running_mean_2d, solve_small
 
 _JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 
@@ -307,6 +309,48 @@ def marks_agreement(la: np.ndarray, lb: np.ndarray, x: np.ndarray, cusps: np.nda
 
 
 @njit(**_JIT)
+def without_slow(la: np.ndarray, lb: np.ndarray, x: np.ndarray, cusps: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Both log-profiles less their running mean over 8 marks (held at its ends' values).
+
+    :func:`vision.registration.consistency._without_slow` compiled: the same running mean
+    (:func:`vision.kernels.running_mean_2d` of the two as columns) and the same arithmetic, so
+    the same values; the profiles themselves (new arrays) when there is no such mean.
+    """
+    n = la.size
+    if cusps.size < 2 or n < 2 or not x[-1] > x[0]:
+        return la.copy(), lb.copy()
+    length = 8.0 * (cusps[-1] - cusps[0]) / (cusps.size - 1) / ((x[-1] - x[0]) / (n - 1))
+    if not (length >= 1.0 and length <= n):
+        return la.copy(), lb.copy()
+    both = np.empty((n, 2))
+    for i in range(n):
+        both[i, 0] = la[i]
+        both[i, 1] = lb[i]
+    mean = running_mean_2d(both, length)
+    m = mean.shape[0]
+    if m < 1:
+        return la.copy(), lb.copy()
+    lead = (n - m) // 2
+    out_a = np.empty(n)
+    out_b = np.empty(n)
+    for i in range(n):
+        j = min(max(i - lead, 0), m - 1)  # the mean held at its ends' values
+        out_a[i] = both[i, 0] - mean[j, 0]
+        out_b[i] = both[i, 1] - mean[j, 1]
+    return out_a, out_b
+
+
+@njit(**_JIT)
+def marks_agreement_slow_removed(la: np.ndarray, lb: np.ndarray, x: np.ndarray,
+                                 cusps: np.ndarray, bottoms: np.ndarray, max_samples: int
+                                 ) -> tuple[float, float]:  # pragma: no cover - compiled
+    """:func:`marks_agreement` of the log-profiles after :func:`without_slow`, in one call."""
+    sa, sb = without_slow(la, lb, x, cusps)
+    return marks_agreement(sa, sb, x, cusps, bottoms, max_samples)
+
+
+@njit(**_JIT)
 def clip_robust(values: np.ndarray, step: int, sigmas: float) -> float:  # pragma: no cover
     """Clip ``values`` (float32, 2-D, C order) in place at ``sigmas`` robust standard deviations.
 
@@ -343,4 +387,6 @@ def warm_up() -> None:
     disagreement_sums(ratio)
     x = np.arange(40.0)
     marks_agreement(x, x, x, np.array([0.0, 20.0, 39.0]), np.array([10.0, 30.0]), 700)
+    marks_agreement_slow_removed(x, x, x, np.array([0.0, 20.0, 39.0]), np.array([10.0, 30.0]),
+                                 700)
     clip_robust(np.ones((2, 4), dtype=np.float32), 1, 3.0)

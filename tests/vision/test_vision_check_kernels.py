@@ -81,6 +81,10 @@ def test_the_slow_part_is_each_profiles_running_mean_exactly():
         got_a, got_b = _without_slow(la, lb, x, c)
         np.testing.assert_array_equal(got_a, _without_slow_by_definition(la, x, c), str(trial))
         np.testing.assert_array_equal(got_b, _without_slow_by_definition(lb, x, c), str(trial))
+        # the compiled one the measurement calls: the same values
+        comp_a, comp_b = check_kernels.without_slow(la, lb, x, c)
+        np.testing.assert_array_equal(comp_a, got_a, str(trial))
+        np.testing.assert_array_equal(comp_b, got_b, str(trial))
 
 
 def _log_ratio(a, b, s, cols):

@@ -139,13 +139,14 @@ def marks_shading_agreement(
                          f"and {b.shape}")
     if b.size < 1:
         return Agreement(math.nan, math.nan)
-    # the marks' shading, not the wood's: the log-profiles lose their running mean over 8
-    # marks (the albedo's slow part, which a cubic leaves; 0.5 mm marks: 0.44-0.91 -> 0.76-0.9)
-    if slow_removed:
-        la, lb = _without_slow(la, lb, x, c)
-    # one compiled pass (vision.check_kernels): the samples inside the marks, every k-th of
-    # them, the cubic by its normal equations (t in [-1, 1]: well posed), the correlations
-    score_a, score_b = check_kernels.marks_agreement(
+    # one compiled call (vision.check_kernels): the marks' shading, not the wood's -- the
+    # log-profiles lose their running mean over 8 marks (the albedo's slow part, which a cubic
+    # leaves; 0.5 mm marks: 0.44-0.91 -> 0.76-0.9; check_kernels.without_slow, the values of
+    # _without_slow) --, then the samples inside the marks, every k-th of them, the cubic by
+    # its normal equations (t in [-1, 1]: well posed), the correlations
+    agreement = (check_kernels.marks_agreement_slow_removed if slow_removed
+                 else check_kernels.marks_agreement)
+    score_a, score_b = agreement(
         np.ascontiguousarray(la), np.ascontiguousarray(lb), np.ascontiguousarray(x),
         np.ascontiguousarray(c), np.ascontiguousarray(b), int(max_samples))
     return Agreement(float(score_a), float(score_b))
@@ -157,6 +158,7 @@ def _without_slow(log_a: np.ndarray, log_b: np.ndarray, x: np.ndarray, cusps: np
 
     One compiled running mean of the two as columns (:func:`vision.kernels.running_mean_2d`:
     each column's sums as :func:`vision.calibration.illumination.running_mean` of it alone).
+    The reference of :func:`vision.check_kernels.without_slow`, which the measurement calls.
     """
     n = log_a.size
     if cusps.size < 2 or n < 2 or not x[-1] > x[0]:
@@ -168,6 +170,8 @@ def _without_slow(log_a: np.ndarray, log_b: np.ndarray, x: np.ndarray, cusps: np
     both[:, 0] = log_a
     both[:, 1] = log_b
     mean = kernels.running_mean_2d(both, float(length))
+    if mean.shape[0] < 1:
+        return log_a, log_b
     lead = (n - mean.shape[0]) // 2
     full = np.empty_like(both)
     full[:lead] = mean[0]
