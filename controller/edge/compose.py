@@ -45,7 +45,8 @@ class Servers:
     endpoint : str or None
         The OPC UA endpoint (``None``: no OPC UA).
     info : dict
-        The process's ready report: ``limits`` in force, ``nofile`` (soft, hard), ``pid``.
+        The process's ready report: ``limits`` in force, ``nofile`` (soft, hard), ``pid``,
+        ``nice`` (the nice value it runs at: the service's loop comes first).
     mailbox : Mailbox
         The hand-off from the service (``mailbox.dropped``: updates lost to a slow process).
     """

@@ -163,7 +163,8 @@ class _Servers:
             outbox.send(("ready", {
                 "url": None if self.web is None else self.web.url,
                 "endpoint": None if self.opcua is None else self.opcua.endpoint,
-                "limits": asdict(self.limits), "nofile": list(self.nofile), "pid": os.getpid()}))
+                "limits": asdict(self.limits), "nofile": list(self.nofile), "pid": os.getpid(),
+                "nice": os.getpriority(os.PRIO_PROCESS, 0)}))
 
             def receive() -> None:
                 try:

@@ -16,7 +16,10 @@ nice value: on a plant the clients are other machines, here they share the cores
 service, and at nice 0 they take as much CPU as the service's loop. That process raises its
 own ``RLIMIT_NOFILE`` soft limit to the hard one and keeps 256 descriptors for itself (the idle
 sockets get the rest, at most ``--idle``). Each run's ``cpu_s`` says who used the CPU while the
-run went: the service's process (``planer hil``), the servers' process and the clients.
+run went: the service's process (``planer hil``), the servers' process and the clients;
+``priority`` what the run's loop thread was granted (``planer hil`` raises it as ``planer serve``
+raises its bus thread: ``SCHED_FIFO`` where permitted) and ``loadavg`` the host's load averages
+at the run's start and end.
 """
 
 from __future__ import annotations
@@ -273,12 +276,13 @@ async def _find(client: Any, path: str) -> Any:
 
 def run_hil(distance_m: float, log: Path, *, http_port: int, opcua_port: int,
             load: dict[str, Any] | None, max_s: float = 900.0,
-            load_nice: int = 0) -> dict[str, Any]:
+            load_nice: int = 0, realtime: bool = True) -> dict[str, Any]:
     """``planer hil --in-process`` with the servers on (paced at real time), under load.
 
     The load (if any) runs in a process of its own (``load_nice`` added to its nice value)
     while the run goes; Ctrl-C once its summary is out (the command then serves its final
-    state). Returns the run's JSON summary's key figures, the load's counts and ``cpu_s``
+    state). ``realtime=False`` runs it with ``--no-realtime`` (its loop at normal priority).
+    Returns the run's JSON summary's key figures, the load's counts and ``cpu_s``
     (CPU time from the servers' start to the summary, s: ``service``, ``servers``, ``load``).
     """
     import multiprocessing
@@ -288,6 +292,8 @@ def run_hil(distance_m: float, log: Path, *, http_port: int, opcua_port: int,
     argv = [sys.executable, "-m", "planer.cli", "hil", "--in-process", "--distance-m",
             str(distance_m), "--log", str(log), "--json",
             "--http", f"127.0.0.1:{http_port}", "--opcua", f"opc.tcp://127.0.0.1:{opcua_port}"]
+    if not realtime:
+        argv.append("--no-realtime")
     errfile = tempfile.TemporaryFile()
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=errfile, text=True)
     summary_lines: list[str] = []
@@ -303,6 +309,7 @@ def run_hil(distance_m: float, log: Path, *, http_port: int, opcua_port: int,
     threading.Thread(target=read, daemon=True).start()
     counts = None
     cpu: dict[str, Any] = {}
+    loadavg = {"start": [round(x, 2) for x in os.getloadavg()]}
     try:
         _wait_port(http_port, proc, 120.0)
         _wait_port(opcua_port, proc, 120.0)
@@ -329,6 +336,7 @@ def run_hil(distance_m: float, log: Path, *, http_port: int, opcua_port: int,
             over.wait(max_s)
             cpu1 = _tree_cpu_s(proc.pid)
         cpu.update({k: round(cpu1[k] - cpu0[k], 1) for k in cpu1})
+        loadavg["end"] = [round(x, 2) for x in os.getloadavg()]
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)  # stop serving the final state
         proc.wait(60.0)
@@ -354,7 +362,10 @@ def run_hil(distance_m: float, log: Path, *, http_port: int, opcua_port: int,
         "passed": summary["passed"],
         "wall_time_s": summary.get("wall_time_s"),
         "cpu_s": cpu,
+        "priority": summary.get("priority"),
+        "loadavg": loadavg,
         "servers_lines": [ln for ln in err.splitlines() if "planer servers" in ln][-20:],
+        "priority_lines": [ln for ln in err.splitlines() if ln.startswith("priority:")],
         "load": counts,
     }
 
@@ -382,6 +393,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--opcua-readers", type=int, default=50)
     p.add_argument("--opcua-sub-ms", type=float, default=10.0)
     p.add_argument("--skip-quiet", action="store_true")
+    p.add_argument("--no-realtime", action="store_true",
+                   help="planer hil --no-realtime: the run's loop at normal priority (compare)")
     p.add_argument("--load-nice", type=int, default=0, metavar="N",
                    help="added to the clients' process's nice value (0..19; default 0)")
     args = p.parse_args(argv)
@@ -398,13 +411,14 @@ def main(argv: list[str] | None = None) -> int:
                                         "loadavg_start": list(os.getloadavg())}}
         if not args.skip_quiet:
             out["quiet"] = run_hil(args.distance_m, Path(tmp) / "quiet.sqlite",
-                                   http_port=free_port(), opcua_port=free_port(), load=None)
+                                   http_port=free_port(), opcua_port=free_port(), load=None,
+                                   realtime=not args.no_realtime)
         out["loaded"] = run_hil(
             args.distance_m, Path(tmp) / "loaded.sqlite", http_port=free_port(),
             opcua_port=free_port(),
             load={"idle": args.idle, "sse": args.sse, "opcua_readers": args.opcua_readers,
                   "opcua_sub_ms": args.opcua_sub_ms, "idle_rate": args.idle_rate},
-            load_nice=args.load_nice)
+            load_nice=args.load_nice, realtime=not args.no_realtime)
         if "quiet" in out:
             q, loaded = out["quiet"]["latency_ms"], out["loaded"]["latency_ms"]
             with contextlib.suppress(KeyError, TypeError, ZeroDivisionError):

@@ -82,6 +82,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="require the separate simulator process (error if not possible here)",
     )
     parser.add_argument(
+        "--no-realtime",
+        action="store_true",
+        help="in-process: leave the paced run's loop at normal priority (by default it is "
+        "raised as planer serve raises its bus thread: SCHED_FIFO where permitted; "
+        "docs/deploy.md, Priority)",
+    )
+    parser.add_argument(
         "--plc",
         choices=("tcp", "direct"),
         default="tcp",
@@ -377,7 +384,8 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
             lambda: opened[-1] if opened else None))
     else:
         runner = hil.InProcessHil(
-            scenario, log_path=log_path, plc_transport=args.plc, progress=progress, pace=pace
+            scenario, log_path=log_path, plc_transport=args.plc, progress=progress, pace=pace,
+            realtime=not getattr(args, "no_realtime", False),  # as planer serve's bus thread
         )
         summary = asyncio.run(with_opcua(runner.run,
                                          lambda: getattr(runner, "service", None)))

@@ -183,8 +183,10 @@ def run(args: argparse.Namespace) -> int:
     async def main() -> int:
         get = lambda: runtime.service  # noqa: E731
         async with serving(cfg, get, opcua=args.opcua, http=args.http, say=_say,
-                           log=log_path), runtime:
-            return await _serve(runtime, args, notifier=notifier, stamp=stamp)
+                           log=log_path) as servers, runtime:
+            return await _serve(runtime, args, notifier=notifier, stamp=stamp,
+                                servers_nice=None if servers is None
+                                else servers.info.get("nice"))
 
     return asyncio.run(main())
 
@@ -207,11 +209,12 @@ class _OneLine(logging.Formatter):
 
 
 async def _serve(runtime: ServiceRuntime, args: argparse.Namespace, *, notifier: Notifier,
-                 stamp: Callable[[float], str]) -> int:
+                 stamp: Callable[[float], str], servers_nice: int | None = None) -> int:
     """Run the opened service until stopped: its lines, its events, why it waits.
 
     ``notifier`` tells systemd (ready, status, watchdog, stopping); ``stamp(t)`` is the run
-    time's prefix of a line (empty under the journal, which stamps lines itself).
+    time's prefix of a line (empty under the journal, which stamps lines itself);
+    ``servers_nice`` the nice value of the servers' process (``None``: no servers).
     """
     cfg, service = runtime.cfg, runtime.service
     assert service is not None
@@ -254,8 +257,10 @@ async def _serve(runtime: ServiceRuntime, args: argparse.Namespace, *, notifier:
     try:
         started = asyncio.create_task(runtime.run(stop=stop, max_frames=args.max_frames))
         await asyncio.sleep(0)  # the run raised the loop's priority: say what it got
+        servers = ("" if servers_nice is None
+                   else f"; pages and OPC UA (their own process) at nice {servers_nice}")
         _say(f"priority: service bus {runtime.granted}; measurement and records asked for "
-             f"nice {MEASURE_NICE}; CPU wake-up: {runtime.wakeup}")
+             f"nice {MEASURE_NICE}{servers}; CPU wake-up: {runtime.wakeup}")
         _say("ready")
         notifier.ready("serving: waiting in the safe state until every source answers")
         await started

@@ -1,9 +1,25 @@
-"""In-process HIL: the simulated machine and the service in one process, on simulated time."""
+"""In-process HIL: the simulated machine and the service in one process, on simulated time.
+
+With ``realtime`` (``planer hil --in-process`` asks for it) a paced run's event loop -- the
+thread that steps the machine, reads the PLC, measures each pair and writes its setpoints, i.e.
+every stage on a pair's path -- is raised as ``planer serve`` raises its bus thread
+(:func:`core.realtime.realtime_thread`: ``SCHED_FIFO`` at ``BUS_RT_PRIORITY`` with
+``SCHED_RESET_ON_FORK``, else nice -10; ``RLIMIT_RTTIME`` guard), together with the light threads
+that share its interpreter lock (the simulated PLC's Modbus server, the feed of the servers'
+process). The servers' process itself (pages, OPC UA: whatever serves clients) runs at nice +10
+(:mod:`controller.edge.process`), so client load never takes a core from the loop. Here the
+simulated machine's images are rendered on that same thread (there are no render workers in
+one process); a paced run blocks every cycle (the pacer's sleep, the Modbus round trip), and a
+run that stops blocking for 0.5 s of CPU is dropped to normal scheduling by the guard (the
+summary's ``priority.demoted``). An unpaced run is a batch computation and is not raised.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -303,6 +319,11 @@ class InProcessHil:
     pace : float or None
         Simulated seconds per wall second (1: real time, for pages and OPC UA clients to
         follow); ``None``: as fast as the CPU allows (:class:`~planer.hil.pacing.Pacer`).
+    realtime : bool
+        Raise the run's thread (and the light threads sharing its interpreter lock) as the
+        service's bus thread is raised, for a paced run (``pace``; an unpaced run is a batch
+        computation and stays at normal priority); the summary's ``priority`` says what was
+        granted and whether the guard dropped it (see the module's description).
     """
 
     def __init__(
@@ -314,8 +335,14 @@ class InProcessHil:
         progress: Progress | None = None,
         progress_every: int = 10,
         pace: float | None = None,
+        realtime: bool = False,
     ) -> None:
         self.pace = Pacer(pace).factor  # checked here; each run paces itself afresh
+        self.realtime = bool(realtime)
+        self.priority: dict[str, Any] = {"loop": "normal (not asked)", "with": [],
+                                         "demoted": False}
+        """What the run's thread was granted (``loop``), the threads raised with it
+        (``with``), and whether the ``RLIMIT_RTTIME`` guard dropped them (``demoted``)."""
         self.scenario = scenario
         self.log_path = Path(log_path)
         self.plc_transport = plc_transport
@@ -328,6 +355,46 @@ class InProcessHil:
         if self.progress is not None:
             self.progress(line)
 
+    @contextlib.contextmanager
+    def _raised(self) -> Any:
+        """The run's thread raised for the block (with ``realtime``), said once."""
+        if not self.realtime:
+            yield
+            return
+        if self.pace is None:  # a batch computation, not a loop that keeps time: it never
+            # blocks, and the guard would only drop it after 0.5 s of a core
+            self.priority = {"loop": "normal (not paced: the run goes as fast as it can)",
+                             "with": [], "demoted": False}
+            yield
+            return
+        from core.realtime import BUS_RT_PRIORITY, realtime_thread
+
+        # the threads alive now share the interpreter lock and are light: the simulated PLC's
+        # Modbus server (tcp), the servers' feed and reports; a descheduled holder of the lock
+        # would keep the raised thread waiting (priority inversion)
+        others = [t for t in threading.enumerate() if t is not threading.current_thread()]
+        with realtime_thread(rt_priority=BUS_RT_PRIORITY, others=others) as granted:
+            raised = granted.startswith(("SCHED_FIFO", "nice"))
+            names = [t.name for t in others] if raised else []
+            self.priority = {"loop": granted, "with": names, "demoted": False}
+            self._say(f"priority: run loop (plant, PLC, measurement, setpoints) {granted}"
+                      + (f" with {', '.join(names)}" if names else "")
+                      + ("" if raised else "; not permitted to raise it: on a busy host the "
+                         "pairs wait for a core"))
+            yield
+
+    def _priority_now(self) -> dict[str, Any]:
+        """:attr:`priority`, ``demoted`` as of now (the guard empties the raised threads)."""
+        from core.realtime import realtime_threads
+
+        if self.priority["loop"].startswith("SCHED_FIFO"):
+            demoted = threading.get_native_id() not in realtime_threads()
+            if demoted and not self.priority["demoted"]:
+                self._say("priority: the run loop ran 0.5 s of CPU without blocking and was "
+                          "dropped to normal scheduling (RLIMIT_RTTIME)")
+            self.priority["demoted"] = demoted
+        return dict(self.priority)
+
     async def run(self) -> dict[str, Any]:
         """Run the scenario; return the summary (see :func:`summarize`)."""
         sc, cfg = self.scenario, self.cfg
@@ -337,6 +404,12 @@ class InProcessHil:
         except BaseException:  # e.g. Modbus cannot listen: close the buses and the log
             await plant.close()
             raise
+        with self._raised():
+            return await self._run_on(plant)
+
+    async def _run_on(self, plant: InProcessPlant) -> dict[str, Any]:
+        """The scenario on the started ``plant`` (closed at the end); the summary."""
+        sc, cfg = self.scenario, self.cfg
         service = self.service = plant.service  # others may follow it (OPC UA)
         assert service is not None
         service.on_event = lambda e: self._say(f"t={e.t_s:7.3f} s  {e.text}")
@@ -392,6 +465,7 @@ class InProcessHil:
                 "board_travel_m": round(plant.travelled_mm / 1000, 3),
                 "pace": pacer.factor,
                 "pace_behind_s": round(pacer.behind_s, 3),
+                "priority": self._priority_now(),
             },
         )
         note_run_end(summary, distance_m=sc.distance_m, travelled_m=plant.travelled_mm / 1000,

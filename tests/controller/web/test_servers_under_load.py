@@ -59,6 +59,9 @@ def test_the_loop_keeps_its_pairs_while_clients_pile_on_the_servers(tmp_path):
                            opcua="opc.tcp://127.0.0.1:0", limits=LIMITS) as servers:
             http_port = int(servers.url.rsplit(":", 1)[1].strip("/"))
             opcua_port = int(servers.endpoint.rsplit(":", 1)[1])
+            # whatever serves clients runs below the loop: the servers' process at nice +10
+            fds["servers_nice"] = servers.info["nice"]
+            fds["own_nice"] = os.getpriority(os.PRIO_PROCESS, 0)
             fds["before"] = _fds()
             load = ctx.Process(target=load_for, args=(http_port, opcua_port, 600.0, LOAD,
                                                       counts_q), daemon=True)
@@ -91,6 +94,7 @@ def test_the_loop_keeps_its_pairs_while_clients_pile_on_the_servers(tmp_path):
     http, opcua = stats["http"], stats["opcua"]
     assert http["evicted"] + http["refused"] + http["header_timeouts"] > 0, http
     assert opcua["published"] > 0
+    assert fds["servers_nice"] == min(19, fds["own_nice"] + 10), fds
     # ... and not the loop's process: no client socket here
     assert fds["peak"] - fds["before"] < 50, fds
     # the loop lost nothing and never went safe
