@@ -460,6 +460,22 @@ def _cusp_gaps(p: np.ndarray, cum_p: np.ndarray, cand: np.ndarray, size: np.ndar
     (:func:`without_false_cusps`) and with the weaker ones of narrow marks
     (:func:`with_narrow_marks`).
     """
+    if refine and cand.dtype == np.int64 and size.dtype == np.float64:
+        # the composition below in one compiled call (marks_kernels.cusp_gaps: the same
+        # operations in the same order)
+        return marks_kernels.cusp_gaps(
+            np.ascontiguousarray(p, dtype=np.float64),
+            np.ascontiguousarray(cum_p, dtype=np.float64), np.ascontiguousarray(cand),
+            np.ascontiguousarray(size), float(typical), float(noise), float(min_step),
+            int(guard), WEAK_STEP, NARROW_MARK_Z)
+    return _cusp_gaps_composed(p, cum_p, cand, size, typical, noise, min_step=min_step,
+                               guard=guard, refine=refine)
+
+
+def _cusp_gaps_composed(p: np.ndarray, cum_p: np.ndarray, cand: np.ndarray, size: np.ndarray,
+                        typical: float, noise: float, *, min_step: float, guard: int,
+                        refine: bool) -> np.ndarray:
+    """:func:`_cusp_gaps` from its parts (the reference of the compiled one)."""
     strong = size >= min_step * typical
     gaps = cand[strong].astype(np.float64) + 0.5
     if not refine or gaps.size < 3:

@@ -7,7 +7,10 @@ gradient ``kappa``, one lowest point ``b_k`` per piece, fitted from running sums
 * :func:`false_cusps` -- which cusps the noise put inside a mark (the pieces either side have
   the same ``b``; :func:`vision.marks.without_false_cusps`);
 * :func:`narrow_cusps` -- the weaker candidates that bound a narrow mark of their own
-  (:func:`vision.marks.with_narrow_marks`).
+  (:func:`vision.marks.with_narrow_marks`);
+* :func:`cusp_gaps` -- the whole choice from the candidates in one call (the strong steps,
+  :func:`false_cusps`, :func:`narrow_cusps`, :func:`false_cusps` again), as
+  ``vision.marks._cusp_gaps`` composes the two functions above.
 
 Compiled with ``cache=True`` on first use; :func:`warm_up` compiles both with the argument
 types :mod:`vision.marks` passes (called from :func:`vision.kernels.warm_up`, so at a
@@ -175,11 +178,75 @@ def narrow_cusps(p: np.ndarray, cum_p: np.ndarray, gaps: np.ndarray, weak: np.nd
     return out[:m].copy()
 
 
+@njit(**_JIT)
+def _without_false(p: np.ndarray, cum_p: np.ndarray, gaps: np.ndarray, guard: int,
+                   min_step: float) -> np.ndarray:  # pragma: no cover - compiled
+    """``gaps`` less :func:`false_cusps` (:func:`vision.marks.without_false_cusps`)."""
+    false = false_cusps(p, cum_p, gaps, guard, min_step)
+    if not false.any():
+        return gaps
+    return gaps[~false]
+
+
+@njit(**_JIT)
+def cusp_gaps(p: np.ndarray, cum_p: np.ndarray, cand: np.ndarray, size: np.ndarray,
+              typical: float, noise: float, min_step: float, guard: int, weak_step: float,
+              z: float) -> np.ndarray:  # pragma: no cover - compiled
+    """The refined cusps to a sample from the candidates ``cand`` and their steps ``size``.
+
+    The candidates whose step is at least ``min_step * typical``, less the false ones; then,
+    with at least 3 left, the weaker candidates (at least ``weak_step * typical``, largest
+    first, ties in their order) that bound a narrow mark, and the false ones of those dropped.
+    The same operations in the same order as ``vision.marks._cusp_gaps`` (refined).
+    """
+    strong_lim = min_step * typical
+    weak_lim = weak_step * typical
+    n_strong = 0
+    n_weak = 0
+    n_all = 0
+    for i in range(size.size):
+        if size[i] >= strong_lim:
+            n_strong += 1
+        elif size[i] >= weak_lim:
+            n_weak += 1
+        if size[i] >= weak_lim:
+            n_all += 1
+    gaps = np.empty(n_strong)
+    weak_size = np.empty(n_weak)
+    weak_at = np.empty(n_weak)
+    all_gaps = np.empty(n_all)
+    a = 0
+    b = 0
+    c = 0
+    for i in range(size.size):
+        if size[i] >= strong_lim:
+            gaps[a] = float(cand[i]) + 0.5
+            a += 1
+        elif size[i] >= weak_lim:
+            weak_size[b] = -size[i]
+            weak_at[b] = float(cand[i]) + 0.5
+            b += 1
+        if size[i] >= weak_lim:
+            all_gaps[c] = float(cand[i]) + 0.5
+            c += 1
+    if gaps.size < 3:
+        return gaps
+    gaps = _without_false(p, cum_p, gaps, guard, min_step)
+    if n_weak == 0 or gaps.size < 3:
+        return gaps
+    order = np.argsort(weak_size, kind="mergesort")  # stable, as numpy's "stable"
+    more = narrow_cusps(p, cum_p, gaps, weak_at[order], all_gaps, guard, typical, noise,
+                        weak_step, z)
+    if more.size == gaps.size:
+        return gaps
+    return _without_false(p, cum_p, more, guard, min_step)
+
+
 _WARM = [False]
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) both kernels for the types :mod:`vision.marks` uses."""
+    """Compile (or load from the cache) the kernels for the types :mod:`vision.marks` uses."""
     if _WARM[0]:
         return
     p = np.tile(np.linspace(-1.0, 1.0, 10), 6)
@@ -187,4 +254,6 @@ def warm_up() -> None:
     gaps = np.arange(9.5, 50.0, 10.0)
     false_cusps(p, cum, gaps, 2, 0.35)
     narrow_cusps(p, cum, gaps, np.array([4.5]), gaps, 2, 0.2, 0.01, 0.2, 5.0)
+    cand = np.arange(9, 50, 5, dtype=np.int64)
+    cusp_gaps(p, cum, cand, np.linspace(0.1, 1.0, cand.size), 0.8, 0.01, 0.35, 2, 0.12, 5.0)
     _WARM[0] = True

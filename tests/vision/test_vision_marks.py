@@ -248,3 +248,35 @@ def test_knife_means_table():
     assert np.isnan(many[1]) and np.isnan(many[2])
     with pytest.raises(ValueError, match="knives"):
         knife_means(values, knives=0, phase=0)
+
+
+def test_compiled_cusp_choice_is_the_composed_one():
+    """marks_kernels.cusp_gaps (what find_marks calls) gives the cusps of the composition of
+    without_false_cusps and with_narrow_marks, exactly: noisy profiles that drop false cusps,
+    narrow marks beside a vanished knife that add weak ones, runout, several noise levels."""
+    from vision import kernels
+    from vision.marks import _cusp_gaps, _cusp_gaps_composed
+
+    cases = [(1.5, (0.0,)), (1.0, (0.0, 2.0, 0.5, 1.5, 1.0, 2.5)), (0.5, (0.0, 2.25, 1.75, 2.0)),
+             (0.5, (0.0, 2.5, 2.0, 2.0)), (1.6, (3.0, -2.0, 1.0))]
+    tried = added = dropped = 0
+    for feed, runout in cases:
+        height_mm, _, _, _ = _arcs(feed, runout)
+        _, _, p0 = _sampled(height_mm)
+        for seed in range(12):
+            rng = np.random.default_rng(seed)
+            p = _scattered(p0, 0.2) if feed == 0.5 else p0
+            p = np.ascontiguousarray(p + (0.001 * seed) * rng.standard_normal(p.size))
+            cum_p, cand, size, noise, typical, _ = kernels.cusp_candidates(p)
+            for min_step in (0.35, 0.6):
+                got = _cusp_gaps(p, cum_p, cand, size, typical, noise, min_step=min_step,
+                                 guard=2, refine=True)
+                want = _cusp_gaps_composed(p, cum_p, cand, size, typical, noise,
+                                           min_step=min_step, guard=2, refine=True)
+                np.testing.assert_array_equal(got, want, f"{feed} {runout} {seed} {min_step}")
+                strong = np.count_nonzero(size >= min_step * typical)
+                tried += 1
+                added += want.size > strong
+                dropped += want.size < strong
+    # both of the choice's steps were exercised
+    assert tried == 120 and added > 0 and dropped > 0
