@@ -60,3 +60,52 @@ def test_systemd_accepts_the_unit(tmp_path):
     complaints = [ln for ln in (r.stdout + r.stderr).splitlines()
                   if "planer.service" in ln]
     assert r.returncode == 0 and complaints == [], r.stdout + r.stderr
+
+
+def test_the_unit_grants_the_loop_its_priority_and_raises_nothing_itself():
+    """The service raises its loop thread and lowers its servers itself: the unit grants the
+    right (``CAP_SYS_NICE``, an ``RLIMIT_RTPRIO`` above the loop's), keeps a hard real-time CPU
+    limit above the service's own guard, and never raises the whole process tree."""
+    from core.realtime import INTERFACE_RT_PRIORITY, RT_CPU_LIMIT_S
+
+    s = _settings(UNIT.read_text())
+    one = {k: v[-1] for k, v in s.items()}
+    assert "CAP_SYS_NICE" in one["Service.AmbientCapabilities"].split()
+    assert "CAP_SYS_NICE" in one["Service.CapabilityBoundingSet"].split()
+    assert int(one["Service.LimitRTPRIO"]) >= INTERFACE_RT_PRIORITY
+    rttime = one["Service.LimitRTTIME"]
+    assert rttime.endswith("s") and ":" not in rttime  # soft = hard; the service lowers soft
+    assert RT_CPU_LIMIT_S < float(rttime.rstrip("s")) <= 10.0  # a net, under WatchdogSec
+    for key in ("CPUSchedulingPolicy", "CPUSchedulingPriority", "Nice",
+                "CPUSchedulingResetOnFork"):
+        assert f"Service.{key}" not in s, key  # the pages' process would be raised too
+    docs = (ROOT / "docs" / "deploy.md").read_text()
+    assert "## Priority" in docs and "LimitRTTIME=2s" in docs
+
+
+def _syscalls(groups: list[str], seen: set[str] | None = None) -> set[str]:
+    """The system calls of ``systemd-analyze syscall-filter`` groups, nested groups expanded."""
+    seen = set() if seen is None else seen
+    out: set[str] = set()
+    for group in groups:
+        if group in seen:
+            continue
+        seen.add(group)
+        r = subprocess.run(["systemd-analyze", "syscall-filter", group], capture_output=True,
+                           text=True, timeout=60)
+        for line in r.stdout.splitlines()[1:]:
+            name = line.strip()
+            if not name or name.startswith("#"):
+                continue
+            out |= _syscalls([name], seen) if name.startswith("@") else {name}
+    return out
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd not installed")
+def test_the_system_call_filter_lets_the_service_set_its_priorities():
+    s = _settings(UNIT.read_text())
+    allowed = " ".join(v for v in s["Service.SystemCallFilter"] if not v.startswith("~")).split()
+    denied = " ".join(v[1:] for v in s["Service.SystemCallFilter"] if v.startswith("~")).split()
+    needed = {"sched_setscheduler", "setpriority", "prlimit64", "rt_sigaction"}
+    assert needed <= _syscalls(allowed)
+    assert not needed & _syscalls(denied)
