@@ -18,8 +18,9 @@ own ``RLIMIT_NOFILE`` soft limit to the hard one and keeps 256 descriptors for i
 sockets get the rest, at most ``--idle``). Each run's ``cpu_s`` says who used the CPU while the
 run went: the service's process (``planer hil``), the servers' process and the clients;
 ``priority`` what the run's loop thread was granted (``planer hil`` raises it as ``planer serve``
-raises its bus thread: ``SCHED_FIFO`` where permitted) and ``loadavg`` the host's load averages
-at the run's start and end.
+raises its bus thread: ``SCHED_FIFO`` where permitted; ``--no-realtime`` runs it with its loop
+at normal priority, to compare) and ``loadavg`` the host's load averages at the run's start and
+end.
 """
 
 from __future__ import annotations
