@@ -58,13 +58,8 @@ state restores that table when the last one was worse
 (:meth:`UniformityLoop.recovery_table_um`). Design and measured
 figures: ``docs/control_design.md``, section 8.
 
-A knife that left no mark (width 0, or ``nan`` for a knife without a pass in the window) is taken
-as width 0, which under-states its error but pushes it the right way. Such pairs do not enter
-the identification, nor do pairs with a mark narrower than ``id_min_width_frac`` of the pitch:
-the width model is linear only while every mark exists (a vanished mark's width is clipped at 0,
-so the knife patterns look about half as responsive as they are: at pitch 0.5 mm the
-alternating pattern of a 0.93 actuator was learnt at 0.42-0.63 from the first steps), and a
-nearly vanished mark is measured short (0.05-0.13 mm short at 0.1-0.3 of a 0.5 mm pitch).
+A knife that left no mark (``nan``) is taken as width 0, which under-states its error but pushes
+it the right way; such pairs do not enter the identification.
 """
 
 from __future__ import annotations
@@ -185,10 +180,6 @@ class UniformityLoopConfig:
         The identification's parameters (:class:`controller.laws.actuator_id.ActuatorIdentifier`);
         a knife pattern whose gain is confidently below ``gain_min`` is held (the actuator
         cannot move it).
-    id_min_width_frac : float
-        A pair enters the identification only when every knife's mark is at least this fraction
-        of the pitch wide (a vanished or nearly vanished mark is outside the linear width model
-        and under-states the actuator's gain); 0 takes every pair whose marks all exist.
     id_amplitude : bool
         Plan with each pattern's gain taken at the table's amplitude when the identification
         finds that the gain depends on it (a hysteretic stack: ``ActuatorIdentifier.
@@ -215,7 +206,6 @@ class UniformityLoopConfig:
     id_min_step_um: float = 0.5
     id_memory: float = 200.0
     id_prior_um2: float = 1.0
-    id_min_width_frac: float = 0.25
     id_amplitude: bool = True
     gain_min: float = 0.1
     gain_max: float = 2.0
@@ -246,7 +236,6 @@ class UniformityLoopConfig:
         check_positive("id_min_step_um", self.id_min_step_um)
         check_range("id_memory", self.id_memory, 1.0, 1e9)
         check_positive("id_prior_um2", self.id_prior_um2)
-        check_range("id_min_width_frac", self.id_min_width_frac, 0.0, 1.0)
         check_range("gain_min", self.gain_min, 1e-3, 1.0)
         check_range("gain_max", self.gain_max, 1.0, 100.0)
         if not isinstance(self.guard, bool):
@@ -596,7 +585,7 @@ class UniformityLoop:
         err = [v - err_mean for v in err]
         gain_g = width_sensitivity_mm_per_um(f, cfg.radius_mm)
         y = [v / gain_g for v in _matvec(self._d_pinv_rows, err)]
-        if cfg.identify and self._identifiable(ws, f):
+        if cfg.identify and not any(math.isnan(v) for v in ws):
             self._ident.add(o_c, y)
             self._review_modes(t)
         elif cfg.identify:
@@ -646,15 +635,6 @@ class UniformityLoop:
         self.steps += 1
         self.status = "stepped"
         return self.offsets_um
-
-    def _identifiable(self, widths_mm: list[float], pitch_mm: float) -> bool:
-        """Whether a pair's marks are all inside the linear width model (wide enough to learn from).
-
-        A vanished mark (width 0, or ``nan``) clips the width response and a nearly vanished one
-        is measured short: differences across such pairs read the actuator's gain low.
-        """
-        floor = self.cfg.id_min_width_frac * pitch_mm
-        return all(v > 0.0 and v >= floor for v in widths_mm)  # (nan compares false)
 
     def _judge(self, o_cut: list[float], score_um: float, t: float, t0: float) -> bool:
         """The guard's word on one pair; whether the update ends here (waiting, undone, held)."""
