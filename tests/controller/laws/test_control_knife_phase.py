@@ -347,3 +347,47 @@ def test_attribute_marks_rejects(change, match):
     args.update(change)
     with pytest.raises(ValueError, match=match):
         attribute_marks(**args)
+
+
+# ------------------------------------------- pitch 0.5 mm: a knife whose mark is gone or a sliver
+# Knives 1 and 3 cut 0.25 um deeper than knife 0; knife 2 shallower by ``d2`` um: at 0.5 mm per
+# pass its mark is a sliver (1.6 um: 0.056 mm, 1.8 um: 0.008 mm) or gone (2.0 um), and knife
+# 0's is 0.44 mm between the 0.78 mm of knives 1 and 3 -- the states the envelope's pitch
+# 0.5 mm corner crosses. The vision resolves marks of about a sample (0.08 mm at 12.5 px/mm).
+@pytest.mark.parametrize(
+    ("d2", "min_width_mm", "missing", "knife_2_mm"),
+    [
+        (2.0, 0.0, 25, 0.0),  # gone: its neighbours met
+        (1.6, 0.0, 0, 0.056),  # a sliver the vision reports: its own pass, its width
+        (1.8, 0.0, 0, 0.008),
+        (1.6, 0.08, 25, 0.0),  # a sliver the vision does not see: the pass left no mark
+    ],
+)
+def test_a_gone_or_sliver_mark_at_half_a_millimetre_gets_its_knife(d2, min_width_mm, missing,
+                                                                   knife_2_mm):
+    s = runout_marks((0.0, -0.25, d2, -0.25), pitch_mm=0.5, min_width_mm=min_width_mm)
+    pa = attribute_marks(s["bottoms"], s["cusps"], counts_a=s["counts_a"], knives=4,
+                         pass_guide_mm=0.5, min_inset_mm=0.08, **s["kw"])
+    assert np.array_equal(pa.knife, s["knife"])
+    assert pa.missing == s["missing"] == missing
+    assert pa.pass_mm == pytest.approx(0.5, rel=1e-3) and pa.spread < 0.02
+    w = pa.knife_widths(s["widths"])
+    if missing:
+        assert 2 not in set(pa.knife.tolist()) and math.isnan(w[2])  # the service sets 0
+    else:
+        assert w[2] == pytest.approx(knife_2_mm, abs=0.003)
+    assert w[0] == pytest.approx(0.44, abs=0.01)
+    assert np.nansum(w) == pytest.approx(2.0, abs=0.01)  # the marks' sum per revolution
+    assert 0.74 < min(w[1], w[3]) <= max(w[1], w[3]) < 0.82  # (an unseen sliver joins one)
+
+
+def test_two_reliable_bottoms_closer_than_a_pass_still_fail():
+    # bottoms at knife BDCs are whole passes apart: two inside their marks (by more than the
+    # inset) 0.18 mm apart are not where knives passed -- refused, not attributed
+    s = runout_marks((0.0, -0.25, 2.0, -0.25), pitch_mm=0.5)
+    b, c = s["bottoms"].copy(), s["cusps"]
+    i = int(np.flatnonzero(s["knife"] == 0)[2])  # knife 0's narrow mark and the next one
+    b[i], b[i + 1] = c[i + 1] - 0.09, c[i + 1] + 0.09
+    with pytest.raises(ValueError, match="two mark bottoms"):
+        attribute_marks(b, c, counts_a=s["counts_a"], knives=4, pass_guide_mm=0.5,
+                        min_inset_mm=0.08, **s["kw"])
