@@ -23,6 +23,7 @@ import numpy as np
 import scipy.fft
 
 from core.checks import check_1d, check_int, check_positive
+from vision import ffts
 
 
 class Integrator:
@@ -63,11 +64,11 @@ class Integrator:
         n = p.size
         if p.ndim != 1 or n < 2 or n > self.max_len:
             raise ValueError(f"slope must be 1-D with 2..{self.max_len} samples, got {p.shape}")
-        coef = scipy.fft.dst(p, type=2, n=self.nfft)
+        coef = ffts.dst2(p, self.nfft)
         dct = np.empty(self.nfft)
         dct[0] = 0.0
         dct[1:] = coef[:-1] * self._factor[1:]
-        h = scipy.fft.idct(dct, type=2)[:n]
+        h = ffts.idct2(dct)[:n]
         return h - h.sum() / h.size
 
 

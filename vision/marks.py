@@ -26,7 +26,7 @@ import scipy.signal
 
 from core.checks import check_int
 from core.errors import MeasurementError
-from vision import kernels, marks_kernels
+from vision import ffts, kernels, marks_kernels
 
 
 @dataclass(frozen=True)
@@ -155,7 +155,7 @@ def dominant_period_px(signal: np.ndarray, *, min_period_px: float = 4.0) -> flo
         return math.nan
     s = (s - s.sum() / n) * _hanning(n)
     nfft = scipy.fft.next_fast_len(4 * n, real=True)
-    spec = np.fft.rfft(s, n=nfft)  # numpy's pocketfft: scipy's numbers, less overhead
+    spec = ffts.rfft(s, nfft)
     k_lo = max(1, int(math.ceil(2.0 * nfft / n)))  # at least two periods in the profile
     k_hi = min(spec.size - 2, int(nfft / min_period_px))
     if k_hi <= k_lo:
@@ -203,8 +203,8 @@ def repeat_period_px(
     # Every lag's dot product from one FFT; the energies, the three lags around each multiple
     # and their parabolas in one compiled loop.
     nfft = scipy.fft.next_fast_len(2 * n, real=True)
-    spec = np.fft.rfft(s, n=nfft)
-    dots = np.fft.irfft(spec.real**2 + spec.imag**2, n=nfft)[:n]
+    spec = ffts.rfft(s, nfft)
+    dots = ffts.irfft(spec.real**2 + spec.imag**2, nfft)[:n]
     return float(kernels.repeat_lag(s, np.ascontiguousarray(dots), t,
                                      np.asarray(ks, dtype=np.float64), tolerance))
 

@@ -32,7 +32,7 @@ import numpy as np
 import scipy.fft
 
 from core.checks import check_int, check_positive
-from vision import check_kernels
+from vision import check_kernels, ffts
 
 
 @dataclass(frozen=True)
@@ -183,10 +183,10 @@ class RollEstimator:
         hp = _highpassed_log_rows(grouped.reshape(-1, self.width), self.highpass_px)
         hp *= self._taper[None, :]
         k0, k = self._k
-        spec = scipy.fft.rfft(hp, n=self.nfft, axis=1)[:, k0:k]
+        spec = ffts.rfft(hp, self.nfft, axis=1)[:, k0:k]
         spec = spec.reshape(n_img, self._groups, k - k0)
         # Lag products along the groups by one FFT each way (zero-padded: no wrap-around).
-        over_g = scipy.fft.fft(spec, n=self._lag_nfft, axis=1)
+        over_g = ffts.fft(spec, self._lag_nfft, axis=1)
         return (over_g.real**2 + over_g.imag**2).sum(axis=0, dtype=np.float32)
 
     def _power(self, group_power: np.ndarray) -> np.ndarray:

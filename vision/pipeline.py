@@ -31,7 +31,7 @@ import scipy.fft
 from config.rig import Rig
 from core.checks import check_image, check_int, check_positive, check_range
 from core.errors import MeasurementError, RegistrationError
-from vision import kernels
+from vision import ffts, kernels
 from vision.calibration.illumination import Detrender, flat_field_correct, running_mean
 from vision.calibration.selfcal import (
     Calibration,
@@ -307,7 +307,7 @@ def _pitch_px(slope: np.ndarray) -> float:
             _PITCH_WINDOWS.clear()
         window = _PITCH_WINDOWS[n] = np.hanning(n)
     nfft = scipy.fft.next_fast_len(n, real=True)
-    spec = np.fft.rfft((s - s.sum() / n) * window, n=nfft)
+    spec = ffts.rfft((s - s.sum() / n) * window, nfft)
     k_lo = max(1, int(math.ceil(2.0 * nfft / n)))
     k_hi = min(spec.size - 2, int(nfft / 4.0))
     if k_hi <= k_lo:

@@ -24,10 +24,9 @@ import math
 
 import cv2
 import numpy as np
-import scipy.fft
 
 from core.errors import RegistrationError
-from vision import kernels
+from vision import ffts, kernels
 
 
 def shading_free_texture(rows: np.ndarray, profile: np.ndarray, *,
@@ -217,8 +216,8 @@ def mark_period_px(profile: np.ndarray) -> float:
     g = g - g.mean()
     n = g.size
     nf = _fast_len_5(2 * n)
-    spec = scipy.fft.rfft(g, n=nf)
-    ac = scipy.fft.irfft(spec.real**2 + spec.imag**2, n=nf)[: n // 3]
+    spec = ffts.rfft(g, nf)
+    ac = ffts.irfft(spec.real**2 + spec.imag**2, nf)[: n // 3]
     if ac.size < 4 or not ac[0] > 0:
         return math.nan
     ac = ac / ac[0]
@@ -339,7 +338,7 @@ class FineShiftFit:
         both -= both.mean(axis=1, keepdims=True)
         both *= taper
         k = self._kmax
-        spec = np.fft.rfft(both, n=self.nfft, axis=1)[:, :k]
+        spec = ffts.rfft(both, self.nfft, axis=1)[:, :k]
         # |X| e^(2i arg X): the phase doubled, so frequencies where the mirrored shading
         # dominates (X < 0 at the true delay) vote with the albedo's (X > 0); Re(P @ D) as
         # one real product -- all in one compiled loop (no BLAS threads, no temporaries).
