@@ -15,6 +15,7 @@ import numpy as np
 import scipy.fft
 
 from core.checks import check_int, check_positive
+from vision import ffts
 
 
 def blur_length_px(speed_mm_s: float, *, exposure_ms: float, px_per_mm: float) -> float:
@@ -91,9 +92,9 @@ class Deblurrer:
         if n > L:
             pad = [(0, 0)] * (p.ndim - 1) + [(0, n - L)]
             p = np.pad(p, pad, mode="edge")
-        coef = scipy.fft.dct(p, type=2, axis=-1)
+        coef = ffts.dct2(p)
         coef *= self.gain(blur_px)
-        return scipy.fft.idct(coef, type=2, axis=-1)[..., :L]
+        return ffts.idct2(coef)[..., :L]
 
 
 def wiener_deblur(profile: np.ndarray, *, blur_px: float, regularisation: float = 0.01

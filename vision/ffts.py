@@ -141,18 +141,43 @@ def dst2(x: np.ndarray, n: int) -> np.ndarray:
     return _pocketfft.dst(a, 2, (0,), _FORWARD, None, 1, None)
 
 
-def idct2(x: np.ndarray) -> np.ndarray:
-    """``scipy.fft.idct(x, type=2)`` of a 1-D real array (a DCT-III scaled by ``1 / (2 n)``).
+def dct2(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """``scipy.fft.dct(x, type=2, axis=axis)`` of a real array (unnormalised).
 
     Parameters
     ----------
-    x : ndarray, shape (n,)
-        DCT-II coefficients.
+    x : ndarray
+        Real samples.
+    axis : int, optional
+        Axis transformed.
 
     Returns
     -------
-    ndarray, shape (n,)
+    ndarray
+        Same shape as ``x``.
     """
     if _pocketfft is None:
-        return scipy.fft.idct(x, type=2)
-    return _pocketfft.dct(_floats(x), 3, (0,), _BACKWARD, None, 1, None)
+        return scipy.fft.dct(x, type=2, axis=axis)
+    a = _floats(x)
+    return _pocketfft.dct(a, 2, (axis % a.ndim,), _FORWARD, None, 1, None)
+
+
+def idct2(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """``scipy.fft.idct(x, type=2, axis=axis)`` of a real array (a DCT-III scaled by ``1 / (2 n)``).
+
+    Parameters
+    ----------
+    x : ndarray
+        DCT-II coefficients along ``axis``.
+    axis : int, optional
+        Axis transformed.
+
+    Returns
+    -------
+    ndarray
+        Same shape as ``x``.
+    """
+    if _pocketfft is None:
+        return scipy.fft.idct(x, type=2, axis=axis)
+    a = _floats(x)
+    return _pocketfft.dct(a, 3, (axis % a.ndim,), _BACKWARD, None, 1, None)

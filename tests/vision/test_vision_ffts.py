@@ -69,13 +69,21 @@ def test_dst2_and_idct2_are_scipys() -> None:
     assert np.array_equal(ffts.idct2(c), scipy.fft.idct(c, type=2))
 
 
+@pytest.mark.parametrize("axis", [-1, 1, 0])
+def test_dct2_and_idct2_along_an_axis(axis: int) -> None:
+    rng = np.random.default_rng(17)
+    x = rng.standard_normal((3, 212))
+    assert np.array_equal(ffts.dct2(x, axis=axis), scipy.fft.dct(x, type=2, axis=axis))
+    assert np.array_equal(ffts.idct2(x, axis=axis), scipy.fft.idct(x, type=2, axis=axis))
+
+
 def test_without_pocketfft_the_public_functions(monkeypatch: pytest.MonkeyPatch) -> None:
     rng = np.random.default_rng(13)
     x = rng.standard_normal((3, 100))
     want = (ffts.rfft(x, 128, axis=1), ffts.irfft(x[0, :65], 128),
-            ffts.fft(x + 0j, 128, axis=1), ffts.dst2(x[0], 128), ffts.idct2(x[1]))
+            ffts.fft(x + 0j, 128, axis=1), ffts.dst2(x[0], 128), ffts.idct2(x[1]), ffts.dct2(x))
     monkeypatch.setattr(ffts, "_pocketfft", None)
     got = (ffts.rfft(x, 128, axis=1), ffts.irfft(x[0, :65], 128),
-           ffts.fft(x + 0j, 128, axis=1), ffts.dst2(x[0], 128), ffts.idct2(x[1]))
+           ffts.fft(x + 0j, 128, axis=1), ffts.dst2(x[0], 128), ffts.idct2(x[1]), ffts.dct2(x))
     for g, w in zip(got, want, strict=True):
         assert np.array_equal(g, w)

@@ -31,7 +31,7 @@ import numpy as np
 import scipy.fft
 
 from core.checks import check_positive
-from vision import kernels
+from vision import ffts, kernels
 
 SCATTER_GRID_MM = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8)
 
@@ -318,7 +318,7 @@ def apply_calibration(slope: np.ndarray, calibration: Calibration, *, dx_mm: flo
     ext = np.concatenate([p, p[::-1]])  # even extension: no wrap-around jump
     nf = ext.size
     h = scatter_transfer(nf, dx_mm=dx_mm, scatter_mm=ell, fraction=f)
-    out = scipy.fft.irfft(scipy.fft.rfft(ext) * h / (h * h + regularisation), n=nf)
+    out = ffts.irfft(ffts.rfft(ext, nf) * h / (h * h + regularisation), nf)
     return out[:n]
 
 
