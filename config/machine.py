@@ -159,6 +159,14 @@ class PlausibilityConfig:
         budget of what the two legitimately differ by: the spindle's load ripple (0.1 %) and
         droop (0.2 %) between the cut and the PLC's reading, the feed encoder's slip against
         the board (belt-driven table, 0.5 %) and the measured pitch's own error (0.2 %).
+    pass_tolerance : float
+        Relative margin around the range of the feed per pass when the marks were cut
+        (:mod:`controller.service.cut_feed`) within which the knife-phase fit's travel per pass
+        must lie, else the pair's attribution is refused. The default 0.03 is 2.5 times the
+        budget of what the two legitimately differ by (the speed read per pair 0.2 %, spindle
+        ripple and droop 0.3 %, encoder slip 0.5 %, the fit's own error 0.2 %); at most
+        :data:`MAX_PASS_TOLERANCE`, half the nearest miscounted fit, ``Z / (Z + 1)`` of the
+        true travel at 8 knives (11 % off).
     """
 
     pitch_ratio_min: float = 0.5
@@ -166,6 +174,12 @@ class PlausibilityConfig:
     min_marks: int = 6
     min_confidence: float = 0.3
     pitch_tolerance: float = 0.01
+    pass_tolerance: float = 0.03
+
+
+MAX_PASS_TOLERANCE = 0.055
+"""Largest ``[plausibility] pass_tolerance``: under half the gap to a fit that counted one
+pass too many per revolution, ``1 - Z / (Z + 1)`` = 11.1 % at the most knives (8)."""
 
 
 @dataclass(frozen=True)
@@ -433,6 +447,8 @@ def _plausibility_table(root: Section, d: MachineConfig) -> PlausibilityConfig:
         min_confidence=pl.number("min_confidence", dl.min_confidence, lo=0.0, hi=1.0),
         pitch_tolerance=pl.number("pitch_tolerance", dl.pitch_tolerance, lo=0.0, lo_open=True,
                                   hi=0.5),
+        pass_tolerance=pl.number("pass_tolerance", dl.pass_tolerance, lo=0.0, lo_open=True,
+                                 hi=MAX_PASS_TOLERANCE),
     )
     pl.reject_unknown()
 

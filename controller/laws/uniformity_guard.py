@@ -11,7 +11,13 @@ loop's doing.
 Per complete pair the guard takes the table the measured board was cut with and the score; over
 a window of ``window`` pairs it keeps the mean score and the mean table. The lowest mean seen is
 the best table (the very first pair, the starting table's, counts alone: the loop's first table
-goes out with it). When the mean rises above ``best (1 + rel_tol) + abs_tol_um`` for ``patience``
+goes out with it). Only pairs on which every knife left a mark the measurement could see
+(``comparable``) choose the best: a vanished mark's width is clipped at 0, so the score of a
+table under which a knife vanished under-states its spread and is not comparable with one
+under which every knife cuts (at pitch 0.5 mm a table leaving one knife vanished scored below
+the tables that brought it back). Such pairs still count against the best (a score that is
+too low already and still worse is worse); before a comparable window there is no best and
+nothing is undone. When the mean rises above ``best (1 + rel_tol) + abs_tol_um`` for ``patience``
 pairs in a row, the learning made the board worse: :meth:`TableGuard.observe` says
 :attr:`Verdict.UNDO` and the loop goes back to the best table. The first window of boards cut
 with it again re-measures the best (:meth:`TableGuard.reverted`): about as good as before, the
@@ -83,7 +89,7 @@ class TableGuard:
 
     def reset(self, *, forget: bool = False) -> None:
         """Start a new window (the table changed outside the loop); ``forget``: the best too."""
-        self._pairs: deque[tuple[tuple[float, ...], float]] = deque(maxlen=self.window)
+        self._pairs: deque[tuple[tuple[float, ...], float, bool]] = deque(maxlen=self.window)
         self._strikes = 0
         self._verifying = False
         if forget:
@@ -125,7 +131,8 @@ class TableGuard:
             return math.inf
         return self._best[1] * (1.0 + self.rel_tol) + self.abs_tol_um
 
-    def observe(self, table_um: Sequence[float], score_um: float) -> Verdict:
+    def observe(self, table_um: Sequence[float], score_um: float, *,
+                comparable: bool = True) -> Verdict:
         """One complete pair: the table its board was cut with and its score.
 
         Parameters
@@ -134,6 +141,9 @@ class TableGuard:
             The table in force when the measured board was cut, um.
         score_um : float
             ``rms(w - mean(w)) / G`` of the pair, um (>= 0).
+        comparable : bool
+            Whether every knife left a mark the measurement could see (else the score
+            under-states the spread: it counts against the best but never sets it).
 
         Returns
         -------
@@ -145,14 +155,15 @@ class TableGuard:
         s = check_positive("score_um", score_um, allow_zero=True)
         if self.holding:
             return Verdict.HOLD
-        self._pairs.append((t, s))
-        if self._best is None and not self._verifying:
+        self._pairs.append((t, s, bool(comparable)))
+        if self._best is None and not self._verifying and comparable:
             self._best = (t, s)  # the starting table: one pair is enough to be judged against
         if len(self._pairs) < self.window:
             return Verdict.KEEP
         mean_s = sum(p[1] for p in self._pairs) / len(self._pairs)
         mean_t = tuple(sum(p[0][k] for p in self._pairs) / len(self._pairs)
                        for k in range(self.knives))
+        seen = all(p[2] for p in self._pairs)
         if self._verifying:  # the first window cut with the best table again
             self._verifying = False
             old = self._best
@@ -161,12 +172,13 @@ class TableGuard:
                 self.undos += 1  # the undo was right
             else:
                 self.undos = 0  # the world changed: the best is what it is now
-            self._best = (old[0], mean_s)
+            if seen:
+                self._best = (old[0], mean_s)
             if self.undos >= self.max_undos:
                 self.holding = True
                 return Verdict.HOLD
             return Verdict.KEEP
-        if self._best is None or mean_s < self._best[1]:
+        if seen and (self._best is None or mean_s < self._best[1]):
             if self._best is not None and mean_s < self._best[1] / (1.0 + self.rel_tol):
                 self.undos = 0  # clearly better than before: the learning works again
             self._best = (mean_t, mean_s)

@@ -58,8 +58,20 @@ state restores that table when the last one was worse
 (:meth:`UniformityLoop.recovery_table_um`). Design and measured
 figures: ``docs/control_design.md``, section 8.
 
-A knife that left no mark (``nan``) is taken as width 0, which under-states its error but pushes
-it the right way; such pairs do not enter the identification.
+A knife that left no mark (width 0, or ``nan`` for a knife without a pass in the window) is taken
+as width 0, which under-states its error but pushes it the right way. Such pairs do not enter
+the identification, nor do pairs with a mark narrower than ``id_min_width_frac`` of the pitch:
+the width model is linear only while every mark exists (a vanished mark's width is clipped at 0,
+so the knife patterns look about half as responsive as they are: at pitch 0.5 mm the
+alternating pattern of a 0.93 actuator was learnt at 0.42-0.63 from the first steps), and a
+nearly vanished mark is measured short (0.05-0.13 mm short at 0.1-0.3 of a 0.5 mm pitch).
+Their neighbours meet half way across the vanished knife, so the estimate errs along that knife
+alone and under-states how far it must come back: the step along it is taken whole
+(``vanished_step``, :meth:`UniformityLoop._bring_back`). Such pairs never set the guard's best
+table (their clipped score is not comparable). A pair whose widths moved from the last pair
+taken by more than the table's change can make (merged marks, marks on the wrong knives) is
+kept out of the loop, the identification and the guard (status ``unexplained``,
+``change_tol_frac``).
 """
 
 from __future__ import annotations
@@ -82,7 +94,7 @@ from controller.laws.uniformity_status import AuthorityNotice, authority_notice,
 from core.checks import check_finite, check_int, check_positive, check_range
 
 #: Values of :attr:`UniformityLoop.status` after an update.
-STATUSES = ("stepped", "waiting", "no_marks", "idle", "undone", "holding")
+STATUSES = ("stepped", "waiting", "no_marks", "idle", "undone", "holding", "unexplained")
 
 DEFAULT_MARGIN_UM = 0.01
 """Default reserve from the stroke, um: ten steps of the CAN codec (1 nm, rounded to the nearest
@@ -90,6 +102,10 @@ step, so a sent offset may exceed the planned one by 0.5 nm). The simulated ampl
 offset beyond its stroke and raises the stroke-limit bit when the displacement reaches it (at
 exactly the table's value without hysteresis); with the matched input shaper the displacement
 of a zero-mean table never exceeds the table, and hysteresis only takes some off."""
+
+CHANGE_PITCH_TOL = 0.05
+"""Pitch change (relative) beyond which a pair is not compared with the last one taken (the
+check of unexplained width changes starts again from it)."""
 
 
 def second_difference(knives: int) -> np.ndarray:
@@ -180,6 +196,25 @@ class UniformityLoopConfig:
         The identification's parameters (:class:`controller.laws.actuator_id.ActuatorIdentifier`);
         a knife pattern whose gain is confidently below ``gain_min`` is held (the actuator
         cannot move it).
+    id_min_width_frac : float
+        A pair enters the identification only when every knife's mark is at least this fraction
+        of the pitch wide (a vanished or nearly vanished mark is outside the linear width model
+        and under-states the actuator's gain); 0 takes every pair whose marks all exist.
+    change_tol_frac : float
+        A pair whose widths moved from the last pair the loop took by more than the change of
+        the table at the cut can make (``4 gain_max |o - o_prev|`` um of relative depth, ``4``
+        the largest eigenvalue of ``D``) plus this fraction of the pitch (``change_tol_frac f``
+        mm of width, ``f / G`` um) is kept out of the loop, of the identification and of the
+        guard (status ``unexplained``): its marks were given to the wrong knives or measured
+        wrong (at pitch 0.5 mm a merged mark read ``[2.0, 0, 0, 0]`` between pairs reading
+        ``[0.47, 0.77, 0, 0.76]``). 0 switches the check off.
+    change_patience : int
+        Unexplained pairs in a row after which the next is taken as the new reference (the
+        world changed: a knife, the wood), and taken.
+    vanished_step : bool
+        Take the step along a vanished knife's own width whole (:meth:`UniformityLoop.
+        _bring_back`): its estimate is censored and under-states the move, so the scheduled
+        gain would crawl out of the vanished region (40 pairs at pitch 0.5 mm).
     id_amplitude : bool
         Plan with each pattern's gain taken at the table's amplitude when the identification
         finds that the gain depends on it (a hysteretic stack: ``ActuatorIdentifier.
@@ -206,6 +241,10 @@ class UniformityLoopConfig:
     id_min_step_um: float = 0.5
     id_memory: float = 200.0
     id_prior_um2: float = 1.0
+    id_min_width_frac: float = 0.25
+    change_tol_frac: float = 0.3
+    change_patience: int = 3
+    vanished_step: bool = True
     id_amplitude: bool = True
     gain_min: float = 0.1
     gain_max: float = 2.0
@@ -236,6 +275,11 @@ class UniformityLoopConfig:
         check_positive("id_min_step_um", self.id_min_step_um)
         check_range("id_memory", self.id_memory, 1.0, 1e9)
         check_positive("id_prior_um2", self.id_prior_um2)
+        check_range("id_min_width_frac", self.id_min_width_frac, 0.0, 1.0)
+        check_range("change_tol_frac", self.change_tol_frac, 0.0, 10.0)
+        check_int("change_patience", self.change_patience, lo=1)
+        if not isinstance(self.vanished_step, bool):
+            raise ValueError(f"vanished_step must be true or false, got {self.vanished_step!r}")
         check_range("gain_min", self.gain_min, 1e-3, 1.0)
         check_range("gain_max", self.gain_max, 1.0, 100.0)
         if not isinstance(self.guard, bool):
@@ -350,6 +394,10 @@ class UniformityLoop:
         self._t_last = None if now_s is None else t
         self._undo: tuple[np.ndarray, bool, np.ndarray | None] | None = None
         self._reverted_at: float | None = None  # the guard's undo: waiting for its boards
+        self._seen: tuple[list[float], list[float], float] | None = None  # o_cut, dev, pitch
+        self._unexplained_run = 0
+        self.unexplained = 0
+        """Pairs kept out as unexplained since the last reset."""
         self._guard.reset(forget=forget)
         if forget:
             self._disturbance = None
@@ -584,8 +632,11 @@ class UniformityLoop:
         err_mean = _mean(err)
         err = [v - err_mean for v in err]
         gain_g = width_sensitivity_mm_per_um(f, cfg.radius_mm)
+        if self._unexplained(o_c, [v / gain_g for v in err], f, cfg.change_tol_frac * f / gain_g):
+            self.status = "unexplained"
+            return self.offsets_um
         y = [v / gain_g for v in _matvec(self._d_pinv_rows, err)]
-        if cfg.identify and not any(math.isnan(v) for v in ws):
+        if cfg.identify and self._identifiable(ws, f):  # (the guard's "comparable" too)
             self._ident.add(o_c, y)
             self._review_modes(t)
         elif cfg.identify:
@@ -608,7 +659,9 @@ class UniformityLoop:
         self._estimate = np.array(s_est)  # what this pair's step plans against
         prev = s_est if self._disturbance is None else self._disturbance.tolist()
         self._disturbance = np.array([p + g * (v - p) for p, v in zip(prev, s_est, strict=True)])
-        if self._judge(o_c, math.sqrt(sum(v * v for v in err) / len(err)) / gain_g, t, t0):
+        seen = self._identifiable(ws, f)
+        if self._judge(o_c, math.sqrt(sum(v * v for v in err) / len(err)) / gain_g, t, t0,
+                       comparable=seen):
             return self.offsets_um
         bound = self.limit_um
         hold = self._hold_table() if self._held else None
@@ -628,6 +681,8 @@ class UniformityLoop:
         now = self._offsets.tolist()
         new = project_zero_mean_box(
             np.array([o + g * (b - o) for o, b in zip(now, best, strict=True)]), bound=bound)
+        if cfg.vanished_step and not self._held:
+            new = self._bring_back(new, best_a, ws, a_rows, bound)
         if self._held:  # the hold's penalty only nearly holds: never a step the model regrets
             new, g = _monotone_step(self._offsets, new, g, self.model_spread_um)
         self._set(new, t)
@@ -636,7 +691,69 @@ class UniformityLoop:
         self.status = "stepped"
         return self.offsets_um
 
-    def _judge(self, o_cut: list[float], score_um: float, t: float, t0: float) -> bool:
+    def _bring_back(self, new: np.ndarray, target: np.ndarray, widths_mm: list[float],
+                    a_rows: tuple[tuple[float, ...], ...], bound: float) -> np.ndarray:
+        """The step toward ``target`` along each vanished knife's own width, taken whole.
+
+        A vanished mark's width is censored: its linear width ``w_k`` is some value <= 0, read
+        as 0. For parabolic tip circles the neighbours then meet half way between where they
+        would meet knife k, so they measure ``w_{k+-1} + w_k / 2``: the estimate's error lies
+        along knife k's relative depth alone and under-states how far knife k must come back.
+        The planned table's width of knife k is thus at most what knife k needs, and moving
+        the table there at once cannot overshoot it (the other knives keep the scheduled gain).
+        Per vanished knife (``width <= 0`` or ``nan``), when the rest of the step toward
+        ``target`` widens its mark, the table moves along ``(D A)_k`` (the least move that
+        changes its width by that much) until its modelled width is ``target``'s.
+        """
+        gone = [k for k, v in enumerate(widths_mm) if not v > 0.0]
+        if not gone:
+            return new
+        da = self._d @ np.array(a_rows)
+        out = new
+        for k in gone:
+            v = da[k]
+            c = float((target - out) @ v) / float(v @ v)
+            if c > 0.0:  # (the estimate pushes a vanished knife back, never further away)
+                out = out + c * v
+        return project_zero_mean_box(out - out.mean(), bound=bound)
+
+    def _unexplained(self, o_cut: list[float], dev_um: list[float], pitch_mm: float,
+                     tol_um: float) -> bool:
+        """Whether a pair's width pattern moved more than the table's change can explain.
+
+        ``dev_um``: the widths' deviations from their mean over ``G`` (um of relative depth).
+        Against the last pair taken, when at the same pitch (within :data:`CHANGE_PITCH_TOL`:
+        a vanished mark's clipped deviation, and its neighbours', scale with ``f / G``):
+        ``|dev - dev_prev|`` beyond ``4 gain_max |o - o_prev| + tol_um`` on any knife. After
+        ``change_patience`` such pairs in a row the next one is taken; a pair taken becomes
+        the reference.
+        """
+        ref = self._seen
+        if ref is not None and self.cfg.change_tol_frac > 0.0:
+            o0, d0, f0 = ref
+            moved = math.sqrt(sum((a - b) ** 2 for a, b in zip(o_cut, o0, strict=True)))
+            bound = 4.0 * self.cfg.gain_max * moved + tol_um
+            if (abs(pitch_mm / f0 - 1.0) <= CHANGE_PITCH_TOL
+                    and any(abs(a - b) > bound for a, b in zip(dev_um, d0, strict=True))
+                    and self._unexplained_run < self.cfg.change_patience):
+                self._unexplained_run += 1
+                self.unexplained += 1
+                return True
+        self._unexplained_run = 0
+        self._seen = (list(o_cut), list(dev_um), pitch_mm)
+        return False
+
+    def _identifiable(self, widths_mm: list[float], pitch_mm: float) -> bool:
+        """Whether a pair's marks are all inside the linear width model (wide enough to learn from).
+
+        A vanished mark (width 0, or ``nan``) clips the width response and a nearly vanished one
+        is measured short: differences across such pairs read the actuator's gain low.
+        """
+        floor = self.cfg.id_min_width_frac * pitch_mm
+        return all(v > 0.0 and v >= floor for v in widths_mm)  # (nan compares false)
+
+    def _judge(self, o_cut: list[float], score_um: float, t: float, t0: float, *,
+               comparable: bool = True) -> bool:
         """The guard's word on one pair; whether the update ends here (waiting, undone, held)."""
         if not self.cfg.guard and not self.holding:
             return False
@@ -645,7 +762,8 @@ class UniformityLoop:
                 self.status = "waiting"
                 return True
             self._reverted_at = None
-        verdict = self._guard.observe(o_cut, score_um) if self.cfg.guard else Verdict.KEEP
+        verdict = (self._guard.observe(o_cut, score_um, comparable=comparable)
+                   if self.cfg.guard else Verdict.KEEP)
         if verdict is Verdict.UNDO or (verdict is Verdict.HOLD or self.holding):
             if verdict is Verdict.UNDO:
                 self._guard.reverted()

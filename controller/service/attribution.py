@@ -36,12 +36,22 @@ import numpy as np
 
 from controller.fieldbus.plc_protocol import PlcSnapshot
 from controller.laws import knife_phase
+from controller.service.cut_feed import (
+    CutFeed,
+    PairFeedHistory,
+    cut_feed,
+    pass_disagreement,
+)
 from controller.service.events import exc_name
 from controller.service.measurement import expected_pitch_mm
+from controller.service.pitch_check import FeedHistory
 from protocol.frames import Frame
 
 MAX_PHASE_SPREAD = 0.15
 """Marks whose pass numbers spread more than this (in passes) are not attributed to knives."""
+PASS_TOLERANCE = 0.03
+"""Default margin of the fit's travel per pass around the feed per pass at the cut
+(``[plausibility] pass_tolerance``)."""
 MIN_BOTTOM_INSET_SAMPLES = 1.0
 """A mark bottom closer than this (in profile samples, ``1 / px_per_mm``) to a cusp of its mark
 was clipped there by the vision (narrow mark, BDC outside it) and does not set the phase."""
@@ -218,6 +228,9 @@ class Attributed:
     bdc_pitch_mm : float
         Board travel per knife pass fitted to the reliable mark bottoms (the knives' BDCs),
         mm.
+    cut_feed : CutFeed or None
+        The feed per pass when the marks were cut, the fit was checked against
+        (:mod:`controller.service.cut_feed`; ``None``: not known, not checked).
     """
 
     knife_widths_mm: np.ndarray
@@ -233,6 +246,7 @@ class Attributed:
     marks_cv: float = math.nan
     bdc_pitch_mm: float = math.nan
     knife_cv: float = math.nan
+    cut_feed: CutFeed | None = None
 
     @property
     def complete(self) -> bool:
@@ -275,6 +289,9 @@ class Attributed:
             "uniformity_cv": _json_float(self.uniformity_cv),
             "marks_cv": _json_float(self.marks_cv),
             "knife": list(self.mark_knife),
+            "cut_pass_mm": (None if self.cut_feed is None
+                            else [self.cut_feed.lo_mm, self.cut_feed.hi_mm]),
+            "cut_feed_source": None if self.cut_feed is None else self.cut_feed.source.value,
         }
 
 
@@ -283,8 +300,15 @@ def _json_float(value: float) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any) -> Attributed:
+def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any, *,
+              pairs: PairFeedHistory | None = None, plc: FeedHistory | None = None,
+              pass_tolerance: float = PASS_TOLERANCE) -> Attributed:
     """Attribute the marks to knife passes: widths per knife, pitch per knife pass.
+
+    The fit's travel per pass is checked against the feed per pass when the field's marks
+    were cut (:func:`controller.service.cut_feed.cut_feed` from ``pairs`` and ``plc``):
+    outside that range widened by ``pass_tolerance`` the fit counted the passes per
+    revolution wrong and the pair is refused. Without either history nothing is checked.
 
     Parameters
     ----------
@@ -297,6 +321,12 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any) -> Attribute
         The registers in force (``knives``, ``cutter_to_camera_mm``, ``counts_per_mm``, ...).
     rig : Rig
         ``camera.px_per_mm``, ``camera.cx``, ``encoder.counter_bits``.
+    pairs : PairFeedHistory, optional
+        The pairs so far, keyed by board position.
+    plc : FeedHistory, optional
+        The PLC's readings (where no pair brackets the cut).
+    pass_tolerance : float
+        ``[plausibility] pass_tolerance``.
 
     Returns
     -------
@@ -306,7 +336,8 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any) -> Attribute
     ------
     ValueError
         The marks do not line up with the knife passes (phase spread too large, two marks
-        on one pass, too few bottoms inside their marks) or do not fit each other.
+        on one pass, too few bottoms inside their marks), do not fit each other, or the
+        fit's travel per pass disagrees with the feed per pass at the cut.
     """
     cam = rig.camera
     bottoms = np.asarray(meas.bottoms_mm, dtype=float)
@@ -335,6 +366,10 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any) -> Attribute
     )
     if not pa.spread <= MAX_PHASE_SPREAD:
         raise ValueError(f"marks off the knife passes (phase spread {pa.spread:.2f})")
+    cut = _cut_feed_of(bottoms, frame, snap, rig, pairs, plc)
+    why = pass_disagreement(float(pa.pass_mm), cut, tolerance=pass_tolerance)
+    if why is not None:
+        raise ValueError(why)
     marks_pitch = float(meas.pitch_mm)
     if pa.missing == 0:
         pitch = marks_pitch  # the mean mark width, as measured
@@ -358,7 +393,24 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any) -> Attribute
         marks_cv=_marks_cv(meas, widths),
         bdc_pitch_mm=float(pa.pass_mm),
         knife_cv=knife_model_cv(widths, pa.knife, bottoms) if pa.missing == 0 else math.nan,
+        cut_feed=cut,
     )
+
+
+def _cut_feed_of(bottoms: np.ndarray, frame: Frame, snap: PlcSnapshot, rig: Any,
+                 pairs: PairFeedHistory | None, plc: FeedHistory | None) -> CutFeed | None:
+    """The feed per pass over the cut of the marks at ``bottoms`` (image A, mm).
+
+    A mark at ``x`` was cut ``L + x - cx / px_per_mm`` of board travel before trigger A.
+    """
+    if (pairs is None and plc is None) or bottoms.size == 0:
+        return None
+    cam = rig.camera
+    ends = [snap.cutter_to_camera_mm + float(x) - cam.cx / cam.px_per_mm
+            for x in (bottoms.min(), bottoms.max())]
+    return cut_feed(pairs, plc, counts=int(frame.counts_a), t_s=getattr(snap, "t_s", None),
+                    knives=snap.knives, back_mm=(min(ends), max(ends)),
+                    counts_per_mm=snap.counts_per_mm, counter_bits=rig.encoder.counter_bits)
 
 
 def _marks_cv(meas: Any, widths: np.ndarray) -> float:
@@ -371,15 +423,19 @@ def _marks_cv(meas: Any, widths: np.ndarray) -> float:
 
 
 def attribute_or_reason(
-    meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any
+    meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any, *,
+    pairs: PairFeedHistory | None = None, plc: FeedHistory | None = None,
+    pass_tolerance: float = PASS_TOLERANCE,
 ) -> tuple[Attributed | None, str | None]:
     """:func:`attribute`, with a failure as its reason: ``(attributed, None)`` or ``(None, why)``.
 
     The reason reads ``"knife phase failed: ..."``; marks without the expected fields (a
-    measurement of another shape) fail the same way.
+    measurement of another shape) fail the same way. ``pairs``, ``plc``, ``pass_tolerance``:
+    as :func:`attribute`'s.
     """
     try:
-        return attribute(meas, frame, snap, rig), None
+        return attribute(meas, frame, snap, rig, pairs=pairs, plc=plc,
+                         pass_tolerance=pass_tolerance), None
     except ValueError as exc:
         return None, f"knife phase failed: {exc}"
     except (AttributeError, TypeError, LookupError, ArithmeticError) as exc:

@@ -41,12 +41,18 @@ from controller.fieldbus.plc_protocol import PlcSnapshot
 from controller.service.attribution import Attributed, attribute_or_reason
 from controller.service.bus_cycles import BusCycles
 from controller.service.clock import ServiceClock
+from controller.service.cut_feed import PairFeedHistory
 from controller.service.events import EventKind, EventLog, exc_name
 from controller.service.frame_result import FrameResult
 from controller.service.intake import FrameIntake, finite_or_none, int_or
 from controller.service.latency import collect_between_pairs
 from controller.service.loops import ControlLoops
-from controller.service.measurement import MeasurementStage, PendingMeasurement, failure_reason
+from controller.service.measurement import (
+    MeasurementStage,
+    PendingMeasurement,
+    expected_pitch_mm,
+    failure_reason,
+)
 from controller.service.records import QualityRecords
 from controller.service.safe_state import SafeStateKeeper
 from controller.service.supervisor import SafetyState
@@ -98,6 +104,9 @@ class PairPipeline:
             self._frame_centre_mm = finite_or_none(cam.cx / cam.px_per_mm)
         except (AttributeError, TypeError, ZeroDivisionError):
             self._frame_centre_mm = None
+        self.pair_feeds = PairFeedHistory()
+        """Each pair's feed per knife pass by board position: the feed when the marks of a
+        later pair were cut (:mod:`controller.service.cut_feed`)."""
         self.last: FrameResult | None = None
         """The last pair's result."""
         self.keep_results = False
@@ -178,6 +187,7 @@ class PairPipeline:
         elif (problem := snap.problem()) is not None:
             pair.error = f"no valid PLC data: {problem}"
         else:
+            self._note_feed(frame, snap)
             with self.keeper.boundary(t_arr, f"measurement of pair {frame.seq}") as g:
                 try:
                     self.loops.ensure(snap)
@@ -188,6 +198,16 @@ class PairPipeline:
             if g.error is not None:
                 pair.error = failure_reason(g.error)
         return pair
+
+    def _note_feed(self, frame: Frame, snap: PlcSnapshot) -> None:
+        """Keep the pair's board position and feed per pass (a sound register read)."""
+        try:
+            self.pair_feeds.note(
+                int(frame.counts_a), float(frame.t_s), expected_pitch_mm(frame, snap),
+                snap.knives, counter_bits=self.rig.encoder.counter_bits,
+                counts_per_mm=snap.counts_per_mm, keep_mm=snap.cutter_to_camera_mm)
+        except (AttributeError, TypeError, ValueError, ArithmeticError):
+            pass  # no position or feed of this pair: later pairs fall back on the PLC's
 
     async def _finish(self, pair: _Pair) -> FrameResult:
         """Stages 3-6: the measurement's result, attribution, control, the record."""
@@ -303,7 +323,10 @@ class PairPipeline:
         error = self.measurement.implausible(meas, frame, snap)
         if error is not None:
             return error, meas, None
-        att, error = attribute_or_reason(meas, frame, snap, self.rig)
+        att, error = attribute_or_reason(
+            meas, frame, snap, self.rig, pairs=self.pair_feeds,
+            plc=self.measurement.feed_history,
+            pass_tolerance=self.measurement.plausibility.pass_tolerance)
         if att is None:
             return error, meas, None
         error = self.measurement.implausible_pitch(att.pass_pitch_mm, frame, snap)

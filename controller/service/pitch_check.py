@@ -134,6 +134,25 @@ class FeedHistory:
             spread=(max(pitches) - min(pitches)) / mean,
         )
 
+    def pitch_range(self, t_s: float, *, travel_mm: float,
+                    knives: int) -> tuple[float, float, bool] | None:
+        """Lowest and highest feed per pass of ``knives`` from ``travel_mm`` before ``t_s``.
+
+        The time back as in :meth:`cutting_feed`. Returns ``(lo, hi, reaches_back)``: where
+        the history does not reach back that far, the range of all readings up to ``t_s``
+        (``reaches_back`` false); ``None`` when no reading of ``knives`` is kept up to ``t_s``.
+        """
+        t = check_finite("t_s", t_s)
+        travel = check_positive("travel_mm", travel_mm)
+        idx = [i for i, ti in enumerate(self._t) if ti <= t and self._knives[i] == knives]
+        if not idx:
+            return None
+        t0 = t - travel / min(self._feed[i] for i in idx) - LATENCY_S
+        back = [i for i in idx if self._t[i] <= t0]
+        first = back[-1] if back else idx[0]
+        pitches = [self._pitch[i] for i in idx if i >= first]
+        return min(pitches), max(pitches), bool(back) and self._t[0] <= t0
+
 
 class Flagged(str):
     """The error of a flagged pair, ``"flagged: <reason>"``; :attr:`flag_reason` the reason.

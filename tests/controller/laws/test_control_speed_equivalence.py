@@ -281,8 +281,8 @@ def _uniformity_reference(loop: UniformityLoop, widths, pitch, now, cut_at, cut_
     err = err - err.mean()
     y = np.linalg.pinv(second_difference(cfg.knives)) @ err / width_sensitivity_mm_per_um(
         pitch, cfg.radius_mm)
-    if np.all(np.isfinite(w)):
-        _identify_reference(state, o_cut, y, loop._ident)
+    if np.all(np.isfinite(w)) and np.all(w > 0) and np.all(w >= cfg.id_min_width_frac * pitch):
+        _identify_reference(state, o_cut, y, loop._ident)  # every mark in the linear regime
     else:
         state["past"].clear()
     a_hat = circulant_from_mode_gains(state["gains"])

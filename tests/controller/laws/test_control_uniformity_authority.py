@@ -138,8 +138,8 @@ def test_a_step_that_made_the_measured_cv_worse_is_undone_and_the_best_table_hel
     seen = []
     orig = TableGuard.observe
 
-    def observe(guard, table_um, score_um):
-        verdict = orig(guard, table_um, score_um)
+    def observe(guard, table_um, score_um, **kw):
+        verdict = orig(guard, table_um, score_um, **kw)
         seen.append((guard.best_score_um, verdict))
         return verdict
 
