@@ -396,7 +396,9 @@ class MachineView:
             return
         if self._board_grade is not None and self._board_grade["board_id"] != board:
             self._last_board_grade = self._board_grade
-        self._board_grade = {"board_id": board, **self._grades.add(board, found["defects"])}
+        pos = r.extra.get("board_position_mm")
+        self._board_grade = {"board_id": board, **self._grades.add(
+            board, found["defects"], pos if isinstance(pos, (int, float)) else None)}
 
     def _grade_values(self) -> dict[str, Any]:
         cur, last = self._board_grade, self._last_board_grade

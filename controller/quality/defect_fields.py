@@ -13,6 +13,7 @@ its top-left corner, x along the feed), ``length_mm``, ``width_mm``, ``depth_um`
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -20,7 +21,19 @@ from typing import Any
 import numpy as np
 
 from vision.defects.detect import Defect, DefectKind
-from vision.defects.grading import MIN_CONFIDENCE, Grade, grade_pair, severity
+from vision.defects.grading import (
+    MIN_CONFIDENCE,
+    SNIPE_MIN_MIDDLE,
+    Grade,
+    board_rule,
+    end_of_board,
+    grade_pair,
+    judged_pair,
+    median,
+    raw_sag_um,
+    severity,
+    snipe_note,
+)
 
 #: The defect kinds, in the order the counts, the report and the servers list them.
 DEFECT_KINDS: tuple[str, ...] = tuple(k.value for k in DefectKind)
@@ -209,22 +222,35 @@ class BoardGrades:
     Records are made in pair order (one thread); each pair whose defects were looked for
     adds to its board (a board = the PLC's / simulator's ``board_id`` of the frame; 0 = no
     board, not graded). The board's grade after a pair is
-    :func:`vision.defects.grading.grade_board` over the board's pairs so far (so the board's
-    last record carries the whole board's grade and counts), kept up pair by pair: each pair
-    is graded once (:func:`~vision.defects.grading.grade_pair`) and the board's rule applied
-    to the worst pair and the count of pairs with moderate defects, O(1) per pair (the whole
-    list re-graded cost 0.35 ms at the 67th pair of a board, 1.1 ms at the 200th). The tests
-    hold it equal to ``grade_board`` of the whole list, reason included.
+    :func:`vision.defects.grading.grade_board` over the board's pairs so far with their places
+    along it (as if the board ended there: its newest pairs are its trailing end), so the
+    board's last record carries the whole board's grade and counts. Snipe is judged on the
+    board (:func:`vision.defects.grading.judge_snipe`): only a pair near an end whose bend
+    exceeds the board's middle pairs' counts; ``board_defect_counts`` counts those snipes (the
+    pairs' own ``defects`` keep the raw bend each reported). Kept up pair by pair: a pair is
+    graded once when it is known to be in the board's middle (or has no place), only the
+    pairs near the ends (a few) again as the reference moves, so the cost does not grow with
+    the board (the whole list re-graded cost 0.35 ms at the 67th pair of a board, 1.1 ms at
+    the 200th). The tests hold it equal to ``grade_board`` of the whole list, reason included.
     """
 
     def __init__(self) -> None:
         self.board_id = 0
-        self._n = 0
-        self._worst: tuple[int, Grade] | None = None  # (index, grade) of the first worst pair
-        self._hit = 0  # pairs with a counted defect of severity >= 2
-        self._counts = dict.fromkeys(DEFECT_KINDS, 0)
+        self._reset()
 
-    def add(self, board_id: int, defects: Sequence[Mapping[str, Any]] | None) -> dict[str, Any]:
+    def _reset(self) -> None:
+        self._n = 0
+        self._placed = 0
+        self._last: float | None = None  # the board's furthest pair's place, mm
+        self._fixed: tuple[int, Grade] | None = None  # (index, grade): first worst settled pair
+        self._fixed_hit = 0  # settled pairs with a counted defect of severity >= 2
+        self._fixed_snipes = 0  # snipes of the unplaced pairs (raw, counted as reported)
+        self._middle: list[float] = []  # the middle pairs' raw sags, sorted
+        self._ends: list[tuple[int, float, list[Defect]]] = []  # (index, place, defects)
+        self._counts = dict.fromkeys(DEFECT_KINDS, 0)  # every kind but snipe, as reported
+
+    def add(self, board_id: int, defects: Sequence[Mapping[str, Any]] | None,
+            position_mm: float | None = None) -> dict[str, Any]:
         """Add one pair; the record's board fields (empty without defects or board).
 
         Parameters
@@ -234,6 +260,9 @@ class BoardGrades:
         defects : sequence of mapping or None
             The pair's checked defect objects (:func:`pair_fields`), ``None`` when not looked
             for (the pair adds nothing).
+        position_mm : float, optional
+            Image A's optical axis from the board's leading end, mm (the record's
+            ``board_position_mm``); without it the pair's snipe counts as reported.
 
         Returns
         -------
@@ -243,31 +272,58 @@ class BoardGrades:
         if defects is None or board_id <= 0:
             return {}
         if board_id != self.board_id:
-            self.board_id, self._n, self._worst, self._hit = board_id, 0, None, 0
-            self._counts = dict.fromkeys(DEFECT_KINDS, 0)
+            self.board_id = board_id
+            self._reset()
         found = defects_of(defects)
+        for d in defects:
+            if d["kind"] != DefectKind.SNIPE.value:
+                self._counts[d["kind"]] += 1
+        pos = None if position_mm is None or not math.isfinite(position_mm) else float(
+            position_mm)
+        i, self._n = self._n, self._n + 1
+        if pos is None:
+            self._settle(i, found)
+            self._fixed_snipes += sum(1 for d in found if d.kind is DefectKind.SNIPE)
+        else:
+            self._placed += 1
+            self._last = pos if self._last is None else max(self._last, pos)
+            self._ends.append((i, pos, found))
+            keep = []
+            for e in self._ends:  # those no longer near an end are the board's middle
+                if end_of_board(e[1], self._last):
+                    keep.append(e)
+                else:
+                    self._settle(e[0], [d for d in e[2] if d.kind is not DefectKind.SNIPE])
+                    bisect.insort(self._middle, raw_sag_um(e[2]))
+            self._ends = keep
+        board, snipes = self._board_grade()
+        return {"board_grade": board.grade, "board_grade_reason": board.reason,
+                "board_defect_counts": {**self._counts,
+                                        DefectKind.SNIPE.value: self._fixed_snipes + snipes}}
+
+    def _settle(self, i: int, found: Sequence[Defect]) -> None:
+        """A pair whose judged defects no longer change: into the board's running figures."""
         g = grade_pair(found)
-        if self._worst is None or g.grade > self._worst[1].grade:
-            self._worst = (self._n, g)
+        if self._fixed is None or (g.grade, -i) > (self._fixed[1].grade, -self._fixed[0]):
+            self._fixed = (i, g)  # the first worst (pairs settle out of order)
         if any(d.confidence >= MIN_CONFIDENCE and severity(
                 d.kind, length_mm=d.length_mm, width_mm=d.width_mm, depth_um=d.depth_um) >= 2
                for d in found):
-            self._hit += 1
-        self._n += 1
-        for d in defects:
-            self._counts[d["kind"]] += 1
-        board = self._board_grade()
-        return {"board_grade": board.grade, "board_grade_reason": board.reason,
-                "board_defect_counts": dict(self._counts)}
+            self._fixed_hit += 1
 
-    def _board_grade(self) -> Grade:
-        """Rule 3 of :mod:`vision.defects.grading` (``grade_board``) on the running figures."""
-        worst_i, worst = self._worst  # type: ignore[misc]
-        if worst.grade == 1:
-            return Grade(1, f"defect-free: no defect found on {self._n} pairs")
-        g = worst.grade
-        reason = f"worst pair {worst_i}: {worst.reason}"
-        if self._hit > self._n / 4 and g < 5:
-            g += 1
-            reason += f"; defects on {self._hit} of {self._n} pairs: one step worse"
-        return Grade(g, f"grade {g}: {reason}")
+    def _board_grade(self) -> tuple[Grade, int]:
+        """``grade_board`` of the board so far on the running figures; the snipes at its ends."""
+        ref = median(self._middle) if len(self._middle) >= SNIPE_MIN_MIDDLE else None
+        worst, hit, snipes = self._fixed, self._fixed_hit, 0
+        for i, _, found in self._ends:
+            judged = judged_pair(found, end=True, reference_um=ref)
+            g = grade_pair(judged)
+            if worst is None or (g.grade, -i) > (worst[1].grade, -worst[0]):
+                worst = (i, g)
+            hit += any(d.confidence >= MIN_CONFIDENCE and severity(
+                d.kind, length_mm=d.length_mm, width_mm=d.width_mm, depth_um=d.depth_um) >= 2
+                for d in judged)
+            snipes += sum(1 for d in judged if d.kind is DefectKind.SNIPE)
+        note = snipe_note(ref, len(self._middle)) if self._placed else ""
+        worst_i, g = worst  # type: ignore[misc]
+        return board_rule(worst_i, g, hit, self._n, note), snipes

@@ -309,7 +309,8 @@ class QualityRecords:
                 fields["extra"][FRAME_CENTRE_KEY] = (r.extra.get(FRAME_CENTRE_KEY)
                                                      or frame_centre_mm(m))
             fields.update(self._board_grades.add(int_or(fields.get("board_id"), 0),
-                                                 defect.get("defects")))
+                                                 defect.get("defects"),
+                                                 finite_or_none(fields.get("board_position_mm"))))
         if r.ok:
             fields.update(
                 # a vanished knife: the kinematic pitch and CV, not the marks found's

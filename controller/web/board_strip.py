@@ -78,7 +78,7 @@ class BoardStrip:
         if self._current is not None and self._current["board_id"] != board:
             self._last = self._current
             self._current = None
-        graded = self._grades.add(board, defects)
+        graded = self._grades.add(board, defects, d.get("board_position_mm"))
         cur = self._current
         if cur is None:
             cur = self._current = {"board_id": board, "pairs": 0, "from_mm": None,

@@ -77,7 +77,7 @@ def test_a_client_reads_the_boards_grade_and_the_last_boards_counts(served):  # 
     for i, found in enumerate(board5):
         feed_and_wait(served, lambda i=i, found=found: srv.result(_result(i, 5, found)))
     v = _read_all(srv)
-    want = grade_board(board5)
+    want = grade_board(board5, positions_mm=[50.0] * 4)  # every pair at 50 mm (_result)
     assert v["BoardGrade"] == want.grade == 4  # nicks on half the pairs: widespread
     assert v["LastBoardGrade"] == 0  # board 5 is still under the camera
 

@@ -35,7 +35,7 @@ from controller.quality.schema import (
 )
 from tests.support import pg_support
 from vision.defects.detect import Defect, DefectKind
-from vision.defects.grading import grade_board, grade_pair
+from vision.defects.grading import grade_board, grade_pair, judge_snipe
 
 pg_server = pg_support.pg_server  # the fixtures
 fresh_db = pg_support.fresh_db
@@ -246,6 +246,59 @@ def test_the_running_grade_is_grade_board_of_the_whole_list(seed):
         want = grade_board(pairs)
         assert (f["board_grade"], f["board_grade_reason"]) == (want.grade, want.reason)
     assert f["board_defect_counts"] == count_kinds([[d.to_json() for d in p] for p in pairs])
+
+
+def _random_placed_pair(rng: np.random.Generator, bow_um: float) -> tuple[Defect, ...]:
+    found = [_random_defect(rng) for _ in range(int(rng.choice([0, 0, 1, 2])))]
+    found = [d for d in found if d.kind is not DefectKind.SNIPE]
+    if rng.random() < 0.9:  # the rig's bow, now and then a deeper one (snipe, or a pit's)
+        sag = bow_um + float(rng.normal(0, 1.0)) + (float(rng.uniform(0, 60))
+                                                     if rng.random() < 0.15 else 0.0)
+        if sag >= 3.0:
+            found.append(Defect(DefectKind.SNIPE, 6.4, 19.5, 12.8, 39.2, sag,
+                                min(1.0, sag / 6.0)))
+    return tuple(found)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_running_grade_judges_snipe_as_grade_board_with_the_places(seed):
+    """With the pairs' places the running grade, reason and counts are ``grade_board``'s.
+
+    Snipe judged on the board (:func:`vision.defects.grading.judge_snipe`): boards of 0.1-4 m,
+    pairs 20-80 mm apart, a rig bow of 0-90 um, some pairs without a place, now and then one
+    out of order; the counts' snipes are the judged ones, the other kinds as reported.
+    """
+    rng = np.random.default_rng(1000 + seed)
+    grades, pairs, places = BoardGrades(), [], []
+    bow = float(rng.choice([0.0, 20.0, 86.0]))
+    pos = float(rng.uniform(20, 80))
+    for _ in range(int(rng.integers(1, 70))):
+        objs = tuple(d.to_json() for d in _random_placed_pair(rng, bow))
+        place = None if rng.random() < 0.05 else pos - (30.0 if rng.random() < 0.05 else 0.0)
+        pairs.append(defects_of(objs))
+        places.append(place)
+        f = grades.add(3, objs, place)
+        want = grade_board(pairs, positions_mm=places)
+        assert (f["board_grade"], f["board_grade_reason"]) == (want.grade, want.reason)
+        judged, _ = judge_snipe(pairs, places)
+        assert f["board_defect_counts"] == count_kinds([[d.to_json() for d in p]
+                                                        for p in judged])
+        pos += float(rng.uniform(20, 80))
+
+
+def test_a_board_bent_by_the_rig_alone_grades_one_and_counts_no_snipe():
+    """The simulator's lights bend every field 86 um: not snipe on the board."""
+    grades = BoardGrades()
+    bend = Defect(DefectKind.SNIPE, 6.4, 19.5, 12.8, 39.2, 86.0, 1.0).to_json()
+    for i in range(66):
+        f = grades.add(1, (bend,), 70.0 + 60.0 * i)
+        if i >= 6:  # three pairs past the leading end's 200 mm and the newest 200 mm
+            assert f["board_grade"] == 1, (i, f["board_grade_reason"])
+    assert f["board_defect_counts"] == dict.fromkeys(DEFECT_KINDS, 0)
+    grades = BoardGrades()  # without places the raw bends count: every pair sniped
+    for _ in range(66):
+        f = grades.add(1, (bend,))
+    assert f["board_grade"] == 5 and f["board_defect_counts"]["snipe"] == 66
 
 
 def test_a_refused_record_keeps_its_defects_and_drops_a_board_it_cannot_store(tmp_path):

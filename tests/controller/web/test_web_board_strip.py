@@ -60,7 +60,8 @@ def test_the_live_view_grades_the_board_so_far_and_keeps_the_last():
     for seq, board, pos, found in PAIRS[:4]:
         live.take_result(result_json(_result(seq, board, pos, found)))
     cur = live.snapshot()["board"]["current"]
-    want = grade_board([[], [TORN], [NICK]])  # the pair not looked at does not count
+    # the pair not looked at does not count; snipe judged with the pairs' places
+    want = grade_board([[], [TORN], [NICK]], positions_mm=[100.0, 400.0, 1000.0])
     assert (cur["grade"], cur["grade_reason"]) == (want.grade, want.reason)
     assert cur["pairs"] == 3 and (cur["from_mm"], cur["to_mm"]) == (100.0, 1000.0)
     assert [(d["kind"], d["board_x_mm"], d["seq"]) for d in cur["defects"]] == [

@@ -3,8 +3,10 @@
 The ``defects`` scenario (torn and raised grain on every other board, config/sim_defects.toml;
 ``defects = true``: the service looks for planing defects on every pair), 10 m of board in
 process on simulated time. The run's summary counts the defects per kind (found and true) and
-the grades; the quality log's board grades are the grading rule over the log's own pairs, and
-the simulator's defects (``Frame.truth["defects"]``) are found on their boards and only there.
+the grades; the quality log's board grades are the grading rule over the log's own pairs (their
+places along the board: snipe is judged on the board), the simulator's defects
+(``Frame.truth["defects"]``) are found on their boards and only there, and its clean boards
+grade 1 although its lights bend every pair's field.
 """
 
 from __future__ import annotations
@@ -68,9 +70,9 @@ def test_the_logs_board_grades_are_the_rule_over_its_pairs(run):
     _, _, records = run
     boards = board_grades(records)
     for b in boards:
-        pairs = [defects_of(r.defects) for r in records
-                 if r.board_id == b["board_id"] and r.defects is not None]
-        want = grade_board(pairs)
+        mine = [r for r in records if r.board_id == b["board_id"] and r.defects is not None]
+        want = grade_board([defects_of(r.defects) for r in mine],
+                           positions_mm=[r.board_position_mm for r in mine])
         assert (b["grade"], b["grade_reason"]) == (want.grade, want.reason), b["board_id"]
 
 
@@ -107,12 +109,18 @@ def test_the_log_places_each_torn_pit_where_it_was_on_its_board(run):
     assert len(errors) >= 5 and max(errors) <= 2.0, errors
 
 
-@pytest.mark.xfail(strict=True, reason="vision/defects reports a snipe of ~85 um sag at the left "
-                   "edge of every in-process HIL frame (confidence 1.0): clean boards grade 5")
 def test_clean_boards_grade_as_the_truth(run):
+    """The simulator's lights bend every field alike (~86 um of sag): each pair reports it as a
+    raw snipe, its board judges it the optics (its middle pairs bend as much) and counts none."""
     _, results, records = run
     truth = _truth_boards(results, records)
     found = {b["board_id"]: b for b in board_grades(records)}
-    for bid, pairs in truth.items():
-        if not any(pairs):
-            assert found[bid]["grade"] == grade_board(pairs).grade == 1, found[bid]
+    clean = [bid for bid, pairs in truth.items() if not any(pairs)]
+    assert clean
+    for bid in clean:
+        assert found[bid]["grade"] == grade_board(truth[bid]).grade == 1, found[bid]
+        assert found[bid]["n_defects"] == 0, found[bid]
+        assert "snipe over the middle's bow" in found[bid]["grade_reason"], found[bid]
+        bends = [d["depth_um"] for r in records if r.board_id == bid and r.defects
+                 for d in r.defects if d["kind"] == "snipe"]
+        assert bends and min(bends) > 50.0  # the raw bends are there: the board discounts them

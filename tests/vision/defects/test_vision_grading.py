@@ -1,11 +1,19 @@
-"""The ASTM D1666 grade rule: severities, a pair's grade, a board's grade."""
+"""The ASTM D1666 grade rule: severities, a pair's grade, a board's grade, snipe on a board."""
 
 from __future__ import annotations
 
 import pytest
 
 from vision.defects.detect import Defect, DefectKind
-from vision.defects.grading import grade_board, grade_pair, severity
+from vision.defects.grading import (
+    SNIPE_MIN_MIDDLE,
+    end_of_board,
+    grade_board,
+    grade_pair,
+    judged_pair,
+    severity,
+    snipe_margin_um,
+)
 
 K = DefectKind
 
@@ -66,3 +74,96 @@ def test_board_grade_rules():
     assert grade_board([[_d(K.CHATTER, depth=0.8)]] * 8).grade == 2
     with pytest.raises(ValueError, match="pairs"):
         grade_board([])
+
+
+def _sag(um: float) -> list[Defect]:
+    """A pair whose detector reported a raw bend of ``um`` of sag (nothing below 3 um)."""
+    return [_d(K.SNIPE, length=13.0, width=39.0, depth=um, conf=min(1.0, um / 6.0))] \
+        if um >= 3.0 else []
+
+
+def _board(sags: list[float], step_mm: float = 60.0) -> tuple[list[list[Defect]], list[float]]:
+    """A board's pairs ``step_mm`` apart from 70 mm after its leading end."""
+    return [_sag(s) for s in sags], [70.0 + step_mm * i for i in range(len(sags))]
+
+
+def test_the_rigs_bow_on_every_pair_is_not_snipe():
+    """A bend in every pair of a board, its middle too, is the optics (the simulator's 86 um)."""
+    pairs, pos = _board([86.0] * 40)
+    assert grade_board(pairs).grade == 5  # each pair alone: a severe snipe, on every pair
+    g = grade_board(pairs, positions_mm=pos)
+    assert g.grade == 1 and "bow of 86.0 µm (" in g.reason, g.reason
+    # the bow varies a little (85-89 um on the simulator's first board): within the margin
+    pairs, pos = _board([85.2, 88.7, 93.0] + [86.0] * 34 + [90.0, 86.0, 85.0])
+    assert grade_board(pairs, positions_mm=pos).grade == 1
+
+
+@pytest.mark.parametrize("where", ["leading", "trailing"])
+def test_an_end_bending_beyond_the_boards_middle_is_snipe_of_the_excess(where):
+    sags = [86.0] * 40
+    ends = [0, 1] if where == "leading" else [38, 39]
+    for i in ends:
+        sags[i] = 86.0 + 40.0
+    pairs, pos = _board(sags)
+    g = grade_board(pairs, positions_mm=pos)
+    # a 40 um snipe (severe: 3) on 2 of 40 pairs: grade 4, not widespread
+    assert g.grade == 4 and "snipe" in g.reason and "40.0 µm" in g.reason, g.reason
+    # without a bow of the rig an end pair's sag is all snipe
+    sags = [0.0] * 40
+    sags[ends[0]] = 50.0
+    pairs, pos = _board(sags)
+    g = grade_board(pairs, positions_mm=pos)
+    assert g.grade == 4 and "50.0 µm" in g.reason, g.reason
+
+
+def test_a_bend_beyond_the_middles_away_from_the_ends_is_not_snipe():
+    sags = [86.0] * 40
+    sags[20] = 140.0
+    pairs, pos = _board(sags)
+    assert grade_board(pairs, positions_mm=pos).grade == 1
+
+
+def test_the_margin_is_three_um_or_a_tenth_of_the_bow():
+    assert snipe_margin_um(0.0) == 3.0 and snipe_margin_um(86.0) == pytest.approx(8.6)
+    for excess, grade in ((8.0, 1), (9.5, 3)):  # 9.5 um: moderate snipe (2), pair grade 3
+        sags = [86.0] * 20
+        sags[0] = 86.0 + excess
+        pairs, pos = _board(sags)
+        assert grade_board(pairs, positions_mm=pos).grade == grade, excess
+    sags = [0.0] * 20
+    sags[0] = 3.5  # no bow: 3 um
+    pairs, pos = _board(sags)
+    assert grade_board(pairs, positions_mm=pos).grade == 3
+
+
+def test_snipe_is_not_judged_without_enough_middle_pairs():
+    """A board under ~0.5 m (or the first pairs of one): no reference bow, no snipe."""
+    pairs, pos = _board([86.0 + 50.0, 86.0, 86.0, 86.0, 86.0, 86.0], step_mm=60.0)
+    assert sum(not end_of_board(p, pos[-1]) for p in pos) < SNIPE_MIN_MIDDLE
+    g = grade_board(pairs, positions_mm=pos)
+    assert g.grade == 1 and "snipe not judged" in g.reason, g.reason
+    # the other kinds count as ever
+    pairs[2] = pairs[2] + [_d(K.CHIP_MARK, depth=60.0)]
+    assert grade_board(pairs, positions_mm=pos).grade == 3
+
+
+def test_pairs_without_a_place_keep_their_raw_snipe():
+    pairs, pos = _board([86.0] * 20)
+    assert grade_board(pairs, positions_mm=[None] * 20).grade == 5
+    assert grade_board(pairs, positions_mm=[float("nan")] * 20) == grade_board(pairs)
+    mixed = list(pos)
+    mixed[10] = None  # one unplaced pair in the middle: its raw 86 um snipe counts
+    g = grade_board(pairs, positions_mm=mixed)
+    assert g.grade == 4 and "worst pair 10" in g.reason, g.reason
+    with pytest.raises(ValueError, match="positions_mm"):
+        grade_board(pairs, positions_mm=pos[:-1])
+
+
+def test_judged_pair_keeps_the_other_defects_and_places_the_snipe_where_reported():
+    chip = _d(K.CHIP_MARK, depth=60.0)
+    raw = [chip, *_sag(120.0)]
+    assert judged_pair(raw, end=False, reference_um=86.0) == [chip]
+    assert judged_pair(raw, end=True, reference_um=None) == [chip]
+    out = judged_pair(raw, end=True, reference_um=86.0)
+    assert out[0] == chip and out[1].kind is K.SNIPE and out[1].depth_um == pytest.approx(34.0)
+    assert (out[1].x_mm, out[1].length_mm) == (raw[1].x_mm, raw[1].length_mm)
