@@ -67,11 +67,11 @@ alternating pattern of a 0.93 actuator was learnt at 0.42-0.63 from the first st
 nearly vanished mark is measured short (0.05-0.13 mm short at 0.1-0.3 of a 0.5 mm pitch).
 Their neighbours meet half way across the vanished knife, so the estimate errs along that knife
 alone and under-states how far it must come back: the step along it is taken whole
-(``vanished_step``, :meth:`UniformityLoop._bring_back`). Such pairs never set the guard's best
+(``vanished_step``, :func:`bring_back`). Such pairs never set the guard's best
 table (their clipped score is not comparable). A pair whose widths moved from the last pair
 taken by more than the table's change can make (merged marks, marks on the wrong knives) is
 kept out of the loop, the identification and the guard (status ``unexplained``,
-``change_tol_frac``).
+``change_tol_frac``; :class:`controller.laws.change_screen.ChangeScreen`).
 """
 
 from __future__ import annotations
@@ -85,6 +85,7 @@ from typing import Any
 import numpy as np
 
 from controller.laws.actuator_id import ActuatorIdentifier, circulant_from_mode_gains
+from controller.laws.change_screen import ChangeScreen
 from controller.laws.feed_loop import config_from_mapping, integral_gain
 from controller.laws.limits import check_time_forward, project_zero_mean_box
 from controller.laws.offset_history import OffsetHistory
@@ -102,11 +103,6 @@ step, so a sent offset may exceed the planned one by 0.5 nm). The simulated ampl
 offset beyond its stroke and raises the stroke-limit bit when the displacement reaches it (at
 exactly the table's value without hysteresis); with the matched input shaper the displacement
 of a zero-mean table never exceeds the table, and hysteresis only takes some off."""
-
-CHANGE_PITCH_TOL = 0.05
-"""Pitch change (relative) beyond which a pair is not compared with the last one taken (the
-check of unexplained width changes starts again from it)."""
-
 
 def second_difference(knives: int) -> np.ndarray:
     """Circulant second difference ``(D z)_k = z_{k-1} - 2 z_k + z_{k+1}`` (indices mod Z).
@@ -212,8 +208,8 @@ class UniformityLoopConfig:
         Unexplained pairs in a row after which the next is taken as the new reference (the
         world changed: a knife, the wood), and taken.
     vanished_step : bool
-        Take the step along a vanished knife's own width whole (:meth:`UniformityLoop.
-        _bring_back`): its estimate is censored and under-states the move, so the scheduled
+        Take the step along a vanished knife's own width whole (:func:`bring_back`): its
+        estimate is censored and under-states the move, so the scheduled
         gain would crawl out of the vanished region (40 pairs at pitch 0.5 mm).
     id_amplitude : bool
         Plan with each pattern's gain taken at the table's amplitude when the identification
@@ -350,6 +346,8 @@ class UniformityLoop:
             max_undos=cfg.guard_max_undos,
         )
         self._history = OffsetHistory(z, horizon_s=cfg.history_s)
+        self._screen = ChangeScreen(gain_max=cfg.gain_max, tol_frac=cfg.change_tol_frac,
+                                    patience=cfg.change_patience)
         self._disturbance: np.ndarray | None = None
         self._estimate: np.ndarray | None = None
         self._estimates = 0  # open-loop estimates (board cut with the starting table)
@@ -394,10 +392,7 @@ class UniformityLoop:
         self._t_last = None if now_s is None else t
         self._undo: tuple[np.ndarray, bool, np.ndarray | None] | None = None
         self._reverted_at: float | None = None  # the guard's undo: waiting for its boards
-        self._seen: tuple[list[float], list[float], float] | None = None  # o_cut, dev, pitch
-        self._unexplained_run = 0
-        self.unexplained = 0
-        """Pairs kept out as unexplained since the last reset."""
+        self._screen.reset()
         self._guard.reset(forget=forget)
         if forget:
             self._disturbance = None
@@ -411,6 +406,11 @@ class UniformityLoop:
         self.status = "idle"
         self.steps = 0
         self.last_gain = 0.0
+
+    @property
+    def unexplained(self) -> int:
+        """Pairs kept out as unexplained since the last reset (:class:`ChangeScreen`)."""
+        return self._screen.unexplained
 
     @property
     def offsets_um(self) -> np.ndarray:
@@ -632,7 +632,8 @@ class UniformityLoop:
         err_mean = _mean(err)
         err = [v - err_mean for v in err]
         gain_g = width_sensitivity_mm_per_um(f, cfg.radius_mm)
-        if self._unexplained(o_c, [v / gain_g for v in err], f, cfg.change_tol_frac * f / gain_g):
+        if self._screen.unexplained_pair(o_c, [v / gain_g for v in err], f,
+                                         cfg.change_tol_frac * f / gain_g):
             self.status = "unexplained"
             return self.offsets_um
         y = [v / gain_g for v in _matvec(self._d_pinv_rows, err)]
@@ -682,7 +683,7 @@ class UniformityLoop:
         new = project_zero_mean_box(
             np.array([o + g * (b - o) for o, b in zip(now, best, strict=True)]), bound=bound)
         if cfg.vanished_step and not self._held:
-            new = self._bring_back(new, best_a, ws, a_rows, bound)
+            new = bring_back(new, best_a, ws, self._d @ np.array(a_rows), bound)
         if self._held:  # the hold's penalty only nearly holds: never a step the model regrets
             new, g = _monotone_step(self._offsets, new, g, self.model_spread_um)
         self._set(new, t)
@@ -690,58 +691,6 @@ class UniformityLoop:
         self.steps += 1
         self.status = "stepped"
         return self.offsets_um
-
-    def _bring_back(self, new: np.ndarray, target: np.ndarray, widths_mm: list[float],
-                    a_rows: tuple[tuple[float, ...], ...], bound: float) -> np.ndarray:
-        """The step toward ``target`` along each vanished knife's own width, taken whole.
-
-        A vanished mark's width is censored: its linear width ``w_k`` is some value <= 0, read
-        as 0. For parabolic tip circles the neighbours then meet half way between where they
-        would meet knife k, so they measure ``w_{k+-1} + w_k / 2``: the estimate's error lies
-        along knife k's relative depth alone and under-states how far knife k must come back.
-        The planned table's width of knife k is thus at most what knife k needs, and moving
-        the table there at once cannot overshoot it (the other knives keep the scheduled gain).
-        Per vanished knife (``width <= 0`` or ``nan``), when the rest of the step toward
-        ``target`` widens its mark, the table moves along ``(D A)_k`` (the least move that
-        changes its width by that much) until its modelled width is ``target``'s.
-        """
-        gone = [k for k, v in enumerate(widths_mm) if not v > 0.0]
-        if not gone:
-            return new
-        da = self._d @ np.array(a_rows)
-        out = new
-        for k in gone:
-            v = da[k]
-            c = float((target - out) @ v) / float(v @ v)
-            if c > 0.0:  # (the estimate pushes a vanished knife back, never further away)
-                out = out + c * v
-        return project_zero_mean_box(out - out.mean(), bound=bound)
-
-    def _unexplained(self, o_cut: list[float], dev_um: list[float], pitch_mm: float,
-                     tol_um: float) -> bool:
-        """Whether a pair's width pattern moved more than the table's change can explain.
-
-        ``dev_um``: the widths' deviations from their mean over ``G`` (um of relative depth).
-        Against the last pair taken, when at the same pitch (within :data:`CHANGE_PITCH_TOL`:
-        a vanished mark's clipped deviation, and its neighbours', scale with ``f / G``):
-        ``|dev - dev_prev|`` beyond ``4 gain_max |o - o_prev| + tol_um`` on any knife. After
-        ``change_patience`` such pairs in a row the next one is taken; a pair taken becomes
-        the reference.
-        """
-        ref = self._seen
-        if ref is not None and self.cfg.change_tol_frac > 0.0:
-            o0, d0, f0 = ref
-            moved = math.sqrt(sum((a - b) ** 2 for a, b in zip(o_cut, o0, strict=True)))
-            bound = 4.0 * self.cfg.gain_max * moved + tol_um
-            if (abs(pitch_mm / f0 - 1.0) <= CHANGE_PITCH_TOL
-                    and any(abs(a - b) > bound for a, b in zip(dev_um, d0, strict=True))
-                    and self._unexplained_run < self.cfg.change_patience):
-                self._unexplained_run += 1
-                self.unexplained += 1
-                return True
-        self._unexplained_run = 0
-        self._seen = (list(o_cut), list(dev_um), pitch_mm)
-        return False
 
     def _identifiable(self, widths_mm: list[float], pitch_mm: float) -> bool:
         """Whether a pair's marks are all inside the linear width model (wide enough to learn from).
@@ -854,6 +803,33 @@ class UniformityLoop:
             return None
         z = self._ident.matrix() @ self._offsets - self._disturbance
         return linear_widths_mm(z, pitch_mm=pitch_mm, radius_mm=self.cfg.radius_mm)
+
+
+def bring_back(new: np.ndarray, target: np.ndarray, widths_mm: list[float], da: np.ndarray,
+               bound: float) -> np.ndarray:
+    """The step toward ``target`` along each vanished knife's own width, taken whole.
+
+    A vanished mark's width is censored: its linear width ``w_k`` is some value <= 0, read
+    as 0. For parabolic tip circles the neighbours then meet half way between where they
+    would meet knife k, so they measure ``w_{k+-1} + w_k / 2``: the estimate's error lies
+    along knife k's relative depth alone and under-states how far knife k must come back.
+    The planned table's width of knife k is thus at most what knife k needs, and moving
+    the table there at once cannot overshoot it (the other knives keep the scheduled gain).
+    Per vanished knife (``width <= 0`` or ``nan``), when the rest of the step toward
+    ``target`` widens its mark, the table moves along ``(D A)_k`` (the least move that
+    changes its width by that much) until its modelled width is ``target``'s. ``da`` is ``D A``,
+    the second difference of the planned response (shape (Z, Z)).
+    """
+    gone = [k for k, v in enumerate(widths_mm) if not v > 0.0]
+    if not gone:
+        return new
+    out = new
+    for k in gone:
+        v = da[k]
+        c = float((target - out) @ v) / float(v @ v)
+        if c > 0.0:  # (the estimate pushes a vanished knife back, never further away)
+            out = out + c * v
+    return project_zero_mean_box(out - out.mean(), bound=bound)
 
 
 def _mode_projector(knives: int, modes: frozenset[int]) -> np.ndarray:
