@@ -8,22 +8,18 @@ board 5 ``BoardGrade`` follows the board so far; when board 6 begins ``LastBoard
 
 from __future__ import annotations
 
-import asyncio
 from types import SimpleNamespace
 
 import pytest
 
 asyncua = pytest.importorskip("asyncua", reason="asyncua is not installed")
 
-from asyncua import Client  # noqa: E402
 
-from controller.opcua.nodes import OWN_URI  # noqa: E402
 from controller.opcua.view import DEFECT_COUNT_NAMES, MANUFACTURER_NAMES  # noqa: E402
 from controller.service.frame_result import FrameResult  # noqa: E402
 from tests.controller.opcua.test_opcua_server import (  # noqa: E402, F401
-    _machine,
-    _read,
     feed_and_wait,
+    read_manufacturer,
     served,
 )
 from vision.defects.detect import Defect, DefectKind  # noqa: E402
@@ -46,14 +42,7 @@ def _result(seq: int, board: int, found: list[Defect]) -> FrameResult:
 
 
 def _read_all(srv) -> dict:
-    async def go():
-        async with Client(srv.endpoint) as c:
-            machine, ns_ww = await _machine(c)
-            ns_own = await c.get_namespace_index(OWN_URI)
-            return {n: await (await _read(machine, ns_ww, ns_own,
-                                          f"ManufacturerSpecific/{n}")).read_value()
-                    for n in NAMES}
-    return asyncio.run(go())
+    return read_manufacturer(srv, NAMES)
 
 
 def test_the_names_are_served_with_their_types():

@@ -8,23 +8,19 @@ or nicked knife is counted and named, and its event arrives as an ALARM.
 
 from __future__ import annotations
 
-import asyncio
 import math
 
 import pytest
 
 asyncua = pytest.importorskip("asyncua", reason="asyncua is not installed")
 
-from asyncua import Client  # noqa: E402
 
-from controller.opcua.nodes import OWN_URI  # noqa: E402
 from controller.opcua.view import MANUFACTURER_NAMES, MachineView, WwEventCategory  # noqa: E402
 from controller.service.events import EventKind, ServiceEvent  # noqa: E402
 from controller.service.status import ServiceStatus  # noqa: E402
 from tests.controller.opcua.test_opcua_server import (  # noqa: E402, F401
-    _machine,
-    _read,
     feed_and_wait,
+    read_manufacturer,
     served,
 )
 
@@ -54,14 +50,7 @@ def _status(t_s, *, kc=None, chip=None, chips=0) -> ServiceStatus:
 
 
 def _read_all(srv) -> dict:
-    async def go():
-        async with Client(srv.endpoint) as c:
-            machine, ns_ww = await _machine(c)
-            ns_own = await c.get_namespace_index(OWN_URI)
-            return {n: await (await _read(machine, ns_ww, ns_own,
-                                          f"ManufacturerSpecific/{n}")).read_value()
-                    for n in NAMES}
-    return asyncio.run(go())
+    return read_manufacturer(srv, NAMES)
 
 
 def test_the_names_are_served_with_their_types():

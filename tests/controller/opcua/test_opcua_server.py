@@ -119,6 +119,18 @@ async def _read(machine, ns_ww, ns_own, path: str):
     return await machine.get_child(parts)
 
 
+def read_manufacturer(srv, names) -> dict:
+    """The values of ``ManufacturerSpecific/<name>`` for each of ``names``, read by a client."""
+    async def go():
+        async with Client(srv.endpoint) as c:
+            machine, ns_ww = await _machine(c)
+            ns_own = await c.get_namespace_index(OWN_URI)
+            return {n: await (await _read(machine, ns_ww, ns_own,
+                                          f"ManufacturerSpecific/{n}")).read_value()
+                    for n in names}
+    return asyncio.run(go())
+
+
 def test_client_finds_the_machine_and_reads_identification(served):
     async def go():
         async with Client(served.srv.endpoint) as c:
