@@ -31,7 +31,7 @@ import enum
 import math
 import struct
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import MappingProxyType
 from typing import Protocol
@@ -121,8 +121,19 @@ class PlcFault(enum.IntFlag):
     """The piezo amplifier reports a fault."""
 
 
+class HeadFault(enum.IntFlag):
+    """Bits of a head block's ``head_faults`` register (``[[heads.register]]``, ``bits``)."""
+
+    AMPLIFIER = 1 << 0
+    """The head's piezo amplifier reports a fault."""
+    SPINDLE = 1 << 1
+    """The head's spindle drive tripped (coasting or stopped)."""
+    CAMERA_SILENT = 1 << 2
+    """The head's camera sends no frames."""
+
+
 BIT_FLAGS: Mapping[str, type[enum.IntFlag]] = MappingProxyType(
-    {"machine_state": MachineState, "faults": PlcFault}
+    {"machine_state": MachineState, "faults": PlcFault, "head_faults": HeadFault}
 )
 """Registers whose bits are declared here, by register name."""
 
@@ -208,6 +219,60 @@ class Register:
         return self.access == "rw"
 
 
+@dataclass(frozen=True)
+class HeadBlock:
+    """The per-head register blocks (``[heads]`` of ``config/registers.toml``).
+
+    Block ``i`` covers ``base + i * stride`` .. ``base + (i + 1) * stride - 1``; every block
+    holds :attr:`registers` at the same offsets.
+
+    Attributes
+    ----------
+    base : int
+        Address of block 0.
+    stride : int
+        Words from one block to the next.
+    count : int
+        Number of blocks (heads the PLC can serve).
+    registers : tuple of Register
+        The block's registers, ``address`` being the offset inside the block; an entry named
+        like a register of the single map carries that register's type, unit and description.
+    """
+
+    base: int
+    stride: int
+    count: int
+    registers: tuple[Register, ...]
+
+    @property
+    def used(self) -> int:
+        """Words of a block its registers cover (offset 0 to the last register's last word)."""
+        return max(r.last_address for r in self.registers) + 1
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The block's register names, in offset order."""
+        return tuple(r.name for r in sorted(self.registers, key=lambda r: r.address))
+
+    def address(self, head: int) -> int:
+        """First address of head ``head``'s block (``ValueError`` naming a bad index)."""
+        if isinstance(head, bool) or not isinstance(head, (int, np.integer)):
+            raise ValueError(f"head must be an integer, got {head!r}")
+        if not 0 <= int(head) < self.count:
+            raise ValueError(f"head {head!r} outside the map's blocks 0..{self.count - 1}")
+        return self.base + int(head) * self.stride
+
+    def head_at(self, address: int) -> int | None:
+        """Index of the block covering ``address`` (reserved words included), or ``None``."""
+        i, rest = divmod(int(address) - self.base, self.stride)
+        return i if 0 <= i < self.count and rest >= 0 else None
+
+    def placed(self, head: int) -> tuple[Register, ...]:
+        """The block's registers at head ``head``'s addresses."""
+        a0 = self.address(head)
+        return tuple(replace(r, address=a0 + r.address) for r in self.registers)
+
+
 def _check_value(reg: Register, value: object) -> Value:
     """Return ``value`` as the Python type of ``reg`` or raise ``RegisterRangeError``."""
     if isinstance(value, (bool, np.bool_)):
@@ -266,7 +331,13 @@ class RegisterMap:
         unit_id: int = DEFAULT_UNIT_ID,
         word_order: str = WORD_ORDERS[0],
         function_codes: Sequence[int] = HOLDING_FUNCTION_CODES,
+        heads: HeadBlock | None = None,
+        head: int | None = None,
     ) -> None:
+        self.heads = heads
+        """The per-head blocks (``None``: the map has none); the same object in every view."""
+        self.head = head
+        """The head this map is the view of (:meth:`for_head`); ``None`` for the whole map."""
         if word_order not in WORD_ORDERS:
             raise ConfigError(f"map.word_order must be big or little, got {word_order!r}")
         self.unit_id = unit_id
@@ -302,6 +373,100 @@ class RegisterMap:
         first = min(r.address for r in self.registers.values())
         last = max(r.last_address for r in self.registers.values())
         self._span = (first, last - first + 1)
+        self._single = tuple(registers)
+        self._common_span = self._span
+        self._views: dict[int, RegisterMap] = {}
+        self._whole: RegisterMap = self
+        if heads is not None and head is None:
+            _validate_heads(self, heads)
+            self._views = {i: self.for_head(i) for i in range(heads.count)}
+
+    # ------------------------------------------------------------------ heads
+    @property
+    def head_count(self) -> int:
+        """Number of per-head blocks in the map (0 without ``[heads]``)."""
+        return 0 if self.heads is None else self.heads.count
+
+    def for_head(self, i: int) -> RegisterMap:
+        """Head ``i``'s view of the map.
+
+        The block's registers carry their names (``spindle_rpm``, ``knives``, ...,
+        ``spindle_setpoint_rpm``) at head ``i``'s block addresses; the other registers of the
+        single map (heartbeats, feed, encoder, machine state, ...) are unchanged. Encoding,
+        decoding and write checks work on the view as on the map, so a
+        ``controller.fieldbus.plc_protocol.PlcSnapshot`` of a view reads head ``i``'s values.
+
+        Parameters
+        ----------
+        i : int
+            Head index, ``0 <= i < head_count``.
+
+        Returns
+        -------
+        RegisterMap
+            The view (:attr:`head` is ``i``; :meth:`common_span` and :meth:`head_span` say
+            where its two ranges lie). Views are built once; the same object is returned.
+
+        Raises
+        ------
+        ValueError
+            The map has no ``[heads]`` or ``i`` is outside ``0..head_count - 1``.
+        """
+        if self.heads is None:
+            raise ValueError(f"head {i!r}: the register map has no [heads] blocks")
+        self.heads.address(i)  # checks i
+        if self._whole is not self:  # a view of a view: the whole map's
+            return self._whole.for_head(i)
+        view = self._views.get(int(i))
+        if view is not None:
+            return view
+        names = set(self.heads.names)
+        common = [r for r in self._single if r.name not in names]
+        view = RegisterMap(
+            [*common, *self.heads.placed(int(i))],
+            unit_id=self.unit_id,
+            word_order=self.word_order,
+            function_codes=sorted(self.function_codes),
+            heads=self.heads,
+            head=int(i),
+        )
+        view._single = self._single
+        view._common_span = self._common_span
+        view._whole = self
+        return view
+
+    def common_span(self) -> tuple[int, int]:
+        """First address and words of the single map (the whole map's :meth:`span`).
+
+        In a view it holds the machine-wide registers; the words of the first head's legacy
+        fields (``spindle_rpm`` at 12, ...) are gaps of the view.
+        """
+        return self._common_span
+
+    def head_span(self, i: int | None = None) -> tuple[int, int]:
+        """First address and used words of a head's block (default: the view's own head).
+
+        Raises
+        ------
+        ValueError
+            No ``[heads]``, no head given on the whole map, or a bad index.
+        """
+        if self.heads is None:
+            raise ValueError("the register map has no [heads] blocks")
+        head = self.head if i is None else i
+        if head is None:
+            raise ValueError("head_span of the whole map needs a head index")
+        return self.heads.address(head), self.heads.used
+
+    def read_ranges(self) -> tuple[tuple[int, int], ...]:
+        """The ``(address, words)`` ranges a client reads to sample every register of this map.
+
+        The whole map (or one without heads): its span, one request. A head's view: the
+        common span, then the head's block.
+        """
+        if self.head is None:
+            return (self._span,)
+        return (self._common_span, self.head_span())
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -351,34 +516,12 @@ class RegisterMap:
         raw = top.raw("register")
         if not isinstance(raw, list):
             raise ConfigError("register must be an array of tables ([[register]])")
-        regs = []
-        for i, entry in enumerate(raw):
-            if not isinstance(entry, Mapping):
-                raise ConfigError(f"register[{i}] must be a table")
-            label = entry.get("name") if isinstance(entry.get("name"), str) else f"register[{i}]"
-            s = Section(entry, f"register {label}")
-            name = s.string("name")
-            if not name.isidentifier():
-                raise ConfigError(f"register {name!r}: name must be an identifier")
-            rtype = s.string("type", choices=tuple(TYPES))
-            reg = Register(
-                name=name,
-                address=s.integer("address", lo=0, hi=0xFFFF - TYPES[rtype] + 1),
-                type=rtype,
-                access=s.string("access", choices=ACCESS),
-                count=TYPES[rtype],
-                min=_limit(s, "min"),
-                max=_limit(s, "max"),
-                unit=s.string("unit", Register.unit),
-                description=s.string("description", Register.description),
-                bits=_bits(s, rtype),
-            )
-            s.reject_unknown()
-            if reg.access == "ro" and (reg.min is not None or reg.max is not None):
-                raise ConfigError(f"register {name}: min/max only make sense on rw registers")
-            regs.append(reg)
+        regs = [_parse_register(entry, f"register[{i}]") for i, entry in enumerate(raw)]
+        heads = _parse_heads(top.section("heads", required=False), top.has("heads"), regs)
         top.reject_unknown()
-        return cls(regs, unit_id=unit_id, word_order=word_order, function_codes=codes)
+        return cls(
+            regs, unit_id=unit_id, word_order=word_order, function_codes=codes, heads=heads
+        )
 
     def _validate_limits(self, reg: Register) -> None:
         for key in ("min", "max"):
@@ -436,22 +579,29 @@ class RegisterMap:
         return reg
 
     def markdown_table(self) -> str:
-        """The map as a Markdown table (``docs/register_map.md`` holds it; a test compares)."""
+        """The map as Markdown (``docs/register_map.md`` holds it; a test compares).
+
+        The single map's registers, then (a map with ``[heads]``) the head block: one row per
+        block register with its offset and its address in block 0.
+        """
         rows = [
             "| address | name | type | words | access | min | max | unit | description |",
             "|---:|---|---|---:|---|---|---|---|---|",
         ]
-        for r in self:
-            lo = "" if r.min is None else (f"`{r.min}`" if isinstance(r.min, str) else str(r.min))
-            hi = "" if r.max is None else (f"`{r.max}`" if isinstance(r.max, str) else str(r.max))
-            text = r.description
-            if r.bits:
-                listed = ", ".join(f"{i} `{b}`" for i, b in enumerate(r.bits))
-                text = f"{text}. Bits: {listed}" if text else f"Bits: {listed}"
-            rows.append(
-                f"| {r.address} | `{r.name}` | {r.type} | {r.count} | {r.access} | {lo} | {hi} "
-                f"| {r.unit} | {text} |"
-            )
+        rows += [f"| {r.address} | {_row(r)}" for r in self]
+        if self.heads is not None:
+            h = self.heads
+            rows += [
+                "",
+                f"Head block: head i at {h.base} + {h.stride} i, {h.count} blocks "
+                f"({h.base}..{h.base + h.stride * h.count - 1}); {h.used} words used per block.",
+                "",
+                "| offset | head 0 | name | type | words | access | min | max | unit "
+                "| description |",
+                "|---:|---:|---|---|---:|---|---|---|---|---|",
+            ]
+            for r in sorted(h.registers, key=lambda r: r.address):
+                rows.append(f"| {r.address} | {h.base + r.address} | {_row(r)}")
         return "\n".join(rows) + "\n"
 
     # ------------------------------------------------------------------ codec
@@ -728,6 +878,150 @@ def apply_writes(target: WriteTarget, accepted: Mapping[str, float | int]) -> No
             raise
         except ValueError as exc:
             raise RegisterRangeError(f"register {name}: {exc}") from None
+
+
+class HeadWriteTarget(Protocol):
+    """What a PLC applies accepted writes of a head block to (``Machine``, ``Moulder``)."""
+
+    def set_spindle_setpoint(self, head: int, rpm: float) -> None:
+        """New spindle setpoint of head ``head``, rpm; ``ValueError`` when refused."""
+
+
+HEAD_WRITE_DISPATCH: Mapping[str, Callable[[HeadWriteTarget, int, float | int], None]] = (
+    MappingProxyType(
+        {
+            "spindle_setpoint_rpm": lambda target, head, v: target.set_spindle_setpoint(
+                head, float(v)
+            ),
+        }
+    )
+)
+"""What the PLC does with an accepted write to a head block, by register name (every ``rw``
+register of the shipped block has an entry; a test checks)."""
+
+
+def apply_head_writes(
+    target: HeadWriteTarget, head: int, accepted: Mapping[str, float | int]
+) -> None:
+    """Apply values a head view's ``parse_write`` accepted to head ``head`` of ``target``.
+
+    Raises
+    ------
+    RegisterAccessError
+        A register without an entry in :data:`HEAD_WRITE_DISPATCH` (exception 02).
+    RegisterRangeError
+        The target refused the value with ``ValueError`` (exception 03); names the register.
+    """
+    for name in accepted:
+        if name not in HEAD_WRITE_DISPATCH:
+            raise RegisterAccessError(f"register {name} of head {head}: the PLC applies no "
+                                      "writes to it")
+    for name, value in accepted.items():
+        try:
+            HEAD_WRITE_DISPATCH[name](target, head, value)
+        except RegisterRangeError:
+            raise
+        except ValueError as exc:
+            raise RegisterRangeError(f"register {name} of head {head}: {exc}") from None
+
+
+def _parse_register(entry: object, where: str, offset_of: str = "") -> Register:
+    """One ``[[register]]`` entry (``offset_of``: a ``[[heads.register]]`` entry, by offset)."""
+    if not isinstance(entry, Mapping):
+        raise ConfigError(f"{where} must be a table")
+    label = entry.get("name") if isinstance(entry.get("name"), str) else where
+    s = Section(entry, f"{'heads.' if offset_of else ''}register {label}")
+    name = s.string("name")
+    if not name.isidentifier():
+        raise ConfigError(f"register {name!r}: name must be an identifier")
+    rtype = s.string("type", choices=tuple(TYPES))
+    key = "offset" if offset_of else "address"
+    reg = Register(
+        name=name,
+        address=s.integer(key, lo=0, hi=0xFFFF - TYPES[rtype] + 1),
+        type=rtype,
+        access=s.string("access", choices=ACCESS),
+        count=TYPES[rtype],
+        min=_limit(s, "min"),
+        max=_limit(s, "max"),
+        unit=s.string("unit", Register.unit),
+        description=s.string("description", Register.description),
+        bits=_bits(s, rtype),
+    )
+    s.reject_unknown()
+    if reg.access == "ro" and (reg.min is not None or reg.max is not None):
+        raise ConfigError(f"register {name}: min/max only make sense on rw registers")
+    return reg
+
+
+def _parse_heads(s: Section, present: bool, single: Sequence[Register]) -> HeadBlock | None:
+    """The ``[heads]`` table: block geometry and ``[[heads.register]]`` entries.
+
+    An entry naming a register of the single map gives only ``name`` and ``offset``: the
+    register's type, access, limits, unit, description and bits are written once, there.
+    """
+    if not present:
+        return None
+    base = s.integer("base", lo=0, hi=0xFFFF)
+    stride = s.integer("stride", lo=1, hi=0x1_0000)
+    count = s.integer("count", lo=1, hi=0x1_0000)
+    raw = s.raw("register")
+    s.reject_unknown()
+    if base + stride * count - 1 > 0xFFFF:
+        raise ConfigError(
+            f"heads: {count} blocks of {stride} words from {base} end past address 65535"
+        )
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError("heads.register must be a non-empty array of tables ([[heads.register]])")
+    by_name = {r.name: r for r in single}
+    regs = []
+    for i, entry in enumerate(raw):
+        where = f"heads.register[{i}]"
+        if isinstance(entry, Mapping) and entry.get("name") in by_name:
+            name = str(entry["name"])
+            extra = sorted(set(entry) - {"name", "offset"})
+            if extra:
+                raise ConfigError(
+                    f"heads.register {name}: {extra[0]} is given by the [[register]] entry "
+                    f"{name} (a block entry naming a register has only name and offset)"
+                )
+            offset = Section(entry, f"heads.register {name}").integer("offset", lo=0)
+            regs.append(replace(by_name[name], address=offset))
+        else:
+            regs.append(_parse_register(entry, where, offset_of="heads"))
+    for r in regs:
+        if r.last_address >= stride:
+            raise ConfigError(
+                f"heads.register {r.name}: offset {r.address} + {r.count} words exceeds the "
+                f"stride {stride}"
+            )
+    return HeadBlock(base=base, stride=stride, count=count, registers=tuple(regs))
+
+
+def _validate_heads(whole: RegisterMap, heads: HeadBlock) -> None:
+    """Refuse blocks that overlap the single map or each other (views check the rest)."""
+    names = [r.name for r in heads.registers]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"heads.register {dup[0]}: duplicate name")
+    end = heads.base + heads.stride * heads.count
+    for reg in whole:
+        if reg.address < end and reg.last_address >= heads.base:
+            raise ConfigError(
+                f"heads: blocks {heads.base}..{end - 1} overlap register {reg.name} "
+                f"(address {reg.address})"
+            )
+
+
+def _row(r: Register) -> str:
+    """A Markdown table row of ``r`` from its name on."""
+    lo = "" if r.min is None else (f"`{r.min}`" if isinstance(r.min, str) else str(r.min))
+    hi = "" if r.max is None else (f"`{r.max}`" if isinstance(r.max, str) else str(r.max))
+    text = r.description
+    if r.bits:
+        listed = ", ".join(f"{i} `{b}`" for i, b in enumerate(r.bits))
+        text = f"{text}. Bits: {listed}" if text else f"Bits: {listed}"
+    return f"`{r.name}` | {r.type} | {r.count} | {r.access} | {lo} | {hi} | {r.unit} | {text} |"
 
 
 def _as_f32(x: float) -> float:
