@@ -26,6 +26,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from config.heads import check_head_name
 from config.wood import SPECIES as WOOD_SPECIES
 from core.errors import ConfigError
 
@@ -34,6 +35,7 @@ __all__ = [
     "FAULT_KINDS",
     "INTERFACE_FAULTS",
     "Fault",
+    "check_fault_head",
     "FaultKind",
     "FaultParam",
     "parse_fault",
@@ -336,16 +338,20 @@ class Fault:
         Machine time, s (``None``: now).
     params : mapping
         The kind's parameters (not ``at_s``).
+    head : str or None
+        The head it strikes on a machine of several heads (a name of ``[[heads]]``, e.g.
+        ``"right"``); ``None``: not one head (the machine, or its one head).
 
     Raises
     ------
     ConfigError
-        Unknown kind, bad or missing parameter.
+        Unknown kind, bad or missing parameter, a head that is not a head's name.
     """
 
     kind: FaultKind
     at_s: float | None = None
     params: Mapping[str, Any] = field(default_factory=dict)
+    head: str | None = None
 
     def __post_init__(self) -> None:
         kind = FaultKind.parse(self.kind)
@@ -355,6 +361,8 @@ class Fault:
         object.__setattr__(self, "params", kind.check(dict(self.params)))
         if self.at_s is not None:
             object.__setattr__(self, "at_s", AT_S.check(self.at_s, f"{kind.value}.at_s"))
+        if self.head is not None:
+            check_head_name(self.head, f"{kind.value}.head")
 
     @property
     def duration_s(self) -> float:
@@ -366,12 +374,15 @@ class Fault:
         out: dict[str, Any] = {"kind": self.kind.value}
         if self.at_s is not None:
             out["at_s"] = self.at_s
+        if self.head is not None:
+            out["head"] = self.head
         out.update(self.params)
         return out
 
 
-def parse_fault(item: Any, key: str, *, default_at_s: float | None = None) -> Fault:
-    """One fault table (``{kind = ..., at_s = ..., ...}``); errors name ``key``.
+def parse_fault(item: Any, key: str, *, default_at_s: float | None = None,
+                heads: tuple[str, ...] | None = None) -> Fault:
+    """One fault table (``{kind = ..., at_s = ..., head = ..., ...}``); errors name ``key``.
 
     Parameters
     ----------
@@ -381,20 +392,35 @@ def parse_fault(item: Any, key: str, *, default_at_s: float | None = None) -> Fa
         Its name in errors (``faults.inject[0]``).
     default_at_s : float, optional
         ``at_s`` when the table has none (``None``: the fault acts at once).
+    heads : tuple of str, optional
+        The machine's head names: a ``head`` not among them is an error (``None``: any
+        well-formed name, checked later against the machine).
     """
     if not isinstance(item, Mapping):
         raise ConfigError(f"{key} must be a table with a kind, got {item!r}")
     if "kind" not in item:
         raise ConfigError(f"{key}.kind is required (one of {', '.join(FAULT_KINDS)})")
     kind = FaultKind.parse(item["kind"], key=f"{key}.kind")
-    params = kind.check({k: v for k, v in item.items() if k != "kind"}, key=key)
+    params = kind.check({k: v for k, v in item.items() if k not in ("kind", "head")}, key=key)
     at_s = params.pop("at_s", default_at_s)
-    return Fault(kind, at_s, params)
+    head = item.get("head")
+    if head is not None:
+        check_head_name(head, f"{key}.head")
+        check_fault_head(head, heads, f"{key}.head")
+    return Fault(kind, at_s, params, head)
 
 
-def parse_faults(raw: Any, key: str, *, default_at_s: float | None = None) -> tuple[Fault, ...]:
+def check_fault_head(head: str | None, heads: tuple[str, ...] | None, key: str) -> None:
+    """ConfigError naming ``key`` when ``head`` is not one of ``heads`` (``None``: no check)."""
+    if head is None or heads is None or head in heads:
+        return
+    raise ConfigError(f"{key} must name one of the heads ({', '.join(heads)}), got {head!r}")
+
+
+def parse_faults(raw: Any, key: str, *, default_at_s: float | None = None,
+                 heads: tuple[str, ...] | None = None) -> tuple[Fault, ...]:
     """A list of fault tables (see :func:`parse_fault`); errors name ``key[i]``."""
     if not isinstance(raw, list):
         raise ConfigError(f"{key} must be a list of tables, got {raw!r}")
-    return tuple(parse_fault(item, f"{key}[{i}]", default_at_s=default_at_s)
+    return tuple(parse_fault(item, f"{key}[{i}]", default_at_s=default_at_s, heads=heads)
                  for i, item in enumerate(raw))

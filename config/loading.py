@@ -89,6 +89,11 @@ class Section:
         self._prefix = prefix
         self._used: set[str] = set()
 
+    @property
+    def prefix(self) -> str:
+        """Dotted name of this table (``"camera"``, ``"heads[2]"``; ``""`` for the document)."""
+        return self._prefix
+
     def key(self, name: str) -> str:
         """Dotted name of ``name`` in this section (quoted as TOML does when not a bare key)."""
         text = name if _BARE_KEY.fullmatch(str(name)) else json.dumps(str(name))

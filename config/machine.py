@@ -20,6 +20,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from config.heads import DEFAULT_FACE, DEFAULT_HEAD, HeadConfig, find_head, heads_from_toml
 from config.loading import (
     LOOPBACK_HOST,
     MODBUS_PORT,
@@ -303,10 +304,21 @@ class MachineConfig:
     http: HttpConfig = HttpConfig()
     identification: Mapping[str, Any] = field(default_factory=_frozen)
     service: ServiceConfig = ServiceConfig()
+    declared_heads: tuple[HeadConfig, ...] = ()
+    """``[[heads]]`` as the file gives them; ``()`` for a single-head file (see :attr:`heads`)."""
     source: Path | None = field(default=None, compare=False)
     """The file this configuration was loaded from (``None``: built in code). Code that checks
     the raw ``feed_loop`` / ``uniformity_loop`` tables later names it with
     ``with config.loading.naming_file(cfg.source): ...``."""
+
+    @property
+    def heads(self) -> tuple[HeadConfig, ...]:
+        """The machine's heads in file order: ``[[heads]]``, else the one head ``"main"``.
+
+        The single head of a file without ``[[heads]]`` is :func:`default_head` of this
+        configuration's own tables, so it follows every change of them.
+        """
+        return self.declared_heads or (default_head(self),)
 
     def with_changes(self, **tables: Any) -> MachineConfig:
         """A copy with whole tables replaced, e.g. ``cfg.with_changes(plc=new_plc)``."""
@@ -545,6 +557,10 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
                                   hi=1_000_000))
     sv.reject_unknown()
 
+    heads = () if root.raw("heads", None) is None else heads_from_toml(
+        root.raw("heads"), rig=rig, spool_dir=frames_cfg.spool_dir,
+        camera_id=frames_cfg.camera_id, target_pitch_mm=quality_cfg.target_pitch_mm)
+
     root.reject_unknown()
     return MachineConfig(
         plc=plc_cfg,
@@ -562,7 +578,58 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
         http=HttpConfig(listen=listen),
         identification=identification,
         service=service_cfg,
+        declared_heads=heads,
     )
+
+
+def default_head(cfg: MachineConfig) -> HeadConfig:
+    """The one head ``"main"`` (face ``"top"``) of a configuration without ``[[heads]]``.
+
+    Built from the existing keys: ``[quality] target_pitch_mm``, ``[can] node_id``, ``rig``,
+    ``[frames] spool_dir`` and ``camera_id``; knives, radius and speeds are the PLC's.
+    """
+    return HeadConfig(name=DEFAULT_HEAD, face=DEFAULT_FACE, node_id=cfg.can.node_id,
+                      target_pitch_mm=cfg.quality.target_pitch_mm, rig=cfg.rig,
+                      spool_dir=cfg.frames.spool_dir, camera_id=cfg.frames.camera_id)
+
+
+def head_config(cfg: MachineConfig, name: str) -> MachineConfig:
+    """A single-head configuration for the head called ``name`` (its own ``Service``).
+
+    Parameters
+    ----------
+    cfg : MachineConfig
+        The machine's configuration.
+    name : str
+        One of ``cfg.heads``' names.
+
+    Returns
+    -------
+    MachineConfig
+        ``cfg`` with ``heads == (head,)`` and the head's target pitch, quality class and
+        uniformity limit (``[quality]``), amplifier node id (``[can] node_id``), rig and
+        ``[frames] spool_dir`` / ``camera_id``; every other table (the log too) unchanged.
+        For a single-head file ``head_config(cfg, "main") == cfg``.
+
+    Raises
+    ------
+    ConfigError
+        No head of that name.
+    """
+    head: HeadConfig = find_head(cfg.heads, name)
+    q = cfg.quality
+    quality = replace(
+        q, target_pitch_mm=head.target_pitch_mm,
+        class_name=q.class_name if head.quality_class is None else head.quality_class,
+        uniformity_max_cv=(q.uniformity_max_cv if head.uniformity_max_cv is None
+                           else head.uniformity_max_cv))
+    frames = replace(
+        cfg.frames,
+        spool_dir=cfg.frames.spool_dir if head.spool_dir is None else head.spool_dir,
+        camera_id=cfg.frames.camera_id if head.camera_id is None else head.camera_id)
+    return replace(cfg, quality=quality, can=replace(cfg.can, node_id=head.node_id),
+                   rig=head.rig, frames=frames,
+                   declared_heads=(head,) if cfg.declared_heads else ())
 
 
 def load_machine(path: str | Path | None = None) -> MachineConfig:

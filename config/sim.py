@@ -26,7 +26,17 @@ from typing import Any
 
 from config.defects import DefectsConfig, defects_table
 from config.faults import FAULT_KINDS as _FAULT_KINDS
-from config.faults import parse_fault
+from config.faults import check_fault_head, parse_fault
+from config.heads import (
+    DEFAULT_FACE,
+    DEFAULT_HEAD,
+    FACES,
+    Face,
+    check_head_name,
+    check_unique,
+    find_head,
+    rpm_range,
+)
 from config.loading import (
     LOOPBACK_HOST,
     MODBUS_PORT,
@@ -58,9 +68,12 @@ __all__ = [
     "PlcConfig",
     "RunConfig",
     "SimConfig",
+    "SimHeadConfig",
     "SpindleConfig",
     "FAULT_KINDS",
     "default_sim",
+    "default_sim_head",
+    "head_sim_config",
     "load_sim",
     "sim_from_dict",
     "with_base",
@@ -90,6 +103,9 @@ class SpindleConfig:
         Time constant of the braked stop after an e-stop, seconds.
     spinup_tau_s : float
         Time constant of the run-up after a fault reset, seconds.
+    rpm_min, rpm_max : float or None
+        The range the speed's setpoint may take (a variable spindle, e.g. a moulder's top
+        head; ``rpm`` is its start); ``None``: fixed at ``rpm`` (see :attr:`rpm_range`).
     """
 
     rpm: float = 6000.0
@@ -99,6 +115,20 @@ class SpindleConfig:
     coast_tau_s: float = 3.0
     brake_tau_s: float = 0.5
     spinup_tau_s: float = 1.0
+    rpm_min: float | None = None
+    rpm_max: float | None = None
+
+    @property
+    def rpm_range(self) -> tuple[float, float]:
+        """``(rpm_min, rpm_max)``; ``(rpm, rpm)`` for a fixed spindle."""
+        return (self.rpm if self.rpm_min is None else self.rpm_min,
+                self.rpm if self.rpm_max is None else self.rpm_max)
+
+    @property
+    def variable(self) -> bool:
+        """Whether the speed's setpoint may change (``rpm_min < rpm_max``)."""
+        lo, hi = self.rpm_range
+        return lo < hi
 
 
 @dataclass(frozen=True)
@@ -390,10 +420,14 @@ class PlcConfig:
 
 @dataclass(frozen=True)
 class FaultSpec:
-    """A fault injected by the configuration: ``kind`` and its parameters (``at_s`` etc.)."""
+    """A fault injected by the configuration: ``kind`` and its parameters (``at_s`` etc.).
+
+    ``head``: the head it strikes (a name of ``[[heads]]``); ``None``: not one head.
+    """
 
     kind: str
     params: Mapping[str, Any] = field(default_factory=dict)
+    head: str | None = None
 
 
 @dataclass(frozen=True)
@@ -456,6 +490,85 @@ class SimConfig:
     source: Path | None = None
     defects: DefectsConfig = DefectsConfig()
     """``[defects]``: wood defects on the boards (:mod:`config.defects`; none by default)."""
+    declared_heads: tuple[SimHeadConfig, ...] = ()
+    """``[[heads]]`` as the file gives them; ``()`` for a single-head file (see :attr:`heads`)."""
+
+    @property
+    def heads(self) -> tuple[SimHeadConfig, ...]:
+        """The machine's heads in file order: ``[[heads]]``, else the one head ``"main"``.
+
+        The single head of a file without ``[[heads]]`` is :func:`default_sim_head` of this
+        configuration's own tables (so it follows every change of them).
+        """
+        return self.declared_heads or (default_sim_head(self),)
+
+
+@dataclass(frozen=True)
+class SimHeadConfig:
+    """One simulated head (``[[heads]]`` of ``sim.toml``): the tables of its own ``Machine``.
+
+    Attributes
+    ----------
+    name : str
+        Unique name (:data:`config.heads.HEAD_NAME`); ``"main"`` for a single head.
+    face : config.heads.Face
+        The face it cuts.
+    position_mm : float
+        Its place along the feed, mm from the first head.
+    cutterhead, spindle, camera, piezo
+        Its tables: the shared ``[cutterhead]``, ``[spindle]``, ``[camera]``, ``[piezo]`` with
+        the head's keys over them (knives, radius_mm, runout_um, eccentricity_um, drift; rpm,
+        rpm_min, rpm_max; cutter_to_camera_mm, roll_deg, species, read_noise_dn; stroke_um).
+    node_id : int
+        Its amplifier's CANopen node id (1..127) on the one CAN bus.
+    """
+
+    name: str
+    face: Face
+    position_mm: float
+    cutterhead: CutterheadConfig
+    spindle: SpindleConfig
+    camera: CameraConfig
+    piezo: PiezoConfig
+    node_id: int
+
+
+def default_sim_head(cfg: SimConfig) -> SimHeadConfig:
+    """The one head ``"main"`` (face ``"top"``) of a configuration without ``[[heads]]``."""
+    return SimHeadConfig(name=DEFAULT_HEAD, face=DEFAULT_FACE, position_mm=0.0,
+                         cutterhead=cfg.cutterhead, spindle=cfg.spindle, camera=cfg.camera,
+                         piezo=cfg.piezo, node_id=cfg.can.node_id)
+
+
+def head_sim_config(cfg: SimConfig, name: str) -> SimConfig:
+    """The whole configuration of the ``Machine`` of the head called ``name``.
+
+    Parameters
+    ----------
+    cfg : SimConfig
+        The machine's configuration.
+    name : str
+        One of ``cfg.heads``' names.
+
+    Returns
+    -------
+    SimConfig
+        ``cfg`` with the head's ``cutterhead``, ``spindle``, ``camera``, ``piezo`` and
+        ``can.node_id``, ``heads == (head,)`` and the faults that name this head or none; the
+        feed, encoder, board, PLC and interfaces shared. For a single-head file
+        ``head_sim_config(cfg, "main") == cfg``.
+
+    Raises
+    ------
+    ConfigError
+        No head of that name.
+    """
+    head: SimHeadConfig = find_head(cfg.heads, name)
+    return dataclasses.replace(
+        cfg, cutterhead=head.cutterhead, spindle=head.spindle, camera=head.camera,
+        piezo=head.piezo, can=dataclasses.replace(cfg.can, node_id=head.node_id),
+        faults=tuple(f for f in cfg.faults if f.head in (None, name)),
+        declared_heads=(head,) if cfg.declared_heads else ())
 
 
 def _spindle(s: Section) -> SpindleConfig:
@@ -469,6 +582,11 @@ def _spindle(s: Section) -> SpindleConfig:
         brake_tau_s=s.number("brake_tau_s", d.brake_tau_s, lo=0.0, lo_open=True, hi=60.0),
         spinup_tau_s=s.number("spinup_tau_s", d.spinup_tau_s, lo=0.0, lo_open=True, hi=600.0),
     )
+    lo = s.number("rpm_min", lo=100.0, hi=30000.0) if s.has("rpm_min") else None
+    hi = s.number("rpm_max", lo=100.0, hi=30000.0) if s.has("rpm_max") else None
+    if lo is not None or hi is not None:
+        rpm_range(out.rpm, lo, hi, s.prefix)
+        out = dataclasses.replace(out, rpm_min=lo, rpm_max=hi)
     s.reject_unknown()
     return out
 
@@ -712,7 +830,8 @@ def _faults(raw: Any) -> tuple[FaultSpec, ...]:
     for i, item in enumerate(items):
         fault = parse_fault(item, f"{prefix}[{i}]")  # the registry checks kind and parameters
         out.append(FaultSpec(kind=fault.kind.value, params={
-            k: v for k, v in fault.table().items() if k != "kind"}))
+            k: v for k, v in fault.table().items() if k not in ("kind", "head")},
+            head=fault.head))
     return tuple(out)
 
 
@@ -758,6 +877,109 @@ def _run(s: Section) -> RunConfig:
     )
     s.reject_unknown()
     return out
+
+
+_HEAD_CUTTER_KEYS = ("knives", "radius_mm", "runout_um", "eccentricity_um", "drift")
+_HEAD_SPINDLE_KEYS = ("rpm", "rpm_min", "rpm_max")
+
+
+def _head_cutterhead(t: Section, shared: CutterheadConfig) -> CutterheadConfig:
+    """A head's cutterhead: its keys over the shared ``[cutterhead]`` (errors name the head).
+
+    Runout and drift are per knife: a head with another knife count than the shared table
+    takes no runout (zeros) and no drift unless it gives its own.
+    """
+    raw = {k: t.raw(k) for k in _HEAD_CUTTER_KEYS if t.has(k)}
+    raw.setdefault("knives", shared.knives)
+    raw.setdefault("radius_mm", shared.radius_mm)
+    raw.setdefault("eccentricity_um", shared.eccentricity_um)
+    if raw["knives"] == shared.knives:
+        raw.setdefault("runout_um", list(shared.runout_um))
+        if shared.drift is not None:
+            raw.setdefault("drift", {"warmup_um": list(shared.drift.warmup_um),
+                                     "warmup_tau_s": list(shared.drift.warmup_tau_s),
+                                     "wear_um_per_min": list(shared.drift.wear_um_per_min)})
+    return _cutterhead(Section(raw, t.prefix))
+
+
+def _head_spindle(t: Section, shared: SpindleConfig) -> SpindleConfig:
+    """A head's spindle: its ``rpm`` (fixed) or ``rpm_min``/``rpm_max`` over ``[spindle]``."""
+    raw = {k: v for k, v in dataclasses.asdict(shared).items() if v is not None}
+    given = {k: t.raw(k) for k in _HEAD_SPINDLE_KEYS if t.has(k)}
+    if given:  # the head's own speeds replace all three of the shared table's
+        for k in _HEAD_SPINDLE_KEYS:
+            raw.pop(k, None)
+        raw["rpm"] = shared.rpm
+    raw.update(given)
+    if "rpm" not in given and "rpm_max" in given:
+        t.number("rpm_max")  # its type checked first, naming the head's key
+        raw["rpm"] = given["rpm_max"]  # a variable head without rpm starts at its fastest
+    return _spindle(Section(raw, t.prefix))
+
+
+def _head_camera(t: Section, shared: CameraConfig) -> CameraConfig:
+    """A head's camera: ``cutter_to_camera_mm``, ``roll_deg``, ``species``, ``read_noise_dn``."""
+    species = t.string("species", shared.species).strip().lower()
+    from config.wood import SPECIES  # the known species (a data table, no I/O)
+
+    if species not in SPECIES:
+        raise ConfigError(
+            f"{t.key('species')} must be one of {', '.join(sorted(SPECIES))}; got {species!r}")
+    return dataclasses.replace(
+        shared,
+        cutter_to_camera_mm=t.number("cutter_to_camera_mm", shared.cutter_to_camera_mm, lo=1.0,
+                                     hi=10000.0),
+        roll_deg=t.number("roll_deg", shared.roll_deg, lo=-10.0, hi=10.0),
+        species=species,
+        optics=dataclasses.replace(
+            shared.optics,
+            noise=t.number("read_noise_dn", shared.optics.noise, lo=0.0, hi=100.0)),
+    )
+
+
+def _sim_heads(raw: Any, cfg: SimConfig) -> tuple[SimHeadConfig, ...]:
+    """``[[heads]]`` of ``sim.toml``: each head's keys over the shared tables, checked."""
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"heads must be a non-empty array of tables ([[heads]]), "
+                          f"got {raw!r:.80}")
+    heads = []
+    for i, item in enumerate(raw):
+        t = Section(item, f"heads[{i}]")
+        head = SimHeadConfig(
+            name=check_head_name(t.raw("name"), t.key("name")),
+            face=Face(t.string("face", choices=FACES)),
+            position_mm=t.number("position_mm", 0.0, lo=0.0, hi=100_000.0),
+            cutterhead=_head_cutterhead(t, cfg.cutterhead),
+            spindle=_head_spindle(t, cfg.spindle),
+            camera=_head_camera(t, cfg.camera),
+            piezo=dataclasses.replace(
+                cfg.piezo, stroke_um=t.number("stroke_um", cfg.piezo.stroke_um, lo=0.0,
+                                              lo_open=True, hi=1000.0)),
+            node_id=t.integer("node_id", lo=1, hi=127),
+        )
+        t.reject_unknown()
+        heads.append(head)
+    out = tuple(heads)
+    check_unique((h.name for h in out), "name")
+    check_unique((h.node_id for h in out), "node_id")
+    return out
+
+
+def _check_head(head: SimHeadConfig, cfg: SimConfig, key: str) -> None:
+    """A head's geometry against the shared feed: runout within the radius, pitch below R/4."""
+    ch = head.cutterhead
+    runout = "cutterhead.runout_um" if key == "" else f"{key}.runout_um"
+    if max(abs(r) for r in ch.runout_um) + abs(ch.eccentricity_um) > 1e3 * ch.radius_mm:
+        raise ConfigError(f"{runout} is larger than the radius")
+    rpm = "spindle.rpm" if key == "" else f"{key}.rpm"
+    slowest = head.spindle.rpm_range[0]
+    max_pitch = cfg.feed.max_mm_s / (slowest / 60.0 * ch.knives)
+    if max_pitch > 0.25 * ch.radius_mm:
+        raise ConfigError(
+            f"feed.max_mm_s gives {max_pitch:.3g} mm per knife pass at {rpm}"
+            f"{'' if not head.spindle.variable else ' (its rpm_min)'}; "
+            f"must stay below R/4 = {ch.radius_mm / 4:g} mm"
+        )
 
 
 def _merged(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
@@ -829,10 +1051,16 @@ def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> S
         run=_run(sec("run")),
         defects=defects_table(sec("defects")),
     )
+    if root.raw("heads", None) is not None:
+        cfg = dataclasses.replace(cfg, declared_heads=_sim_heads(root.raw("heads"), cfg))
     root.reject_unknown()
-    head = cfg.cutterhead
-    if max(abs(r) for r in head.runout_um) + abs(head.eccentricity_um) > 1e3 * head.radius_mm:
-        raise ConfigError("cutterhead.runout_um is larger than the radius")
+    names = tuple(h.name for h in cfg.heads)
+    faults_key = "faults.inject" if isinstance(root.raw("faults", None), Mapping) else "faults"
+    for i, fault in enumerate(cfg.faults):
+        check_fault_head(fault.head, names, f"{faults_key}[{i}].head")
+    _check_head(default_sim_head(cfg), cfg, "")
+    for i, head in enumerate(cfg.declared_heads):
+        _check_head(head, cfg, f"heads[{i}]")
     rig = cfg.camera.rig
     expect = rig.camera.px_per_mm / cfg.encoder.counts_per_mm
     if not math.isclose(rig.encoder.px_per_count, expect, rel_tol=1e-6):
@@ -844,12 +1072,6 @@ def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> S
         raise ConfigError(
             f"encoder.counter_bits ({cfg.encoder.counter_bits}) disagrees with the rig's "
             f"({rig.encoder.counter_bits}): the service unwraps the latched counts with the rig's"
-        )
-    max_pitch = cfg.feed.max_mm_s / (cfg.spindle.rpm / 60.0 * head.knives)
-    if max_pitch > 0.25 * head.radius_mm:
-        raise ConfigError(
-            f"feed.max_mm_s gives {max_pitch:.3g} mm per knife pass at spindle.rpm; "
-            f"must stay below R/4 = {head.radius_mm / 4:g} mm"
         )
     return cfg
 
