@@ -332,6 +332,11 @@ class FaultInjector:
         self.plc.set_flag(PlcFault.FEED_DRIVE | PlcFault.SPINDLE_STOPPED | PlcFault.ENCODER,
                           False)
 
+    def camera_silent(self, t_s: float) -> bool:
+        """Whether the camera sends nothing at ``t_s`` (a whole ``measurement_dropout``)."""
+        frac, spoil = self._dropout
+        return t_s < self._dropout_until and frac >= 1.0 and not spoil
+
     def can_frame_lost(self, t_s: float) -> bool:
         """Whether a CAN frame to the amplifier at ``t_s`` is lost (``can_drop`` fault)."""
         if t_s >= self._can_drop_until:

@@ -55,7 +55,8 @@ from plant_sim.rendering.frame_capture import FrameCapture, build_renderer
 from protocol.frames import Frame
 from protocol.registers import MachineState, PlcFault
 
-__all__ = ["Machine", "PiezoStatus", "register_names", "runout_drift"]
+__all__ = ["Machine", "PiezoStatus", "advance_together", "register_names", "runout_drift",
+           "start_cycles"]
 
 
 _EPS_S = 1e-9
@@ -80,6 +81,12 @@ class Machine:
     render_images : bool
         Render the camera's images; ``False`` gives frames with ``image_a = image_b = None``
         (counts and truth still there), much faster.
+    feed, encoder, boards : optional
+        Another machine's feed drive, encoder and boards (a moulder's heads share them): this
+        machine then does not step the feed (its owner does, :func:`advance_together`) and
+        :meth:`advance` is refused on it; ``boards`` may be a
+        :class:`plant_sim.model.feed_drive.BoardView` (the boards seen from a head downstream).
+        Default: its own.
 
     Attributes
     ----------
@@ -97,7 +104,9 @@ class Machine:
         Injected faults, their schedule and timers.
     """
 
-    def __init__(self, cfg: SimConfig, *, seed: int = 0, render_images: bool = True) -> None:
+    def __init__(self, cfg: SimConfig, *, seed: int = 0, render_images: bool = True,
+                 feed: FeedDrive | None = None, encoder: Encoder | None = None,
+                 boards: BoardStream | None = None) -> None:
         self.cfg = cfg
         self.seed = check_int("seed", seed, lo=0)
         self.render_images = bool(render_images)
@@ -110,9 +119,10 @@ class Machine:
         self._standout = [float(v) for v in self.head.standout_um()]  # at t = 0: no drift yet
         self.cycle_s = cfg.plc.cycle_s
         self.spindle = Spindle(cfg.spindle, ripple_phase_rad=float(r_ripple.uniform(0, 2 * np.pi)))
-        self.feed = FeedDrive(cfg.feed)
-        self.encoder = Encoder(cfg.encoder)
-        self.boards = BoardStream(cfg.board)
+        self.owns_feed = feed is None
+        self.feed = FeedDrive(cfg.feed) if feed is None else feed
+        self.encoder = Encoder(cfg.encoder) if encoder is None else encoder
+        self.boards = BoardStream(cfg.board) if boards is None else boards
         self.amp = PiezoAmplifier(cfg.piezo, ch.knives, r_sensor)
         self._lead = cfg.piezo.lead_fraction
         self.L_mm = cfg.camera.cutter_to_camera_mm
@@ -152,42 +162,39 @@ class Machine:
         ------
         ValueError
             ``dt_s`` is negative or not finite.
+        RuntimeError
+            The machine shares another's feed (it is stepped with it: :func:`advance_together`).
         """
-        dt = check_positive("dt_s", dt_s, allow_zero=True)
-        target = self._t + dt
-        frames: list[Frame] = []
-        cs = self.cycle_s
-        while self._t < target - _EPS_S:
-            t_end = (self._cycle + 1) * cs
-            if target >= t_end - _EPS_S:
-                self._interval(self._t, t_end, frames)
-                self._end_cycle()
-                self._t = t_end
-                self._cycle += 1
-                self._start_cycle()
-            else:
-                self._interval(self._t, target, frames)
-                self._t = target
-        if self._t < target:
-            self._t = target
-        return self.faults.filter_frames(frames) if frames else frames
+        if not self.owns_feed:
+            raise RuntimeError("this machine shares another's feed drive: step them together "
+                               "(plant_sim.machine.machine.advance_together, Moulder.advance)")
+        return advance_together((self,), dt_s)[0]
 
     def _start_cycle(self) -> None:
-        t = self._cycle * self.cycle_s
-        cs = self.cycle_s
+        if self.owns_feed:
+            start_cycles((self,))
+        else:  # the owner decides the feed (with every machine on it: start_cycles)
+            t = self._cycle * self.cycle_s
+            self._begin_cycle(t)
+            self._begin_amp(t)
+
+    def _begin_cycle(self, t: float) -> None:
+        """A PLC cycle begins at ``t``: faults due, the PLC's heartbeats, the spindle's speed."""
         self.faults.apply_due(t)
         self.faults.apply_at_travel(self.feed.s_mm, t)
         self.plc.start_cycle(t)
         cutting = self.boards.at(self.feed.s_mm, 0.0)[0] != 0
-        self.spindle.start_cycle(t, cs, cutting=cutting)
-        self.feed.enabled = self.plc.feed_permitted()
-        self.feed.start_cycle(t, cs)
-        self.amp.cycle(t, cs, spindle_turning=self.spindle.turning)
+        self.spindle.start_cycle(t, self.cycle_s, cutting=cutting)
+
+    def _begin_amp(self, t: float) -> None:
+        """The amplifier's cycle at ``t`` (after the spindle's: it needs to know it turns)."""
+        self.amp.cycle(t, self.cycle_s, spindle_turning=self.spindle.turning)
         self.plc.set_flag(PlcFault.PIEZO_AMPLIFIER, self.amp.state == PIEZO_FAULT)
 
     def _end_cycle(self) -> None:
         self.spindle.end_cycle(self.cycle_s)
-        self.feed.end_cycle(self.cycle_s)
+        if self.owns_feed:
+            self.feed.end_cycle(self.cycle_s)
 
     def _interval(self, t0: float, t1: float, frames: list[Frame]) -> None:
         """Process every event in ``(t0, t1]`` within the current cycle."""
@@ -229,6 +236,38 @@ class Machine:
     def set_feed_setpoint(self, feed_mm_s: float) -> None:
         """New feed setpoint; ``ValueError`` outside ``[feed_min, feed_max]`` (never clamped)."""
         self.feed.set_setpoint(feed_mm_s)
+
+    @property
+    def head_count(self) -> int:
+        """Heads of the machine (its register blocks): one."""
+        return 1
+
+    def head_register_values(self, i: int) -> dict[str, float | int]:
+        """The head fields of the PLC's register block ``i`` (only 0: the machine's one head).
+
+        ``spindle_rpm``, ``spindle_setpoint_rpm``, ``spindle_rpm_min``, ``spindle_rpm_max``,
+        ``knives``, ``cutterhead_radius_mm``, ``cutter_to_camera_mm``, ``trigger_a_counts``,
+        ``trigger_b_counts``, ``trigger_seq``, ``index_latch_counts``, ``head_faults``.
+
+        Raises
+        ------
+        ValueError
+            ``i`` is not 0.
+        """
+        check_int("i", i, lo=0, hi=0)
+        return self.plc.head_values(self._t, camera_silent=self.faults.camera_silent(self._t))
+
+    def set_spindle_setpoint(self, i: int, rpm: float) -> None:
+        """Spindle setpoint of head ``i`` (only 0), rpm; the drive ramps to it.
+
+        Raises
+        ------
+        ValueError
+            ``i`` is not 0, or ``rpm`` outside the spindle's ``[rpm_min, rpm_max]`` (a fixed
+            head: anything but its speed); never clamped.
+        """
+        check_int("i", i, lo=0, hi=0)
+        self.spindle.set_setpoint(rpm)
 
     def set_service_heartbeat(self, value: int) -> None:
         """The service's heartbeat; a changed value feeds the PLC's watchdog."""
@@ -370,3 +409,78 @@ class Machine:
         """Nominal feed per knife pass from the current speeds, mm."""
         rps = self.spindle.rev_s
         return self.feed_speed_mm_s / (rps * self.knives) if rps > 0 else math.inf
+
+
+def start_cycles(machines: Sequence[Machine]) -> None:
+    """A PLC cycle begins for the machines on one feed (a moulder's heads; or one machine).
+
+    Each machine's faults due, PLC and spindle first; then the feed's owner starts the feed's
+    cycle, permitted only when every machine's interlock permits it (a head's spindle stopped
+    stops the feed under all); then each machine's amplifier. One machine alone: the order it
+    always had.
+    """
+    lead = machines[0]
+    t = lead._cycle * lead.cycle_s
+    for m in machines:
+        m._begin_cycle(t)
+    owner = next((m for m in machines if m.owns_feed), None)
+    if owner is None:
+        raise ValueError("machines: none of them owns the feed they share")
+    feed = owner.feed
+    feed.enabled = all(m.plc.feed_permitted() for m in machines)
+    feed.start_cycle(t, owner.cycle_s)
+    for m in machines:
+        m._begin_amp(t)
+
+
+def advance_together(machines: Sequence[Machine], dt_s: float) -> list[list[Frame]]:
+    """Step machines that share one feed by ``dt_s`` seconds, cycle by cycle in lock-step.
+
+    Within each PLC cycle every machine handles its events (knives, amplifier, camera) while the
+    shared feed holds that cycle's motion; then the cycle ends for all and the next begins
+    (:func:`start_cycles`). One machine alone is exactly :meth:`Machine.advance`.
+
+    Parameters
+    ----------
+    machines : sequence of Machine
+        The machines, one of them the owner of the feed the others share; all at the same
+        time and PLC cycle (built together).
+    dt_s : float
+        Step, s (>= 0).
+
+    Returns
+    -------
+    list of list of Frame
+        Per machine (in order), the frames completed in this step.
+
+    Raises
+    ------
+    ValueError
+        ``dt_s`` negative or not finite, or the machines are not at one time.
+    """
+    dt = check_positive("dt_s", dt_s, allow_zero=True)
+    lead = machines[0]
+    if any(m._t != lead._t or m.cycle_s != lead.cycle_s for m in machines):
+        raise ValueError("machines must be at one time on one PLC cycle to step together")
+    target = lead._t + dt
+    frames: list[list[Frame]] = [[] for _ in machines]
+    cs = lead.cycle_s
+    while lead._t < target - _EPS_S:
+        t_end = (lead._cycle + 1) * cs
+        if target >= t_end - _EPS_S:
+            for m, out in zip(machines, frames, strict=True):
+                m._interval(m._t, t_end, out)
+            for m in machines:
+                m._end_cycle()
+                m._t = t_end
+                m._cycle += 1
+            start_cycles(machines)
+        else:
+            for m, out in zip(machines, frames, strict=True):
+                m._interval(m._t, target, out)
+                m._t = target
+    for m in machines:
+        if m._t < target:
+            m._t = target
+    return [m.faults.filter_frames(out) if out else out
+            for m, out in zip(machines, frames, strict=True)]

@@ -28,8 +28,23 @@ _BOARD_PRESENT = int(MachineState.BOARD_PRESENT)
 _ESTOP = int(MachineState.ESTOP)
 _SPINDLE_RUNNING = int(MachineState.SPINDLE_RUNNING)
 _FEED_ENABLED = int(MachineState.FEED_ENABLED)
+_PIEZO_AMPLIFIER = int(PlcFault.PIEZO_AMPLIFIER)
+_SPINDLE_STOPPED = int(PlcFault.SPINDLE_STOPPED)
 
-__all__ = ["PlcRegisters", "register_names"]
+HEAD_FAULT_AMPLIFIER = 1 << 0
+"""``head_faults`` bit 0: the head's piezo amplifier reports a fault."""
+HEAD_FAULT_SPINDLE = 1 << 1
+"""``head_faults`` bit 1: the head's spindle drive tripped."""
+HEAD_FAULT_CAMERA_SILENT = 1 << 2
+"""``head_faults`` bit 2: the head's camera sends no frames."""
+HEAD_FIELDS: tuple[str, ...] = (
+    "spindle_rpm", "spindle_setpoint_rpm", "spindle_rpm_min", "spindle_rpm_max", "knives",
+    "cutterhead_radius_mm", "cutter_to_camera_mm", "trigger_a_counts", "trigger_b_counts",
+    "trigger_seq", "index_latch_counts", "head_faults",
+)
+"""The fields of a head's register block (the moulder's design), in block order."""
+
+__all__ = ["HEAD_FIELDS", "PlcRegisters", "register_names"]
 
 
 def register_names(path: str | Path | None = None) -> list[str]:
@@ -134,6 +149,41 @@ class PlcRegisters:
         elif running and enabled:
             st |= _RUNNING
         return st
+
+    def head_values(self, t_s: float, *, camera_silent: bool = False) -> dict[str, float | int]:
+        """The head fields of the head's register block at ``t_s`` (see :data:`HEAD_FIELDS`).
+
+        Parameters
+        ----------
+        t_s : float
+            Machine time, s (unused: every head field is held over the cycle; kept for
+            symmetry with :meth:`values`).
+        camera_silent : bool
+            The head's camera sends no frames (its ``head_faults`` bit 2).
+        """
+        last = self.capture.last_pair
+        sp = self.spindle
+        bits = 0
+        if self._faults & _PIEZO_AMPLIFIER:
+            bits |= HEAD_FAULT_AMPLIFIER
+        if self._faults & _SPINDLE_STOPPED:
+            bits |= HEAD_FAULT_SPINDLE
+        if camera_silent:
+            bits |= HEAD_FAULT_CAMERA_SILENT
+        return {
+            "spindle_rpm": sp.rpm,
+            "spindle_setpoint_rpm": sp.setpoint_rpm,
+            "spindle_rpm_min": sp.rpm_min,
+            "spindle_rpm_max": sp.rpm_max,
+            "knives": self.knives,
+            "cutterhead_radius_mm": self.radius_mm,
+            "cutter_to_camera_mm": self.L_mm,
+            "trigger_a_counts": last.counts_a if last else 0,
+            "trigger_b_counts": last.counts_b if last else 0,
+            "trigger_seq": (last.seq if last else 0) & 0xFFFF,
+            "index_latch_counts": last.index_latch if last else 0,
+            "head_faults": bits,
+        }
 
     def values(self, t_s: float) -> dict[str, float | int]:
         """Every register of ``config/registers.toml`` with its value at ``t_s``.

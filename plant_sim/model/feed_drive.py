@@ -11,6 +11,10 @@ cutter (the camera: ``D = L``) when ``s`` is ``D`` larger. A board's own coordin
 (:mod:`plant_sim.model.surface`) runs from its trailing end (0) to its leading end (``length_mm``),
 increasing in the direction of feed; the PLC's ``board_position_mm`` is measured from the leading
 end, ``length_mm - x_mm``.
+
+A moulder's heads stand one after another along the feed: :class:`BoardView` is the one stream
+of boards seen from a head ``offset_mm`` downstream of the first (its cutter is that head's
+station 0), so a board reaches a later head later by the distance between them.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import math
 
 from core.checks import check_finite, check_int
 
-__all__ = ["BoardStream", "Encoder", "FeedDrive"]
+__all__ = ["BoardStream", "BoardView", "Encoder", "FeedDrive"]
 
 
 class FeedDrive:
@@ -186,3 +190,31 @@ class BoardStream:
     def lead_at_station_s(self, board_id: int, station_mm: float) -> float:
         """Feed position at which board ``board_id``'s leading end reaches the station, mm."""
         return self.first_at_mm + (board_id - 1) * self.period_mm + station_mm
+
+
+class BoardView(BoardStream):
+    """The boards of a :class:`BoardStream` seen from a cutter ``offset_mm`` further downstream.
+
+    Its stations are measured from that cutter: ``view.at(s, d)`` is ``base.at(s, offset_mm +
+    d)``, and a board's leading end reaches the view's cutter when the feed has moved
+    ``offset_mm`` further than when it reached the base's. Nothing is copied that could change:
+    the stream is the base's.
+
+    Parameters
+    ----------
+    base : BoardStream
+        The stream (the first head's).
+    offset_mm : float
+        How far this cutter stands downstream of the base's, mm (>= 0).
+    """
+
+    def __init__(self, base: BoardStream, offset_mm: float) -> None:
+        off = check_finite("offset_mm", offset_mm)
+        if off < 0:
+            raise ValueError(f"offset_mm must be >= 0, got {offset_mm!r}")
+        self.base = base
+        self.offset_mm = off
+        self.length_mm = base.length_mm
+        self.period_mm = base.period_mm
+        self.first_at_mm = base.first_at_mm + off
+        self.count = base.count

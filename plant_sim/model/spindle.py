@@ -1,5 +1,9 @@
 """The spindle: speed with load ripple and droop, angle, knife timing, coast-down and braking.
 
+A variable-speed spindle (``rpm_min < rpm_max``, a moulder's variable head) follows a setpoint
+(:meth:`Spindle.set_setpoint`) within ``[rpm_min, rpm_max]`` on the run-up's first-order ramp
+(``spinup_tau_s``); a fixed head (``rpm_min == rpm_max == rpm``) refuses any other speed.
+
 The spindle angle is kept in revolutions (``rev``). Knife ``k`` of ``Z`` is at bottom dead centre
 (BDC) when ``Z * rev`` is an integer ``n`` with ``n mod Z == k``; the index pulse is knife 0 at
 BDC. The speed is held constant over each PLC cycle (updated by :meth:`Spindle.start_cycle`), so
@@ -9,6 +13,8 @@ the angle is linear in time within a cycle and event times are exact.
 from __future__ import annotations
 
 import math
+
+from core.checks import check_finite
 
 __all__ = ["BRAKE", "COAST", "RUN", "Spindle"]
 
@@ -25,6 +31,9 @@ class Spindle:
     ripple_phase_rad : float
         Phase of the load ripple (drawn from the machine's seed).
 
+    The speed range is the configuration's ``rpm_min`` .. ``rpm_max`` (both ``rpm`` when the
+    configuration has no range: a fixed head).
+
     Attributes
     ----------
     rev : float
@@ -33,6 +42,10 @@ class Spindle:
         Speed over the current cycle, revolutions per second.
     mode : str
         ``"run"``, ``"coast"`` (drive tripped) or ``"brake"`` (e-stop).
+    setpoint_rpm : float
+        The speed the drive runs to (the ``spindle_setpoint_rpm`` register), rpm.
+    rpm_min, rpm_max : float
+        The range of the setpoint, rpm (equal for a fixed head).
     """
 
     def __init__(self, cfg, *, ripple_phase_rad: float = 0.0) -> None:
@@ -51,11 +64,40 @@ class Spindle:
         self._ripple_frac = cfg.ripple_frac
         self._ripple_w = 2.0 * math.pi * cfg.ripple_hz
         self._droop = cfg.load_droop_frac
+        self.rpm_min = float(getattr(cfg, "rpm_min", None) or cfg.rpm)
+        self.rpm_max = float(getattr(cfg, "rpm_max", None) or cfg.rpm)
+        if not self.rpm_min <= cfg.rpm <= self.rpm_max:
+            raise ValueError(f"spindle rpm must be in [rpm_min, rpm_max] = [{self.rpm_min}, "
+                             f"{self.rpm_max}], got {cfg.rpm!r}")
+        self.setpoint_rpm = float(cfg.rpm)
         self._stop_below = 0.005 * self.nominal_rev_s
-        self._running_from = 0.9 * self.nominal_rev_s
+        # running: within 10 % of the slowest speed it may be set to (a fixed head: of its rpm)
+        self._running_from = 0.9 * (self.rpm_min / 60.0 if self.variable else self.nominal_rev_s)
         self._gains_dt: float | None = None
         self._gain: dict[str, float] = {}
         self._load_gain = 0.0
+
+    @property
+    def variable(self) -> bool:
+        """Whether the speed can be set (``rpm_min < rpm_max``)."""
+        return self.rpm_min < self.rpm_max
+
+    def set_setpoint(self, rpm: float) -> None:
+        """Run to ``rpm`` from now on (the run-up's ramp); a fault's stop still wins.
+
+        Raises
+        ------
+        ValueError
+            ``rpm`` not finite or outside ``[rpm_min, rpm_max]`` (never clamped).
+        """
+        v = check_finite("rpm", rpm)
+        if not self.rpm_min <= v <= self.rpm_max:
+            raise ValueError(f"rpm must be in [{self.rpm_min}, {self.rpm_max}], got {rpm!r}")
+        if v == self.setpoint_rpm:
+            return
+        self.setpoint_rpm = v
+        self.nominal_rev_s = v / 60.0
+        self._goal[RUN] = self.nominal_rev_s
 
     def _set_gains(self, dt_s: float) -> None:
         """First-order gains ``1 - exp(-dt / tau)`` of a cycle of ``dt_s`` (once per step size)."""
@@ -98,7 +140,7 @@ class Spindle:
 
     @property
     def running(self) -> bool:
-        """Drive on and within 10 % of the nominal speed."""
+        """Drive on and within 10 % of the nominal speed (a variable head's slowest)."""
         return self.mode == RUN and self.drive_rev_s >= self._running_from
 
     @property
