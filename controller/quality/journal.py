@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from controller.quality.log import (
+    DEFAULT_HEAD,
     QualityLog,
     QualityRecord,
     RecordRefusedError,
@@ -44,6 +45,7 @@ from controller.quality.log import (
     record_to_dict,
     storable_record,
 )
+from controller.quality.schema import check_head
 from core.fileio import atomic_write_text, fsync_dir
 
 __all__ = [
@@ -65,14 +67,24 @@ JOURNAL_VERSION = 1
 RETRY_EVERY_APPENDS = 8
 
 
-def default_journal_path(log_path: str | Path) -> Path:
+def default_journal_path(log_path: str | Path, *, head: str = DEFAULT_HEAD) -> Path:
     """The journal of a quality log, on local disk.
 
     Beside an SQLite file: ``run.db`` -> ``run.db.journal.jsonl``. For a PostgreSQL URL
     (``postgresql://USER@HOST:PORT/DB``): ``$XDG_STATE_HOME/planer/`` (``~/.local/state``
     without it) ``USER@HOST_PORT_DB.journal.jsonl``; the password is never part of the name.
-    The folder is created when the first record is journalled.
+    The folder is created when the first record is journalled. ``head``: a moulder's head
+    other than ``"main"`` keeps its own journal, ``run.db.<head>.journal.jsonl`` (each head's
+    records stage writes its own).
     """
+    name = check_head("head", head)
+    path = _journal_path(log_path)
+    if name == DEFAULT_HEAD:
+        return path
+    return path.with_name(path.name.removesuffix(".journal.jsonl") + f".{name}.journal.jsonl")
+
+
+def _journal_path(log_path: str | Path) -> Path:
     if is_database_url(log_path):
         from urllib.parse import urlsplit
 
@@ -171,7 +183,7 @@ def bare_failed(record: QualityRecord, exc: BaseException) -> QualityRecord:
     """A failed record the log surely stores, for one it refused although it looked storable."""
     return QualityRecord(
         t_s=record.t_s, wall_time=record.wall_time, seq=0, board_id=0, board_position_mm=0.0,
-        ok=False, error=f"record refused: {one_line(exc)}",
+        ok=False, error=f"record refused: {one_line(exc)}", head=record.head,
         extra={"refused": {"record": repr(record)[:2000]}},
     )
 

@@ -26,6 +26,7 @@ from controller.quality.schema import (
     _TUPLES,
     CALIBRATION_FIELDS,
     CALIBRATION_STATES,
+    DEFAULT_HEAD,
     MACHINE_ID_MAX,
     SCHEMA_VERSION,
     SQLITE_INT_MAX,
@@ -38,6 +39,7 @@ from controller.quality.schema import (
     _from_row,
     _json_default,
     _to_row,
+    check_head,
     check_storable,
     column_names,
     create_statements,
@@ -54,6 +56,7 @@ from core.checks import check_int
 from core.fileio import atomic_writer
 
 __all__ = [
+    "DEFAULT_HEAD",
     "SCHEMA_VERSION",
     "CALIBRATION_STATES",
     "CALIBRATION_FIELDS",
@@ -84,6 +87,7 @@ __all__ = [
     "is_database_url",
     "log_target",
     "open_quality_log",
+    "quality_class_key",
 ]
 
 
@@ -307,11 +311,16 @@ class QualityLog:
             raise ValueError(f"value of meta key {key!r} is not JSON serialisable: {exc}") from None
         self._call("set_meta", key, text)
 
-    def set_quality_class(self, quality_class: QualityClass) -> None:
-        """Store the quality class the records are judged against (read by ``planer report``)."""
+    def set_quality_class(self, quality_class: QualityClass, *,
+                          head: str = DEFAULT_HEAD) -> None:
+        """Store the quality class the records are judged against (read by ``planer report``).
+
+        ``head``: the cutterhead whose records it judges (a moulder's heads each have their
+        own; meta key ``quality_class`` for ``"main"``, ``quality_class:<head>`` for another).
+        """
         if not isinstance(quality_class, QualityClass):
             raise ValueError("quality_class must be a QualityClass")
-        self.set_meta("quality_class", quality_class.to_dict())
+        self.set_meta(quality_class_key(head), quality_class.to_dict())
 
     # -- reading ------------------------------------------------------------------------------
 
@@ -326,9 +335,9 @@ class QualityLog:
             raise QualityLogError(
                 f"meta key {key!r} of {self._store.name} is unreadable: {exc}") from None
 
-    def quality_class(self) -> QualityClass | None:
-        """The stored quality class, or ``None`` when the writer stored none."""
-        data = self.get_meta("quality_class")
+    def quality_class(self, head: str = DEFAULT_HEAD) -> QualityClass | None:
+        """The stored quality class of ``head``'s records, or ``None`` when none was stored."""
+        data = self.get_meta(quality_class_key(head))
         if data is None:
             return None
         try:
@@ -344,6 +353,7 @@ class QualityLog:
         since_seq: int | None = None,
         after_id: int | None = None,
         machine_id: str | None = None,
+        head: str | None = None,
     ) -> list[tuple[int, QualityRecord]]:
         """``(id, record)`` pairs in id order; filters as :meth:`records`."""
         sel = Selection(
@@ -351,6 +361,7 @@ class QualityLog:
             since_seq=None if since_seq is None else check_int("since_seq", since_seq),
             after_id=None if after_id is None else check_int("after_id", after_id),
             machine_id=_check_machine_id("machine_id", machine_id),
+            head=None if head is None else check_head("head", head),
         )
         return [(int(r[0]), _from_row(r)) for r in self._call("select", sel)]
 
@@ -361,6 +372,7 @@ class QualityLog:
         *,
         after_id: int | None = None,
         machine_id: str | None = None,
+        head: str | None = None,
     ) -> list[QualityRecord]:
         """The records in id order.
 
@@ -374,9 +386,13 @@ class QualityLog:
             Only records appended after the one with this id (for following a growing log).
         machine_id : str, keyword-only, optional
             Only this machine's records (a log shared by several machines).
+        head : str, keyword-only, optional
+            Only this cutterhead's records (a moulder's head; ``"main"`` also reads the
+            records written before schema version 8).
         """
         return [r for _, r in self.entries(board_id=board_id, since_seq=since_seq,
-                                           after_id=after_id, machine_id=machine_id)]
+                                           after_id=after_id, machine_id=machine_id,
+                                           head=head)]
 
     @property
     def last_id(self) -> int:
@@ -429,6 +445,12 @@ class QualityLog:
     def __repr__(self) -> str:
         state = "closed" if self._store.closed else "open"
         return f"QualityLog({self._store.name!r}, {state})"
+
+
+def quality_class_key(head: str = DEFAULT_HEAD) -> str:
+    """The meta key of a head's quality class: ``quality_class`` or ``quality_class:<head>``."""
+    name = check_head("head", head)
+    return "quality_class" if name == DEFAULT_HEAD else f"quality_class:{name}"
 
 
 def open_quality_log(target: str | Path, *, create: bool = True,

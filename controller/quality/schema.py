@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
@@ -22,11 +23,16 @@ from core.checks import check_finite, check_int, check_positive
 from core.errors import PlanerError
 
 #: Version of the table layout this code writes; logs with a higher version are refused.
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 #: SQLite ``application_id`` marking a file as a planer quality log ("PLQL").
 APPLICATION_ID = 0x504C514C
 #: Longest machine id (``[machine] id``), characters.
 MACHINE_ID_MAX = 64
+#: The head of a single-head planer, and of every record written before schema version 8.
+DEFAULT_HEAD = "main"
+#: Longest head name, characters.
+HEAD_MAX = 32
+_HEAD_NAME = re.compile(r"[a-z][a-z0-9_]*")
 
 
 class QualityLogError(PlanerError, ValueError):
@@ -243,6 +249,10 @@ class QualityRecord:
         Why (the worst pair, widespread defects).
     board_defect_counts : dict or None
         Defects per kind on the board's pairs up to this one: a count for every kind.
+    head : str
+        The cutterhead that cut the measured surface (schema version 8): a moulder's head name
+        (``[a-z][a-z0-9_]*``, e.g. ``"bottom"``); ``"main"`` for a single-head planer and for
+        every record written before version 8.
     """
 
     t_s: float
@@ -291,6 +301,7 @@ class QualityRecord:
     board_grade: int | None = None
     board_grade_reason: str | None = None
     board_defect_counts: dict[str, int] | None = None
+    head: str = DEFAULT_HEAD
 
     def __post_init__(self) -> None:
         def put(name: str, value: Any) -> None:
@@ -311,6 +322,7 @@ class QualityRecord:
             put(name, _float_tuple(name, getattr(self, name)))
         put("passed", _opt_bool("passed", self.passed))
         put("machine_id", _check_machine_id("machine_id", self.machine_id))
+        put("head", check_head("head", self.head))
         if self.error is not None and not isinstance(self.error, str):
             raise ValueError(f"error must be a string or None, got {self.error!r}")
         if self.flag_reason is not None:
@@ -572,7 +584,7 @@ def storable_record(record: QualityRecord) -> QualityRecord:
         "t_s", "wall_time", "seq", "board_id", "board_position_mm", "shift_px", "confidence",
         "feed_setpoint_mm_s", "piezo_offsets_um", "target_pitch_mm", "true_pitch_mm",
         "true_uniformity_cv", "roll_deg", "roll_confidence", "calibration_state",
-        *CALIBRATION_FIELDS, "flag_reason", *KNIFE_CONDITION_FIELDS, *DEFECT_FIELDS)}
+        *CALIBRATION_FIELDS, "flag_reason", *KNIFE_CONDITION_FIELDS, *DEFECT_FIELDS, "head")}
     out = QualityRecord(**kept, ok=False, error=error, extra=extra)
     check_storable(out)
     return out
@@ -757,6 +769,7 @@ _COLUMNS: tuple[tuple[str, str, str], ...] = (
      "INTEGER CHECK (board_grade BETWEEN 1 AND 5)"),
     ("board_grade_reason", "TEXT", "TEXT"),
     ("board_defect_counts", "TEXT", "TEXT"),
+    ("head", f"TEXT NOT NULL DEFAULT '{DEFAULT_HEAD}'", f"TEXT NOT NULL DEFAULT '{DEFAULT_HEAD}'"),
 )
 assert tuple(c for c, _, _ in _COLUMNS) == _FIELD_NAMES, "schema and record differ"
 
@@ -767,13 +780,14 @@ _V1 = tuple(n for n in _V3 if n != "machine_id")
 _V4 = _FIELD_NAMES[:_FIELD_NAMES.index("uncalibrated_depth_um") + 1]
 _V5 = _FIELD_NAMES[:_FIELD_NAMES.index("flag_reason") + 1]
 _V6 = _FIELD_NAMES[:_FIELD_NAMES.index("jointing_knife") + 1]
+_V7 = _FIELD_NAMES[:_FIELD_NAMES.index("board_defect_counts") + 1]
 #: Column names by schema version: (id column, record columns in field order). Version 1
 #: used the field names; version 2 the CSV header's (``record_id``, ``wall_time_utc``,
 #: ``extra_json``); version 3 added ``machine_id``; version 4 the orientation, the
 #: self-calibration and the kinematic depth (``roll_deg`` ... ``uncalibrated_depth_um``);
 #: version 5 ``flag_reason``; version 6 the knife condition (``board_travel_m`` ...
 #: ``jointing_knife``); version 7 the planing defects and grades (``defects`` ...
-#: ``board_defect_counts``).
+#: ``board_defect_counts``); version 8 the cutterhead (``head``).
 _NAMES = {
     1: ("id", _V1),
     2: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V1)),
@@ -781,7 +795,8 @@ _NAMES = {
     4: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V4)),
     5: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V5)),
     6: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V6)),
-    7: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
+    7: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _V7)),
+    8: ("record_id", tuple(_COLUMN_OF.get(n, n) for n in _FIELD_NAMES)),
 }
 assert SCHEMA_VERSION == max(_NAMES)
 
@@ -796,8 +811,11 @@ ADDED_IN_V5: tuple[tuple[str, str, str], ...] = tuple(
 ADDED_IN_V6: tuple[tuple[str, str, str], ...] = tuple(
     c for c in _COLUMNS if c[0] not in _V5 and c[0] in _V6)
 #: The columns version 7 added (the planing defects and grades), for the migrations.
-ADDED_IN_V7: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V6)
-_ADDED_IN = {4: ADDED_IN_V4, 5: ADDED_IN_V5, 6: ADDED_IN_V6, 7: ADDED_IN_V7}
+ADDED_IN_V7: tuple[tuple[str, str, str], ...] = tuple(
+    c for c in _COLUMNS if c[0] not in _V6 and c[0] in _V7)
+#: The column version 8 added (``head``, ``'main'`` in the rows before it), for the migrations.
+ADDED_IN_V8: tuple[tuple[str, str, str], ...] = tuple(c for c in _COLUMNS if c[0] not in _V7)
+_ADDED_IN = {4: ADDED_IN_V4, 5: ADDED_IN_V5, 6: ADDED_IN_V6, 7: ADDED_IN_V7, 8: ADDED_IN_V8}
 assert max(_ADDED_IN) == SCHEMA_VERSION
 
 
@@ -849,13 +867,24 @@ class Selection:
     since_seq: int | None = None
     after_id: int | None = None
     machine_id: str | None = None
+    head: str | None = None
+
+    def fit(self, columns: Sequence[str]) -> Selection | None:
+        """The selection on a layout with ``columns``; ``None`` when no row can match.
+
+        A layout before ``head`` (schema version 8) holds only head ``"main"``'s records.
+        """
+        if self.head is None or "head" in columns:
+            return self
+        return dataclasses.replace(self, head=None) if self.head == DEFAULT_HEAD else None
 
     def where(self, id_column: str, mark: str) -> tuple[list[str], list[Any]]:
         """SQL conditions (placeholder ``mark``: ``?`` or ``%s``) and their parameters."""
         where: list[str] = []
         params: list[Any] = []
         for column, value in (("board_id", self.board_id), ("seq", self.since_seq),
-                              (id_column, self.after_id), ("machine_id", self.machine_id)):
+                              (id_column, self.after_id), ("machine_id", self.machine_id),
+                              ("head", self.head)):
             if value is not None:
                 op = ">=" if column == "seq" else ">" if column == id_column else "="
                 where.append(f"{column} {op} {mark}")
@@ -967,6 +996,8 @@ def _from_row(row: Sequence[Any]) -> QualityRecord:
             kw[name] = None if kw[name] is None else json.loads(kw[name])
         kw["ok"] = bool(kw["ok"])
         kw["passed"] = None if kw["passed"] is None else bool(kw["passed"])
+        if kw["head"] is None:  # a layout before schema version 8: the single head
+            kw["head"] = DEFAULT_HEAD
         return QualityRecord(**kw)
     except (TypeError, ValueError, KeyError) as exc:
         raise QualityLogError(f"record {rid} of the quality log is unreadable: {exc}") from None
@@ -979,4 +1010,12 @@ def _check_machine_id(name: str, value: Any) -> str | None:
             or len(value) > MACHINE_ID_MAX or value != value.strip()):
         raise ValueError(f"{name} must be a printable string of 1..{MACHINE_ID_MAX} characters "
                          f"without surrounding spaces, got {value!r:.80}")
+    return value
+
+
+def check_head(name: str, value: Any) -> str:
+    """A head name (``[a-z][a-z0-9_]*``, at most :data:`HEAD_MAX` characters); else ValueError."""
+    if not isinstance(value, str) or len(value) > HEAD_MAX or not _HEAD_NAME.fullmatch(value):
+        raise ValueError(f"{name} must be a head name ([a-z][a-z0-9_]*, at most {HEAD_MAX} "
+                         f"characters), got {value!r:.80}")
     return value

@@ -42,9 +42,9 @@ _SCHEMA_LOCK = 0x504C514C
 _NUL_CHECKED = ("error", "flag_reason")
 #: Columns that are BOOLEAN in PostgreSQL (0/1 integers in SQLite).
 _BOOLEANS = ("ok", "passed")
-#: Layout versions read in PostgreSQL (3 to 5 are brought to the current one by a writer; a
+#: Layout versions read in PostgreSQL (3 to 7 are brought to the current one by a writer; a
 #: reader reads them as they are).
-_READABLE = (3, 4, 5, 6, SCHEMA_VERSION)
+_READABLE = (3, 4, 5, 6, 7, SCHEMA_VERSION)
 
 
 def describe_url(url: str) -> str:
@@ -237,7 +237,8 @@ class PostgresStore:
                 version = int(rows[0][0])
                 if version < SCHEMA_VERSION and create:
                     # v4: orientation, self-calibration, depths; v5: flag_reason; v6: the
-                    # knife condition; v7: the planing defects and grades
+                    # knife condition; v7: the planing defects and grades; v8: the head
+                    # (NOT NULL DEFAULT 'main': the rows before it are the single head's)
                     for name, _, pg_type in columns_added_since(version):
                         conn.execute(f"ALTER TABLE records ADD COLUMN IF NOT EXISTS {name} "
                                      f"{pg_type}")
@@ -356,6 +357,10 @@ class PostgresStore:
     def select(self, selection: Selection) -> list[tuple[Any, ...]]:
         """Rows ``(id, *fields)`` in id order (columns a version 3 log lacks read NULL)."""
         rid, cols = column_names(self.schema_version)
+        fitted = selection.fit(cols)  # a layout before heads: only head "main"
+        if fitted is None:
+            return []
+        selection = fitted
         exprs = list(cols) + ["NULL"] * (len(column_names(SCHEMA_VERSION)[1]) - len(cols))
         where, params = selection.where(rid, "%s")
         sql = (f"SELECT {rid}, {', '.join(exprs)} FROM records"

@@ -155,7 +155,8 @@ class SqliteStore:
 
         v2: the CSV header's names; v3: ``machine_id``; v4: orientation, self-calibration and
         kinematic depth (records before it read ``None`` there); v5: ``flag_reason``; v6: the
-        knife condition; v7: the planing defects and grades.
+        knife condition; v7: the planing defects and grades; v8: ``head`` (``'main'`` in the
+        rows before it).
         """
         conn = self._connection()
         try:
@@ -172,7 +173,7 @@ class SqliteStore:
                                  "ON records (machine_id, wall_time_utc)")
                     version = 3
                 # v4: orientation, self-calibration, depths; v5: flag_reason; v6: the knife
-                # condition; v7: the planing defects and grades
+                # condition; v7: the planing defects and grades; v8: the head ('main')
                 for name, sqlite_type, _ in columns_added_since(version):
                     conn.execute(f"ALTER TABLE records ADD COLUMN {name} {sqlite_type}")
                 version = SCHEMA_VERSION
@@ -301,6 +302,10 @@ class SqliteStore:
         rid, cols = column_names(self.schema_version)
         if selection.machine_id is not None and "machine_id" not in cols:
             return []  # a layout before machine ids: no record names a machine
+        fitted = selection.fit(cols)  # a layout before heads: only head "main"
+        if fitted is None:
+            return []
+        selection = fitted
         exprs = list(cols) + ["NULL"] * (len(column_names(SCHEMA_VERSION)[1]) - len(cols))
         where, params = selection.where(rid, "?")
         sql = (f"SELECT {rid}, {', '.join(exprs)} FROM records"

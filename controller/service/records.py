@@ -46,7 +46,7 @@ from controller.quality.defect_fields import BoardGrades, frame_centre_mm, pair_
 from controller.quality.defect_report import FRAME_CENTRE_KEY
 from controller.quality.journal import RecordSink, default_journal_path
 from controller.quality.log import QualityClass, QualityRecord, judge, utc_iso, vision_fields
-from controller.quality.schema import knife_condition_fields
+from controller.quality.schema import DEFAULT_HEAD, check_head, knife_condition_fields
 from controller.quality.write_ahead import CLOSE_TIMEOUT_S, WriteAheadSink
 from controller.service.events import EventKind, EventLog
 from controller.service.frame_result import FrameResult
@@ -146,7 +146,11 @@ class QualityRecords:
         in batches (:class:`~controller.quality.write_ahead.WriteAheadSink`); ``False``:
         written at once, in the caller's thread (:class:`RecordSink`).
     journal_path : Path, optional
-        The journal; default beside the log (``<log>.journal.jsonl``).
+        The journal; default beside the log (``<log>.journal.jsonl``; a moulder's head other
+        than ``"main"``: ``<log>.<head>.journal.jsonl``).
+    head : str, keyword-only
+        The cutterhead whose pairs these are (a moulder's head name): on every record
+        (``head``, schema version 8). Default ``"main"``, the single head.
     """
 
     def __init__(
@@ -158,7 +162,9 @@ class QualityRecords:
         on_health: Callable[[bool], None],
         threaded: bool,
         journal_path: Path | None = None,
+        head: str = DEFAULT_HEAD,
     ) -> None:
+        self.head = check_head("head", head)
         self.cfg = cfg
         self.log = log
         self.quality_class = quality_class_of(cfg)
@@ -175,7 +181,8 @@ class QualityRecords:
         self.writer: WriteAheadSink | None = None
         if log is not None:
             if journal_path is None:
-                journal_path = default_journal_path(getattr(log, "path", None) or cfg.log.path)
+                journal_path = default_journal_path(getattr(log, "path", None) or cfg.log.path,
+                                                    head=self.head)
             if threaded:
                 self.writer = WriteAheadSink(log, journal_path=Path(journal_path),
                                              make=self._make, on_durable=self._durable)
@@ -269,6 +276,7 @@ class QualityRecords:
         fields: dict[str, Any] = {
             **meta,
             "wall_time": utc_iso(time.time()),
+            "head": self.head,
             "ok": r.ok,
             "error": r.error,
             "flag_reason": flag_reason_of(r.error),  # a flagged pair: why (schema version 5)
@@ -330,6 +338,7 @@ class QualityRecords:
             return QualityRecord(
                 **meta,
                 wall_time=fields["wall_time"],
+                head=self.head,
                 ok=False,
                 error=f"record invalid: {exc}" if r.ok else f"{r.error} (record invalid: {exc})",
                 feed_setpoint_mm_s=feed,

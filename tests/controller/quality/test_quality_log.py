@@ -35,8 +35,15 @@ from controller.quality.log import (
     quality_class_from_section,
     utc_iso,
 )
-from controller.quality.schema import ADDED_IN_V4, ADDED_IN_V5, ADDED_IN_V6, ADDED_IN_V7
+from controller.quality.schema import (
+    ADDED_IN_V4,
+    ADDED_IN_V5,
+    ADDED_IN_V6,
+    ADDED_IN_V7,
+    ADDED_IN_V8,
+)
 from core.errors import ConfigError
+from tests.support.old_logs import downgrade
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -259,7 +266,7 @@ def test_table_columns_are_the_csv_header(tmp_path):
     QualityLog(p).close()
     with sqlite3.connect(p) as conn:
         cols = tuple(r[1] for r in conn.execute("PRAGMA table_info(records)"))
-    assert cols == CSV_COLUMNS and SCHEMA_VERSION == 7 and cols[-1] == "board_defect_counts"
+    assert cols == CSV_COLUMNS and SCHEMA_VERSION == 8 and cols[-1] == "head"
     renamed = {"wall_time": "wall_time_utc", "extra": "extra_json"}
     assert cols[1:] == tuple(renamed.get(f.name, f.name) for f in dataclasses.fields(QualityRecord))
 
@@ -274,8 +281,7 @@ def _make_v1_log(p: Path, n: int) -> list[QualityRecord]:
                          ("extra_json", "extra")):
             conn.execute(f"ALTER TABLE records RENAME COLUMN {old} TO {new}")
         conn.execute("DROP INDEX records_machine_time")
-        for name, _, _ in ADDED_IN_V7 + ADDED_IN_V6 + ADDED_IN_V5 + ADDED_IN_V4:
-            conn.execute(f"ALTER TABLE records DROP COLUMN {name}")
+        downgrade(conn.execute, 3)
         conn.execute("ALTER TABLE records DROP COLUMN machine_id")
         conn.execute("UPDATE schema_version SET version = 1")
     return [dataclasses.replace(r, machine_id=None) for r in recs]
@@ -598,19 +604,20 @@ def test_machine_toml_machine_id():
             machine_from_dict({"machine": bad})
 
 
-@pytest.mark.parametrize("version", [3, 4, 5, 6, 7])
+@pytest.mark.parametrize("version", [3, 4, 5, 6, 7, 8])
 def test_columns_added_since_a_version_are_the_later_versions_columns_in_order(version):
     from controller.quality.schema import SCHEMA_VERSION, columns_added_since
 
-    by_version = {4: ADDED_IN_V4, 5: ADDED_IN_V5, 6: ADDED_IN_V6, 7: ADDED_IN_V7}
+    by_version = {4: ADDED_IN_V4, 5: ADDED_IN_V5, 6: ADDED_IN_V6, 7: ADDED_IN_V7,
+                  8: ADDED_IN_V8}
     want = tuple(c for v in range(version + 1, SCHEMA_VERSION + 1) for c in by_version[v])
     assert columns_added_since(version) == want
     assert len({name for name, _, _ in want}) == len(want)  # each column added once
 
 
-@pytest.mark.parametrize("version", [0, 1, 2, 8, -1])
+@pytest.mark.parametrize("version", [0, 1, 2, 9, -1])
 def test_columns_added_since_refuses_a_version_it_cannot_migrate_from(version):
     from controller.quality.schema import columns_added_since
 
-    with pytest.raises(ValueError, match="version must be in 3..7"):
+    with pytest.raises(ValueError, match="version must be in 3..8"):
         columns_added_since(version)

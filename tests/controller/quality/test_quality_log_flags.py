@@ -16,15 +16,15 @@ import pytest
 from controller.quality.log import CSV_COLUMNS, SCHEMA_VERSION, QualityLog, QualityRecord, utc_iso
 from controller.quality.schema import (
     ADDED_IN_V5,
-    ADDED_IN_V6,
-    ADDED_IN_V7,
     RecordRefusedError,
     check_storable,
+    columns_added_since,
     record_from_dict,
     record_to_dict,
     storable_record,
 )
 from tests.support import pg_support
+from tests.support.old_logs import downgrade
 
 pg_server = pg_support.pg_server  # the fixtures
 fresh_db = pg_support.fresh_db
@@ -54,7 +54,7 @@ def _key(rec: QualityRecord) -> tuple:
 def test_flag_reason_is_the_column_version_5_added():
     assert SCHEMA_VERSION >= 5
     assert tuple(n for n, _, _ in ADDED_IN_V5) == ("flag_reason",)
-    assert CSV_COLUMNS[-1 - len(ADDED_IN_V6) - len(ADDED_IN_V7)] == "flag_reason"  # 6, 7 follow
+    assert CSV_COLUMNS[-1 - len(columns_added_since(5))] == "flag_reason"  # 6.. follow
 
 
 @pytest.mark.parametrize("kw, message", [
@@ -98,9 +98,7 @@ def _make_v4_log(path, recs) -> None:
         for r in recs:
             log.append(r)
     with sqlite3.connect(path) as conn:
-        for name, _, _ in ADDED_IN_V7 + ADDED_IN_V6 + ADDED_IN_V5:
-            conn.execute(f"ALTER TABLE records DROP COLUMN {name}")
-        conn.execute("UPDATE schema_version SET version = 4")
+        downgrade(conn.execute, 4)
 
 
 def test_version_4_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):
@@ -128,9 +126,7 @@ def test_version_4_database_is_migrated_by_a_writer(fresh_db):
         for r in old:
             log.append(r)
     with psycopg.connect(fresh_db, autocommit=True) as conn:  # the layout of version 4
-        for name, _, _ in ADDED_IN_V7 + ADDED_IN_V6 + ADDED_IN_V5:
-            conn.execute(f"ALTER TABLE records DROP COLUMN {name}")
-        conn.execute("UPDATE schema_version SET version = 4")
+        downgrade(conn.execute, 4)
     with QualityLog(fresh_db, create=False) as reader:
         assert reader.schema_version == 4
         assert [_key(r) for r in reader.records()] == [_key(r) for r in old]

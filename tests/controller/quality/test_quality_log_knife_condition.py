@@ -19,15 +19,16 @@ from controller.laws.knife_condition import JointingState
 from controller.quality.log import CSV_COLUMNS, SCHEMA_VERSION, QualityLog, QualityRecord, utc_iso
 from controller.quality.schema import (
     ADDED_IN_V6,
-    ADDED_IN_V7,
     JOINTING_STATES,
     KNIFE_CONDITION_FIELDS,
+    columns_added_since,
     knife_condition_fields,
     record_from_dict,
     record_to_dict,
     storable_record,
 )
 from tests.support import pg_support
+from tests.support.old_logs import downgrade
 
 pg_server = pg_support.pg_server  # the fixtures
 fresh_db = pg_support.fresh_db
@@ -64,7 +65,7 @@ def test_the_states_are_the_forecasts_and_the_columns_come_in_version_6():
     assert SCHEMA_VERSION >= 6
     assert JOINTING_STATES == tuple(s.value for s in JointingState)
     assert tuple(n for n, _, _ in ADDED_IN_V6) == KNIFE_CONDITION_FIELDS
-    later = len(ADDED_IN_V7)  # version 7's columns follow
+    later = len(columns_added_since(6))  # version 7's and 8's columns follow
     assert CSV_COLUMNS[-len(KNIFE_CONDITION_FIELDS) - later:-later] == KNIFE_CONDITION_FIELDS
 
 
@@ -127,9 +128,7 @@ def test_a_failed_pair_carries_the_condition_in_force_and_it_round_trips(tmp_pat
 
 
 def _drop_v6(execute) -> None:
-    for name, _, _ in ADDED_IN_V7 + ADDED_IN_V6:
-        execute(f"ALTER TABLE records DROP COLUMN {name}")
-    execute("UPDATE schema_version SET version = 5")
+    downgrade(execute, 5)
 
 
 def test_version_5_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):

@@ -30,7 +30,8 @@ from controller.quality.log import (
     utc_iso,
     vision_fields,
 )
-from controller.quality.schema import ADDED_IN_V4, ADDED_IN_V5, ADDED_IN_V6, ADDED_IN_V7
+from controller.quality.schema import ADDED_IN_V4, columns_added_since
+from tests.support.old_logs import downgrade
 
 NEW = ("roll_deg", "roll_confidence", "calibration_state", *CALIBRATION_FIELDS,
        "kinematic_depth_um", "uncalibrated_depth_um")
@@ -70,7 +71,7 @@ def _key(rec: QualityRecord) -> tuple:
 
 def test_new_fields_are_columns_and_csv_names_in_field_order():
     assert SCHEMA_VERSION >= 4
-    added_later = len(ADDED_IN_V5) + len(ADDED_IN_V6) + len(ADDED_IN_V7)  # 5, 6, 7 follow
+    added_later = len(columns_added_since(4))  # 5, 6, ... follow
     assert CSV_COLUMNS[-len(NEW) - added_later:-added_later] == NEW
     assert tuple(name for name, _, _ in ADDED_IN_V4) == NEW
     assert {f.name for f in dataclasses.fields(QualityRecord)} >= set(NEW)
@@ -219,9 +220,7 @@ def make_v3_log(path: Path, recs: list[QualityRecord]) -> None:
         for r in recs:
             log.append(r)
     with sqlite3.connect(path) as conn:
-        for name, _, _ in ADDED_IN_V7 + ADDED_IN_V6 + ADDED_IN_V5 + ADDED_IN_V4:
-            conn.execute(f"ALTER TABLE records DROP COLUMN {name}")
-        conn.execute("UPDATE schema_version SET version = 3")
+        downgrade(conn.execute, 3)
 
 
 def test_version_3_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):
