@@ -38,6 +38,11 @@ the window). A drive that lags its setpoint (a slow ramp of the PLC, a low bandw
 teaches the loop nothing false: no wind-up while the drive is rate-limited. Without drive
 readings the setpoint history stands in for them (the drive follows within ``settle_s``).
 
+In a moulder another law sets the one feed (`controller.laws.moulder_feed`): each head's loop
+still learns its correction in :meth:`FeedLoop.update` (its proposal is not written), and
+:meth:`FeedLoop.follow_setpoint` records the setpoint really written in its place, so the history,
+the trust rule and the cut interval see the feed the board had.
+
 The per-measurement gain is scheduled on the loop delay so that the crossover sits at a fixed
 fraction of the delay at every feed: ``g = ki * Ts / (T_delay + Ts)``.
 """
@@ -436,6 +441,46 @@ class FeedLoop:
         t = check_finite("now_s", now_s)
         rate = check_positive("spindle_rpm", spindle_rpm, allow_zero=True) / 60.0 * self.cfg.knives
         self.drive.record(t, check_finite("feed_actual_mm_s", feed_actual_mm_s), rate)
+
+    def follow_setpoint(self, *, now_s: float, feed_mm_s: float, spindle_rpm: float) -> float:
+        """The feed in force from ``now_s`` on was set by another law (a moulder's one feed).
+
+        In a moulder one feed serves every head (`controller.laws.moulder_feed`): each head's
+        loop still learns its own correction in :meth:`update` (the coordinator reads
+        :attr:`correction`; the update's own proposal is not written), and this records the
+        setpoint really written in place of that proposal. The setpoint history, its trust rule
+        and :meth:`cut_interval_s` then see the feed the board really had (also without
+        :meth:`observe_drive`), :attr:`feed_mm_s` is the setpoint in force and the next update's
+        rate limit counts from it. A proposal of an update at the same instant is replaced;
+        :meth:`reject` takes the followed setpoint back to the one in force before that update.
+
+        Parameters
+        ----------
+        now_s : float
+            When the setpoint was written, seconds (never before the last update).
+        feed_mm_s : float
+            The feed setpoint written, mm/s (> 0; not limited to this loop's own feed range).
+        spindle_rpm : float
+            The head's spindle speed with it, rev/min (a variable head: the setpoint in force);
+            0 = stopped (no commanded pitch: the trust rule holds the correction meanwhile).
+
+        Returns
+        -------
+        float
+            ``feed_mm_s``.
+        """
+        t = check_time_forward(now_s, self._t_last)
+        feed = check_positive("feed_mm_s", feed_mm_s)
+        n_rev_s = check_positive("spindle_rpm", spindle_rpm, allow_zero=True) / 60.0
+        p_cmd = feed / (n_rev_s * self.cfg.knives) if n_rev_s > 0 else math.nan
+        same_update = self._undo is not None and self._t_last == t
+        prev_feed, prev_t_rate = self._feed, self._t_rate
+        replaced = self._record(t, feed, p_cmd)
+        if not same_update:  # else keep the update's undo: back to before that update
+            self._undo = (prev_feed, prev_t_rate, replaced)
+        self._feed = feed
+        self._t_last = self._t_rate = t
+        return feed
 
     def defer(self) -> float:
         """The last update's setpoint was held back as too small a change to write.
