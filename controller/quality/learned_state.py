@@ -18,6 +18,11 @@ journal) and reads it back at the next start:
   machine, and the machine still runs the same knives (:meth:`LearnedMemory.judge`); otherwise
   the loops learn afresh and the service says why.
 
+A moulder's heads each keep their own state (:attr:`LearnedState.head`; the file of a head other
+than ``"main"`` is ``run.db.<head>.learned.json``): a head never resumes another head's offsets.
+The single head ``"main"`` keeps the file and reads the states written before heads (they hold
+no ``head`` and are ``"main"``'s).
+
 No control law lives here; :class:`controller.service.loops.ControlLoops` decides what to take.
 """
 
@@ -32,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from controller.quality.journal import default_journal_path
+from controller.quality.schema import DEFAULT_HEAD, check_head
 from core.fileio import atomic_write_text
 
 FORMAT = 1
@@ -51,15 +57,18 @@ OFFSET_CHANGE_UM = 0.005
 """A table that moved less than this (every knife) is not a change worth writing, um."""
 
 
-def learned_state_path(log_path: str | Path) -> Path:
+def learned_state_path(log_path: str | Path, *, head: str = DEFAULT_HEAD) -> Path:
     """Where the learnt state of a quality log lives (see the module's docstring).
 
     Parameters
     ----------
     log_path : str or Path
         The quality log: an SQLite file or a ``postgresql://`` URL.
+    head : str, keyword-only
+        The cutterhead: ``"main"`` (``run.db.learned.json``) or a moulder's head
+        (``run.db.<head>.learned.json``, beside its journal).
     """
-    journal = default_journal_path(log_path)
+    journal = default_journal_path(log_path, head=head)
     name = journal.name
     suffix = ".journal.jsonl"
     base = name[: -len(suffix)] if name.endswith(suffix) else name
@@ -165,6 +174,9 @@ class LearnedState:
         The uniformity loop's runout estimate (for people and reports; not resumed).
     mode_gains : tuple of (float, float) or None
         The identified actuator gain per knife mode, (real, imaginary) (likewise).
+    head : str
+        The cutterhead it was learnt on (``"main"``: the single head, and every state saved
+        before heads).
     """
 
     machine_id: str
@@ -174,10 +186,12 @@ class LearnedState:
     feed_correction: float = 1.0
     runout_estimate_um: tuple[float, ...] | None = None
     mode_gains: tuple[tuple[float, float], ...] | None = field(default=None)
+    head: str = DEFAULT_HEAD
 
     def __post_init__(self) -> None:
         if not isinstance(self.machine_id, str) or not self.machine_id:
             raise ValueError(f"machine_id must be a non-empty string, got {self.machine_id!r}")
+        check_head("head", self.head)
         if not isinstance(self.knife_set, KnifeSet):
             raise ValueError(f"knife_set must be a KnifeSet, got {self.knife_set!r}")
         _finite("saved_at_unix", self.saved_at_unix)
@@ -199,6 +213,7 @@ class LearnedState:
         return {
             "format": FORMAT,
             "machine_id": self.machine_id,
+            "head": self.head,
             "saved_at_unix": self.saved_at_unix,
             "knife_set": self.knife_set.to_dict(),
             "offsets_um": list(self.offsets_um),
@@ -227,6 +242,7 @@ class LearnedState:
             feed_correction=d.get("feed_correction", 1.0),
             runout_estimate_um=d.get("runout_estimate_um"),
             mode_gains=d.get("mode_gains"),
+            head=d.get("head", DEFAULT_HEAD),  # a state saved before heads: the single head's
         )
 
 
@@ -245,6 +261,8 @@ class LearnedMemory:
         Service seconds between two writes of a changing state.
     max_age_s : float
         A state older than this is not resumed, s.
+    head : str
+        This cutterhead; a state of another head is never resumed.
     """
 
     def __init__(
@@ -255,8 +273,10 @@ class LearnedMemory:
         wall_clock: Callable[[], float] = time.time,
         save_every_s: float = SAVE_EVERY_S,
         max_age_s: float = MAX_AGE_S,
+        head: str = DEFAULT_HEAD,
     ) -> None:
         self.path = Path(path)
+        self.head = check_head("head", head)
         if not isinstance(machine_id, str) or not machine_id:
             raise ValueError(f"machine_id must be a non-empty string, got {machine_id!r}")
         self.machine_id = machine_id
@@ -275,9 +295,11 @@ class LearnedMemory:
         """The last write's trouble (``None`` when it went through)."""
 
     @classmethod
-    def beside(cls, log_path: str | Path, *, machine_id: str, **kw: Any) -> LearnedMemory:
-        """The memory of the quality log at ``log_path`` (:func:`learned_state_path`)."""
-        return cls(learned_state_path(log_path), machine_id=machine_id, **kw)
+    def beside(cls, log_path: str | Path, *, machine_id: str, head: str = DEFAULT_HEAD,
+               **kw: Any) -> LearnedMemory:
+        """``head``'s memory on the quality log at ``log_path`` (:func:`learned_state_path`)."""
+        return cls(learned_state_path(log_path, head=head), machine_id=machine_id, head=head,
+                   **kw)
 
     def load(self) -> tuple[LearnedState | None, str | None]:
         """The state on disk and, when it cannot be used at all, why.
@@ -303,6 +325,8 @@ class LearnedMemory:
         """Why ``state`` must not be resumed on the machine as it is ``now`` (``None``: resume)."""
         if state.machine_id != self.machine_id:
             return f"learnt on machine {state.machine_id!r}, this is {self.machine_id!r}"
+        if state.head != self.head:
+            return f"learnt on head {state.head!r}, this is head {self.head!r}"
         age = self.wall_clock() - state.saved_at_unix
         if age > self.max_age_s:
             return f"learnt {age / 60:.0f} min ago (older than {self.max_age_s / 60:.0f} min)"
@@ -322,7 +346,8 @@ class LearnedMemory:
     ) -> LearnedState:
         """A state of this machine stamped now."""
         return LearnedState(
-            machine_id=self.machine_id, knife_set=knife_set, saved_at_unix=self.wall_clock(),
+            machine_id=self.machine_id, head=self.head, knife_set=knife_set,
+            saved_at_unix=self.wall_clock(),
             offsets_um=tuple(float(v) for v in offsets_um), feed_correction=feed_correction,
             runout_estimate_um=(None if runout_estimate_um is None
                                 else tuple(float(v) for v in runout_estimate_um)),
@@ -371,10 +396,10 @@ class LearnedMemory:
         return True
 
 
-def learned_memory_of(log: Any) -> LearnedMemory | None:
-    """The memory beside a quality log (``None`` without a log that has a path and a machine)."""
+def learned_memory_of(log: Any, *, head: str = DEFAULT_HEAD) -> LearnedMemory | None:
+    """``head``'s memory beside a quality log (``None``: a log without a path or a machine)."""
     path = getattr(log, "path", None)
     machine_id = getattr(log, "machine_id", None)
     if not path or not isinstance(machine_id, str) or not machine_id:
         return None
-    return LearnedMemory.beside(path, machine_id=machine_id)
+    return LearnedMemory.beside(path, machine_id=machine_id, head=head)
