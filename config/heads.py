@@ -214,7 +214,8 @@ def check_unique(values: Iterable[Any], what: str, key: str = "heads") -> None:
     seen: dict[Any, int] = {}
     for i, value in enumerate(values):
         if value in seen:
-            raise ConfigError(f"{key}[{i}].{what} must be unique: {value!r} is also "
+            shown = repr(str(value) if isinstance(value, Path) else value)
+            raise ConfigError(f"{key}[{i}].{what} must be unique: {shown} is also "
                               f"{key}[{seen[value]}].{what}")
         seen[value] = i
 

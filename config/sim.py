@@ -971,13 +971,12 @@ def _check_head(head: SimHeadConfig, cfg: SimConfig, key: str) -> None:
     runout = "cutterhead.runout_um" if key == "" else f"{key}.runout_um"
     if max(abs(r) for r in ch.runout_um) + abs(ch.eccentricity_um) > 1e3 * ch.radius_mm:
         raise ConfigError(f"{runout} is larger than the radius")
-    rpm = "spindle.rpm" if key == "" else f"{key}.rpm"
-    slowest = head.spindle.rpm_range[0]
-    max_pitch = cfg.feed.max_mm_s / (slowest / 60.0 * ch.knives)
+    rpm = "rpm_min" if head.spindle.variable else "rpm"  # the slowest the head may run
+    rpm = f"spindle.{rpm}" if key == "" else f"{key}.{rpm}"
+    max_pitch = cfg.feed.max_mm_s / (head.spindle.rpm_range[0] / 60.0 * ch.knives)
     if max_pitch > 0.25 * ch.radius_mm:
         raise ConfigError(
-            f"feed.max_mm_s gives {max_pitch:.3g} mm per knife pass at {rpm}"
-            f"{'' if not head.spindle.variable else ' (its rpm_min)'}; "
+            f"feed.max_mm_s gives {max_pitch:.3g} mm per knife pass at {rpm}; "
             f"must stay below R/4 = {ch.radius_mm / 4:g} mm"
         )
 
