@@ -36,6 +36,14 @@ class RegisterBus(Protocol):
     async def write(self, address: int, words: Sequence[int]) -> None:
         """Write holding registers (function 6 for one word, 16 for more)."""
 
+    async def read_write(
+        self, read_address: int, read_count: int, write_address: int, words: Sequence[int]
+    ) -> list[int]:
+        """Write ``words`` at ``write_address``, then read, in one request (function 23).
+
+        Optional: a client falls back to function 3 on a bus without it.
+        """
+
     def close(self) -> None:
         """Close the connection (idempotent)."""
 

@@ -383,6 +383,11 @@ class RegisterMap:
 
     # ------------------------------------------------------------------ heads
     @property
+    def whole(self) -> RegisterMap:
+        """The whole map this is a view of (the map itself when it is no view)."""
+        return self._whole
+
+    @property
     def head_count(self) -> int:
         """Number of per-head blocks in the map (0 without ``[heads]``)."""
         return 0 if self.heads is None else self.heads.count

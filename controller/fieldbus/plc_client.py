@@ -4,7 +4,8 @@
   ``AsyncModbusTcpClient``); the simulator's in-process one is
   :class:`plant_sim.interfaces.register_bus.MachineRegisterBus`.
 * :class:`PlcClient` — what the service uses: ``read()``, ``write_feed()``,
-  ``write_heartbeat()``; requests and answers by
+  ``write_heartbeat()`` (and, over a head's view of the map, ``write_spindle_setpoint()``;
+  ``read_head(i)`` for tools); requests and answers by
   :class:`~controller.fieldbus.plc_protocol.PlcProtocol`,
   reconnects paced by :class:`~controller.fieldbus.plc_protocol.Backoff`; Modbus exceptions
   become :class:`core.errors.ModbusRefused` naming the register, a lost or unanswered connection
@@ -132,6 +133,24 @@ class ModbusTcpBus:
                 lambda: self._client.write_registers(address, ws, device_id=self.unit_id),
             )
 
+    async def read_write(
+        self, read_address: int, read_count: int, write_address: int, words: Sequence[int]
+    ) -> list[int]:
+        """Write ``words`` at ``write_address``, then read ``read_count`` words (function 23)."""
+        ws = [int(w) for w in words]
+        resp = await self._call(
+            f"write {len(ws)} at {write_address} and read {read_count} registers at "
+            f"{read_address}",
+            lambda: self._client.readwrite_registers(
+                read_address=read_address, read_count=read_count, write_address=write_address,
+                values=ws, device_id=self.unit_id,
+            ),
+        )
+        got = list(resp.registers)
+        if len(got) != read_count:
+            raise FieldbusError(f"PLC answered {len(got)} registers, expected {read_count}")
+        return got
+
     def close(self) -> None:
         """Close the connection (idempotent)."""
         if self._client is not None:
@@ -180,6 +199,13 @@ class PlcClient:
 
     Requests from several tasks (the service's PLC cycle and its pair task) are serialised:
     one request (with its connect) on the bus at a time, in the order they were made.
+
+    Over a head's view of the map (``RegisterMap.for_head(i)``) a read is two requests: the
+    common span (function 3), then the head's whole block in ONE function 23 transaction that
+    writes the service heartbeat again (the value this client last wrote, else the one just
+    read: no change the watchdog could mistake for life) and reads the block; function 3 where
+    the map does not offer 23 or the bus cannot send it. The snapshot then holds the head's
+    ``spindle_rpm``, ``knives``, ... under their usual names.
     """
 
     def __init__(
@@ -200,6 +226,8 @@ class PlcClient:
         """Time of the last answered request (read or write)."""
         self.reconnects = 0
         self.failures = 0
+        self._heartbeat: int | None = None
+        self._views: dict[int, PlcProtocol] = {}
         self._lock: asyncio.Lock | None = None
         self._lock_loop: Any = None
 
@@ -222,9 +250,15 @@ class PlcClient:
         regmap: RegisterMap | None = None,
         backoff: Backoff | None = None,
         clock: Callable[[], float] = time.monotonic,
+        head: int | None = None,
     ) -> PlcClient:
-        """A client over Modbus TCP (pymodbus, :class:`ModbusTcpBus`)."""
+        """A client over Modbus TCP (pymodbus, :class:`ModbusTcpBus`).
+
+        ``head``: the client reads and writes over that head's view of the map.
+        """
         rm = regmap or RegisterMap.load()
+        if head is not None:
+            rm = rm.for_head(head)
         bus = ModbusTcpBus(host, port, unit_id=unit_id, timeout_s=timeout_s)
         return cls(bus, rm, backoff=backoff, clock=clock)
 
@@ -254,14 +288,15 @@ class PlcClient:
             return await self._do_locked(what, address, count, fn)
 
     async def _do_locked(
-        self, what: str, address: int, count: int, fn: Callable[[], Any]
+        self, what: str, address: int, count: int, fn: Callable[[], Any],
+        protocol: PlcProtocol | None = None,
     ) -> Any:
         await self._ensure()
         try:
             out = await fn()
         except BusRefused as exc:
             name = MODBUS_EXCEPTIONS.get(exc.code, "exception")
-            regs = self.protocol.names_at(address, count)
+            regs = (protocol or self.protocol).names_at(address, count)
             self.last_ok_s = self.clock()  # it answered
             raise ModbusRefused(
                 f"PLC refused {what} {regs}: exception {exc.code:02d} {name}"
@@ -290,16 +325,54 @@ class PlcClient:
         ModbusRefused
             The PLC answered with an exception.
         """
-        p = self.protocol
-        words = await self._do(
-            "reading",
-            p.read_address,
-            p.read_count,
-            lambda: self.bus.read(p.read_address, p.read_count),
-        )
-        snap = PlcSnapshot(values=p.decode_read(words), t_s=self.clock())
+        async with self._bus_lock():
+            snap = await self._sample(self.protocol)
         self.last = snap
         return snap
+
+    async def read_head(self, i: int) -> PlcSnapshot:
+        """Read the common registers and head ``i``'s block (a tool's look at any head).
+
+        Parameters
+        ----------
+        i : int
+            Head index (``0 <= i < RegisterMap.head_count``; ``ValueError`` otherwise).
+
+        Returns
+        -------
+        PlcSnapshot
+            Head ``i``'s view; kept in :attr:`last` only when it is this client's own view.
+        """
+        view = self.protocol.regmap.for_head(i)
+        p = self.protocol if view is self.protocol.regmap else self._views.get(int(i))
+        if p is None:
+            p = self._views[int(i)] = PlcProtocol(view)
+        async with self._bus_lock():
+            snap = await self._sample(p)
+        if p is self.protocol:
+            self.last = snap
+        return snap
+
+    async def _sample(self, p: PlcProtocol) -> PlcSnapshot:
+        """Read every range of ``p`` (the bus lock held): one snapshot."""
+        a, n = p.ranges[0]
+        words = await self._do_locked("reading", a, n, lambda: self.bus.read(a, n), p)
+        values = p.decode_range(0, words)
+        if p.block is not None:
+            b, m = p.block
+            rw = getattr(self.bus, "read_write", None)
+            if rw is not None and 23 in p.regmap.function_codes:
+                hb = self._heartbeat
+                if hb is None:
+                    hb = int(values["heartbeat_service"])
+                wa, ww = p.heartbeat_request(hb)
+                words = await self._do_locked(
+                    "reading (function 23)", b, m, lambda: rw(b, m, wa, ww), p
+                )
+            else:
+                words = await self._do_locked("reading", b, m, lambda: self.bus.read(b, m), p)
+            values.update(p.decode_range(1, words))
+        return PlcSnapshot(values=values, t_s=self.clock())
 
     async def write_feed(self, feed_mm_s: float) -> None:
         """Write the feed setpoint (float32, two registers, function 16).
@@ -319,6 +392,20 @@ class PlcClient:
         address, words = self.protocol.heartbeat_request(value)
         await self._do(
             "writing", address, len(words), lambda: self.bus.write(address, words)
+        )
+        self._heartbeat = words[0]
+
+    async def write_spindle_setpoint(self, rpm: float) -> None:
+        """Write the head's spindle setpoint to its block (float32, function 16).
+
+        Only over a head's view (``ValueError`` otherwise). Checked against the head's
+        ``spindle_rpm_min..spindle_rpm_max`` of the last read before it goes on the wire
+        (``ValueError`` naming the register); the PLC checks it again (exception 03).
+        """
+        current = self.last.values if self.last is not None else None
+        address, words = self.protocol.spindle_request(rpm, current)
+        await self._do(
+            f"writing {rpm:.1f} to", address, len(words), lambda: self.bus.write(address, words)
         )
 
     def close(self) -> None:

@@ -2,8 +2,10 @@
 
 * :class:`PlcSnapshot` — all registers of one read, decoded and checked;
 * :class:`PlcProtocol` — which words to read (the whole span of ``config/registers.toml`` in one
-  request), how to decode them, which words to write for the feed setpoint (``f32``, two
-  registers, function 16) and the heartbeat (``u16``, function 6);
+  request; over a head's view of the map, ``RegisterMap.for_head(i)``, the common span and then
+  the head's block), how to decode them, which words to write for the feed setpoint (``f32``,
+  two registers, function 16), the heartbeat (``u16``, function 6) and a head's spindle
+  setpoint (``f32`` in the head's block);
 * :class:`Backoff` — the reconnect policy: capped exponential back-off on an injected clock.
 
 Pure: no asyncio, no pymodbus; :mod:`controller.fieldbus.plc_client` puts them on the bus.
@@ -178,17 +180,43 @@ class PlcProtocol:
 
     def __init__(self, regmap: RegisterMap) -> None:
         self.regmap = regmap
-        self.read_address, self.read_count = regmap.span()
+        self.ranges = regmap.read_ranges()
+        """The ``(address, words)`` ranges one sample reads, in order."""
+        self.read_address, self.read_count = self.ranges[0]
+        self.block: tuple[int, int] | None = self.ranges[1] if len(self.ranges) > 1 else None
+        """The head's block ``(address, words)`` over a head's view; ``None`` otherwise."""
         self._feed = regmap["feed_setpoint_mm_s"]
         self._hb = regmap["heartbeat_service"]
+        self._spindle = regmap.registers.get("spindle_setpoint_rpm")
 
     def decode_read(self, words: Sequence[int]) -> dict[str, float | int]:
         """Decode the words of one whole-span read into every register's value."""
-        if len(words) != self.read_count:
-            raise FieldbusError(
-                f"PLC answered {len(words)} registers, expected {self.read_count}"
+        return self.decode_range(0, words)
+
+    def decode_range(self, index: int, words: Sequence[int]) -> dict[str, float | int]:
+        """Decode the words read from ``ranges[index]`` into its registers' values."""
+        address, count = self.ranges[index]
+        if len(words) != count:
+            raise FieldbusError(f"PLC answered {len(words)} registers, expected {count}")
+        return self.regmap.decode_block(words, address)
+
+    def spindle_request(
+        self, rpm: float, current: Mapping[str, float | int] | None = None
+    ) -> tuple[int, list[int]]:
+        """Address and words writing the head's spindle setpoint (a head's view only).
+
+        Checked against ``spindle_rpm_min..spindle_rpm_max`` of ``current`` when given
+        (``ValueError`` naming the register).
+        """
+        if self._spindle is None:
+            raise ValueError(
+                "spindle_setpoint_rpm: the client's register map is no head's view "
+                "(RegisterMap.for_head(i))"
             )
-        return self.regmap.decode_block(words, self.read_address)
+        v = check_finite("rpm", rpm)
+        if current is not None:
+            self.regmap.check_write(self._spindle.name, v, current)
+        return self._spindle.address, self.regmap.encode(self._spindle.name, v)
 
     def feed_request(
         self, feed_mm_s: float, current: Mapping[str, float | int] | None = None

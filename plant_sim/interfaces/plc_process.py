@@ -10,9 +10,11 @@ The discipline between the two sides:
 
 * **registers, stepping side -> server**: a shared-memory block with a sequence lock. The
   stepping side (:meth:`PlcProcess.refresh`, once per PLC cycle) writes the encoded register
-  words and the number of writes it has applied, between two increments of a sequence counter
-  (odd while writing); the server copies the block when the counter is even and unchanged
-  across the copy, so it always serves one consistent snapshot.
+  words (the single map's span, then each served head's block:
+  :meth:`~plant_sim.interfaces.register_image.RegisterImage.flat`) and the number of writes it
+  has applied, between two increments of a sequence counter (odd while writing); the server
+  copies the block when the counter is even and unchanged across the copy, so it always serves
+  one consistent snapshot.
 * **writes, server -> stepping side**: the server checks a write against the map and the current
   snapshot (exceptions 02/03 answered at once), serves the written value from then on, and sends
   the accepted values over a pipe; :meth:`PlcProcess.apply_writes` applies them to the machine in
@@ -35,7 +37,8 @@ from collections.abc import Mapping
 from multiprocessing.shared_memory import SharedMemory
 from typing import Any
 
-from protocol.registers import RegisterMap, apply_writes
+from plant_sim.interfaces.register_image import RegisterImage, apply, head_values, heads_served
+from protocol.registers import RegisterMap
 
 log = logging.getLogger(__name__)
 
@@ -104,13 +107,22 @@ class _Block:
 class _SnapshotMachine:
     """The machine as the server process sees it: the values last published."""
 
-    def __init__(self, rmap: RegisterMap, block: _Block) -> None:
+    def __init__(self, rmap: RegisterMap, block: _Block, heads: int) -> None:
         self.rmap = rmap
         self.block = block
+        self.head_count = heads
+        self._image = RegisterImage(rmap, heads)
 
     def register_values(self) -> dict[str, float | int]:
-        first, _ = self.rmap.span()
-        return self.rmap.decode_block(list(self.block.read()[2]), first)
+        self._image.load_flat(self.block.read()[2])
+        return dict(self._image.values)
+
+    def head_register_values(self, i: int) -> dict[str, float | int]:
+        self._image.load_flat(self.block.read()[2])
+        return dict(self._image.head_values[i])
+
+    def set_spindle_setpoint(self, head: int, rpm: float) -> None:  # pragma: no cover - queued
+        raise RuntimeError("writes are queued to the stepping side")
 
     def set_feed_setpoint(self, feed_mm_s: float) -> None:  # pragma: no cover - queued only
         raise RuntimeError("writes are queued to the stepping side")
@@ -119,7 +131,7 @@ class _SnapshotMachine:
         raise RuntimeError("writes are queued to the stepping side")
 
 
-def _serve(shm_name: str, rmap: RegisterMap, host: str, port: int, unit_id: int,
+def _serve(shm_name: str, rmap: RegisterMap, heads: int, host: str, port: int, unit_id: int,
            control: Any, writes: Any, realtime: bool) -> None:  # pragma: no cover - child
     """The server process: serve the shared snapshot; obey ``control``; send writes."""
     import signal
@@ -136,10 +148,10 @@ def _serve(shm_name: str, rmap: RegisterMap, host: str, port: int, unit_id: int,
     logging.getLogger("asyncio").setLevel(logging.CRITICAL)
     shm = SharedMemory(name=shm_name)
     try:
-        block = _Block(shm.buf, rmap.span()[1])
-        first, _ = rmap.span()
-        server = PlcServer(_SnapshotMachine(rmap, block), register_map=rmap, host=host,
-                           port=port, unit_id=unit_id, queue_writes=True)
+        image = RegisterImage(rmap, heads)
+        block = _Block(shm.buf, image.size)
+        server = PlcServer(_SnapshotMachine(rmap, block, heads), register_map=rmap, host=host,
+                           port=port, unit_id=unit_id, queue_writes=True, heads=heads)
         seen = [-1]
 
         def sync() -> None:
@@ -148,12 +160,13 @@ def _serve(shm_name: str, rmap: RegisterMap, host: str, port: int, unit_id: int,
                 snap = block.try_read() if seen[0] >= 0 else block.read()
                 if snap is not None:
                     seq, applied, words = snap
-                    server.load_snapshot(rmap.decode_block(list(words), first),
-                                         applied=applied)
+                    image.load_flat(words)
+                    server.load_snapshot(image.values, applied=applied,
+                                         heads=image.head_values)
                     seen[0] = seq
 
-        def counted(accepted: dict[str, float | int]) -> None:
-            writes.send(accepted)
+        def counted(write: Any) -> None:
+            writes.send(write)
 
         server.before_request = sync
         server.on_queued = counted
@@ -265,7 +278,10 @@ class PlcProcess:
         self.host = host
         self.port = int(port)
         self.unit_id = self.rmap.unit_id if unit_id is None else int(unit_id)
-        self._first, self._count = self.rmap.span()
+        self.heads = heads_served(machine, self.rmap)
+        """Head blocks served (:func:`~plant_sim.interfaces.register_image.heads_served`)."""
+        self._image = RegisterImage(self.rmap, self.heads)
+        self._count = self._image.size
         self._values: dict[str, float | int] = {}
         self._applied = 0
         self._shm: SharedMemory | None = None
@@ -290,7 +306,7 @@ class PlcProcess:
         writes_in, writes_out = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(
             target=_serve, name="plc-modbus", daemon=True,
-            args=(self._shm.name, self.rmap, self.host, self.port, self.unit_id,
+            args=(self._shm.name, self.rmap, self.heads, self.host, self.port, self.unit_id,
                   child_control, writes_out, self.realtime),
         )
         self._proc.start()
@@ -382,22 +398,23 @@ class PlcProcess:
         return self._block.counts()[1] if self._block is not None else 0
 
     def refresh(self) -> None:
-        """Publish ``machine.register_values()`` (once per PLC cycle)."""
+        """Publish the machine's register values and head blocks (once per PLC cycle)."""
         values = dict(self.machine.register_values())
         self._values = values
+        self._image.load(values, head_values(self.machine, self.heads))
         if self._block is not None:
-            self._block.publish(self.rmap.encode_block(values), self._applied)
+            self._block.publish(self._image.flat(), self._applied)
 
     def apply_writes(self) -> int:
         """Apply the writes the server accepted to the machine, in order; returns how many."""
         n = 0
         while self._writes is not None and self._writes.poll():
             try:
-                accepted = self._writes.recv()
+                write = self._writes.recv()
             except EOFError:
                 break
             try:
-                apply_writes(self.machine, accepted)
+                apply(self.machine, write)
             except ValueError as exc:
                 self.write_errors += 1
                 log.warning("Modbus write not applied: %s", exc)

@@ -1,16 +1,22 @@
 """The PLC's Modbus TCP server: the simulated machine's registers, as a PLC serves them.
 
-The holding registers mirror ``machine.register_values()`` as of the last :meth:`PlcServer.refresh`
-(the machine's stepping calls it every PLC cycle). The server speaks Modbus TCP itself (asyncio
-streams, no Modbus library): like a PLC it offers only what the register map offers
-(``docs/register_map.md``) and says nothing about its software.
+The holding registers mirror ``machine.register_values()`` (the single map) and
+``machine.head_register_values(i)`` (head ``i``'s block, for the heads the machine has: a single
+``Machine`` serves block 0, a ``Moulder`` one per head; blocks beyond answer exception 02) as of
+the last :meth:`PlcServer.refresh` (the machine's stepping calls it every PLC cycle). A write of
+``spindle_setpoint_rpm`` in block ``i`` becomes ``machine.set_spindle_setpoint(i, rpm)``, checked
+against that head's ``spindle_rpm_min..spindle_rpm_max`` (exception 03 outside). The server
+speaks Modbus TCP itself (asyncio streams, no Modbus library): like a PLC it offers only what the
+register map offers (``docs/register_map.md``) and says nothing about its software.
 
-* Function codes 3 (read), 6 (write one), 16 (write several) and 23 (read/write) are served;
-  every other function code answers exception 01 (ILLEGAL FUNCTION).
+* Function codes 3 (read), 6 (write one), 16 (write several) and 23 (read/write) are served
+  (those of them the map's ``function_codes`` lists); every other function code answers
+  exception 01 (ILLEGAL FUNCTION).
 * A quantity outside the spec's range (read 1..125, write 1..123, 23: 1..125 / 1..121), a byte
   count that does not match it or a PDU of the wrong length: exception 03 (ILLEGAL DATA VALUE).
-* A read outside the map, a write to a read-only register, to a gap or to half of a 32-bit
-  register: exception 02 (ILLEGAL DATA ADDRESS).
+* A read outside the map (or across the single map and a block, or two blocks), a write to a
+  read-only register, to a gap or to half of a 32-bit register: exception 02 (ILLEGAL DATA
+  ADDRESS).
 * A value outside the register's limits (or one the machine refuses): exception 03, never clamped.
 * Another unit id than the map's: exception 0B (gateway target failed to respond).
 * A PDU longer than Modbus TCP's 253 bytes (an ADU over 260) is exception 03 when it is a
@@ -38,20 +44,27 @@ import logging
 import struct
 import threading
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
+from plant_sim.interfaces.register_image import (
+    HeadWrite,
+    RegisterImage,
+    apply,
+    head_values,
+    heads_served,
+)
 from protocol.registers import (
     RegisterAccessError,
     RegisterMap,
     RegisterRangeError,
-    apply_writes,
 )
 
 log = logging.getLogger(__name__)
 
 FUNCTION_CODES = frozenset({3, 6, 16, 23})
-"""The function codes the register map offers (``docs/register_map.md``)."""
+"""The function codes the server can serve; it offers those of the map's ``function_codes``
+(``docs/register_map.md``), answering the others with exception 01."""
 MAX_READ = 125
 MAX_WRITE = 123
 MAX_RW_WRITE = 121
@@ -104,6 +117,8 @@ class PlcServer:
     queue_writes : bool
         Queue accepted writes for :meth:`apply_writes` (the server runs on another thread than
         the machine) instead of applying them at once.
+    heads : int, optional
+        Head blocks to serve; default what the machine has (``heads_served``).
 
     Attributes
     ----------
@@ -111,9 +126,12 @@ class PlcServer:
         Count of served requests and of those refused with an exception.
     write_errors : int
         Queued writes the machine refused when they were applied (answered already).
+    heads : int
+        Head blocks served (:func:`~plant_sim.interfaces.register_image.heads_served`).
     on_queued : callable or None
-        Called with each write queued (``queue_writes``): a server in another process than the
-        machine sends it on (:mod:`plant_sim.interfaces.plc_process`).
+        Called with each write queued (``queue_writes``), a ``(head, values)`` pair (head
+        ``None``: the single map): a server in another process than the machine sends it on
+        (:mod:`plant_sim.interfaces.plc_process`).
     before_request : callable or None
         Called before each request is answered (to load a newer snapshot).
     """
@@ -127,6 +145,7 @@ class PlcServer:
         port: int = 502,
         unit_id: int | None = None,
         queue_writes: bool = False,
+        heads: int | None = None,
     ) -> None:
         if not 0 <= int(port) <= 65535:
             raise ValueError(f"port must be in 0..65535, got {port!r}")
@@ -136,14 +155,13 @@ class PlcServer:
         self.port = int(port)
         self.unit_id = self.rmap.unit_id if unit_id is None else int(unit_id)
         self.queue_writes = bool(queue_writes)
-        self._first, self._count = self.rmap.span()
+        self.heads = heads_served(machine, self.rmap) if heads is None else int(heads)
         self._lock = threading.Lock()
-        self._values: dict[str, float | int] = {}
-        self._words: list[int] = [0] * self._count
-        self._pending: deque[dict[str, float | int]] = deque()
+        self._image = RegisterImage(self.rmap, self.heads)
+        self._pending: deque[HeadWrite] = deque()
         self._server: asyncio.Server | None = None
         self._clients: set[asyncio.StreamWriter] = set()
-        self.on_queued: Callable[[dict[str, float | int]], None] | None = None
+        self.on_queued: Callable[[HeadWrite], None] | None = None
         self.before_request: Callable[[], None] | None = None
         self._queued = 0
         self.requests = 0
@@ -159,22 +177,31 @@ class PlcServer:
 
     @property
     def values(self) -> Mapping[str, float | int]:
-        """Register values as currently served."""
-        return self._values
+        """Register values of the single map as currently served."""
+        return self._image.values
+
+    def head_values(self, i: int) -> Mapping[str, float | int]:
+        """Head ``i``'s block values as currently served."""
+        return self._image.head_values[i]
 
     def refresh(self) -> None:
-        """Publish ``machine.register_values()`` (once per PLC cycle, on the stepping thread).
+        """Publish the machine's register values (once per PLC cycle, on the stepping thread).
 
         Writes accepted but not yet applied keep their written value in the snapshot.
         """
         values = dict(self.machine.register_values())
+        heads = head_values(self.machine, self.heads)
         with self._lock:
-            for accepted in self._pending:
-                values.update(accepted)
-            words = self.rmap.encode_block(values)
-            self._words, self._values = words, values
+            self._image.load(values, heads)
+            self._image.overlay(self._pending)
 
-    def load_snapshot(self, values: Mapping[str, float | int], *, applied: int) -> None:
+    def load_snapshot(
+        self,
+        values: Mapping[str, float | int],
+        *,
+        applied: int,
+        heads: Sequence[Mapping[str, float | int]] = (),
+    ) -> None:
         """Serve register values published by another process.
 
         The publisher is :mod:`plant_sim.interfaces.plc_process`.
@@ -186,15 +213,15 @@ class PlcServer:
         applied : int
             How many of the writes this server ever queued the stepping side had applied when
             it published; those leave the overlay of written values.
+        heads : sequence of mapping
+            Each served head's block values.
         """
-        values = dict(values)
         with self._lock:
             done = applied - (self._queued - len(self._pending))
             for _ in range(max(0, min(done, len(self._pending)))):
                 self._pending.popleft()
-            for accepted in self._pending:
-                values.update(accepted)
-            self._words, self._values = self.rmap.encode_block(values), values
+            self._image.load(values, heads)
+            self._image.overlay(self._pending)
 
     def apply_writes(self) -> int:
         """Apply the queued writes to the machine, in order (on the stepping thread).
@@ -210,9 +237,9 @@ class PlcServer:
             with self._lock:
                 if not self._pending:
                     return n
-                accepted = self._pending[0]
+                write = self._pending[0]
             try:
-                apply_writes(self.machine, accepted)
+                apply(self.machine, write)
             except ValueError as exc:  # RegisterAccessError / RegisterRangeError
                 self.write_errors += 1
                 log.warning("queued Modbus write not applied: %s", exc)
@@ -243,7 +270,7 @@ class PlcServer:
         try:
             if unit_id != self.unit_id:
                 raise _Refused(EXC_GATEWAY_TARGET, f"unit id {unit_id} not served")
-            if fc not in FUNCTION_CODES:
+            if fc not in self.rmap.function_codes:  # the map's offer (FUNCTION_CODES at most)
                 raise _Refused(EXC_ILLEGAL_FUNCTION, f"function {fc} not offered")
             return bytes([fc]) + self._dispatch(fc, pdu[1:])
         except _Refused as exc:
@@ -276,36 +303,29 @@ class PlcServer:
     def _read(self, start: int, qty: int, max_qty: int) -> bytes:
         if not 1 <= qty <= max_qty:
             raise _Refused(EXC_ILLEGAL_VALUE, f"read quantity {qty} (1..{max_qty})")
-        off = start - self._first
-        if off < 0 or off + qty > self._count:
-            raise _Refused(EXC_ILLEGAL_ADDRESS, f"read of {qty} at {start} outside the map")
         with self._lock:
-            words = self._words[off : off + qty]
+            try:
+                words = self._image.read(start, qty)
+            except RegisterAccessError as exc:
+                raise _Refused(EXC_ILLEGAL_ADDRESS, str(exc)) from None
         return bytes([2 * qty]) + struct.pack(f">{qty}H", *words)
 
     def _write(self, address: int, words: list[int]) -> None:
         with self._lock:
             try:
-                accepted = self.rmap.parse_write(address, words, self._values)
+                write = self._image.parse_write(address, words)
                 if not self.queue_writes:
-                    self._apply(accepted)
+                    apply(self.machine, write)  # the one write dispatch (protocol.registers)
             except RegisterAccessError as exc:
                 raise _Refused(EXC_ILLEGAL_ADDRESS, str(exc)) from None
             except (RegisterRangeError, ValueError) as exc:
                 raise _Refused(EXC_ILLEGAL_VALUE, str(exc)) from None
-            for name, value in accepted.items():
-                reg = self.rmap[name]
-                i = reg.address - self._first
-                self._words[i : i + reg.count] = self.rmap.encode(name, value)
-                self._values[name] = value
+            self._image.store(write)
             if self.queue_writes:
-                self._pending.append(accepted)
+                self._pending.append(write)
                 self._queued += 1
                 if self.on_queued is not None:
-                    self.on_queued(accepted)
-
-    def _apply(self, accepted: Mapping[str, float | int]) -> None:
-        apply_writes(self.machine, accepted)  # the one write dispatch (protocol.registers)
+                    self.on_queued(write)
 
     # ------------------------------------------------------------------ I/O
     async def _serve_client(self, reader: asyncio.StreamReader,

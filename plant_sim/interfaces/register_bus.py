@@ -10,8 +10,14 @@ from collections.abc import Sequence
 from typing import Any
 
 from core.errors import FieldbusError
+from plant_sim.interfaces.register_image import (
+    RegisterImage,
+    apply,
+    head_values,
+    heads_served,
+)
 from protocol.register_bus import BusRefused
-from protocol.registers import RegisterAccessError, RegisterMap, RegisterRangeError, apply_writes
+from protocol.registers import RegisterAccessError, RegisterMap, RegisterRangeError
 
 __all__ = ["MachineRegisterBus"]
 
@@ -21,22 +27,27 @@ class MachineRegisterBus:
 
     The machine is a :class:`plant_sim.machine.machine.Machine` (or the tests' stand-in).
 
-    Reads encode ``machine.register_values()`` with the register map; writes are checked by the
-    map exactly as the PLC server checks them (read-only -> exception 2, out of range ->
-    exception 3) and applied by :func:`protocol.registers.apply_writes`, as the server does. Set
-    :attr:`down` to make it behave like an unreachable PLC (fault injection in tests and HIL).
+    Reads encode ``machine.register_values()`` (the single map) and
+    ``machine.head_register_values(i)`` (head ``i``'s block; :func:`~plant_sim.interfaces.
+    register_image.heads_served` heads) with the register map; writes are checked exactly as
+    the PLC server checks them (read-only -> exception 2, out of range -> exception 3) and
+    applied as the server applies them (:class:`~plant_sim.interfaces.register_image.
+    RegisterImage`). Function 23 (:meth:`read_write`) writes, then reads. Set :attr:`down` to
+    make it behave like an unreachable PLC (fault injection in tests and HIL).
 
     Parameters
     ----------
     machine : Machine
         The simulated machine.
     regmap : RegisterMap
-        The register map.
+        The register map (a head's view serves its whole map).
     """
 
     def __init__(self, machine: Any, regmap: RegisterMap) -> None:
         self.machine = machine
         self.regmap = regmap
+        self.heads = heads_served(machine, regmap)
+        """Head blocks served (0 for a machine without ``head_register_values``)."""
         self.down = False
         self._open = False
         self.requests = 0
@@ -59,21 +70,40 @@ class MachineRegisterBus:
             raise FieldbusError("PLC (in-process) unreachable")
         self.requests += 1
 
+    def _image(self) -> RegisterImage:
+        image = RegisterImage(self.regmap, self.heads)
+        image.load(self.machine.register_values(), head_values(self.machine, self.heads))
+        return image
+
     async def read(self, address: int, count: int) -> list[int]:
-        """Read words of the register span."""
+        """Read words of the single map's span or of one head's block (function 3)."""
         self._check()
-        first, n = self.regmap.span()
-        if address < first or address + count > first + n:
-            raise BusRefused(2, f"read {count} registers at {address}")
-        words = self.regmap.encode_block(self.machine.register_values())
-        return words[address - first : address - first + count]
+        try:
+            return self._image().read(address, count)
+        except RegisterAccessError as exc:
+            raise BusRefused(exc.exception_code, str(exc)) from None
 
     async def write(self, address: int, words: Sequence[int]) -> None:
         """Write words: checked by the register map, then applied to the machine."""
         self._check()
+        self._write(self._image(), address, words)
+
+    async def read_write(
+        self, read_address: int, read_count: int, write_address: int, words: Sequence[int]
+    ) -> list[int]:
+        """Function 23: write ``words`` at ``write_address``, then read (one request)."""
+        self._check()
+        image = self._image()
+        self._write(image, write_address, words)
+        image = self._image()
         try:
-            accepted = self.regmap.parse_write(address, words, self.machine.register_values())
-            apply_writes(self.machine, accepted)
+            return image.read(read_address, read_count)
+        except RegisterAccessError as exc:
+            raise BusRefused(exc.exception_code, str(exc)) from None
+
+    def _write(self, image: RegisterImage, address: int, words: Sequence[int]) -> None:
+        try:
+            apply(self.machine, image.parse_write(address, words))
         except (RegisterAccessError, RegisterRangeError) as exc:
             raise BusRefused(exc.exception_code, str(exc)) from None
 

@@ -1,0 +1,207 @@
+"""The PLC client over a head's view of the map: one function 23 per block, head writes."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from config.loading import default_path
+from controller.fieldbus.plc_client import PlcClient
+from controller.fieldbus.plc_protocol import Backoff
+from core.errors import ModbusRefused
+from plant_sim.interfaces.plc_server import PlcServer
+from plant_sim.interfaces.register_bus import MachineRegisterBus
+from protocol.registers import HeadFault, RegisterMap
+from tests.support.head_target import HeadTarget
+
+RMAP = RegisterMap.load()
+
+
+class Clock:
+    t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _recording(server: PlcServer) -> list[int]:
+    """The function code of every request the server answers."""
+    seen: list[int] = []
+    respond = server.respond
+
+    def wrapped(unit: int, pdu: bytes) -> bytes:
+        seen.append(pdu[0])
+        return respond(unit, pdu)
+
+    server.respond = wrapped  # type: ignore[method-assign]
+    return seen
+
+
+async def _serve(target, rmap=RMAP):
+    server = PlcServer(target, register_map=rmap, port=0)
+    host, port = await server.start()
+    return server, host, port
+
+
+def test_a_head_client_reads_common_then_its_block_in_one_function_23():
+    async def main():
+        target = HeadTarget()
+        server, host, port = await _serve(target)
+        seen = _recording(server)
+        try:
+            c = PlcClient.tcp(host, port, timeout_s=2.0, head=3, backoff=Backoff(0.01, 0.05))
+            snap = await c.read()
+            assert seen == [3, 23]  # the common span, then the whole block in one transaction
+            assert snap.knives == 6 and snap.spindle_rpm == 6003.0 and snap.trigger_seq == 103
+            assert snap.cutter_to_camera_mm == 360.0 and snap.index_latch_counts == 0xFFFF_0003
+            assert snap["spindle_rpm_min"] == 4000.0 and snap["spindle_rpm_max"] == 8000.0
+            assert snap.feed_max_mm_s == 1000.0 and snap["encoder_counts"] == 123_456_789
+            assert snap.problem() is None
+            # the function 23 wrote the heartbeat back unchanged (the value just read: 0)
+            assert target.heartbeat_service == 0
+            await c.write_heartbeat(7)
+            target.heartbeat_service = 8  # another writer meanwhile
+            server.refresh()
+            await c.read()
+            assert target.heartbeat_service == 7  # this client's last heartbeat, no new value
+            c.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())
+
+
+def test_read_head_reads_any_head_and_keeps_last_for_its_own():
+    async def main():
+        target = HeadTarget()
+        server, host, port = await _serve(target)
+        try:
+            c = PlcClient.tcp(host, port, timeout_s=2.0, head=3)
+            own = await c.read()
+            other = await c.read_head(2)
+            assert other.trigger_seq == 102 and other.knives == 2
+            assert HeadFault(int(other["head_faults"])) == HeadFault.CAMERA_SILENT
+            assert c.last is own
+            again = await c.read_head(3)
+            assert c.last is again and again.trigger_seq == 103
+            with pytest.raises(ValueError, match="head 8"):
+                await c.read_head(8)
+            with pytest.raises(ModbusRefused, match="exception 02"):  # the PLC has 4 heads
+                await c.read_head(4)
+            c.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())
+
+
+def test_spindle_setpoint_goes_to_the_heads_block_and_out_of_range_is_refused():
+    async def main():
+        target = HeadTarget()
+        server, host, port = await _serve(target)
+        try:
+            c = PlcClient.tcp(host, port, timeout_s=2.0, head=3)
+            await c.read()
+            await c.write_spindle_setpoint(7250.0)
+            assert target.setpoints == [(3, 7250.0)]
+            n = server.requests
+            with pytest.raises(ValueError, match="spindle_setpoint_rpm"):
+                await c.write_spindle_setpoint(8500.0)  # refused before the wire
+            assert server.requests == n
+            c.last = None  # no limits known: the PLC refuses it
+            with pytest.raises(ModbusRefused, match="spindle_setpoint_rpm: exception 03"):
+                await c.write_spindle_setpoint(3000.0)
+            fixed = PlcClient.tcp(host, port, timeout_s=2.0, head=1)
+            with pytest.raises(ModbusRefused, match="exception 03"):
+                await fixed.write_spindle_setpoint(8000.0)  # head 1 runs 9000 rpm fixed
+            await fixed.write_spindle_setpoint(9000.0)
+            assert target.setpoints == [(3, 7250.0), (1, 9000.0)]
+            single = PlcClient.tcp(host, port, timeout_s=2.0)
+            with pytest.raises(ValueError, match="no head's view"):
+                await single.write_spindle_setpoint(6000.0)
+            for client in (c, fixed, single):
+                client.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())
+
+
+def test_function_3_where_the_map_offers_no_23(tmp_path):
+    text = default_path("registers.toml").read_text()
+    old = "function_codes = [3, 6, 16, 23]"
+    assert old in text
+    path = tmp_path / "registers.toml"
+    path.write_text(text.replace(old, "function_codes = [3, 6, 16]"))
+    rmap = RegisterMap.load(path)
+
+    async def main():
+        target = HeadTarget()
+        server, host, port = await _serve(target, rmap)
+        seen = _recording(server)
+        try:
+            c = PlcClient.tcp(host, port, timeout_s=2.0, regmap=rmap, head=2)
+            snap = await c.read()
+            assert seen == [3, 3] and snap.trigger_seq == 102
+            c.close()
+        finally:
+            await server.stop()
+        assert server.respond(1, bytes([23]) + bytes(9)) == bytes([23 | 0x80, 1])
+
+    asyncio.run(main())
+
+
+def test_in_process_bus_and_a_bus_without_function_23():
+    class ReadOnlyBus:  # a RegisterBus without read_write: the client falls back to function 3
+        def __init__(self, inner):
+            self.inner = inner
+            self.calls = []
+
+        @property
+        def connected(self):
+            return self.inner.connected
+
+        async def connect(self):
+            await self.inner.connect()
+
+        async def read(self, address, count):
+            self.calls.append(("read", address, count))
+            return await self.inner.read(address, count)
+
+        async def write(self, address, words):
+            await self.inner.write(address, words)
+
+        def close(self):
+            self.inner.close()
+
+    async def main():
+        target = HeadTarget()
+        view = RMAP.for_head(1)
+        direct = PlcClient(MachineRegisterBus(target, view), view, clock=Clock())
+        snap = await direct.read()
+        assert snap.knives == 2 and snap.trigger_seq == 101 and snap.problem() is None
+        bus = ReadOnlyBus(MachineRegisterBus(target, RMAP))
+        fallback = PlcClient(bus, view, clock=Clock())
+        assert (await fallback.read()).values == snap.values
+        assert bus.calls == [("read", 0, 38), ("read", 1032, 21)]
+
+    asyncio.run(main())
+
+
+def test_the_single_head_machine_through_head_zero():
+    from config.sim import default_sim
+    from plant_sim.machine.machine import Machine
+
+    async def main():
+        machine = Machine(default_sim(), seed=3, render_images=False)
+        machine.advance(0.05)
+        view = RMAP.for_head(0)
+        head = await PlcClient(MachineRegisterBus(machine, RMAP), view, clock=Clock()).read()
+        single = await PlcClient(MachineRegisterBus(machine, RMAP), RMAP, clock=Clock()).read()
+        for name in ("knives", "spindle_rpm", "cutter_to_camera_mm", "cutterhead_radius_mm",
+                     "trigger_seq", "index_latch_counts", "counts_per_mm", "feed_max_mm_s"):
+            assert head[name] == single[name], name
+        assert head["spindle_rpm_min"] <= head["spindle_setpoint_rpm"] <= head["spindle_rpm_max"]
+
+    asyncio.run(main())

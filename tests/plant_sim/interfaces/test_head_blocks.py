@@ -1,0 +1,209 @@
+"""The simulated PLC serves one register block per head: reads, writes, function 23, refusals."""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+
+import pytest
+
+from plant_sim.interfaces.plc_server import PlcServer
+from plant_sim.interfaces.register_bus import MachineRegisterBus
+from plant_sim.interfaces.register_image import RegisterImage, heads_served
+from protocol.register_bus import BusRefused
+from protocol.registers import RegisterAccessError, RegisterMap
+from tests.support.fake_machine import FakeMachine
+from tests.support.head_target import HeadTarget
+
+RMAP = RegisterMap.load()
+
+
+def _block(i: int) -> tuple[int, int]:
+    return RMAP.head_span(i)
+
+
+def _decode(i: int, words: list[int]) -> dict[str, float | int]:
+    a, _ = _block(i)
+    return RMAP.for_head(i).decode_block(words, a)
+
+
+def run(coro):
+    return asyncio.run(coro)
+
+
+# ------------------------------------------------------------------ which heads are served
+def test_heads_served_follow_the_machine():
+    assert heads_served(HeadTarget(4), RMAP) == 4
+    assert heads_served(HeadTarget(12), RMAP) == RMAP.head_count == 8  # the map's blocks at most
+    assert heads_served(FakeMachine(), RMAP) == 0  # no head_register_values: no blocks
+
+    class OneHead(HeadTarget):  # a machine with head_register_values but no head_count
+        def __getattribute__(self, name):
+            if name == "head_count":
+                raise AttributeError(name)
+            return super().__getattribute__(name)
+
+    assert heads_served(OneHead(1), RMAP) == 1
+
+
+# ------------------------------------------------------------------ the in-process bus
+@pytest.mark.parametrize("head", range(4))
+def test_bus_reads_each_heads_block_under_the_head_names(head):
+    target = HeadTarget()
+    bus = MachineRegisterBus(target, RMAP)
+    run(bus.connect())
+    a, n = _block(head)
+    got = _decode(head, run(bus.read(a, n)))
+    want = target.head_register_values(head)
+    assert got == pytest.approx(want)
+    assert got["trigger_seq"] == 100 + head and got["knives"] == target.heads[head]["knives"]
+    # the single map still gives the first head at the legacy addresses
+    first, count = RMAP.common_span()
+    single = RMAP.decode_block(run(bus.read(first, count)), first)
+    assert single["spindle_rpm"] == 6000.0 and single["knives"] == 4
+
+
+def test_bus_refuses_blocks_beyond_the_machine_and_reads_across_ranges():
+    bus = MachineRegisterBus(HeadTarget(2), RMAP)
+    run(bus.connect())
+    for address, count in [(_block(2)[0], 4), (_block(7)[0], 1), (36, 966), (1020, 20),
+                           (1000 + 31, 2)]:
+        with pytest.raises(BusRefused) as err:
+            run(bus.read(address, count))
+        assert err.value.code == 2, (address, count)
+    assert run(bus.read(1000 + 21, 11)) == [0] * 11  # the reserved words of a served block
+
+
+def test_bus_routes_a_spindle_setpoint_write_to_its_head_and_refuses_out_of_range():
+    target = HeadTarget()
+    bus = MachineRegisterBus(target, RMAP)
+    run(bus.connect())
+    view = RMAP.for_head(3)
+    reg = view["spindle_setpoint_rpm"]
+    run(bus.write(reg.address, view.encode(reg.name, 7200.0)))
+    assert target.setpoints == [(3, 7200.0)]
+    for bad in (3999.0, 8000.5):  # head 3's own limits 4000..8000
+        with pytest.raises(BusRefused) as err:
+            run(bus.write(reg.address, view.encode(reg.name, bad)))
+        assert err.value.code == 3
+    fixed = RMAP.for_head(1)["spindle_setpoint_rpm"]  # head 1: 9000 rpm fixed
+    with pytest.raises(BusRefused) as err:
+        run(bus.write(fixed.address, view.encode(reg.name, 7200.0)))
+    assert err.value.code == 3
+    for address, words in [(view["knives"].address, [3]), (reg.address, [0x45E1]),
+                           (1000 + 25, [1])]:  # read-only, half a float, reserved
+        with pytest.raises(BusRefused) as err:
+            run(bus.write(address, words))
+        assert err.value.code == 2
+    assert target.setpoints == [(3, 7200.0)]
+
+
+def test_bus_function_23_writes_then_reads_the_block():
+    target = HeadTarget()
+    bus = MachineRegisterBus(target, RMAP)
+    run(bus.connect())
+    view = RMAP.for_head(3)
+    reg = view["spindle_setpoint_rpm"]
+    a, n = _block(3)
+    words = run(bus.read_write(a, n, reg.address, view.encode(reg.name, 5000.0)))
+    assert _decode(3, words)["spindle_setpoint_rpm"] == 5000.0  # the write came first
+    run(bus.read_write(a, n, 0, [42]))
+    assert target.heartbeat_service == 42
+
+
+def test_a_real_single_head_machine_serves_block_zero_only():
+    from config.sim import default_sim
+    from plant_sim.machine.machine import Machine
+
+    machine = Machine(default_sim(), seed=1, render_images=False)
+    bus = MachineRegisterBus(machine, RMAP)
+    assert bus.heads == 1
+    run(bus.connect())
+    a, n = _block(0)
+    block = _decode(0, run(bus.read(a, n)))
+    single = RMAP.decode_block(run(bus.read(*RMAP.common_span())), 0)
+    for name in ("knives", "cutter_to_camera_mm", "cutterhead_radius_mm", "trigger_seq"):
+        assert block[name] == single[name], name
+    with pytest.raises(BusRefused) as err:
+        run(bus.read(*_block(1)))
+    assert err.value.code == 2
+
+
+# ------------------------------------------------------------------ the Modbus server (sans-I/O)
+def _fc23(r_start: int, r_qty: int, w_start: int, words: list[int]) -> bytes:
+    return struct.pack(">BHHHHB", 23, r_start, r_qty, w_start, len(words), 2 * len(words)) + \
+        struct.pack(f">{len(words)}H", *words)
+
+
+def test_server_answers_function_23_on_a_head_block():
+    target = HeadTarget()
+    server = PlcServer(target, port=0)
+    assert server.heads == 4
+    a, n = _block(2)
+    reply = server.respond(1, _fc23(a, n, 0, [9]))
+    assert reply[0] == 23 and reply[1] == 2 * n
+    words = list(struct.unpack(f">{n}H", reply[2:]))
+    assert _decode(2, words) == pytest.approx(target.head_register_values(2))
+    assert target.heartbeat_service == 9
+    # a block beyond the machine's heads: exception 02; a setpoint out of range: 03
+    assert server.respond(1, _fc23(_block(4)[0], 4, 0, [10])) == bytes([23 | 0x80, 2])
+    view = RMAP.for_head(0)
+    reg = view["spindle_setpoint_rpm"]
+    bad = _fc23(a, n, reg.address, view.encode(reg.name, 6100.0))  # head 0 fixed at 6000
+    assert server.respond(1, bad) == bytes([23 | 0x80, 3])
+    assert target.setpoints == []
+
+
+def test_queued_head_writes_are_served_at_once_and_applied_in_order():
+    target = HeadTarget()
+    server = PlcServer(target, port=0, queue_writes=True)
+    queued = []
+    server.on_queued = queued.append
+    view = RMAP.for_head(3)
+    reg = view["spindle_setpoint_rpm"]
+    for rpm in (4500.0, 7500.0):
+        w = view.encode(reg.name, rpm)
+        pdu = struct.pack(">BHHB", 16, reg.address, 2, 4) + struct.pack(">2H", *w)
+        assert server.respond(1, pdu)[0] == 16
+    assert queued == [(3, {reg.name: 4500.0}), (3, {reg.name: 7500.0})]
+    server.refresh()  # the machine has not applied them yet: the written value is served
+    assert server.head_values(3)[reg.name] == 7500.0 and target.setpoints == []
+    assert server.apply_writes() == 2
+    assert target.setpoints == [(3, 4500.0), (3, 7500.0)]
+
+
+def test_image_refuses_head_values_that_are_no_block_register():
+    image = RegisterImage(RMAP, 1)
+    with pytest.raises(ValueError, match="'feed_actual_mm_s' is no register of the head block"):
+        image.load({}, [{"feed_actual_mm_s": 1.0}])
+    with pytest.raises(RegisterAccessError):
+        image.read(1032, 2)  # block 1 is not served
+
+
+def test_plc_process_serves_head_blocks_and_sends_head_writes_back():
+    """The server in its own process: blocks through shared memory, writes over the pipe."""
+    from controller.fieldbus.plc_client import PlcClient
+    from plant_sim.interfaces.plc_process import PlcProcess
+
+    target = HeadTarget()
+
+    async def main():
+        proc = PlcProcess(target, port=0)
+        try:
+            host, port = await proc.start()
+            client = PlcClient.tcp(host, port, timeout_s=5.0, head=3)
+            snap = await client.read()
+            assert snap.knives == 6 and snap.trigger_seq == 103
+            assert snap.spindle_rpm == 6003.0 and snap["spindle_rpm_max"] == 8000.0
+            await client.write_spindle_setpoint(7000.0)
+            for _ in range(1000):  # the write crosses a pipe; bounded polling, no clock
+                if proc.apply_writes():
+                    break
+                await asyncio.sleep(0.005)
+            assert target.setpoints == [(3, 7000.0)]
+            client.close()
+        finally:
+            await proc.stop()
+            proc.close()
+
+    run(main())
