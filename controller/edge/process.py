@@ -200,17 +200,10 @@ class _Servers:
         try:
             web, live = msg.get("web"), self.live
             if web is not None and live is not None:
-                if web.get("counts_per_mm") is not None:
-                    live.set_counts_per_mm(web["counts_per_mm"])
-                for e in web["events"]:
-                    live.take_event(e)
-                for r in web["results"]:
-                    live.take_result(r)
-                if web["status"] is not None:
-                    live.take_status(web["status"])
+                _apply_web(live, web)
             op = msg.get("opcua")
             if op is not None and self.opcua is not None:
-                self.opcua.apply(op["values"], op["events"])
+                self.opcua.apply(op["values"], op["events"], op.get("heads"))
         except (KeyError, TypeError, ValueError, AttributeError):
             self.apply_errors += 1
             _log.exception("servers: a message from the service could not be shown")
@@ -228,3 +221,28 @@ class _Servers:
         if self.opcua is not None:
             out["opcua"] = self.opcua.clients()
         return out
+
+
+def _apply_web(live: Any, web: dict[str, Any]) -> None:
+    """A message's ``web`` part into the page's :class:`~controller.web.live.LiveView`."""
+    if web.get("heads") is not None:
+        live.set_heads(web["heads"])
+    for head, qc in (web.get("head_qc") or {}).items():
+        if qc is not None:
+            live.set_quality_class(qc, head)
+    if web.get("counts_per_mm") is not None:
+        live.set_counts_per_mm(web["counts_per_mm"])
+    for head, cpm in (web.get("head_counts_per_mm") or {}).items():
+        live.set_counts_per_mm(cpm, head)
+    for e in web["events"]:
+        live.take_event(e)
+    for r in web["results"]:
+        live.take_result(r)
+    if web["status"] is not None:
+        live.take_status(web["status"])
+    for head, d in (web.get("head_status") or {}).items():
+        live.take_status(d, head)
+    for head, facts in (web.get("head_plc") or {}).items():
+        live.take_plc(head, facts)
+    if web.get("machine") is not None:
+        live.take_machine(web["machine"])

@@ -97,7 +97,7 @@ MANDATORY_IDENTIFICATION = (
 _MANUFACTURER_TYPES = {
     "Double": (ua.VariantType.Double, -1), "Double[]": (ua.VariantType.Double, 1),
     "String": (ua.VariantType.String, -1), "Boolean": (ua.VariantType.Boolean, -1),
-    "Int64": (ua.VariantType.Int64, -1),
+    "Int64": (ua.VariantType.Int64, -1), "String[]": (ua.VariantType.String, 1),
 }
 
 
@@ -119,6 +119,14 @@ class MachineNodes:
         ``WwBaseEventType``.
     ns : dict of str to int
         Namespace indices: ``"di"``, ``"machinery"``, ``"ww"``, ``"own"``.
+    machine_name : str
+        The machine's BrowseName (and the prefix of our NodeIds).
+    types : dict
+        The declared type nodes (``interfaces``, ``state_enum``, ...).
+    state, manufacturer : Node or None
+        ``State`` and ``ManufacturerSpecific`` (the heads are added below them).
+    heads : list of str
+        The heads built (:func:`controller.opcua.heads_nodes.build_heads`), in order.
     """
 
     machine: Node
@@ -127,6 +135,11 @@ class MachineNodes:
     events_node: Node | None = None
     event_type: Node | None = None
     ns: dict[str, int] = field(default_factory=dict)
+    machine_name: str = "SmartPlaner"
+    types: dict[str, Any] = field(default_factory=dict)
+    state: Node | None = None
+    manufacturer: Node | None = None
+    heads: list[str] = field(default_factory=list)
 
 
 def _own_id(machine_name: str, path: str, own: int) -> ua.NodeId:
@@ -267,7 +280,8 @@ async def build_address_space(
     machine = await machines.add_object(ua.NodeId(machine_name, own), _qn(machine_name, own),
                                         objecttype=types["ww_machine"].nodeid,
                                         instantiate_optional=False)
-    nodes = MachineNodes(machine=machine, ns=ns, event_type=types["event_type"])
+    nodes = MachineNodes(machine=machine, ns=ns, event_type=types["event_type"],
+                         machine_name=machine_name, types=types)
 
     await _identification(machine, nodes, identification, machine_name, types, ns)
     await _state(machine, nodes, machine_name, types, ns)
@@ -313,37 +327,49 @@ async def _state(machine: Node, nodes: MachineNodes, machine_name: str,
     state = await machine.add_object(ua.NodeId(f"{machine_name}.State", own), _qn("State", ww))
     unit = await state.add_object(ua.NodeId(f"{machine_name}.State.Machine", own),
                                   _qn("Machine", ww))
-    overview = await unit.add_object(ua.NodeId(f"{machine_name}.State.Machine.Overview", own),
-                                     _qn("Overview", ww))
+    await build_unit(unit, "State/Machine", nodes, machine_name, types, ns)
+    await state.add_reference(types["interfaces"]["State"].nodeid, HAS_INTERFACE)
+    nodes.state = state
+
+
+async def build_unit(unit: Node, base: str, nodes: MachineNodes, machine_name: str,
+                     types: Mapping[str, Any], ns: Mapping[str, int]) -> None:
+    """A unit's ``Overview``, ``Flags`` and ``Values`` (``IWwBaseStateType``) below ``unit``.
+
+    ``base`` is the unit's path below the machine (``State/Machine``,
+    ``State/SubUnits/top``); the variables are registered in ``nodes`` under it.
+    """
+    own, ww = ns["own"], ns["ww"]
+
+    def nid(path: str) -> ua.NodeId:
+        return _own_id(machine_name, path, own)
+
+    overview = await unit.add_object(nid(f"{base}/Overview"), _qn("Overview", ww))
     for name, enum_node in (("CurrentState", types["state_enum"]),
                             ("CurrentMode", types["mode_enum"])):
-        path = f"State/Machine/Overview/{name}"
-        var = await overview.add_variable(_own_id(machine_name, path, own), _qn(name, ww), 0,
+        path = f"{base}/Overview/{name}"
+        var = await overview.add_variable(nid(path), _qn(name, ww), 0,
                                           ua.VariantType.Int32, datatype=enum_node.nodeid)
         nodes.variables[path], nodes.variant_types[path] = var, ua.VariantType.Int32
-    flags = await unit.add_object(ua.NodeId(f"{machine_name}.State.Machine.Flags", own),
-                                  _qn("Flags", ww))
+    flags = await unit.add_object(nid(f"{base}/Flags"), _qn("Flags", ww))
     for name in FLAG_NAMES:
-        path = f"State/Machine/Flags/{name}"
-        var = await flags.add_variable(ua.NodeId(f"{machine_name}.{path.replace('/', '.')}", own),
-                                       _qn(name, ww), False, ua.VariantType.Boolean)
+        path = f"{base}/Flags/{name}"
+        var = await flags.add_variable(nid(path), _qn(name, ww), False, ua.VariantType.Boolean)
         nodes.variables[path], nodes.variant_types[path] = var, ua.VariantType.Boolean
-    vals = await unit.add_object(ua.NodeId(f"{machine_name}.State.Machine.Values", own),
-                                 _qn("Values", ww))
+    vals = await unit.add_object(nid(f"{base}/Values"), _qn("Values", ww))
     analog = ua.NodeId(BASE_ANALOG_TYPE)
     for name in VALUE_NAMES:
-        path = f"State/Machine/Values/{name}"
+        path = f"{base}/Values/{name}"
         vtype = ua.VariantType.Double if name == "FeedSpeed" else ua.VariantType.UInt64
-        var = await vals.add_variable(ua.NodeId(f"{machine_name}.{path.replace('/', '.')}", own),
-                                      _qn(name, ww), ua.Variant(math.nan if name == "FeedSpeed"
-                                                                else 0, vtype),
+        var = await vals.add_variable(nid(path), _qn(name, ww),
+                                      ua.Variant(math.nan if name == "FeedSpeed" else 0, vtype),
                                       varianttype=vtype)
         await _retype(var, analog)
         nodes.variables[path], nodes.variant_types[path] = var, vtype
 
-    for path, node in (("State", state), ("State/Machine", unit), ("State/Machine/Flags", flags),
+    for part, node in (("State/Machine", unit), ("State/Machine/Flags", flags),
                        ("State/Machine/Overview", overview), ("State/Machine/Values", vals)):
-        await node.add_reference(types["interfaces"][path].nodeid, HAS_INTERFACE)
+        await node.add_reference(types["interfaces"][part].nodeid, HAS_INTERFACE)
 
 
 async def _events(machine: Node, nodes: MachineNodes, machine_name: str,
@@ -369,11 +395,21 @@ async def _manufacturer(machine: Node, nodes: MachineNodes, machine_name: str, k
     ms = await machine.add_object(ua.NodeId(f"{machine_name}.ManufacturerSpecific", own),
                                   _qn("ManufacturerSpecific", ww),
                                   objecttype=ua.NodeId(ua.ObjectIds.FolderType))
-    for name, kind in MANUFACTURER_NAMES.items():
-        path = f"ManufacturerSpecific/{name}"
+    await add_manufacturer_variables(ms, "ManufacturerSpecific", MANUFACTURER_NAMES, nodes,
+                                     machine_name, knives, own)
+    nodes.manufacturer = ms
+
+
+async def add_manufacturer_variables(folder: Node, base: str, names: Mapping[str, str],
+                                     nodes: MachineNodes, machine_name: str, knives: int,
+                                     own: int) -> None:
+    """Our variables (``names``: name -> data type) in ``folder``, registered under ``base``."""
+    for name, kind in names.items():
+        path = f"{base}/{name}"
         vtype, rank = _MANUFACTURER_TYPES[kind]
         if rank == 1:
-            init = ua.Variant([math.nan] * knives, vtype, is_array=True)
+            init = ua.Variant([math.nan] * knives if vtype == ua.VariantType.Double else [],
+                              vtype, is_array=True)
         elif vtype == ua.VariantType.Double:
             init = ua.Variant(math.nan, vtype)
         elif vtype == ua.VariantType.String:
@@ -382,8 +418,8 @@ async def _manufacturer(machine: Node, nodes: MachineNodes, machine_name: str, k
             init = ua.Variant(False, vtype)
         else:
             init = ua.Variant(MANUFACTURER_INITIAL.get(name, 0), vtype)
-        var = await ms.add_variable(ua.NodeId(f"{machine_name}.{path.replace('/', '.')}", own),
-                                    _qn(name, own), init, varianttype=vtype)
+        var = await folder.add_variable(_own_id(machine_name, path, own), _qn(name, own), init,
+                                        varianttype=vtype)
         if rank == 1:
             await var.write_value_rank(1)
             await var.write_array_dimensions([0])

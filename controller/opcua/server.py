@@ -22,7 +22,7 @@ import ipaddress
 import logging
 import socket
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -32,6 +32,7 @@ from urllib.parse import urlparse
 from asyncua import Server, ua
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
 
+from controller.opcua.heads_nodes import build_heads
 from controller.opcua.nodes import MachineNodes, build_address_space
 from controller.opcua.view import MachineView, WwEvent
 from controller.quality.log import QualityClass
@@ -221,6 +222,11 @@ class OpcUaServer:
         A connection that has not activated a session this long after connecting is closed, s.
     max_session_timeout_ms : float, keyword-only
         Longest session timeout granted, ms.
+    heads : sequence of mapping, keyword-only, optional
+        A moulder's heads (``name``, ``knives``, ...: :func:`controller.edge.feed.
+        head_configs_json`), built at start as ``State/SubUnits/<head>``; ``None``: one head,
+        the address space of a single machine (heads told later by :meth:`apply` are added
+        then).
     """
 
     def __init__(
@@ -238,6 +244,7 @@ class OpcUaServer:
         min_publishing_ms: float = 100.0,
         activation_s: float = 10.0,
         max_session_timeout_ms: float = 60_000.0,
+        heads: Sequence[Mapping[str, Any]] | None = None,
     ) -> None:
         self.host, self.port = parse_endpoint(endpoint)
         self.limits = _check_limits(max_connections=max_connections,
@@ -275,6 +282,7 @@ class OpcUaServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
         self._gen: Any = None
+        self._new_heads: list[dict[str, Any]] = [dict(h) for h in heads or ()]
         self.published = 0
         """Publish rounds done (tests poll it)."""
 
@@ -311,6 +319,7 @@ class OpcUaServer:
         server.set_identity_tokens(list(tokens))
         _apply_limits(server, self.limits)
         self._nodes = await build_address_space(server, self.identification, knives=self.knives)
+        await self._build_heads(server)
         self._gen = await server.get_event_generator(self._nodes.event_type,
                                                      self._nodes.events_node)
         try:
@@ -403,13 +412,19 @@ class OpcUaServer:
             self._dirty = True
         self._poke()
 
-    def apply(self, values: Mapping[str, Any] | None, events: list[WwEvent]) -> None:
+    def apply(self, values: Mapping[str, Any] | None, events: list[WwEvent],
+              heads: Sequence[Mapping[str, Any]] | None = None) -> None:
         """Values and events computed elsewhere (a :class:`MachineView` in another process).
 
-        ``values`` (by path, :meth:`MachineView.all_values`; ``None``: unchanged) replace the
-        server's own view from now on; ``events`` are fired in order. Thread-safe, never blocks.
+        ``values`` (by path, :meth:`MachineView.all_values` or
+        :meth:`~controller.opcua.heads_view.MoulderView.all_values`; ``None``: unchanged)
+        replace the server's own view from now on; ``events`` are fired in order; ``heads``
+        (a moulder's) are added to the address space first. Thread-safe, never blocks.
         """
         with self._lock:
+            if heads:
+                self._new_heads.extend(dict(h) for h in heads)
+                self._dirty = True
             if values is not None:
                 self._values = dict(values)
                 self._dirty = True
@@ -499,10 +514,18 @@ class OpcUaServer:
             except _DISPLAY_ERRORS:  # never let a display problem stop the service
                 _log.exception("opcua: publishing failed")
 
+    async def _build_heads(self, server: Server) -> None:
+        with self._lock:
+            heads, self._new_heads = self._new_heads, []
+        if heads and self._nodes is not None:
+            await build_heads(server, self._nodes, heads)
+
     async def _publish(self) -> None:
         server, nodes = self._server, self._nodes
         if nodes is None:
             return
+        if self._new_heads and server is not None:
+            await self._build_heads(server)
         with self._lock:
             if self._dirty or not self._written:
                 values = self._values if self._values is not None else self.view.all_values()

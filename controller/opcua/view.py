@@ -300,6 +300,11 @@ class MachineView:
     # --- outputs ------------------------------------------------------------------------------
 
     @property
+    def status(self) -> ServiceStatus | None:
+        """The last status snapshot taken (``None`` before the first)."""
+        return self._status
+
+    @property
     def current_state(self) -> UnitState:
         """``Overview/CurrentState``."""
         s = self._status

@@ -24,7 +24,8 @@ from controller.quality.schema import QualityClass
 from controller.service.events import ServiceEvent
 from controller.service.frame_result import FrameResult
 from controller.service.status import ServiceStatus
-from controller.web.board_strip import BoardStrip, defect_fields_json
+from controller.web.board_strip import defect_fields_json
+from controller.web.head_live import HeadLive
 
 __all__ = [
     "PROFILE_MAX_POINTS",
@@ -250,22 +251,12 @@ def status_json(s: ServiceStatus) -> dict[str, Any]:
     return s.to_dict()
 
 
-def _quality_class_json(qc: QualityClass | None) -> dict[str, Any] | None:
-    if qc is None:
-        return None
-    return {
-        "name": qc.name,
-        "target_pitch_mm": _num(qc.target_pitch_mm),
-        "pitch_tolerance": _num(qc.pitch_tolerance),
-        "pitch_lo_mm": _num(qc.target_pitch_mm * (1 - qc.pitch_tolerance)),
-        "pitch_hi_mm": _num(qc.target_pitch_mm * (1 + qc.pitch_tolerance)),
-        "uniformity_max_cv": _num(qc.uniformity_max_cv),
-        "depth_max_um": _num(qc.depth_max_um),
-    }
-
-
 class LiveView:
     """The latest state of the service for the operator page; thread-safe.
+
+    A single machine is one head (``status``, ``last``, ``trace``, ``board`` of the snapshot);
+    a moulder (:meth:`set_heads`) adds ``heads``: one :class:`~controller.web.head_live.
+    HeadLive` per head, the top-level keys then being the first head's.
 
     Parameters
     ----------
@@ -285,17 +276,22 @@ class LiveView:
         if history < 1 or max_events < 1:
             raise ValueError("history and max_events must be >= 1")
         self._lock = threading.Lock()
-        self._qc = quality_class
-        self._counts_per_mm = counts_per_mm
-        self._status: dict[str, Any] | None = None
-        self._last: dict[str, Any] | None = None
-        self._trace: deque[dict[str, Any]] = deque(maxlen=history)
+        self._history = history
+        self._main = HeadLive(history, quality_class=quality_class, counts_per_mm=counts_per_mm)
+        self._heads: dict[str, HeadLive] = {}
+        self._machine: dict[str, Any] | None = None
         self._events: deque[dict[str, Any]] = deque(maxlen=max_events)
-        self._counts0: int | None = None
-        self._board = BoardStrip()
         self._version = 0
         self.changed = threading.Condition(self._lock)
         """Notified on every change (the server's streams wait on it)."""
+
+    @property
+    def _qc(self) -> QualityClass | None:
+        return self._main.qc
+
+    @property
+    def _counts_per_mm(self) -> float | None:
+        return self._main.counts_per_mm
 
     @property
     def version(self) -> int:
@@ -307,27 +303,61 @@ class LiveView:
         self._version += 1
         self.changed.notify_all()
 
-    def set_quality_class(self, qc: QualityClass | None) -> None:
-        """Use ``qc`` for the band (``None``: none drawn)."""
+    def _head(self, head: str | None) -> HeadLive:
+        """The head's part (``None``: the single machine's); an unannounced head is added."""
+        if head is None or (not self._heads and head == "main"):
+            return self._main
+        part = self._heads.get(head)
+        if part is None:
+            part = self._heads[head] = HeadLive(self._history, config={"name": head})
+        return part
+
+    def set_heads(self, heads: Sequence[dict[str, Any]]) -> None:
+        """A moulder's heads in order: the page shows one tab per head from now on.
+
+        Each a dict: ``name``, ``face``, ``knives``, ``rpm``, ``rpm_min``, ``rpm_max``,
+        ``target_pitch_mm`` (:func:`controller.edge.feed.head_configs_json`).
+        """
         with self._lock:
-            self._qc = qc
+            self._heads = {str(h["name"]): HeadLive(self._history, config=dict(h))
+                           for h in heads}
+            self._machine = None
             self._bump()
 
-    def set_counts_per_mm(self, counts_per_mm: float | None) -> None:
+    def take_machine(self, d: dict[str, Any]) -> None:
+        """The moulder's feed coordinator: ``feed_mm_s``, ``limiting``, speed setpoints."""
+        with self._lock:
+            if d != self._machine:
+                self._machine = dict(d)
+                self._bump()
+
+    def take_plc(self, head: str, facts: dict[str, Any]) -> None:
+        """A head's measured ``spindle_rpm`` and ``knives``."""
+        with self._lock:
+            part = self._head(head)
+            if facts != part.plc:
+                part.plc = dict(facts)
+                self._bump()
+
+    def set_quality_class(self, qc: QualityClass | None, head: str | None = None) -> None:
+        """Use ``qc`` for the band (``None``: none drawn) of the machine or of ``head``."""
+        with self._lock:
+            self._head(head).qc = qc
+            self._bump()
+
+    def set_counts_per_mm(self, counts_per_mm: float | None, head: str | None = None) -> None:
         """Encoder scale for the along-the-board axis (ignored unless finite and > 0)."""
-        if counts_per_mm is not None and math.isfinite(counts_per_mm) and counts_per_mm > 0:
-            with self._lock:
-                self._counts_per_mm = float(counts_per_mm)
+        with self._lock:
+            self._head(head).set_counts_per_mm(counts_per_mm)
 
     def update(self, status: ServiceStatus) -> None:
         """Take a service snapshot."""
         self.take_status(status_json(status))
 
-    def take_status(self, d: dict[str, Any]) -> None:
-        """Take a service snapshot already as :func:`status_json`."""
+    def take_status(self, d: dict[str, Any], head: str | None = None) -> None:
+        """Take a service snapshot already as :func:`status_json` (of ``head``'s service)."""
         with self._lock:
-            if d != self._status:
-                self._status = d
+            if self._head(head).take_status(d):
                 self._bump()
 
     def result(self, r: FrameResult) -> None:
@@ -335,19 +365,12 @@ class LiveView:
         self.take_result(result_json(r))
 
     def take_result(self, d: dict[str, Any]) -> None:
-        """Take one pair's result already as :func:`result_json` (``board_m`` is added)."""
-        d = dict(d)
+        """Take one pair's result already as :func:`result_json` (``board_m`` is added).
+
+        A result with ``head`` goes to that head's part.
+        """
         with self._lock:
-            if self._counts0 is None:
-                self._counts0 = d["counts_a"]
-            cpm = self._counts_per_mm
-            d["board_m"] = (None if cpm is None
-                            else round((d["counts_a"] - self._counts0) / cpm / 1000.0, 5))
-            self._last = d
-            self._board.take(d)
-            self._trace.append({k: d[k] for k in ("seq", "t_s", "board_m", "ok", "state",
-                                                  "pitch_mm", "uniformity_cv", "depth_um",
-                                                  "confidence", "feed_setpoint_mm_s")})
+            self._head(d.get("head")).take_result(d)
             self._bump()
 
     def event(self, e: ServiceEvent) -> None:
@@ -355,7 +378,7 @@ class LiveView:
         self.take_event(event_json(e))
 
     def take_event(self, d: dict[str, Any]) -> None:
-        """Take one service event already as :func:`event_json`."""
+        """Take one service event already as :func:`event_json` (a head's carries ``head``)."""
         with self._lock:
             self._events.append(d)
             self._bump()
@@ -371,18 +394,27 @@ class LiveView:
             ``t_s``, ``board_m``, ``pitch_mm``, ``uniformity_cv``, ``depth_um``, ...),
             ``events`` (newest last), ``quality_class`` (band limits or ``None``) and
             ``board`` (the current board's defects and grade so far, the last board's:
-            :meth:`controller.web.board_strip.BoardStrip.json`).
+            :meth:`controller.web.board_strip.BoardStrip.json`). A moulder's adds ``heads``
+            (per head in order: its configuration, ``plc`` and the five keys above) and
+            ``machine`` (the feed coordinator's decision); the top-level five are then the
+            first head's.
         """
         with self._lock:
-            return {
+            heads = [h.json() for h in self._heads.values()]
+            first = heads[0] if heads else self._main.json()
+            out = {
                 "version": self._version,
-                "status": self._status,
-                "last": self._last,
-                "trace": list(self._trace),
+                "status": first["status"],
+                "last": first["last"],
+                "trace": first["trace"],
                 "events": list(self._events),
-                "quality_class": _quality_class_json(self._qc),
-                "board": self._board.json(),
+                "quality_class": first["quality_class"],
+                "board": first["board"],
             }
+            if heads:
+                out["heads"] = heads
+                out["machine"] = self._machine
+            return out
 
     def wait_changed(self, version: int, timeout_s: float) -> int:
         """Block (at most ``timeout_s``) until the version differs from ``version``; return it."""

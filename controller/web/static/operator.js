@@ -2,9 +2,12 @@
 "use strict";
 
 const KNIFE_COLOURS = 8; // CSS classes k0..k7
-const feedHistory = []; // {t, set, act} from the service snapshots
+const feedHistories = {}; // head ("" for a single machine) -> [{t, set, act}] from its snapshots
+let feedHistory = [];
 const FEED_KEEP = 600;
 let lastVersion = -1;
+let lastSnap = null;
+let selectedHead = null; // a moulder's head whose panels are shown (null: the first)
 
 function $(id) { return document.getElementById(id); }
 function num(v, digits) { return Plot.finite(v) ? v.toFixed(digits) : "-"; }
@@ -28,12 +31,15 @@ function drawState(status) {
   setText("counters", `${c.frames ?? 0} handled, ${c.ok ?? 0} measured, ${c.failed ?? 0} failed, ` +
     `${c.safe_entries ?? 0} safe-state entries` +
     (status.log_problem ? ` - log: ${status.log_problem}` : ""));
-  if (Plot.finite(status.t_s)) {
-    const last = feedHistory[feedHistory.length - 1];
-    if (!last || status.t_s > last.t) {
-      feedHistory.push({ t: status.t_s, set: status.feed_setpoint_mm_s, act: status.feed_actual_mm_s });
-      if (feedHistory.length > FEED_KEEP) feedHistory.shift();
-    }
+  recordFeed(feedHistory, status);
+}
+
+function recordFeed(history, status) {
+  if (!status || !Plot.finite(status.t_s)) return;
+  const last = history[history.length - 1];
+  if (!last || status.t_s > last.t) {
+    history.push({ t: status.t_s, set: status.feed_setpoint_mm_s, act: status.feed_actual_mm_s });
+    if (history.length > FEED_KEEP) history.shift();
   }
 }
 
@@ -268,14 +274,83 @@ function drawEvents(events) {
   list.replaceChildren(...events.slice().reverse().map((e) => {
     const li = document.createElement("li");
     li.className = `ev ${e.kind}`;
-    li.textContent = `t=${num(e.t_s, 3)} s  ${e.text}`;
+    li.textContent = `t=${num(e.t_s, 3)} s  ${e.head ? e.head + ": " : ""}${e.text}`;
     return li;
   }));
 }
 
-function draw(snap) {
-  if (snap.version === lastVersion) return;
-  lastVersion = snap.version;
+function headRow(h, machine) {
+  // one row of the heads' table: what the head does now
+  const s = h.status, last = h.last;
+  const setpoints = (machine && machine.spindle_setpoints_rpm) || {};
+  const rpm = h.plc && Plot.finite(h.plc.spindle_rpm) ? h.plc.spindle_rpm : h.rpm;
+  const sp = Plot.finite(setpoints[h.name]) ? ` (set ${num(setpoints[h.name], 0)})` : "";
+  const knives = h.plc && Plot.finite(h.plc.knives) ? h.plc.knives : h.knives;
+  const offsets = s ? s.offsets_um.map((v) => num(v, 1)).join(" ") : "-";
+  const grade = h.board && h.board.current ? String(h.board.current.grade) : "-";
+  const state = !s ? "no service" : s.state === "run" ? "RUN"
+    : `SAFE ${s.safe_reason || s.missing.join(", ")}`;
+  const limiting = machine && (machine.limiting || []).includes(h.name) ? " (sets the feed)" : "";
+  return { cls: `head ${s ? s.state : "unknown"}`, cells: [
+    [`${h.name}${limiting}`, "name"], [h.face || "-", "face"], [state, "state"],
+    [last ? num(last.pitch_mm, 3) : "-", "pitch"], [num(h.target_pitch_mm, 2), "target"],
+    [last ? num(last.uniformity_cv, 3) : "-", "cv"], [`${num(rpm, 0)}${sp}`, "rpm"],
+    [knives ?? "-", "knives"], [offsets, "offsets"], [grade, "grade"]] };
+}
+
+function drawHeads(heads, machine) {
+  const box = $("heads");
+  box.hidden = !heads;
+  if (!heads) return;
+  if (!heads.some((h) => h.name === selectedHead)) selectedHead = heads[0].name;
+  setText("machine-feed", machine && Plot.finite(machine.feed_mm_s)
+    ? `feed ${num(machine.feed_mm_s, 1)} mm/s` : "");
+  const body = $("heads-table").tBodies[0];
+  body.replaceChildren(...heads.map((h) => {
+    const row = headRow(h, machine);
+    const tr = document.createElement("tr");
+    tr.className = row.cls + (h.name === selectedHead ? " selected" : "");
+    tr.dataset.head = h.name;
+    for (const [text, cls] of row.cells) {
+      const td = document.createElement("td");
+      td.className = cls;
+      td.textContent = String(text);
+      tr.append(td);
+    }
+    return tr;
+  }));
+  const tabs = $("head-tabs");
+  const key = heads.map((h) => h.name).join(",") + ":" + selectedHead;
+  if (tabs.dataset.key === key) return;
+  tabs.dataset.key = key;
+  tabs.replaceChildren(...heads.map((h) => {
+    const b = document.createElement("button");
+    b.type = "button";
+    b.dataset.head = h.name;
+    b.className = h.name === selectedHead ? "selected" : "";
+    b.textContent = `${h.name} (${h.face || "-"})`;
+    b.addEventListener("click", () => {
+      selectedHead = h.name;
+      if (lastSnap) { lastVersion = -1; draw(lastSnap); }
+    });
+    return b;
+  }));
+}
+
+function draw(full) {
+  if (full.version === lastVersion) return;
+  lastVersion = full.version;
+  lastSnap = full;
+  drawHeads(full.heads, full.machine);
+  // a moulder: the panels below show the selected head (its status, pairs, board strip)
+  const head = full.heads ? full.heads.find((h) => h.name === selectedHead) : null;
+  const snap = head ? { ...full, status: head.status, last: head.last, trace: head.trace,
+    quality_class: head.quality_class, board: head.board } : full;
+  for (const h of full.heads || []) {
+    if (h !== head) recordFeed(feedHistories[h.name] ||= [], h.status);
+  }
+  feedHistory = feedHistories[head ? head.name : ""] ||= [];
+  document.body.dataset.head = head ? head.name : "";
   const qc = snap.quality_class;
   drawState(snap.status);
   drawNow(snap.last, qc);
@@ -286,7 +361,7 @@ function draw(snap) {
   drawBoardStrip(snap.board);
   drawFeed();
   drawEvents(snap.events || []);
-  document.body.dataset.version = String(snap.version);
+  document.body.dataset.version = String(full.version);
 }
 
 function connect() {

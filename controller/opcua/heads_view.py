@@ -1,0 +1,228 @@
+"""What a moulder (several heads, one feed) shows over OPC UA (pure, no I/O, no asyncua).
+
+Each head is a unit of the machine as OPC 40550 models it: ``State/SubUnits/<head>``
+(``IWwSubUnitsType``; each ``<SubUnit>`` implements ``IWwBaseStateType``: ``Overview``,
+``Flags``, ``Values``), with the head's own ``ManufacturerSpecific`` folder beside them. Each
+head's values come from a :class:`~controller.opcua.view.MachineView` of its own service;
+``State/Machine`` is the whole machine, combined from the heads (:meth:`MoulderView.flags`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from controller.opcua.view import (
+    MANUFACTURER_NAMES,
+    MachineView,
+    UnitMode,
+    UnitState,
+    WwEvent,
+)
+from controller.quality.schema import QualityClass
+from controller.service.events import ServiceEvent
+from controller.service.frame_result import FrameResult
+from controller.service.status import ServiceStatus
+
+__all__ = [
+    "HEAD_EXTRA_NAMES",
+    "HEAD_MANUFACTURER_NAMES",
+    "MOULDER_MANUFACTURER_NAMES",
+    "SUBUNITS",
+    "MoulderView",
+    "head_path",
+]
+
+SUBUNITS = "State/SubUnits"
+"""Where the heads are, below the machine."""
+
+HEAD_EXTRA_NAMES: Mapping[str, str] = {
+    "Face": "String", "Knives": "Int64", "TargetPitchMm": "Double", "SpindleRpm": "Double",
+    "SpindleRpmMin": "Double", "SpindleRpmMax": "Double", "SpindleSetpointRpm": "Double",
+    "SafeState": "Boolean", "LimitsFeed": "Boolean",
+}
+"""A head's variables beyond a single machine's ``ManufacturerSpecific`` set: its face, knives
+(the PLC's, else the configured), target pitch, measured spindle speed (rpm; the configured
+before the PLC's first read) and its range, the coordinator's speed setpoint (variable heads),
+whether its service is in its safe state and whether it sets the feed now."""
+
+HEAD_MANUFACTURER_NAMES: Mapping[str, str] = {**MANUFACTURER_NAMES, **HEAD_EXTRA_NAMES}
+"""``State/SubUnits/<head>/ManufacturerSpecific`` variables and their data types."""
+
+MOULDER_MANUFACTURER_NAMES: Mapping[str, str] = {"Heads": "String[]", "LimitingHeads": "String[]"}
+"""Added to the machine's ``ManufacturerSpecific`` in a moulder: the heads in order and the
+heads that set the feed now."""
+
+_STATE_RANK = (UnitState.ERROR, UnitState.STANDBY, UnitState.WORKING, UnitState.READY)
+_ALL_FLAGS = ("MachineOn", "PowerPresent", "MachineInitialized", "Calibrated", "RecipeInRun")
+"""Flags the machine has when every head has them; the others when any head has."""
+
+
+def head_path(head: str, rest: str) -> str:
+    """The path below the machine of a head's variable (``State/SubUnits/top/Flags/Error``)."""
+    return f"{SUBUNITS}/{head}/{rest}"
+
+
+def _num(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+class MoulderView:
+    """The OPC UA picture of a moulder, updated head by head.
+
+    Parameters
+    ----------
+    heads : sequence of mapping
+        The heads in order (:func:`controller.edge.feed.head_configs_json`: ``name``, ``face``,
+        ``knives``, ``rpm``, ``rpm_min``, ``rpm_max``, ``target_pitch_mm``).
+    quality_class : QualityClass or None
+        Each head's class until its service tells its own.
+    calibrated : bool
+        ``Flags/Calibrated`` of every head.
+    """
+
+    def __init__(self, heads: Sequence[Mapping[str, Any]], *,
+                 quality_class: QualityClass | None = None, calibrated: bool = True) -> None:
+        if not heads:
+            raise ValueError("heads must name at least one head")
+        self.configs: dict[str, dict[str, Any]] = {str(h["name"]): dict(h) for h in heads}
+        if len(self.configs) != len(heads):
+            raise ValueError(f"heads must have unique names, got {[h['name'] for h in heads]}")
+        self.views = {name: MachineView(quality_class=quality_class, calibrated=calibrated)
+                      for name in self.configs}
+        self._plc: dict[str, dict[str, Any]] = {name: {} for name in self.configs}
+        self._machine: dict[str, Any] = {}
+
+    @property
+    def names(self) -> list[str]:
+        """The heads in order."""
+        return list(self.configs)
+
+    def view(self, head: str) -> MachineView:
+        """The head's own view (``ValueError`` naming an unknown head)."""
+        try:
+            return self.views[head]
+        except KeyError:
+            raise ValueError(f"head must be one of {self.names}, got {head!r}") from None
+
+    # --- inputs -------------------------------------------------------------------------------
+
+    def set_quality_class(self, head: str, qc: QualityClass | None) -> None:
+        """The class the head's measurements are judged against (its service's)."""
+        if qc is not None:
+            self.view(head).quality_class = qc
+
+    def update(self, head: str, status: ServiceStatus) -> None:
+        """A head's status snapshot."""
+        self.view(head).update(status)
+
+    def result(self, head: str, r: FrameResult) -> None:
+        """A head's pair result."""
+        self.view(head).result(r)
+
+    def event(self, head: str, e: ServiceEvent) -> WwEvent:
+        """The Woodworking event of a head's service event (``PathParts`` names the head)."""
+        ev = self.view(head).event(e)
+        return dataclasses.replace(ev, message=f"{head}: {ev.message}",
+                                   path_parts=("SubUnits", head))
+
+    def take_plc(self, head: str, facts: Mapping[str, Any]) -> None:
+        """The head's measured ``spindle_rpm`` and ``knives`` (``None``: not read yet)."""
+        self.view(head)
+        self._plc[head] = dict(facts)
+
+    def take_machine(self, d: Mapping[str, Any]) -> None:
+        """The feed coordinator's last decision (``feed_mm_s``, ``limiting``, setpoints)."""
+        self._machine = dict(d)
+
+    # --- outputs ------------------------------------------------------------------------------
+
+    @property
+    def current_state(self) -> UnitState:
+        """The machine's state: the worst of its heads' (ERROR, STANDBY, WORKING, READY)."""
+        states = {v.current_state for v in self.views.values()}
+        return next((s for s in _STATE_RANK if s in states), UnitState.OFFLINE)
+
+    @property
+    def current_mode(self) -> UnitMode:
+        """``AUTOMATIC`` when every head is, ``OTHER`` when none is known, else SEMIAUTOMATIC."""
+        modes = {v.current_mode for v in self.views.values()}
+        if len(modes) == 1:
+            return modes.pop()
+        return UnitMode.SEMIAUTOMATIC
+
+    def flags(self) -> dict[str, bool]:
+        """The machine's flags: the heads' all-of (:data:`_ALL_FLAGS`), else any-of."""
+        per_head = [v.flags() for v in self.views.values()]
+        out = {}
+        for name in per_head[0]:
+            values = [f[name] for f in per_head]
+            out[name] = all(values) if name in _ALL_FLAGS else any(values)
+        return out
+
+    def values(self) -> dict[str, float | int]:
+        """The machine's values (feed, length and pieces in: the first head's).
+
+        Pieces out are the last head's, runs summed over the heads.
+        """
+        views = list(self.views.values())
+        first, last = views[0].values(), views[-1].values()
+        out = dict(first)
+        for k in ("AbsolutePiecesOut", "RelativePiecesOut"):
+            out[k] = last[k]
+        for k in ("AbsoluteRunsGood", "RelativeRunsGood", "AbsoluteRunsTotal",
+                  "RelativeRunsTotal"):
+            out[k] = sum(int(v.values()[k]) for v in views)
+        return out
+
+    def head_manufacturer(self, head: str) -> dict[str, Any]:
+        """The head's ``ManufacturerSpecific`` (:data:`HEAD_MANUFACTURER_NAMES`)."""
+        view, cfg, plc = self.view(head), self.configs[head], self._plc[head]
+        status = view.status
+        rpm = plc.get("spindle_rpm")
+        knives = plc.get("knives")
+        knives = knives if knives is not None else cfg.get("knives")
+        setpoints = self._machine.get("spindle_setpoints_rpm") or {}
+        return {
+            **view.manufacturer(),
+            "Face": str(cfg.get("face") or ""),
+            "Knives": int(knives) if knives is not None and math.isfinite(knives) else 0,
+            "TargetPitchMm": _num(cfg.get("target_pitch_mm")),
+            "SpindleRpm": _num(rpm if rpm is not None else cfg.get("rpm")),
+            "SpindleRpmMin": _num(cfg.get("rpm_min")),
+            "SpindleRpmMax": _num(cfg.get("rpm_max")),
+            "SpindleSetpointRpm": _num(setpoints.get(head)),
+            "SafeState": bool(status is not None and status.state == "safe"),
+            "LimitsFeed": head in (self._machine.get("limiting") or ()),
+        }
+
+    def all_values(self) -> dict[str, Any]:
+        """Every value by its path below the machine.
+
+        ``State/Machine/...``, the machine's ``ManufacturerSpecific/FeedSetpointMmS``,
+        ``Heads``, ``LimitingHeads`` and each head's
+        ``State/SubUnits/<head>/{Overview, Flags, Values, ManufacturerSpecific}/...``.
+        """
+        out: dict[str, Any] = {
+            "State/Machine/Overview/CurrentState": int(self.current_state),
+            "State/Machine/Overview/CurrentMode": int(self.current_mode),
+        }
+        out.update({f"State/Machine/Flags/{k}": v for k, v in self.flags().items()})
+        out.update({f"State/Machine/Values/{k}": v for k, v in self.values().items()})
+        out["ManufacturerSpecific/FeedSetpointMmS"] = _num(self._machine.get("feed_mm_s"))
+        out["ManufacturerSpecific/Heads"] = self.names
+        out["ManufacturerSpecific/LimitingHeads"] = [
+            str(h) for h in self._machine.get("limiting") or ()]
+        for head, view in self.views.items():
+            out[head_path(head, "Overview/CurrentState")] = int(view.current_state)
+            out[head_path(head, "Overview/CurrentMode")] = int(view.current_mode)
+            out.update({head_path(head, f"Flags/{k}"): v for k, v in view.flags().items()})
+            out.update({head_path(head, f"Values/{k}"): v for k, v in view.values().items()})
+            out.update({head_path(head, f"ManufacturerSpecific/{k}"): v
+                        for k, v in self.head_manufacturer(head).items()})
+        return out
