@@ -29,7 +29,8 @@ onto one instant and then run on without any (which the setpoint timeout would j
 silence).
 
 Faults: ``drop_rx`` drops a fraction of received frames, or all of them in a time window;
-``silence`` stops the node sending in a time window (the CAN side going silent).
+``silence`` stops the node sending in a time window (the CAN side going silent); either for
+every node on the bus or for one (``node_id``: one head's amplifier on a moulder's bus).
 """
 
 from __future__ import annotations
@@ -74,8 +75,11 @@ class _Window:
     start_s: float
     end_s: float
     fraction: float = 1.0
+    node_id: int | None = None  # None: every node on the bus
 
-    def active(self, now_s: float) -> bool:
+    def active(self, now_s: float, node_id: int | None = None) -> bool:
+        if self.node_id is not None and self.node_id != node_id:
+            return False
         return self.start_s <= now_s < self.end_s
 
 
@@ -114,6 +118,7 @@ class AmpNodeCore:
         self.network = OutboxNetwork()
         self.nodes: list[CanopenAmpNode] = []
         self._expected: dict[int, int] = {}
+        self._node_of: dict[int, int] = {}  # COB-ID -> the node id whose service it is
         self.node = self.add_node(node_id, machine, knives=knives, eds=eds)
         """The head's amplifier (the first node)."""
         self.machine = machine
@@ -130,6 +135,8 @@ class AmpNodeCore:
         node = CanopenAmpNode(self.network, node_id, machine, knives=knives, eds=eds)
         self.nodes.append(node)
         self._expected.update(expected_lengths(node.od, node_id, receiver="node"))
+        for cob in node.cob_ids.values():
+            self._node_of[cob] = node_id
         return node
 
     @property
@@ -158,7 +165,7 @@ class AmpNodeCore:
         return sum(n.refused for n in self.nodes)
 
     # ------------------------------------------------------------------ faults
-    def inject(self, fault: str, **params: float) -> None:
+    def inject(self, fault: str, *, node_id: int | None = None, **params: float) -> None:
         """Inject a fault.
 
         Parameters
@@ -168,13 +175,25 @@ class AmpNodeCore:
             from ``start_s`` (default now: 0) for ``duration_s`` (default forever);
             ``"silence"``: send nothing from ``start_s`` for ``duration_s``;
             ``"clear"``: remove every injected fault.
+        node_id : int, optional
+            Only that node's frames (one head's amplifier on a moulder's bus): the frames of
+            its services (and an NMT command naming it) are dropped, what it sends is
+            silenced; default every node on the bus.
         **params : float
             ``fraction``, ``start_s``, ``duration_s``.
+
+        Raises
+        ------
+        ValueError
+            Unknown fault or parameter, a parameter out of range, or ``node_id`` of no node.
         """
         if fault == "clear":
             self._drop.clear()
             self._silence.clear()
             return
+        if node_id is not None and all(n.node_id != node_id for n in self.nodes):
+            raise ValueError(f"node_id must be one of {[n.node_id for n in self.nodes]}, "
+                             f"got {node_id!r}")
         unknown = set(params) - {"fraction", "start_s", "duration_s"}
         if unknown:
             raise ValueError(f"unknown parameter {sorted(unknown)[0]} for fault {fault}")
@@ -186,23 +205,30 @@ class AmpNodeCore:
         if not dur >= 0:
             raise ValueError(f"duration_s must be >= 0, got {dur!r}")
         if fault == "drop_rx":
-            self._drop.append(_Window(start, start + dur, frac))
+            self._drop.append(_Window(start, start + dur, frac, node_id))
         elif fault == "silence":
-            self._silence.append(_Window(start, start + dur))
+            self._silence.append(_Window(start, start + dur, node_id=node_id))
         else:
             raise ValueError(f"unknown amplifier fault {fault!r} (drop_rx, silence, clear)")
 
-    def _dropping(self, now_s: float) -> bool:
+    def _dropping(self, now_s: float, node_id: int | None) -> bool:
         for w in self._drop:
-            if w.active(now_s) and (w.fraction >= 1.0 or self._rng.random() < w.fraction):
+            if w.active(now_s, node_id) and (w.fraction >= 1.0
+                                             or self._rng.random() < w.fraction):
                 return True
         return False
+
+    def _addressee(self, arbitration_id: int, data: bytes) -> int | None:
+        """The node a received frame is for (an NMT command: the node it names; 0: all)."""
+        if arbitration_id == 0 and len(data) == 2:
+            return data[1] or None
+        return self._node_of.get(arbitration_id)
 
     # ------------------------------------------------------------------ receive
     def on_frame(self, arbitration_id: int, data: bytes, now_s: float) -> bool:
         """Handle one received frame; whether it reached a node (a service of its nodes)."""
         self.received += 1
-        if self._dropping(now_s):
+        if self._drop and self._dropping(now_s, self._addressee(arbitration_id, data)):
             self.dropped += 1
             return False
         want = self._expected.get(arbitration_id)
@@ -223,8 +249,12 @@ class AmpNodeCore:
         for node in self.nodes:
             node.pump(now_s)
         out = self.network.take()
-        if any(w.active(now_s) for w in self._silence):
-            return []
+        silent = [w for w in self._silence if w.start_s <= now_s < w.end_s]
+        if silent:
+            if any(w.node_id is None for w in silent):
+                return []
+            quiet = {w.node_id for w in silent}
+            out = [f for f in out if self._node_of.get(f[0]) not in quiet]
         self.sent += len(out)
         return out
 

@@ -124,6 +124,9 @@ class FaultInjector:
         """Pairs a ``measurement_dropout`` spoiled."""
         self.chips: list[dict[str, Any]] = []
         """Every ``knife_chip`` applied: ``t_s``, ``travel_mm``, ``knife``, ``step_um``."""
+        self.other_captures: list[FrameCapture] = []
+        """Camera stations of other machines on the same encoder (a moulder's heads): an
+        ``encoder_wrap`` preset shifts their pairs in flight too."""
 
     def inject(self, fault: str, params: dict[str, Any], *, now_s: float) -> None:
         """Inject ``fault`` now (``now_s``) or at ``params["at_s"]`` if that is later.
@@ -244,7 +247,8 @@ class FaultInjector:
             old = self.encoder.start
             self.encoder.preset_before_wrap(s, n)
             # latches already recorded are shifted alike (as if the counter had started there)
-            self.capture.shift_latch(self.encoder.start - old)
+            for capture in (self.capture, *self.other_captures):
+                capture.shift_latch(self.encoder.start - old)
         elif fault == "encoder_fault":
             self.encoder.freeze(s)
             plc.set_flag(PlcFault.ENCODER, True)

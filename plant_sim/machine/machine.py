@@ -56,7 +56,7 @@ from protocol.frames import Frame
 from protocol.registers import MachineState, PlcFault
 
 __all__ = ["Machine", "PiezoStatus", "advance_together", "register_names", "runout_drift",
-           "start_cycles"]
+           "start_cycles", "start_feed"]
 
 
 _EPS_S = 1e-9
@@ -423,14 +423,25 @@ def start_cycles(machines: Sequence[Machine]) -> None:
     t = lead._cycle * lead.cycle_s
     for m in machines:
         m._begin_cycle(t)
+    start_feed(machines)
+    for m in machines:
+        m._begin_amp(t)
+
+
+def start_feed(machines: Sequence[Machine]) -> None:
+    """The shared feed's cycle begins: it runs only when every machine's interlock permits it.
+
+    Raises
+    ------
+    ValueError
+        None of ``machines`` owns the feed.
+    """
     owner = next((m for m in machines if m.owns_feed), None)
     if owner is None:
         raise ValueError("machines: none of them owns the feed they share")
     feed = owner.feed
     feed.enabled = all(m.plc.feed_permitted() for m in machines)
-    feed.start_cycle(t, owner.cycle_s)
-    for m in machines:
-        m._begin_amp(t)
+    feed.start_cycle(owner._cycle * owner.cycle_s, owner.cycle_s)
 
 
 def advance_together(machines: Sequence[Machine], dt_s: float) -> list[list[Frame]]:

@@ -15,6 +15,11 @@ order of things in a step exists once:
 
 Everything here runs on the thread that steps the machine; the interfaces themselves may live on
 other threads (:mod:`plant_sim.interfaces.thread`).
+
+:class:`MoulderDriver` drives a :class:`plant_sim.machine.moulder.Moulder` the same way: its
+heads' amplifiers are the nodes of one :class:`~plant_sim.interfaces.amp_node.AmpNodeCore` (each
+its own node id) on one bus, and a fault may name the head it strikes (``head=``): the CAN
+faults then strike that head's node only.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from typing import Any, Protocol
 from config.faults import INTERFACE_FAULTS, FaultKind
 from protocol.frames import Frame
 
-__all__ = ["INTERFACE_FAULTS", "PlantDriver", "PlcSwitch"]
+__all__ = ["INTERFACE_FAULTS", "MoulderDriver", "PlantDriver", "PlcSwitch"]
 # INTERFACE_FAULTS (the registry config.faults): played by the driver; the rest by the machine
 
 
@@ -178,3 +183,66 @@ class PlantDriver:
         """Publish the machine's register values to the PLC view."""
         if self.plc is not None:
             self.plc.refresh()
+
+
+class MoulderDriver(PlantDriver):
+    """:class:`PlantDriver` over a moulder: faults name a head; one bus for every amplifier.
+
+    Parameters
+    ----------
+    moulder : plant_sim.machine.moulder.Moulder
+        The moulder (``node_ids``, ``advance`` giving ``(head, frame)`` pairs, ``inject`` with
+        ``head=``).
+    amp : AmpNode, optional
+        Every head's amplifier node on the one bus (:meth:`amp_core` builds its core).
+    plc, plc_switch, say
+        As :class:`PlantDriver`.
+    """
+
+    @staticmethod
+    def amp_core(moulder: Any, *, eds: Any = None, seed: int = 0) -> Any:
+        """An :class:`~plant_sim.interfaces.amp_node.AmpNodeCore` with one node per head.
+
+        Each head's amplifier answers as its configured node id (``moulder.node_ids``) with
+        its own knives; the first head's is the core's ``node``.
+        """
+        from plant_sim.interfaces.amp_node import AmpNodeCore
+
+        ids = moulder.node_ids
+        machines = list(moulder.heads.items())
+        name, first = machines[0]
+        core = AmpNodeCore(first, knives=first.knives, node_id=ids[name], eds=eds, seed=seed)
+        for name, m in machines[1:]:
+            core.add_node(ids[name], m, knives=m.knives, eds=eds)
+        return core
+
+    def inject(self, fault: str, *, head: str | None = None, **params: Any) -> None:
+        """Inject a fault now, into ``head`` (a name) or where the kind belongs.
+
+        ``can_drop`` / ``can_silence`` strike the head's amplifier node only (every node
+        without ``head``); ``modbus_restart`` the one PLC; the rest go to
+        ``moulder.inject(fault, head=head, ...)``.
+
+        Raises
+        ------
+        ValueError
+            Unknown head, or what :meth:`PlantDriver.inject` refuses.
+        """
+        if fault not in ("can_drop", "can_silence") or head is None:
+            if fault in INTERFACE_FAULTS:
+                super().inject(fault, **params)
+            else:
+                checked = FaultKind.parse(fault).check(params)
+                self.machine.inject(fault, head=head, **checked)
+            return
+        ids = self.machine.node_ids
+        if head not in ids:
+            raise ValueError(f"head must be one of {', '.join(ids)}, got {head!r}")
+        if self.amp is None:
+            raise ValueError(f"{fault}: the plant has no CAN node")
+        params = FaultKind.parse(fault).check(params)
+        kind = "drop_rx" if fault == "can_drop" else "silence"
+        p = {k: float(v) for k, v in params.items() if k in ("fraction", "duration_s")}
+        now = self.t_s
+        self.amp.core.inject(kind, node_id=ids[head], start_s=now, **p)
+        self.faults.append(f"{fault}[{head}]@{now:.3f}")
