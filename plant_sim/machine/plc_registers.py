@@ -18,7 +18,7 @@ from core.checks import check_int
 from plant_sim.model.feed_drive import BoardStream, Encoder, FeedDrive
 from plant_sim.model.spindle import Spindle
 from plant_sim.rendering.frame_capture import FrameCapture
-from protocol.registers import MachineState, PlcFault, RegisterMap
+from protocol.registers import HeadFault, MachineState, PlcFault, RegisterMap
 
 _HEARTBEAT_LOST = int(PlcFault.HEARTBEAT_LOST)
 _FEED_DRIVE = int(PlcFault.FEED_DRIVE)
@@ -31,12 +31,9 @@ _FEED_ENABLED = int(MachineState.FEED_ENABLED)
 _PIEZO_AMPLIFIER = int(PlcFault.PIEZO_AMPLIFIER)
 _SPINDLE_STOPPED = int(PlcFault.SPINDLE_STOPPED)
 
-HEAD_FAULT_AMPLIFIER = 1 << 0
-"""``head_faults`` bit 0: the head's piezo amplifier reports a fault."""
-HEAD_FAULT_SPINDLE = 1 << 1
-"""``head_faults`` bit 1: the head's spindle drive tripped."""
-HEAD_FAULT_CAMERA_SILENT = 1 << 2
-"""``head_faults`` bit 2: the head's camera sends no frames."""
+_HEAD_AMPLIFIER = int(HeadFault.AMPLIFIER)
+_HEAD_SPINDLE = int(HeadFault.SPINDLE)
+_HEAD_CAMERA_SILENT = int(HeadFault.CAMERA_SILENT)
 HEAD_FIELDS: tuple[str, ...] = (
     "spindle_rpm", "spindle_setpoint_rpm", "spindle_rpm_min", "spindle_rpm_max", "knives",
     "cutterhead_radius_mm", "cutter_to_camera_mm", "trigger_a_counts", "trigger_b_counts",
@@ -159,17 +156,17 @@ class PlcRegisters:
             Machine time, s (unused: every head field is held over the cycle; kept for
             symmetry with :meth:`values`).
         camera_silent : bool
-            The head's camera sends no frames (its ``head_faults`` bit 2).
+            The head's camera sends no frames (``HeadFault.CAMERA_SILENT``).
         """
         last = self.capture.last_pair
         sp = self.spindle
         bits = 0
         if self._faults & _PIEZO_AMPLIFIER:
-            bits |= HEAD_FAULT_AMPLIFIER
+            bits |= _HEAD_AMPLIFIER
         if self._faults & _SPINDLE_STOPPED:
-            bits |= HEAD_FAULT_SPINDLE
+            bits |= _HEAD_SPINDLE
         if camera_silent:
-            bits |= HEAD_FAULT_CAMERA_SILENT
+            bits |= _HEAD_CAMERA_SILENT
         return {
             "spindle_rpm": sp.rpm,
             "spindle_setpoint_rpm": sp.setpoint_rpm,

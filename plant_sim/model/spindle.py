@@ -31,8 +31,8 @@ class Spindle:
     ripple_phase_rad : float
         Phase of the load ripple (drawn from the machine's seed).
 
-    The speed range is the configuration's ``rpm_min`` .. ``rpm_max`` (both ``rpm`` when the
-    configuration has no range: a fixed head).
+    The speed range is the configuration's ``rpm_range`` (``rpm_min`` .. ``rpm_max``; both
+    ``rpm`` for a fixed head).
 
     Attributes
     ----------
@@ -64,8 +64,7 @@ class Spindle:
         self._ripple_frac = cfg.ripple_frac
         self._ripple_w = 2.0 * math.pi * cfg.ripple_hz
         self._droop = cfg.load_droop_frac
-        self.rpm_min = float(getattr(cfg, "rpm_min", None) or cfg.rpm)
-        self.rpm_max = float(getattr(cfg, "rpm_max", None) or cfg.rpm)
+        self.rpm_min, self.rpm_max = (float(v) for v in cfg.rpm_range)
         if not self.rpm_min <= cfg.rpm <= self.rpm_max:
             raise ValueError(f"spindle rpm must be in [rpm_min, rpm_max] = [{self.rpm_min}, "
                              f"{self.rpm_max}], got {cfg.rpm!r}")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import pytest
@@ -11,16 +10,9 @@ from config.sim import SpindleConfig, default_sim
 from plant_sim.machine.machine import Machine
 from plant_sim.machine.plc_registers import HEAD_FIELDS
 from plant_sim.model.spindle import Spindle
+from protocol.registers import HeadFault
 
 CYCLE_S = 0.002
-
-
-@dataclasses.dataclass(frozen=True)
-class _Variable(SpindleConfig):
-    """A spindle configuration with a speed range (what ``[[heads]]`` gives a variable head)."""
-
-    rpm_min: float = 4000.0
-    rpm_max: float = 8000.0
 
 
 def _run(sp: Spindle, seconds: float) -> list[float]:
@@ -36,7 +28,7 @@ def _run(sp: Spindle, seconds: float) -> list[float]:
 
 
 def test_variable_spindle_ramps_to_its_setpoint_on_the_spinup_tau():
-    cfg = _Variable(rpm=6000.0, spinup_tau_s=1.0)
+    cfg = SpindleConfig(rpm=6000.0, spinup_tau_s=1.0, rpm_min=4000.0, rpm_max=8000.0)
     sp = Spindle(cfg)
     assert sp.variable and sp.setpoint_rpm == 6000.0
     sp.set_setpoint(8000.0)
@@ -55,7 +47,7 @@ def test_variable_spindle_ramps_to_its_setpoint_on_the_spinup_tau():
 
 @pytest.mark.parametrize("bad", [3999.0, 8000.5, math.nan, math.inf])
 def test_variable_spindle_refuses_a_setpoint_outside_its_range(bad):
-    sp = Spindle(_Variable(rpm=6000.0))
+    sp = Spindle(SpindleConfig(rpm=6000.0, rpm_min=4000.0, rpm_max=8000.0))
     with pytest.raises(ValueError, match="rpm"):
         sp.set_setpoint(bad)
     assert sp.setpoint_rpm == 6000.0
@@ -87,7 +79,8 @@ def test_machine_head_block_zero_holds_the_head_fields():
     m.inject("piezo_fault")
     m.inject("measurement_dropout", duration_s=1.0, fraction=1.0)
     m.advance(0.01)
-    assert m.head_register_values(0)["head_faults"] == 0b111
+    want = HeadFault.AMPLIFIER | HeadFault.SPINDLE | HeadFault.CAMERA_SILENT
+    assert m.head_register_values(0)["head_faults"] == want
     with pytest.raises(ValueError, match="i must be"):
         m.head_register_values(1)
     with pytest.raises(ValueError, match="i must be"):
