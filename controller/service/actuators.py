@@ -46,6 +46,12 @@ class Actuators:
     stroke_um : float
         ``machine.toml``'s stroke, um; the bound in force is the CAN client's
         (:attr:`PiezoClient.limit`), never above the smaller of this and the amplifier's.
+    owns_feed : bool
+        This service writes the PLC's feed setpoint and heartbeat (a single head). ``False``:
+        one head of a moulder, whose feed and heartbeat the moulder's coordinator writes
+        (:mod:`controller.moulder.feed`); the head's feed proposals then go nowhere
+        (:meth:`write_feed` returns ``True`` without a request) and the feed in force is the
+        PLC's, read back every cycle.
     """
 
     def __init__(
@@ -56,8 +62,10 @@ class Actuators:
         amp_monitor: AmplifierMonitor,
         *,
         stroke_um: float,
+        owns_feed: bool = True,
     ) -> None:
         self.plc = plc
+        self.owns_feed = bool(owns_feed)
         self.piezo = piezo
         self._report = report
         self._amp_monitor = amp_monitor
@@ -79,11 +87,19 @@ class Actuators:
     # ------------------------------------------------------------------ PLC
     async def beat(self) -> None:
         """Write the next heartbeat value (``FieldbusError`` if the PLC does not take it)."""
+        if not self.owns_feed:  # a moulder's head: the coordinator beats
+            return
         self.heartbeat = (self.heartbeat + 1) & 0xFFFF
         await self.plc.write_heartbeat(self.heartbeat)
 
     async def write_feed(self, feed_mm_s: float, t: float) -> bool:
-        """Write the feed setpoint; whether the PLC took it (a refusal is reported once)."""
+        """Write the feed setpoint; whether the PLC took it (a refusal is reported once).
+
+        A moulder's head (``owns_feed`` false) writes nothing and returns ``True``: the
+        coordinator decides the one feed from every head's learnt correction.
+        """
+        if not self.owns_feed:
+            return True
         try:
             await self.plc.write_feed(feed_mm_s)
         except ModbusRefused as exc:

@@ -78,6 +78,8 @@ class BusCycles:
             self._snap_t = t
             snap = self.keeper.check_snapshot(snap, t)
         if snap is not None:
+            if not self.out.owns_feed:  # a moulder's head: the coordinator's feed is in force
+                self.out.feed_setpoint_mm_s = snap.feed_setpoint_mm_s
             self.loops.ensure(snap)
             sup.machine_ok(not snap.estop and snap.spindle_running)
             if not snap.board_present:

@@ -84,6 +84,9 @@ class Service:
         them inline (deterministic simulated-time runs).
     pairs_per_s : float
         Nominal camera rate (sample time of the feed loop), pairs per second.
+    owns_feed : bool
+        Write the PLC's feed setpoint and heartbeat (a single-head machine). ``False``: one head
+        of a moulder (:class:`controller.moulder.service.MoulderService` writes the one feed).
     """
 
     def __init__(
@@ -98,6 +101,7 @@ class Service:
         clock: Callable[[], float] = time.monotonic,
         threaded: bool = True,
         pairs_per_s: float = 10.0,
+        owns_feed: bool = True,
     ) -> None:
         self.cfg = cfg
         self.plc = plc
@@ -119,17 +123,21 @@ class Service:
             self.measurement.measurer((fr.image_height, fr.image_width))
         self.service_clock = ServiceClock(clock, self.report)
         amp_monitor = AmplifierMonitor()
-        self.out = Actuators(plc, piezo, self.report, amp_monitor, stroke_um=cfg.stroke_um)
+        self.out = Actuators(plc, piezo, self.report, amp_monitor, stroke_um=cfg.stroke_um,
+                             owns_feed=owns_feed)
         self.loops = ControlLoops(cfg, rig, self.out, self.report, amp_monitor,
                                   pairs_per_s=self.pairs_per_s)
         self.out.on_stroke = getattr(self.loops, "set_limit_um", None)  # the bound in force
         self.keeper = SafeStateKeeper(cfg.safety, self.report, self.out, amp_monitor,
                                       now_s=clock())
         self.keeper.on_recovered = lambda t: self.loops.resume(t, self.plc.last)
-        self.loops.memory = learned_memory_of(log)  # the learnt state across restarts
+        self.head = cfg.heads[0].name
+        """The cutterhead this service controls (``"main"``: a single-head machine)."""
+        # the learnt state across restarts, per head
+        self.loops.memory = learned_memory_of(log, head=self.head)
         self.loops.on_warm_start = self.keeper.supervisor.warm_start
         self.records = QualityRecords(
-            cfg, log, self.report, threaded=threaded,
+            cfg, log, self.report, threaded=threaded, head=self.head,
             on_health=lambda ok: self.keeper.supervisor.set_ok("log", ok),
         )
         self.quality_class = self.records.quality_class

@@ -100,6 +100,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def _human(summary: dict) -> str:
     from planer.hil.run_end import run_end_text
 
+    if summary.get("machine") == "moulder":
+        from planer.hil.moulder import human_text
+
+        return human_text(summary)
+
     init, fin, conv = summary["initial"], summary["final"], summary["converged"]
     lines = [
         f"planer hil: scenario {summary.get('scenario')} ({summary.get('mode')}), "
@@ -238,6 +243,15 @@ def run(args: argparse.Namespace) -> int:
                  "clients on this machine can reach the server")
         args.in_process = True
     cross = False
+    moulder = len(hil.machine_config_for(scenario).heads) > 1
+    if moulder and not args.in_process:
+        if args.cross_process:
+            raise ValueError(f"--cross-process: scenario {scenario.name} is a moulder "
+                             f"({len(hil.machine_config_for(scenario).heads)} heads), which "
+                             "runs in-process only")
+        progress(f"planer hil: scenario {scenario.name} is a moulder: the simulator runs in "
+                 "this process (simulated time, virtual CAN)")
+        args.in_process = True
     if not args.in_process:
         ok, why = hil.cross_process_possible()
         if ok:
@@ -382,6 +396,12 @@ def _run_scenario(hil: Any, scenario: Any, args: argparse.Namespace, *, cross: b
             lambda: hil.run_cross_process(scenario, log_path=log_path, progress=progress,
                                           on_service=opened.append),
             lambda: opened[-1] if opened else None))
+    elif len(cfg.heads) > 1:  # a moulder: every head's service and the one feed
+        from planer.hil.moulder import MoulderHil
+
+        moulder = MoulderHil(scenario, log_path=log_path, progress=progress)
+        summary = asyncio.run(with_opcua(moulder.run,
+                                         lambda: getattr(moulder, "service", None)))
     else:
         runner = hil.InProcessHil(
             scenario, log_path=log_path, plc_transport=args.plc, progress=progress, pace=pace,

@@ -1,0 +1,232 @@
+"""The moulder's one feed: the coordinator that writes it, and the variable heads' speeds.
+
+Each head's service learns its own model error (its feed loop's correction, from its own pairs
+against the feed the drive really ran: ``FeedLoop.observe_drive``) but writes no feed
+(``Service(owns_feed=False)``). Once per PLC cycle the coordinator asks the pure law
+(:class:`controller.laws.moulder_feed.MoulderFeedLaw`) for the fastest feed at which every head
+meets its target and the speed of each variable head, writes them (the feed to the common
+registers, a speed to its head's block), beats the PLC's heartbeat, and tells every head's feed
+loop the feed now in force.
+
+Safe state, machine-wide where it must be: when a head's supervisor misses a machine-wide source
+(the PLC, its data, the machine, the service itself) or every head is in its safe state, the feed
+goes to the safe state (``[safety] safe_state``: hold or ramp down) and no speed is written. A
+head in its safe state for a reason of its own (its camera silent, its amplifier's heartbeat lost)
+keeps its held correction in the law: the others go on at the feed they need.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from config.heads import HeadConfig
+from controller.fieldbus.plc_client import PlcClient
+from controller.fieldbus.plc_protocol import PlcSnapshot
+from controller.laws.moulder_feed import HeadFeed, MoulderFeedLaw
+from controller.service.supervisor import SafetyState
+from core.errors import FieldbusError, ModbusRefused
+
+MACHINE_WIDE = frozenset({"plc", "plc_data", "machine", "service"})
+"""Missing sources of a head's supervisor that stop the whole machine's feed."""
+
+FEED_WRITE_DEADBAND_MM_S = 0.05
+"""A feed setpoint is written when it moved by more than this (mm/s)."""
+
+SPEED_WRITE_DEADBAND_RPM = 1.0
+"""A variable head's speed setpoint is written when it moved by more than this (rpm)."""
+
+
+@dataclass(frozen=True)
+class FeedDecision:
+    """One cycle of the coordinator: what it decided and why.
+
+    Attributes
+    ----------
+    t_s : float
+        Service time, s.
+    feed_mm_s : float or None
+        The feed in force after the cycle (``None``: the PLC gave no registers).
+    safe : bool
+        The machine-wide safe state governed the feed.
+    limiting : tuple of str
+        The heads that set the feed (empty in the safe state).
+    spindle_setpoints_rpm : mapping
+        The variable heads' speed setpoints of this cycle, by head.
+    """
+
+    t_s: float
+    feed_mm_s: float | None
+    safe: bool
+    limiting: tuple[str, ...] = ()
+    spindle_setpoints_rpm: Mapping[str, float] | None = None
+
+
+class MoulderFeed:
+    """Writes the moulder's one feed and its variable heads' speeds (one PLC cycle at a time).
+
+    Parameters
+    ----------
+    heads : mapping of str to Service
+        Every head's service (config order), built with ``owns_feed=False``.
+    head_configs : sequence of HeadConfig
+        The heads (targets, speed ranges), same order.
+    plc : PlcClient
+        The coordinator's PLC connection (the common registers: feed, heartbeat).
+    law : MoulderFeedLaw
+        The pure law.
+    """
+
+    def __init__(
+        self,
+        heads: Mapping[str, Any],
+        head_configs: Sequence[HeadConfig],
+        *,
+        plc: PlcClient,
+        law: MoulderFeedLaw,
+    ) -> None:
+        names = [h.name for h in head_configs]
+        if list(heads) != names:
+            raise ValueError(f"heads must be the configured heads {names}, got {list(heads)}")
+        self.heads = dict(heads)
+        self.head_configs = tuple(head_configs)
+        self.plc = plc
+        self.law = law
+        self.heartbeat = 0
+        self.last: FeedDecision | None = None
+        self.counts = {"cycles": 0, "feed_writes": 0, "speed_writes": 0, "plc_errors": 0,
+                       "refused": 0, "safe_cycles": 0}
+        self._speed: dict[str, float] = {}
+        self._last_t: float | None = None
+
+    # ------------------------------------------------------------------ the cycle
+    async def cycle(self, t: float) -> FeedDecision:
+        """Heartbeat, read, decide, write; the decision (never raises for the PLC's trouble)."""
+        self.counts["cycles"] += 1
+        dt = 0.0 if self._last_t is None else max(0.0, t - self._last_t)
+        self._last_t = t
+        try:
+            self.heartbeat = (self.heartbeat + 1) & 0xFFFF
+            await self.plc.write_heartbeat(self.heartbeat)
+            snap = await self.plc.read()
+        except FieldbusError:
+            self.counts["plc_errors"] += 1
+            self.last = FeedDecision(t, None, True)
+            return self.last
+        if snap.problem() is not None:
+            self.last = FeedDecision(t, None, True)
+            return self.last
+        if self.machine_safe():
+            self.counts["safe_cycles"] += 1
+            sup = next(iter(self.heads.values())).keeper.supervisor
+            feed = sup.safe_feed(snap.feed_setpoint_mm_s, dt_s=dt,
+                                 feed_min_mm_s=snap.feed_min_mm_s,
+                                 feed_max_mm_s=snap.feed_max_mm_s)
+            await self._write_feed(feed, snap)
+            self.last = FeedDecision(t, feed, True)
+            return self.last
+        cmd = self.law.update(self.head_feeds(), now_s=t, feed_min_mm_s=snap.feed_min_mm_s,
+                              feed_max_mm_s=snap.feed_max_mm_s)
+        feed = await self._write_feed(float(cmd.feed_mm_s), snap)
+        for name, rpm in dict(cmd.spindle_setpoints_rpm).items():
+            await self._write_speed(name, float(rpm))
+        for svc in self.heads.values():
+            loop = svc.loops.feed_loop
+            snap_h = svc.plc.last
+            if loop is not None and snap_h is not None:
+                loop.follow_setpoint(now_s=svc.loops.loop_time(t), feed_mm_s=feed,
+                                     spindle_rpm=max(float(snap_h.spindle_rpm), 0.0))
+        self.last = FeedDecision(t, feed, False, tuple(cmd.limiting),
+                                 dict(cmd.spindle_setpoints_rpm))
+        return self.last
+
+    def machine_safe(self) -> bool:
+        """Whether the machine-wide safe state governs the feed (see the module's text)."""
+        states = []
+        for svc in self.heads.values():
+            status = svc.keeper.status
+            safe = svc.keeper.state is SafetyState.SAFE
+            states.append(safe)
+            if safe and status is not None and MACHINE_WIDE.intersection(status.missing):
+                return True
+        return all(states)
+
+    def head_feeds(self) -> list[HeadFeed]:
+        """What the law needs of every head now (its learnt correction, its speed)."""
+        out = []
+        for hc in self.head_configs:
+            svc = self.heads[hc.name]
+            loop = svc.loops.feed_loop
+            snap: PlcSnapshot | None = svc.plc.last
+            rpm = float(snap.spindle_rpm) if snap is not None else 0.0
+            knives = int(snap.knives) if snap is not None else int(hc.knives or 0)
+            ready = loop is not None and snap is not None and rpm > 0.0 and knives > 0
+            lo, hi = _speed_range(hc, snap)
+            out.append(HeadFeed(
+                name=hc.name,
+                knives=max(knives, 1),
+                target_pitch_mm=(loop.pitch_setpoint_mm if loop is not None
+                                 else hc.target_pitch_mm),
+                rpm_min=lo,
+                rpm_max=hi,
+                correction=loop.correction if loop is not None else 1.0,
+                spindle_rpm=max(rpm, 0.0),
+                takes_part=ready,
+            ))
+        return out
+
+    # ------------------------------------------------------------------ writes
+    async def _write_feed(self, feed: float, snap: PlcSnapshot) -> float:
+        current = snap.feed_setpoint_mm_s
+        if abs(feed - current) <= FEED_WRITE_DEADBAND_MM_S:
+            return current
+        try:
+            await self.plc.write_feed(feed)
+        except (ModbusRefused, ValueError):
+            self.counts["refused"] += 1
+            return current
+        except FieldbusError:
+            self.counts["plc_errors"] += 1
+            return current
+        self.counts["feed_writes"] += 1
+        return feed
+
+    async def _write_speed(self, name: str, rpm: float) -> None:
+        last = self._speed.get(name)
+        if last is not None and abs(rpm - last) <= SPEED_WRITE_DEADBAND_RPM:
+            return
+        plc = self.heads[name].plc
+        try:
+            await plc.write_spindle_setpoint(rpm)
+        except (ModbusRefused, ValueError):
+            self.counts["refused"] += 1
+            return
+        except FieldbusError:
+            self.counts["plc_errors"] += 1
+            return
+        self.counts["speed_writes"] += 1
+        self._speed[name] = rpm
+
+    def describe(self) -> dict[str, Any]:
+        """The last decision and the counts (plain JSON)."""
+        d = self.last
+        return {
+            "feed_mm_s": None if d is None else d.feed_mm_s,
+            "safe": None if d is None else d.safe,
+            "limiting": [] if d is None else list(d.limiting),
+            "spindle_setpoints_rpm": {} if d is None else dict(d.spindle_setpoints_rpm or {}),
+            **self.counts,
+        }
+
+
+def _speed_range(hc: HeadConfig, snap: PlcSnapshot | None) -> tuple[float, float]:
+    """The head's speed range: the PLC's (its block) where it gives one, else the config's."""
+    if snap is not None and "spindle_rpm_min" in snap.values and "spindle_rpm_max" in snap.values:
+        lo, hi = float(snap["spindle_rpm_min"]), float(snap["spindle_rpm_max"])
+        if 0.0 < lo <= hi:
+            return lo, hi
+    rpm = snap.spindle_rpm if snap is not None else (hc.rpm or 0.0)
+    lo = hc.rpm_min if hc.rpm_min is not None else rpm
+    hi = hc.rpm_max if hc.rpm_max is not None else rpm
+    return float(lo), float(hi)

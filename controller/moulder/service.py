@@ -1,0 +1,74 @@
+"""The moulder's service: one :class:`~controller.service.service.Service` per head, one feed.
+
+Every head keeps all of a single head's machinery (its measurement, uniformity loop, knife
+attribution, learned state, quality records with its ``head``, its amplifier and its safe state for
+its offsets); the :class:`~controller.moulder.feed.MoulderFeed` coordinator writes the one feed and
+the variable heads' speeds. A head whose camera goes silent or whose amplifier is lost goes to its
+own safe state (its offsets) while the others stay controlled.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from config.heads import HeadConfig
+from controller.moulder.feed import FeedDecision, MoulderFeed
+from controller.service.service import FrameResult, Service
+from controller.service.status import ServiceStatus
+
+
+class MoulderService:
+    """Several heads' services and the feed coordinator, stepped together.
+
+    Parameters
+    ----------
+    heads : mapping of str to Service
+        Each head's service (built with ``owns_feed=False``), in the configured order.
+    head_configs : sequence of HeadConfig
+        The heads, same order.
+    feed : MoulderFeed
+        The coordinator of the one feed.
+    """
+
+    def __init__(self, heads: Mapping[str, Service], head_configs: Sequence[HeadConfig], *,
+                 feed: MoulderFeed) -> None:
+        if not heads:
+            raise ValueError("heads must name at least one head's service")
+        for name, svc in heads.items():
+            if svc.out.owns_feed:
+                raise ValueError(f"head {name!r}: its service writes the feed (owns_feed=True); "
+                                 "a moulder's heads leave the feed to the coordinator")
+        self.heads: dict[str, Service] = dict(heads)
+        self.head_configs: tuple[HeadConfig, ...] = tuple(head_configs)
+        self.feed = feed
+
+    async def tick(self, now_s: float) -> FeedDecision:
+        """One control cycle: every head's buses and supervisor, then the one feed."""
+        for svc in self.heads.values():
+            await svc.tick(now_s)
+        return await self.feed.cycle(now_s)
+
+    async def handle_frame(self, head: str, frame: Any, *, now_s: float) -> FrameResult:
+        """Measure one pair of ``head``'s camera and control that head (its records too)."""
+        try:
+            svc = self.heads[head]
+        except KeyError:
+            raise ValueError(f"head must be one of {list(self.heads)}, got {head!r}") from None
+        return await svc.handle_frame(frame, now_s=now_s)
+
+    def status(self) -> dict[str, ServiceStatus]:
+        """Every head's status, by head."""
+        return {name: svc.status() for name, svc in self.heads.items()}
+
+    def close(self) -> None:
+        """Close every head's service (each leaves its amplifier safe, writes its state)."""
+        errors = []
+        for svc in self.heads.values():
+            try:
+                svc.close()
+            except Exception as exc:  # noqa: BLE001 - close every head, then raise the first
+                errors.append(exc)
+        self.feed.plc.close()
+        if errors:
+            raise errors[0]
