@@ -402,14 +402,15 @@ class QualityLog:
     def __len__(self) -> int:
         return int(self._call("count"))
 
-    def export_csv(self, path: str | Path, *, machine_id: str | None = None) -> int:
+    def export_csv(self, path: str | Path, *, machine_id: str | None = None,
+                   head: str | None = None) -> int:
         """Write the records to a CSV file (atomically: a reader never sees a partial file).
 
         One row per record, columns :data:`CSV_COLUMNS` (units in the names); numbers without
         binary rounding noise (:func:`csv_float`: ``0.7``, not ``0.7000000000000001``); lists as
         semicolon-separated numbers, booleans as 1/0, missing values empty, ``extra`` as JSON
         without the bulky ``profile`` entry. The same records give the same file from either
-        backend. ``machine_id``: only that machine's records.
+        backend. ``machine_id``: only that machine's records; ``head``: only that head's.
 
         Returns
         -------
@@ -421,7 +422,7 @@ class QualityLog:
             raise IsADirectoryError(f"CSV path is a directory: {out}")
         if not out.parent.is_dir():
             raise FileNotFoundError(f"folder of the CSV file does not exist: {out.parent}")
-        entries = self.entries(machine_id=machine_id)
+        entries = self.entries(machine_id=machine_id, head=head)
         with atomic_writer(out, newline="") as fh:
             w = csv.writer(fh)
             w.writerow(CSV_COLUMNS)

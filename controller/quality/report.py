@@ -38,6 +38,7 @@ __all__ = [
     "KINEMATIC_LABEL",
     "UNTRUSTED_LABEL",
     "format_summary",
+    "heads_of",
     "board_axis",
     "build_figures",
     "last_profile",
@@ -93,6 +94,11 @@ def _pass_rate(records: Sequence[QualityRecord]) -> tuple[int, float | None]:
     return len(judged), (sum(judged) / len(judged) if judged else None)
 
 
+def heads_of(records: Sequence[QualityRecord]) -> list[str]:
+    """The cutterheads the records name, in order of their first record (``["main"]``: one)."""
+    return list(dict.fromkeys(r.head for r in records))
+
+
 def summarise(
     records: Sequence[QualityRecord], *, quality_class: QualityClass | None = None
 ) -> dict[str, Any]:
@@ -122,7 +128,10 @@ def summarise(
         without it), ``defects`` (the planing defects and D1666 grades: per kind, the pairs'
         and boards' grade histograms, each board's grade, reason and counts:
         :func:`controller.quality.defect_report.defect_summary`; ``None`` when no record
-        looked for defects). Means are over successful measurements; missing values are ``None``.
+        looked for defects), ``heads`` (the cutterheads the records name, in order of their
+        first record: :func:`heads_of`). Means are over successful measurements; missing values
+        are ``None``. A log of several heads is summarised per head by
+        :mod:`controller.quality.head_report`.
     """
     recs = list(records)
     ok = [r for r in recs if r.ok]
@@ -181,6 +190,7 @@ def summarise(
         },
         "knife_condition": knife_summary(recs),
         "defects": defect_summary(recs),
+        "heads": heads_of(recs),
     }
 
 
@@ -221,6 +231,8 @@ def format_summary(summary: dict[str, Any], *, title: str = "Quality log") -> st
     if s["wall_time"]:
         lines[0] += f", {s['wall_time']['first']} .. {s['wall_time']['last']}"
         lines.append(f"  machine time {s['t_s']['first']:.1f} .. {s['t_s']['last']:.1f} s")
+    if s.get("heads"):
+        lines.append(("Head: " if len(s["heads"]) == 1 else "Heads: ") + ", ".join(s["heads"]))
     qc = s["quality_class"]
     if qc:
         parts = [f"pitch {qc['target_pitch_mm']:.3f} mm +-{100 * qc['pitch_tolerance']:.1f} %"]

@@ -1,11 +1,16 @@
 """``planer report``: summarise a quality log, draw its figures, optionally export CSV.
 
-``planer report LOG [--machine ID] [--out DIR] [--csv FILE] [--json]``. LOG is an SQLite file
-or a PostgreSQL URL ``postgresql://USER@HOST:PORT/DB`` (a fleet's shared log; ``--machine``
-picks one machine's records). The log may be growing (the service appending) while this reads
-it: the report shows the records committed when it started. A record journal left on local
-disk (records the log could not take yet) is named with its record count; its records are not
-in the summary. An unreachable database is one line naming ``host:port/db`` (exit 2).
+``planer report LOG [--machine ID] [--head NAME] [--out DIR] [--csv FILE] [--json]``. LOG is an
+SQLite file or a PostgreSQL URL ``postgresql://USER@HOST:PORT/DB`` (a fleet's shared log;
+``--machine`` picks one machine's records). The log may be growing (the service appending) while
+this reads it: the report shows the records committed when it started. A record journal left on
+local disk (records the log could not take yet) is named with its record count; its records are
+not in the summary. An unreachable database is one line naming ``host:port/db`` (exit 2).
+
+A moulder's log holds the records of several cutterheads: the report then gives a table of the
+heads and every summary, table and figure per head (``<stem>_<head>_<figure>.png``; JSON
+``per_head``); ``--head NAME`` reports that head only (a head the log does not hold is one line
+naming it, exit 2). A log of one head is reported as before, with a head line.
 
 The report never writes to what it reads: the log is opened read-only (SQLite ``mode=ro``; an
 empty or foreign file stays as it is), and ``--csv`` or a figure that is the log or its journal
@@ -18,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -27,6 +33,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "postgresql://USER@HOST:PORT/DB")
     parser.add_argument("--machine", metavar="ID", default=None,
                         help="only the records of this machine id (a log shared by a fleet)")
+    parser.add_argument("--head", metavar="NAME", default=None,
+                        help="only the records of this cutterhead (a moulder's head, e.g. "
+                             "top; a single-head planer's is main)")
     parser.add_argument("--out", metavar="DIR", default=None,
                         help="folder for the PNG figures (default: the log's folder; the "
                              "current folder for a database)")
@@ -38,15 +47,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    from controller.quality.journal import default_journal_path, read_journal
+    from controller.quality.journal import default_journal_path
     from controller.quality.log import is_database_url, log_target, open_quality_log
-    from controller.quality.report import (
-        build_figures,
-        figure_paths,
-        format_summary,
-        save_figures,
-        summarise,
-    )
+    from controller.quality.report import figure_paths
+    from controller.quality.schema import check_head
     from planer.cli import output_file, output_folder
     from planer.outputs import not_an_input, writing
 
@@ -54,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
         scheme = args.log.split("://", 1)[0]
         raise ValueError(f"LOG {args.log}: {scheme}:// is not a quality log; give an SQLite "
                          "file or a postgresql://USER@HOST:PORT/DB URL")
+    if args.head is not None:
+        check_head("--head", args.head)
     log_path = log_target(args.log)
     if isinstance(log_path, Path) and log_path.is_dir():
         raise ValueError(f"LOG {log_path}: is a folder, expected a quality log file")
@@ -61,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         default_out, stem = Path.cwd(), _database_stem(str(log_path))
     else:
         default_out, stem = Path(log_path).absolute().parent, Path(log_path).stem
+    if args.head is not None:
+        stem = f"{stem}_{args.head}"  # one head's figures beside the whole log's
     out_dir = Path(args.out) if args.out is not None else default_out
     journal = default_journal_path(log_path)
     inputs = {"LOG": None if is_database_url(log_path) else log_path,
@@ -76,48 +84,117 @@ def run(args: argparse.Namespace) -> int:
 
     with open_quality_log(log_path, create=False) as log:
         shown = str(log.path)
-        records = log.records(machine_id=args.machine)
-        quality_class = log.quality_class()
+        records = log.records(machine_id=args.machine, head=args.head)
+        if args.head is not None and not records:
+            raise ValueError(_unknown_head(args.head, log, args.machine, shown))
+        heads = list(dict.fromkeys(r.head for r in records))
+        classes = {h: log.quality_class(h) for h in heads}
+        quality_class = (classes[heads[0]] if len(heads) == 1 and heads[0] != "main"
+                         else log.quality_class())
         csv_path, n_csv = None, 0
         if args.csv is not None:
             csv_path = Path(args.csv)
             with writing("--csv", csv_path):
-                n_csv = log.export_csv(csv_path, machine_id=args.machine)
+                n_csv = log.export_csv(csv_path, machine_id=args.machine, head=args.head)
 
-    try:
-        held, bad = read_journal(journal)
-        journal_info = {"path": str(journal), "records": len(held), "unreadable_lines": bad}
-    except FileNotFoundError:
-        journal_info = None
-    except OSError as exc:
-        journal_info = {"path": str(journal), "records": None, "error": exc.strerror or str(exc)}
+    journals = {h: default_journal_path(log_path, head=h) for h in heads if h != "main"}
+    several = len(heads) > 1
+    if several:  # each head's figures: checked against the inputs before any is written
+        from controller.quality.head_report import head_figure_paths
 
-    summary = summarise(records, quality_class=quality_class)
-    with writing(out_opt, out_dir):
-        written = save_figures(build_figures(records, quality_class=quality_class), out_dir,
-                               stem=stem)  # each PNG written atomically
+        inputs.update({f"head {h}'s record journal": p for h, p in journals.items()})
+        for fig in head_figure_paths(out_dir, stem=stem, heads=heads).values():
+            not_an_input(out_opt, fig, inputs)
+    summary, written = _summary_and_figures(records, quality_class, classes, out_dir, stem,
+                                            out_opt, several=several)
+    journal_info = _journal_info(journal)
+    head_journals = {h: info for h, p in journals.items()
+                     if (info := _journal_info(p)) is not None}
 
     if args.json:
-        summary = {"log": shown, "machine": args.machine, **summary, "figures": written,
-                   "csv": None if csv_path is None else str(csv_path), "journal": journal_info}
+        summary = {"log": shown, "machine": args.machine, **summary,
+                   "head": args.head if args.head is not None else (
+                       heads[0] if len(heads) == 1 else None),
+                   "figures": written, "csv": None if csv_path is None else str(csv_path),
+                   "journal": journal_info, "head_journals": head_journals}
         print(json.dumps(summary, allow_nan=False))
+        return 0
+    title = (f"Quality log {shown}" + (f", machine {args.machine}" if args.machine else "")
+             + (f", head {args.head}" if args.head else ""))
+    if several:
+        from controller.quality.head_report import format_heads
+
+        print(format_heads(summary, title=title))
     else:
-        title = f"Quality log {shown}" + (f", machine {args.machine}" if args.machine else "")
+        from controller.quality.report import format_summary
+
         print(format_summary(summary, title=title))
-        if written:
-            print("\nFigures:")
-            for path in written.values():
-                print(f"  {path}")
-        else:
-            print("\nNo figures: the log holds no measurements.")
-        if csv_path is not None:
-            print(f"CSV: {csv_path} ({n_csv} rows)")
-        if journal_info is not None:
-            n = journal_info["records"]
-            print(f"\nNote: the record journal {journal} holds "
-                  f"{'an unknown number of' if n is None else n} record(s) not yet in this "
-                  "log (not in this report); the service writes them in at its next start.")
+    _print_files(written, csv_path, n_csv)
+    for path, info in ([(journal, journal_info)] if journal_info is not None else []) + [
+            (journals[h], info) for h, info in head_journals.items()]:
+        n = info["records"]
+        print(f"\nNote: the record journal {path} holds "
+              f"{'an unknown number of' if n is None else n} record(s) not yet in this "
+              "log (not in this report); the service writes them in at its next start.")
     return 0
+
+
+def _summary_and_figures(records: list, quality_class: Any, classes: dict, out_dir: Path,
+                         stem: str, out_opt: str, *, several: bool) -> tuple[dict, dict]:
+    """The summary (with ``per_head`` of several heads) and the figures written, by name."""
+    from controller.quality.report import build_figures, save_figures, summarise
+    from planer.outputs import writing
+
+    summary = summarise(records, quality_class=quality_class)
+    written: dict[str, str] = {}
+    if not several:
+        summary["per_head"] = None
+        with writing(out_opt, out_dir):
+            written = save_figures(build_figures(records, quality_class=quality_class),
+                                   out_dir, stem=stem)  # each PNG written atomically
+        return summary, written
+    from controller.quality.head_report import build_head_figures, head_stem, head_summaries
+
+    per_head = head_summaries(records, classes)
+    with writing(out_opt, out_dir):
+        for head, figures in build_head_figures(records, classes).items():
+            mine = save_figures(figures, out_dir, stem=head_stem(stem, head))
+            per_head[head]["figures"] = mine
+            written.update({f"{head}_{name}": path for name, path in mine.items()})
+    summary["per_head"] = per_head
+    return summary, written
+
+
+def _unknown_head(head: str, log: Any, machine: str | None, shown: str) -> str:
+    """The one-line error of ``--head`` naming a head the log holds no records of."""
+    held = list(dict.fromkeys(r.head for r in log.records(machine_id=machine)))
+    where = f"{shown}" + (f" (machine {machine})" if machine else "")
+    return (f"--head {head}: no records of head {head!r} in {where}; "
+            + (f"its heads: {', '.join(held)}" if held else "it holds no records"))
+
+
+def _journal_info(path: Path) -> dict[str, Any] | None:
+    """What a record journal holds (``None``: none there)."""
+    from controller.quality.journal import read_journal
+
+    try:
+        held, bad = read_journal(path)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return {"path": str(path), "records": None, "error": exc.strerror or str(exc)}
+    return {"path": str(path), "records": len(held), "unreadable_lines": bad}
+
+
+def _print_files(written: dict[str, str], csv_path: Path | None, n_csv: int) -> None:
+    if written:
+        print("\nFigures:")
+        for path in written.values():
+            print(f"  {path}")
+    else:
+        print("\nNo figures: the log holds no measurements.")
+    if csv_path is not None:
+        print(f"CSV: {csv_path} ({n_csv} rows)")
 
 
 def _database_stem(url: str) -> str:
