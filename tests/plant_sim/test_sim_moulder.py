@@ -212,3 +212,30 @@ def test_rendered_heads_have_their_own_wood_and_noise(cfg):
     bottom, right = frames["bottom"][0], frames["right"][0]
     assert bottom.image_a is not None and bottom.image_a.shape == right.image_a.shape
     assert not np.array_equal(bottom.image_a, right.image_a)
+
+
+def test_the_plc_serves_each_heads_block_and_routes_the_setpoint(cfg):
+    """The moulder behind the simulated PLC (MachineRegisterBus) as a head's client sees it."""
+    import asyncio
+
+    from controller.fieldbus.plc_client import PlcClient
+    from plant_sim.interfaces.register_bus import MachineRegisterBus
+    from protocol.registers import RegisterMap
+
+    m = Moulder(cfg, seed=11, render_images=False)
+    _run(m, 1.0)
+    rmap = RegisterMap.load()
+
+    async def run() -> None:
+        bus = MachineRegisterBus(m, rmap)
+        await bus.connect()
+        clients = [PlcClient(bus, rmap.for_head(i)) for i in range(4)]
+        snaps = [await c.read() for c in clients]
+        assert [s.values["knives"] for s in snaps] == [4, 2, 2, 6]
+        assert [round(s.values["spindle_rpm_max"]) for s in snaps] == [6000, 9000, 9000, 8000]
+        assert len({s.values["encoder_counts"] for s in snaps}) == 1  # common: one encoder
+        await clients[3].write_spindle_setpoint(7000.0)
+        assert m.heads["top"].spindle.setpoint_rpm == 7000.0
+        assert m.heads["bottom"].spindle.setpoint_rpm == 6000.0
+
+    asyncio.run(run())
