@@ -111,7 +111,8 @@ def format_heads(summary: Mapping[str, Any], *, title: str = "Quality log") -> s
     lines = [line, "", "Per head (pass rate against each head's class; pitch: mean of the "
              "successful measurements):", *_table(per_head)]
     for head, s in per_head.items():
-        lines += ["", "=" * 78, format_summary(s, title=f"Head {head}")]
+        # the section's title names the head: no head line under it
+        lines += ["", "=" * 78, format_summary({**s, "heads": []}, title=f"Head {head}")]
     return "\n".join(lines)
 
 
