@@ -6,11 +6,16 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from controller.edge.feed import HEAD_KEYS, Headed, Mailbox, Translator, follow_once
 from controller.edge.process import _apply_web
 from controller.opcua.heads_view import HEAD_MANUFACTURER_NAMES, head_path
 from controller.opcua.view import FLAG_NAMES, VALUE_NAMES, UnitState
 from controller.web.live import LiveView
+from tests.controller.edge.two_heads import moulder_fixture
+
+moulder = pytest.fixture(scope="module")(moulder_fixture)
 
 
 def _items(followed, seen=None):

@@ -8,6 +8,7 @@ single-head tests build one; the composition has exactly what the servers follow
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -68,3 +69,24 @@ async def two_heads(tmp_path: Path, *, steps: int = 200, safe_head: str | None =
         plants[safe_head].can_fault("can_silence", 1e6)
         await heads.step(safe_steps)
     return heads
+
+
+def moulder_fixture(tmp_path_factory):
+    """A module fixture's body: the two heads started, closed after (``pytest.fixture`` it)."""
+    loop = asyncio.new_event_loop()
+    th = loop.run_until_complete(two_heads(tmp_path_factory.mktemp("two_heads")))
+    try:
+        yield th
+    finally:
+        loop.run_until_complete(th.close())
+        loop.close()
+
+
+def follow_all(followed) -> list:
+    """Every item the servers' follower takes from ``followed`` now (one look)."""
+    from controller.edge.feed import Mailbox, follow_once
+
+    box = Mailbox(1 << 16)
+    follow_once(followed, {}, box)
+    assert box.dropped == 0
+    return box.take(0.0)

@@ -170,12 +170,10 @@ class Ours:
         return XNode("UA" + nc, (self.uris[bn.NamespaceIndex], bn.Name), dt, rank, fields)
 
 
-@pytest.fixture(scope="module")
-def checked():
-    ref = load_reference()
-
+def _read_server(heads=None):
+    """Every node of a started server in the companion and our namespaces, read by a client."""
     async def go():
-        srv = OpcUaServer("opc.tcp://127.0.0.1:0", knives=4,
+        srv = OpcUaServer("opc.tcp://127.0.0.1:0", knives=4, heads=heads,
                           identification={"Manufacturer": "ACME", "SerialNumber": "1"})
         await srv.start()
         try:
@@ -192,13 +190,33 @@ def checked():
                 return data, machine
         finally:
             await srv.stop()
-
-    data, machine = asyncio.run(go())
-    return ref, data, machine
+    return asyncio.run(go())
 
 
-def test_official_nodes_match_the_nodesets(checked):
-    ref, data, _ = checked
+@pytest.fixture(scope="module")
+def reference():
+    return load_reference()
+
+
+@pytest.fixture(scope="module")
+def checked(reference):
+    data, machine = _read_server()
+    return reference, data, machine
+
+
+HEADS = [{"name": "bottom", "face": "bottom", "knives": 4},
+         {"name": "top", "face": "top", "knives": 6}]
+
+
+@pytest.fixture(scope="module")
+def checked_heads(reference):
+    data, machine = _read_server(HEADS)
+    return reference, data, machine
+
+
+@pytest.mark.parametrize("which", ["checked", "checked_heads"])
+def test_official_nodes_match_the_nodesets(which, request):
+    ref, data, _ = request.getfixturevalue(which)
     official = {k: v for k, v in data.items() if k[0] in COMPANION}
     assert len(official) >= 15  # types, enumerations, event fields, the Machines folder
     for key, (node, refs) in official.items():
@@ -223,35 +241,22 @@ def _children(data, key):
             if fwd and rtype[0] == UA_URI and rtype[1] in HIERARCHICAL and dst in data]
 
 
-def test_machine_instance_matches_its_declarations(checked):
-    ref, data, machine = checked
-    _, mrefs = data[machine]
-    assert ((UA_URI, HAS_TYPE_DEFINITION), True, (WW_URI, "i=2")) in mrefs
-    assert any(t == (UA_URI, "i=35") and not f and d == (MACHINERY_URI, "i=1001")
-               for t, f, d in mrefs), "the machine is organised under Machines"
+def _walk(ref, data, stack) -> int:
+    """Check every companion-namespace node below each ``(ours, declaration)`` of ``stack``
+    against its declaration; the number of nodes checked."""
     checked_count = 0
-    stack = [(machine, (WW_URI, "i=2"))]
     while stack:
         ours_key, decl_key = stack.pop()
         present = set()
         for rtype, child in _children(data, ours_key):
             node, crefs = data[child]
             if node.browse_name[0] not in COMPANION:
-                continue  # ours (ManufacturerSpecific's variables)
+                continue  # ours (ManufacturerSpecific's variables, the heads)
             hit = ref.find(decl_key, node.browse_name)
             assert hit is not None, f"{node.browse_name} has no declaration below {decl_key}"
             decl_rtype, decl = hit
-            x = ref.nodes[decl]
             present.add(node.browse_name)
-            where = f"{node.browse_name[1]} (declared as {decl})"
-            assert rtype == decl_rtype, where
-            assert node.node_class == x.node_class, where
-            td = [d for t, f, d in crefs if t == (UA_URI, HAS_TYPE_DEFINITION) and f]
-            assert td == ref.targets(decl, HAS_TYPE_DEFINITION), where
-            if x.node_class == "UAVariable":
-                assert node.data_type == x.data_type, where
-            ifaces = {d for t, f, d in crefs if t == (UA_URI, HAS_INTERFACE) and f}
-            assert ifaces == set(ref.targets(decl, HAS_INTERFACE)), where
+            _matches(ref, node, crefs, rtype, decl, decl_rtype)
             checked_count += 1
             stack.append((child, decl))
         if decl_key == (WW_URI, "i=2"):
@@ -261,6 +266,54 @@ def test_machine_instance_matches_its_declarations(checked):
             if MANDATORY in rules:
                 assert ref.nodes[dchild].browse_name in present, \
                     f"mandatory {ref.nodes[dchild].browse_name} missing below {decl_key}"
+    return checked_count
+
+
+def _matches(ref, node, crefs, rtype, decl, decl_rtype) -> None:
+    """One instance node against its declaration: reference, class, type, data type, interfaces."""
+    x = ref.nodes[decl]
+    where = f"{node.browse_name[1]} (declared as {decl})"
+    assert rtype == decl_rtype, where
+    assert node.node_class == x.node_class, where
+    td = [d for t, f, d in crefs if t == (UA_URI, HAS_TYPE_DEFINITION) and f]
+    assert td == ref.targets(decl, HAS_TYPE_DEFINITION), where
+    if x.node_class == "UAVariable":
+        assert node.data_type == x.data_type, where
+    ifaces = {d for t, f, d in crefs if t == (UA_URI, HAS_INTERFACE) and f}
+    assert ifaces == set(ref.targets(decl, HAS_INTERFACE)), where
+
+
+def test_machine_instance_matches_its_declarations(checked):
+    ref, data, machine = checked
+    _, mrefs = data[machine]
+    assert ((UA_URI, HAS_TYPE_DEFINITION), True, (WW_URI, "i=2")) in mrefs
+    assert any(t == (UA_URI, "i=35") and not f and d == (MACHINERY_URI, "i=1001")
+               for t, f, d in mrefs), "the machine is organised under Machines"
+    checked_count = _walk(ref, data, [(machine, (WW_URI, "i=2"))])
     # Identification + its 6 mandatory properties, State, Machine, Overview + 2, Flags, Values,
     # their variables, Events, ManufacturerSpecific
     assert checked_count == 1 + 6 + 3 + 2 + 2 + len(FLAG_NAMES) + len(VALUE_NAMES) + 2
+
+
+SUBUNIT = (WW_URI, "i=5036")
+"""``WwMachineType/State/SubUnits/<SubUnit>``: the placeholder each head instantiates."""
+
+
+def test_moulder_heads_are_subunits_matching_their_declaration(checked_heads):
+    ref, data, machine = checked_heads
+    # the machine as before, plus State/SubUnits (declared, IWwSubUnitsType)
+    unit = 1 + 2 + 2 + len(FLAG_NAMES) + len(VALUE_NAMES)  # Overview + 2, Flags, Values, vars
+    # Identification + 6, State, Machine and its unit, Events, ManufacturerSpecific, SubUnits
+    assert _walk(ref, data, [(machine, (WW_URI, "i=2"))]) == 1 + 6 + 2 + unit + 2 + 1
+    subunits = [k for k, (n, _) in data.items() if n.browse_name == (WW_URI, "SubUnits")]
+    assert len(subunits) == 1
+    heads = [(c, data[c][0].browse_name) for r, c in _children(data, subunits[0])]
+    assert sorted(name for _, name in heads) == [(OWN_URI, "bottom"), (OWN_URI, "top")]
+    x = ref.nodes[SUBUNIT]
+    assert ref.targets(SUBUNIT, HAS_MODELLING_RULE) == [(UA_URI, "i=11510")]  # placeholder
+    for head, _ in heads:
+        node, crefs = data[head]
+        _matches(ref, node, crefs, "i=47", SUBUNIT, "i=47")  # HasComponent of SubUnits
+        assert x.browse_name == (WW_URI, "<SubUnit>")
+        # each head: its Overview (mandatory), Flags and Values, as the declaration says
+        assert _walk(ref, data, [(head, SUBUNIT)]) == unit
