@@ -124,11 +124,16 @@ class PairPipeline:
         """Measure in worker processes from the next pair on (``None``: in this process again).
 
         A worker that died or timed out is reported (``SERVICE_ERROR``, counter
-        ``worker_restarts``); its pairs are failed records naming the reason.
+        ``worker_restarts``); its pairs are failed records naming the reason. Several pipelines
+        may share one pool (a moulder's heads): each is told of every worker's problem.
         """
         self.measurement.use_workers(pool)
         if pool is not None:
-            pool.on_problem = self._worker_problem
+            listen = getattr(pool, "listen", None)
+            if callable(listen):  # a pool the heads of a moulder share: each hears of it
+                listen(self._worker_problem)
+            else:
+                pool.on_problem = self._worker_problem
 
     def _worker_problem(self, text: str) -> None:
         counters = self.report.counters

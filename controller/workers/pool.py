@@ -234,6 +234,11 @@ class MeasureWorkerPool:
     -----
     Use from one event loop: :meth:`submit` returns an ``asyncio.Future`` of a
     :class:`WorkerOutcome`. :meth:`close` stops the processes and frees the shared memory.
+    Several services on that loop may share one pool (the heads of a moulder): each pair
+    carries its own facts and calibrator, the workers keep a measurer per machine's facts
+    (:data:`controller.workers.process.KEEP_FACTS`), the pairs are measured in the order
+    submitted, whichever service they are of, and each service :meth:`listen` s for the
+    workers' problems.
     """
 
     def __init__(
@@ -283,6 +288,16 @@ class MeasureWorkerPool:
         """Workers started again after dying or timing out."""
         self.problems: list[str] = []
         """What went wrong with workers, in order (also given to ``on_problem``)."""
+        self._listeners: list[Callable[[str], None]] = []
+
+    def listen(self, fn: Callable[[str], None]) -> None:
+        """Tell ``fn(text)`` too when a worker died or timed out (each head sharing the pool).
+
+        ``on_problem`` is told first, then every listener in the order they were added (one
+        added twice is told once).
+        """
+        if fn not in self._listeners:
+            self._listeners.append(fn)
 
     @property
     def workers(self) -> int:
@@ -574,6 +589,8 @@ class MeasureWorkerPool:
         self.problems.append(problem)
         if self.on_problem is not None:
             self.on_problem(problem)
+        for fn in list(self._listeners):
+            fn(problem)
         if was_ready:
             self._spawn(w)
         elif not any(x.conn is not None for x in self._workers):

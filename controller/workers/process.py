@@ -365,6 +365,41 @@ class _Replies:
             _send_whole(self.conn, ("slotted", tickets))
 
 
+KEEP_FACTS = 8
+"""Machine's facts (cutting radius, knives) a worker keeps a measurer set up for at once: the
+heads of a moulder share the workers, each with its own facts; one stage per facts means a pair
+of one head never throws away another head's set-up (20-60 ms to build again)."""
+
+
+class _Stages:
+    """The worker's measurement stages, one per machine's facts (the newest used kept).
+
+    A :class:`MeasurementStage` keeps one measurer per image shape, built again when the facts
+    change: right for one machine, a rebuild on every pair when the heads of a moulder (each
+    with its own knives and radius) take turns. Here each facts' key has its own stage, at
+    most :data:`KEEP_FACTS` (the one used longest ago goes).
+    """
+
+    def __init__(self, factory: Any, keep: int = KEEP_FACTS) -> None:
+        self.factory = factory
+        self.keep = max(1, int(keep))
+        self._stages: dict[Any, MeasurementStage] = {}
+
+    def stage(self, facts: Any) -> MeasurementStage:
+        """The stage for ``facts`` (``None``: the facts-less one), made when first asked for."""
+        key = getattr(facts, "key", None) if facts is not None else None
+        stage = self._stages.pop(key, None)
+        if stage is None:
+            stage = MeasurementStage(None, self.factory, threaded=False)
+            while len(self._stages) >= self.keep:
+                del self._stages[next(iter(self._stages))]  # used longest ago
+        self._stages[key] = stage  # the newest used last
+        return stage
+
+    def __len__(self) -> int:
+        return len(self._stages)
+
+
 def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: int,
                  threads: int = 1, nice: int | None = None, hold: int = 1) -> None:
     """A worker: set up once, then measure the pairs the pipe brings until told to stop.
@@ -381,10 +416,10 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
     import cv2
 
     cv2.setNumThreads(threads)  # the cores shared out: the pool spreads the pairs over them
-    stage = MeasurementStage(None, factory, threaded=False)
+    stages = _Stages(factory)
     if shape is not None:
         try:  # set-up once: imports, undistortion maps, FFT plans
-            stage.measurer(shape)
+            stages.stage(None).measurer(shape)
         except VISION_ERRORS:
             pass  # the first pair says why, as a failed measurement
     gc.collect()
@@ -405,12 +440,12 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
                 break
             if msg[0] == "prepare":
                 try:
-                    stage.measurer(msg[1], msg[2])
+                    stages.stage(msg[2]).measurer(msg[1], msg[2])
                 except VISION_ERRORS:
                     pass
                 continue
             try:
-                reply, slot = _run_job(stage, blocks, msg)
+                reply, slot = _run_job(stages.stage(msg[6]), blocks, msg)
             except BaseException as exc:  # a bug: told to the service, then ends with it
                 replies.flush()
                 _send_whole(conn, ("fault", msg[1], f"{exc_name(exc)}: {exc}"))

@@ -1,8 +1,10 @@
 """``planer bench``: throughput of the vision, real-time factor of the simulator, service latency.
 
 Each part is measured by its own module in :mod:`planer.benchmarks` (``vision``, ``sim``,
-``service``), each exposing ``run(quick: bool)``. ``--json`` prints one JSON object whose keys are
-the parts; without it, a readable table.
+``service``, ``camera``, ``moulder``), each exposing ``run(quick: bool)``. ``--json`` prints one
+JSON object whose keys are the parts; without it, a readable table. Without ``--only`` the
+parts of :data:`DEFAULT_PARTS` run (``moulder``, four heads through the service, only when
+named).
 """
 
 from __future__ import annotations
@@ -13,14 +15,18 @@ import json
 import sys
 from typing import Any
 
-PARTS = ("vision", "sim", "service", "camera")
+DEFAULT_PARTS = ("vision", "sim", "service", "camera")
+"""The parts a bare ``planer bench`` runs."""
+PARTS = (*DEFAULT_PARTS, "moulder")
+"""Every part ``--only`` takes."""
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """Add this command's arguments."""
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     parser.add_argument(
-        "--only", choices=PARTS, action="append", help="run only this part (repeatable)"
+        "--only", choices=PARTS, action="append",
+        help="run only this part (repeatable; moulder runs only when named)"
     )
     parser.add_argument("--quick", action="store_true", help="shorter runs (less precise)")
 
@@ -52,6 +58,10 @@ def _format(name: str, result: Any) -> str:
             return service_text(result)
         if name == "camera":
             return _camera_text(result)
+        if name == "moulder":
+            from planer.benchmarks.moulder import text as moulder_text
+
+            return moulder_text(result)
     except (KeyError, TypeError, ValueError):
         pass
     return f"{name}: {json.dumps(result, indent=2)}"
@@ -163,7 +173,7 @@ def _camera_text(result: Any) -> str:
 def run(args: argparse.Namespace) -> int:
     """Run the benchmarks."""
     out: dict[str, Any] = {}
-    for name in args.only or PARTS:
+    for name in args.only or DEFAULT_PARTS:
         what = "short run" if args.quick else "full run, several seconds; --quick is faster"
         print(f"planer bench: measuring {name} ({what}) ...", file=sys.stderr, flush=True)
         mod = importlib.import_module(f"planer.benchmarks.{name}")

@@ -1,0 +1,518 @@
+"""Four heads at 100 pairs/s each through the service's pipeline (``planer bench``, ``moulder``).
+
+A four-sided moulder runs one :class:`controller.service.service.Service` per head (its own
+configuration, quality log, loops and amplifier node) in one process, and the heads' pairs are
+measured by ONE pool of worker processes they share (``[service] workers``). This part puts
+that on this machine: four services, each built from a copy of the shipped ``machine.toml``
+with its own amplifier node id (2, 3, 4, 5: the moulder's) and quality log, each run by
+``Service.run`` on its own frame source (an in-process queue of
+:data:`planer.benchmarks.service.QUEUE_PAIRS` that drops the oldest pair, as a camera does not
+wait), all four on one event loop and one :class:`controller.workers.pool.MeasureWorkerPool`.
+The simulated PLC's Modbus server runs in its own process on 127.0.0.1 (the four heads' clients
+read the same registers), the four amplifier nodes answer on ONE virtual CAN bus (one
+``AmpNodeCore``, the nodes 2-5), pumped every 5 ms, as the service benchmark does.
+
+The pairs are rendered once before timing (the simulator's 659 x 493 pairs) and every head
+replays the same list: once all four services report RUN, head ``i`` gets its pairs at
+``rate_hz`` starting ``i / (heads * rate_hz)`` after the first head (the cameras are triggered
+by the encoder at each head's position, not together: 400 pairs/s spread evenly). A pair's
+latency runs from its hand-off to its head's source to the return of its feed setpoint's
+Modbus write and its offsets' CAN send (as ``planer bench --only service``). Per head and over
+all heads: pairs in, measured (valid measurement, setpoints applied), failed, dropped by the
+source, p50 / p99 / max latency (the first
+:data:`planer.benchmarks.service.WARMUP_PAIRS` of each head apart from the p50 and p99, never
+from the max); the CPU time per pair of the service's process, of the workers and of the PLC's
+process; the workers used; the machine's cores and load average before and after.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from controller.service.events import EventKind
+from planer.benchmarks.service import (
+    DRAIN_TIMEOUT_S,
+    QUEUE_PAIRS,
+    READY_TIMEOUT_S,
+    WARMUP_PAIRS,
+    _frames,
+    _latency_figures,
+    _plc_for,
+    machine_description,
+)
+
+HEADS: tuple[tuple[str, int], ...] = (("bottom", 2), ("right", 3), ("left", 4), ("top", 5))
+"""The moulder's heads: name and amplifier node id (config/machine_moulder.toml's)."""
+RATE_HZ = 100.0
+"""Pairs per second of each head's camera."""
+WORKERS = 2
+"""Measurement worker processes the four heads share (one per core on this 2-core machine)."""
+TARGET_P99_MS = 10.0
+"""Frame-to-setpoint p99 target, ms (over all heads' pairs)."""
+PAIRS_PER_HEAD = 600
+"""Pairs each head gets in a full run (6 s at 100 pairs/s); ``quick``: :data:`QUICK_PAIRS`."""
+QUICK_PAIRS = 150
+"""Pairs per head of a quick run."""
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    """``p50``, ``p99``, ``max`` (ms) of ``values`` (``{}`` for none)."""
+    if not values:
+        return {}
+    a = np.asarray(values, dtype=float)
+    return {"p50": float(np.median(a)), "p99": float(np.percentile(a, 99)),
+            "max": float(a.max())}
+
+
+def _proc_cpu_s(pid: int | None) -> float:
+    """User + system CPU seconds of process ``pid`` so far (0 when it cannot be read)."""
+    if pid is None:
+        return 0.0
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            fields = fh.read().rsplit(b")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+class _CpuMeter:
+    """CPU seconds of this process, the workers and the PLC's process between two readings.
+
+    ``cpu_ms_per_pair`` is the service's: this process (less the stand-ins' pump) and the
+    workers; the PLC's process and the stand-ins in this process are reported apart.
+    """
+
+    def __init__(self, pool: Any, plc: Any) -> None:
+        self.pool, self.plc = pool, plc
+        self.start: dict[str, float] = {}
+        self.stand_in = [0.0]
+        """CPU s of the simulated amplifiers and PLC pump in this process (:func:`_pump_plant`)."""
+
+    def _now(self) -> dict[str, float]:
+        t = os.times()
+        pids = [] if self.pool is None else list(self.pool.pids)
+        proc = getattr(self.plc, "_proc", None)
+        return {"service": t.user + t.system - self.stand_in[0],
+                "stand_ins": self.stand_in[0],
+                "workers": sum(_proc_cpu_s(p) for p in pids),
+                "plc": _proc_cpu_s(getattr(proc, "pid", None))}
+
+    def begin(self) -> None:
+        """Take the first reading (when the first pair goes in)."""
+        self.start = self._now()
+
+    def per_pair_ms(self, pairs: int, wall_s: float) -> dict[str, Any]:
+        """CPU ms per pair of each part since :meth:`begin`, and the cores they kept busy."""
+        end = self._now()
+        used = {k: max(0.0, end[k] - self.start.get(k, 0.0)) for k in end}
+        service = used["service"] + used["workers"]
+        n = max(1, pairs)
+        return {
+            "cpu_ms_per_pair": service * 1e3 / n,
+            "service_cpu_ms_per_pair": used["service"] * 1e3 / n,
+            "workers_cpu_ms_per_pair": used["workers"] * 1e3 / n,
+            "plc_cpu_ms_per_pair": used["plc"] * 1e3 / n,
+            "stand_in_cpu_ms_per_pair": used["stand_ins"] * 1e3 / n,
+            "cores_busy": service / wall_s if wall_s > 0 else None,
+            "cores_busy_with_stand_ins": ((service + used["plc"] + used["stand_ins"]) / wall_s
+                                          if wall_s > 0 else None),
+            "wall_s": wall_s,
+        }
+
+
+def _head_configs(base: Any, heads: tuple[tuple[str, int], ...], workdir: Path) -> list[Any]:
+    """One MachineConfig per head: the base with the head's amplifier node id and its own log."""
+    return [base.with_changes(can=replace(base.can, node_id=node),
+                              log=replace(base.log, path=workdir / f"moulder-{name}.sqlite"))
+            for name, node in heads]
+
+
+def _amplifiers(machine: Any, heads: tuple[tuple[str, int], ...], channel: str) -> Any:
+    """The heads' amplifier nodes on one virtual CAN bus (``channel``), one ``AmpNode``.
+
+    The first head's node drives ``machine`` (the PLC's), each other head's its own machine.
+    """
+    import can
+
+    from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
+
+    core = AmpNodeCore(machine, knives=machine.knives, node_id=heads[0][1])
+    for _, node in heads[1:]:  # each head's amplifier drives its own head (its own state)
+        core.add_node(node, _machine_like(machine), knives=machine.knives)
+    return AmpNode(can.Bus(interface="virtual", channel=channel), core, own_bus=True)
+
+
+def _machine_like(machine: Any) -> Any:
+    """Another head's machine: the simulator's first state, no images (never stepped)."""
+    from plant_sim.machine.machine import Machine
+
+    return Machine(machine.cfg, seed=0, render_images=False)
+
+
+async def _pump_plant(amp: Any, plc_pump: Any, stop: asyncio.Event, spent: list[float]) -> None:
+    """Step the simulated amplifiers and PLC every 5 ms until ``stop`` (as the service bench).
+
+    The CPU time it takes in this process (the stand-ins for the amplifiers and the PLC's
+    register image, not the service) is added to ``spent[0]``, s.
+    """
+    t0 = time.monotonic()
+    while not stop.is_set():
+        c0 = time.thread_time()
+        amp.pump(time.monotonic() - t0)
+        plc_pump()
+        spent[0] += time.thread_time() - c0
+        await asyncio.sleep(0.005)
+
+
+class _Head:
+    """One head in the bench: its runtime, source and what came back of its pairs."""
+
+    def __init__(self, name: str, runtime: Any, n_pairs: int) -> None:
+        from controller.frames.source import QueueFrameSource
+
+        self.name = name
+        self.runtime = runtime
+        self.source = runtime.attach(QueueFrameSource(maxsize=min(QUEUE_PAIRS, n_pairs)))
+        self.n_pairs = n_pairs
+        self.seen: list[SimpleNamespace] = []
+        self.put_at: dict[int, float] = {}
+        self.stored_at: dict[int, float] = {}
+        self.running = asyncio.Event()
+        self.handled = asyncio.Event()
+
+    @property
+    def service(self) -> Any:
+        return self.runtime.service
+
+    def wire(self) -> None:
+        """Listen to the service: RUN reached, each pair's result, each record stored."""
+        service = self.service
+        records = service.records
+        if hasattr(records, "on_stored"):
+            records.on_stored = lambda seq, at: self.stored_at.__setitem__(int(seq), at)
+        service.on_event = (lambda e: self.running.set()
+                            if e.kind is EventKind.RECOVERED else None)
+
+        def on_result(r: Any) -> None:
+            self.seen.append(SimpleNamespace(
+                seq=r.seq, ok=r.ok, applied=r.applied, t_s=r.t_s, latency_s=r.latency_s,
+                error=r.error, extra={"timing_ms": r.extra.get("timing_ms", {})}))
+            if len(self.seen) + self.source.dropped >= self.n_pairs:
+                self.handled.set()
+
+        service.on_result = on_result
+
+    def latencies_ms(self) -> list[float]:
+        """Frame-to-setpoint latency of each applied pair, ms, in the order handled."""
+        out = []
+        for r in self.seen:
+            t_put = self.put_at.get(int(r.seq))
+            if r.applied and t_put is not None:
+                out.append((r.t_s + r.latency_s - t_put) * 1e3)
+        return out
+
+
+async def _feed(heads: list[_Head], frames: list, rate_hz: float) -> None:
+    """Hand each head its pairs at ``rate_hz``, the heads' cameras spread over the period."""
+    loop = asyncio.get_running_loop()
+    period = 1.0 / rate_hz
+    step = period / len(heads)
+    t0 = loop.time()
+    for k, f in enumerate(frames):
+        for i, head in enumerate(heads):
+            delay = t0 + k * period + i * step - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            head.put_at[int(f.seq)] = time.monotonic()
+            head.source.put(f)
+
+
+async def _start_pool(heads: list[_Head], workers: int, shape: tuple[int, int], *,
+                      nice: int | None, timeout_s: float, depth: int | None) -> Any:
+    """One worker pool for every head (started off the event loop), handed to each pipeline."""
+    from controller.workers.pool import DEFAULT_DEPTH, MeasureWorkerPool
+
+    factory = heads[0].service.measurement.factory
+    pool = MeasureWorkerPool(factory, workers=workers, shape=shape, timeout_s=timeout_s,
+                             nice=nice, depth=DEFAULT_DEPTH if depth is None else depth)
+    await asyncio.get_running_loop().run_in_executor(None, pool.start)
+    for head in heads:
+        head.service.pipeline.use_workers(pool)
+    return pool
+
+
+async def _serve_all(heads: list[_Head], stop: asyncio.Event, *, priority: bool) -> str:
+    """Every head's ``Service.run`` on one event loop (raised once) until ``stop``."""
+    import contextlib
+
+    from controller.service.latency import prioritize
+    from core.realtime import BUS_RT_PRIORITY, realtime_thread
+
+    granted = "normal"
+    with contextlib.ExitStack() as stack:
+        if priority:
+            for head in heads:
+                prioritize(head.service, source=head.source)
+            granted = stack.enter_context(realtime_thread(rt_priority=BUS_RT_PRIORITY))
+        await asyncio.gather(*(h.service.run(h.source, stop=stop) for h in heads))
+    return str(granted)
+
+
+async def _run(
+    frames: list,
+    machine: Any,
+    *,
+    rate_hz: float = RATE_HZ,
+    workdir: Path,
+    workers: int = WORKERS,
+    heads: tuple[tuple[str, int], ...] = HEADS,
+    ready_timeout_s: float = READY_TIMEOUT_S,
+    priority: bool = False,
+    depth: int | None = None,
+) -> dict[str, Any]:
+    """Serve ``frames`` to every head at ``rate_hz`` once all are in RUN; their figures.
+
+    ``workers`` > 0: one pool of that many measurement processes shared by the heads (0: each
+    head measures in the service's process). ``priority`` as ``planer serve`` runs: the event
+    loop at real-time priority where permitted, the measurement at a raised nice value.
+    ``RuntimeError`` naming what a head waits for when one is not in RUN after
+    ``ready_timeout_s``.
+    """
+    from config.machine import load_machine
+    from controller.runtime import RuntimeOptions, ServiceRuntime
+    from controller.service.latency import MEASURE_NICE, GcPauses, tune_for_latency
+
+    plc, plc_pump = await _plc_for(machine, realtime=priority)
+    host, port = await plc.start()
+    h, w = frames[0].image_a.shape
+    base = load_machine()
+    base = base.with_changes(plc=replace(base.plc, host=host, port=port),
+                             frames=replace(base.frames, image_width=w, image_height=h))
+    channel = f"planer-moulder-{os.getpid()}-{id(frames)}"
+    amp = _amplifiers(machine, heads, channel)
+    pool = None
+    bench: list[_Head] = []
+    stop = asyncio.Event()
+    unfinished: dict[str, int] = {}
+    meter = _CpuMeter(None, plc)
+    wall = [0.0, 0.0]
+    granted = "normal"
+    try:
+        import can
+
+        for (name, _), cfg in zip(heads, _head_configs(base, heads, workdir), strict=True):
+            rt = ServiceRuntime(cfg, can_bus=can.Bus(interface="virtual", channel=channel),
+                                options=RuntimeOptions(workers=0, tune=False))
+            bench.append(_Head(name, rt, len(frames)))
+            service = await rt.open()
+            if bench[1:] and hasattr(service.out, "owns_feed"):
+                service.out.owns_feed = False  # one writer of the feed and heartbeat: the first
+            bench[-1].wire()
+        if workers:
+            pool = await _start_pool(bench, workers, (h, w),
+                                     nice=MEASURE_NICE if priority else None,
+                                     timeout_s=base.safety.measurement_timeout_s, depth=depth)
+        meter.pool = pool
+
+        async def feed_frames() -> None:
+            for head in bench:
+                try:
+                    await asyncio.wait_for(head.running.wait(), ready_timeout_s)
+                except asyncio.TimeoutError:
+                    status = head.service.status()
+                    why = status.safe_reason if status.t_s is not None else "no cycle ran"
+                    stop.set()
+                    raise RuntimeError(f"moulder benchmark: head {head.name} not in RUN after "
+                                       f"{ready_timeout_s:g} s ({why})") from None
+            meter.begin()
+            wall[0] = time.monotonic()
+            await _feed(bench, frames, rate_hz)
+            for head in bench:
+                try:
+                    await asyncio.wait_for(head.handled.wait(), DRAIN_TIMEOUT_S)
+                except asyncio.TimeoutError:
+                    unfinished[head.name] = (len(frames) - len(head.seen)
+                                             - head.source.dropped)
+            wall[1] = time.monotonic()
+            stop.set()
+
+        pump = asyncio.create_task(_pump_plant(amp, plc_pump, stop, meter.stand_in))
+        feeder = asyncio.create_task(feed_frames())
+        tune_for_latency()  # once for every head, after their set-up (its collection not timed)
+        gc_pauses = GcPauses()
+        try:
+            with gc_pauses:
+                granted = await _serve_all(bench, stop, priority=priority)
+            await feeder
+        finally:
+            stop.set()
+            feeder.cancel()
+            await asyncio.gather(pump, feeder, return_exceptions=True)
+        cpu = meter.per_pair_ms(sum(len(hd.seen) for hd in bench), wall[1] - wall[0])
+    finally:
+        stop.set()
+        for head in bench:
+            head.runtime.close()
+        if pool is not None:
+            pool.close()
+        amp.close()
+        await plc.stop()
+        if hasattr(plc, "close"):
+            plc.close()
+    return _figures(bench, frames, rate_hz=rate_hz, workers=0 if pool is None else pool.workers,
+                    cpu=cpu, unfinished=unfinished, gc_pauses=gc_pauses,
+                    priority={"service_bus": granted, "plc_process": getattr(plc, "priority",
+                                                                             None)})
+
+
+def _figures(bench: list[_Head], frames: list, *, rate_hz: float, workers: int,
+             cpu: dict[str, Any], unfinished: dict[str, int], gc_pauses: Any,
+             priority: dict[str, Any]) -> dict[str, Any]:
+    """Per head and over all heads: counts, latency, CPU per pair."""
+    h, w = frames[0].image_a.shape
+    per_head: dict[str, Any] = {}
+    steady: list[float] = []
+    every: list[float] = []
+    for head in bench:
+        fig = _latency_figures(SimpleNamespace(results=head.seen, records=head.service.records,
+                                               measurement=head.service.measurement),
+                               head.put_at, head.stored_at, _NoGc(), frames=frames,
+                               rate_hz=rate_hz, workers=workers)
+        lat = head.latencies_ms()
+        warm = min(WARMUP_PAIRS, max(0, len(lat) - 1))
+        steady += lat[warm:]
+        every += lat
+        s = _stats(lat[warm:])
+        per_head[head.name] = {
+            "node_id": int(head.service.cfg.can.node_id),
+            "writes_feed": bool(getattr(head.service.out, "owns_feed", True)),
+            "pairs_in": len(head.put_at),
+            "handled": len(head.seen),
+            "measured": fig["applied"],
+            "failed": fig["failed"],
+            "dropped": int(head.source.dropped),
+            "unfinished": unfinished.get(head.name, 0),
+            "p50_ms": s.get("p50"), "p99_ms": s.get("p99"),
+            "max_ms": _stats(lat).get("max"),
+            "breakdown_ms": fig["breakdown_ms"],
+            "record_after_setpoint_ms": fig["record_after_setpoint_ms"],
+            "state": head.service.state.value,
+            "safe_reason": head.service.keeper.safe_reason(),
+            "events": [e.text for e in head.service.events][:12],
+            "safe_entries": int(head.service.counters.get("safe_entries", 0)),
+            **({"failed_reasons": fig["failed_reasons"]} if "failed_reasons" in fig else {}),
+        }
+    s_all = _stats(steady)
+    totals = {k: sum(int(p[k]) for p in per_head.values())
+              for k in ("pairs_in", "handled", "measured", "failed", "dropped", "unfinished")}
+    overall = {**totals, "p50_ms": s_all.get("p50"), "p99_ms": s_all.get("p99"),
+               "max_ms": _stats(every).get("max"), **cpu}
+    overall["pairs_per_s"] = (totals["handled"] / cpu["wall_s"]
+                              if cpu.get("wall_s") else None)
+    meets = {"p99": s_all.get("p99") is not None and s_all["p99"] <= TARGET_P99_MS,
+             "nothing_dropped": totals["dropped"] == 0 and totals["unfinished"] == 0
+             and totals["failed"] == 0 and totals["handled"] == totals["pairs_in"]}
+    return {
+        "heads": per_head,
+        "overall": overall,
+        "meets": meets,
+        "target_p99_ms": TARGET_P99_MS,
+        "width": int(w), "height": int(h),
+        "rate_hz_per_head": rate_hz,
+        "pairs_per_head": len(frames),
+        "workers": workers,
+        "workers_shared": True,
+        "warmup_pairs_per_head": WARMUP_PAIRS,
+        "gc": gc_pauses.summary(),
+        "priority": priority,
+        "transport": "Modbus TCP 127.0.0.1 (one PLC process, a client per head) + one "
+                     "virtual CAN bus (amplifier nodes " + ", ".join(
+                         str(p["node_id"]) for p in per_head.values()) + ")",
+        "latency_from": "pair handed to its head's frame source",
+        "latency_to": "feed setpoint written (Modbus) and offsets sent (CAN)",
+    }
+
+
+class _NoGc:
+    """The collector's pauses are measured once for all heads (``gc`` of the result)."""
+
+    def summary(self) -> dict[str, Any]:
+        return {}
+
+
+def run(quick: bool = False, *, workers: int = WORKERS) -> dict[str, Any]:
+    """Four heads at :data:`RATE_HZ` pairs/s each, one shared pool of ``workers`` processes.
+
+    Parameters
+    ----------
+    quick : bool
+        :data:`QUICK_PAIRS` pairs per head instead of :data:`PAIRS_PER_HEAD`.
+    workers : int
+        Measurement worker processes shared by the heads.
+
+    Returns
+    -------
+    dict
+        ``heads`` (per head: ``pairs_in``, ``handled``, ``measured``, ``failed``, ``dropped``,
+        ``p50_ms``, ``p99_ms``, ``max_ms``, ``breakdown_ms`` ...), ``overall`` (the same summed
+        and over all pairs, with ``cpu_ms_per_pair`` and its parts, ``cores_busy``,
+        ``pairs_per_s``), ``meets`` (``p99``, ``nothing_dropped``), ``workers``, ``machine``
+        (cores, load average before and after).
+    """
+    import logging
+
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    n = QUICK_PAIRS if quick else PAIRS_PER_HEAD
+    frames, machine = _frames(n)
+    before = machine_description()
+    with tempfile.TemporaryDirectory(prefix="planer-moulder-") as d:
+        out = asyncio.run(_run(frames, machine, workdir=Path(d), workers=workers,
+                               priority=True))
+    out["machine"] = {**before, "load_avg_after": machine_description()["load_avg"]}
+    return out
+
+
+def text(result: dict[str, Any]) -> str:
+    """The readable lines of the moulder part."""
+    o = result["overall"]
+    m = result.get("machine", {})
+    meets = result.get("meets", {})
+
+    def ms(v: Any) -> str:
+        return "-" if v is None else f"{v:.2f}"
+
+    lines = [
+        f"moulder ({len(result['heads'])} heads x {result['rate_hz_per_head']:g} pairs/s, "
+        f"{result['width']}x{result['height']}, {result['workers']} shared worker process(es); "
+        f"{result['transport']}); machine: {m.get('cores')} cores, load {m.get('load_avg')} "
+        f"-> {m.get('load_avg_after')}",
+        f"  all heads: {o['handled']}/{o['pairs_in']} handled, {o['measured']} measured, "
+        f"{o['failed']} failed, {o['dropped']} dropped"
+        + (f", {o['unfinished']} UNFINISHED" if o.get("unfinished") else "")
+        + f"; pair -> setpoints p50 {ms(o['p50_ms'])} ms, p99 {ms(o['p99_ms'])} ms, max "
+        f"{ms(o['max_ms'])} ms (p99 {'ok' if meets.get('p99') else 'MISSED'}, target <= "
+        f"{result['target_p99_ms']:g}; nothing dropped "
+        f"{'ok' if meets.get('nothing_dropped') else 'MISSED'})",
+        f"  service CPU per pair {o['cpu_ms_per_pair']:.2f} ms (service process "
+        f"{o['service_cpu_ms_per_pair']:.2f}, workers {o['workers_cpu_ms_per_pair']:.2f}; "
+        f"{o['cores_busy'] or 0:.2f} cores busy); stand-ins apart: PLC process "
+        f"{o['plc_cpu_ms_per_pair']:.2f}, amplifiers {o['stand_in_cpu_ms_per_pair']:.2f} ms "
+        f"({o['cores_busy_with_stand_ins'] or 0:.2f} cores busy with them); "
+        f"{o['pairs_per_s'] or 0:.0f} pairs/s served",
+    ]
+    for name, hd in result["heads"].items():
+        lines.append(
+            f"  {name} (node {hd['node_id']}): {hd['handled']}/{hd['pairs_in']} handled, "
+            f"{hd['measured']} measured, {hd['failed']} failed, {hd['dropped']} dropped; p50 "
+            f"{ms(hd['p50_ms'])} ms, p99 {ms(hd['p99_ms'])} ms, max {ms(hd['max_ms'])} ms")
+    return "\n".join(lines)

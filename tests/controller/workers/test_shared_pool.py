@@ -1,0 +1,117 @@
+"""One pool of measurement workers shared by several services (the heads of a moulder).
+
+Each head hears of a worker's problem; a worker keeps a measurer per machine's facts, so the
+heads' pairs taking turns never rebuild one another's set-up; the pairs of two services
+interleaved through one pool each come back to their own service, in their own order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+
+from controller.service.measurement import MachineFacts
+from controller.workers.pool import MeasureWorkerPool
+from controller.workers.process import KEEP_FACTS, _Stages
+
+
+@dataclass(frozen=True)
+class CountingFactory:
+    """A facts-taking factory that notes each build (shape, facts key) in ``built``."""
+
+    built: list
+    takes_facts = True
+
+    def __call__(self, shape, facts=None):
+        self.built.append((shape, None if facts is None else facts.key))
+        return object()
+
+
+def _facts(knives: int, radius_mm: float = 60.0) -> MachineFacts:
+    return MachineFacts(radius_mm=radius_mm, knives=knives, spindle_rpm=6000.0)
+
+
+def test_heads_taking_turns_build_each_measurer_once():
+    built: list = []
+    stages = _Stages(CountingFactory(built))
+    heads = [_facts(4), _facts(2), _facts(2, 70.0), _facts(6)]
+    for _ in range(5):  # four heads' pairs in turn
+        for facts in heads:
+            stages.stage(facts).measurer((493, 659), facts)
+    assert sorted(built) == sorted(((493, 659), f.key) for f in heads)  # once each
+    assert len(stages) == len(heads)
+
+
+def test_the_facts_used_longest_ago_go_first_beyond_the_limit():
+    built: list = []
+    stages = _Stages(CountingFactory(built), keep=2)
+    a, b, c = _facts(2), _facts(4), _facts(6)
+    for facts in (a, b, a, c):  # b is the one used longest ago when c comes
+        stages.stage(facts).measurer((10, 10), facts)
+    stages.stage(a).measurer((10, 10), a)
+    stages.stage(b).measurer((10, 10), b)  # built again
+    assert [k for _, k in built] == [a.key, b.key, c.key, b.key]
+    assert len(stages) == 2
+    assert KEEP_FACTS >= 4  # the moulder's four heads fit
+
+
+class _DeadEnd:
+    """A worker's pipe end that is already gone (close does nothing)."""
+
+    def close(self) -> None:
+        pass
+
+
+def test_every_listener_hears_of_a_worker_problem_once_after_on_problem():
+    heard: list = []
+    pool = MeasureWorkerPool(CountingFactory([]), workers=1,
+                             on_problem=lambda t: heard.append(("on_problem", t)))
+    first = lambda t: heard.append(("first", t))  # noqa: E731
+    pool.listen(first)
+    pool.listen(lambda t: heard.append(("second", t)))
+    pool.listen(first)  # twice: told once
+    w = pool._workers[0]
+    w.conn, w.ready = _DeadEnd(), False  # a worker that died while setting up
+    pool._died(w, "died (exit code 1)")
+    assert [who for who, _ in heard] == ["on_problem", "first", "second"]
+    assert len({t for _, t in heard}) == 1 and "measurement worker 0 died" in heard[0][1]
+    pool.close()
+
+
+def test_two_services_on_one_pool_each_get_their_own_pairs_in_order(tmp_path):
+    from tests.controller.workers.test_service_workers import (
+        BACKSTOP_S,
+        _collect_pairs,
+        _pool,
+        _running_plant,
+        _truth_of,
+    )
+
+    async def main():
+        plants = [await _running_plant(tmp_path / name) for name in ("a", "b")]
+        pairs = [await _collect_pairs(p, 4) for p in plants]
+        table = {(f.counts_a, f.counts_b): _truth_of(f) for ps in pairs for f in ps}
+        pool = _pool(table, {}, workers=2)
+        before = [len(p.service.results) for p in plants]
+        try:
+            for p in plants:
+                p.service.pipeline.use_workers(pool)
+            for fa, fb in zip(*pairs, strict=True):  # the heads' pairs interleaved
+                await plants[0].service.pipeline.submit(fa)
+                await plants[1].service.pipeline.submit(fb)
+            for p in plants:
+                await asyncio.wait_for(p.service.pipeline.drain(), BACKSTOP_S)
+        finally:
+            pool.close()
+        res = [p.service.results[n:] for p, n in zip(plants, before, strict=True)]
+        for p in plants:
+            await p.close()
+        return pairs, res
+
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+    pairs, res = asyncio.run(main())
+    for ps, rs in zip(pairs, res, strict=True):
+        assert [r.seq for r in rs] == [f.seq for f in ps]
+        assert all(r.ok for r in rs), [r.error for r in rs]
+        assert [r.counts_a for r in rs] == [int(f.counts_a) for f in ps]

@@ -1,0 +1,81 @@
+"""The moulder benchmark's wiring (``planer bench --only moulder``) on a short run.
+
+Four heads, each its own service with its own amplifier node and quality log, share one pool of
+measurement workers; every pair handed to a head comes back as that head's result, the counts
+add up per head and over all heads, and the text names every head. No timing is asserted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import pytest
+
+N_PAIRS = 4
+
+
+@pytest.fixture(scope="module")
+def frames_and_machine():
+    from planer.benchmarks.service import _frames
+
+    return _frames(N_PAIRS, seed=3)
+
+
+def _run(tmp_path, frames_and_machine, **kw):
+    from planer.benchmarks import moulder
+
+    frames, machine = frames_and_machine
+    return asyncio.run(moulder._run(frames, machine, rate_hz=25.0, workdir=tmp_path, **kw))
+
+
+def test_four_heads_share_one_pool_and_every_pair_comes_back_to_its_head(
+        tmp_path, frames_and_machine):
+    from planer.benchmarks import moulder
+
+    out = _run(tmp_path, frames_and_machine, workers=1)
+    heads = out["heads"]
+    assert list(heads) == [name for name, _ in moulder.HEADS]
+    assert [h["node_id"] for h in heads.values()] == [node for _, node in moulder.HEADS]
+    for name, h in heads.items():
+        assert h["pairs_in"] == N_PAIRS, name
+        assert h["handled"] + h["dropped"] + h["unfinished"] == h["pairs_in"], name
+        assert h["dropped"] == 0 and h["unfinished"] == 0, name  # the queue holds them all
+        assert h["measured"] + h["failed"] <= h["handled"], name
+        assert h["state"] == "run" and h["safe_entries"] == 0, (name, h["events"])
+        for key in ("p50_ms", "p99_ms", "max_ms", "breakdown_ms", "writes_feed"):
+            assert key in h, (name, key)
+    o = out["overall"]
+    for key in ("pairs_in", "handled", "measured", "failed", "dropped"):
+        assert o[key] == sum(h[key] for h in heads.values()), key
+    assert o["handled"] == len(moulder.HEADS) * N_PAIRS and o["measured"] >= 1
+    assert out["workers"] == 1 and out["workers_shared"]
+    assert out["meets"]["nothing_dropped"] == (o["failed"] == 0)
+    for key in ("cpu_ms_per_pair", "service_cpu_ms_per_pair", "workers_cpu_ms_per_pair",
+                "plc_cpu_ms_per_pair", "stand_in_cpu_ms_per_pair", "cores_busy"):
+        assert o[key] is not None and o[key] >= 0, key
+    assert o["workers_cpu_ms_per_pair"] > 0  # the pairs were measured in the worker
+    logs = sorted(p.name for p in tmp_path.glob("moulder-*.sqlite"))
+    assert logs == sorted(f"moulder-{name}.sqlite" for name, _ in moulder.HEADS)
+    json.dumps(out)  # what --json prints
+    text = moulder.text({**out, "machine": {"cores": 2, "load_avg": [1.0, 1.0, 1.0]}})
+    assert all(f"{name} (node {node})" in text for name, node in moulder.HEADS)
+    assert f"{o['handled']}/{o['pairs_in']} handled" in text
+
+
+def test_without_workers_each_head_measures_in_the_service_process(tmp_path,
+                                                                   frames_and_machine):
+    out = _run(tmp_path, frames_and_machine, workers=0)
+    assert out["workers"] == 0 and out["overall"]["workers_cpu_ms_per_pair"] == 0
+    assert all(h["handled"] + h["dropped"] == N_PAIRS for h in out["heads"].values())
+
+
+def test_bench_takes_the_moulder_part_only_when_named():
+    import argparse
+
+    from planer.commands import bench
+
+    parser = argparse.ArgumentParser()
+    bench.configure(parser)
+    assert parser.parse_args(["--only", "moulder"]).only == ["moulder"]
+    assert "moulder" in bench.PARTS and "moulder" not in bench.DEFAULT_PARTS
