@@ -146,7 +146,7 @@ def _median(v: np.ndarray, n: int) -> float:  # pragma: no cover - compiled
 @njit(**_JIT)
 def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int, k: int,
                  cell: int, profile: np.ndarray, r: np.ndarray, e: np.ndarray,
-                 valid_cells: np.ndarray) -> tuple[float, int]:  # pragma: no cover
+                 valid_cells: np.ndarray) -> tuple[float, int, float]:  # pragma: no cover
     """The marks' robust column profile, the residual and its cells (see ``residual``).
 
     Parameters
@@ -173,7 +173,8 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     -------
     tuple
         The median absolute deviation of the samples from the profile's first estimate
-        (every third row and column), and the number of valid cells.
+        (every third row and column), the number of valid cells and their upper median
+        mean square (element ``n // 2`` in order, as ``np.partition``; 1.0 without one).
     """
     rows, cols = p.shape
     n_g = rows // group
@@ -244,22 +245,33 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     n_cells = cols // cell
     nc = 0
     prof32 = profile.astype(np.float32)
+    zero = np.float32(0.0)
+    half_cell = 0.5 * cell
+    acc = np.empty(n_cells)
+    w = np.empty(n_cells, dtype=np.int32)
+    cells = np.empty(rows * n_cells, dtype=np.float32)  # the valid cells' mean squares
     for i in range(rows):
         for c in range(cols):
-            r[i, c] = p[i, c] - prof32[c] if valid[i, c] else np.float32(0.0)
+            r[i, c] = p[i, c] - prof32[c] if valid[i, c] else zero
+        # each cell's sum over its columns in order (r is 0 outside valid: adds nothing)
         for j in range(n_cells):
-            s = 0.0
-            w = 0
-            for c in range(j * cell, (j + 1) * cell):
-                if valid[i, c]:
-                    x = r[i, c]
-                    s += x * x
-                    w += 1
-            ok = w >= 0.5 * cell
+            x = r[i, j * cell]
+            acc[j] = 0.0 + x * x
+            w[j] = np.int32(valid[i, j * cell])
+        for q in range(1, cell):
+            for j in range(n_cells):
+                x = r[i, j * cell + q]
+                acc[j] += x * x
+                w[j] += np.int32(valid[i, j * cell + q])
+        for j in range(n_cells):
+            ok = w[j] >= half_cell
             valid_cells[i, j] = ok
-            e[i, j] = s / max(w, 1) if ok else 0.0
-            nc += ok
-    return scale, nc
+            e[i, j] = acc[j] / max(w[j], 1) if ok else 0.0
+            if ok:
+                cells[nc] = e[i, j]
+                nc += 1
+    median = _select(cells, nc, nc // 2) if nc > 0 else 1.0
+    return scale, nc, median
 
 
 @njit(**_JIT)

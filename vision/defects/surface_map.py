@@ -281,10 +281,14 @@ class SurfaceMapper:
         r = np.asarray(rows)
         if r.dtype not in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
             r = r.astype(np.float32)
-        if self.middle_row:  # the middle source row of each block: a strided view
-            m = self.merge_rows
+        if self.middle_row or (self.merge_rows == 1 and self.bin_cols > 1):
+            m = self.merge_rows  # the middle source row of each block: a strided view
             r = r[(m - 1) // 2:self._n_red * m:m, :self._w_red * self.bin_cols]
-            if self.bin_cols > 1:
+            if self.bin_cols == 2 and r.dtype == np.uint16:
+                # pairs of columns: a linear resize at exactly half the width samples between
+                # them (weights 1/2, 1/2), the same integers as INTER_AREA's and ~5x faster
+                r = cv2.resize(r, (self._w_red, self._n_red), interpolation=cv2.INTER_LINEAR)
+            elif self.bin_cols > 1:
                 r = cv2.resize(r, (self._w_red, self._n_red), interpolation=cv2.INTER_AREA)
         elif self.merge_rows > 1 or self.bin_cols > 1:
             r = cv2.resize(r[:self._n_red * self.merge_rows, :self._w_red * self.bin_cols],
