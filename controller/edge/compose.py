@@ -21,13 +21,13 @@ from pathlib import Path
 from typing import Any
 
 from config.machine import MachineConfig
-from controller.edge.feed import Mailbox, Translator, follow
+from controller.edge.feed import Mailbox, Translator, follow, head_config_json
 from controller.edge.limits import ServerLimits, raise_nofile
 from controller.edge.process import ServersSpec, run_servers
 from controller.opcua.compose import opcua_options
 from controller.web.compose import listen_for
 
-__all__ = ["Servers", "serving"]
+__all__ = ["Servers", "moulder_heads", "serving"]
 
 _log = logging.getLogger(__name__)
 
@@ -167,6 +167,17 @@ async def _stop_process(process: Any, inbox: Any, threads: list[threading.Thread
         await asyncio.to_thread(t.join, 5.0)
 
 
+def moulder_heads(cfg: MachineConfig) -> list[dict[str, Any]] | None:
+    """A moulder's heads (``[[heads]]``, two or more) as plain dicts; ``None`` for one head.
+
+    One head: the servers show a single machine, as without ``[[heads]]``.
+    """
+    heads = tuple(getattr(cfg, "heads", ()) or ())
+    if len(heads) < 2:
+        return None
+    return [head_config_json(h) for h in heads]
+
+
 @asynccontextmanager
 async def serving(
     cfg: MachineConfig,
@@ -222,7 +233,10 @@ async def serving(
 
     raise_nofile()  # the service's own budget: spool, buses, log, workers
     qc = quality_class_of(cfg)
-    spec = ServersSpec(opcua=options, http=listen,
+    heads = moulder_heads(cfg)
+    if options is not None and heads is not None:
+        options = {**options, "heads": heads}
+    spec = ServersSpec(opcua=options, http=listen, heads=heads,
                        quality_log=None if listen is None else str(cfg.log.path if log is None
                                                                     else log),
                        quality_class=qc, limits=limits or ServerLimits(), nice=nice)
@@ -254,7 +268,8 @@ async def serving(
             t.start()
         if say is not None:
             if servers.endpoint is not None:
-                say(f"opcua: {servers.endpoint} (WwMachineType under Objects/Machines)")
+                where = "" if heads is None else "; its heads under State/SubUnits"
+                say(f"opcua: {servers.endpoint} (WwMachineType under Objects/Machines{where})")
             if servers.url is not None:
                 say(f"http: {servers.url} (operator page; quality page {servers.url}quality)")
         task = asyncio.create_task(follow(get_service, box, period_s=period_s),

@@ -28,7 +28,7 @@ from controller.quality.schema import QualityClass
 from controller.web.live import event_json, result_json, status_json
 
 __all__ = ["HEAD_KEYS", "Headed", "Mailbox", "Translator", "follow", "follow_once",
-           "head_configs_json", "heads_of"]
+           "head_config_json", "head_configs_json", "heads_of"]
 
 _log = logging.getLogger(__name__)
 
@@ -98,6 +98,14 @@ def _plain(v: Any) -> Any:
     return value if isinstance(value, str) else str(v)
 
 
+def head_config_json(hc: Any, name: str | None = None) -> dict[str, Any]:
+    """One head's configuration as a plain dict (:data:`HEAD_KEYS`; missing ones ``None``)."""
+    d: dict[str, Any] = {"name": str(name if name is not None else hc.name)}
+    for key in HEAD_KEYS[1:]:
+        d[key] = _plain(getattr(hc, key, None))
+    return d
+
+
 def head_configs_json(followed: Any) -> list[dict[str, Any]]:
     """The heads of a composition as plain dicts (:data:`HEAD_KEYS`), in its order.
 
@@ -105,14 +113,7 @@ def head_configs_json(followed: Any) -> list[dict[str, Any]]:
     """
     heads = heads_of(followed) or {}
     configs = {getattr(hc, "name", None): hc for hc in getattr(followed, "head_configs", ())}
-    out = []
-    for name in heads:
-        hc = configs.get(name)
-        d: dict[str, Any] = {"name": str(name)}
-        for key in HEAD_KEYS[1:]:
-            d[key] = _plain(getattr(hc, key, None))
-        out.append(d)
-    return out
+    return [head_config_json(configs.get(name), name) for name in heads]
 
 
 HEAD_KEYS = ("name", "face", "knives", "rpm", "rpm_min", "rpm_max", "target_pitch_mm",

@@ -50,6 +50,9 @@ class ServersSpec:
         Added to the process's nice value (the service's loop comes first).
     stats_every_s : float
         Period of the ``("stats", ...)`` reports, s.
+    heads : list of dict or None
+        A moulder's heads (:func:`controller.edge.feed.head_config_json`), shown from the
+        start; ``None``: one head (or heads told later by the messages).
     """
 
     opcua: dict[str, Any] | None
@@ -59,6 +62,7 @@ class ServersSpec:
     limits: ServerLimits = ServerLimits()
     nice: int = 10
     stats_every_s: float = 0.5
+    heads: list[dict[str, Any]] | None = None
 
 
 def _die_with_parent() -> None:
@@ -140,6 +144,8 @@ class _Servers:
         spec, lim = self.spec, self.limits
         host, _ = parse_listen(spec.http)
         self.live = LiveView(spec.quality_class)
+        if spec.heads:
+            self.live.set_heads(spec.heads)
         self.quality = QualityBrowser(spec.quality_log) if spec.quality_log else None
         stopping = threading.Event()
         app = make_app(self.live, self.quality, stopping=stopping, max_streams=lim.http_max_sse,

@@ -4,7 +4,10 @@ a single service's items and messages as before."""
 
 from __future__ import annotations
 
+import asyncio
 import math
+from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
@@ -142,3 +145,53 @@ def test_the_page_keeps_a_part_per_head_and_a_single_machine_looks_as_before(mou
     assert set(one) == {"version", "status", "last", "trace", "events", "quality_class", "board"}
     assert one["status"]["state"] == "safe" and one["last"]["seq"] == moulder.heads[
         "top"].results[-1].seq
+
+
+def test_a_moulders_configuration_names_its_heads_for_the_servers_from_the_start():
+    from config.machine import load_machine
+    from controller.edge.compose import moulder_heads
+
+    root = Path(__file__).resolve().parents[3]
+    heads = moulder_heads(load_machine(root / "config" / "machine_moulder.toml"))
+    assert [(h["name"], h["face"], h["target_pitch_mm"]) for h in heads] == [
+        ("bottom", "bottom", 1.5), ("right", "right", 2.0), ("left", "left", 2.0),
+        ("top", "top", 1.0)]
+    assert (heads[3]["rpm_min"], heads[3]["rpm_max"]) == (4000.0, 8000.0)
+    assert heads[0]["rpm_min"] == heads[0]["rpm_max"] == 6000.0
+    assert moulder_heads(load_machine()) is None  # one head: a single machine, as before
+
+
+def test_serving_a_moulders_configuration_shows_its_heads_before_any_service(tmp_path):
+    pytest.importorskip("asyncua")
+    pytest.importorskip("starlette")
+    httpx = pytest.importorskip("httpx")
+    from asyncua import Client
+
+    from config.machine import load_machine
+    from controller.edge.compose import serving
+    from controller.opcua.nodes import OWN_URI, WW_URI
+
+    root = Path(__file__).resolve().parents[3]
+    cfg = load_machine(root / "config" / "machine_moulder.toml")
+    cfg = cfg.with_changes(log=replace(cfg.log, path=tmp_path / "q.sqlite"))
+    said: list[str] = []
+
+    async def main():
+        async with serving(cfg, lambda: None, opcua="opc.tcp://127.0.0.1:0",
+                           http="127.0.0.1:0", say=said.append) as srv:
+            live = await asyncio.to_thread(httpx.get, srv.url + "api/live", timeout=30.0)
+            async with Client(srv.endpoint) as c:
+                ns_ww = await c.get_namespace_index(WW_URI)
+                ns_ma = await c.get_namespace_index("http://opcfoundation.org/UA/Machinery/")
+                ns_own = await c.get_namespace_index(OWN_URI)
+                sub = await c.nodes.objects.get_child([
+                    f"{ns_ma}:Machines", f"{ns_own}:SmartPlaner", f"{ns_ww}:State",
+                    f"{ns_ww}:SubUnits"])
+                names = [(await n.read_browse_name()).Name for n in await sub.get_children()]
+            return live.json(), names
+
+    live, names = asyncio.run(main())
+    assert names == ["bottom", "right", "left", "top"]
+    assert [h["name"] for h in live["heads"]] == names
+    assert all(h["status"] is None and h["last"] is None for h in live["heads"])
+    assert any("heads under State/SubUnits" in line for line in said)

@@ -218,6 +218,7 @@ def test_operator_and_quality_pages_live_during_planer_hil_http(chrome, tmp_path
         wait.until(lambda d: d.execute_script(
             "return document.querySelectorAll('#pitch-chart circle').length;") >= 5)
         assert _number(_text(chrome, "feed-set")) > 0
+        assert chrome.execute_script("return document.getElementById('heads').hidden;")
         assert _number(_text(chrome, "feed-act")) > 0
         assert _number(_text(chrome, "confidence")) is not None
         assert _number(_text(chrome, "roll")) is not None
