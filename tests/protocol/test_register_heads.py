@@ -23,11 +23,16 @@ HEAD_FIELDS = (
     "cutterhead_radius_mm", "cutter_to_camera_mm", "trigger_a_counts", "trigger_b_counts",
     "trigger_seq", "index_latch_counts", "head_faults",
 )
+"""The design's head fields (a block may hold more: what a head's camera sees of the board)."""
 COMMON = (
     "heartbeat_service", "heartbeat_plc", "feed_setpoint_mm_s", "feed_min_mm_s", "feed_max_mm_s",
-    "feed_accel_max_mm_s2", "feed_actual_mm_s", "encoder_counts", "machine_state", "faults",
-    "counts_per_mm", "board_id", "board_position_mm", "watchdog_ms",
+    "feed_accel_max_mm_s2", "feed_actual_mm_s", "encoder_counts", "faults", "counts_per_mm",
+    "watchdog_ms",
 )
+"""Machine-wide registers: never in a head block."""
+assert RMAP.heads is not None
+BLOCK = set(RMAP.heads.names)
+USED = RMAP.heads.used
 
 # (head, name, address): the shipped block, base 1000, stride 32
 TABLE = [
@@ -48,10 +53,12 @@ def test_the_shipped_map_has_eight_blocks_and_the_single_map_unchanged():
     assert RMAP["spindle_rpm"].address == 12 and RMAP["knives"].address == 25
     assert "spindle_setpoint_rpm" not in RMAP and "head_faults" not in RMAP
     assert RMAP.read_ranges() == ((0, 38),)
-    assert RMAP.heads is not None and RMAP.heads.names == (
+    assert RMAP.heads is not None and RMAP.heads.names[:12] == (
         "spindle_rpm", "spindle_setpoint_rpm", "spindle_rpm_min", "spindle_rpm_max", "knives",
         "head_faults", "cutterhead_radius_mm", "cutter_to_camera_mm", "trigger_a_counts",
         "trigger_b_counts", "trigger_seq", "index_latch_counts")
+    assert set(HEAD_FIELDS) <= BLOCK and not set(COMMON) & BLOCK
+    assert 21 <= USED <= 32
 
 
 @pytest.mark.parametrize(("head", "name", "address"), TABLE)
@@ -65,15 +72,15 @@ def test_head_view_addresses(head, name, address):
 @pytest.mark.parametrize("head", range(8))
 def test_head_view_names_common_unchanged_and_ranges(head):
     view = RMAP.for_head(head)
-    assert set(view.registers) == set(HEAD_FIELDS) | set(COMMON)
-    for name in COMMON:
+    assert set(view.registers) == BLOCK | set(RMAP.registers)
+    for name in set(RMAP.registers) - BLOCK:
         assert view[name] == RMAP[name]
-    for name in set(HEAD_FIELDS) & set(RMAP.registers):  # same facts, other address
+    for name in BLOCK & set(RMAP.registers):  # same facts, other address
         assert view[name].type == RMAP[name].type and view[name].unit == RMAP[name].unit
         assert view.at(RMAP[name].address) is None  # the legacy word is a gap of the view
     base = 1000 + 32 * head
-    assert view.read_ranges() == ((0, 38), (base, 21))
-    assert view.head_span() == (base, 21) and RMAP.head_span(head) == (base, 21)
+    assert view.read_ranges() == ((0, 38), (base, USED))
+    assert view.head_span() == (base, USED) and RMAP.head_span(head) == (base, USED)
     assert RMAP.for_head(head) is view and view.for_head(head) is view
     assert view.for_head((head + 1) % 8) is RMAP.for_head((head + 1) % 8)
 
@@ -86,7 +93,7 @@ def test_a_view_encodes_decodes_and_checks_writes_like_the_map():
     first = view.span()[0]
     assert words[1096 - first : 1098 - first] == view.encode("spindle_rpm", 6123.5)
     assert words[1104 - first] == 6 and words[1105 - first] == 2
-    decoded = view.decode_block(words[1096 - first : 1096 - first + 21], 1096)
+    decoded = view.decode_block(words[1096 - first : 1096 - first + USED], 1096)
     assert decoded["spindle_rpm"] == 6123.5 and decoded["index_latch_counts"] == 0xDEADBEEF
     assert "heartbeat_service" not in decoded
     limits = {"spindle_rpm_min": 4000.0, "spindle_rpm_max": 8000.0}
@@ -99,8 +106,8 @@ def test_a_view_encodes_decodes_and_checks_writes_like_the_map():
     assert accepted == {"spindle_setpoint_rpm": 4500.0}
     with pytest.raises(RegisterAccessError, match="knives"):
         view.parse_write(1104, [4], limits)
-    with pytest.raises(RegisterAccessError, match="address 1117"):  # a reserved word
-        view.parse_write(1117, [0], limits)
+    with pytest.raises(RegisterAccessError, match=f"address {1096 + USED}"):  # a reserved word
+        view.parse_write(1096 + USED, [0], limits)
 
 
 def test_fixed_speed_head_accepts_only_its_rpm():

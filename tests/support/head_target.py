@@ -46,6 +46,13 @@ class HeadTarget:
             "head_faults": int(HeadFault.CAMERA_SILENT) if i == 2 else 0,
         }
 
+    def _fill(self, i: int, values: dict[str, float | int]) -> dict[str, float | int]:
+        """Block registers beyond the design's (what the head's camera sees): the common value."""
+        assert RMAP.heads is not None
+        for name in RMAP.heads.names:
+            values.setdefault(name, self.common.get(name, 0))
+        return values
+
     def register_values(self) -> dict[str, float | int]:
         out = dict(self.common)
         out.update({k: v for k, v in self.heads[0].items() if k in out})
@@ -56,7 +63,7 @@ class HeadTarget:
     def head_register_values(self, i: int) -> dict[str, float | int]:
         if not 0 <= i < self.head_count:
             raise ValueError(f"head {i} outside 0..{self.head_count - 1}")
-        return dict(self.heads[i])
+        return self._fill(i, dict(self.heads[i]))
 
     def set_spindle_setpoint(self, i: int, rpm: float) -> None:
         h = self.heads[i]
