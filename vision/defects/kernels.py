@@ -4,6 +4,8 @@ The map of a pair is ~330 x 100 samples; as numpy chains, its steps were dozens 
 it each (masks, sums, a sort per column), which cost more than their arithmetic.  The loops
 here do each step in one call, with the arithmetic of the numpy code they replace:
 
+* :func:`column_means_u16` -- the map's coarse source: whole blocks of columns of
+  ``uint16`` row bins averaged (:class:`vision.defects.surface_map.SurfaceMapper`);
 * :func:`register_ratio` -- B registered onto A along the rows (linear), the samples both
   shots see, the pair's constant imbalance removed, the slope by seed Eq. 4 and the albedo
   (:class:`vision.defects.surface_map.SurfaceMapper`);
@@ -92,6 +94,37 @@ def register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka
                 slope[i, j] = 0.0
                 albedo[i, j] = 0.0
     return n
+
+
+@njit(**_JIT)
+def column_means_u16(src: np.ndarray, row0: int, row_step: int, k: int,
+                     out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Means of ``k`` adjacent columns of every ``row_step``-th row from ``row0``, rounded.
+
+    ``out[i, x]`` is the mean of ``src[row0 + i * row_step, x * k:(x + 1) * k]`` rounded to
+    the nearest integer (half to even) -- the integers OpenCV's ``INTER_AREA`` resize by a
+    whole factor ``k`` along the rows gives a ``uint16`` image (the integer sum times the
+    ``float32`` ``1 / k``, rounded), as ``float32``.
+
+    Parameters
+    ----------
+    src : ndarray of uint16, shape (rows, cols)
+    row0, row_step : int
+        The rows read.
+    k : int
+        Columns per mean.
+    out : ndarray of float32, shape (n_out, w_out)
+        Out; ``w_out * k <= cols``.
+    """
+    scale = np.float32(1.0) / np.float32(k)
+    n_out, w_out = out.shape
+    for i in range(n_out):
+        r = row0 + i * row_step
+        for x in range(w_out):
+            s = np.int64(0)
+            for q in range(k):
+                s += np.int64(src[r, x * k + q])
+            out[i, x] = np.rint(np.float32(s) * scale)
 
 
 @njit(**_JIT)
@@ -402,6 +435,7 @@ def warm_up() -> None:
     valid = np.ones((8, 12), dtype=np.bool_)
     out = np.empty_like(a)
     register_ratio(a, a, valid, 1.5, 7.1, -7.1, out, np.empty_like(a), np.empty_like(valid))
+    column_means_u16(np.ones((8, 12), dtype=np.uint16), 1, 3, 6, np.empty((2, 2), np.float32))
     cells = np.empty((8, 4), dtype=np.float32)
     residual_map(a, valid, 0.07, 2, 2, 3, np.empty(12), out, cells,
                  np.empty((8, 4), dtype=np.bool_))

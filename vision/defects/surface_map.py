@@ -278,7 +278,7 @@ class SurfaceMapper:
 
     def _coarse(self, rows: np.ndarray) -> np.ndarray:
         """The source rows averaged over ``merge_rows x bin_cols`` blocks, float32."""
-        r = np.asarray(rows)
+        src = r = np.asarray(rows)
         if r.dtype not in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
             r = r.astype(np.float32)
         if self.middle_row or (self.merge_rows == 1 and self.bin_cols > 1):
@@ -288,6 +288,11 @@ class SurfaceMapper:
                 # pairs of columns: a linear resize at exactly half the width samples between
                 # them (weights 1/2, 1/2), the same integers as INTER_AREA's and ~5x faster
                 r = cv2.resize(r, (self._w_red, self._n_red), interpolation=cv2.INTER_LINEAR)
+            elif self.bin_cols > 2 and src.dtype == np.uint16 and src.flags.c_contiguous:
+                # wider blocks: one compiled pass, INTER_AREA's integers (~30 % faster)
+                out = np.empty((self._n_red, self._w_red), dtype=np.float32)
+                kernels.column_means_u16(src, (m - 1) // 2, m, self.bin_cols, out)
+                return out
             elif self.bin_cols > 1:
                 r = cv2.resize(r, (self._w_red, self._n_red), interpolation=cv2.INTER_AREA)
         elif self.merge_rows > 1 or self.bin_cols > 1:

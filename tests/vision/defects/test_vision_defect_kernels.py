@@ -141,3 +141,19 @@ def test_fold_rows_as_numpy():
         ref = np.nanmedian(cells, axis=0)
         np.testing.assert_allclose(folded[i], ref, atol=1e-6)
         assert energy[i] == pytest.approx(np.mean(ref ** 2), rel=1e-6)
+
+
+@pytest.mark.parametrize("k", [2, 3, 6, 7])
+def test_column_means_are_opencvs_area_resize(k):
+    """The map's coarse source: INTER_AREA's integers, whether OpenCV or the kernel makes them."""
+    rng = np.random.default_rng(k)
+    for top in (65535, 1300, 40):
+        src = (rng.random((31, 100 * k + k - 1)) * top).astype(np.uint16)
+        rows = src[1:31:3, :100 * k]  # the middle row of blocks of three, whole blocks
+        ref = cv2.resize(rows, (100, 10), interpolation=cv2.INTER_AREA).astype(np.float32)
+        out = np.empty((10, 100), np.float32)
+        kernels.column_means_u16(src, 1, 3, k, out)
+        assert np.array_equal(out, ref)
+        if k == 2:  # a linear resize to exactly half the width: the same integers
+            lin = cv2.resize(rows, (100, 10), interpolation=cv2.INTER_LINEAR)
+            assert np.array_equal(lin.astype(np.float32), ref)
