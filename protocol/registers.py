@@ -425,20 +425,7 @@ class RegisterMap:
         view = self._views.get(int(i))
         if view is not None:
             return view
-        names = set(self.heads.names)
-        common = [r for r in self._single if r.name not in names]
-        view = RegisterMap(
-            [*common, *self.heads.placed(int(i))],
-            unit_id=self.unit_id,
-            word_order=self.word_order,
-            function_codes=sorted(self.function_codes),
-            heads=self.heads,
-            head=int(i),
-        )
-        view._single = self._single
-        view._common_span = self._common_span
-        view._whole = self
-        return view
+        return _head_view(self, self.heads, int(i))
 
     def common_span(self) -> tuple[int, int]:
         """First address and words of the single map (the whole map's :meth:`span`).
@@ -589,25 +576,7 @@ class RegisterMap:
         The single map's registers, then (a map with ``[heads]``) the head block: one row per
         block register with its offset and its address in block 0.
         """
-        rows = [
-            "| address | name | type | words | access | min | max | unit | description |",
-            "|---:|---|---|---:|---|---|---|---|---|",
-        ]
-        rows += [f"| {r.address} | {_row(r)}" for r in self]
-        if self.heads is not None:
-            h = self.heads
-            rows += [
-                "",
-                f"Head block: head i at {h.base} + {h.stride} i, {h.count} blocks "
-                f"({h.base}..{h.base + h.stride * h.count - 1}); {h.used} words used per block.",
-                "",
-                "| offset | head 0 | name | type | words | access | min | max | unit "
-                "| description |",
-                "|---:|---:|---|---|---:|---|---|---|---|---|",
-            ]
-            for r in sorted(h.registers, key=lambda r: r.address):
-                rows.append(f"| {r.address} | {h.base + r.address} | {_row(r)}")
-        return "\n".join(rows) + "\n"
+        return _markdown(list(self), self.heads)
 
     # ------------------------------------------------------------------ codec
     def encode(self, name: str, value: float | int) -> list[int]:
@@ -1016,6 +985,45 @@ def _validate_heads(whole: RegisterMap, heads: HeadBlock) -> None:
                 f"heads: blocks {heads.base}..{end - 1} overlap register {reg.name} "
                 f"(address {reg.address})"
             )
+
+
+def _head_view(whole: RegisterMap, heads: HeadBlock, i: int) -> RegisterMap:
+    """Build head ``i``'s view of ``whole`` (:meth:`RegisterMap.for_head`)."""
+    names = set(heads.names)
+    view = RegisterMap(
+        [*(r for r in whole._single if r.name not in names), *heads.placed(i)],
+        unit_id=whole.unit_id,
+        word_order=whole.word_order,
+        function_codes=sorted(whole.function_codes),
+        heads=heads,
+        head=i,
+    )
+    view._single = whole._single
+    view._common_span = whole._common_span
+    view._whole = whole
+    return view
+
+
+def _markdown(registers: Sequence[Register], heads: HeadBlock | None) -> str:
+    """The Markdown tables of :meth:`RegisterMap.markdown_table`."""
+    rows = [
+        "| address | name | type | words | access | min | max | unit | description |",
+        "|---:|---|---|---:|---|---|---|---|---|",
+    ]
+    rows += [f"| {r.address} | {_row(r)}" for r in registers]
+    if heads is not None:
+        h = heads
+        rows += [
+            "",
+            f"Head block: head i at {h.base} + {h.stride} i, {h.count} blocks "
+            f"({h.base}..{h.base + h.stride * h.count - 1}); {h.used} words used per block.",
+            "",
+            "| offset | head 0 | name | type | words | access | min | max | unit | description |",
+            "|---:|---:|---|---|---:|---|---|---|---|---|",
+        ]
+        for r in sorted(h.registers, key=lambda r: r.address):
+            rows.append(f"| {r.address} | {h.base + r.address} | {_row(r)}")
+    return "\n".join(rows) + "\n"
 
 
 def _row(r: Register) -> str:
