@@ -6,6 +6,8 @@ import asyncio
 import struct
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from plant_sim.interfaces.plc_server import PlcServer
 from plant_sim.interfaces.register_bus import MachineRegisterBus
@@ -208,3 +210,53 @@ def test_plc_process_serves_head_blocks_and_sends_head_writes_back():
             proc.close()
 
     run(main())
+
+
+# ------------------------------------------------------------------ any read, any write (property)
+_END = RMAP.heads.base + RMAP.heads.stride * RMAP.heads.count + 4
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    start=st.one_of(st.integers(0, 60), st.integers(990, _END), st.integers(0, 0xFFFF)),
+    qty=st.integers(1, 125),
+    heads=st.integers(1, 4),
+)
+def test_any_read_is_served_from_exactly_one_range_or_refused_with_02(start, qty, heads):
+    target = HeadTarget(heads)
+    server = PlcServer(target, port=0)
+    reply = server.respond(1, struct.pack(">BHH", 3, start, qty))
+    first, count = RMAP.common_span()
+    in_common = first <= start and start + qty <= first + count
+    block = RMAP.heads.head_at(start)
+    in_block = (block is not None and block < heads
+                and start + qty <= RMAP.heads.base + (block + 1) * RMAP.heads.stride)
+    if not (in_common or in_block):
+        assert reply == bytes([0x83, 2])
+        return
+    words = list(struct.unpack(f">{qty}H", reply[2:]))
+    assert reply[:2] == bytes([3, 2 * qty])
+    if in_common:
+        expect = RMAP.encode_block(target.register_values())[start - first : start - first + qty]
+    else:
+        view = RMAP.for_head(block)  # its span starts at 0: list index == address
+        full = view.encode_block(target.head_register_values(block))
+        expect = full[start : start + qty]
+        expect += [0] * (qty - len(expect))  # the block's reserved words
+    assert words == expect
+
+
+@settings(max_examples=100, deadline=None)
+@given(head=st.integers(0, 3), rpm=st.floats(3000.0, 10000.0, width=32))
+def test_a_head_setpoint_write_is_applied_iff_within_that_heads_limits(head, rpm):
+    target = HeadTarget()
+    server = PlcServer(target, port=0)
+    view = RMAP.for_head(head)
+    reg = view["spindle_setpoint_rpm"]
+    w = view.encode(reg.name, rpm)
+    reply = server.respond(1, struct.pack(">BHHB2H", 16, reg.address, 2, 4, *w))
+    h = target.heads[head]
+    if h["spindle_rpm_min"] <= rpm <= h["spindle_rpm_max"]:
+        assert reply[0] == 16 and target.setpoints == [(head, rpm)]
+    else:
+        assert reply == bytes([0x90, 3]) and target.setpoints == []
