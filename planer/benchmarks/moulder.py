@@ -62,6 +62,8 @@ PAIRS_PER_HEAD = 600
 """Pairs each head gets in a full run (6 s at 100 pairs/s); ``quick``: :data:`QUICK_PAIRS`."""
 QUICK_PAIRS = 150
 """Pairs per head of a quick run."""
+SLOWEST = 5
+"""The slowest pairs reported per head (``slowest``: ``[pair's place in the run, ms]``)."""
 
 
 def _stats(values: list[float]) -> dict[str, float]:
@@ -404,6 +406,8 @@ def _figures(bench: list[_Head], frames: list, *, rate_hz: float, workers: int,
             "unfinished": unfinished.get(head.name, 0),
             "p50_ms": s.get("p50"), "p99_ms": s.get("p99"),
             "max_ms": _stats(lat).get("max"),
+            "slowest": [[k, round(v, 2)] for k, v in sorted(
+                enumerate(lat), key=lambda kv: -kv[1])[:SLOWEST]],
             "breakdown_ms": fig["breakdown_ms"],
             "record_after_setpoint_ms": fig["record_after_setpoint_ms"],
             "state": head.service.state.value,
