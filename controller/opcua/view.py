@@ -98,6 +98,7 @@ MANUFACTURER_NAMES: Mapping[str, str] = {
     "BoardTravelM": "Double", "KnifeWearUmPerM": "Double[]", "KnifeReserveUm": "Double[]",
     "JointingState": "String", "JointingForecast": "String", "JointingDueM": "Double",
     "JointingDueBoards": "Double", "JointingDueH": "Double", "JointingKnife": "Int64",
+    "JointingTrend": "String",
     "KnifeChips": "Int64", "LastChippedKnife": "Int64", "LastChipRunoutStepUm": "Double",
     "LastChipCause": "String",
     "BoardGrade": "Int64", "LastBoardId": "Int64", "LastBoardGrade": "Int64",
@@ -144,9 +145,11 @@ def knife_condition_values(s: ServiceStatus | None) -> dict[str, Any]:
     ``BoardTravelM``, ``KnifeWearUmPerM`` and ``KnifeReserveUm`` (per knife), the jointing
     forecast (``JointingState``: ``fitting``, ``not_due``, ``due`` or "" before the first
     table; ``JointingForecast`` its line; ``JointingDueM``, ``JointingDueBoards``,
-    ``JointingDueH``, ``JointingKnife`` when due), and the chipped knives (``KnifeChips``
-    counted, the last one's ``LastChipCause``: ``runout_step`` or ``nick``, ``LastChippedKnife``
-    (-1 for a nick: not told apart) and ``LastChipRunoutStepUm``).
+    ``JointingDueH``, ``JointingKnife`` when due; ``JointingTrend``: ``unknown`` while fitting,
+    ``none``: no significant wear trend, not due, no figures, or ``significant``), and the
+    chipped knives (``KnifeChips`` counted, the last one's ``LastChipCause``: ``runout_step``
+    or ``nick``, ``LastChippedKnife`` (-1 for a nick: not told apart) and
+    ``LastChipRunoutStepUm``).
     """
     kc = (s.knife_condition if s is not None else None) or {}
     knives = kc.get("knives") or ()
@@ -163,6 +166,7 @@ def knife_condition_values(s: ServiceStatus | None) -> dict[str, Any]:
         "JointingDueBoards": _num(kc.get("due_in_boards")),
         "JointingDueH": _num(kc.get("due_in_h")),
         "JointingKnife": int(knife) if isinstance(knife, int) else -1,
+        "JointingTrend": str(kc.get("trend") or ""),
         "KnifeChips": int(s.counters.get("knife_chips", 0)) if s is not None else 0,
         "LastChippedKnife": int(last_chip) if isinstance(last_chip, int) else -1,
         "LastChipRunoutStepUm": _num(chip.get("runout_step_um")),

@@ -39,7 +39,7 @@ def forecast_text(rec: QualityRecord) -> str:
     if rec.jointing_state == "fitting":
         return "fitting the knives' wear (not enough board yet)"
     if rec.jointing_state == "not_due":
-        return "no jointing due within the forecast's horizon at this wear"
+        return "no jointing due: no wear trend, or none within the forecast's horizon"
     knife = "" if rec.jointing_knife is None else f" (knife {rec.jointing_knife})"
     if rec.jointing_due_m == 0.0:
         return f"jointing due now{knife}: its offset is at the end of the stroke"

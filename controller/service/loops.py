@@ -621,7 +621,10 @@ class KnifeConditionWatch:
     def _forecast(self, t: float) -> dict[str, Any] | None:
         """The knives' condition now.
 
-        Says ``JOINTING_DUE`` once when it comes within :data:`JOINTING_WARN_BOARDS` boards.
+        ``state`` (:class:`~controller.laws.knife_condition.JointingState`'s value) and
+        ``trend`` (:class:`~controller.laws.knife_condition.Trend`'s: ``none`` is not due for
+        want of a significant wear trend, and gives no figures). Says ``JOINTING_DUE`` once
+        when it comes within :data:`JOINTING_WARN_BOARDS` boards.
         """
         kc, snap = self.tracker, self._snap
         if kc is None or snap is None:
@@ -646,5 +649,5 @@ class KnifeConditionWatch:
                        for c in kc.conditions()],
             "due_in_m": fc.due_in_m, "due_in_boards": fc.due_in_boards,
             "due_in_h": fc.due_in_h, "knife": fc.knife, "text": fc.text,
-            "state": fc.state.value, "t_s": t,
+            "state": fc.state.value, "trend": fc.trend.value, "t_s": t,
         }

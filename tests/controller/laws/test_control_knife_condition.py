@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.laws.knife_condition import JointingState, KnifeConditionTracker
+from controller.laws.knife_condition import JointingState, KnifeConditionTracker, Trend
 from controller.laws.limits import project_zero_mean_box
 from controller.laws.uniformity_loop import linear_widths_mm, width_cv
 
@@ -45,7 +45,7 @@ def test_a_linear_wear_is_fitted_exactly_and_the_forecast_is_where_the_cv_crosse
     assert f.due_in_m is not None and 20.0 + f.due_in_m >= 20.0 / 0.6 - 1e-6
     d = 20.0 + f.due_in_m
     assert _cv(rates * d) > CV_MAX >= _cv(rates * (d - 0.1))  # to the forecast's 0.1 m
-    assert f.knife == 0 and f.state is JointingState.DUE
+    assert f.knife == 0 and f.state is JointingState.DUE and f.trend is Trend.SIGNIFICANT
     assert f.due_in_boards == pytest.approx(f.due_in_m / 2.0)
     assert f.due_in_h == pytest.approx(f.due_in_m * 1000 / 600 / 3600)
     assert f.text.startswith("jointing due in ") and "(knife 0)" in f.text  # 0-based, as the page
@@ -56,8 +56,8 @@ def test_no_wear_no_forecast_and_the_reserve_is_the_whole_stroke():
     _feed(t, [0.0, 0.0, 0.0, 0.0], until_m=12.0, start=[2.0, -1.0, -1.0, 0.0])
     f = t.forecast(pitch_mm=PITCH, radius_mm=RADIUS, cv_max=CV_MAX, feed_mm_s=600.0,
                    board_length_mm=2000.0)
-    assert f.due_in_m is None and "no jointing due" in f.text
-    assert f.state is JointingState.NOT_DUE
+    assert f.due_in_m is None and "no wear trend" in f.text and "not due" in f.text
+    assert f.state is JointingState.NOT_DUE and f.trend is Trend.NONE
     conds = t.conditions()
     assert [c.offset_um for c in conds] == pytest.approx([2.0, -1.0, -1.0, 0.0])
     assert conds[0].reserve_um == pytest.approx(18.0)

@@ -109,3 +109,52 @@ def test_without_a_new_table_nothing_is_renewed_and_the_operator_is_told_once():
     assert not watch.due
     assert not watch.renew(t + 100.0, idle=True)  # no table came: the last forecast stands
     assert len([e for e in report.events if e.kind is EventKind.JOINTING_DUE]) == 1
+
+
+def test_without_wear_the_forecast_says_no_trend_not_due_wherever_it_shows():
+    """No wear: the loop's tables wander (0.05 um, correlated 0.8 from pair to pair) about a
+    fixed table. Every forecast after the fit's span is not due for want of a trend, with no
+    figures and no JOINTING_DUE; the OPC UA values, the quality record's fields and the
+    report's words say so."""
+    from controller.opcua.view import knife_condition_values
+    from controller.quality.knife_report import forecast_text
+    from controller.quality.log import QualityRecord, utc_iso
+    from controller.quality.schema import knife_condition_fields
+    from controller.service.status import ServiceStatus
+
+    watch, report = _watch()
+    rng = np.random.default_rng(7)
+    base, wander = np.array([1.5, -2.0, 0.3, 0.2]), np.zeros(4)
+    snap, t, shown = _snap(), 0.0, []
+    while t < 60.0:  # 36 m of board
+        t += 0.1
+        watch.travel(t, snap)
+        wander = 0.8 * wander + rng.normal(0.0, 0.05 * 0.6, 4)
+        table = base + wander
+        watch.note(t, table - table.mean(), limit_um=STROKE)
+        if watch.renew(t):
+            shown.append(watch.describe())
+    fitted = [kc for kc in shown if kc["state"] != "fitting"]
+    assert len(fitted) >= 25 and all(kc["trend"] == "unknown" for kc in shown
+                                     if kc["state"] == "fitting")
+    for kc in fitted:
+        assert (kc["state"], kc["trend"]) == ("not_due", "none"), kc
+        assert kc["due_in_m"] is None and kc["due_in_boards"] is None and kc["knife"] is None
+        assert kc["text"].startswith("knife condition: no wear trend") and "not due" in kc["text"]
+    assert not [e for e in report.events if e.kind is EventKind.JOINTING_DUE]
+
+    kc = fitted[-1]
+    status = ServiceStatus(
+        t_s=t, state="run", safe_reason=None, missing=(), feed_setpoint_mm_s=FEED,
+        feed_actual_mm_s=FEED, offsets_um=(0.0,) * 4, amplifier_enabled=True,
+        last_measurement=None, counters=ServiceStatus.freeze({}), alerts={},
+        knife_condition=kc)
+    ua = knife_condition_values(status)
+    assert (ua["JointingState"], ua["JointingTrend"]) == ("not_due", "none")
+    assert ua["JointingForecast"] == kc["text"] and ua["JointingKnife"] == -1
+    assert np.isnan(ua["JointingDueM"]) and np.isnan(ua["JointingDueBoards"])
+    fields = knife_condition_fields(kc)
+    assert fields["jointing_state"] == "not_due" and fields.get("jointing_due_m") is None
+    rec = QualityRecord(t_s=t, wall_time=utc_iso(1.7e9), seq=0, board_id=0,
+                        board_position_mm=0.0, ok=True, **fields)
+    assert forecast_text(rec).startswith("no jointing due: no wear trend")
