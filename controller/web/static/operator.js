@@ -295,7 +295,7 @@ function headRow(h, machine) {
     [`${h.name}${limiting}`, "name"], [h.face || "-", "face"], [state, "state"],
     [last ? num(last.pitch_mm, 3) : "-", "pitch"], [num(h.target_pitch_mm, 2), "target"],
     [last ? num(last.uniformity_cv, 3) : "-", "cv"], [`${num(rpm, 0)}${sp}`, "rpm"],
-    [knives ?? "-", "knives"], [offsets, "offsets"], [grade, "grade"]] };
+    [knives ?? "-", "knives"], [offsets, "offsets"], [grade, "board-grade"]] };
 }
 
 function drawHeads(heads, machine) {
