@@ -184,6 +184,12 @@ _SPECS: dict[str, _Spec] = {
                     lo=1.0, integer=True)),
         doc="the wood changes between two boards (its texture, albedo, translucency)",
     ),
+    "camera_silent": _Spec(
+        (FaultParam("duration_s", "s", _DURATION, lo=0.0, lo_open=True, required=True),),
+        trips="measurement",
+        doc="the camera sends no pair at all (a moulder: one head's camera; the service's "
+            "measurement timeout while a board passes)",
+    ),
     "measurement_dropout": _Spec(
         (FaultParam("duration_s", "s", _DURATION, lo=0.0, lo_open=True, required=True),
          FaultParam("fraction", "", "share of the pairs hit", lo=0.0, lo_open=True, hi=1.0,
@@ -217,6 +223,7 @@ class FaultKind(str, enum.Enum):
     KNIFE_CHIP = "knife_chip"
     SPECIES_CHANGE = "species_change"
     MEASUREMENT_DROPOUT = "measurement_dropout"
+    CAMERA_SILENT = "camera_silent"
 
     def __str__(self) -> str:
         return self.value

@@ -17,7 +17,6 @@ from __future__ import annotations
 import itertools
 import os
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +63,7 @@ class MoulderPlant:
         from controller.fieldbus.piezo_client import PiezoClient
         from controller.fieldbus.plc_client import PlcClient
         from controller.fieldbus.plc_protocol import Backoff
-        from controller.laws.moulder_feed import MoulderFeedLaw
+        from controller.laws.moulder_feed import MoulderFeedConfig, MoulderFeedLaw
         from controller.moulder.feed import MoulderFeed
         from controller.moulder.service import MoulderService
         from controller.quality.log import open_quality_log
@@ -102,7 +101,7 @@ class MoulderPlant:
                                          node_id=hsim.can.node_id, eds=hsim.can.eds,
                                          seed=seed + i),
                     own_bus=True)
-                hcfg = replace(head_config(cfg, hc.name), log=cfg.log)
+                hcfg = head_config(cfg, hc.name)
                 view = self.regmap.for_head(i)
                 plc = PlcClient(MachineRegisterBus(self.moulder, view), view,
                                 backoff=backoff, clock=self.clock)
@@ -128,7 +127,7 @@ class MoulderPlant:
             common = PlcClient(MachineRegisterBus(self.moulder, self.regmap), self.regmap,
                                backoff=backoff, clock=self.clock)
             feed = MoulderFeed(heads, cfg.heads, plc=common,
-                               law=MoulderFeedLaw.from_machine(cfg))
+                               law=MoulderFeedLaw(MoulderFeedConfig()))
             self.service = MoulderService(heads, cfg.heads, feed=feed)
         except BaseException:
             self._close_parts(heads)

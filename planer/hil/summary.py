@@ -601,7 +601,12 @@ def _fault_report(
     timeout = None if safety is None else getattr(safety, f"{kind.trips}_timeout_s", None)
     rep["timeout_s"] = timeout
     slack = 0.1 + (safety.cycle_s if safety is not None else 0.02)
-    in_time = safe is not None and (timeout is None or safe - t0 <= timeout + slack)
+    since = t0
+    if kind.trips == "measurement" and safe is not None:
+        # the measurement timeout runs from the last valid pair, which may be one the camera
+        # took just before the fault and the service measured just after it
+        since = max([t0] + [r.t_s for r in results if r.ok and r.t_s <= safe])
+    in_time = safe is not None and (timeout is None or safe - since <= timeout + slack)
     handled = in_time and rep["tripped"] and rep["offsets_zero_in_safe"]
     if kind.lasts:
         rep["recovered_after_end_s"] = None if rec is None else round(rec - t1, 3)

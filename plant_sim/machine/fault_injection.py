@@ -33,6 +33,8 @@ applied on the PLC-cycle grid). Parameter names, defaults and ranges come from t
   gap between boards is longer than the cutter-to-camera distance, so no pair shows two woods).
   Only the images change: without rendering (``render_images=False``) it has no effect. Render
   workers of ``planer sim`` render the configured species (they are not told).
+- ``camera_silent`` (``duration_s``): the camera sends no pair at all meanwhile (a whole
+  ``measurement_dropout``; a moulder's head names it with ``head``).
 - ``measurement_dropout`` (``duration_s``, ``fraction`` default 0.5, ``spoil`` default 0): that
   share of the pairs captured meanwhile is lost (``spoil = 0``: never delivered, counted in
   :attr:`FaultInjector.pairs_dropped`) or delivered spoiled (``spoil = 1``: light B did not
@@ -285,6 +287,9 @@ class FaultInjector:
             self.chips.append({"t_s": t, "travel_mm": s, "knife": k, "step_um": step})
         elif fault == "species_change":
             self._add_species(s, p)
+        elif fault == "camera_silent":  # every pair lost: a whole dropout
+            self._dropout_until = t + float(_param("camera_silent", p, "duration_s"))
+            self._dropout = (1.0, False)
         elif fault == "measurement_dropout":
             self._dropout_until = t + float(_param("measurement_dropout", p, "duration_s"))
             self._dropout = (float(_param("measurement_dropout", p, "fraction")),

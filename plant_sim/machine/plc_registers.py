@@ -37,7 +37,8 @@ _HEAD_CAMERA_SILENT = int(HeadFault.CAMERA_SILENT)
 HEAD_FIELDS: tuple[str, ...] = (
     "spindle_rpm", "spindle_setpoint_rpm", "spindle_rpm_min", "spindle_rpm_max", "knives",
     "cutterhead_radius_mm", "cutter_to_camera_mm", "trigger_a_counts", "trigger_b_counts",
-    "trigger_seq", "index_latch_counts", "head_faults",
+    "trigger_seq", "index_latch_counts", "head_faults", "machine_state", "board_id",
+    "board_position_mm",
 )
 """The fields of a head's register block (the moulder's design), in block order."""
 
@@ -153,13 +154,14 @@ class PlcRegisters:
         Parameters
         ----------
         t_s : float
-            Machine time, s (unused: every head field is held over the cycle; kept for
-            symmetry with :meth:`values`).
+            Machine time, s (the board under the camera then; the other head fields are held
+            over the cycle).
         camera_silent : bool
             The head's camera sends no frames (``HeadFault.CAMERA_SILENT``).
         """
         last = self.capture.last_pair
         sp = self.spindle
+        bid = self.boards.at(self.feed.position_at(t_s), self.L_mm)[0]
         bits = 0
         if self._faults & _PIEZO_AMPLIFIER:
             bits |= _HEAD_AMPLIFIER
@@ -180,6 +182,11 @@ class PlcRegisters:
             "trigger_seq": (last.seq if last else 0) & 0xFFFF,
             "index_latch_counts": last.index_latch if last else 0,
             "head_faults": bits,
+            # what this head's camera sees (its boards: a moulder's head further down the feed
+            # sees each board later)
+            "machine_state": self._state_bits(bid),
+            "board_id": bid,
+            "board_position_mm": (self.boards.length_mm - last.x_centre_mm) if last else 0.0,
         }
 
     def values(self, t_s: float) -> dict[str, float | int]:
