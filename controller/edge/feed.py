@@ -130,7 +130,8 @@ def follow_once(service: Any, seen: dict[str, Any], box: Mailbox) -> None:
     FrameResult)``, ``("status", ServiceStatus)``.
 
     A moulder composition (``heads``: name -> Service, ``head_configs``) gives
-    ``("heads", [dict, ...])`` (:func:`head_configs_json`) once, then each head's items as
+    ``("heads", [dict, ...])`` (:func:`head_configs_json`) first on every call (the same list
+    object while the composition is the same), then each head's items as
     above with the item wrapped in :class:`Headed`, plus ``("plc", Headed(name, {...}))``
     (the head's measured ``spindle_rpm`` and ``knives``) and ``("machine", dict)`` (the feed
     coordinator's ``feed.describe()``) every call.
@@ -141,8 +142,8 @@ def follow_once(service: Any, seen: dict[str, Any], box: Mailbox) -> None:
         return
     if seen.get("service") is not service:
         seen.clear()
-        seen.update(service=service, heads={})
-        box.put("heads", head_configs_json(service))
+        seen.update(service=service, heads={}, configs=head_configs_json(service))
+    box.put("heads", seen["configs"])  # every time: a full mailbox may drop the first
     for name, svc in heads.items():
         _follow_one(svc, seen["heads"].setdefault(name, {}), box, str(name))
     describe = getattr(getattr(service, "feed", None), "describe", None)
@@ -239,6 +240,7 @@ class Translator:
         self._sent_status: dict[str, Any] | None = None
         self._sent_heads: dict[str, dict[str, Any]] = {}
         self._sent_machine: dict[str, Any] | None = None
+        self._heads_list: list[dict[str, Any]] | None = None
 
     def message(self, items: list[tuple[str, Any]]) -> dict[str, Any]:
         """One message for the items: ``{"web": {...}, "opcua": {...}}`` (parts as asked).
@@ -249,12 +251,13 @@ class Translator:
         ``values`` (:meth:`MachineView.all_values`, ``None`` when nothing came that changes
         them) and ``events`` (``WwEvent`` list).
 
-        A moulder's heads (:class:`Headed` items) add to ``web``: ``heads`` (the heads' list
-        when a new composition appeared), ``head_status`` (name -> :func:`status_json`, the
-        changed ones), ``head_counts_per_mm``, ``head_qc``, ``head_plc`` (name -> measured
-        ``spindle_rpm``, ``knives``), ``machine`` (the coordinator's decision, when changed);
-        their events and results carry ``head``. To ``opcua``: ``heads`` (the heads' list when
-        new) and ``values`` of :meth:`MoulderView.all_values`.
+        A moulder's heads (:class:`Headed` items) add to ``web``: ``heads`` (the heads'
+        list when they changed: a composition with other heads), ``head_status`` (name ->
+        :func:`status_json`, the changed ones), ``head_counts_per_mm``, ``head_qc``,
+        ``head_plc`` (name -> measured ``spindle_rpm``, ``knives``), ``machine`` (the
+        coordinator's decision, when changed); their events and results carry ``head``. To
+        ``opcua``: ``heads`` (the heads' list when they changed) and ``values`` of
+        :meth:`MoulderView.all_values`.
         """
         web: dict[str, Any] = {"status": None, "events": [], "results": [],
                                "counts_per_mm": None}
@@ -310,7 +313,10 @@ class Translator:
 
     def _start_heads(self, heads: list[dict[str, Any]], web: dict[str, Any],
                      op: dict[str, Any]) -> bool:
-        """A new moulder: its heads (a view per head for OPC UA, the list for both)."""
+        """A moulder's heads: new ones (a view per head for OPC UA, the list for both)."""
+        if heads == self._heads_list:
+            return False
+        self._heads_list = heads
         self._sent_heads, self._sent_machine = {}, None
         if self.web:
             web["heads"] = heads
