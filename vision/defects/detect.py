@@ -279,26 +279,12 @@ def _row_depth_um(res: Residual, c0: int, c1: int, r0: int, r1: int, mask: np.nd
                   ) -> float:
     """Depth below the rim of the slope integrated along each row over columns [c0, c1).
 
-    ``mask`` (shape ``(r1 - r0, c1 - c0)``) selects the blob's samples.
+    ``mask`` (shape ``(r1 - r0, c1 - c0)``) selects the blob's samples; each row's height
+    less the line between its rims (its first and last tenth), the 90th percentile of the
+    depths on ``mask`` (one compiled pass: :func:`vision.defects.kernels.row_depth`).
     """
-    smap = res.smap
-    dx_um = 1000.0 / smap.cols_per_mm
-    seg = res.r[r0:r1, c0:c1].astype(np.float64)
-    h = np.cumsum(seg, axis=1) * dx_um
-    h = np.concatenate([np.zeros((h.shape[0], 1)), h], axis=1)[:, :-1]
-    n = h.shape[1]
-    edge = max(1, n // 10)
-    left = h[:, :edge].mean(axis=1, keepdims=True)
-    right = h[:, -edge:].mean(axis=1, keepdims=True)
-    t = np.linspace(0.0, 1.0, n)[None, :]
-    h = h - (left + (right - left) * t)  # the rim on both sides at zero
-    v = -h[mask]
-    if v.size == 0:
-        return 0.0
-    q = 0.9 * (v.size - 1)  # the 90th percentile (linear, as np.percentile)
-    lo, hi = int(math.floor(q)), int(math.ceil(q))
-    part = np.partition(v, (lo, hi))
-    return float(part[lo] + (part[hi] - part[lo]) * (q - lo))
+    return float(kernels.row_depth(res.r, r0, r1, c0, c1, np.ascontiguousarray(mask),
+                                   1000.0 / res.smap.cols_per_mm))
 
 
 def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:

@@ -12,6 +12,7 @@ here do each step in one call, with the arithmetic of the numpy code they replac
 * :func:`residual_map` -- the marks' robust column profile (the densest row groups, then the
   samples near it), the residual slope, its cells' mean squares and their median
   (:func:`vision.defects.detect.residual`);
+* :func:`row_depth` -- a blob's depth below its rim (:func:`vision.defects.detect.blobs`);
 * :func:`fold_rows` -- each row's residual folded at one revolution, the median over the
   revolutions per phase, and its mean square (:func:`vision.defects.detect.knife_nicks`).
 
@@ -308,6 +309,75 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
 
 
 @njit(**_JIT)
+def _pairwise_mean(v: np.ndarray, lo: int, hi: int) -> float:  # pragma: no cover - compiled
+    """The mean of ``v[lo:hi]`` as numpy's ``mean`` sums it (eight partial sums from 8 values).
+
+    numpy adds a contiguous run of fewer than 8 values in order and a longer one (up to 128)
+    in eight interleaved partial sums; the same order here gives the same bits.
+    """
+    n = hi - lo
+    if n < 8:
+        s = 0.0 + v[lo]
+        for i in range(lo + 1, hi):
+            s += v[i]
+        return s / n
+    r = np.empty(8)
+    for q in range(8):
+        r[q] = v[lo + q]
+    i = 8
+    while i < n - n % 8:
+        for q in range(8):
+            r[q] += v[lo + i + q]
+        i += 8
+    s = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    while i < n:
+        s += v[lo + i]
+        i += 1
+    return s / n
+
+
+@njit(**_JIT)
+def row_depth(r: np.ndarray, r0: int, r1: int, c0: int, c1: int, mask: np.ndarray,
+              dx_um: float) -> float:  # pragma: no cover - compiled
+    """Depth below the rim of the residual integrated along rows ``r0..r1``, columns ``c0..c1``.
+
+    Each row's running sum (the height before each sample, ``dx_um`` per column) less the
+    straight line between its rims (the means of its first and last tenth); the 90th
+    percentile (linear, as ``np.percentile``) of the heights' negatives on ``mask`` (shape
+    ``(r1 - r0, c1 - c0)``), 0 without one (:func:`vision.defects.detect.blobs`).  At most
+    ~1270 columns (numpy's sums of a rim beyond 128 values split further).
+    """
+    rows = r1 - r0
+    n = c1 - c0
+    edge = max(1, n // 10)
+    h = np.empty(n)
+    vals = np.empty(rows * n)
+    nv = 0
+    step = 1.0 / (n - 1) if n > 1 else 0.0  # np.linspace(0, 1, n)
+    for i in range(rows):
+        h[0] = 0.0
+        s = 0.0
+        for j in range(1, n):
+            s += np.float64(r[r0 + i, c0 + j - 1])
+            h[j] = s * dx_um
+        left = _pairwise_mean(h, 0, edge)
+        right = _pairwise_mean(h, n - edge, n)
+        for j in range(n):
+            if mask[i, j]:
+                t = j * step if j < n - 1 else 1.0
+                vals[nv] = -(h[j] - (left + (right - left) * t))
+                nv += 1
+    if nv == 0:
+        return 0.0
+    q = 0.9 * (nv - 1)
+    lo = int(math.floor(q))
+    hi = int(math.ceil(q))
+    a = _select(vals, nv, lo)
+    b = _select(vals, nv, hi)
+    return a + (b - a) * (q - lo)
+
+
+@njit(**_JIT)
 def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int, n_per: int,
               min_valid: int, every: int, slack: float, folded: np.ndarray,
               energy: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -440,4 +510,5 @@ def warm_up() -> None:
     residual_map(a, valid, 0.07, 2, 2, 3, np.empty(12), out, cells,
                  np.empty((8, 4), dtype=np.bool_))
     fold_rows(a, valid, 0, 4.0, 4, 3, 6, 4, 0.3, np.empty((8, 4)), np.empty(8))
+    row_depth(a, 0, 4, 0, 10, np.ones((4, 10), dtype=np.bool_), 160.0)
     _WARM[0] = True

@@ -157,3 +157,30 @@ def test_column_means_are_opencvs_area_resize(k):
         if k == 2:  # a linear resize to exactly half the width: the same integers
             lin = cv2.resize(rows, (100, 10), interpolation=cv2.INTER_LINEAR)
             assert np.array_equal(lin.astype(np.float32), ref)
+
+
+def _reference_depth(rmap, c0, c1, r0, r1, mask, dx_um):
+    """A blob's depth below its rim as numpy steps (what ``row_depth`` replaces)."""
+    seg = rmap[r0:r1, c0:c1].astype(np.float64)
+    h = np.cumsum(seg, axis=1) * dx_um
+    h = np.concatenate([np.zeros((h.shape[0], 1)), h], axis=1)[:, :-1]
+    n = h.shape[1]
+    edge = max(1, n // 10)
+    left = h[:, :edge].mean(axis=1, keepdims=True)
+    right = h[:, -edge:].mean(axis=1, keepdims=True)
+    h = h - (left + (right - left) * np.linspace(0.0, 1.0, n)[None, :])
+    v = -h[mask]
+    return float(np.percentile(v, 90)) if v.size else 0.0
+
+
+def test_row_depth_as_numpy():
+    """Bit for bit numpy's steps (its sums of the rims, np.percentile's interpolation)."""
+    rng = np.random.default_rng(8)
+    rmap = (0.01 * rng.standard_normal((60, 330))).astype(np.float32)
+    for _ in range(300):
+        n, h = int(rng.integers(1, 300)), int(rng.integers(1, 25))
+        c0, r0 = int(rng.integers(0, 330 - n)), int(rng.integers(0, 60 - h))
+        mask = rng.random((h, n)) < rng.random()
+        dx = float(rng.uniform(50.0, 300.0))
+        assert kernels.row_depth(rmap, r0, r0 + h, c0, c0 + n, mask, dx) == _reference_depth(
+            rmap, c0, c0 + n, r0, r0 + h, mask, dx)
