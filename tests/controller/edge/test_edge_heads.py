@@ -199,3 +199,22 @@ def test_serving_a_moulders_configuration_shows_its_heads_before_any_service(tmp
     assert [h["name"] for h in live["heads"]] == names
     assert all(h["status"] is None and h["last"] is None for h in live["heads"])
     assert any("heads under State/SubUnits" in line for line in said)
+
+
+def test_the_feed_coordinators_decision_shows_on_the_machine_and_its_heads(moulder):
+    decision = {"feed_mm_s": 412.5, "safe": False, "limiting": ["bottom"],
+                "spindle_setpoints_rpm": {"top": 6187.5}, "cycles": 3}
+    tr = Translator(web=True, opcua=True)
+    msg = tr.message(_items(moulder)[0] + [("machine", decision)])
+    v, ms = msg["opcua"]["values"], "ManufacturerSpecific"
+    assert v[f"{ms}/FeedSetpointMmS"] == 412.5 and v[f"{ms}/LimitingHeads"] == ["bottom"]
+    assert v[head_path("bottom", f"{ms}/LimitsFeed")] is True
+    assert v[head_path("top", f"{ms}/LimitsFeed")] is False
+    assert v[head_path("top", f"{ms}/SpindleSetpointRpm")] == 6187.5
+    assert math.isnan(v[head_path("bottom", f"{ms}/SpindleSetpointRpm")])  # a fixed head
+    assert msg["web"]["machine"] == decision
+    again = tr.message([("machine", dict(decision))])
+    assert "machine" not in again["web"]  # unchanged: not sent again
+    live = LiveView()
+    _apply_web(live, msg["web"])
+    assert live.snapshot()["machine"] == decision
