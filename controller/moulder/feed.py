@@ -114,7 +114,7 @@ class MoulderFeed:
             self.counts["plc_errors"] += 1
             self.last = FeedDecision(t, None, True)
             return self.last
-        if snap.problem() is not None:
+        if snap.problem() is not None:  # the PLC talks nonsense: no write (its watchdog acts)
             self.last = FeedDecision(t, None, True)
             return self.last
         if self.machine_safe():
@@ -126,6 +126,8 @@ class MoulderFeed:
             await self._write_feed(feed, snap)
             self.last = FeedDecision(t, feed, True)
             return self.last
+        if self.last is None or self.last.safe:  # (again) from the feed in force, no jump
+            self.law.reset(feed_mm_s=snap.feed_setpoint_mm_s, now_s=t)
         cmd = self.law.update(self.head_feeds(), now_s=t, feed_min_mm_s=snap.feed_min_mm_s,
                               feed_max_mm_s=snap.feed_max_mm_s)
         feed = await self._write_feed(float(cmd.feed_mm_s), snap)

@@ -548,5 +548,5 @@ def open_service(
         measurer_factory=VisionMeasurers(rig, defects=cfg.quality.defects),
         pairs_per_s=cfg.frames.pairs_per_s,
     )
-    log.set_quality_class(service.quality_class)
+    log.set_quality_class(service.quality_class, head=service.head)
     return service

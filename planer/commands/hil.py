@@ -319,9 +319,21 @@ def _write_figures(summary: dict, progress: Callable[[str], None]) -> dict[str, 
         with QualityLog(path, create=False) as log:
             records = log.records(after_id=int(qlog.get("after_id", 0)))
             quality_class = log.quality_class()
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if summary.get("machine") == "moulder":  # each head's figures, <stem>_<head>_<name>
+            from controller.quality.head_report import build_head_figures, head_stem
+
+            with QualityLog(path, create=False) as log:
+                classes = {h["name"]: log.quality_class(head=h["name"])
+                           for h in summary["heads"]}
+            paths: dict[str, str] = {}
+            for head, figs in build_head_figures(records, classes).items():
+                for name, where in save_figures(figs, out_dir,
+                                                stem=head_stem(stem, head)).items():
+                    paths[f"{head}_{name}"] = where
+            return paths
         figures = build_figures(records, quality_class=quality_class,
                                 safe_periods_s=summary.get("safe_periods_s"))
-        out_dir.mkdir(parents=True, exist_ok=True)
         return save_figures(figures, out_dir, stem=stem)
     except (OSError, ValueError) as exc:
         progress(f"planer hil: figures not written: {exc}")

@@ -122,7 +122,7 @@ class MoulderPlant:
                               threaded=False, measurer_factory=factory,
                               pairs_per_s=hsim.camera.pairs_per_s, owns_feed=False)
                 svc.keep_results = True
-                log.set_quality_class(svc.quality_class)
+                log.set_quality_class(svc.quality_class, head=hc.name)
                 heads[hc.name] = svc
             common = PlcClient(MachineRegisterBus(self.moulder, self.regmap), self.regmap,
                                backoff=backoff, clock=self.clock)
