@@ -431,6 +431,7 @@ def _figures(bench: list[_Head], frames: list, *, rate_hz: float, workers: int,
         "overall": overall,
         "meets": meets,
         "target_p99_ms": TARGET_P99_MS,
+        "at_target_rate": rate_hz >= RATE_HZ and len(bench) == len(HEADS),
         "width": int(w), "height": int(h),
         "rate_hz_per_head": rate_hz,
         "pairs_per_head": len(frames),
@@ -454,7 +455,8 @@ class _NoGc:
         return {}
 
 
-def run(quick: bool = False, *, workers: int = WORKERS) -> dict[str, Any]:
+def run(quick: bool = False, *, workers: int = WORKERS, rate_hz: float = RATE_HZ,
+        heads: int = len(HEADS), depth: int | None = None) -> dict[str, Any]:
     """Four heads at :data:`RATE_HZ` pairs/s each, one shared pool of ``workers`` processes.
 
     Parameters
@@ -462,7 +464,14 @@ def run(quick: bool = False, *, workers: int = WORKERS) -> dict[str, Any]:
     quick : bool
         :data:`QUICK_PAIRS` pairs per head instead of :data:`PAIRS_PER_HEAD`.
     workers : int
-        Measurement worker processes shared by the heads.
+        Measurement worker processes shared by the heads (0: in the service's process).
+    rate_hz : float
+        Pairs per second of each head (what fits: a sweep below the target rate).
+    heads : int
+        The first this many of :data:`HEADS` (1: a single head through the same bench).
+    depth : int, optional
+        Pairs a worker holds at once (default
+        :data:`controller.workers.pool.DEFAULT_DEPTH`).
 
     Returns
     -------
@@ -475,12 +484,19 @@ def run(quick: bool = False, *, workers: int = WORKERS) -> dict[str, Any]:
     """
     import logging
 
+    from core.checks import check_int, check_positive
+
+    check_int("workers", workers, lo=0)
+    check_int("heads", heads, lo=1, hi=len(HEADS))
+    check_positive("rate_hz", rate_hz)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     n = QUICK_PAIRS if quick else PAIRS_PER_HEAD
+    n = max(QUICK_PAIRS, round(n * min(1.0, rate_hz / RATE_HZ)))  # a slower run no longer
     frames, machine = _frames(n)
     before = machine_description()
     with tempfile.TemporaryDirectory(prefix="planer-moulder-") as d:
         out = asyncio.run(_run(frames, machine, workdir=Path(d), workers=workers,
+                               rate_hz=rate_hz, heads=HEADS[:heads], depth=depth,
                                priority=True))
     out["machine"] = {**before, "load_avg_after": machine_description()["load_avg"]}
     return out

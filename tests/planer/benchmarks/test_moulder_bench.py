@@ -51,6 +51,7 @@ def test_four_heads_share_one_pool_and_every_pair_comes_back_to_its_head(
     assert o["handled"] == len(moulder.HEADS) * N_PAIRS and o["measured"] >= 1
     assert out["workers"] == 1 and out["workers_shared"]
     assert out["meets"]["nothing_dropped"] == (o["failed"] == 0)
+    assert not out["at_target_rate"]  # 25 pairs/s a head: a wiring run, not the target
     for key in ("cpu_ms_per_pair", "service_cpu_ms_per_pair", "workers_cpu_ms_per_pair",
                 "plc_cpu_ms_per_pair", "stand_in_cpu_ms_per_pair", "cores_busy"):
         assert o[key] is not None and o[key] >= 0, key
@@ -79,3 +80,14 @@ def test_bench_takes_the_moulder_part_only_when_named():
     bench.configure(parser)
     assert parser.parse_args(["--only", "moulder"]).only == ["moulder"]
     assert "moulder" in bench.PARTS and "moulder" not in bench.DEFAULT_PARTS
+
+
+@pytest.mark.parametrize("kw, name", [
+    ({"heads": 5}, "heads"), ({"heads": 0}, "heads"), ({"workers": -1}, "workers"),
+    ({"rate_hz": 0.0}, "rate_hz"), ({"rate_hz": float("nan")}, "rate_hz"),
+])
+def test_run_refuses_nonsense_naming_the_parameter(kw, name):
+    from planer.benchmarks import moulder
+
+    with pytest.raises(ValueError, match=name):
+        moulder.run(quick=True, **kw)
