@@ -779,11 +779,9 @@ def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, f
     if not scale > 0:
         return 0.0, 0.0, 0
     # the pairs of rows (4 i, 4 i + 1): half the rows transformed, a quarter of the pairs
-    first = np.arange(0, res.r.shape[0] - 1, 4)
-    pairs = np.stack([first, first + 1], axis=1).ravel()
-    r = np.clip(res.r[pairs], np.float32(-4 * scale), np.float32(4 * scale))
-    n = r.shape[1]
-    size = sfft.next_fast_len(n + max_lag_px, real=True)
+    pairs, size = _coherence_rows(res.r.shape[0], res.r.shape[1] + max_lag_px)
+    r = res.r.take(pairs, axis=0)
+    np.clip(r, np.float32(-4 * scale), np.float32(4 * scale), out=r)
     f = sfft.rfft(r, size, axis=1, workers=1)
     x = sfft.irfft((np.conj(f[0::2]) * f[1::2]).sum(axis=0), size)
     r2 = (r * r).sum(axis=1, dtype=np.float64)
@@ -794,3 +792,12 @@ def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, f
     k = int(np.argmax(vals))  # lags 0 .. max_lag_px, then -max_lag_px .. -1
     lag = k if k <= max_lag_px else k - (2 * max_lag_px + 1)
     return float(vals[k]), float(vals[0]), int(lag)
+
+
+@functools.lru_cache(maxsize=8)
+def _coherence_rows(rows: int, length: int) -> tuple[np.ndarray, int]:
+    """:func:`oriented_coherence`'s rows ``(4 i, 4 i + 1)`` of a map and its FFT length (once)."""
+    first = np.arange(0, rows - 1, 4)
+    pairs = np.stack([first, first + 1], axis=1).ravel()
+    pairs.flags.writeable = False
+    return pairs, sfft.next_fast_len(length, real=True)
