@@ -47,6 +47,7 @@ import scipy.fft as sfft
 
 from config.rig import Camera, Lights
 from core.checks import check_positive
+from vision import ffts
 from vision.defects import kernels
 from vision.defects.surface_map import SurfaceMap, SurfaceMapper
 
@@ -782,8 +783,8 @@ def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, f
     pairs, size = _coherence_rows(res.r.shape[0], res.r.shape[1] + max_lag_px)
     r = res.r.take(pairs, axis=0)
     np.clip(r, np.float32(-4 * scale), np.float32(4 * scale), out=r)
-    f = sfft.rfft(r, size, axis=1, workers=1)
-    x = sfft.irfft((np.conj(f[0::2]) * f[1::2]).sum(axis=0), size)
+    f = ffts.rfft(r, size, axis=1)  # scipy.fft's numbers without its dispatch
+    x = ffts.irfft((np.conj(f[0::2]) * f[1::2]).sum(axis=0), size)
     r2 = (r * r).sum(axis=1, dtype=np.float64)
     norm = float(r2[0::2].sum() * r2[1::2].sum()) ** 0.5
     if norm <= 0:
