@@ -125,7 +125,9 @@ class PairPipeline:
 
         A worker that died or timed out is reported (``SERVICE_ERROR``, counter
         ``worker_restarts``); its pairs are failed records naming the reason. Several pipelines
-        may share one pool (a moulder's heads): each is told of every worker's problem.
+        may share one pool (a moulder's heads): each is told of every worker's problem; given
+        as :class:`controller.workers.pool.PoolForFactory` its pairs are measured with its own
+        measurer factory (its rig), else with the pool's.
         """
         self.measurement.use_workers(pool)
         if pool is not None:

@@ -52,6 +52,7 @@ from controller.workers.process import _cal_state
 __all__ = [
     "MeasureWorkerPool",
     "MeasurementWorkerError",
+    "PoolForFactory",
     "WorkerOutcome",
     "available_cores",
     "open_worker_pool",
@@ -163,6 +164,7 @@ class _Job:
     slot: int | None = None
     roll: tuple[float, ...] | None = None  # the roll directive (_RollPlan.next)
     plan: _RollPlan | None = None
+    factory: int = 0  # which factory measures it (MeasureWorkerPool.factory_index)
 
 
 def _plan_roll(rolls: Any, job: _Job) -> None:
@@ -195,6 +197,35 @@ def _settle(job: _Job, outcome: WorkerOutcome | BaseException) -> None:
             job.future.set_result(outcome)
     except RuntimeError:  # its event loop is closed (closing after the service's loop)
         pass
+
+
+class PoolForFactory:
+    """A shared pool as one service sees it: that service's pairs measured with its factory.
+
+    The heads of a moulder share one :class:`MeasureWorkerPool`, each with its own measurer
+    factory (its own rig: camera, encoder): each head's pipeline is given
+    ``PoolForFactory(pool, its_measurement.factory)``. ``submit`` and ``prepare`` name the
+    factory (the workers are given it once, :meth:`MeasureWorkerPool.factory_index`);
+    everything else is the pool's (``capacity``, ``workers``, ``shape``, ``listen`` ...).
+    """
+
+    def __init__(self, pool: MeasureWorkerPool, factory: Callable[..., Any]) -> None:
+        self.pool = pool
+        self.factory = factory
+        self.index = pool.factory_index(factory)
+
+    def submit(self, frame: Any, *, facts: MachineFacts | None = None,
+               calibrator: Any = None,
+               factory: Callable[..., Any] | None = None) -> asyncio.Future:
+        """:meth:`MeasureWorkerPool.submit` with this service's factory."""
+        return self.pool.submit(frame, facts=facts, calibrator=calibrator, factory=self.factory)
+
+    def prepare(self, shape: tuple[int, int], facts: MachineFacts | None) -> None:
+        """:meth:`MeasureWorkerPool.prepare` with this service's factory."""
+        self.pool.prepare(shape, facts, factory=self.factory)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.pool, name)
 
 
 class MeasureWorkerPool:
@@ -289,6 +320,32 @@ class MeasureWorkerPool:
         self.problems: list[str] = []
         """What went wrong with workers, in order (also given to ``on_problem``)."""
         self._listeners: list[Callable[[str], None]] = []
+        self._factories: list[Callable[..., Any]] = []  # others' factories: index = place + 1
+
+    def factory_index(self, factory: Callable[..., Any] | None) -> int:
+        """The number the workers know ``factory`` by (0: the pool's own, or ``None``).
+
+        Another service's factory (another head's rig) is given to every worker once, when
+        first named, and again to a worker started anew; known by identity.
+        """
+        if factory is None or factory is self.factory:
+            return 0
+        for i, known in enumerate(self._factories, 1):
+            if known is factory:
+                return i
+        self._factories.append(factory)
+        index = len(self._factories)
+        for w in self._workers:
+            self._tell_factory(w, index, factory)
+        return index
+
+    @staticmethod
+    def _tell_factory(w: WorkerLink, index: int, factory: Callable[..., Any]) -> None:
+        if w.conn is not None:
+            try:
+                w.conn.send(("factory", index, factory))
+            except (OSError, ValueError):
+                pass  # a dead worker: the reader notices, the new one is told at its start
 
     def listen(self, fn: Callable[[str], None]) -> None:
         """Tell ``fn(text)`` too when a worker died or timed out (each head sharing the pool).
@@ -356,6 +413,8 @@ class MeasureWorkerPool:
     def _spawn(self, w: WorkerLink) -> None:
         w.spawn(self._ctx, (self.factory, self.shape, w.index, self.threads_per_worker,
                             self.nice, self.hold), depth=self.depth)
+        for index, factory in enumerate(self._factories, 1):
+            self._tell_factory(w, index, factory)
         if self._loop is not None:
             self._loop.add_reader(w.conn.fileno(), self._on_readable, w)
 
@@ -393,17 +452,23 @@ class MeasureWorkerPool:
         self.close()
 
     # ------------------------------------------------------------------ measuring
-    def prepare(self, shape: tuple[int, int], facts: MachineFacts | None) -> None:
-        """Have every worker set up for ``shape`` and ``facts`` now (before their next pair)."""
+    def prepare(self, shape: tuple[int, int], facts: MachineFacts | None, *,
+                factory: Callable[..., Any] | None = None) -> None:
+        """Have every worker set up for ``shape`` and ``facts`` now (before their next pair).
+
+        ``factory``: another service's factory sharing the pool (default: the pool's).
+        """
+        index = self.factory_index(factory)
         for w in self._workers:
             if w.conn is not None and w.ready:
                 try:
-                    w.conn.send(("prepare", tuple(shape), facts))
+                    w.conn.send(("prepare", tuple(shape), facts, index))
                 except (OSError, ValueError):
                     pass  # a dead worker: the reader notices
 
     def submit(self, frame: Any, *, facts: MachineFacts | None = None,
-               calibrator: Any = None) -> asyncio.Future:
+               calibrator: Any = None,
+               factory: Callable[..., Any] | None = None) -> asyncio.Future:
         """Hand one pair to a worker (or queue it until one is free); its outcome's future.
 
         Parameters
@@ -414,6 +479,9 @@ class MeasureWorkerPool:
             The machine's facts, for a factory that takes them.
         calibrator : vision.calibration.selfcal.SelfCalibrator, optional
             The board's calibrator as it stands (the worker measures with a copy).
+        factory : callable, optional
+            The measurer factory of the service the pair is of, when several share the pool
+            (:class:`PoolForFactory`); default the pool's own.
 
         Returns
         -------
@@ -423,7 +491,8 @@ class MeasureWorkerPool:
         """
         loop = asyncio.get_running_loop()
         self._attach_loop(loop)
-        job = _Job(next(self._tickets), loop.create_future(), frame, facts, calibrator)
+        job = _Job(next(self._tickets), loop.create_future(), frame, facts, calibrator,
+                   factory=self.factory_index(factory))
         if self._closed:
             _settle(job, WorkerOutcome("measurement workers closed"))
             return job.future
@@ -472,7 +541,7 @@ class MeasureWorkerPool:
         frame = job.frame
         where, job.slot = w.place(frame, self.depth)
         msg = ("job", job.ticket, where, frame.counts_a, frame.counts_b, frame.speed_mm_s,
-               job.facts, *_cal_state(job.calibrator), job.roll)
+               job.facts, *_cal_state(job.calibrator), job.roll, job.factory)
         assert self._loop is not None
         job.deadline = self._loop.time() + self.timeout_s  # the measurement's own limit
         w.jobs[job.ticket] = job

@@ -376,21 +376,36 @@ class _Stages:
 
     A :class:`MeasurementStage` keeps one measurer per image shape, built again when the facts
     change: right for one machine, a rebuild on every pair when the heads of a moulder (each
-    with its own knives and radius) take turns. Here each facts' key has its own stage, at
-    most :data:`KEEP_FACTS` (the one used longest ago goes).
+    with its own knives and radius) take turns. Here each factory (each head's rig) and facts'
+    key has its own stage, at most :data:`KEEP_FACTS` (the one used longest ago goes).
     """
 
     def __init__(self, factory: Any, keep: int = KEEP_FACTS) -> None:
-        self.factory = factory
+        self.factories: dict[int, Any] = {0: factory}
+        """The measurer factories by the number the pool gives them (0: the pool's own)."""
         self.keep = max(1, int(keep))
         self._stages: dict[Any, MeasurementStage] = {}
 
-    def stage(self, facts: Any) -> MeasurementStage:
-        """The stage for ``facts`` (``None``: the facts-less one), made when first asked for."""
-        key = getattr(facts, "key", None) if facts is not None else None
+    def add_factory(self, index: int, factory: Any) -> None:
+        """Another service's factory (``("factory", index, factory)`` from the pool)."""
+        self.factories[int(index)] = factory
+        for key in [k for k in self._stages if k[0] == index]:  # a factory replaced
+            del self._stages[key]
+
+    def stage(self, facts: Any, factory: int = 0) -> MeasurementStage:
+        """The stage of factory ``factory`` for ``facts`` (``None``: without facts).
+
+        Raises
+        ------
+        LookupError
+            No factory of that number was given (a bug of the pool: the service is told).
+        """
+        if factory not in self.factories:
+            raise LookupError(f"no measurer factory {factory} in this worker")
+        key = (factory, getattr(facts, "key", None) if facts is not None else None)
         stage = self._stages.pop(key, None)
         if stage is None:
-            stage = MeasurementStage(None, self.factory, threaded=False)
+            stage = MeasurementStage(None, self.factories[factory], threaded=False)
             while len(self._stages) >= self.keep:
                 del self._stages[next(iter(self._stages))]  # used longest ago
         self._stages[key] = stage  # the newest used last
@@ -438,14 +453,17 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
                 break
             if msg is None:
                 break
+            if msg[0] == "factory":
+                stages.add_factory(msg[1], msg[2])
+                continue
             if msg[0] == "prepare":
                 try:
-                    stages.stage(msg[2]).measurer(msg[1], msg[2])
-                except VISION_ERRORS:
+                    stages.stage(msg[2], msg[3]).measurer(msg[1], msg[2])
+                except (*VISION_ERRORS, LookupError):
                     pass
                 continue
-            try:
-                reply, slot = _run_job(stages.stage(msg[6]), blocks, msg)
+            try:  # a job: its factory's number last
+                reply, slot = _run_job(stages.stage(msg[6], msg[-1]), blocks, msg[:-1])
             except BaseException as exc:  # a bug: told to the service, then ends with it
                 replies.flush()
                 _send_whole(conn, ("fault", msg[1], f"{exc_name(exc)}: {exc}"))

@@ -241,15 +241,20 @@ async def _feed(heads: list[_Head], frames: list, rate_hz: float) -> None:
 
 async def _start_pool(heads: list[_Head], workers: int, shape: tuple[int, int], *,
                       nice: int | None, timeout_s: float, depth: int | None) -> Any:
-    """One worker pool for every head (started off the event loop), handed to each pipeline."""
-    from controller.workers.pool import DEFAULT_DEPTH, MeasureWorkerPool
+    """One worker pool for every head (started off the event loop), handed to each pipeline.
+
+    The pool is started with the first head's factory; every head's pipeline gets it as a
+    :class:`~controller.workers.pool.PoolForFactory` of its own factory (the other heads' given
+    to the workers once).
+    """
+    from controller.workers.pool import DEFAULT_DEPTH, MeasureWorkerPool, PoolForFactory
 
     factory = heads[0].service.measurement.factory
     pool = MeasureWorkerPool(factory, workers=workers, shape=shape, timeout_s=timeout_s,
                              nice=nice, depth=DEFAULT_DEPTH if depth is None else depth)
     await asyncio.get_running_loop().run_in_executor(None, pool.start)
-    for head in heads:
-        head.service.pipeline.use_workers(pool)
+    for head in heads:  # each head's pairs measured with its own factory (its rig)
+        head.service.pipeline.use_workers(PoolForFactory(pool, head.service.measurement.factory))
     return pool
 
 

@@ -8,11 +8,17 @@ interleaved through one pool each come back to their own service, in their own o
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
 
 from controller.service.measurement import MachineFacts
-from controller.workers.pool import MeasureWorkerPool
+from controller.workers.pool import MeasureWorkerPool, PoolForFactory
 from controller.workers.process import KEEP_FACTS, _Stages
+from protocol.frames import Frame
 
 
 @dataclass(frozen=True)
@@ -25,6 +31,30 @@ class CountingFactory:
     def __call__(self, shape, facts=None):
         self.built.append((shape, None if facts is None else facts.key))
         return object()
+
+
+@dataclass(frozen=True)
+class Tagged:
+    """A factory whose measurements say which factory made them (one head's rig)."""
+
+    tag: str
+
+    def __call__(self, shape):
+        return TagMeasurer(self.tag)
+
+
+class TagMeasurer:
+    def __init__(self, tag):
+        self.tag = tag
+
+    def measure(self, image_a, image_b, *, counts_a, counts_b, speed_mm_s=None):
+        return SimpleNamespace(tag=self.tag, counts_a=counts_a, pid=os.getpid())
+
+
+def _pair(k: int) -> Frame:
+    img = np.full((8, 8), k % 250, dtype=np.uint8)
+    return Frame(seq=k, t_s=0.01 * k, image_a=img, image_b=img.copy(), counts_a=100 * k,
+                 counts_b=100 * k + 5, speed_mm_s=600.0)
 
 
 def _facts(knives: int, radius_mm: float = 60.0) -> MachineFacts:
@@ -76,6 +106,36 @@ def test_every_listener_hears_of_a_worker_problem_once_after_on_problem():
     assert [who for who, _ in heard] == ["on_problem", "first", "second"]
     assert len({t for _, t in heard}) == 1 and "measurement worker 0 died" in heard[0][1]
     pool.close()
+
+
+def test_each_heads_pairs_are_measured_with_its_own_factory_also_by_a_restarted_worker():
+    async def main():
+        pool = MeasureWorkerPool(Tagged("bottom"), workers=1, timeout_s=30.0).start()
+        gone = asyncio.Event()
+        pool.listen(lambda text: gone.set())
+        heads = {"bottom": pool, "right": PoolForFactory(pool, Tagged("right")),
+                 "top": PoolForFactory(pool, Tagged("top"))}
+        try:
+            async def round_(start):
+                futs = {(name, start + i): heads[name].submit(_pair(start + i))
+                        for i, name in enumerate(heads)}
+                return {key: (await f).measurement for key, f in futs.items()}
+
+            before = await round_(0)
+            os.kill(pool.pids[0], signal.SIGKILL)
+            await asyncio.wait_for(gone.wait(), 30.0)  # the pool saw it and starts another
+            after = await round_(10)
+            return before, after, pool.restarts, heads["right"].capacity
+        finally:
+            pool.close()
+
+    before, after, restarts, capacity = asyncio.run(main())
+    assert restarts == 1 and capacity > 0  # the pool's own attributes through the view
+    for got in (before, after):
+        assert {name: m.tag for (name, _), m in got.items()} == {
+            "bottom": "bottom", "right": "right", "top": "top"}
+        assert all(m.counts_a == 100 * k for (_, k), m in got.items())
+    assert len({m.pid for m in before.values()} | {m.pid for m in after.values()}) == 2
 
 
 def test_two_services_on_one_pool_each_get_their_own_pairs_in_order(tmp_path):
