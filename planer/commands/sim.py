@@ -9,6 +9,12 @@ The first lines say where it listens, one each, then ``ready``, then progress::
     frames: spool runs/spool keep 50
     ready
     t=1.00 s  rtf=1.00  feed=800.0 mm/s  spindle=6000 rpm  frames=10  modbus=...  can ...
+
+A ``--config`` with ``[[heads]]`` (``config/sim_moulder.toml``) runs the moulder
+(:class:`plant_sim.run.moulder_runner.MoulderRunner`): the same Modbus server with every head's
+register block, every head's amplifier node (its node id) on the one CAN bus, head ``<name>``'s
+pairs in ``<spool>/<name>``; the banner adds ``heads: ...`` and a ``head <name>: ...`` line each,
+the progress lines give each head's spindle speed and pairs.
 """
 
 from __future__ import annotations
@@ -173,9 +179,14 @@ def run(args: argparse.Namespace) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, runner.request_stop)
         summary = await runner.run(duration_s=args.duration)
+        per_head = ""
+        if summary.frames_by_head is not None:
+            per_head = " (" + ", ".join(
+                f"{name} {n}" for name, n in summary.frames_by_head.items()) + ")"
         out(
             f"stopped at t={summary.sim_time_s:.3f} s: {summary.steps} steps, "
-            f"{summary.frames} frames, real-time factor {summary.real_time_factor:.2f}"
+            f"{summary.frames} frames{per_head}, real-time factor "
+            f"{summary.real_time_factor:.2f}"
         )
         return 0
 

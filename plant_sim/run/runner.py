@@ -110,6 +110,9 @@ class RunSummary:
         Interface faults played, ``"<kind>@<t_s>"``.
     slowed_s : float
         Wall seconds by which the clock was slowed because the host could not keep up.
+    frames_by_head : dict of str to int or None
+        A moulder's pairs per head (:class:`~plant_sim.run.moulder_runner.MoulderRunner`);
+        ``None`` for one machine.
     """
 
     sim_time_s: float = 0.0
@@ -123,6 +126,7 @@ class RunSummary:
     can_dropped: int = 0
     faults: list[str] | None = None
     slowed_s: float = 0.0
+    frames_by_head: dict[str, int] | None = None
 
     @property
     def real_time_factor(self) -> float:
@@ -332,7 +336,7 @@ class SimRunner:
         if not asked:
             return None
         parts = [f"{who} {what}" for who, what in asked]
-        nice = getattr(self.render, "nice", None)
+        nice = self._render_nice()
         if nice is not None:
             parts.append(f"render workers nice {nice}")
         line = ", ".join(parts)
@@ -340,6 +344,10 @@ class SimRunner:
             line += ("; not permitted to raise it: on a busy host the interfaces may answer "
                      "late")
         return line
+
+    def _render_nice(self) -> int | None:
+        """Nice value of the render workers (``None``: none, or as this process)."""
+        return getattr(self.render, "nice", None)
 
     async def close(self) -> None:
         """Finish pending frames and writes, stop the server and close the bus and workers.
@@ -557,7 +565,9 @@ def parse_banner(lines: Iterable[str]) -> dict[str, str]:
     -------
     dict
         ``{"modbus": "127.0.0.1:5020", "can": "udp_multicast:239.74.163.2",
-        "frames": "spool runs/spool keep 50"}`` (keys present as printed).
+        "frames": "spool runs/spool keep 50"}`` (keys present as printed); a moulder's adds
+        ``"heads": "bottom, right, left, top"`` and gives ``"frames": "spool runs/spool/<head>
+        keep 50"`` (each head's spool: that folder, the head's name).
     """
     out: dict[str, str] = {}
     for line in lines:
@@ -565,6 +575,6 @@ def parse_banner(lines: Iterable[str]) -> dict[str, str]:
         if line == "ready":
             break
         key, sep, rest = line.partition(": ")
-        if sep and key in ("modbus", "can", "frames"):
+        if sep and key in ("modbus", "can", "frames", "heads"):
             out[key] = rest.split(" unit ")[0] if key == "modbus" else rest
     return out

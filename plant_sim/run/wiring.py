@@ -3,6 +3,10 @@
 The PLC in its own process, the amplifier (a CANopen node) on the configured CAN bus, the spool
 writer and the render workers: built here, closed again (our bus) if any later part fails. Kept
 apart from the runner, which only steps and serves what it is given.
+
+A configuration with ``[[heads]]`` (or a :class:`~plant_sim.machine.moulder.Moulder` given) is
+wired as a moulder (:func:`wire_moulder`): every head's block on the one PLC, every head's
+amplifier node on the one bus, each head's spool ``<spool_dir>/<head name>``.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from plant_sim.interfaces.plc_process import PlcProcess
 from protocol.can_transport import bus_from_config, describe_bus
 from protocol.registers import RegisterMap
 
-__all__ = ["wire_runner"]
+__all__ = ["wire_moulder", "wire_runner"]
 
 
 def wire_runner(
@@ -64,7 +68,8 @@ def wire_runner(
     time_scale, modbus_port, spool_dir : optional
         Override ``[run] time_scale``, ``[modbus] port``, ``[frames] spool_dir``.
     sink : FrameSink, optional
-        Use this sink instead of a spool directory.
+        Use this sink instead of a spool directory (a moulder: a mapping of head name to
+        sink, :func:`wire_moulder`).
     can_bus : can.BusABC, optional
         Use this bus instead of opening ``[can]``.
     **kwargs
@@ -72,6 +77,12 @@ def wire_runner(
     """
     from protocol.spool import SpoolWriter
 
+    if _is_moulder(cfg, machine):
+        return wire_moulder(cls, cfg, machine=machine, seed=seed, render_images=render_images,
+                            render_workers=render_workers, render_nice=render_nice,
+                            realtime_interfaces=realtime_interfaces, time_scale=time_scale,
+                            modbus_port=modbus_port, spool_dir=spool_dir, sinks=sink,
+                            can_bus=can_bus, **kwargs)
     render = None
     if machine is None:
         from plant_sim.machine.machine import Machine
@@ -81,15 +92,7 @@ def wire_runner(
         if render_images:
             machine.assembler.defer_rendering()
             render = (RenderPool, render_workers)
-    rmap = RegisterMap.load()
-    plc = PlcProcess(
-        machine,
-        register_map=rmap,
-        host=cfg.modbus.host,
-        port=cfg.modbus.port if modbus_port is None else modbus_port,
-        unit_id=cfg.modbus.unit_id,
-        realtime=realtime_interfaces,
-    )
+    plc = _plc(cfg, machine, modbus_port, realtime_interfaces)
     own_bus = can_bus is None
     bus = bus_from_config(cfg.can) if own_bus else can_bus
     try:  # a failure from here on (unusable spool folder, bad option) closes our bus
@@ -123,3 +126,113 @@ def wire_runner(
     runner.description["can"] = describe_bus(cfg.can.interface, cfg.can.channel)
     return runner
 
+
+
+def _is_moulder(cfg: Any, machine: Any) -> bool:
+    """Whether to wire a moulder: a ``Moulder`` given, or none and ``[[heads]]`` declared."""
+    if machine is None:
+        return bool(cfg.declared_heads)
+    from plant_sim.machine.moulder import Moulder
+
+    return isinstance(machine, Moulder)
+
+
+def _plc(cfg: Any, machine: Any, modbus_port: int | None, realtime: bool) -> PlcProcess:
+    return PlcProcess(
+        machine,
+        register_map=RegisterMap.load(),
+        host=cfg.modbus.host,
+        port=cfg.modbus.port if modbus_port is None else modbus_port,
+        unit_id=cfg.modbus.unit_id,
+        realtime=realtime,
+    )
+
+
+def wire_moulder(
+    cls: Any,
+    cfg: Any,
+    *,
+    machine: Any = None,
+    seed: int = 0,
+    render_images: bool = True,
+    render_workers: int = 2,
+    render_nice: int | None = RENDER_NICE,
+    realtime_interfaces: bool = True,
+    time_scale: float | None = None,
+    modbus_port: int | None = None,
+    spool_dir: str | Path | None = None,
+    sinks: Any = None,
+    can_bus: Any = None,
+    **kwargs: Any,
+) -> Any:
+    """A :class:`~plant_sim.run.moulder_runner.MoulderRunner` wired as ``cfg`` says.
+
+    As :func:`wire_runner`, for a moulder: the PLC process serves the common registers and
+    every head's block; ONE bus (``[can]``) carries every head's amplifier node (its
+    ``node_id``); head ``name`` writes to the spool ``<spool_dir>/<name>`` (the service side's
+    default spool of that head, ``config.machine.head_config``); with ``render_images`` (the
+    moulder built here) each head has its own :class:`~plant_sim.run.render_worker.RenderPool`
+    of ``max(1, render_workers // heads)`` workers (its camera, optics and seed
+    :func:`~plant_sim.machine.moulder.head_seed`), which writes that head's spool.
+
+    Parameters
+    ----------
+    cls : type
+        The runner class: a ``MoulderRunner`` (sub)class, else ``MoulderRunner``.
+    machine : Moulder, optional
+        Default: ``Moulder(cfg, seed=seed, render_images=False)``, rendering deferred.
+    sinks : mapping of str to FrameSink, optional
+        Each head's sink instead of its spool directory.
+    **others
+        As :func:`wire_runner`.
+    """
+    from config.sim import head_sim_config
+    from plant_sim.machine.moulder import Moulder, head_seed
+    from plant_sim.run.driver import MoulderDriver
+    from plant_sim.run.moulder_runner import MoulderRunner
+    from plant_sim.run.render_worker import RenderPool
+    from protocol.spool import SpoolWriter
+
+    if not (isinstance(cls, type) and issubclass(cls, MoulderRunner)):
+        cls = MoulderRunner
+    renders = None
+    if machine is None:
+        machine = Moulder(cfg, seed=seed, render_images=False)
+        if render_images:
+            for m in machine.heads.values():
+                m.assembler.defer_rendering()
+            renders = {}
+    names = tuple(machine.names)
+    plc = _plc(cfg, machine, modbus_port, realtime_interfaces)
+    own_bus = can_bus is None
+    bus = bus_from_config(cfg.can) if own_bus else can_bus
+    try:  # a failure from here on (unusable spool folder, bad option) closes our bus
+        core = MoulderDriver.amp_core(machine, eds=cfg.can.eds, seed=seed)
+        amp = AmpNode(bus, core, own_bus=own_bus)
+        if sinks is None:
+            root = Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir)
+            sinks = {n: SpoolWriter(root / n, keep=cfg.frames.keep) for n in names}
+        if renders is not None:
+            workers = max(1, int(render_workers) // len(names))
+            for i, n in enumerate(names):
+                spool = sinks[n] if isinstance(sinks[n], SpoolWriter) else None
+                renders[n] = RenderPool(head_sim_config(cfg, n), seed=head_seed(seed, i),
+                                        workers=workers, writer=spool, nice=render_nice)
+        runner = cls(
+            machine,
+            plc=plc,
+            amp=amp,
+            sinks=sinks,
+            renders=renders,
+            threaded_interfaces=True,
+            realtime_interfaces=realtime_interfaces,
+            time_scale=cfg.run.time_scale if time_scale is None else time_scale,
+            step_s=cfg.run.step_s,
+            **kwargs,
+        )
+    except BaseException:
+        if own_bus:
+            bus.shutdown()
+        raise
+    runner.description["can"] = describe_bus(cfg.can.interface, cfg.can.channel)
+    return runner
