@@ -18,8 +18,8 @@ replays the same list: once all four services report RUN, head ``i`` gets its pa
 by the encoder at each head's position, not together: 400 pairs/s spread evenly). A pair's
 latency runs from its hand-off to its head's source to the return of its feed setpoint's
 Modbus write and its offsets' CAN send (as ``planer bench --only service``). Per head and over
-all heads: pairs in, measured (valid measurement, setpoints applied), failed, dropped by the
-source, p50 / p99 / max latency (the first
+all heads: pairs in, handled (a result), measured (a valid measurement), applied (its setpoints
+went out), failed, dropped by the source, p50 / p99 / max latency of the applied pairs (the first
 :data:`planer.benchmarks.service.WARMUP_PAIRS` of each head apart from the p50 and p99, never
 from the max); the CPU time per pair of the service's process, of the workers and of the PLC's
 process; the workers used; the machine's cores and load average before and after.
@@ -405,7 +405,8 @@ def _figures(bench: list[_Head], frames: list, *, rate_hz: float, workers: int,
             "writes_feed": bool(getattr(head.service.out, "owns_feed", True)),
             "pairs_in": len(head.put_at),
             "handled": len(head.seen),
-            "measured": fig["applied"],
+            "measured": len(head.seen) - fig["failed"],
+            "applied": fig["applied"],
             "failed": fig["failed"],
             "dropped": int(head.source.dropped),
             "unfinished": unfinished.get(head.name, 0),
@@ -423,7 +424,8 @@ def _figures(bench: list[_Head], frames: list, *, rate_hz: float, workers: int,
         }
     s_all = _stats(steady)
     totals = {k: sum(int(p[k]) for p in per_head.values())
-              for k in ("pairs_in", "handled", "measured", "failed", "dropped", "unfinished")}
+              for k in ("pairs_in", "handled", "measured", "applied", "failed", "dropped",
+                        "unfinished")}
     overall = {**totals, "p50_ms": s_all.get("p50"), "p99_ms": s_all.get("p99"),
                "max_ms": _stats(every).get("max"), **cpu}
     overall["pairs_per_s"] = (totals["handled"] / cpu["wall_s"]
@@ -481,8 +483,9 @@ def run(quick: bool = False, *, workers: int = WORKERS, rate_hz: float = RATE_HZ
     Returns
     -------
     dict
-        ``heads`` (per head: ``pairs_in``, ``handled``, ``measured``, ``failed``, ``dropped``,
-        ``p50_ms``, ``p99_ms``, ``max_ms``, ``breakdown_ms`` ...), ``overall`` (the same summed
+        ``heads`` (per head: ``pairs_in``, ``handled``, ``measured``, ``applied``, ``failed``,
+        ``dropped``, ``p50_ms``, ``p99_ms``, ``max_ms``, ``breakdown_ms`` ...), ``overall`` (the
+        same summed
         and over all pairs, with ``cpu_ms_per_pair`` and its parts, ``cores_busy``,
         ``pairs_per_s``), ``meets`` (``p99``, ``nothing_dropped``), ``workers``, ``machine``
         (cores, load average before and after).
@@ -521,7 +524,8 @@ def text(result: dict[str, Any]) -> str:
         f"{result['width']}x{result['height']}, {result['workers']} shared worker process(es); "
         f"{result['transport']}); machine: {m.get('cores')} cores, load {m.get('load_avg')} "
         f"-> {m.get('load_avg_after')}",
-        f"  all heads: {o['handled']}/{o['pairs_in']} handled, {o['measured']} measured, "
+        f"  all heads: {o['handled']}/{o['pairs_in']} handled, {o['measured']} measured "
+        f"({o['applied']} applied), "
         f"{o['failed']} failed, {o['dropped']} dropped"
         + (f", {o['unfinished']} UNFINISHED" if o.get("unfinished") else "")
         + f"; pair -> setpoints p50 {ms(o['p50_ms'])} ms, p99 {ms(o['p99_ms'])} ms, max "

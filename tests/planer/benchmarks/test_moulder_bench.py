@@ -41,12 +41,13 @@ def test_four_heads_share_one_pool_and_every_pair_comes_back_to_its_head(
         assert h["pairs_in"] == N_PAIRS, name
         assert h["handled"] + h["dropped"] + h["unfinished"] == h["pairs_in"], name
         assert h["dropped"] == 0 and h["unfinished"] == 0, name  # the queue holds them all
-        assert h["measured"] + h["failed"] <= h["handled"], name
+        assert h["measured"] + h["failed"] == h["handled"], name
+        assert h["applied"] <= h["measured"], name
         assert h["state"] == "run" and h["safe_entries"] == 0, (name, h["events"])
         for key in ("p50_ms", "p99_ms", "max_ms", "breakdown_ms", "writes_feed"):
             assert key in h, (name, key)
     o = out["overall"]
-    for key in ("pairs_in", "handled", "measured", "failed", "dropped"):
+    for key in ("pairs_in", "handled", "measured", "applied", "failed", "dropped"):
         assert o[key] == sum(h[key] for h in heads.values()), key
     assert o["handled"] == len(moulder.HEADS) * N_PAIRS and o["measured"] >= 1
     assert out["workers"] == 1 and out["workers_shared"]
