@@ -485,8 +485,7 @@ def run(quick: bool = False, *, workers: int = WORKERS, rate_hz: float = RATE_HZ
     dict
         ``heads`` (per head: ``pairs_in``, ``handled``, ``measured``, ``applied``, ``failed``,
         ``dropped``, ``p50_ms``, ``p99_ms``, ``max_ms``, ``breakdown_ms`` ...), ``overall`` (the
-        same summed
-        and over all pairs, with ``cpu_ms_per_pair`` and its parts, ``cores_busy``,
+        same summed and over all pairs, with ``cpu_ms_per_pair`` and its parts, ``cores_busy``,
         ``pairs_per_s``), ``meets`` (``p99``, ``nothing_dropped``), ``workers``, ``machine``
         (cores, load average before and after).
     """
