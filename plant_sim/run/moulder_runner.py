@@ -29,7 +29,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from plant_sim.run.driver import MoulderDriver
-from plant_sim.run.runner import CLOCK_KEY, MAX_RENDER_BACKLOG, SimRunner
+from plant_sim.run.runner import CLOCK_KEY, MAX_PENDING_WRITES, MAX_RENDER_BACKLOG, SimRunner
 
 __all__ = ["MoulderRunner"]
 
@@ -42,8 +42,8 @@ class MoulderRunner(SimRunner):
     moulder : Moulder
         The moulder (``names``, ``heads``, ``node_ids``, ``advance`` giving ``(head, frame)``).
     sinks : mapping of str to FrameSink
-        Each head's frame sink, by name (every head needs one); a spool directory's
-        (``directory``) are written from one writer thread, in order.
+        Each head's frame sink, by name (every head needs one); without renderers a spool
+        directory (``directory``) is written from a writer thread of its own, in order.
     renders : mapping of str to RenderPool, optional
         Each head's render pool (every head, or none): the heads' machines defer their
         rendering (``assembler.defer_rendering()``).
@@ -74,9 +74,11 @@ class MoulderRunner(SimRunner):
         self.names = names
         self.sinks = {n: sinks[n] for n in names}
         self.renders = None if renders is None else {n: renders[n] for n in names}
-        spools = any(hasattr(s, "directory") for s in self.sinks.values())
-        if spools and self.renders is None:
-            self._pool = ThreadPoolExecutor(max_workers=1)
+        self._writers: dict[str, ThreadPoolExecutor] = {}
+        """Each spool's writer thread (no renderers): the heads' fsyncs overlap."""
+        if self.renders is None:
+            self._writers = {n: ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"spool-{n}")
+                             for n, s in self.sinks.items() if hasattr(s, "directory")}
         self.driver = MoulderDriver(moulder, amp=self.amp, plc=self.plc, plc_switch=self,
                                     say=self.say)
         self.frames_by_head: dict[str, int] = dict.fromkeys(names, 0)
@@ -125,7 +127,15 @@ class MoulderRunner(SimRunner):
                 if errors:
                     raise errors[0]
         finally:
-            await super().close()
+            try:
+                if self._writers:
+                    try:
+                        self._collect_writes(wait_all=True)
+                    finally:
+                        for pool in self._writers.values():
+                            pool.shutdown(wait=True)
+            finally:
+                await super().close()
 
     # ------------------------------------------------------------------ stepping
     def _hand_over_head(self, name: str, frame: Any) -> None:
@@ -134,9 +144,9 @@ class MoulderRunner(SimRunner):
         sink = self.sinks[name]
         if r is not None and r.writes_spool:
             pass  # its render worker wrote it
-        elif self._pool is not None:
-            self._writes.append(self._pool.submit(sink.write, frame))
-            self._collect_writes()
+        elif name in self._writers:
+            self._writes.append(self._writers[name].submit(sink.write, frame))
+            self._collect_writes(limit=MAX_PENDING_WRITES * len(self._writers))
         else:
             sink.write(frame)
         self.summary.frames += 1

@@ -385,10 +385,11 @@ class SimRunner:
                     if self._io is not None:
                         self._io.close()
 
-    def _collect_writes(self, *, wait_all: bool = False) -> None:
-        """Drop finished writes (raising a failed one's error); wait when too many are queued."""
+    def _collect_writes(self, *, wait_all: bool = False,
+                        limit: int = MAX_PENDING_WRITES) -> None:
+        """Drop finished writes (raising a failed one's error); wait while over ``limit`` queued."""
         while self._writes and (
-            self._writes[0].done() or wait_all or len(self._writes) > MAX_PENDING_WRITES
+            self._writes[0].done() or wait_all or len(self._writes) > limit
         ):
             self._writes.popleft().result()
 

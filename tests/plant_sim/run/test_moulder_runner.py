@@ -229,3 +229,39 @@ def test_the_shipped_moulder_spools_are_where_the_service_looks():
     assert [h.node_id for h in machine.heads] == [h.node_id for h in sim.heads]
     for h in sim.heads:
         assert head_config(machine, h.name).frames.spool_dir == Path(sim.frames.spool_dir) / h.name
+
+
+def test_planer_sim_runs_the_moulder_and_names_its_heads(tmp_path):
+    """``planer sim --config config/sim_moulder.toml``: the banner names the heads and their
+    spools, SIGTERM stops it with each head's pairs counted."""
+    import signal
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[3]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "planer.cli", "sim", "--config", "config/sim_moulder.toml",
+         "--port", "0", "--no-images", "--no-realtime", "--spool", str(tmp_path / "spool"),
+         "--time-scale", "5"],
+        cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines = []
+    try:
+        for line in proc.stdout:
+            lines.append(line.strip())
+            if line.strip() == "ready":
+                break
+        banner = parse_banner(lines)
+        assert banner["heads"] == ", ".join(HEADS)
+        assert banner["frames"] == f"spool {tmp_path / 'spool'}/<head> keep 50"
+        assert int(banner["modbus"].rsplit(":", 1)[1]) > 0
+        assert f"head bottom: face bottom, node 2, block 0, spool {tmp_path / 'spool'}/bottom" \
+            in lines[lines.index("heads: " + banner["heads"]) + 1]
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    stopped = [line for line in out.splitlines() if line.startswith("stopped at t=")]
+    assert len(stopped) == 1
+    assert "(bottom " in stopped[0] and ", top " in stopped[0]
