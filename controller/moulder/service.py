@@ -9,12 +9,19 @@ own safe state (its offsets) while the others stay controlled.
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 from config.heads import HeadConfig
 from controller.moulder.feed import FeedDecision, MoulderFeed
-from controller.service.service import FrameResult, Service
+from controller.service.service import (
+    FrameCount,
+    FrameResult,
+    Service,
+    run_periodic,
+    run_until_stopped,
+)
 from controller.service.status import ServiceStatus
 
 
@@ -56,6 +63,54 @@ class MoulderService:
         except KeyError:
             raise ValueError(f"head must be one of {list(self.heads)}, got {head!r}") from None
         return await svc.handle_frame(frame, now_s=now_s)
+
+    # ------------------------------------------------------------------ real time
+    @property
+    def first(self) -> Service:
+        """The first head's service (its clock and safety periods are the machine's)."""
+        return next(iter(self.heads.values()))
+
+    async def plc_cycle(self) -> None:
+        """Every head's PLC cycle (its registers, its supervisor), then the one feed."""
+        for svc in self.heads.values():
+            await svc.plc_cycle()
+        first = self.first
+        t = first.service_clock.now()
+        # the coordinator's own unexpected error is the first head's service error: it fails
+        # that head's "service" condition, a machine-wide source (the feed's safe state)
+        with first.keeper.boundary(t, "feed coordinator", part="plc"):
+            await self.feed.cycle(t)
+
+    def can_cycle(self) -> None:
+        """Every head's CAN cycle (its amplifier's command and status; never waits)."""
+        for svc in self.heads.values():
+            svc.can_cycle()
+
+    async def run(self, sources: Mapping[str, Any], *, stop: asyncio.Event | None = None,
+                  max_frames: int | None = None) -> None:
+        """Run in real time until ``stop`` is set (or ``max_frames`` pairs of all heads).
+
+        One PLC task (every head's registers, then the feed coordinator), one CAN task (every
+        head's amplifier), one frame task per head on its own source (``sources[name]``: its
+        camera or spool), as :meth:`Service.run` runs one head.
+        """
+        missing = [n for n in self.heads if n not in sources]
+        if missing:
+            raise ValueError(f"sources must give every head a frame source, missing {missing}")
+        stop = stop or asyncio.Event()
+        cfg = self.first.cfg
+        plc_period = cfg.safety.cycle_s
+        can_period = min(cfg.can.command_period_s, plc_period)
+        count = FrameCount(max_frames, stop)
+        tasks = [asyncio.create_task(run_periodic(can_period, self.can_cycle, stop)),
+                 asyncio.create_task(run_periodic(plc_period, self.plc_cycle, stop))]
+        tasks += [asyncio.create_task(svc.take_frames(sources[name], stop, count))
+                  for name, svc in self.heads.items()]
+        try:
+            await run_until_stopped(tasks, stop)
+        finally:
+            for name, svc in self.heads.items():
+                await svc.finish(sources[name])
 
     def status(self) -> dict[str, ServiceStatus]:
         """Every head's status, by head."""

@@ -356,55 +356,39 @@ class Service:
         stop = stop or asyncio.Event()
         plc_period = self.cfg.safety.cycle_s
         can_period = min(self.cfg.can.command_period_s, plc_period)
-
-        async def periodic(period: float, cycle: Callable[[], Any]) -> None:
-            loop = asyncio.get_running_loop()
-            nxt = loop.time()
-            while not stop.is_set():
-                out = cycle()
-                if asyncio.iscoroutine(out):
-                    await out
-                nxt += period
-                delay = nxt - loop.time()
-                if delay < -period:  # fell behind: skip, do not burst
-                    nxt = loop.time()
-                    delay = 0.0
-                await asyncio.sleep(max(0.0, delay))
-
-        async def frames() -> None:
-            n = 0
-            while not stop.is_set():
-                frame = await self._next_frame(source)
-                if frame is None:
-                    continue
-                t = self.service_clock.now()
-                with self.keeper.boundary(t, f"pair {frame.seq}"):
-                    await self.pipeline.submit(frame)  # handle_frame, or to a worker process
-                n += 1
-                if max_frames is not None and n >= max_frames:
-                    await self.pipeline.drain()
-                    stop.set()
-
+        count = FrameCount(max_frames, stop)
         tasks = [
-            asyncio.create_task(periodic(can_period, self.can_cycle)),
-            asyncio.create_task(periodic(plc_period, self.plc_cycle)),
-            asyncio.create_task(frames()),
+            asyncio.create_task(run_periodic(can_period, self.can_cycle, stop)),
+            asyncio.create_task(run_periodic(plc_period, self.plc_cycle, stop)),
+            asyncio.create_task(self.take_frames(source, stop, count)),
         ]
         try:
-            done, _ = await asyncio.wait(
-                tasks + [asyncio.create_task(stop.wait())], return_when=asyncio.FIRST_COMPLETED
-            )
-            for d in done:
-                if d in tasks and d.exception() is not None:
-                    raise d.exception()  # type: ignore[misc]
+            await run_until_stopped(tasks, stop)
         finally:
-            stop.set()
-            for task in tasks:
-                task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
-            await self.pipeline.drain()  # pairs still with the workers get their records
-            await self.records.settle()  # ... and the last pairs are handled (journal, ms)
-            self._report_skips(source)  # the run's last files too: a record or a named skip
+            await self.finish(source)
+
+    async def take_frames(self, source: Any, stop: asyncio.Event, count: FrameCount) -> None:
+        """The frame task of :meth:`run`: each pair of ``source`` into the pipeline until stopped.
+
+        ``count`` is shared by every frame task of a run (a moulder's heads): the pair that
+        reaches its ``max_frames`` drains the pipeline and sets ``stop``.
+        """
+        while not stop.is_set():
+            frame = await self._next_frame(source)
+            if frame is None:
+                continue
+            t = self.service_clock.now()
+            with self.keeper.boundary(t, f"pair {frame.seq}"):
+                await self.pipeline.submit(frame)  # handle_frame, or to a worker process
+            if count.add():
+                await self.pipeline.drain()
+                stop.set()
+
+    async def finish(self, source: Any) -> None:
+        """After a real-time run: the pairs still with the workers, the records, the skips."""
+        await self.pipeline.drain()  # pairs still with the workers get their records
+        await self.records.settle()  # ... and the last pairs are handled (journal, ms)
+        self._report_skips(source)  # the run's last files too: a record or a named skip
 
     async def _next_frame(self, source: Any) -> Frame | None:
         """The next pair of ``source`` (``None``: none within 0.1 s, or the source failed)."""
@@ -460,6 +444,55 @@ class Service:
             self.plc.close()
         if self.piezo is not None:
             self.piezo.close()
+
+
+class FrameCount:
+    """Pairs taken by the frame tasks of one run, against its ``max_frames`` (``None``: no end)."""
+
+    def __init__(self, max_frames: int | None, stop: asyncio.Event) -> None:
+        self.max_frames = max_frames
+        self.n = 0
+        self.stop = stop
+
+    def add(self) -> bool:
+        """Count one pair; whether the run has taken all it was asked to."""
+        self.n += 1
+        return self.max_frames is not None and self.n >= self.max_frames
+
+
+async def run_periodic(period: float, cycle: Callable[[], Any], stop: asyncio.Event) -> None:
+    """Call ``cycle`` (a function or coroutine function) every ``period`` s until ``stop``.
+
+    A cycle that falls more than one period behind skips ahead instead of bursting.
+    """
+    loop = asyncio.get_running_loop()
+    nxt = loop.time()
+    while not stop.is_set():
+        out = cycle()
+        if asyncio.iscoroutine(out):
+            await out
+        nxt += period
+        delay = nxt - loop.time()
+        if delay < -period:  # fell behind: skip, do not burst
+            nxt = loop.time()
+            delay = 0.0
+        await asyncio.sleep(max(0.0, delay))
+
+
+async def run_until_stopped(tasks: list[asyncio.Task], stop: asyncio.Event) -> None:
+    """Wait until ``stop`` is set or a task ends; a task's error is raised; all cancelled."""
+    try:
+        done, _ = await asyncio.wait(
+            tasks + [asyncio.create_task(stop.wait())], return_when=asyncio.FIRST_COMPLETED
+        )
+        for d in done:
+            if d in tasks and d.exception() is not None:
+                raise d.exception()  # type: ignore[misc]
+    finally:
+        stop.set()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
 
 
 def default_log_path(cfg: MachineConfig) -> Path | str:

@@ -173,6 +173,12 @@ def run(args: argparse.Namespace) -> int:
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     server_for(cfg, args.opcua)  # a bad endpoint or missing security: one line before starting
     listen_for(cfg, args.http)  # a bad address or no web packages: one line before starting
+    if len(cfg.heads) > 1:  # a moulder: a service per head, one feed
+        from planer.commands.serve_moulder import serve_moulder
+
+        return asyncio.run(serve_moulder(cfg, log_path=log_path, opcua=args.opcua,
+                                         http=args.http, max_frames=args.max_frames,
+                                         status_every=args.status_every, say=_say))
     options = RuntimeOptions(workers=args.workers, worker_nice=MEASURE_NICE, prioritize=True,
                              realtime=True, cpu_wakeup=True)
     runtime = ServiceRuntime(cfg, options=options, log_path=log_path,

@@ -1,0 +1,110 @@
+"""``planer serve`` of a moulder (``machine.toml`` with several ``[[heads]]``): its heads, one feed.
+
+The same command, the same lines as for one head, each naming its head: where it connects, one
+progress line per head every ``[log] print_every`` pairs of that head, every change of a head's
+safe state, why it waits; systemd's notifications as for one head. Each head reads its own frame
+source (its spool folder, ``<[frames] spool_dir>/<head>`` unless the head names one, or its
+camera). Measured in the service's threads (measurement worker processes: one head's
+``planer serve``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+from config.machine import MachineConfig, head_config
+from controller.edge.compose import serving
+from controller.sd_notify import Notifier
+from controller.service.supervisor import SafetyState
+
+
+async def serve_moulder(cfg: MachineConfig, *, log_path: Path | str, opcua: str | None,
+                        http: str | None, max_frames: int | None, status_every: float,
+                        say: Any) -> int:
+    """Open, run until SIGINT/SIGTERM (or ``max_frames`` pairs of all heads), close; exit code."""
+    from controller.frames.source import open_frame_source
+    from controller.moulder.compose import open_moulder_service
+    from planer.commands.serve import _event_printer, _progress_printer, waiting_line
+
+    notifier = Notifier()
+    moulder = None
+    sources: dict[str, Any] = {}
+
+    def get() -> Any:
+        return moulder
+
+    async with serving(cfg, get, opcua=opcua, http=http, say=say, log=log_path):
+        try:
+            moulder = open_moulder_service(cfg, log_path=log_path)
+            for hc in cfg.heads:
+                sources[hc.name] = open_frame_source(head_config(cfg, hc.name).frames)
+            return await _run(moulder, sources, cfg, max_frames=max_frames,
+                              status_every=status_every, notifier=notifier, say=say,
+                              printers=(_event_printer, _progress_printer, waiting_line))
+        finally:
+            if moulder is not None:
+                moulder.close()
+            for src in sources.values():
+                src.close()
+
+
+async def _run(moulder: Any, sources: dict[str, Any], cfg: MachineConfig, *,
+               max_frames: int | None, status_every: float, notifier: Notifier, say: Any,
+               printers: tuple) -> int:
+    event_printer, progress_printer, waiting_line = printers
+    t0 = moulder.first.clock()
+    say(f"plc: {cfg.plc.host}:{cfg.plc.port} unit {cfg.plc.unit_id} (the feed and "
+        f"{len(moulder.heads)} head blocks)")
+    for hc in cfg.heads:
+        hcfg = head_config(cfg, hc.name)
+        svc = moulder.heads[hc.name]
+        say(f"head {hc.name}: {hc.face}, target pitch {hc.target_pitch_mm} mm, "
+            f"can {hcfg.can.interface}:{hcfg.can.channel} node {hcfg.can.node_id}, frames "
+            f"{hcfg.frames.spool_dir if hcfg.frames.source == 'spool' else hcfg.frames.camera_id}"
+            f", log {svc.log.path}")
+
+        def stamp(t: float, name: str = hc.name) -> str:
+            return f"t={t:9.3f} s  [{name}] "
+
+        svc.on_event = event_printer(t0, stamp, notifier)
+        svc.on_result = progress_printer(svc, sources[hc.name], t0, cfg.log.print_every,
+                                         stamp, notifier)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+
+    async def tell_why_waiting() -> None:
+        while not stop.is_set():
+            await asyncio.sleep(status_every)
+            for name, svc in moulder.heads.items():
+                status = svc.status()
+                if status.t_s is not None and status.state != SafetyState.RUN.value:
+                    line = f"[{name}] " + waiting_line(
+                        tuple(status.missing), plc=f"{cfg.plc.host}:{cfg.plc.port}",
+                        can=f"{svc.cfg.can.interface}:{svc.cfg.can.channel}",
+                        frames=str(svc.cfg.frames.spool_dir))
+                    notifier.status(line)
+                    say(f"t={svc.clock() - t0:9.3f} s  " + line)
+
+    watcher = asyncio.create_task(tell_why_waiting())
+    watchdog = asyncio.create_task(notifier.watchdog())
+    try:
+        started = asyncio.create_task(moulder.run(sources, stop=stop, max_frames=max_frames))
+        await asyncio.sleep(0)
+        say("ready")
+        notifier.ready("serving a moulder: waiting in the safe state until every source answers")
+        await started
+    finally:
+        watcher.cancel()
+        watchdog.cancel()
+        notifier.stopping("stopping")
+    for name, svc in moulder.heads.items():
+        c = svc.counters
+        print(f"stopped [{name}]: {c['frames']} pairs, {c['ok']} measured, {c['failed']} failed, "
+              f"{c['safe_entries']} safe-state entries", file=sys.stderr, flush=True)
+    return 0
