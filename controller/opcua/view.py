@@ -400,7 +400,7 @@ class MachineView:
     def _grade(self, r: FrameResult) -> None:
         """The board's grade so far with this pair's defects (when looked for, on a board)."""
         board = r.extra.get("board_id")
-        found = pair_fields(r.measurement) if r.measurement is not None else {}
+        found = pair_fields(r.surface) if r.surface is not None else {}  # refused too
         if not isinstance(board, int) or board <= 0 or not found:
             return
         if self._board_grade is not None and self._board_grade["board_id"] != board:

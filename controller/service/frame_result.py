@@ -3,7 +3,32 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from vision.defects.refused import RefusedSurface
+
+
+class Refused(str):
+    """The error of a pair the vision refused, with the planing defects it found all the same.
+
+    The text is the refusal's (:func:`controller.service.measurement.failure_reason`);
+    :attr:`surface` the refused pair's defects, grade and the shift its map was registered at
+    (:class:`vision.defects.refused.RefusedSurface`). Pickles with its surface (a worker
+    process's reply).
+    """
+
+    surface: RefusedSurface | None
+
+    def __new__(cls, reason: str, surface: RefusedSurface | None = None) -> Refused:  # noqa: D102
+        obj = super().__new__(cls, reason)
+        obj.surface = surface
+        return obj
+
+
+def refused_surface_of(error: object) -> RefusedSurface | None:
+    """The defects a pair's error carries (``None``: not a refusal with defects)."""
+    return error.surface if isinstance(error, Refused) else None
 
 
 @dataclass(frozen=True)
@@ -17,7 +42,9 @@ class FrameResult:
     ok : bool
         Whether the measurement succeeded and passed the plausibility checks.
     error : str or None
-        Why not (``"registration failed: ..."``, ``"implausible: ..."``).
+        Why not (``"registration failed: ..."``, ``"implausible: ..."``); a refusal that
+        carries the pair's planing defects is a
+        :class:`Refused` (:attr:`surface`).
     measurement : object or None
         The vision result (``x_mm``, ``pitch_mm``, ``mark_widths_mm``, ...).
     knife_widths_mm : tuple of float
@@ -71,6 +98,25 @@ class FrameResult:
     frame_t_s: float = 0.0
     record_id: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def refused_surface(self) -> Any:
+        """The planing defects of a pair the vision refused (``None``: measured, or not looked for).
+
+        A :class:`vision.defects.refused.RefusedSurface` (``defects``, ``grade``,
+        ``grade_reason``, ``shift_px``).
+        """
+        return refused_surface_of(self.error)
+
+    @property
+    def surface(self) -> Any:
+        """What the pair's planing defects are read from (``None``: neither).
+
+        The measurement, or the refused pair's surface (:attr:`refused_surface`): both have
+        ``defects``, ``grade``, ``grade_reason``, as
+        :func:`controller.quality.defect_fields.pair_fields` reads them.
+        """
+        return self.measurement if self.measurement is not None else self.refused_surface
 
     @property
     def passes(self) -> dict[str, Any]:

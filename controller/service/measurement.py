@@ -23,6 +23,13 @@ A measured pair is *flagged* (kept out of the loops, logged with its reason: the
 pitch per knife pass disagrees with the feed per pass the PLC reports
 (:mod:`controller.service.pitch_check`); the error is then a
 :class:`~controller.service.pitch_check.Flagged`.
+
+A pair the vision refuses may still show planing defects (a torn board is often refused): with
+``defects=True`` the measurer maps it anyway and the refusal carries them
+(:func:`vision.defects.refused.surface_of`). Its error is then a
+:class:`~controller.service.frame_result.Refused`, a string like
+every other pair's error that carries the surface (through a worker process's pipe too), which
+the pair's ``FrameResult.surface`` and quality record read.
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ import numpy as np
 from config.machine import PlausibilityConfig
 from controller.fieldbus.plc_protocol import PlcSnapshot
 from controller.service.events import exc_name
+from controller.service.frame_result import Refused
 from controller.service.pitch_check import (
     FIELD_HALF_MM,
     FeedHistory,
@@ -51,6 +59,7 @@ from controller.service.pitch_check import (
 from core.errors import RegistrationError
 from protocol.frames import Frame
 from vision.calibration.selfcal import SelfCalibrator
+from vision.defects.refused import surface_of
 
 VISION_ERRORS: tuple[type[BaseException], ...] = (
     ValueError,  # MeasurementError, RegistrationError, numpy's LinAlgError, bad inputs
@@ -87,13 +96,20 @@ p99 of 300 pairs."""
 
 
 def failure_reason(exc: BaseException) -> str:
-    """The logged reason of a measurement that raised ``exc``."""
+    """The logged reason of a measurement that raised ``exc``.
+
+    A :class:`Refused` when the refusal carries the pair's defects (the measurer looks for
+    them: :func:`vision.defects.refused.surface_of`), a plain string otherwise.
+    """
     first = str(exc).splitlines()[0] if str(exc) else ""
     if isinstance(exc, RegistrationError):
-        return f"registration failed: {first or exc_name(exc)}"
-    if isinstance(exc, ValueError) and first:  # MeasurementError and the vision's checks
-        return f"measurement failed: {first}"
-    return f"measurement failed: {exc_name(exc)}: {first}"
+        text = f"registration failed: {first or exc_name(exc)}"
+    elif isinstance(exc, ValueError) and first:  # MeasurementError and the vision's checks
+        text = f"measurement failed: {first}"
+    else:
+        text = f"measurement failed: {exc_name(exc)}: {first}"
+    surface = surface_of(exc)
+    return text if surface is None else Refused(text, surface)
 
 
 async def call_blocking(threaded: bool, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:

@@ -319,6 +319,14 @@ class QualityRecords:
             fields.update(self._board_grades.add(int_or(fields.get("board_id"), 0),
                                                  defect.get("defects"),
                                                  finite_or_none(fields.get("board_position_mm"))))
+        elif r.refused_surface is not None:  # refused, its defects found all the same
+            defect = pair_fields(r.refused_surface)
+            fields.update(defect)
+            if defect and r.extra.get(FRAME_CENTRE_KEY) is not None:
+                fields["extra"][FRAME_CENTRE_KEY] = r.extra[FRAME_CENTRE_KEY]
+            fields.update(self._board_grades.add(int_or(fields.get("board_id"), 0),
+                                                 defect.get("defects"),
+                                                 finite_or_none(fields.get("board_position_mm"))))
         if r.ok:
             fields.update(
                 # a vanished knife: the kinematic pitch and CV, not the marks found's

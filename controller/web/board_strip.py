@@ -52,7 +52,7 @@ def defect_fields_json(r: FrameResult) -> dict[str, Any]:
         "board_position_mm": _num(r.extra.get("board_position_mm"), 2),
         "defects": None, "grade": None, "grade_reason": None, "frame_centre_x_mm": None,
     }
-    m = r.measurement
+    m = r.surface  # the measurement, or a refused pair's defects found all the same
     found = pair_fields(m) if m is not None else {}
     if found:
         centre = _num(r.extra.get("frame_centre_x_mm"), 3)
