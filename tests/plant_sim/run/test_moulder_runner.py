@@ -124,7 +124,7 @@ def test_every_head_served_on_modbus_can_and_its_own_spool(tmp_path):
                 master.poll(runner.machine.t_s)
                 return all(a.nmt_state is NmtState.OPERATIONAL for a in amps.values())
 
-            await until(nodes_up, runner, limit_s=30.0, what="every node operational")
+            await until(nodes_up, runner, limit_s=60.0, what="every node operational")
             seen["limits"] = {n: a.limits for n, a in amps.items()}
             seen["before"] = {n: (await c.read()).values for n, c in clients.items()}
             await clients["top"].write_spindle_setpoint(8000.0)
