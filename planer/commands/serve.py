@@ -178,7 +178,9 @@ def run(args: argparse.Namespace) -> int:
 
         return asyncio.run(serve_moulder(cfg, log_path=log_path, opcua=args.opcua,
                                          http=args.http, max_frames=args.max_frames,
-                                         status_every=args.status_every, say=_say))
+                                         status_every=args.status_every, say=_say,
+                                         printers=(_event_printer, _progress_printer,
+                                                   waiting_line)))
     options = RuntimeOptions(workers=args.workers, worker_nice=MEASURE_NICE, prioritize=True,
                              realtime=True, cpu_wakeup=True)
     runtime = ServiceRuntime(cfg, options=options, log_path=log_path,

@@ -24,11 +24,14 @@ from controller.service.supervisor import SafetyState
 
 async def serve_moulder(cfg: MachineConfig, *, log_path: Path | str, opcua: str | None,
                         http: str | None, max_frames: int | None, status_every: float,
-                        say: Any) -> int:
-    """Open, run until SIGINT/SIGTERM (or ``max_frames`` pairs of all heads), close; exit code."""
+                        say: Any, printers: tuple) -> int:
+    """Open, run until SIGINT/SIGTERM (or ``max_frames`` pairs of all heads), close; exit code.
+
+    ``printers``: ``planer serve``'s ``(event_printer, progress_printer, waiting_line)``, the
+    same lines as one head's, here each with its head.
+    """
     from controller.frames.source import open_frame_source
     from controller.moulder.compose import open_moulder_service
-    from planer.commands.serve import _event_printer, _progress_printer, waiting_line
 
     notifier = Notifier()
     moulder = None
@@ -44,7 +47,7 @@ async def serve_moulder(cfg: MachineConfig, *, log_path: Path | str, opcua: str 
                 sources[hc.name] = open_frame_source(head_config(cfg, hc.name).frames)
             return await _run(moulder, sources, cfg, max_frames=max_frames,
                               status_every=status_every, notifier=notifier, say=say,
-                              printers=(_event_printer, _progress_printer, waiting_line))
+                              printers=printers)
         finally:
             if moulder is not None:
                 moulder.close()

@@ -133,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     from core.checks import check_int
     from planer.cli import output_folder
     from plant_sim.interfaces.thread import RENDER_NICE
-    from plant_sim.run.runner import SimRunner
+    from plant_sim.run.moulder_runner import runner_for
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration >= 0):
         raise ValueError(f"--duration must be a finite number >= 0, got {args.duration}")
@@ -162,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
 
     async def main() -> int:
         out = _QuietPipe()
-        runner = SimRunner.from_config(
+        runner = runner_for(
             cfg,
             seed=args.seed,
             render_images=not args.no_images,

@@ -31,7 +31,7 @@ from typing import Any
 from plant_sim.run.driver import MoulderDriver
 from plant_sim.run.runner import CLOCK_KEY, MAX_PENDING_WRITES, MAX_RENDER_BACKLOG, SimRunner
 
-__all__ = ["MoulderRunner"]
+__all__ = ["MoulderRunner", "runner_for"]
 
 
 class MoulderRunner(SimRunner):
@@ -57,6 +57,9 @@ class MoulderRunner(SimRunner):
     frames_by_head : dict of str to int
         Pairs handed to each head's sink so far.
     """
+
+    RUNS_HEADS = True
+    """Wired by :func:`plant_sim.run.wiring.wire_moulder` (a machine of several heads)."""
 
     def __init__(self, moulder: Any, *, sinks: Mapping[str, Any],
                  renders: Mapping[str, Any] | None = None, **options: Any) -> None:
@@ -227,3 +230,15 @@ def _sink_text(sink: Any) -> str:
     if where is None:
         return "frames in-process"
     return f"spool {where} keep {getattr(sink, 'keep', None)}"
+
+
+def runner_for(cfg: Any, **options: Any) -> SimRunner:
+    """The runner a ``SimConfig`` needs, wired as it says.
+
+    A :class:`MoulderRunner` for ``[[heads]]`` (or a ``Moulder`` given as ``machine``), else a
+    :class:`SimRunner`. The options: :func:`plant_sim.run.wiring.wire_runner`.
+    """
+    from plant_sim.run.wiring import wants_moulder
+
+    heads = wants_moulder(cfg, options.get("machine"))
+    return (MoulderRunner if heads else SimRunner).from_config(cfg, **options)

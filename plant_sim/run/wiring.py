@@ -77,7 +77,7 @@ def wire_runner(
     """
     from protocol.spool import SpoolWriter
 
-    if _is_moulder(cfg, machine):
+    if wants_moulder(cfg, machine):
         return wire_moulder(cls, cfg, machine=machine, seed=seed, render_images=render_images,
                             render_workers=render_workers, render_nice=render_nice,
                             realtime_interfaces=realtime_interfaces, time_scale=time_scale,
@@ -128,7 +128,7 @@ def wire_runner(
 
 
 
-def _is_moulder(cfg: Any, machine: Any) -> bool:
+def wants_moulder(cfg: Any, machine: Any) -> bool:
     """Whether to wire a moulder: a ``Moulder`` given, or none and ``[[heads]]`` declared."""
     if machine is None:
         return bool(cfg.declared_heads)
@@ -178,7 +178,7 @@ def wire_moulder(
     Parameters
     ----------
     cls : type
-        The runner class: a ``MoulderRunner`` (sub)class, else ``MoulderRunner``.
+        The runner class: a ``MoulderRunner`` (sub)class (``RUNS_HEADS``).
     machine : Moulder, optional
         Default: ``Moulder(cfg, seed=seed, render_images=False)``, rendering deferred.
     sinks : mapping of str to FrameSink, optional
@@ -189,12 +189,13 @@ def wire_moulder(
     from config.sim import head_sim_config
     from plant_sim.machine.moulder import Moulder, head_seed
     from plant_sim.run.driver import MoulderDriver
-    from plant_sim.run.moulder_runner import MoulderRunner
     from plant_sim.run.render_worker import RenderPool
     from protocol.spool import SpoolWriter
 
-    if not (isinstance(cls, type) and issubclass(cls, MoulderRunner)):
-        cls = MoulderRunner
+    if not getattr(cls, "RUNS_HEADS", False):
+        raise ValueError(f"{getattr(cls, '__name__', cls)} runs one machine; a sim.toml with "
+                         "several [[heads]] needs plant_sim.run.moulder_runner.MoulderRunner "
+                         "(runner_for(cfg) picks the runner)")
     renders = None
     if machine is None:
         machine = Moulder(cfg, seed=seed, render_images=False)

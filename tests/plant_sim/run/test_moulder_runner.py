@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from config.sim import load_sim
-from plant_sim.run.moulder_runner import MoulderRunner
+from plant_sim.run.moulder_runner import MoulderRunner, runner_for
 from plant_sim.run.runner import SimRunner, parse_banner
 from protocol import can_transport
 from protocol.spool import SpoolReader
@@ -78,6 +78,12 @@ async def until(cond, runner, *, limit_s: float, what: str) -> None:
         await asyncio.sleep(0)
 
 
+def test_a_moulder_file_needs_the_moulder_runner(tmp_path):
+    cfg = moulder_cfg(tmp_path)
+    with pytest.raises(ValueError, match=r"SimRunner runs one machine.*MoulderRunner"):
+        SimRunner.from_config(cfg, render_images=False, out=None)
+
+
 def test_a_single_head_file_is_wired_as_before(tmp_path):
     from config.sim import default_sim
 
@@ -86,7 +92,7 @@ def test_a_single_head_file_is_wired_as_before(tmp_path):
         cfg, modbus=dataclasses.replace(cfg.modbus, port=0),
         can=dataclasses.replace(cfg.can, interface="virtual", channel="moulder-runner-single"),
         frames=dataclasses.replace(cfg.frames, spool_dir=str(tmp_path / "spool")))
-    runner = SimRunner.from_config(cfg, render_images=False, out=None)
+    runner = runner_for(cfg, render_images=False, out=None)
     try:
         assert type(runner) is SimRunner
         assert runner.sink.directory == tmp_path / "spool"
@@ -104,7 +110,7 @@ def test_every_head_served_on_modbus_can_and_its_own_spool(tmp_path):
 
     cfg = moulder_cfg(tmp_path)
     clock, lines = FakeClock(), []
-    runner = SimRunner.from_config(cfg, seed=2, render_images=False, clock=clock,
+    runner = runner_for(cfg, seed=2, render_images=False, clock=clock,
                                    sleep=clock.sleep, out=lines.append, progress_every_s=1.0,
                                    realtime_interfaces=False)
     assert isinstance(runner, MoulderRunner)
@@ -187,7 +193,7 @@ def test_each_heads_images_are_rendered_as_the_moulder_renders_them(tmp_path):
 
     cfg = moulder_cfg(tmp_path, small_images=True)
     clock = FakeClock()
-    runner = SimRunner.from_config(cfg, seed=4, render_images=True, render_workers=4,
+    runner = runner_for(cfg, seed=4, render_images=True, render_workers=4,
                                    clock=clock, sleep=clock.sleep, out=None,
                                    realtime_interfaces=False, render_nice=None)
     assert all(r.workers == 1 for r in runner.renders.values())
