@@ -180,7 +180,7 @@ def _median(v: np.ndarray, n: int) -> float:  # pragma: no cover - compiled
 @njit(**_JIT)
 def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int, k: int,
                  cell: int, profile: np.ndarray, r: np.ndarray, e: np.ndarray,
-                 valid_cells: np.ndarray) -> tuple[float, int, float]:  # pragma: no cover
+                 valid_cells: np.ndarray) -> tuple[float, int]:  # pragma: no cover
     """The marks' robust column profile, the residual and its cells (see ``residual``).
 
     Parameters
@@ -207,8 +207,7 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     -------
     tuple
         The median absolute deviation of the samples from the profile's first estimate
-        (every third row and column), the number of valid cells and their upper median
-        mean square (element ``n // 2`` in order, as ``np.partition``; 1.0 without one).
+        (every third row and column), and the number of valid cells.
     """
     rows, cols = p.shape
     n_g = rows // group
@@ -283,7 +282,6 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     half_cell = 0.5 * cell
     acc = np.empty(n_cells)
     w = np.empty(n_cells, dtype=np.int32)
-    cells = np.empty(rows * n_cells, dtype=np.float32)  # the valid cells' mean squares
     for i in range(rows):
         for c in range(cols):
             r[i, c] = p[i, c] - prof32[c] if valid[i, c] else zero
@@ -301,11 +299,8 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
             ok = w[j] >= half_cell
             valid_cells[i, j] = ok
             e[i, j] = acc[j] / max(w[j], 1) if ok else 0.0
-            if ok:
-                cells[nc] = e[i, j]
-                nc += 1
-    median = _select(cells, nc, nc // 2) if nc > 0 else 1.0
-    return scale, nc, median
+            nc += ok
+    return scale, nc
 
 
 @njit(**_JIT)
