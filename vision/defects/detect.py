@@ -404,7 +404,7 @@ def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None 
     if pitch_mm is None or not math.isfinite(pitch_mm) or pitch_mm <= 0:
         return [], set()
     period = (knives or 1) * pitch_mm * smap.cols_per_mm
-    cols = np.flatnonzero(smap.valid.any(axis=0))
+    cols = smap.valid_cols
     if cols.size == 0 or (int(cols[-1]) + 1 - int(cols[0])) < 3 * period:
         return [], set()  # fewer than three revolutions: no median over them
     rows = res.r.shape[0]
@@ -464,8 +464,8 @@ def raised_grain(res: Residual, settings: DefectSettings) -> list[Defect]:
             or coh >= settings.raised_strong):
         return []
     smap = res.smap
-    rows = np.flatnonzero(smap.valid.any(axis=1))
-    cols = np.flatnonzero(smap.valid.any(axis=0))
+    rows = smap.valid_rows
+    cols = smap.valid_cols
     # ridge height: the rms of the residual integrated along the rows, x sqrt(2)
     h = np.cumsum(res.r.astype(np.float64), axis=1) * 1000.0 / smap.cols_per_mm
     h -= h.mean(axis=1, keepdims=True)
@@ -561,8 +561,8 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
     amp = amp_d / (2.0 * math.sin(math.pi * float(f[k])))
     if amp < settings.chatter_um or explained < 0.5 or amp_d < 4.5 * noise:
         return []
-    cols = np.flatnonzero(smap.valid.any(axis=0))
-    rows = np.flatnonzero(smap.valid.any(axis=1))
+    cols = smap.valid_cols
+    rows = smap.valid_rows
     conf = min(1.0, explained) * min(1.0, amp / (2 * settings.chatter_um))
     return [_defect(res, DefectKind.CHATTER, (int(cols[0]), int(cols[-1]) + 1),
                     (int(rows[0]), int(rows[-1]) + 1), amp, conf)]
@@ -610,7 +610,7 @@ def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> li
     """
     smap = res.smap
     prof = res.profile
-    cols = np.flatnonzero(smap.valid.any(axis=0))
+    cols = smap.valid_cols
     if cols.size < 16:
         return []
     c0, c1 = int(cols[0]), int(cols[-1]) + 1
@@ -626,7 +626,7 @@ def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> li
         return []
     slope_ends = c1_ + 2 * c2 * np.array([-half, half])
     left = abs(slope_ends[0]) >= abs(slope_ends[1])
-    rows = np.flatnonzero(smap.valid.any(axis=1))
+    rows = smap.valid_rows
     span = (c1 - c0) / 4
     cs = (c0, c0 + span) if left else (c1 - span, c1)
     conf = min(1.0, sag / (2 * settings.snipe_um))

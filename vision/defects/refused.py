@@ -132,7 +132,7 @@ def map_pitch_mm(res: Residual) -> float:
         Pitch, mm; NaN when the profile holds fewer than two periods of anything.
     """
     smap = res.smap
-    cols = np.flatnonzero(smap.valid.any(axis=0))
+    cols = smap.valid_cols
     if cols.size < 16:
         return math.nan
     prof = res.profile[int(cols[0]):int(cols[-1]) + 1]

@@ -30,6 +30,7 @@ them into A's undistorted image frame (mm from its top-left corner, x = columns)
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -92,6 +93,20 @@ class SurfaceMap:
     def shape(self) -> tuple[int, int]:
         """``(rows, cols)`` of the map."""
         return self.slope_along_feed.shape  # type: ignore[return-value]
+
+    @functools.cached_property
+    def valid_cols(self) -> np.ndarray:
+        """Map columns with at least one valid sample (found once per map; read-only)."""
+        cols = np.flatnonzero(self.valid.any(axis=0))
+        cols.flags.writeable = False
+        return cols
+
+    @functools.cached_property
+    def valid_rows(self) -> np.ndarray:
+        """Map rows with at least one valid sample (found once per map; read-only)."""
+        rows = np.flatnonzero(self.valid.any(axis=1))
+        rows.flags.writeable = False
+        return rows
 
     @property
     def cols_per_mm(self) -> float:
