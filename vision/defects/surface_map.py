@@ -12,10 +12,12 @@ shading ``cos(sigma)``, relative to its mean over the field (1 = typical wood).
 per roll (cached) from row-binned *distorted* images to a grid turned to the feed -- columns
 along the feed every ``bin_cols`` px, rows across it every ``bin_rows * merge_rows`` image rows
 -- undistorted at once.  The source rows are first averaged over ``merge_rows`` rows and
-``bin_cols`` columns (``cv2.resize``, area), so the remap and every step after it run on the
-coarse grid.  On that grid the board's motion between the shots is a shift along the columns
-alone, so B is registered with the measurement's shift (``Measurement.shift_px``, px along the
-feed) by a linear interpolation along the rows, in one compiled pass with the ratio and the
+``bin_cols`` columns (``cv2.resize``'s area integers; for ``uint16`` row bins a linear resize
+to half the width or :func:`vision.defects.kernels.column_means_u16`, the same integers
+faster), so the remap and every step after it run on the coarse grid.  On that grid the
+board's motion between the shots is a shift along the columns alone, so B is registered
+with the measurement's shift (``Measurement.shift_px``, px along the feed) by a linear
+interpolation along the rows, in one compiled pass with the ratio and the
 albedo (:func:`vision.defects.kernels.register_ratio`).  With ``bin_rows = 1`` and
 ``bin_cols = 1`` the map has the camera's full resolution; the
 :class:`vision.pipeline.Measurer`'s :class:`vision.defects.detect.DefectFinder` builds it from
