@@ -309,13 +309,19 @@ def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
     if n <= 1:
         return []
     area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
-    strength = np.bincount(labels.ravel(), weights=res.excess.ravel(), minlength=n) / area
+    large = np.flatnonzero(area * cell_mm * row_mm >= settings.min_blob_mm2)
+    large = large[large > 0]
+    # the mean excess of the large groups only: each one's cells in its box, summed in order
+    # (as np.bincount sums them)
+    strength = np.zeros(n)
+    for lab in large.tolist():
+        x, y, w, h = (int(v) for v in stats[lab, :4])
+        box = res.excess[y:y + h, x:x + w][labels[y:y + h, x:x + w] == lab]
+        strength[lab] = float(np.cumsum(box, dtype=np.float64)[-1]) / area[lab]
     # confidence >= min_confidence  <=>  strength >= excess (1 - ln(1 - c) / 1.5)
     need = settings.excess * (1.0 - math.log(1.0 - min(settings.min_confidence, 0.999)) / 1.5)
-    keep = np.flatnonzero((area * cell_mm * row_mm >= settings.min_blob_mm2)
-                          & (strength >= need))
+    keep = large[strength[large] >= need]
     out: list[Blob] = []
-    keep = keep[keep > 0]
     if keep.size == 0:
         return out
     hp = hp5 = None
