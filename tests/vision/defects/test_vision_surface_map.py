@@ -152,3 +152,33 @@ def test_the_middle_row_of_each_block_keeps_the_maps_geometry():
     np.testing.assert_allclose(m.slope_along_feed, ref.slope_along_feed, atol=1e-5)
     with pytest.raises(ValueError, match="middle_row"):
         SurfaceMapper(_camera(), lights, a.shape, merge_rows=4, middle_row=True)
+
+
+def test_valid_rows_and_columns_are_the_maps_and_read_only():
+    a, b, _, _ = _pair(17)
+    m = SurfaceMapper(_camera(), Lights(slant_deg=SLANT), a.shape, bin_rows=1, merge_rows=5,
+                      bin_cols=2)(a, b, shift_px=17.0)
+    assert np.array_equal(m.valid_cols, np.flatnonzero(m.valid.any(axis=0)))
+    assert np.array_equal(m.valid_rows, np.flatnonzero(m.valid.any(axis=1)))
+    assert m.valid_cols.size < m.shape[1]  # B's shift leaves the last columns unseen
+    assert m.valid_cols is m.valid_cols  # found once
+    with pytest.raises(ValueError):
+        m.valid_cols[0] = 5
+
+
+def test_uint16_row_bins_give_the_same_map_as_float_ones():
+    """The fast coarse paths of ``uint16`` bins (pairs of columns, wider blocks of the middle
+    bin): the map of the same sums given as float64 (OpenCV's area resize) is the same."""
+    a, b, _, _ = _pair(17)
+    bins_a = a.reshape(40, 3, -1).sum(axis=1).astype(np.uint16)
+    bins_b = b.reshape(40, 3, -1).sum(axis=1).astype(np.uint16)
+    for merge, cols, middle in ((1, 2, False), (3, 6, True), (1, 4, False)):
+        mapper = SurfaceMapper(_camera(), Lights(slant_deg=SLANT), a.shape, bin_rows=3,
+                               merge_rows=merge, bin_cols=cols, middle_row=middle)
+        fast = mapper(bins_a, bins_b, shift_px=17.0)
+        ref = mapper(bins_a.astype(np.float64), bins_b.astype(np.float64), shift_px=17.0)
+        assert np.array_equal(fast.valid, ref.valid)
+        # the fast paths round the block means to integers (as OpenCV does for uint16: half a
+        # DN of ~250, a slope error below 1e-3 against marks of +-0.013)
+        np.testing.assert_allclose(fast.slope_along_feed, ref.slope_along_feed, atol=1e-3)
+        assert np.abs(fast.slope_along_feed - ref.slope_along_feed).max() > 0
