@@ -36,6 +36,7 @@ from controller.service.latency import prioritize, tune_for_latency
 from controller.service.service import Service, open_service
 from controller.workers.pool import open_worker_pool
 from core.checks import check_int
+from core.closing import close_all
 from core.realtime import BUS_RT_PRIORITY, cpu_wakeup_latency, realtime_thread
 
 __all__ = ["RuntimeOptions", "ServiceRuntime"]
@@ -251,7 +252,7 @@ class ServiceRuntime:
         if self.source is not None:
             steps.append(self.source.close)
         steps.extend(self._closers)  # after the source's thread that polls them
-        _close_all(steps)
+        close_all(steps)
 
     async def __aenter__(self) -> ServiceRuntime:
         await self.open()
@@ -259,16 +260,3 @@ class ServiceRuntime:
 
     async def __aexit__(self, *exc: object) -> None:
         self.close()
-
-
-def _close_all(steps: list[Callable[[], Any]]) -> None:
-    """Call every step in order, each even when one before it raised.
-
-    The last error raised propagates, the earlier ones chained as its ``__context__``.
-    """
-    if not steps:
-        return
-    try:
-        steps[0]()
-    finally:  # an error in a later step carries this one as its context
-        _close_all(steps[1:])

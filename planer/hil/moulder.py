@@ -173,15 +173,12 @@ class MoulderPlant:
         return out
 
     def _close_parts(self, heads: dict[str, Any]) -> None:
-        for svc in heads.values():
-            try:
-                svc.close()
-            except Exception:  # noqa: BLE001, S110 - closing on a failed start: go on
-                pass
-        for amp in self.amps.values():
-            amp.close()
-        for bus in self._buses:
-            bus.shutdown()
+        """A failed start: every part opened so far closed (the last error propagates)."""
+        from core.closing import close_all
+
+        close_all([svc.close for svc in heads.values()]
+                  + [amp.close for amp in self.amps.values()]
+                  + [bus.shutdown for bus in self._buses])
 
     async def close(self) -> None:
         """Close every head's service, the coordinator's connection and the nodes."""

@@ -28,6 +28,7 @@ from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
+from core.closing import close_all
 from plant_sim.run.driver import MoulderDriver
 from plant_sim.run.runner import CLOCK_KEY, MAX_PENDING_WRITES, MAX_RENDER_BACKLOG, SimRunner
 
@@ -116,19 +117,9 @@ class MoulderRunner(SimRunner):
     async def close(self) -> None:
         """Finish every head's pending frames and writes, then close as :class:`SimRunner`."""
         try:
-            if self.renders is not None:
-                errors: list[BaseException] = []
-                for name, r in self.renders.items():
-                    try:
-                        try:
-                            for f in r.take(wait=True):
-                                self._hand_over_head(name, f)
-                        finally:
-                            r.close()
-                    except BaseException as exc:  # every head closes; the first error raised
-                        errors.append(exc)
-                if errors:
-                    raise errors[0]
+            if self.renders is not None:  # every head closes even when one before raised
+                close_all([lambda n=name, r=r: self._finish_head(n, r)
+                           for name, r in self.renders.items()])
         finally:
             try:
                 if self._writers:
@@ -139,6 +130,14 @@ class MoulderRunner(SimRunner):
                             pool.shutdown(wait=True)
             finally:
                 await super().close()
+
+    def _finish_head(self, name: str, render: Any) -> None:
+        """Hand over a head's pairs still rendering, then close its render pool."""
+        try:
+            for f in render.take(wait=True):
+                self._hand_over_head(name, f)
+        finally:
+            render.close()
 
     # ------------------------------------------------------------------ stepping
     def _hand_over_head(self, name: str, frame: Any) -> None:
