@@ -189,6 +189,9 @@ class AmpBus:
         self.now_s = 0.0
         """The service's time of the frames being handled (set by :meth:`poll`)."""
         self.amplifiers: dict[int, CanopenAmplifier] = {}
+        self.heard: dict[int, int] = {}
+        """Frames delivered from each node so far, by node id (a client of one node on a
+        shared bus takes its own from here, whoever drained the bus)."""
 
     @property
     def counts(self) -> dict[str, int]:
@@ -215,14 +218,19 @@ class AmpBus:
         if node is not None:
             amp = self.amplifiers[node]
             amp.last_frame_s = max(self.now_s, amp.last_frame_s or self.now_s)
+            self.heard[node] = self.heard.get(node, 0) + 1
         return node
 
-    def poll(self, now_s: float, *, max_frames: int = 1000) -> dict[int, int]:
+    def poll(self, now_s: float, *, max_frames: int = 1000,
+             only: int | None = None) -> dict[int, int]:
         """Drain the bus, then let each amplifier do what is due (SDO, NMT).
 
         Draining never blocks, except while an SDO read is under way (at start and after a
         reconnect): then answers are waited for, :attr:`sdo_wait_s` at most per call in all,
         so a node that answers within milliseconds has its limits read in one or two cycles.
+        Every frame drained goes to its node whatever ``only`` says (each frame is decoded
+        once, by the one bus); ``only`` (a node id): only that amplifier is served and waited
+        for (a head's client on a bus it shares with the other heads' amplifiers).
 
         Returns
         -------
@@ -238,13 +246,15 @@ class AmpBus:
         for _ in range(max_frames):
             if not self._take(self._recv(0.0), now_s, heard):
                 break
-        self.serve(now_s)
+        amps = (list(self.amplifiers.values()) if only is None
+                else [self.amplifiers[only]] if only in self.amplifiers else [])
+        self._serve(amps, now_s)
         end = time.monotonic() + self.sdo_wait_s
-        while any(a.reading for a in self.amplifiers.values()):
+        while any(a.reading for a in amps):
             left = end - time.monotonic()
             if left <= 0.0 or not self._take(self._recv(left), now_s, heard):
                 break
-            self.serve(now_s)
+            self._serve(amps, now_s)
         return heard
 
     def _recv(self, timeout_s: float) -> Any:
@@ -264,10 +274,15 @@ class AmpBus:
                 heard[node] = heard.get(node, 0) + 1
         return True
 
-    def serve(self, now_s: float) -> None:
-        """What each amplifier has due at ``now_s``: SDO answers and requests, NMT start."""
+    def serve(self, now_s: float, *, only: int | None = None) -> None:
+        """What each amplifier (``only``: that node's) has due at ``now_s``: SDO, NMT start."""
+        amps = self.amplifiers.values() if only is None else (
+            [self.amplifiers[only]] if only in self.amplifiers else [])
+        self._serve(amps, now_s)
+
+    def _serve(self, amps: Any, now_s: float) -> None:
         self.now_s = float(now_s)
-        for amp in self.amplifiers.values():
+        for amp in amps:
             amp.serve(self.now_s)
 
     def close(self) -> None:
@@ -278,6 +293,19 @@ class AmpBus:
             except (can.CanError, OSError, ValueError, AttributeError):  # closing goes on
                 pass
             self.network.bus = None
+
+
+def _pdo_layout(pdo: Any) -> tuple[tuple[int, Any], ...] | None:
+    """``(byte offset, object)`` of each value a PDO maps, in order.
+
+    ``None``: a value is off the byte grid, or the PDO maps nothing.
+    """
+    layout = []
+    for var in pdo:
+        if var.offset % 8 or var.length % 8 or len(var.od) != var.length:
+            return None
+        layout.append((var.offset // 8, var.od))
+    return tuple(layout) or None
 
 
 class CanopenAmplifier:
@@ -312,6 +340,7 @@ class CanopenAmplifier:
         self.cob_ids = cob_ids(node_id)
         self.node.rpdo.read(from_od=True)
         self.node.tpdo.read(from_od=True)
+        self._layouts = {no: _pdo_layout(self.node.rpdo[no]) for no in (1, 2, 3)}
         self.node.tpdo[1].add_callback(self._on_status)
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
         self.node.emcy.add_callback(self._on_emcy)
@@ -434,11 +463,8 @@ class CanopenAmplifier:
 
     def command(self, *, enable: bool, alive_counter: int) -> None:
         """RPDO3: enable, the head's knives and the master's alive counter."""
-        pdo = self.node.rpdo[3]  # maps COMMAND's enable, knives, alive counter
-        for var, value in zip(pdo, (int(bool(enable)), self.knives, int(alive_counter) & 0xFF),
-                              strict=True):
-            var.raw = value
-        pdo.transmit()
+        # RPDO3 maps COMMAND's enable, knives, alive counter
+        self._transmit(3, (int(bool(enable)), self.knives, int(alive_counter) & 0xFF))
         self.counts["commands"] += 1
 
     def set_offsets(self, offsets_um: Sequence[float]) -> None:
@@ -459,11 +485,28 @@ class CanopenAmplifier:
         for first, pdo_no in ((0, 1), (4, 2)):  # each maps four of OFFSETS' knives, in order
             if first >= self.knives:
                 break
-            pdo = self.node.rpdo[pdo_no]
-            for var, raw in zip(pdo, raws[first:first + 4], strict=True):
-                var.raw = raw
-            pdo.transmit()
+            self._transmit(pdo_no, raws[first:first + 4])
         self.counts["tables"] += 1
+
+    def _transmit(self, pdo_no: int, values: Sequence[int]) -> None:
+        """Set RPDO ``pdo_no``'s mapped values, in order, and send it once.
+
+        The bytes are the library's (each value encoded by its object's ``encode_raw`` at its
+        place in the PDO's data, as ``var.raw = value`` sets them) without its per-value
+        logging; a map with a value off the byte grid goes through the library itself.
+        """
+        pdo = self.node.rpdo[pdo_no]
+        layout = self._layouts[pdo_no]
+        if layout is None or len(layout) != len(values):
+            for var, value in zip(pdo, values, strict=True):
+                var.raw = value
+        else:
+            data = pdo.data
+            for (at, od_var), value in zip(layout, values, strict=True):
+                raw = od_var.encode_raw(value)
+                data[at:at + len(raw)] = raw
+            pdo.update()
+        pdo.transmit()
 
     # -- inputs (handed over by AmpBus, at its now_s) ------------------------------------------
 

@@ -164,6 +164,11 @@ class PiezoClient:
         Longest a send may wait for room in the transmit queue, s (default
         ``min(0.005, command_period_s / 4)``): a full queue raises ``FieldbusError`` instead of
         holding up the cycle; the amplifier's setpoint timeout acts on its own.
+    ampbus : AmpBus, optional
+        A master the client shares with other heads' clients (one CAN connection for every
+        amplifier of a moulder: each frame received and decoded once). ``bus`` is then
+        ``ampbus.bus``, or ``None``; the client does not own it (:meth:`close` leaves it open,
+        its opener closes it) and serves only its own node.
     """
 
     def __init__(
@@ -179,6 +184,7 @@ class PiezoClient:
         heartbeat_lost_after: float = 3.0,
         refusal_grace_s: float = REFUSAL_GRACE_S,
         send_timeout_s: float | None = None,
+        ampbus: AmpBus | None = None,
     ) -> None:
         self.knives = check_int("knives", knives, lo=1, hi=MAX_KNIVES)
         self.command_period_s = check_positive("command_period_s", command_period_s)
@@ -192,11 +198,17 @@ class PiezoClient:
                                  wire_bound_um=WIRE_BOUND_UM)
         """The bound on the offsets in force (machine.toml, the amplifier, refusals)."""
         self.refusal_grace_s = check_positive("refusal_grace_s", refusal_grace_s, allow_zero=True)
-        self.bus = bus
-        self.ampbus = AmpBus(bus, eds=eds, send_timeout_s=self.send_timeout_s)
+        if ampbus is not None and bus is not None and bus is not ampbus.bus:
+            raise ValueError("bus must be the shared master's bus (ampbus.bus) or None")
+        self.shared = ampbus is not None
+        """The bus is shared with other heads' clients (not closed by :meth:`close`)."""
+        self.ampbus = ampbus if ampbus is not None else AmpBus(
+            bus, eds=eds, send_timeout_s=self.send_timeout_s)
+        self.bus = self.ampbus.bus
         self.amp: CanopenAmplifier = self.ampbus.amplifier(
             node_id, knives=self.knives, heartbeat_lost_after=heartbeat_lost_after)
         """The amplifier's node (SDO, NMT, PDOs, heartbeat, EMCY)."""
+        self._heard_mark = 0  # the bus's count of this node's frames already taken
         self.enable = False
         self.offsets_um: tuple[float, ...] = (0.0,) * self.knives
         self._wanted: tuple[float, ...] = self.offsets_um  # as asked for, before the bound
@@ -353,9 +365,16 @@ class PiezoClient:
             The bus cannot be read, or a request cannot be sent.
         """
         try:
-            heard = self.ampbus.poll(now_s, max_frames=max_frames).get(self.amp.node_id, 0)
+            self.ampbus.poll(now_s, max_frames=max_frames,
+                             only=self.amp.node_id if self.shared else None)
         finally:
             self._after(now_s)
+        return self._take_heard()
+
+    def _take_heard(self) -> int:
+        """Frames of the amplifier delivered since the last call (by whichever client drained)."""
+        total = self.ampbus.heard.get(self.amp.node_id, 0)
+        heard, self._heard_mark = total - self._heard_mark, total
         self.received += heard
         return heard
 
@@ -365,14 +384,12 @@ class PiezoClient:
         Anything a bus may deliver is taken: a frame of no service of the amplifier (foreign,
         malformed, our own echoed) changes nothing and is counted (:attr:`counts`).
         """
-        node = self.ampbus.deliver(arbitration_id, data, now_s)
+        self.ampbus.deliver(arbitration_id, data, now_s)
         try:
-            self.ampbus.serve(now_s)
+            self.ampbus.serve(now_s, only=self.amp.node_id if self.shared else None)
         finally:
             self._after(now_s)
-        heard = int(node == self.amp.node_id)
-        self.received += heard
-        return heard
+        return self._take_heard()
 
     def _after(self, now_s: float) -> None:
         """What the frames handed over changed: reconnects, limits, the status, emergencies."""
@@ -448,5 +465,6 @@ class PiezoClient:
         return now_s - self.last_heard_s
 
     def close(self) -> None:
-        """Shut the bus down."""
-        self.ampbus.close()
+        """Shut the bus down (a shared bus is left to its opener)."""
+        if not self.shared:
+            self.ampbus.close()

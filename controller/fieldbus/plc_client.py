@@ -227,6 +227,9 @@ class PlcClient:
         self.reconnects = 0
         self.failures = 0
         self._heartbeat: int | None = None
+        self._offered: list[int] | None = None  # the common span's words of another read
+        self.last_common: list[int] | None = None
+        """The words of the common span (``protocol.ranges[0]``) of the last read."""
         self._views: dict[int, PlcProtocol] = {}
         self._lock: asyncio.Lock | None = None
         self._lock_loop: Any = None
@@ -326,9 +329,28 @@ class PlcClient:
             The PLC answered with an exception.
         """
         async with self._bus_lock():
-            snap = await self._sample(self.protocol)
+            offered, self._offered = self._offered, None
+            snap = await self._sample(self.protocol, common=offered)
         self.last = snap
         return snap
+
+    def offer_common(self, words: Sequence[int] | None) -> None:
+        """The common span's words another client has just read, for this client's next read.
+
+        A moulder's heads read the same machine-wide registers (the common span, ``ranges[0]``
+        of every head's view): the coordinator reads them once per PLC cycle and offers its
+        words to each head, whose next :meth:`read` then asks the PLC only for its block. Used
+        once (the read after takes the PLC's again); ``None`` withdraws an offer not yet used;
+        ``ValueError`` when ``words`` are not the span's length (another map's).
+        """
+        if words is None:
+            self._offered = None
+            return
+        ws = [int(w) for w in words]
+        if len(ws) != self.protocol.read_count:
+            raise ValueError(f"words must be the common span's {self.protocol.read_count} "
+                             f"words, got {len(ws)}")
+        self._offered = ws
 
     async def read_head(self, i: int) -> PlcSnapshot:
         """Read the common registers and head ``i``'s block (a tool's look at any head).
@@ -353,11 +375,19 @@ class PlcClient:
             self.last = snap
         return snap
 
-    async def _sample(self, p: PlcProtocol) -> PlcSnapshot:
-        """Read every range of ``p`` (the bus lock held): one snapshot."""
+    async def _sample(self, p: PlcProtocol, *, common: list[int] | None = None) -> PlcSnapshot:
+        """Read every range of ``p`` (the bus lock held): one snapshot.
+
+        ``common``: the words of ``p.ranges[0]`` already read (:meth:`offer_common`).
+        """
         a, n = p.ranges[0]
-        words = await self._do_locked("reading", a, n, lambda: self.bus.read(a, n), p)
+        if common is None:
+            words = await self._do_locked("reading", a, n, lambda: self.bus.read(a, n), p)
+        else:
+            words = common
         values = p.decode_range(0, words)
+        if p is self.protocol:
+            self.last_common = list(words)
         if p.block is not None:
             b, m = p.block
             rw = getattr(self.bus, "read_write", None)

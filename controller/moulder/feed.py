@@ -99,19 +99,37 @@ class MoulderFeed:
                        "refused": 0, "safe_cycles": 0}
         self._speed: dict[str, float] = {}
         self._last_t: float | None = None
+        self._snap: PlcSnapshot | None = None  # sample()'s registers, for decide()
 
     # ------------------------------------------------------------------ the cycle
     async def cycle(self, t: float) -> FeedDecision:
         """Heartbeat, read, decide, write; the decision (never raises for the PLC's trouble)."""
-        self.counts["cycles"] += 1
-        dt = 0.0 if self._last_t is None else max(0.0, t - self._last_t)
-        self._last_t = t
+        await self.sample()
+        return await self.decide(t)
+
+    async def sample(self) -> PlcSnapshot | None:
+        """The cycle's first half: the heartbeat, then one read of the common registers.
+
+        A moulder's PLC cycle takes it before the heads' own reads and offers its words to
+        each head (:meth:`PlcClient.offer_common`): the machine-wide registers are read once
+        per cycle. ``None`` when the PLC did not answer (:meth:`decide` then writes nothing).
+        """
+        self._snap = None
         try:
             self.heartbeat = (self.heartbeat + 1) & 0xFFFF
             await self.plc.write_heartbeat(self.heartbeat)
-            snap = await self.plc.read()
+            self._snap = await self.plc.read()
         except FieldbusError:
             self.counts["plc_errors"] += 1
+        return self._snap
+
+    async def decide(self, t: float) -> FeedDecision:
+        """The cycle's second half on the registers :meth:`sample` read: decide, write."""
+        self.counts["cycles"] += 1
+        dt = 0.0 if self._last_t is None else max(0.0, t - self._last_t)
+        self._last_t = t
+        snap, self._snap = self._snap, None
+        if snap is None:
             self.last = FeedDecision(t, None, True)
             return self.last
         if snap.problem() is not None:  # the PLC talks nonsense: no write (its watchdog acts)

@@ -23,6 +23,7 @@ from controller.service.service import (
     run_until_stopped,
 )
 from controller.service.status import ServiceStatus
+from core.closing import close_all
 
 
 class MoulderService:
@@ -36,10 +37,13 @@ class MoulderService:
         The heads, same order.
     feed : MoulderFeed
         The coordinator of the one feed.
+    shared : sequence, optional
+        What the heads share and the moulder closes after every head (``close()``): the one
+        CAN master of every head's amplifier (:class:`~controller.fieldbus.canopen_amp.AmpBus`).
     """
 
     def __init__(self, heads: Mapping[str, Service], head_configs: Sequence[HeadConfig], *,
-                 feed: MoulderFeed) -> None:
+                 feed: MoulderFeed, shared: Sequence[Any] = ()) -> None:
         if not heads:
             raise ValueError("heads must name at least one head's service")
         for name, svc in heads.items():
@@ -49,6 +53,12 @@ class MoulderService:
         self.heads: dict[str, Service] = dict(heads)
         self.head_configs: tuple[HeadConfig, ...] = tuple(head_configs)
         self.feed = feed
+        self.shared = tuple(shared)
+        span = _common_span(feed.plc)
+        self.sharing_common: tuple[str, ...] = tuple(
+            name for name, svc in self.heads.items()
+            if span is not None and _common_span(svc.plc) == span)
+        """The heads whose PLC cycle takes the coordinator's read of the common registers."""
 
     async def tick(self, now_s: float) -> FeedDecision:
         """One control cycle: every head's buses and supervisor, then the one feed."""
@@ -71,15 +81,25 @@ class MoulderService:
         return next(iter(self.heads.values()))
 
     async def plc_cycle(self) -> None:
-        """Every head's PLC cycle (its registers, its supervisor), then the one feed."""
-        for svc in self.heads.values():
-            await svc.plc_cycle()
+        """Every head's PLC cycle (its registers, its supervisor), then the one feed.
+
+        The machine-wide registers are read once: the coordinator's heartbeat and read first,
+        its words of the common span offered to every head (:attr:`sharing_common`), whose
+        read then asks only for its block; the coordinator decides after the heads' cycles.
+        """
         first = self.first
-        t = first.service_clock.now()
         # the coordinator's own unexpected error is the first head's service error: it fails
         # that head's "service" condition, a machine-wide source (the feed's safe state)
+        with first.keeper.boundary(first.service_clock.now(), "feed coordinator", part="plc"):
+            snap = await self.feed.sample()
+            words = self.feed.plc.last_common if snap is not None else None
+            for name in self.sharing_common:  # none this cycle: each head reads its own
+                self.heads[name].plc.offer_common(words)
+        for svc in self.heads.values():
+            await svc.plc_cycle()
+        t = first.service_clock.now()
         with first.keeper.boundary(t, "feed coordinator", part="plc"):
-            await self.feed.cycle(t)
+            await self.feed.decide(t)
 
     def can_cycle(self) -> None:
         """Every head's CAN cycle (its amplifier's command and status; never waits)."""
@@ -118,12 +138,13 @@ class MoulderService:
 
     def close(self) -> None:
         """Close every head's service (each leaves its amplifier safe, writes its state)."""
-        errors = []
-        for svc in self.heads.values():
-            try:
-                svc.close()
-            except Exception as exc:  # noqa: BLE001 - close every head, then raise the first
-                errors.append(exc)
-        self.feed.plc.close()
-        if errors:
-            raise errors[0]
+        # every part closed even when one before it raised (no catch-all: the errors chain)
+        close_all([svc.close for svc in self.heads.values()] + [self.feed.plc.close]
+                  + [part.close for part in self.shared])
+
+
+def _common_span(plc: Any) -> tuple[int, int] | None:
+    """The ``(address, words)`` of a PLC client's first read range (``None``: not a client)."""
+    protocol = getattr(plc, "protocol", None)
+    ranges = getattr(protocol, "ranges", None)
+    return tuple(ranges[0]) if ranges else None

@@ -177,11 +177,12 @@ def knife_model_cv(widths_mm: Sequence[float], mark_knife: Sequence[int],
     mean = float(w.mean()) if n else math.nan
     if not mean > 0:
         return math.nan
-    knives, group = np.unique(k, return_inverse=True)
-    if n - knives.size - 1 < KNIFE_MODEL_MIN_DOF:
+    labels = k.tolist()  # the knives in ascending order, each mark's place among them (as
+    place = {v: i for i, v in enumerate(sorted(set(labels)))}  # np.unique's, without its cost)
+    if n - len(place) - 1 < KNIFE_MODEL_MIN_DOF:
         return float(w.std() / mean)
-    design = np.zeros((n, knives.size + 1))
-    design[np.arange(n), group] = 1.0
+    design = np.zeros((n, len(place) + 1))
+    design[np.arange(n), [place[v] for v in labels]] = 1.0
     design[:, -1] = x - x.mean()
     coef, *_ = np.linalg.lstsq(design, w, rcond=None)
     fitted = design @ coef

@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
                                          http=args.http, max_frames=args.max_frames,
                                          status_every=args.status_every, say=_say,
                                          printers=(_event_printer, _progress_printer,
-                                                   waiting_line)))
+                                                   waiting_line), workers=args.workers))
     options = RuntimeOptions(workers=args.workers, worker_nice=MEASURE_NICE, prioritize=True,
                              realtime=True, cpu_wakeup=True)
     runtime = ServiceRuntime(cfg, options=options, log_path=log_path,

@@ -4,8 +4,9 @@ The same command, the same lines as for one head, each naming its head: where it
 progress line per head every ``[log] print_every`` pairs of that head, every change of a head's
 safe state, why it waits; systemd's notifications as for one head. Each head reads its own frame
 source (its spool folder, ``<[frames] spool_dir>/<head>`` unless the head names one, or its
-camera). Measured in the service's threads (measurement worker processes: one head's
-``planer serve``).
+camera). Measured in ``[service] workers`` (``--workers``) worker processes the heads share,
+each head's pairs with its own rig (``controller.moulder.compose.share_workers``; 0: in the
+service's threads).
 """
 
 from __future__ import annotations
@@ -24,17 +25,19 @@ from controller.service.supervisor import SafetyState
 
 async def serve_moulder(cfg: MachineConfig, *, log_path: Path | str, opcua: str | None,
                         http: str | None, max_frames: int | None, status_every: float,
-                        say: Any, printers: tuple) -> int:
+                        say: Any, printers: tuple, workers: int | None = None) -> int:
     """Open, run until SIGINT/SIGTERM (or ``max_frames`` pairs of all heads), close; exit code.
 
     ``printers``: ``planer serve``'s ``(event_printer, progress_printer, waiting_line)``, the
     same lines as one head's, here each with its head.
     """
     from controller.frames.source import open_frame_source
-    from controller.moulder.compose import open_moulder_service
+    from controller.moulder.compose import open_moulder_service, share_workers
+    from controller.service.latency import MEASURE_NICE
 
     notifier = Notifier()
     moulder = None
+    pool = None
     sources: dict[str, Any] = {}
 
     def get() -> Any:
@@ -43,6 +46,20 @@ async def serve_moulder(cfg: MachineConfig, *, log_path: Path | str, opcua: str 
     async with serving(cfg, get, opcua=opcua, http=http, say=say, log=log_path):
         try:
             moulder = open_moulder_service(cfg, log_path=log_path)
+            n = cfg.service.workers if workers is None else workers
+            if n:
+                fr = cfg.frames
+                shape = ((fr.image_height, fr.image_width)
+                         if fr.image_width > 0 and fr.image_height > 0 else None)
+                opened = moulder  # started off the event loop (each worker sets up first)
+                pool, warning = await asyncio.get_running_loop().run_in_executor(
+                    None, lambda: share_workers(opened, n, shape=shape, nice=MEASURE_NICE,
+                                                timeout_s=cfg.safety.measurement_timeout_s))
+                if warning:
+                    say(f"planer serve: {warning}")
+                if pool is not None:
+                    say(f"planer serve: {pool.workers} measurement worker process(es) shared "
+                        f"by the {len(cfg.heads)} heads")
             for hc in cfg.heads:
                 sources[hc.name] = open_frame_source(head_config(cfg, hc.name).frames)
             return await _run(moulder, sources, cfg, max_frames=max_frames,
@@ -51,6 +68,8 @@ async def serve_moulder(cfg: MachineConfig, *, log_path: Path | str, opcua: str 
         finally:
             if moulder is not None:
                 moulder.close()
+            if pool is not None:
+                pool.close()
             for src in sources.values():
                 src.close()
 

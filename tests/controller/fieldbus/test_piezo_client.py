@@ -377,3 +377,59 @@ def test_a_malformed_or_foreign_frame_changes_nothing_and_is_counted(buses, fram
     assert refused == 1 and after["frames"] == counts["frames"] + 1
     assert (c.status, c.nmt_state, c.last_heard_s, c.stroke_um, c.received) == before
     assert drain(amp) == []
+
+
+def test_heads_share_one_master_each_frame_taken_once(buses):
+    """A moulder's heads on one CAN connection: every frame decoded once, each head its own."""
+    from controller.fieldbus.canopen_amp import AmpBus
+
+    service, amp = buses
+    master = AmpBus(service)
+    a = PiezoClient(None, knives=4, node_id=2, ampbus=master)
+    b = PiezoClient(service, knives=2, node_id=3, ampbus=master)
+    elsewhere = can.Bus(interface="virtual", channel=f"piezo-test-{next(_chan)}")
+    with pytest.raises(ValueError, match="shared master"):
+        PiezoClient(elsewhere, knives=2, node_id=4, ampbus=master)
+    elsewhere.shutdown()
+    assert a.bus is b.bus is service
+    for node, state in ((2, 5), (3, 5), (3, 5)):
+        fid, data = cf.heartbeat(state, node_id=node)
+        amp.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+    fid, data = cf.status_frame(displacement_nm=1500, node_id=3)
+    amp.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+    assert a.poll(now_s=1.0) == 1  # a drained the bus: its node's one frame ...
+    assert b.status is None  # ... b's frames went to b's node, b takes them at its poll
+    assert b.poll(now_s=1.001) == 3 and b.received == 3 and a.received == 1
+    assert b.status is not None and b.status.displacement_um == pytest.approx(1.5)
+    assert a.status is None and a.last_heard_s == 1.0 and b.last_heard_s == 1.0
+    assert master.counts["frames"] == 4 and master.counts["foreign"] == 0  # once, none foreign
+    assert a.poll(now_s=1.02) == 0 and b.poll(now_s=1.02) == 0
+    a.close()  # a shared bus stays open for the other heads
+    b.send_command(alive_counter=9, now_s=1.03)
+    assert (0x403, bytes([0, 2, 9])) in drain(amp)
+    b.close()
+    master.close()
+
+
+def test_pdo_frames_are_the_librarys_bytes(buses):
+    """The command and the offset tables go out byte for byte as canopen's ``var.raw`` sets."""
+    import random
+
+    service, amp = buses
+    c = PiezoClient(service, knives=8, node_id=2)
+    rng = random.Random(5)
+    cases = [(rng.random() < 0.5, rng.randrange(0, 600),
+              [round(rng.uniform(-32.767, 32.767), 3) for _ in range(8)]) for _ in range(200)]
+
+    def frames() -> list:
+        for enable, alive, table in cases:
+            c.amp.command(enable=enable, alive_counter=alive)
+            c.amp.set_offsets(table)
+        return drain(amp)
+
+    fast = frames()
+    c.amp._layouts = {1: None, 2: None, 3: None}  # the library's own path
+    slow = frames()
+    assert len(fast) == 3 * len(cases) and fast == slow
+    assert fast[0] == cf.command(cases[0][0], 8, cases[0][1] & 0xFF)
+    assert fast[1:3] == cf.offsets(cases[0][2])

@@ -205,3 +205,41 @@ def test_the_single_head_machine_through_head_zero():
         assert head["spindle_rpm_min"] <= head["spindle_setpoint_rpm"] <= head["spindle_rpm_max"]
 
     asyncio.run(main())
+
+
+def test_offered_common_words_spare_the_heads_read_of_them_once():
+    """A moulder's coordinator reads the common span once and offers it to every head."""
+    async def main():
+        target = HeadTarget()
+        server, host, port = await _serve(target)
+        seen = _recording(server)
+        try:
+            common = PlcClient.tcp(host, port, timeout_s=2.0)
+            head = PlcClient.tcp(host, port, timeout_s=2.0, head=3)
+            own = await head.read()  # what the head reads by itself
+            seen.clear()
+            await common.read()
+            assert seen == [3] and len(common.last_common) == common.protocol.read_count
+            head.offer_common(common.last_common)
+            shared = await head.read()
+            assert seen == [3, 23]  # the coordinator's read, then only the head's block
+            assert shared.values == own.values
+            assert head.last_common == common.last_common
+            seen.clear()
+            target.feed_setpoint = 321.0
+            server.refresh()
+            again = await head.read()  # the offer was used once: the PLC's words again
+            assert seen == [3, 23] and again.feed_setpoint_mm_s == pytest.approx(321.0)
+            head.offer_common(common.last_common)
+            head.offer_common(None)  # withdrawn before a read took it
+            seen.clear()
+            await head.read()
+            assert seen == [3, 23]
+            with pytest.raises(ValueError, match="common span"):
+                head.offer_common([0] * 3)
+            common.close()
+            head.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())
