@@ -54,18 +54,12 @@ def open_moulder_service(
     from controller.fieldbus.plc_client import PlcClient
     from controller.fieldbus.plc_protocol import Backoff
     from controller.laws.moulder_feed import MoulderFeedConfig, MoulderFeedLaw
-    from controller.quality.log import database_url, is_database_url, open_quality_log
+    from controller.quality.log import open_quality_log
     from controller.service.measurement import VisionMeasurers
     from controller.service.service import Service, default_log_path
     from protocol.registers import RegisterMap
 
-    if log_path is None:
-        path: Path | str = default_log_path(cfg)
-    elif is_database_url(log_path):
-        path = database_url(log_path)
-    else:
-        path = Path(log_path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+    path = default_log_path(cfg, log_path)
     regmap = RegisterMap.load(registers_path(cfg))
 
     def plc(view: RegisterMap) -> PlcClient:

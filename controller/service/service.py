@@ -495,13 +495,14 @@ async def run_until_stopped(tasks: list[asyncio.Task], stop: asyncio.Event) -> N
         await asyncio.gather(*tasks, return_exceptions=True)
 
 
-def default_log_path(cfg: MachineConfig) -> Path | str:
-    """The quality log of a configuration: a file (its folder is created) or a database URL."""
+def default_log_path(cfg: MachineConfig, log_path: Path | str | None = None) -> Path | str:
+    """The quality log: ``log_path``, else ``[log] path``; a file (its folder made) or a URL."""
     from controller.quality.log import database_url, is_database_url
 
-    if is_database_url(cfg.log.path):
-        return database_url(cfg.log.path)
-    p = Path(cfg.log.path)
+    where = cfg.log.path if log_path is None else log_path
+    if is_database_url(where):
+        return database_url(where)
+    p = Path(where)
     p.parent.mkdir(parents=True, exist_ok=True)
     return p
 
@@ -536,7 +537,7 @@ def open_service(
     from config.rig import load_rig
     from controller.fieldbus.piezo_client import open_bus
     from controller.fieldbus.plc_protocol import Backoff
-    from controller.quality.log import database_url, is_database_url, open_quality_log
+    from controller.quality.log import open_quality_log
     from protocol.registers import RegisterMap
 
     rig = load_rig(rig_path(cfg))
@@ -562,13 +563,7 @@ def open_service(
         offsets_period_s=cfg.can.offsets_period_s,
         stroke_um=cfg.stroke_um,
     )
-    if log_path is None:
-        path: Path | str = default_log_path(cfg)
-    elif is_database_url(log_path):
-        path = database_url(log_path)
-    else:
-        path = Path(log_path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+    path = default_log_path(cfg, log_path)
     log = open_quality_log(path, machine_id=cfg.log.machine_id or None)
     service = Service(
         cfg,
