@@ -80,3 +80,24 @@ def test_the_pair_reports_the_knives_cv_and_keeps_the_marks_own():
     assert att.uniformity_cv < 0.5 * att.marks_cv  # true CV 0: the knives' is nearer
     assert att.to_json()["uniformity_cv"] == pytest.approx(att.uniformity_cv)
     assert att.to_json()["marks_cv"] == pytest.approx(meas.uniformity_cv)
+
+
+def test_knife_model_cv_is_the_least_squares_fit_over_the_knives_as_labelled():
+    """Any integer labels (negative, gaps, unsorted): the fit of one width per label + a trend,
+    bit for bit the ``np.unique`` grouping's."""
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        n = int(rng.integers(1, 30))
+        labels = rng.choice([-3, 0, 2, 5, 7, 40], size=n)
+        w = rng.uniform(0.5, 3.0, n)
+        x = np.sort(rng.uniform(0.0, 40.0, n))
+        knives, group = np.unique(labels, return_inverse=True)
+        if n - knives.size - 1 < KNIFE_MODEL_MIN_DOF:
+            want = float(w.std() / w.mean())
+        else:
+            design = np.zeros((n, knives.size + 1))
+            design[np.arange(n), group] = 1.0
+            design[:, -1] = x - x.mean()
+            coef, *_ = np.linalg.lstsq(design, w, rcond=None)
+            want = float((design @ coef).std() / w.mean())
+        assert knife_model_cv(w, labels, x) == want
