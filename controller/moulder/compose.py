@@ -45,8 +45,9 @@ def open_moulder_service(
     log_path : Path or str, optional
         Override ``[log] path`` (a file, or a ``postgresql://`` URL).
     can_bus : can.BusABC, optional
-        Use this bus for every head's amplifier instead of opening ``[can]`` (the moulder
-        closes it).
+        Use this bus instead of opening the first head's ``[can]`` bus: every head on that bus
+        has its amplifier on it (the moulder closes it); a head naming another bus gets that
+        one opened.
     """
     from config.rig import load_rig
     from controller.fieldbus.canopen_amp import SEND_TIMEOUT_S, AmpBus
