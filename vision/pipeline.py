@@ -44,7 +44,7 @@ from vision.calibration.selfcal import (
 )
 from vision.deblur import Deblurrer, blur_length_px
 from vision.defects.detect import Defect, DefectFinder
-from vision.defects.grading import grade_pair
+from vision.defects.grading import pair_grade
 from vision.defects.refused import attach, refused_pair
 from vision.front_end import Binned, FrontEnd, mean_profile
 from vision.integrate import Integrator
@@ -136,7 +136,8 @@ class Measurement:
         measurer's ``defects=False``).
     grade, grade_reason : int or None, str or None
         ASTM D1666 grade of the pair (1 defect-free ... 5 very poor, :mod:`vision.defects.grading`)
-        and why (``None`` when the defects were not looked for).
+        and why (``None`` when the defects were not looked for); snipe is left to the board
+        (:func:`vision.defects.grading.pair_grade`: ``defects`` keep the raw bend).
     """
 
     x_mm: np.ndarray
@@ -915,8 +916,8 @@ def _result(m: Measurer, profile: Any, reg: Any, *, confidence: float, reason: s
     if m.defect_finder is not None:
         found = m.defect_finder(binned_a.bins, binned_b.bins, shift_px=d * cos_roll,
                                    roll_deg=roll, bottoms_mm=marks.bottoms_mm,
-                                   pitch_mm=marks.pitch_mm)
-        grade = grade_pair(found)
+                                   pitch_mm=marks.pitch_mm, encoder_shift_px=d_enc)
+        grade = pair_grade(found)
     return Measurement(
         x_mm=x_mm,
         height_um=height,

@@ -211,6 +211,18 @@ TUNING = range(0, 240)
 HELD_OUT = range(1000, 1240)
 
 
+def board_grade(found: tuple[Defect, ...] | None) -> int | None:
+    """The D1666 grade of a rendered board from its one pair's defects, raw snipe counted.
+
+    A pair's own grade leaves snipe to its board (:func:`vision.defects.grading.pair_grade`):
+    one pair cannot tell snipe from the rig's bow. Each rendered board is one pair whose
+    lights do not fall off (no bow), so its bend is its snipe and the rule is applied to its
+    defects as reported (:func:`vision.defects.grading.grade_pair`, as a board's grade counts
+    an unplaced pair's raw snipe), as to its true defects (:func:`true_grade`).
+    """
+    return None if found is None else grade_pair(found).grade
+
+
 @dataclass(frozen=True)
 class Outcome:
     """One board's measurement: its truth, what was found (``None``: no defects reported).
@@ -224,7 +236,7 @@ class Outcome:
     truth: tuple[TrueDefect, ...]
     found: tuple[Defect, ...] | None
     true_grade: int
-    grade: int | None
+    grade: int | None  # the board's (:func:`board_grade`)
     refused: bool = False
 
 
@@ -240,8 +252,9 @@ def matches(t: TrueDefect, d: Defect) -> bool:
     return math.hypot(d.x_mm - t.x_mm, d.y_mm - t.y_mm) <= 2.0
 
 
-def measure_boards(indices: Any) -> list[Outcome]:
-    """Measure the boards ``indices`` (:func:`board_spec`) with ``Measurer(defects=True)``."""
+def measure_boards(indices: Any, kind: str | None = None) -> list[Outcome]:
+    """Measure the boards ``indices`` (:func:`board_spec`; every one of ``kind`` when given)
+    with ``Measurer(defects=True)``."""
     from core.errors import MeasurementError
     from vision.defects.refused import surface_of
     from vision.pipeline import Measurer
@@ -249,7 +262,7 @@ def measure_boards(indices: Any) -> list[Outcome]:
     measurers: dict[tuple[int, ...], Measurer] = {}
     out = []
     for i in indices:
-        b = cached_board(**board_spec(i))
+        b = cached_board(**board_spec(i, kind))
         m = measurers.get(b.image_a.shape)
         if m is None:
             m = measurers[b.image_a.shape] = Measurer(b.rig, b.image_a.shape, knives=4,
@@ -258,13 +271,13 @@ def measure_boards(indices: Any) -> list[Outcome]:
         try:
             r = m.measure(b.image_a, b.image_b, counts_a=b.counts_a, counts_b=b.counts_b,
                           speed_mm_s=b.speed_mm_s)
-            found, grade = r.defects, r.grade
+            found = r.defects
         except MeasurementError as exc:  # the measurement itself refused the pair
             refused = True
             surface = surface_of(exc)  # its defects all the same, where a map was made
-            found, grade = (None, None) if surface is None else (surface.defects, surface.grade)
-        out.append(Outcome(i, KINDS[i % len(KINDS)], board_truth(b), found,
-                           true_grade(b).grade, grade, refused))
+            found = None if surface is None else surface.defects
+        out.append(Outcome(i, kind or KINDS[i % len(KINDS)], board_truth(b), found,
+                           true_grade(b).grade, board_grade(found), refused))
     return out
 
 
@@ -348,20 +361,34 @@ def score(outcomes: list[Outcome]) -> Score:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m tests.support.defect_truth [tuning|held-out|LO:HI ...]``: the tables."""
-    import sys
+    """``python -m tests.support.defect_truth [--kind KIND] [tuning|held-out|LO:HI ...]``."""
+    import argparse
 
-    args = sys.argv[1:] if argv is None else argv
-    for name in args or ["tuning", "held-out"]:
+    ap = argparse.ArgumentParser(
+        prog="python -m tests.support.defect_truth",
+        description="Render (cached in $TMPDIR/planer_defect_boards), measure and score the "
+                    "independent renderer's defect boards: the tables of docs/vision.md.")
+    ap.add_argument("splits", nargs="*", default=["tuning", "held-out"],
+                    help="'tuning' (boards 0:240), 'held-out' (1000:1240) or a board range "
+                         "LO:HI (the fresh split: 5000:5240); default: tuning held-out")
+    ap.add_argument("--kind", choices=KINDS, default=None,
+                    help="every board of this kind (the others drawn as ever from the "
+                         "board's seed) instead of the kinds in turn")
+    args = ap.parse_args(argv)
+    for name in args.splits:
         if name == "tuning":
             idx: Any = TUNING
         elif name == "held-out":
             idx = HELD_OUT
         else:
-            lo, hi = (int(v) for v in name.split(":"))
+            try:
+                lo, hi = (int(v) for v in name.split(":"))
+            except ValueError:
+                ap.error(f"split must be tuning, held-out or LO:HI, got {name!r}")
             idx = range(lo, hi)
-        print(f"## {name} (boards {idx.start}..{idx.stop - 1})")
-        print(score(measure_boards(idx)).table())
+        what = f", every one {args.kind}" if args.kind else ""
+        print(f"## {name} (boards {idx.start}..{idx.stop - 1}{what})")
+        print(score(measure_boards(idx, args.kind)).table())
     return 0
 
 

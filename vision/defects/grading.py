@@ -34,7 +34,9 @@ field), so a pair reports a *raw* bend. Where the pairs' places along their boar
 :data:`SNIPE_END_MM` of an end is sniped when its raw sag exceeds the reference by the
 *margin* (:func:`snipe_margin_um`), the excess its depth; a middle pair's bend is the rig's and
 does not count; with fewer than :data:`SNIPE_MIN_MIDDLE` middle pairs snipe is not judged. A
-pair whose place is unknown (``None``) keeps its raw snipe (as ``planer measure`` reports it).
+pair whose place is unknown (``None``) keeps its raw snipe in the board's grade. A pair's
+own grade (:func:`pair_grade`: what a measurement carries) leaves snipe to its board: it
+cannot tell snipe from the rig's bow.
 """
 
 from __future__ import annotations
@@ -140,6 +142,36 @@ def grade_pair(defects: Sequence[Defect], *, min_confidence: float = MIN_CONFIDE
         g += 1
         reason += f"; {many} defects of severity >= 2: one step worse"
     return Grade(min(g, 5), f"grade {min(g, 5)}: {reason}")
+
+
+def pair_grade(defects: Sequence[Defect], *, min_confidence: float = MIN_CONFIDENCE) -> Grade:
+    """A pair's own D1666 grade: :func:`grade_pair` of its defects but snipe.
+
+    One pair cannot tell snipe from the rig's bow (its detector reports a *raw* bend: the
+    module doc), so the pair's own grade leaves snipe to its board (:func:`judge_snipe`,
+    :func:`grade_board`); the reason names the raw bend it left. This is the grade a
+    measurement carries (``Measurement.grade``, ``grade_reason``; ``planer measure``'s JSON and
+    each quality record); the pair's ``defects`` keep the raw bend for the board to judge.
+
+    Parameters
+    ----------
+    defects : sequence of Defect
+        The pair's defects as its detector reported them.
+    min_confidence : float, optional
+        Less confident defects do not count.
+
+    Returns
+    -------
+    Grade
+    """
+    check_range("min_confidence", min_confidence, 0.0, 1.0)
+    g = grade_pair([d for d in defects if d.kind is not DefectKind.SNIPE],
+                   min_confidence=min_confidence)
+    sag = raw_sag_um(defects, min_confidence)
+    if sag <= 0.0:
+        return g
+    return Grade(g.grade, f"{g.reason}; a bend of {sag:.1f} µm along the feed, judged on the "
+                          f"board (one pair cannot tell it from the rig's bow)")
 
 
 def raw_sag_um(defects: Iterable[Defect], min_confidence: float = MIN_CONFIDENCE) -> float:

@@ -32,7 +32,7 @@ import numpy as np
 
 from core.checks import check_finite, check_positive
 from vision.defects.detect import Defect, Residual, detect_defects, residual
-from vision.defects.grading import grade_pair
+from vision.defects.grading import pair_grade
 from vision.marks import dominant_period_px
 from vision.registration.registrar import encoder_shift_px
 
@@ -195,7 +195,7 @@ def refused_surface(finder: DefectFinder, rows_a: np.ndarray, rows_b: np.ndarray
     pitch = map_pitch_mm(best_res)
     found = detect_defects(best_res.smap, knives=finder.knives,
                            pitch_mm=pitch if math.isfinite(pitch) else None, settings=settings)
-    g = grade_pair(found)
+    g = pair_grade(found)
     return RefusedSurface(found, g.grade, g.reason, best_shift, enc, pitch)
 
 

@@ -124,3 +124,7 @@ def test_clean_boards_grade_as_the_truth(run):
         bends = [d["depth_um"] for r in records if r.board_id == bid and r.defects
                  for d in r.defects if d["kind"] == "snipe"]
         assert bends and min(bends) > 50.0  # the raw bends are there: the board discounts them
+        # each pair's own grade leaves the bend to the board (vision.defects.grading.pair_grade)
+        for r in records:
+            if r.board_id == bid and r.defects is not None:
+                assert r.grade == 1 and "snipe" not in r.grade_reason, (r.seq, r.grade_reason)

@@ -11,6 +11,7 @@ from vision.defects.grading import (
     grade_board,
     grade_pair,
     judged_pair,
+    pair_grade,
     severity,
     snipe_margin_um,
 )
@@ -59,6 +60,33 @@ def test_unconfident_defects_do_not_count():
     assert grade_pair([_d(K.TORN_GRAIN, conf=0.2)], min_confidence=0.1).grade == 4
     with pytest.raises(ValueError, match="min_confidence"):
         grade_pair([], min_confidence=1.5)
+
+
+def test_a_pairs_own_grade_leaves_snipe_to_its_board():
+    """One pair cannot tell snipe from the rig's bow: its own grade counts every other kind
+    and names the raw bend it left (the simulator's clean pairs: ~86 um, grade 1)."""
+    bend = _d(K.SNIPE, length=13.0, width=39.0, depth=85.8, conf=1.0)
+    assert grade_pair([bend]).grade == 4  # the rule on the raw bend: a severe snipe
+    g = pair_grade([bend])
+    assert g.grade == 1 and g.reason.startswith("defect-free"), g.reason
+    assert "snipe" not in g.reason and "85.8 µm" in g.reason, g.reason
+    chip = _d(K.CHIP_MARK, depth=60.0)
+    g = pair_grade([bend, chip])
+    assert (g.grade, g.reason.split("; a bend")[0]) == (grade_pair([chip]).grade,
+                                                         grade_pair([chip]).reason)
+    assert "85.8 µm" in g.reason
+    # the other kinds exactly as grade_pair counts them; no bend: the same reason too
+    for found in ([], [chip], [chip, _d(K.TORN_GRAIN, length=12.0)], [_d(K.CHATTER, depth=0.8)]):
+        assert pair_grade(found) == grade_pair(found)
+    # a bend below the confidence that counts is not named
+    assert pair_grade([_d(K.SNIPE, depth=50.0, conf=0.2)]) == grade_pair([])
+    with pytest.raises(ValueError, match="min_confidence"):
+        pair_grade([], min_confidence=-0.1)
+    # the board still judges it: the pair's raw bend stays in its defects
+    pairs, pos = _board([86.0] * 20)
+    pairs[0] = _sag(86.0 + 40.0)
+    assert pair_grade(pairs[0]).grade == 1
+    assert grade_board(pairs, positions_mm=pos).grade == 4
 
 
 def test_board_grade_rules():
