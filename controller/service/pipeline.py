@@ -43,7 +43,7 @@ from controller.service.bus_cycles import BusCycles
 from controller.service.clock import ServiceClock
 from controller.service.cut_feed import PairFeedHistory
 from controller.service.events import EventKind, EventLog, exc_name
-from controller.service.frame_result import FrameResult
+from controller.service.frame_result import FrameResult, refused_surface_of
 from controller.service.intake import FrameIntake, finite_or_none, int_or
 from controller.service.latency import collect_between_pairs
 from controller.service.loops import ControlLoops
@@ -248,8 +248,11 @@ class PairPipeline:
                 with keeper.boundary(t_ctrl, f"control of pair {frame.seq}"):
                     applied = await self.loops.apply(att, measured_at, snap, t_ctrl)
         self.loops.alerts.failures.pair(t_arr, ok, error)  # a measurement that keeps failing
-        if meas is not None:  # a nicked knife: the defect detector's ridge (when it looks)
-            self.loops.nicks.pair(t_arr, getattr(meas, "defects", None), seq=frame.seq)
+        # a nicked knife: the defect detector's ridge (when it looks), also on a pair the
+        # cuttermark measurement refused (its surface was still looked at)
+        surface = meas if meas is not None else refused_surface_of(error)
+        if surface is not None:
+            self.loops.nicks.pair(t_arr, getattr(surface, "defects", None), seq=frame.seq)
         wall1 = time.perf_counter()  # the setpoints are out: what follows is for the record
         if ok:
             profile = self.records.profile_of(meas, frame)  # up to 0.5 ms: after the setpoints

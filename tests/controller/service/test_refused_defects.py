@@ -127,3 +127,39 @@ def test_refused_pairs_keep_their_defects_in_the_result_the_record_and_the_board
     assert before and all(rec.board_grade == 1 for rec in before)
     assert after and all(rec.board_grade == surface.grade for rec in after)
     assert after[-1].board_defect_counts["torn_grain"] == len(refused)
+
+
+def _nick_refusal(refusal: MeasurementError) -> MeasurementError:
+    """The same refusal, its surface a knife nick at y = 20 mm (a nicked knife's ridge)."""
+    from vision.defects.detect import Defect, DefectKind
+    from vision.defects.refused import _ATTRIBUTE
+
+    nick = Defect(DefectKind("knife_nick"), x_mm=30.0, y_mm=20.0, length_mm=60.0, width_mm=0.6,
+                  depth_um=8.0, confidence=0.9)
+    surface = replace(surface_of(refusal), defects=(nick,), grade=3,
+                      grade_reason="knife nick")
+    exc = MeasurementError(str(refusal))
+    setattr(exc, _ATTRIBUTE, surface)
+    return exc
+
+
+def test_a_nick_seen_only_on_refused_pairs_is_told(tmp_path, refusal):
+    """The nick monitor hears refused pairs too: two in a row with the same ridge tell it."""
+    nicked = _nick_refusal(refusal)
+    assert [d.kind.value for d in surface_of(nicked).defects] == ["knife_nick"]
+
+    async def main():
+        plant, measurer = make_plant(tmp_path)
+        looking = _Looking(measurer.frames, nicked)
+        plant.service.measurement.set_factory(lambda shape: looking)
+        await plant.start()
+        try:
+            await run_for(plant, 3.0)
+            return plant.service.events
+        finally:
+            await plant.close()
+
+    events = asyncio.run(main())
+    chipped = [e for e in events if e.kind.value == "knife_chipped"]
+    assert chipped, [e.text for e in events]
+    assert "nick" in chipped[0].text
