@@ -29,3 +29,24 @@ def downgrade(execute: Callable[..., Any], version: int) -> tuple[str, ...]:
         execute(f"ALTER TABLE records DROP COLUMN {name}")
     execute(f"UPDATE schema_version SET version = {int(version)}")
     return tuple(name for name, _, _ in later)
+
+
+def old_log(target: Any, records: Any, version: int) -> tuple[str, ...]:
+    """Write ``records`` with this version, then make the log the layout of ``version``.
+
+    ``target``: an SQLite file or a ``postgresql://`` URL. Returns the columns dropped.
+    """
+    from controller.quality.log import QualityLog, is_database_url
+
+    with QualityLog(target) as log:
+        for r in records:
+            log.append(r)
+    if is_database_url(target):
+        import psycopg
+
+        with psycopg.connect(str(target), autocommit=True) as conn:
+            return downgrade(conn.execute, version)
+    import sqlite3
+
+    with sqlite3.connect(target) as conn:
+        return downgrade(conn.execute, version)

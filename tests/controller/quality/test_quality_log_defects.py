@@ -35,7 +35,7 @@ from controller.quality.schema import (
     storable_record,
 )
 from tests.support import pg_support
-from tests.support.old_logs import downgrade
+from tests.support.old_logs import old_log
 from vision.defects.detect import Defect, DefectKind
 from vision.defects.grading import grade_board, grade_pair, judge_snipe
 
@@ -178,18 +178,11 @@ def test_records_round_trip_through_the_log_the_json_and_the_csv(tmp_path):
         conn.execute("UPDATE records SET grade = 6")  # the column's check is in the file
 
 
-def _drop_v7(execute) -> None:
-    downgrade(execute, 6)
-
 
 def test_version_6_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):
     path = tmp_path / "q.sqlite"
     old = [_rec(i) for i in range(3)]
-    with QualityLog(path) as log:
-        for r in old:
-            log.append(r)
-    with sqlite3.connect(path) as conn:
-        _drop_v7(conn.execute)
+    old_log(path, old, 6)
     with QualityLog(path, create=False) as reader:
         assert reader.schema_version == 6
         assert [_key(r) for r in reader.records()] == [_key(r) for r in old]
@@ -205,14 +198,9 @@ def test_version_6_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):
 
 
 def test_version_6_database_is_migrated_by_a_writer_and_round_trips(fresh_db):
-    import psycopg
 
     old = [_rec(i) for i in range(2)]
-    with QualityLog(fresh_db) as log:
-        for r in old:
-            log.append(r)
-    with psycopg.connect(fresh_db, autocommit=True) as conn:  # the layout of version 6
-        _drop_v7(conn.execute)
+    old_log(fresh_db, old, 6)
     with QualityLog(fresh_db, create=False) as reader:
         assert reader.schema_version == 6
         assert [_key(r) for r in reader.records()] == [_key(r) for r in old]

@@ -24,7 +24,7 @@ from controller.quality.schema import (
     storable_record,
 )
 from tests.support import pg_support
-from tests.support.old_logs import downgrade
+from tests.support.old_logs import old_log
 
 pg_server = pg_support.pg_server  # the fixtures
 fresh_db = pg_support.fresh_db
@@ -94,11 +94,7 @@ def test_flag_reason_that_is_not_unicode_is_refused_and_kept_escaped():
 
 
 def _make_v4_log(path, recs) -> None:
-    with QualityLog(path) as log:
-        for r in recs:
-            log.append(r)
-    with sqlite3.connect(path) as conn:
-        downgrade(conn.execute, 4)
+    old_log(path, recs, 4)
 
 
 def test_version_4_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):
@@ -119,14 +115,9 @@ def test_version_4_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):
 
 
 def test_version_4_database_is_migrated_by_a_writer(fresh_db):
-    import psycopg
 
     old = [_rec(i) for i in range(3)]
-    with QualityLog(fresh_db) as log:
-        for r in old:
-            log.append(r)
-    with psycopg.connect(fresh_db, autocommit=True) as conn:  # the layout of version 4
-        downgrade(conn.execute, 4)
+    old_log(fresh_db, old, 4)
     with QualityLog(fresh_db, create=False) as reader:
         assert reader.schema_version == 4
         assert [_key(r) for r in reader.records()] == [_key(r) for r in old]

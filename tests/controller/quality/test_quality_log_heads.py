@@ -29,7 +29,7 @@ from controller.quality.log import (
 )
 from controller.quality.schema import ADDED_IN_V8, storable_record
 from tests.support import pg_support
-from tests.support.old_logs import downgrade
+from tests.support.old_logs import downgrade, old_log
 
 pg_server = pg_support.pg_server  # the fixtures
 fresh_db = pg_support.fresh_db
@@ -211,11 +211,7 @@ def test_version_7_database_is_read_as_main_and_migrated_by_a_writer(fresh_db):
     import psycopg
 
     old = [_rec(i) for i in range(3)]
-    with QualityLog(fresh_db) as log:
-        for r in old:
-            log.append(r)
-    with psycopg.connect(fresh_db, autocommit=True) as conn:  # the layout of version 7
-        downgrade(conn.execute, 7)
+    old_log(fresh_db, old, 7)
     with QualityLog(fresh_db, create=False) as reader:
         assert reader.schema_version == 7
         assert [_key(r) for r in reader.records()] == [_key(r) for r in old]

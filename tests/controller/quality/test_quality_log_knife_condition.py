@@ -28,7 +28,7 @@ from controller.quality.schema import (
     storable_record,
 )
 from tests.support import pg_support
-from tests.support.old_logs import downgrade
+from tests.support.old_logs import old_log
 
 pg_server = pg_support.pg_server  # the fixtures
 fresh_db = pg_support.fresh_db
@@ -127,18 +127,11 @@ def test_a_failed_pair_carries_the_condition_in_force_and_it_round_trips(tmp_pat
     assert row["jointing_due_boards"] == "12.5" and row["jointing_state"] == "due"
 
 
-def _drop_v6(execute) -> None:
-    downgrade(execute, 5)
-
 
 def test_version_5_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):
     path = tmp_path / "q.sqlite"
     old = [_rec(i) for i in range(3)]
-    with QualityLog(path) as log:
-        for r in old:
-            log.append(r)
-    with sqlite3.connect(path) as conn:
-        _drop_v6(conn.execute)
+    old_log(path, old, 5)
     with QualityLog(path, create=False) as reader:  # a reader changes nothing
         assert reader.schema_version == 5
         assert [_key(r) for r in reader.records()] == [_key(r) for r in old]
@@ -157,14 +150,9 @@ def test_version_5_log_is_read_as_is_and_migrated_by_a_writer(tmp_path):
 
 
 def test_version_5_database_is_migrated_by_a_writer_and_round_trips(fresh_db):
-    import psycopg
 
     old = [_rec(i) for i in range(3)]
-    with QualityLog(fresh_db) as log:
-        for r in old:
-            log.append(r)
-    with psycopg.connect(fresh_db, autocommit=True) as conn:  # the layout of version 5
-        _drop_v6(conn.execute)
+    old_log(fresh_db, old, 5)
     with QualityLog(fresh_db, create=False) as reader:
         assert reader.schema_version == 5
         assert [_key(r) for r in reader.records()] == [_key(r) for r in old]
