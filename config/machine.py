@@ -560,6 +560,13 @@ def machine_from_dict(data: Mapping[str, Any], *, base: Path | None = None) -> M
     heads = () if root.raw("heads", None) is None else heads_from_toml(
         root.raw("heads"), rig=rig, spool_dir=frames_cfg.spool_dir,
         camera_id=frames_cfg.camera_id, target_pitch_mm=quality_cfg.target_pitch_mm)
+    if len(heads) > 1 and frames_cfg.source == "camera":
+        # each camera's pairs need its own head's trigger latches, which the camera source
+        # does not read yet: the heads' pairs come through their spools
+        raise ConfigError(
+            f"frames.source = 'camera' with {len(heads)} [[heads]]: a moulder's heads "
+            "read their pairs from their spools (heads[i].spool_dir); cameras read directly "
+            "per head are not supported yet")
 
     root.reject_unknown()
     return MachineConfig(

@@ -276,6 +276,14 @@ class MoulderFeedLaw:
         """The feed last commanded (or given to :meth:`reset`), mm/s; ``None`` before."""
         return self._feed
 
+    def forget_setpoint(self, name: str) -> None:
+        """The speed last commanded to head ``name`` did not reach its drive.
+
+        The next :meth:`update` commands it again (its deadband counts from nothing), so a
+        refused or lost write is retried instead of being taken as written.
+        """
+        self._written.pop(name, None)
+
     @property
     def spindle_setpoints_rpm(self) -> dict[str, float]:
         """The variable heads' spindle setpoints written so far (the last of each), rev/min."""

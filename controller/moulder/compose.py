@@ -80,9 +80,10 @@ def open_moulder_service(
             if where not in masters:
                 bus = can_bus if can_bus is not None and not masters else open_bus(
                     hcfg.can.interface, hcfg.can.channel, dict(hcfg.can.options))
+                opened.append(bus.shutdown)  # until its master owns it (a bad EDS: closed)
                 masters[where] = AmpBus(bus, eds=eds_path(hcfg), send_timeout_s=min(
                     SEND_TIMEOUT_S, hcfg.can.command_period_s / 4))
-                opened.append(masters[where].close)
+                opened[-1] = masters[where].close
             piezo = PiezoClient(None, knives=hc.knives or 4, node_id=hcfg.can.node_id,
                                 eds=eds_path(hcfg), command_period_s=hcfg.can.command_period_s,
                                 offsets_period_s=hcfg.can.offsets_period_s,

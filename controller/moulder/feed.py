@@ -17,6 +17,7 @@ keeps its held correction in the law: the others go on at the feed they need.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -28,14 +29,14 @@ from controller.laws.moulder_feed import HeadFeed, MoulderFeedLaw
 from controller.service.supervisor import SafetyState
 from core.errors import FieldbusError, ModbusRefused
 
-MACHINE_WIDE = frozenset({"plc", "plc_data", "machine", "service"})
-"""Missing sources of a head's supervisor that stop the whole machine's feed."""
+MACHINE_WIDE = frozenset({"plc", "plc_data", "machine"})
+"""Missing sources of a head's supervisor that stop the whole machine's feed (a head's own
+unexpected error -- its pair, its frame source -- is that head's safe state only; the
+coordinator's own is machine-wide: :attr:`MoulderFeed.faulted`)."""
 
 FEED_WRITE_DEADBAND_MM_S = 0.05
 """A feed setpoint is written when it moved by more than this (mm/s)."""
 
-SPEED_WRITE_DEADBAND_RPM = 1.0
-"""A variable head's speed setpoint is written when it moved by more than this (rpm)."""
 
 
 @dataclass(frozen=True)
@@ -96,8 +97,8 @@ class MoulderFeed:
         self.heartbeat = 0
         self.last: FeedDecision | None = None
         self.counts = {"cycles": 0, "feed_writes": 0, "speed_writes": 0, "plc_errors": 0,
-                       "refused": 0, "safe_cycles": 0}
-        self._speed: dict[str, float] = {}
+                       "refused": 0, "safe_cycles": 0, "faults": 0}
+        self._fault_until = -math.inf
         self._last_t: float | None = None
         self._snap: PlcSnapshot | None = None  # sample()'s registers, for decide()
 
@@ -135,7 +136,7 @@ class MoulderFeed:
         if snap.problem() is not None:  # the PLC talks nonsense: no write (its watchdog acts)
             self.last = FeedDecision(t, None, True)
             return self.last
-        if self.machine_safe():
+        if t < self._fault_until or self.machine_safe():
             self.counts["safe_cycles"] += 1
             sup = next(iter(self.heads.values())).keeper.supervisor
             feed = sup.safe_feed(snap.feed_setpoint_mm_s, dt_s=dt,
@@ -145,7 +146,7 @@ class MoulderFeed:
             self.last = FeedDecision(t, feed, True)
             return self.last
         if self.last is None or self.last.safe:  # (again) from the feed in force, no jump
-            self.law.reset(feed_mm_s=snap.feed_setpoint_mm_s, now_s=t)
+            self.law.reset(feed_mm_s=_feed_in_force(snap), now_s=t)
         cmd = self.law.update(self.head_feeds(), now_s=t, feed_min_mm_s=snap.feed_min_mm_s,
                               feed_max_mm_s=snap.feed_max_mm_s)
         feed = await self._write_feed(float(cmd.feed_mm_s), snap)
@@ -160,6 +161,15 @@ class MoulderFeed:
         self.last = FeedDecision(t, feed, False, tuple(cmd.limiting),
                                  dict(cmd.spindle_setpoints_rpm))
         return self.last
+
+    def fault(self, t: float, *, hold_s: float) -> None:
+        """The coordinator's own cycle failed unexpectedly at ``t``.
+
+        The feed goes to the machine-wide safe state (:meth:`decide`'s safe path, which needs
+        no law) for ``hold_s``; then the law starts again from the feed in force.
+        """
+        self._fault_until = max(self._fault_until, t + float(hold_s))
+        self.counts["faults"] += 1
 
     def machine_safe(self) -> bool:
         """Whether the machine-wide safe state governs the feed (see the module's text)."""
@@ -213,20 +223,19 @@ class MoulderFeed:
         return feed
 
     async def _write_speed(self, name: str, rpm: float) -> None:
-        last = self._speed.get(name)
-        if last is not None and abs(rpm - last) <= SPEED_WRITE_DEADBAND_RPM:
-            return
+        """One head's speed setpoint (the law keeps the deadband); a failed write is retried."""
         plc = self.heads[name].plc
         try:
             await plc.write_spindle_setpoint(rpm)
         except (ModbusRefused, ValueError):
             self.counts["refused"] += 1
+            self.law.forget_setpoint(name)
             return
         except FieldbusError:
             self.counts["plc_errors"] += 1
+            self.law.forget_setpoint(name)
             return
         self.counts["speed_writes"] += 1
-        self._speed[name] = rpm
 
     def describe(self) -> dict[str, Any]:
         """The last decision and the counts (plain JSON)."""
@@ -240,13 +249,39 @@ class MoulderFeed:
         }
 
 
+def _feed_in_force(snap: PlcSnapshot) -> float:
+    """The feed the law starts from, within the PLC's limits.
+
+    The PLC's setpoint; its actual feed where the setpoint reads 0 (a PLC just restarted).
+    """
+    lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
+    feed = snap.feed_setpoint_mm_s if snap.feed_setpoint_mm_s > 0 else snap.feed_actual_mm_s
+    return min(max(float(feed), lo), hi)
+
+
+def _plc_speed_range(snap: PlcSnapshot | None) -> tuple[float, float] | None:
+    """The head's drive's setpoint range from its block (``None``: none, or nonsense)."""
+    if snap is None or "spindle_rpm_min" not in snap.values or "spindle_rpm_max" not in snap.values:
+        return None
+    lo, hi = float(snap["spindle_rpm_min"]), float(snap["spindle_rpm_max"])
+    return (lo, hi) if math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi else None
+
+
 def _speed_range(hc: HeadConfig, snap: PlcSnapshot | None) -> tuple[float, float]:
-    """The head's speed range: the PLC's (its block) where it gives one, else the config's."""
-    if snap is not None and "spindle_rpm_min" in snap.values and "spindle_rpm_max" in snap.values:
-        lo, hi = float(snap["spindle_rpm_min"]), float(snap["spindle_rpm_max"])
-        if 0.0 < lo <= hi:
-            return lo, hi
-    rpm = snap.spindle_rpm if snap is not None else (hc.rpm or 0.0)
-    lo = hc.rpm_min if hc.rpm_min is not None else rpm
-    hi = hc.rpm_max if hc.rpm_max is not None else rpm
-    return float(lo), float(hi)
+    """The range the coordinator may set a head's speed in.
+
+    A head configured at one speed is fixed at its measured speed (never a speed write); one
+    configured with a range gets that range within its drive's (the PLC's block); one that
+    leaves its speed to the PLC (no ``rpm`` keys) gets the drive's range. No sound range in
+    common: fixed at its measured speed.
+    """
+    rpm = float(snap.spindle_rpm) if snap is not None else float(hc.rpm or 0.0)
+    plc = _plc_speed_range(snap)
+    if hc.rpm_min is None or hc.rpm_max is None:  # the PLC's
+        return plc if plc is not None else (rpm, rpm)
+    if not hc.variable:
+        return rpm, rpm
+    lo, hi = float(hc.rpm_min), float(hc.rpm_max)
+    if plc is not None:
+        lo, hi = max(lo, plc[0]), min(hi, plc[1])
+    return (lo, hi) if lo <= hi else (rpm, rpm)

@@ -64,7 +64,14 @@ class MoulderService:
         """One control cycle: every head's buses and supervisor, then the one feed."""
         for svc in self.heads.values():
             await svc.tick(now_s)
-        return await self.feed.cycle(now_s)
+        first = self.first
+        with first.keeper.boundary(now_s, "feed coordinator", part="plc") as g:
+            await self.feed.cycle(now_s)
+        if g.failed:  # as in plc_cycle: the feed safe for a recovery time
+            self.feed.fault(now_s, hold_s=first.cfg.safety.recovery_s)
+            self.feed.last = FeedDecision(now_s, None, True)
+        assert self.feed.last is not None
+        return self.feed.last
 
     async def handle_frame(self, head: str, frame: Any, *, now_s: float) -> FrameResult:
         """Measure one pair of ``head``'s camera and control that head (its records too)."""
@@ -88,8 +95,8 @@ class MoulderService:
         read then asks only for its block; the coordinator decides after the heads' cycles.
         """
         first = self.first
-        # the coordinator's own unexpected error is the first head's service error: it fails
-        # that head's "service" condition, a machine-wide source (the feed's safe state)
+        # the coordinator's own unexpected error is reported as the first head's service
+        # error (the one boundary); the feed then holds its safe state (MoulderFeed.fault)
         with first.keeper.boundary(first.service_clock.now(), "feed coordinator", part="plc"):
             snap = await self.feed.sample()
             words = self.feed.plc.last_common if snap is not None else None
@@ -98,8 +105,11 @@ class MoulderService:
         for svc in self.heads.values():
             await svc.plc_cycle()
         t = first.service_clock.now()
-        with first.keeper.boundary(t, "feed coordinator", part="plc"):
+        with first.keeper.boundary(t, "feed coordinator", part="plc") as g:
             await self.feed.decide(t)
+        if g.failed:  # the law's own error: the feed in the safe state for a recovery time
+            self.feed.fault(t, hold_s=first.cfg.safety.recovery_s)
+            self.feed.last = FeedDecision(t, None, True)
 
     def can_cycle(self) -> None:
         """Every head's CAN cycle (its amplifier's command and status; never waits)."""
@@ -128,9 +138,8 @@ class MoulderService:
                   for name, svc in self.heads.items()]
         try:
             await run_until_stopped(tasks, stop)
-        finally:
-            for name, svc in self.heads.items():
-                await svc.finish(sources[name])
+        finally:  # every head's last pairs and records, even when one head's finish raised
+            await _finish_all([(svc, sources[name]) for name, svc in self.heads.items()])
 
     def status(self) -> dict[str, ServiceStatus]:
         """Every head's status, by head."""
@@ -148,3 +157,14 @@ def _common_span(plc: Any) -> tuple[int, int] | None:
     protocol = getattr(plc, "protocol", None)
     ranges = getattr(protocol, "ranges", None)
     return tuple(ranges[0]) if ranges else None
+
+
+async def _finish_all(items: list[tuple[Service, Any]]) -> None:
+    """``service.finish(source)`` of every item in order, each even when one before raised."""
+    if not items:
+        return
+    svc, source = items[0]
+    try:
+        await svc.finish(source)
+    finally:
+        await _finish_all(items[1:])

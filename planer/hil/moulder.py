@@ -177,6 +177,7 @@ class MoulderPlant:
         from core.closing import close_all
 
         close_all([svc.close for svc in heads.values()]
+                  + [log.close for log in self._logs[len(heads):]]  # no service to close it
                   + [amp.close for amp in self.amps.values()]
                   + [bus.shutdown for bus in self._buses])
 

@@ -265,3 +265,13 @@ def test_head_config_takes_the_heads_cv_limit_and_camera():
 def test_head_config_of_an_unknown_head_is_an_error():
     with pytest.raises(ConfigError, match="no head named 'top'; the heads are main"):
         head_config(load_machine(), "top")
+
+
+def test_a_moulder_reading_cameras_directly_is_refused_in_one_line(tmp_path):
+    """Each camera's pairs need its own head's trigger latches: not read yet, so refused."""
+    p = tmp_path / "m.toml"
+    p.write_text('base = "machine_moulder.toml"\n[frames]\nsource = "camera"\n'
+                 'camera_id = "Fake_1"\n')
+    with pytest.raises(ConfigError, match=r"frames\.source = 'camera' with 4 \[\[heads\]\]") as e:
+        load_machine(p)
+    assert "\n" not in str(e.value)

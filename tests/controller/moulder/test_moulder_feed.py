@@ -101,3 +101,29 @@ def test_a_head_service_writes_neither_feed_nor_heartbeat(tmp_path):
         svc = next(iter(plant.service.heads.values()))
         svc.out.owns_feed = True
         MoulderService({"bottom": svc}, plant.cfg.heads[:1], feed=plant.service.feed)
+
+
+def test_the_coordinators_own_error_holds_the_feed_safe_then_it_resumes(tmp_path):
+    """An unexpected error of the law itself: reported (the first head's SERVICE_ERROR), the
+    feed on the safe path for the recovery time, then the law again from the feed in force."""
+    plant = _plant(tmp_path, [])
+    law = plant.service.feed.law
+    real = law.update
+    broken = {"left": 1}
+
+    def once(*args, **kwargs):
+        if plant.clock() > 1.0 and broken["left"]:
+            broken["left"] -= 1
+            raise RuntimeError("a bug in the law")
+        return real(*args, **kwargs)
+
+    law.update = once
+    seen = asyncio.run(_steps(plant, 2.5))
+    after = [s for s in seen if s[0] > 1.0]
+    safe = [s for s in after if s[1]]
+    hold = plant.cfg.safety.recovery_s
+    assert safe and safe[-1][0] - safe[0][0] == pytest.approx(hold, abs=0.05)
+    assert after[-1][1] is False  # the law governs again
+    assert plant.service.feed.counts["faults"] == 1
+    errors = [e for e in plant.service.first.events if e.kind.value == "service_error"]
+    assert errors and "a bug in the law" in errors[0].text
