@@ -9,10 +9,11 @@ registers, a speed to its head's block), beats the PLC's heartbeat, and tells ev
 loop the feed now in force.
 
 Safe state, machine-wide where it must be: when a head's supervisor misses a machine-wide source
-(the PLC, its data, the machine, the service itself) or every head is in its safe state, the feed
-goes to the safe state (``[safety] safe_state``: hold or ramp down) and no speed is written. A
-head in its safe state for a reason of its own (its camera silent, its amplifier's heartbeat lost)
-keeps its held correction in the law: the others go on at the feed they need.
+(the PLC, its data, the machine), every head is in its safe state, or the coordinator's own code
+failed (:meth:`MoulderFeed.fault`: for the recovery time), the feed goes to the safe state
+(``[safety] safe_state``: hold or ramp down) and no speed is written. A head in its safe state
+for a reason of its own (its camera silent, its amplifier's heartbeat lost, its own code's error
+on a pair) keeps its held correction in the law: the others go on at the feed they need.
 """
 
 from __future__ import annotations
