@@ -2,11 +2,12 @@
 
 The same command, the same lines as for one head, each naming its head: where it connects, one
 progress line per head every ``[log] print_every`` pairs of that head, every change of a head's
-safe state, why it waits; systemd's notifications as for one head. Each head reads its own frame
-source (its spool folder, ``<[frames] spool_dir>/<head>`` unless the head names one, or its
-camera). Measured in ``[service] workers`` (``--workers``) worker processes the heads share,
-each head's pairs with its own rig (``controller.moulder.compose.share_workers``; 0: in the
-service's threads).
+safe state, why it waits; systemd's notifications as for one head, and as for one head no run
+times of its own when its output is the journal (a line then starts with ``[<head>]``). Each head
+reads its own frame source (its spool folder, ``<[frames] spool_dir>/<head>`` unless the head
+names one, or its camera). Measured in ``[service] workers`` (``--workers``) worker processes the
+heads share, each head's pairs with its own rig (``controller.moulder.compose.share_workers``; 0:
+in the service's threads).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any
 
 from config.machine import MachineConfig, head_config
 from controller.edge.compose import serving
-from controller.sd_notify import Notifier
+from controller.sd_notify import Notifier, under_journald
 from controller.service.supervisor import SafetyState
 
 
@@ -79,6 +80,11 @@ async def _run(moulder: Any, sources: dict[str, Any], cfg: MachineConfig, *,
                printers: tuple) -> int:
     event_printer, progress_printer, waiting_line = printers
     t0 = moulder.first.clock()
+    journal = under_journald()  # the journal stamps every line itself
+
+    def at(t: float) -> str:
+        return "" if journal else f"t={t:9.3f} s  "
+
     say(f"plc: {cfg.plc.host}:{cfg.plc.port} unit {cfg.plc.unit_id} (the feed and "
         f"{len(moulder.heads)} head blocks)")
     for hc in cfg.heads:
@@ -90,7 +96,7 @@ async def _run(moulder: Any, sources: dict[str, Any], cfg: MachineConfig, *,
             f", log {svc.log.path}")
 
         def stamp(t: float, name: str = hc.name) -> str:
-            return f"t={t:9.3f} s  [{name}] "
+            return f"{at(t)}[{name}] "
 
         svc.on_event = event_printer(t0, stamp, notifier)
         svc.on_result = progress_printer(svc, sources[hc.name], t0, cfg.log.print_every,
@@ -111,7 +117,7 @@ async def _run(moulder: Any, sources: dict[str, Any], cfg: MachineConfig, *,
                         can=f"{svc.cfg.can.interface}:{svc.cfg.can.channel}",
                         frames=str(svc.cfg.frames.spool_dir))
                     notifier.status(line)
-                    say(f"t={svc.clock() - t0:9.3f} s  " + line)
+                    say(at(svc.clock() - t0) + line)
 
     watcher = asyncio.create_task(tell_why_waiting())
     watchdog = asyncio.create_task(notifier.watchdog())
