@@ -22,6 +22,7 @@ from config.machine import MachineConfig, head_config
 from controller.edge.compose import serving
 from controller.sd_notify import Notifier, under_journald
 from controller.service.supervisor import SafetyState
+from core.realtime import BUS_RT_PRIORITY, realtime_thread
 
 
 async def serve_moulder(cfg: MachineConfig, *, log_path: Path | str, opcua: str | None,
@@ -122,11 +123,17 @@ async def _run(moulder: Any, sources: dict[str, Any], cfg: MachineConfig, *,
     watcher = asyncio.create_task(tell_why_waiting())
     watchdog = asyncio.create_task(notifier.watchdog())
     try:
-        started = asyncio.create_task(moulder.run(sources, stop=stop, max_frames=max_frames))
-        await asyncio.sleep(0)
-        say("ready")
-        notifier.ready("serving a moulder: waiting in the safe state until every source answers")
-        await started
+        # the event loop (every head's buses, pairs and the feed) raised as one head's bus
+        # thread is (SCHED_FIFO where permitted, else nice; the RLIMIT_RTTIME guard)
+        with realtime_thread(rt_priority=BUS_RT_PRIORITY) as granted:
+            started = asyncio.create_task(moulder.run(sources, stop=stop,
+                                                      max_frames=max_frames))
+            await asyncio.sleep(0)
+            say(f"priority: service bus (every head and the feed) {granted}")
+            say("ready")
+            notifier.ready("serving a moulder: waiting in the safe state until every source "
+                           "answers")
+            await started
     finally:
         watcher.cancel()
         watchdog.cancel()
@@ -134,5 +141,6 @@ async def _run(moulder: Any, sources: dict[str, Any], cfg: MachineConfig, *,
     for name, svc in moulder.heads.items():
         c = svc.counters
         print(f"stopped [{name}]: {c['frames']} pairs, {c['ok']} measured, {c['failed']} failed, "
-              f"{c['safe_entries']} safe-state entries", file=sys.stderr, flush=True)
+              f"{c['safe_entries']} safe-state entries; quality log {svc.log.path}",
+              file=sys.stderr, flush=True)
     return 0
