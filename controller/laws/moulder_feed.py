@@ -31,17 +31,14 @@ from __future__ import annotations
 
 import enum
 import math
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from config.heads import HEAD_NAME
 from controller.laws.feed_loop import FeedLoop, config_from_mapping
 from controller.laws.limits import check_time_forward, clamp, rate_limit
 from core.checks import check_finite, check_int, check_positive, check_range
-
-HEAD_NAME = re.compile(r"[a-z][a-z0-9_]*\Z")
-"""A head's name: lower-case letter, then lower-case letters, digits and underscores."""
 
 
 class FeedBound(enum.Enum):
@@ -58,7 +55,7 @@ class FeedBound(enum.Enum):
 
 
 def _check_name(name: Any) -> str:
-    if not isinstance(name, str) or not HEAD_NAME.match(name):
+    if not isinstance(name, str) or not HEAD_NAME.fullmatch(name):
         raise ValueError(f"name must match [a-z][a-z0-9_]*, got {name!r}")
     return name
 

@@ -131,11 +131,8 @@ class MoulderFeed:
         dt = 0.0 if self._last_t is None else max(0.0, t - self._last_t)
         self._last_t = t
         snap, self._snap = self._snap, None
-        if snap is None:
-            self.last = FeedDecision(t, None, True)
-            return self.last
-        if snap.problem() is not None:  # the PLC talks nonsense: no write (its watchdog acts)
-            self.last = FeedDecision(t, None, True)
+        if snap is None or snap.problem() is not None:  # no answer, or nonsense: no write
+            self.last = FeedDecision(t, None, True)  # (the PLC's watchdog acts)
             return self.last
         if t < self._fault_until or self.machine_safe():
             self.counts["safe_cycles"] += 1
@@ -171,6 +168,7 @@ class MoulderFeed:
         """
         self._fault_until = max(self._fault_until, t + float(hold_s))
         self.counts["faults"] += 1
+        self.last = FeedDecision(t, None, True)
 
     def machine_safe(self) -> bool:
         """Whether the machine-wide safe state governs the feed (see the module's text)."""

@@ -69,7 +69,6 @@ class MoulderService:
             await self.feed.cycle(now_s)
         if g.failed:  # as in plc_cycle: the feed safe for a recovery time
             self.feed.fault(now_s, hold_s=first.cfg.safety.recovery_s)
-            self.feed.last = FeedDecision(now_s, None, True)
         assert self.feed.last is not None
         return self.feed.last
 
@@ -109,7 +108,6 @@ class MoulderService:
             await self.feed.decide(t)
         if g.failed:  # the law's own error: the feed in the safe state for a recovery time
             self.feed.fault(t, hold_s=first.cfg.safety.recovery_s)
-            self.feed.last = FeedDecision(t, None, True)
 
     def can_cycle(self) -> None:
         """Every head's CAN cycle (its amplifier's command and status; never waits)."""
@@ -131,7 +129,7 @@ class MoulderService:
         cfg = self.first.cfg
         plc_period = cfg.safety.cycle_s
         can_period = min(cfg.can.command_period_s, plc_period)
-        count = FrameCount(max_frames, stop)
+        count = FrameCount(max_frames)
         tasks = [asyncio.create_task(run_periodic(can_period, self.can_cycle, stop)),
                  asyncio.create_task(run_periodic(plc_period, self.plc_cycle, stop))]
         tasks += [asyncio.create_task(svc.take_frames(sources[name], stop, count))

@@ -20,6 +20,7 @@ from controller.opcua.view import (
     UnitMode,
     UnitState,
     WwEvent,
+    _num,
 )
 from controller.quality.schema import QualityClass
 from controller.service.events import ServiceEvent
@@ -63,13 +64,6 @@ _ALL_FLAGS = ("MachineOn", "PowerPresent", "MachineInitialized", "Calibrated", "
 def head_path(head: str, rest: str) -> str:
     """The path below the machine of a head's variable (``State/SubUnits/top/Flags/Error``)."""
     return f"{SUBUNITS}/{head}/{rest}"
-
-
-def _num(v: Any) -> float:
-    try:
-        return float(v)
-    except (TypeError, ValueError):
-        return math.nan
 
 
 class MoulderView:

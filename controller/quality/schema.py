@@ -11,12 +11,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
 from typing import Any
 
+from config.heads import DEFAULT_HEAD, HEAD_NAME
 from config.loading import Section
 from controller.quality.defect_fields import check_defect_fields
 from core.checks import check_finite, check_int, check_positive
@@ -28,11 +28,9 @@ SCHEMA_VERSION = 8
 APPLICATION_ID = 0x504C514C
 #: Longest machine id (``[machine] id``), characters.
 MACHINE_ID_MAX = 64
-#: The head of a single-head planer, and of every record written before schema version 8.
-DEFAULT_HEAD = "main"
-#: Longest head name, characters.
+#: Longest head name, characters (a name is ``config.heads.HEAD_NAME``; ``DEFAULT_HEAD`` is the
+#: head of a single-head planer and of every record written before schema version 8).
 HEAD_MAX = 32
-_HEAD_NAME = re.compile(r"[a-z][a-z0-9_]*")
 
 
 class QualityLogError(PlanerError, ValueError):
@@ -1015,7 +1013,7 @@ def _check_machine_id(name: str, value: Any) -> str | None:
 
 def check_head(name: str, value: Any) -> str:
     """A head name (``[a-z][a-z0-9_]*``, at most :data:`HEAD_MAX` characters); else ValueError."""
-    if not isinstance(value, str) or len(value) > HEAD_MAX or not _HEAD_NAME.fullmatch(value):
+    if not isinstance(value, str) or len(value) > HEAD_MAX or not HEAD_NAME.fullmatch(value):
         raise ValueError(f"{name} must be a head name ([a-z][a-z0-9_]*, at most {HEAD_MAX} "
                          f"characters), got {value!r:.80}")
     return value

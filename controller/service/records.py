@@ -309,21 +309,18 @@ class QualityRecords:
             cal = getattr(m, "calibration", None)
             if cal is not None and getattr(cal, "deblurred", False):
                 fields["extra"]["calibration_deblurred"] = True
-            # planing defects, the pair's grade and its board's so far (schema version 7;
-            # flagged pairs too: a defect is often why the vision's checks disagreed)
-            defect = pair_fields(m)
+        # planing defects, the pair's grade and its board's so far (schema version 7): of a
+        # measured pair (flagged ones too: a defect is often why the vision's checks disagreed)
+        # or of a refused one, whose defects were found all the same (FrameResult.surface)
+        surface = r.surface
+        if surface is not None:
+            defect = pair_fields(surface)
             fields.update(defect)
-            if defect:  # where image A's centre is: the report places the defects on the board
-                fields["extra"][FRAME_CENTRE_KEY] = (r.extra.get(FRAME_CENTRE_KEY)
-                                                     or frame_centre_mm(m))
-            fields.update(self._board_grades.add(int_or(fields.get("board_id"), 0),
-                                                 defect.get("defects"),
-                                                 finite_or_none(fields.get("board_position_mm"))))
-        elif r.refused_surface is not None:  # refused, its defects found all the same
-            defect = pair_fields(r.refused_surface)
-            fields.update(defect)
-            if defect and r.extra.get(FRAME_CENTRE_KEY) is not None:
-                fields["extra"][FRAME_CENTRE_KEY] = r.extra[FRAME_CENTRE_KEY]
+            # where image A's centre is: the report places the defects on the board
+            centre = r.extra.get(FRAME_CENTRE_KEY) or (frame_centre_mm(m) if m is not None
+                                                       else None)
+            if defect and centre is not None:
+                fields["extra"][FRAME_CENTRE_KEY] = centre
             fields.update(self._board_grades.add(int_or(fields.get("board_id"), 0),
                                                  defect.get("defects"),
                                                  finite_or_none(fields.get("board_position_mm"))))

@@ -356,7 +356,7 @@ class Service:
         stop = stop or asyncio.Event()
         plc_period = self.cfg.safety.cycle_s
         can_period = min(self.cfg.can.command_period_s, plc_period)
-        count = FrameCount(max_frames, stop)
+        count = FrameCount(max_frames)
         tasks = [
             asyncio.create_task(run_periodic(can_period, self.can_cycle, stop)),
             asyncio.create_task(run_periodic(plc_period, self.plc_cycle, stop)),
@@ -449,10 +449,9 @@ class Service:
 class FrameCount:
     """Pairs taken by the frame tasks of one run, against its ``max_frames`` (``None``: no end)."""
 
-    def __init__(self, max_frames: int | None, stop: asyncio.Event) -> None:
+    def __init__(self, max_frames: int | None) -> None:
         self.max_frames = max_frames
         self.n = 0
-        self.stop = stop
 
     def add(self) -> bool:
         """Count one pair; whether the run has taken all it was asked to."""

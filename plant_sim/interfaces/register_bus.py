@@ -48,6 +48,7 @@ class MachineRegisterBus:
         self.regmap = regmap
         self.heads = heads_served(machine, regmap)
         """Head blocks served (0 for a machine without ``head_register_values``)."""
+        self._img = RegisterImage(regmap, self.heads)
         self.down = False
         self._open = False
         self.requests = 0
@@ -71,7 +72,8 @@ class MachineRegisterBus:
         self.requests += 1
 
     def _image(self) -> RegisterImage:
-        image = RegisterImage(self.regmap, self.heads)
+        """The register image (built once) loaded with the machine's values now."""
+        image = self._img
         image.load(self.machine.register_values(), head_values(self.machine, self.heads))
         return image
 

@@ -34,15 +34,7 @@ _SPINDLE_STOPPED = int(PlcFault.SPINDLE_STOPPED)
 _HEAD_AMPLIFIER = int(HeadFault.AMPLIFIER)
 _HEAD_SPINDLE = int(HeadFault.SPINDLE)
 _HEAD_CAMERA_SILENT = int(HeadFault.CAMERA_SILENT)
-HEAD_FIELDS: tuple[str, ...] = (
-    "spindle_rpm", "spindle_setpoint_rpm", "spindle_rpm_min", "spindle_rpm_max", "knives",
-    "cutterhead_radius_mm", "cutter_to_camera_mm", "trigger_a_counts", "trigger_b_counts",
-    "trigger_seq", "index_latch_counts", "head_faults", "machine_state", "board_id",
-    "board_position_mm",
-)
-"""The fields of a head's register block (the moulder's design), in block order."""
-
-__all__ = ["HEAD_FIELDS", "PlcRegisters", "register_names"]
+__all__ = ["PlcRegisters", "register_names"]
 
 
 def register_names(path: str | Path | None = None) -> list[str]:
@@ -149,7 +141,7 @@ class PlcRegisters:
         return st
 
     def head_values(self, t_s: float, *, camera_silent: bool = False) -> dict[str, float | int]:
-        """The head fields of the head's register block at ``t_s`` (see :data:`HEAD_FIELDS`).
+        """The fields of the head's register block at ``t_s`` (``[heads]`` of registers.toml).
 
         Parameters
         ----------
