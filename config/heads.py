@@ -34,6 +34,8 @@ __all__ = [
     "check_head_name",
     "check_unique",
     "find_head",
+    "head_identity",
+    "head_sections",
     "head_table",
     "heads_from_toml",
     "rpm_range",
@@ -241,10 +243,36 @@ _HEAD_KEYS = ("name", "face", "position_mm", "knives", "radius_mm", "rpm", "rpm_
               "spool_dir", "camera_id")
 
 
+def head_sections(raw: Any, key: str = "heads") -> list[Section]:
+    """``[[heads]]`` as one :class:`~config.loading.Section` a head (``key[i]``), checked.
+
+    Raises
+    ------
+    ConfigError
+        Not a non-empty array of tables.
+    """
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{key} must be a non-empty array of tables ([[{key}]]), "
+                          f"got {raw!r:.80}")
+    return [Section(item, f"{key}[{i}]") for i, item in enumerate(raw)]
+
+
+def head_identity(t: Section) -> tuple[str, Face, float, int]:
+    """The keys every head's table has, in ``machine.toml`` and ``sim.toml`` alike.
+
+    ``(name, face, position_mm, node_id)``: its name (:data:`HEAD_NAME`), the face it cuts,
+    its place along the feed (mm, default 0) and its amplifier's node id (1..127); errors name
+    ``heads[i].key``.
+    """
+    name = check_head_name(t.raw("name"), t.key("name"))
+    face = Face(t.string("face", choices=FACES))
+    position_mm = t.number("position_mm", 0.0, lo=0.0, hi=100_000.0)
+    return name, face, position_mm, t.integer("node_id", lo=1, hi=127)
+
+
 def _head(t: Section, key: str, *, rig: Path | None, spool_dir: Path, camera_id: str,
           target_pitch_mm: float) -> HeadConfig:
-    name = check_head_name(t.raw("name"), t.key("name"))
-    face = t.string("face", choices=FACES)
+    name, face, position_mm, node_id = head_identity(t)
 
     def opt_number(k: str, **bounds: Any) -> float | None:
         return t.number(k, **bounds) if t.has(k) else None
@@ -255,12 +283,12 @@ def _head(t: Section, key: str, *, rig: Path | None, spool_dir: Path, camera_id:
     rig_raw = t.string("rig", "")
     head = HeadConfig(
         name=name,
-        face=Face(face),
-        position_mm=t.number("position_mm", 0.0, lo=0.0, hi=100_000.0),
+        face=face,
+        position_mm=position_mm,
         knives=t.integer("knives", lo=1, hi=MAX_KNIVES) if t.has("knives") else None,
         radius_mm=opt_number("radius_mm", lo=5.0, hi=500.0),
         rpm=rpm, rpm_min=rpm_min, rpm_max=rpm_max,
-        node_id=t.integer("node_id", lo=1, hi=127),
+        node_id=node_id,
         target_pitch_mm=t.number("target_pitch_mm", target_pitch_mm, lo=0.0, lo_open=True,
                                  hi=20.0),
         quality_class=t.string("quality_class") if t.has("quality_class") else None,
@@ -298,15 +326,8 @@ def heads_from_toml(raw: Any, *, rig: Path | None, spool_dir: Path, camera_id: s
         Not a non-empty list of tables, a key missing, mistyped or out of range, unknown, or a
         name or node id given twice; the message names ``heads[i].key`` and the bad value.
     """
-    if not isinstance(raw, list) or not raw:
-        raise ConfigError(f"{key} must be a non-empty array of tables ([[{key}]]), "
-                          f"got {raw!r:.80}")
-    heads = []
-    for i, item in enumerate(raw):
-        t = Section(item, f"{key}[{i}]")
-        heads.append(_head(t, f"{key}[{i}]", rig=rig, spool_dir=spool_dir, camera_id=camera_id,
-                           target_pitch_mm=target_pitch_mm))
-    out = tuple(heads)
+    out = tuple(_head(t, t.prefix, rig=rig, spool_dir=spool_dir, camera_id=camera_id,
+                      target_pitch_mm=target_pitch_mm) for t in head_sections(raw, key))
     check_unique((h.name for h in out), "name", key)
     check_unique((h.node_id for h in out), "node_id", key)
     check_unique((h.spool_dir for h in out), "spool_dir", key)

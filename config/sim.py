@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,11 +30,11 @@ from config.faults import check_fault_head, parse_fault
 from config.heads import (
     DEFAULT_FACE,
     DEFAULT_HEAD,
-    FACES,
     Face,
-    check_head_name,
     check_unique,
     find_head,
+    head_identity,
+    head_sections,
     rpm_range,
 )
 from config.loading import (
@@ -70,9 +70,12 @@ __all__ = [
     "SimConfig",
     "SimHeadConfig",
     "SpindleConfig",
+    "ALL_HEADS_FAULTS",
     "FAULT_KINDS",
+    "MACHINE_FAULTS",
     "default_sim",
     "default_sim_head",
+    "fault_heads",
     "head_sim_config",
     "load_sim",
     "sim_from_dict",
@@ -81,6 +84,12 @@ __all__ = [
 
 FAULT_KINDS: tuple[str, ...] = _FAULT_KINDS
 """Fault kinds the machine model understands (the registry :mod:`config.faults`)."""
+MACHINE_FAULTS: frozenset[str] = frozenset(
+    {"feed_fault", "encoder_fault", "encoder_wrap", "belt_slip", "modbus_restart"})
+"""Faults of the one feed, encoder or PLC: without a head they strike the first head's machine
+(the owner of the feed and the encoder)."""
+ALL_HEADS_FAULTS: frozenset[str] = frozenset({"estop", "reset", "species_change"})
+"""Faults of the whole machine: without a head they strike every head."""
 
 
 @dataclass(frozen=True)
@@ -540,6 +549,42 @@ def default_sim_head(cfg: SimConfig) -> SimHeadConfig:
                          piezo=cfg.piezo, node_id=cfg.can.node_id)
 
 
+def fault_heads(kind: str, head: str | None, names: Sequence[str]) -> tuple[str, ...]:
+    """The heads a fault strikes: the one rule of a moulder's faults (one head's too).
+
+    Parameters
+    ----------
+    kind : str
+        The fault's kind.
+    head : str or None
+        The head it names (``None``: none).
+    names : sequence of str
+        The machine's heads in order (the first owns the feed and the encoder).
+
+    Returns
+    -------
+    tuple of str
+        The head it names; else every head for :data:`ALL_HEADS_FAULTS`, the first for
+        :data:`MACHINE_FAULTS` or a machine of one head.
+
+    Raises
+    ------
+    ConfigError
+        ``head`` is none of ``names``, or a kind that strikes one head (a knife, a spindle, an
+        amplifier, a camera) names none in a machine of several.
+    """
+    names = tuple(names)
+    if head is not None:
+        if head not in names:
+            raise ConfigError(f"head must be one of {', '.join(names)}, got {head!r}")
+        return (head,)
+    if kind in ALL_HEADS_FAULTS:
+        return names
+    if kind in MACHINE_FAULTS or len(names) == 1:
+        return names[:1]
+    raise ConfigError(f"fault {kind} strikes one head: give head= (one of {', '.join(names)})")
+
+
 def head_sim_config(cfg: SimConfig, name: str) -> SimConfig:
     """The whole configuration of the ``Machine`` of the head called ``name``.
 
@@ -554,9 +599,9 @@ def head_sim_config(cfg: SimConfig, name: str) -> SimConfig:
     -------
     SimConfig
         ``cfg`` with the head's ``cutterhead``, ``spindle``, ``camera``, ``piezo`` and
-        ``can.node_id``, ``heads == (head,)`` and the faults that name this head or none; the
-        feed, encoder, board, PLC and interfaces shared. For a single-head file
-        ``head_sim_config(cfg, "main") == cfg``.
+        ``can.node_id``, ``heads == (head,)`` and the faults that strike it
+        (:func:`fault_heads`); the feed, encoder, board, PLC and interfaces shared. For a
+        single-head file ``head_sim_config(cfg, "main") == cfg``.
 
     Raises
     ------
@@ -564,29 +609,31 @@ def head_sim_config(cfg: SimConfig, name: str) -> SimConfig:
         No head of that name.
     """
     head: SimHeadConfig = find_head(cfg.heads, name)
+    names = tuple(h.name for h in cfg.heads)
     return dataclasses.replace(
         cfg, cutterhead=head.cutterhead, spindle=head.spindle, camera=head.camera,
         piezo=head.piezo, can=dataclasses.replace(cfg.can, node_id=head.node_id),
-        faults=tuple(f for f in cfg.faults if f.head in (None, name)),
+        faults=tuple(f for f in cfg.faults if name in fault_heads(f.kind, f.head, names)),
         declared_heads=(head,) if cfg.declared_heads else ())
 
 
 def _spindle(s: Section) -> SpindleConfig:
+    """``[spindle]`` (or a head's): a variable spindle without ``rpm`` starts at ``rpm_max``."""
     d = SpindleConfig()
+    ranged = s.has("rpm_min") or s.has("rpm_max")
+    rpm, lo, hi = rpm_range(*(s.number(k, lo=100.0, hi=30000.0) if s.has(k) else None
+                              for k in ("rpm", "rpm_min", "rpm_max")), s.prefix)
     out = SpindleConfig(
-        rpm=s.number("rpm", d.rpm, lo=100.0, hi=30000.0),
+        rpm=d.rpm if rpm is None else rpm,
         ripple_frac=s.number("ripple_frac", d.ripple_frac, lo=0.0, hi=0.05),
         ripple_hz=s.number("ripple_hz", d.ripple_hz, lo=0.0, hi=100.0),
         load_droop_frac=s.number("load_droop_frac", d.load_droop_frac, lo=0.0, hi=0.2),
         coast_tau_s=s.number("coast_tau_s", d.coast_tau_s, lo=0.0, lo_open=True, hi=600.0),
         brake_tau_s=s.number("brake_tau_s", d.brake_tau_s, lo=0.0, lo_open=True, hi=60.0),
         spinup_tau_s=s.number("spinup_tau_s", d.spinup_tau_s, lo=0.0, lo_open=True, hi=600.0),
+        rpm_min=lo if ranged else None,  # a fixed spindle keeps None (SpindleConfig.rpm_range)
+        rpm_max=hi if ranged else None,
     )
-    lo = s.number("rpm_min", lo=100.0, hi=30000.0) if s.has("rpm_min") else None
-    hi = s.number("rpm_max", lo=100.0, hi=30000.0) if s.has("rpm_max") else None
-    if lo is not None or hi is not None:
-        rpm_range(out.rpm, lo, hi, s.prefix)
-        out = dataclasses.replace(out, rpm_min=lo, rpm_max=hi)
     s.reject_unknown()
     return out
 
@@ -708,11 +755,33 @@ def _optics(s: Section) -> OpticsConfig:
     return out
 
 
-def _read_noise(s: Section, default: float) -> float:
-    if s.has("read_noise_dn") and s.has("noise"):
+def _read_noise(s: Section, default: float, *, alias: bool = True) -> float:
+    """``read_noise_dn`` (``[camera.optics]`` also takes its old name ``noise``: ``alias``)."""
+    if alias and s.has("read_noise_dn") and s.has("noise"):
         raise ConfigError(f"{s.key('read_noise_dn')}: give read_noise_dn or noise, not both")
-    name = "noise" if s.has("noise") else "read_noise_dn"
+    name = "noise" if alias and s.has("noise") else "read_noise_dn"
     return s.number(name, default, lo=0.0, hi=100.0)
+
+
+def _camera_place(s: Section, d: Any) -> dict[str, Any]:
+    """The camera's keys a head may give its own (``d``: their defaults), checked.
+
+    ``cutter_to_camera_mm``, ``roll_deg`` and ``species`` (one of
+    :data:`config.wood.SPECIES`, case and spaces ignored): ``[camera]``'s and each head's.
+    """
+    species = s.string("species", d.species).strip().lower()
+    from config.wood import SPECIES  # the known species (a data table, no I/O)
+
+    if species not in SPECIES:
+        raise ConfigError(
+            f"{s.key('species')} must be one of {', '.join(sorted(SPECIES))}; got {species!r}"
+        )
+    return {
+        "cutter_to_camera_mm": s.number("cutter_to_camera_mm", d.cutter_to_camera_mm, lo=1.0,
+                                        hi=10000.0),
+        "roll_deg": s.number("roll_deg", d.roll_deg, lo=-10.0, hi=10.0),
+        "species": species,
+    }
 
 
 def _camera(s: Section, base: Path | None) -> CameraConfig:
@@ -728,23 +797,13 @@ def _camera(s: Section, base: Path | None) -> CameraConfig:
         rig = load_rig(rig_path)
     except ConfigError as exc:
         raise ConfigError(f"{s.key('rig')}: {exc}") from None
-    species = s.string("species", d.species).strip().lower()
-    from config.wood import SPECIES  # the known species (a data table, no I/O)
-
-    if species not in SPECIES:
-        raise ConfigError(
-            f"{s.key('species')} must be one of {', '.join(sorted(SPECIES))}; got {species!r}"
-        )
     out = CameraConfig(
         rig_path=rig_path,
         rig=rig,
-        cutter_to_camera_mm=s.number("cutter_to_camera_mm", d.cutter_to_camera_mm, lo=1.0,
-                                     hi=10000.0),
+        **_camera_place(s, d),
         pairs_per_s=s.number("pairs_per_s", d.pairs_per_s, lo=0.0, lo_open=True, hi=1000.0),
         dt_ab_s=s.number("dt_ab_s", d.dt_ab_s, lo=0.0, lo_open=True, hi=0.1),
-        species=species,
         optics=_optics(s.section("optics", required=False)),
-        roll_deg=s.number("roll_deg", d.roll_deg, lo=-10.0, hi=10.0),
         slant_offset_deg=(
             s.number("slant_offset_a_deg", d.slant_offset_deg[0], lo=-10.0, hi=10.0),
             s.number("slant_offset_b_deg", d.slant_offset_deg[1], lo=-10.0, hi=10.0),
@@ -903,59 +962,44 @@ def _head_cutterhead(t: Section, shared: CutterheadConfig) -> CutterheadConfig:
 
 
 def _head_spindle(t: Section, shared: SpindleConfig) -> SpindleConfig:
-    """A head's spindle: its ``rpm`` (fixed) or ``rpm_min``/``rpm_max`` over ``[spindle]``."""
+    """A head's spindle: its ``rpm`` (fixed) or ``rpm_min``/``rpm_max`` over ``[spindle]``.
+
+    The head's own speeds replace all three of the shared table's (a range without ``rpm``
+    starts at its ``rpm_max``, as :func:`config.heads.rpm_range` completes it).
+    """
     raw = {k: v for k, v in dataclasses.asdict(shared).items() if v is not None}
     given = {k: t.raw(k) for k in _HEAD_SPINDLE_KEYS if t.has(k)}
-    if given:  # the head's own speeds replace all three of the shared table's
+    if given:
         for k in _HEAD_SPINDLE_KEYS:
             raw.pop(k, None)
-        raw["rpm"] = shared.rpm
     raw.update(given)
-    if "rpm" not in given and "rpm_max" in given:
-        t.number("rpm_max")  # its type checked first, naming the head's key
-        raw["rpm"] = given["rpm_max"]  # a variable head without rpm starts at its fastest
     return _spindle(Section(raw, t.prefix))
 
 
 def _head_camera(t: Section, shared: CameraConfig) -> CameraConfig:
     """A head's camera: ``cutter_to_camera_mm``, ``roll_deg``, ``species``, ``read_noise_dn``."""
-    species = t.string("species", shared.species).strip().lower()
-    from config.wood import SPECIES  # the known species (a data table, no I/O)
-
-    if species not in SPECIES:
-        raise ConfigError(
-            f"{t.key('species')} must be one of {', '.join(sorted(SPECIES))}; got {species!r}")
     return dataclasses.replace(
-        shared,
-        cutter_to_camera_mm=t.number("cutter_to_camera_mm", shared.cutter_to_camera_mm, lo=1.0,
-                                     hi=10000.0),
-        roll_deg=t.number("roll_deg", shared.roll_deg, lo=-10.0, hi=10.0),
-        species=species,
-        optics=dataclasses.replace(
-            shared.optics,
-            noise=t.number("read_noise_dn", shared.optics.noise, lo=0.0, hi=100.0)),
-    )
+        shared, **_camera_place(t, shared),
+        optics=dataclasses.replace(shared.optics,
+                                   noise=_read_noise(t, shared.optics.noise, alias=False)))
 
 
 def _sim_heads(raw: Any, cfg: SimConfig) -> tuple[SimHeadConfig, ...]:
     """``[[heads]]`` of ``sim.toml``: each head's keys over the shared tables, checked."""
-    if not isinstance(raw, list) or not raw:
-        raise ConfigError(f"heads must be a non-empty array of tables ([[heads]]), "
-                          f"got {raw!r:.80}")
     heads = []
-    for i, item in enumerate(raw):
-        t = Section(item, f"heads[{i}]")
+    for t in head_sections(raw):
+        name, face, position_mm, node_id = head_identity(t)
         head = SimHeadConfig(
-            name=check_head_name(t.raw("name"), t.key("name")),
-            face=Face(t.string("face", choices=FACES)),
-            position_mm=t.number("position_mm", 0.0, lo=0.0, hi=100_000.0),
+            name=name,
+            face=face,
+            position_mm=position_mm,
             cutterhead=_head_cutterhead(t, cfg.cutterhead),
             spindle=_head_spindle(t, cfg.spindle),
             camera=_head_camera(t, cfg.camera),
             piezo=dataclasses.replace(
                 cfg.piezo, stroke_um=t.number("stroke_um", cfg.piezo.stroke_um, lo=0.0,
                                               lo_open=True, hi=1000.0)),
-            node_id=t.integer("node_id", lo=1, hi=127),
+            node_id=node_id,
         )
         t.reject_unknown()
         heads.append(head)
@@ -1057,6 +1101,10 @@ def sim_from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None) -> S
     faults_key = "faults.inject" if isinstance(root.raw("faults", None), Mapping) else "faults"
     for i, fault in enumerate(cfg.faults):
         check_fault_head(fault.head, names, f"{faults_key}[{i}].head")
+        try:  # the heads it strikes: a one-head kind names its head in a moulder
+            fault_heads(fault.kind, fault.head, names)
+        except ConfigError as exc:
+            raise ConfigError(f"{faults_key}[{i}]: {exc}") from None
     _check_head(default_sim_head(cfg), cfg, "")
     for i, head in enumerate(cfg.declared_heads):
         _check_head(head, cfg, f"heads[{i}]")

@@ -87,6 +87,10 @@ class Machine:
         :meth:`advance` is refused on it; ``boards`` may be a
         :class:`plant_sim.model.feed_drive.BoardView` (the boards seen from a head downstream).
         Default: its own.
+    feed_shared : bool
+        It owns a feed that machines built after it will share (a moulder's first head): its
+        first cycle leaves the feed to :func:`start_feed` of all of them, called once they are
+        built (the feed's interlock is every machine's).
 
     Attributes
     ----------
@@ -106,7 +110,7 @@ class Machine:
 
     def __init__(self, cfg: SimConfig, *, seed: int = 0, render_images: bool = True,
                  feed: FeedDrive | None = None, encoder: Encoder | None = None,
-                 boards: BoardStream | None = None) -> None:
+                 boards: BoardStream | None = None, feed_shared: bool = False) -> None:
         self.cfg = cfg
         self.seed = check_int("seed", seed, lo=0)
         self.render_images = bool(render_images)
@@ -147,7 +151,7 @@ class Machine:
         self._next_sw = math.floor(self.knives * self.spindle.rev + self._lead) + 1
         for spec in cfg.faults:
             self.inject(spec.kind, **dict(spec.params))
-        self._start_cycle()
+        self._start_cycle(feed=self.owns_feed and not feed_shared)
 
     # ------------------------------------------------------------------ time
     @property
@@ -170,10 +174,11 @@ class Machine:
                                "(plant_sim.machine.machine.advance_together, Moulder.advance)")
         return advance_together((self,), dt_s)[0]
 
-    def _start_cycle(self) -> None:
-        if self.owns_feed:
+    def _start_cycle(self, *, feed: bool) -> None:
+        """The first PLC cycle begins; with ``feed`` its feed too (the owner of a feed alone)."""
+        if feed:
             start_cycles((self,))
-        else:  # the owner decides the feed (with every machine on it: start_cycles)
+        else:  # the feed's start is left to its owner with every machine on it (start_feed)
             t = self._cycle * self.cycle_s
             self._begin_cycle(t)
             self._begin_amp(t)

@@ -19,7 +19,9 @@ Faults (:meth:`Moulder.inject`, or ``[faults] inject`` with ``head = "..."``) st
 name; without one, the machine-wide kinds (the feed's, the encoder's, the PLC's Modbus side) go
 to the first head, which owns the feed and the encoder, and ``estop``, ``reset`` and
 ``species_change`` to every head; a kind that strikes one head (a knife, a spindle, an
-amplifier, a camera) needs its head unless the moulder has only one.
+amplifier, a camera) needs its head unless the moulder has only one. One rule for both, written
+once: :func:`config.sim.fault_heads` (:func:`config.sim.head_sim_config` gives each head's
+machine its configured faults by it).
 
 The PLC's view (:mod:`plant_sim.interfaces.register_bus`, :mod:`plant_sim.interfaces.plc_server`):
 :meth:`Moulder.register_values` is the legacy single map (the first head's values; ``faults`` and
@@ -28,13 +30,19 @@ The PLC's view (:mod:`plant_sim.interfaces.register_bus`, :mod:`plant_sim.interf
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from config.sim import FaultSpec, SimConfig, SimHeadConfig, head_sim_config
+from config.sim import (
+    ALL_HEADS_FAULTS,
+    MACHINE_FAULTS,
+    SimConfig,
+    SimHeadConfig,
+    fault_heads,
+    head_sim_config,
+)
 from core.checks import check_int
 from plant_sim.machine.machine import Machine, advance_together, start_feed
 from plant_sim.model.feed_drive import BoardView
@@ -43,13 +51,7 @@ from protocol.registers import MachineState
 
 __all__ = ["ALL_HEADS_FAULTS", "MACHINE_FAULTS", "Moulder", "head_seed"]
 
-MACHINE_FAULTS: frozenset[str] = frozenset(
-    {"feed_fault", "encoder_fault", "encoder_wrap", "belt_slip", "modbus_restart"})
-"""Faults of the one feed, encoder or PLC: without a head they strike the first head's machine
-(the owner of the feed and the encoder)."""
-ALL_HEADS_FAULTS: frozenset[str] = frozenset({"estop", "reset", "species_change"})
-"""Faults of the whole machine: without a head they strike every head."""
-
+# ALL_HEADS_FAULTS, MACHINE_FAULTS: the one rule of where a fault strikes (config.sim.fault_heads)
 _RUNNING = int(MachineState.RUNNING)
 _SPINDLE_RUNNING = int(MachineState.SPINDLE_RUNNING)
 _ESTOP = int(MachineState.ESTOP)
@@ -97,19 +99,16 @@ class Moulder:
         self.seed = check_int("seed", seed, lo=0)
         self.head_configs: tuple[SimHeadConfig, ...] = tuple(sim_cfg.heads)
         self.names: tuple[str, ...] = tuple(h.name for h in self.head_configs)
-        routed: dict[str, list[FaultSpec]] = {n: [] for n in self.names}
-        for spec in sim_cfg.faults:
-            for name in self._targets(spec.kind, spec.head):
-                routed[name].append(spec)
+        for spec in sim_cfg.faults:  # a one-head fault without its head: refused here
+            self._targets(spec.kind, spec.head)
         self.heads: dict[str, Machine] = {}
         owner: Machine | None = None
         x0 = self.head_configs[0].position_mm
         for i, h in enumerate(self.head_configs):
-            cfg = dataclasses.replace(head_sim_config(sim_cfg, h.name),
-                                      faults=tuple(routed[h.name]))
-            if owner is None:
+            cfg = head_sim_config(sim_cfg, h.name)
+            if owner is None:  # its feed starts once, with every head's interlock (below)
                 m = owner = Machine(cfg, seed=head_seed(self.seed, i),
-                                    render_images=render_images)
+                                    render_images=render_images, feed_shared=True)
             else:
                 m = Machine(cfg, seed=head_seed(self.seed, i), render_images=render_images,
                             feed=owner.feed, encoder=owner.encoder,
@@ -243,16 +242,7 @@ class Moulder:
 
     # ------------------------------------------------------------------ faults
     def _targets(self, kind: str, head: str | None) -> Sequence[str]:
-        if head is not None:
-            if head not in self.names:
-                raise ValueError(f"head must be one of {', '.join(self.names)}, got {head!r}")
-            return (head,)
-        if kind in ALL_HEADS_FAULTS:
-            return self.names
-        if kind in MACHINE_FAULTS or len(self.names) == 1:
-            return self.names[:1]
-        raise ValueError(f"fault {kind} strikes one head: give head= (one of "
-                         f"{', '.join(self.names)})")
+        return fault_heads(kind, head, self.names)
 
     def inject(self, fault: str, *, head: str | None = None, **params: Any) -> None:
         """Inject a fault into a head (``head``) or where the kind belongs (module docstring).

@@ -92,6 +92,18 @@ def test_a_variable_head_without_rpm_starts_at_its_fastest():
     assert (h.spindle.rpm, h.spindle.rpm_range) == (8000.0, (4000.0, 8000.0))
 
 
+def test_a_variable_spindle_table_without_rpm_starts_at_its_fastest_as_a_head_does():
+    # [spindle] and a head complete their speeds by the one rule (config.heads.rpm_range)
+    cfg = sim_from_dict({"spindle": {"rpm_min": 7000.0, "rpm_max": 9000.0}})
+    assert (cfg.spindle.rpm, cfg.spindle.rpm_range) == (9000.0, (7000.0, 9000.0))
+    fixed = sim_from_dict({"spindle": {"rpm": 5000.0}}).spindle
+    assert (fixed.rpm, fixed.rpm_min, fixed.rpm_max, fixed.variable) == (5000.0, None, None, False)
+    with pytest.raises(ConfigError, match=r"spindle\.rpm_min must be <= spindle\.rpm"):
+        sim_from_dict({"spindle": {"rpm": 6000.0, "rpm_min": 7000.0, "rpm_max": 9000.0}})
+    with pytest.raises(ConfigError, match=r"spindle\.rpm_max needs spindle\.rpm_min"):
+        sim_from_dict({"spindle": {"rpm_max": 9000.0}})
+
+
 def test_the_heads_toml_shape_with_a_drift_sub_table_loads(tmp_path):
     p = tmp_path / "s.toml"
     p.write_text('[[heads]]\nname = "a"\nface = "bottom"\nnode_id = 2\n'
@@ -224,9 +236,46 @@ def test_a_sim_fault_keeps_its_head_out_of_the_machines_parameters():
         {"kind": "piezo_fault", "head": "top"}]}})
     chip = cfg.faults[0]
     assert (chip.kind, chip.head, dict(chip.params)) == ("knife_chip", "right", {"knife": 1})
-    assert [f.kind for f in head_sim_config(cfg, "right").faults] == ["knife_chip", "feed_fault"]
-    assert [f.kind for f in head_sim_config(cfg, "top").faults] == ["feed_fault", "piezo_fault"]
-    assert [f.kind for f in head_sim_config(cfg, "left").faults] == ["feed_fault"]
+    # the feed's fault strikes the first head (the feed's owner) alone, as the Moulder routes it
+    assert [f.kind for f in head_sim_config(cfg, "bottom").faults] == ["feed_fault"]
+    assert [f.kind for f in head_sim_config(cfg, "right").faults] == ["knife_chip"]
+    assert [f.kind for f in head_sim_config(cfg, "top").faults] == ["piezo_fault"]
+    assert [f.kind for f in head_sim_config(cfg, "left").faults] == []
+
+
+@pytest.mark.parametrize(("kind", "head", "struck"), [
+    ("estop", None, ["bottom", "right", "left", "top"]),
+    ("species_change", None, ["bottom", "right", "left", "top"]),
+    ("feed_fault", None, ["bottom"]),
+    ("modbus_restart", None, ["bottom"]),
+    ("knife_chip", "left", ["left"]),
+    ("estop", "top", ["top"]),
+])
+def test_head_sim_config_and_the_moulder_route_a_fault_by_one_rule(kind, head, struck):
+    from config.sim import fault_heads
+    from plant_sim.machine.moulder import Moulder
+
+    fault = {"kind": kind, **({"head": head} if head else {}),
+             **({"knife": 0} if kind == "knife_chip" else {}),
+             **({"species": "oak"} if kind == "species_change" else {}),
+             **({"duration_s": 1.0} if kind == "modbus_restart" else {})}
+    cfg = sim_from_dict({"base": "sim_moulder.toml", "faults": {"inject": [fault]}})
+    names = [h.name for h in cfg.heads]
+    assert list(fault_heads(kind, head, names)) == struck
+    assert [n for n in names if head_sim_config(cfg, n).faults] == struck
+    if kind in ("modbus_restart",):
+        return  # an interface fault: its driver plays it, no machine's schedule holds it
+    moulder = Moulder(cfg, seed=0, render_images=False)
+    assert [n for n in names if moulder.heads[n].cfg.faults] == struck
+
+
+def test_a_one_head_fault_without_its_head_is_refused_at_load_in_a_moulder():
+    with pytest.raises(ConfigError, match=r"faults\.inject\[0\]: fault knife_chip strikes one "
+                                          r"head: give head="):
+        sim_from_dict({"base": "sim_moulder.toml",
+                       "faults": {"inject": [{"kind": "knife_chip", "knife": 0}]}})
+    # one head: it is the head's
+    assert sim_from_dict({"faults": {"inject": [{"kind": "knife_chip", "knife": 0}]}}).faults
 
 
 # ---------------------------------------------------------------------- the shipped moulder file

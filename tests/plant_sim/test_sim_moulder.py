@@ -239,3 +239,26 @@ def test_the_plc_serves_each_heads_block_and_routes_the_setpoint(cfg):
         assert m.heads["bottom"].spindle.setpoint_rpm == 6000.0
 
     asyncio.run(run())
+
+
+def test_the_feed_starts_once_at_time_zero_with_every_heads_interlock(cfg, monkeypatch):
+    from plant_sim.model.feed_drive import FeedDrive
+
+    starts: list[tuple[float, bool]] = []
+    real = FeedDrive.start_cycle
+
+    def counted(self, t_s, dt_s):
+        starts.append((t_s, self.enabled))
+        real(self, t_s, dt_s)
+
+    monkeypatch.setattr(FeedDrive, "start_cycle", counted)
+    m = Moulder(cfg, seed=3, render_images=False)
+    assert starts == [(0.0, True)]  # once, by the owner with every head on it
+    starts.clear()
+    m.advance(cfg.plc.cycle_s * 3.5)
+    assert len(starts) == 3  # then once a cycle
+    # a spindle stopped at t = 0 on a later head keeps the feed off from the first cycle
+    stopped = dataclasses.replace(cfg, faults=(FaultSpec("spindle_stop", head="top"),))
+    starts.clear()
+    Moulder(stopped, seed=3, render_images=False)
+    assert starts == [(0.0, False)]
