@@ -11,6 +11,7 @@ amplifier node on the one bus, each head's spool ``<spool_dir>/<head name>``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -83,36 +84,56 @@ def wire_runner(
                             realtime_interfaces=realtime_interfaces, time_scale=time_scale,
                             modbus_port=modbus_port, spool_dir=spool_dir, sinks=sink,
                             can_bus=can_bus, **kwargs)
-    render = None
+    renders = False
     if machine is None:
         from plant_sim.machine.machine import Machine
-        from plant_sim.run.render_worker import RenderPool
 
         machine = Machine(cfg, seed=seed, render_images=False)
         if render_images:
             machine.assembler.defer_rendering()
-            render = (RenderPool, render_workers)
+            renders = True
+
+    def parts() -> dict[str, Any]:
+        from plant_sim.run.render_worker import RenderPool
+
+        out = sink
+        if out is None:
+            out = SpoolWriter(Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir),
+                              keep=cfg.frames.keep)
+        render = None
+        if renders:  # a spool is written by the one render worker
+            spool = out if isinstance(out, SpoolWriter) else None
+            render = RenderPool(cfg, seed=seed, workers=render_workers, writer=spool,
+                                nice=render_nice)
+        return {"sink": out, "render": render}
+
+    return _wire(cls, cfg, machine,
+                 core=lambda: AmpNodeCore(machine, knives=cfg.cutterhead.knives,
+                                          node_id=cfg.can.node_id, eds=cfg.can.eds, seed=seed),
+                 parts=parts, realtime_interfaces=realtime_interfaces, time_scale=time_scale,
+                 modbus_port=modbus_port, can_bus=can_bus, **kwargs)
+
+
+def _wire(cls: Any, cfg: Any, machine: Any, *, core: Callable[[], Any],
+          parts: Callable[[], dict[str, Any]], realtime_interfaces: bool,
+          time_scale: float | None, modbus_port: int | None, can_bus: Any,
+          **kwargs: Any) -> Any:
+    """The runner ``cls`` over ``machine``: its PLC process, its amplifier's node(s) on the bus.
+
+    ``core()`` builds the amplifier's :class:`AmpNodeCore`, ``parts()`` the runner's frame
+    sink(s) and render pool(s) (as keyword arguments of ``cls``). A failure from the bus on
+    (an unusable spool folder, a bad option) closes the bus we opened.
+    """
     plc = _plc(cfg, machine, modbus_port, realtime_interfaces)
     own_bus = can_bus is None
     bus = bus_from_config(cfg.can) if own_bus else can_bus
-    try:  # a failure from here on (unusable spool folder, bad option) closes our bus
-        core = AmpNodeCore(machine, knives=cfg.cutterhead.knives, node_id=cfg.can.node_id,
-                           eds=cfg.can.eds, seed=seed)
-        amp = AmpNode(bus, core, own_bus=own_bus)
-        if sink is None:
-            directory = Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir)
-            sink = SpoolWriter(directory, keep=cfg.frames.keep)
-        if render is not None:  # a spool is written by the one render worker
-            pool_cls, workers = render
-            spool = sink if isinstance(sink, SpoolWriter) else None
-            render = pool_cls(cfg, seed=seed, workers=workers, writer=spool,
-                              nice=render_nice)
+    try:
+        amp = AmpNode(bus, core(), own_bus=own_bus)
         runner = cls(
             machine,
             plc=plc,
             amp=amp,
-            sink=sink,
-            render=render,
+            **parts(),
             threaded_interfaces=True,
             realtime_interfaces=realtime_interfaces,
             time_scale=cfg.run.time_scale if time_scale is None else time_scale,
@@ -125,7 +146,6 @@ def wire_runner(
         raise
     runner.description["can"] = describe_bus(cfg.can.interface, cfg.can.channel)
     return runner
-
 
 
 def wants_moulder(cfg: Any, machine: Any) -> bool:
@@ -196,44 +216,30 @@ def wire_moulder(
         raise ValueError(f"{getattr(cls, '__name__', cls)} runs one machine; a sim.toml with "
                          "several [[heads]] needs plant_sim.run.moulder_runner.MoulderRunner "
                          "(runner_for(cfg) picks the runner)")
-    renders = None
+    renders = False
     if machine is None:
         machine = Moulder(cfg, seed=seed, render_images=False)
         if render_images:
             for m in machine.heads.values():
                 m.assembler.defer_rendering()
-            renders = {}
+            renders = True
     names = tuple(machine.names)
-    plc = _plc(cfg, machine, modbus_port, realtime_interfaces)
-    own_bus = can_bus is None
-    bus = bus_from_config(cfg.can) if own_bus else can_bus
-    try:  # a failure from here on (unusable spool folder, bad option) closes our bus
-        core = MoulderDriver.amp_core(machine, eds=cfg.can.eds, seed=seed)
-        amp = AmpNode(bus, core, own_bus=own_bus)
-        if sinks is None:
+
+    def parts() -> dict[str, Any]:
+        out = sinks
+        if out is None:
             root = Path(spool_dir if spool_dir is not None else cfg.frames.spool_dir)
-            sinks = {n: SpoolWriter(root / n, keep=cfg.frames.keep) for n in names}
-        if renders is not None:
+            out = {n: SpoolWriter(root / n, keep=cfg.frames.keep) for n in names}
+        pools = None
+        if renders:
             workers = max(1, int(render_workers) // len(names))
-            for i, n in enumerate(names):
-                spool = sinks[n] if isinstance(sinks[n], SpoolWriter) else None
-                renders[n] = RenderPool(head_sim_config(cfg, n), seed=head_seed(seed, i),
-                                        workers=workers, writer=spool, nice=render_nice)
-        runner = cls(
-            machine,
-            plc=plc,
-            amp=amp,
-            sinks=sinks,
-            renders=renders,
-            threaded_interfaces=True,
-            realtime_interfaces=realtime_interfaces,
-            time_scale=cfg.run.time_scale if time_scale is None else time_scale,
-            step_s=cfg.run.step_s,
-            **kwargs,
-        )
-    except BaseException:
-        if own_bus:
-            bus.shutdown()
-        raise
-    runner.description["can"] = describe_bus(cfg.can.interface, cfg.can.channel)
-    return runner
+            pools = {n: RenderPool(head_sim_config(cfg, n), seed=head_seed(seed, i),
+                                   workers=workers, nice=render_nice,
+                                   writer=out[n] if isinstance(out[n], SpoolWriter) else None)
+                     for i, n in enumerate(names)}
+        return {"sinks": out, "renders": pools}
+
+    return _wire(cls, cfg, machine,
+                 core=lambda: MoulderDriver.amp_core(machine, eds=cfg.can.eds, seed=seed),
+                 parts=parts, realtime_interfaces=realtime_interfaces, time_scale=time_scale,
+                 modbus_port=modbus_port, can_bus=can_bus, **kwargs)

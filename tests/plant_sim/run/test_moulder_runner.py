@@ -84,6 +84,30 @@ def test_a_moulder_file_needs_the_moulder_runner(tmp_path):
         SimRunner.from_config(cfg, render_images=False, out=None)
 
 
+@pytest.mark.parametrize("heads", ["one", "moulder"])
+def test_a_failed_wiring_closes_the_bus_it_opened_one_head_or_several(tmp_path, monkeypatch,
+                                                                       heads):
+    """One wiring for both: the spool folder unusable, the bus opened for it is shut down."""
+    from config.sim import default_sim
+    from plant_sim.run import wiring
+
+    cfg = moulder_cfg(tmp_path) if heads == "moulder" else dataclasses.replace(
+        default_sim(), modbus=dataclasses.replace(default_sim().modbus, port=0),
+        can=dataclasses.replace(default_sim().can, interface="virtual",
+                                channel=f"moulder-runner-{next(_channels)}"))
+    opened = []
+
+    def bus_from_config(can_cfg):
+        opened.append(can_transport.bus_from_config(can_cfg))
+        return opened[-1]
+
+    monkeypatch.setattr(wiring, "bus_from_config", bus_from_config)
+    (tmp_path / "a_file").write_text("not a folder")
+    with pytest.raises(OSError):
+        runner_for(cfg, render_images=False, spool_dir=tmp_path / "a_file" / "spool", out=None)
+    assert len(opened) == 1 and opened[0]._is_shutdown  # python-can's own flag
+
+
 def test_a_single_head_file_is_wired_as_before(tmp_path):
     from config.sim import default_sim
 
