@@ -212,7 +212,9 @@ class InProcessPlant:
 
     def can_fault(self, kind: str, duration_s: float, **params: float) -> None:
         """``can_silence`` (the amplifier sends nothing) or ``can_drop`` for ``duration_s``."""
-        if kind not in ("can_silence", "can_drop"):
+        from plant_sim.interfaces.amp_node import CAN_FAULTS
+
+        if kind not in CAN_FAULTS:
             raise ValueError(f"kind must be can_silence or can_drop, got {kind!r}")
         self.driver.inject(kind, duration_s=duration_s, **params)  # the registry checks them
 

@@ -146,16 +146,14 @@ class MoulderPlant:
     def inject(self, fault: Any) -> None:
         """Play one interface fault now (``can_silence``/``can_drop`` on its head's node)."""
         from config.faults import FaultKind
+        from plant_sim.interfaces.amp_node import CAN_FAULTS
 
         kind = FaultKind.parse(fault.kind.value if hasattr(fault.kind, "value") else fault.kind)
         params = kind.check(dict(fault.params))
         head = getattr(fault, "head", None) or self.cfg.heads[0].name
-        if kind.value in ("can_silence", "can_drop"):
-            what = "drop_rx" if kind.value == "can_drop" else "silence"
-            p = {k: float(v) for k, v in params.items() if k in ("fraction", "duration_s")}
-            self.amps[head].core.inject(what, start_s=self.clock(), **p)
-        else:
+        if kind.value not in CAN_FAULTS:
             raise ValueError(f"{kind.value}: not an interface fault of a moulder's head")
+        self.amps[head].core.play(kind.value, params, start_s=self.clock())
 
     async def step(self) -> list[tuple[str, Any]]:
         """One control cycle: amplifiers receive, the moulder advances, the service acts."""

@@ -42,7 +42,7 @@ import random
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -60,6 +60,9 @@ ARRIVAL_TOLERANCE_S = 1e-9
 """A frame whose machine arrival time is this close after ``now_s`` is delivered now, s."""
 DEFAULT_NODE_ID = 2
 """The amplifier's node id unless configured (``[can] node_id``)."""
+CAN_FAULTS: Mapping[str, str] = {"can_drop": "drop_rx", "can_silence": "silence"}
+"""The registry's CAN faults (:class:`config.faults.FaultKind`) and the node's own name of each
+(:meth:`AmpNodeCore.inject`): what :meth:`AmpNodeCore.play` plays."""
 
 
 class AmpMachine(Protocol):
@@ -165,6 +168,26 @@ class AmpNodeCore:
         return sum(n.refused for n in self.nodes)
 
     # ------------------------------------------------------------------ faults
+    def play(self, fault: str, params: Mapping[str, Any], *, start_s: float,
+             node_id: int | None = None) -> None:
+        """Play a CAN fault of the registry (:class:`config.faults.FaultKind`) from ``start_s``.
+
+        ``can_drop`` drops received frames (``fraction``, ``duration_s``), ``can_silence``
+        sends nothing for ``duration_s``: :meth:`inject`'s ``drop_rx`` and ``silence``, on
+        node ``node_id`` only (a moulder's head) or every node. ``params`` are the fault's
+        checked parameters (others than those are not the node's and are left).
+
+        Raises
+        ------
+        ValueError
+            Not a CAN fault, or what :meth:`inject` refuses.
+        """
+        what = CAN_FAULTS.get(fault)
+        if what is None:
+            raise ValueError(f"fault must be one of {', '.join(CAN_FAULTS)}, got {fault!r}")
+        own = {k: float(v) for k, v in params.items() if k in ("fraction", "duration_s")}
+        self.inject(what, node_id=node_id, start_s=start_s, **own)
+
     def inject(self, fault: str, *, node_id: int | None = None, **params: float) -> None:
         """Inject a fault.
 

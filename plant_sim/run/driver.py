@@ -30,6 +30,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from config.faults import INTERFACE_FAULTS, FaultKind
+from plant_sim.interfaces.amp_node import CAN_FAULTS
 from protocol.frames import Frame
 
 __all__ = ["INTERFACE_FAULTS", "MoulderDriver", "PlantDriver", "PlcSwitch"]
@@ -109,6 +110,11 @@ class PlantDriver:
         ValueError
             An interface fault without that interface.
         """
+        self._inject(fault, params)
+
+    def _inject(self, fault: str, params: dict[str, Any], *, head: str | None = None,
+                node_id: int | None = None) -> None:
+        """:meth:`inject` of a fault on ``head`` (the machine's) or node ``node_id`` (CAN)."""
         params = FaultKind.parse(fault).check(params)  # the registry: a ConfigError names it
         now = self.t_s
         if fault == "modbus_restart":
@@ -120,16 +126,14 @@ class PlantDriver:
                 self._plc_down = True
                 self.plc_switch.set_up(False)
                 self.say(f"fault: modbus server down at t={now:.3f} s")
-        elif fault in ("can_drop", "can_silence"):
+        elif fault in CAN_FAULTS:
             if self.amp is None:
                 raise ValueError(f"{fault}: the plant has no CAN node")
-            kind = "drop_rx" if fault == "can_drop" else "silence"
-            p = {k: float(v) for k, v in params.items() if k in ("fraction", "duration_s")}
-            self.amp.core.inject(kind, start_s=now, **p)
+            self.amp.core.play(fault, params, start_s=now, node_id=node_id)
         else:
-            self.machine.inject(fault, **params)
+            self.machine.inject(fault, **params, **({} if head is None else {"head": head}))
             return
-        self.faults.append(f"{fault}@{now:.3f}")
+        self.faults.append(f"{fault}{'' if node_id is None else f'[{head}]'}@{now:.3f}")
 
     def say(self, line: str) -> None:
         """Report one line (faults played)."""
@@ -228,21 +232,10 @@ class MoulderDriver(PlantDriver):
         ValueError
             Unknown head, or what :meth:`PlantDriver.inject` refuses.
         """
-        if fault not in ("can_drop", "can_silence") or head is None:
-            if fault in INTERFACE_FAULTS:
-                super().inject(fault, **params)
-            else:
-                checked = FaultKind.parse(fault).check(params)
-                self.machine.inject(fault, head=head, **checked)
-            return
-        ids = self.machine.node_ids
-        if head not in ids:
-            raise ValueError(f"head must be one of {', '.join(ids)}, got {head!r}")
-        if self.amp is None:
-            raise ValueError(f"{fault}: the plant has no CAN node")
-        params = FaultKind.parse(fault).check(params)
-        kind = "drop_rx" if fault == "can_drop" else "silence"
-        p = {k: float(v) for k, v in params.items() if k in ("fraction", "duration_s")}
-        now = self.t_s
-        self.amp.core.inject(kind, node_id=ids[head], start_s=now, **p)
-        self.faults.append(f"{fault}[{head}]@{now:.3f}")
+        if fault in CAN_FAULTS and head is not None:  # that head's node only
+            ids = self.machine.node_ids
+            if head not in ids:
+                raise ValueError(f"head must be one of {', '.join(ids)}, got {head!r}")
+            self._inject(fault, params, head=head, node_id=ids[head])
+        else:  # the one PLC's fault takes no head
+            self._inject(fault, params, head=None if fault in INTERFACE_FAULTS else head)

@@ -133,3 +133,24 @@ def test_faults_from_the_moulder_reach_the_driver_by_head(rig):
     assert rig.driver.faults and rig.driver.faults[0].startswith("can_silence[right]@")
     with pytest.raises(ValueError, match="head must be one of"):
         rig.driver.inject("can_drop", head="side", duration_s=1.0)
+
+
+def test_a_registry_can_fault_plays_as_the_nodes_own_on_one_node_or_all(rig):
+    """AmpNodeCore.play: the one mapping of can_drop / can_silence (driver and HIL alike)."""
+    from plant_sim.interfaces.amp_node import _Window
+
+    core = rig.core
+    core.play("can_drop", {"fraction": 0.5, "duration_s": 2.0}, start_s=1.0, node_id=5)
+    core.play("can_silence", {"duration_s": 0.5}, start_s=4.0)
+    assert core._drop == [_Window(1.0, 3.0, 0.5, 5)]
+    assert core._silence == [_Window(4.0, 4.5, 1.0, None)]
+    with pytest.raises(ValueError, match="fault must be one of can_drop, can_silence"):
+        core.play("modbus_restart", {"duration_s": 1.0}, start_s=0.0)
+    # the driver's moulder fault on a head and on every node go through it
+    core.inject("clear")
+    rig.driver.inject("can_drop", head="right", fraction=0.25, duration_s=1.0)
+    rig.driver.inject("can_silence", duration_s=1.0)
+    t = rig.t
+    assert core._drop == [_Window(t, t + 1.0, 0.25, 3)]
+    assert core._silence == [_Window(t, t + 1.0, 1.0, None)]
+    assert rig.driver.faults == [f"can_drop[right]@{t:.3f}", f"can_silence@{t:.3f}"]
