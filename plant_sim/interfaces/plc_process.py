@@ -104,31 +104,38 @@ class _Block:
         struct.pack_into("<QQ", self.buf, 16, requests, refused)
 
 
-class _SnapshotMachine:
-    """The machine as the server process sees it: the values last published."""
+class _Published:
+    """The machine as the server process first sees it: the snapshot decoded in ``image``.
 
-    def __init__(self, rmap: RegisterMap, block: _Block, heads: int) -> None:
-        self.rmap = rmap
-        self.block = block
-        self.head_count = heads
-        self._image = RegisterImage(rmap, heads)
+    What the :class:`~plant_sim.interfaces.plc_server.PlcServer` reads when it is built (later
+    snapshots reach it through ``load_snapshot``); it never writes to it (its writes are
+    queued to the stepping side).
+    """
+
+    def __init__(self, image: RegisterImage) -> None:
+        self._image = image
 
     def register_values(self) -> dict[str, float | int]:
-        self._image.load_flat(self.block.read()[2])
         return dict(self._image.values)
 
     def head_register_values(self, i: int) -> dict[str, float | int]:
-        self._image.load_flat(self.block.read()[2])
         return dict(self._image.head_values[i])
 
-    def set_spindle_setpoint(self, head: int, rpm: float) -> None:  # pragma: no cover - queued
-        raise RuntimeError("writes are queued to the stepping side")
 
-    def set_feed_setpoint(self, feed_mm_s: float) -> None:  # pragma: no cover - queued only
-        raise RuntimeError("writes are queued to the stepping side")
+def _snapshot_server(block: _Block, image: RegisterImage, rmap: RegisterMap, heads: int,
+                     host: str, port: int, unit_id: int) -> tuple[Any, int]:
+    """The server process's server over the snapshot published before it started.
 
-    def set_service_heartbeat(self, value: int) -> None:  # pragma: no cover - queued only
-        raise RuntimeError("writes are queued to the stepping side")
+    The block is read and decoded once (into ``image``); the server and that snapshot's
+    sequence number are returned.
+    """
+    from plant_sim.interfaces.plc_server import PlcServer
+
+    seq, _applied, words = block.read()
+    image.load_flat(words)
+    server = PlcServer(_Published(image), register_map=rmap, host=host, port=port,
+                       unit_id=unit_id, queue_writes=True, heads=heads)
+    return server, seq
 
 
 def _serve(shm_name: str, rmap: RegisterMap, heads: int, host: str, port: int, unit_id: int,
@@ -137,7 +144,6 @@ def _serve(shm_name: str, rmap: RegisterMap, heads: int, host: str, port: int, u
     import signal
 
     from core.realtime import guard_realtime, raise_priority
-    from plant_sim.interfaces.plc_server import PlcServer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     priority = "normal (not asked)"
@@ -150,14 +156,13 @@ def _serve(shm_name: str, rmap: RegisterMap, heads: int, host: str, port: int, u
     try:
         image = RegisterImage(rmap, heads)
         block = _Block(shm.buf, image.size)
-        server = PlcServer(_SnapshotMachine(rmap, block, heads), register_map=rmap, host=host,
-                           port=port, unit_id=unit_id, queue_writes=True, heads=heads)
-        seen = [-1]
+        server, first = _snapshot_server(block, image, rmap, heads, host, port, unit_id)
+        seen = [first]
 
         def sync() -> None:
             if block.seq() != seen[0]:
                 # mid-write: serve the snapshot loaded before (one PLC cycle old, consistent)
-                snap = block.try_read() if seen[0] >= 0 else block.read()
+                snap = block.try_read()
                 if snap is not None:
                     seq, applied, words = snap
                     image.load_flat(words)

@@ -76,8 +76,16 @@ class RegisterImage:
             raise ValueError(f"heads must be 0..{self.rmap.head_count}, got {heads!r}")
         self.heads = int(heads)
         self.first, self.count = self.rmap.common_span()
-        self.stride = self.rmap.heads.stride if self.rmap.heads is not None else 0
+        block = self.rmap.heads
+        self.stride = block.stride if block is not None else 0
         self.views = [self.rmap.for_head(i) for i in range(self.heads)]
+        # the block's layout, the same in every block: found once, not per cycle
+        self._slots: dict[str, tuple[int, int]] = (
+            {} if block is None else {r.name: (r.address, r.count) for r in block.registers})
+        """Each block register's offset and words."""
+        self._bases = [block.address(i) for i in range(self.heads)] if block is not None else []
+        """Each served block's first address."""
+        self._used = block.used if block is not None else 0
         self.values: dict[str, float | int] = {}
         self.head_values: list[dict[str, float | int]] = [{} for _ in range(self.heads)]
         self.words: list[int] = [0] * self.count
@@ -99,14 +107,13 @@ class RegisterImage:
 
     def _encode_head(self, i: int) -> list[int]:
         view = self.views[i]
-        base = view.head_span()[0]
         out = [0] * self.stride
-        names = self.rmap.heads.names if self.rmap.heads is not None else ()
         for name, value in self.head_values[i].items():
-            if name not in names:
+            slot = self._slots.get(name)
+            if slot is None:
                 raise ValueError(f"head {i}: {name!r} is no register of the head block")
-            reg = view[name]
-            out[reg.address - base : reg.address - base + reg.count] = view.encode(name, value)
+            off, n = slot
+            out[off : off + n] = view.encode(name, value)
         return out
 
     def flat(self) -> list[int]:
@@ -124,11 +131,9 @@ class RegisterImage:
         values = self.rmap.decode_block(ws[: self.count], self.first)
         heads = []
         for i, view in enumerate(self.views):
-            base, used = view.head_span()
-            block = ws[self.count + i * self.stride : self.count + i * self.stride + used]
-            names = set(view.heads.names) if view.heads is not None else set()
-            decoded = view.decode_block(block, base)
-            heads.append({k: v for k, v in decoded.items() if k in names})
+            start = self.count + i * self.stride
+            decoded = view.decode_block(ws[start : start + self._used], self._bases[i])
+            heads.append({k: v for k, v in decoded.items() if k in self._slots})
         self.load(values, heads)
 
     def _head_of(self, address: int) -> int | None:
@@ -151,7 +156,7 @@ class RegisterImage:
             return self.words[a - self.first : a - self.first + n]
         i = self._head_of(a)
         if i is not None:
-            off = a - self.views[i].head_span()[0]
+            off = a - self._bases[i]
             if off + n <= self.stride:
                 return self.head_words[i][off : off + n]
         raise RegisterAccessError(f"read of {n} registers at {a} outside the served map")
@@ -180,10 +185,8 @@ class RegisterImage:
                 self.words[i : i + reg.count] = self.rmap.encode(name, value)
                 self.values[name] = value
             else:
-                view = self.views[head]
-                reg = view[name]
-                i = reg.address - view.head_span()[0]
-                self.head_words[head][i : i + reg.count] = view.encode(name, value)
+                off, n = self._slots[name]
+                self.head_words[head][off : off + n] = self.views[head].encode(name, value)
                 self.head_values[head][name] = value
 
     def overlay(self, writes: Sequence[HeadWrite]) -> None:

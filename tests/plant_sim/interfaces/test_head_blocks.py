@@ -212,6 +212,67 @@ def test_plc_process_serves_head_blocks_and_sends_head_writes_back():
     run(main())
 
 
+def test_the_image_finds_the_block_layout_once_not_per_cycle(monkeypatch):
+    """load / read / store / load_flat of every cycle use the layout found at construction."""
+    from protocol.registers import HeadBlock
+
+    target = HeadTarget()
+    image = RegisterImage(RMAP, target.head_count)
+    values = target.register_values()
+    heads = [target.head_register_values(i) for i in range(target.head_count)]
+    calls = {"names": 0, "head_span": 0, "used": 0}
+    for prop in ("names", "used"):
+        real = getattr(HeadBlock, prop)
+        monkeypatch.setattr(HeadBlock, prop, property(
+            lambda self, real=real, prop=prop: calls.__setitem__(prop, calls[prop] + 1)
+            or real.fget(self)))
+    real_span = RegisterMap.head_span
+    monkeypatch.setattr(RegisterMap, "head_span", lambda self, i=None: calls.__setitem__(
+        "head_span", calls["head_span"] + 1) or real_span(self, i))
+    for _ in range(5):  # five PLC cycles
+        image.load(values, heads)
+        image.read(RMAP.heads.base + RMAP.heads.stride * 2, 4)
+        image.store(image.parse_write(*_setpoint_words(3, 7000.0)))
+        image.load_flat(image.flat())
+    assert calls == {"names": 0, "head_span": 0, "used": 0}
+    # and what it serves is what the map encodes
+    assert image.head_values[3]["spindle_setpoint_rpm"] == 7000.0
+    a, _ = _block(3)
+    assert _decode(3, image.read(a, RMAP.heads.used)) == {
+        k: v for k, v in image.head_values[3].items()}
+
+
+def _setpoint_words(head: int, rpm: float) -> tuple[int, list[int]]:
+    view = RMAP.for_head(head)
+    return view["spindle_setpoint_rpm"].address, view.encode("spindle_setpoint_rpm", rpm)
+
+
+def test_the_plc_process_builds_its_server_on_one_read_of_the_published_block():
+    from multiprocessing.shared_memory import SharedMemory
+
+    from plant_sim.interfaces.plc_process import _Block, _snapshot_server
+
+    target = HeadTarget()
+    image = RegisterImage(RMAP, target.head_count)
+    image.load(target.register_values(),
+               [target.head_register_values(i) for i in range(target.head_count)])
+    shm = SharedMemory(create=True, size=_Block.size(image.size))
+    try:
+        block = _Block(shm.buf, image.size)
+        block.publish(image.flat(), applied=0)
+        reads = []
+        real = block.read
+        block.read = lambda: reads.append(1) or real()  # type: ignore[method-assign]
+        served = RegisterImage(RMAP, target.head_count)
+        server, seq = _snapshot_server(block, served, RMAP, target.head_count, "127.0.0.1", 0, 1)
+        assert len(reads) == 1 and seq == block.seq()
+        assert dict(server.values) == image.values
+        assert [dict(server.head_values(i)) for i in range(4)] == image.head_values
+    finally:
+        shm.close()
+        shm.unlink()
+
+
 # ------------------------------------------------------------------ any read, any write (property)
 _END = RMAP.heads.base + RMAP.heads.stride * RMAP.heads.count + 4
 
