@@ -30,13 +30,13 @@ taking part the feed goes to ``feed_min``.
 from __future__ import annotations
 
 import enum
+import functools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from config.heads import HEAD_NAME
-from controller.laws.feed_loop import FeedLoop, config_from_mapping
 from controller.laws.limits import check_time_forward, clamp, rate_limit
 from core.checks import check_finite, check_int, check_positive, check_range
 
@@ -54,8 +54,14 @@ class FeedBound(enum.Enum):
     """No head takes part: the smallest feed."""
 
 
+@functools.lru_cache(maxsize=64)
+def _is_head_name(name: str) -> bool:
+    """Whether ``name`` is a head's name; a machine's few names are matched once each."""
+    return HEAD_NAME.fullmatch(name) is not None
+
+
 def _check_name(name: Any) -> str:
-    if not isinstance(name, str) or not HEAD_NAME.fullmatch(name):
+    if not isinstance(name, str) or not _is_head_name(name):
         raise ValueError(f"name must match [a-z][a-z0-9_]*, got {name!r}")
     return name
 
@@ -107,29 +113,6 @@ class HeadFeed:
         check_range(f"{name}.correction", self.correction, 1e-3, 1e3)
         if not isinstance(self.takes_part, bool):
             raise ValueError(f"{name}.takes_part must be a bool, got {self.takes_part!r}")
-
-    @classmethod
-    def from_loop(
-        cls,
-        name: str,
-        loop: FeedLoop,
-        *,
-        rpm_min: float,
-        rpm_max: float,
-        spindle_rpm: float,
-        takes_part: bool = True,
-    ) -> HeadFeed:
-        """The head with its knives, held pitch and correction taken from its feed loop."""
-        return cls(
-            name=name,
-            knives=loop.cfg.knives,
-            target_pitch_mm=loop.pitch_setpoint_mm,
-            rpm_min=rpm_min,
-            rpm_max=rpm_max,
-            spindle_rpm=spindle_rpm,
-            correction=loop.correction,
-            takes_part=takes_part,
-        )
 
     @property
     def variable(self) -> bool:
@@ -210,13 +193,6 @@ class MoulderFeedConfig:
         check_range("limiting_rel_tol", self.limiting_rel_tol, 0.0, 0.5)
         if self.initial_feed_mm_s is not None:
             check_positive("initial_feed_mm_s", self.initial_feed_mm_s)
-
-    @classmethod
-    def from_mapping(
-        cls, mapping: Mapping[str, Any] | None, *, prefix: str = "moulder_feed", **overrides: Any
-    ) -> MoulderFeedConfig:
-        """Build from a ``[moulder_feed]`` TOML table; ``overrides`` win."""
-        return config_from_mapping(cls, mapping, prefix, **overrides)
 
 
 def _check_limits(feed_min_mm_s: float, feed_max_mm_s: float) -> tuple[float, float]:
