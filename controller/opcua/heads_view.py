@@ -139,40 +139,23 @@ class MoulderView:
     @property
     def current_state(self) -> UnitState:
         """The machine's state: the worst of its heads' (ERROR, STANDBY, WORKING, READY)."""
-        states = {v.current_state for v in self.views.values()}
-        return next((s for s in _STATE_RANK if s in states), UnitState.OFFLINE)
+        return _machine_state([v.current_state for v in self.views.values()])
 
     @property
     def current_mode(self) -> UnitMode:
         """``AUTOMATIC`` when every head is, ``OTHER`` when none is known, else SEMIAUTOMATIC."""
-        modes = {v.current_mode for v in self.views.values()}
-        if len(modes) == 1:
-            return modes.pop()
-        return UnitMode.SEMIAUTOMATIC
+        return _machine_mode([v.current_mode for v in self.views.values()])
 
     def flags(self) -> dict[str, bool]:
         """The machine's flags: the heads' all-of (:data:`_ALL_FLAGS`), else any-of."""
-        per_head = [v.flags() for v in self.views.values()]
-        out = {}
-        for name in per_head[0]:
-            values = [f[name] for f in per_head]
-            out[name] = all(values) if name in _ALL_FLAGS else any(values)
-        return out
+        return _machine_flags([v.flags() for v in self.views.values()])
 
     def values(self) -> dict[str, float | int]:
         """The machine's values (feed, length and pieces in: the first head's).
 
         Pieces out are the last head's, runs summed over the heads.
         """
-        views = list(self.views.values())
-        first, last = views[0].values(), views[-1].values()
-        out = dict(first)
-        for k in ("AbsolutePiecesOut", "RelativePiecesOut"):
-            out[k] = last[k]
-        for k in ("AbsoluteRunsGood", "RelativeRunsGood", "AbsoluteRunsTotal",
-                  "RelativeRunsTotal"):
-            out[k] = sum(int(v.values()[k]) for v in views)
-        return out
+        return _machine_values([v.values() for v in self.views.values()])
 
     def head_manufacturer(self, head: str) -> dict[str, Any]:
         """The head's ``ManufacturerSpecific`` (:data:`HEAD_MANUFACTURER_NAMES`)."""
@@ -202,21 +185,52 @@ class MoulderView:
         ``Heads``, ``LimitingHeads`` and each head's
         ``State/SubUnits/<head>/{Overview, Flags, Values, ManufacturerSpecific}/...``.
         """
+        # each head's state, mode, flags and values once; the machine's are made of them
+        heads = {head: (view.current_state, view.current_mode, view.flags(), view.values())
+                 for head, view in self.views.items()}
+        parts = list(zip(*heads.values(), strict=True))
         out: dict[str, Any] = {
-            "State/Machine/Overview/CurrentState": int(self.current_state),
-            "State/Machine/Overview/CurrentMode": int(self.current_mode),
+            "State/Machine/Overview/CurrentState": int(_machine_state(parts[0])),
+            "State/Machine/Overview/CurrentMode": int(_machine_mode(parts[1])),
         }
-        out.update({f"State/Machine/Flags/{k}": v for k, v in self.flags().items()})
-        out.update({f"State/Machine/Values/{k}": v for k, v in self.values().items()})
+        out.update({f"State/Machine/Flags/{k}": v for k, v in _machine_flags(parts[2]).items()})
+        out.update({f"State/Machine/Values/{k}": v
+                    for k, v in _machine_values(parts[3]).items()})
         out["ManufacturerSpecific/FeedSetpointMmS"] = _num(self._machine.get("feed_mm_s"))
         out["ManufacturerSpecific/Heads"] = self.names
         out["ManufacturerSpecific/LimitingHeads"] = [
             str(h) for h in self._machine.get("limiting") or ()]
-        for head, view in self.views.items():
-            out[head_path(head, "Overview/CurrentState")] = int(view.current_state)
-            out[head_path(head, "Overview/CurrentMode")] = int(view.current_mode)
-            out.update({head_path(head, f"Flags/{k}"): v for k, v in view.flags().items()})
-            out.update({head_path(head, f"Values/{k}"): v for k, v in view.values().items()})
+        for head, (state, mode, flags, values) in heads.items():
+            out[head_path(head, "Overview/CurrentState")] = int(state)
+            out[head_path(head, "Overview/CurrentMode")] = int(mode)
+            out.update({head_path(head, f"Flags/{k}"): v for k, v in flags.items()})
+            out.update({head_path(head, f"Values/{k}"): v for k, v in values.items()})
             out.update({head_path(head, f"ManufacturerSpecific/{k}"): v
                         for k, v in self.head_manufacturer(head).items()})
         return out
+
+
+def _machine_state(states: Sequence[UnitState]) -> UnitState:
+    """The worst of the heads' states (ERROR, STANDBY, WORKING, READY; else OFFLINE)."""
+    return next((s for s in _STATE_RANK if s in states), UnitState.OFFLINE)
+
+
+def _machine_mode(modes: Sequence[UnitMode]) -> UnitMode:
+    """The heads' one mode, else ``SEMIAUTOMATIC``."""
+    return modes[0] if len(set(modes)) == 1 else UnitMode.SEMIAUTOMATIC
+
+
+def _machine_flags(per_head: Sequence[Mapping[str, bool]]) -> dict[str, bool]:
+    """The heads' all-of (:data:`_ALL_FLAGS`), else any-of."""
+    return {name: (all if name in _ALL_FLAGS else any)(f[name] for f in per_head)
+            for name in per_head[0]}
+
+
+def _machine_values(per_head: Sequence[Mapping[str, float | int]]) -> dict[str, float | int]:
+    """The first head's values, the last head's pieces out, the runs summed over the heads."""
+    out = dict(per_head[0])
+    for k in ("AbsolutePiecesOut", "RelativePiecesOut"):
+        out[k] = per_head[-1][k]
+    for k in ("AbsoluteRunsGood", "RelativeRunsGood", "AbsoluteRunsTotal", "RelativeRunsTotal"):
+        out[k] = sum(int(v[k]) for v in per_head)
+    return out
