@@ -341,6 +341,7 @@ class CanopenAmplifier:
         self.node.rpdo.read(from_od=True)
         self.node.tpdo.read(from_od=True)
         self._layouts = {no: _pdo_layout(self.node.rpdo[no]) for no in (1, 2, 3)}
+        self._status_layout = _pdo_layout(self.node.tpdo[1])
         self.node.tpdo[1].add_callback(self._on_status)
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
         self.node.emcy.add_callback(self._on_emcy)
@@ -527,7 +528,13 @@ class CanopenAmplifier:
         self._reads = []
 
     def _on_status(self, pdo: Any) -> None:
-        disp, temp, fault, state = (var.raw for var in pdo)  # STATUS' four objects, in order
+        layout = self._status_layout
+        if layout is None or len(layout) != 4:
+            disp, temp, fault, state = (var.raw for var in pdo)  # STATUS' four objects
+        else:  # the same values from the PDO's bytes, without the library's per-value logging
+            data = pdo.data
+            disp, temp, fault, state = (od_var.decode_raw(data[at:at + len(od_var) // 8])
+                                        for at, od_var in layout)
         self.status = CanopenStatus(
             displacement_um=um_from_nm(disp),
             temperature_c=temp / 10.0,

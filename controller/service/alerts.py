@@ -200,15 +200,16 @@ class KnifeChipMonitor:
         if len(self._ref) < self._ref.maxlen:  # type: ignore[operator]
             self._ref.append((s, o_cut))
             return False
-        ref_s = np.median(np.array([r[0] for r in self._ref]), axis=0)
-        ref_o = np.median(np.array([r[1] for r in self._ref]), axis=0)
-        ds = s - ref_s
-        k = int(np.argmax(np.abs(ds)))
-        moved = float(np.max(np.abs(o_cut - ref_o)))
-        others = np.delete(np.abs(ds), k)
-        step = abs(float(ds[k]))  # a step of one knife shows (Z - 1) / Z of it here
+        # plain floats (a few knives): np.median's and np.argmax's results, without their cost
+        ref_s = _column_medians([r[0] for r in self._ref])
+        ref_o = _column_medians([r[1] for r in self._ref])
+        ds = [a - b for a, b in zip(s.tolist(), ref_s, strict=True)]
+        size = [abs(v) for v in ds]
+        k = size.index(max(size))  # the first largest, as np.argmax
+        moved = max(abs(a - b) for a, b in zip(o_cut.tolist(), ref_o, strict=True))
+        step = size[k]  # a step of one knife shows (Z - 1) / Z of it here
         if (step * self.knives / (self.knives - 1) < CHIP_STEP_UM + moved
-                or float(others.max()) > 0.5 * step):
+                or max(size[:k] + size[k + 1:]) > 0.5 * step):
             self._pending = None
             self._ref.append((s, o_cut))
             return False
@@ -232,6 +233,24 @@ class KnifeChipMonitor:
             f"knife {k} chipped or moved: its runout stepped by {runout_step:+.1f} µm "
             f"(its marks {2.0 * g * runout_step:+.3f} mm wider)", data=self.last)
         return True
+
+
+def _column_medians(rows: list[np.ndarray]) -> list[float]:
+    """``np.median(rows, axis=0)`` of a few rows of finite values, as plain floats.
+
+    The middle value of each column sorted (the mean of the middle two for an even count, as
+    numpy's); NaN where a column holds one (numpy's too).
+    """
+    n = len(rows)
+    mid = n // 2
+    out = []
+    for col in zip(*(r.tolist() for r in rows), strict=True):
+        if any(math.isnan(v) for v in col):
+            out.append(math.nan)
+            continue
+        srt = sorted(col)
+        out.append(srt[mid] if n % 2 else (srt[mid - 1] + srt[mid]) / 2.0)
+    return out
 
 
 class FailureMonitor:

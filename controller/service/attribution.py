@@ -171,22 +171,59 @@ def knife_model_cv(widths_mm: Sequence[float], mark_knife: Sequence[int],
     if w.ndim != 1 or k.shape != w.shape or x.shape != w.shape:
         raise ValueError(f"widths_mm, mark_knife and position_mm must be 1-D of one length, "
                          f"got {w.shape}, {k.shape}, {x.shape}")
-    if not (np.isfinite(w).all() and np.isfinite(x).all()):
+    ws, xs = w.tolist(), x.tolist()
+    if not (all(map(math.isfinite, ws)) and all(map(math.isfinite, xs))):
         raise ValueError("widths_mm and position_mm must be finite")
-    n = w.size
-    mean = float(w.mean()) if n else math.nan
+    n = len(ws)
+    mean = sum(ws) / n if n else math.nan
     if not mean > 0:
         return math.nan
-    labels = k.tolist()  # the knives in ascending order, each mark's place among them (as
-    place = {v: i for i, v in enumerate(sorted(set(labels)))}  # np.unique's, without its cost)
-    if n - len(place) - 1 < KNIFE_MODEL_MIN_DOF:
-        return float(w.std() / mean)
-    design = np.zeros((n, len(place) + 1))
-    design[np.arange(n), [place[v] for v in labels]] = 1.0
-    design[:, -1] = x - x.mean()
-    coef, *_ = np.linalg.lstsq(design, w, rcond=None)
-    fitted = design @ coef
-    return float(fitted.std() / mean)
+    labels = k.tolist()
+    groups: dict[Any, list[float]] = {}  # knife: [marks, sum of widths, sum of positions]
+    for v, wi, xi in zip(labels, ws, xs, strict=True):
+        g = groups.get(v)
+        if g is None:
+            groups[v] = [1.0, wi, xi]
+        else:
+            g[0] += 1.0
+            g[1] += wi
+            g[2] += xi
+    if n - len(groups) - 1 < KNIFE_MODEL_MIN_DOF:
+        return mean_std(ws)[1] / mean
+    return _knife_model_std(ws, xs, labels, groups, mean) / mean
+
+
+def _knife_model_std(ws: list[float], xs: list[float], labels: list[Any],
+                     groups: dict[Any, list[float]], mean: float) -> float:
+    """The population std of the least-squares fit ``w_i = a_(k(i)) + c (x_i - mean x)``.
+
+    In closed form (one width per knife and a common trend: the within-knife regression): the
+    fitted width of a mark is its knife's mean width plus ``c`` times its position from its
+    knife's mean position, ``c = Sxw / Sxx`` over the deviations from the knives' means, so the
+    fitted widths' sum of squares about their mean (the widths' mean) is
+    ``sum_k n_k (mean_k w - mean w)^2 + Sxw^2 / Sxx``: the least-squares projection
+    (``np.linalg.lstsq`` of the design with one column per knife and the centred positions) to
+    rounding, without its set-up (:func:`knife_model_cv`, a knife table of at most ~50 marks).
+    Positions that do not spread within any knife's marks (``Sxx`` nil against the field's)
+    leave no trend to fit: ``c = 0``, as the least-squares minimum norm solution.
+    """
+    means = {v: (g[1] / g[0], g[2] / g[0]) for v, g in groups.items()}
+    sxx = sxw = 0.0
+    for v, wi, xi in zip(labels, ws, xs, strict=True):
+        mw, mx = means[v]
+        dx = xi - mx
+        sxx += dx * dx
+        sxw += dx * (wi - mw)
+    between = 0.0
+    for v, g in groups.items():
+        d = means[v][0] - mean
+        between += g[0] * d * d
+    n = len(ws)
+    xm = sum(xs) / n
+    spread = sum((xi - xm) * (xi - xm) for xi in xs)
+    if sxx > (n * 2.220446049250313e-16) ** 2 * max(spread, 1.0):  # else: no trend to fit
+        between += sxw * sxw / sxx
+    return math.sqrt(max(between, 0.0) / n)
 
 
 @dataclass(frozen=True)

@@ -26,9 +26,11 @@ from protocol.piezo_canopen import (
     EMCY_CODES,
     LIMITS,
     AmpFault,
+    AmpState,
     NmtState,
     describe_frame,
     load_od,
+    um_from_nm,
 )
 
 _channels = itertools.count()
@@ -190,6 +192,27 @@ def test_offset_tables_and_commands_reach_the_machine_and_the_status_comes_back(
     st = machine.piezo_status()
     assert amp.status.temperature_c == pytest.approx(st.temperature_c, abs=0.05)
     assert int(amp.status.state) == int(st.state) and amp.status.t_s == pytest.approx(rig.t)
+
+
+def test_the_status_is_the_librarys_own_reading_of_the_pdo(rig):
+    """The status decoded from the PDO's bytes (its layout) is what ``var.raw`` reads, every
+    frame: displacement, temperature, fault bits and state, with a table and a fault on."""
+    rig.start()
+    amp = rig.amps[0]
+    amp.command(enable=True, alive_counter=1)
+    amp.set_offsets([1.5, -2.0, 0.25, 0.251])
+    pdo = amp.node.tpdo[1]
+    seen = []
+    pdo.add_callback(lambda p: seen.append((tuple(v.raw for v in p), amp.status)))
+    for _ in range(8):
+        rig.step()
+    assert len(seen) >= 5
+    for raws, status in seen:
+        disp, temp, fault, state = raws
+        assert status.displacement_um == um_from_nm(disp)
+        assert status.temperature_c == temp / 10.0
+        assert status.fault == AmpFault(fault & 0x0F)
+        assert status.state == AmpState(min(state, AmpState.FAULT))
 
 
 def test_a_silent_amplifier_is_lost_by_its_heartbeat_and_read_again_when_back(rig):

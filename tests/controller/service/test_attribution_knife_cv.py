@@ -8,6 +8,7 @@ noise of ``K + 1`` fitted values instead of one per mark.
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -82,22 +83,50 @@ def test_the_pair_reports_the_knives_cv_and_keeps_the_marks_own():
     assert att.to_json()["marks_cv"] == pytest.approx(meas.uniformity_cv)
 
 
+def _exact_model_cv(w, labels, x):
+    """The knife model's CV in exact rational arithmetic (one width per label + a trend)."""
+    ws, xs = [Fraction(float(v)) for v in w], [Fraction(float(v)) for v in x]
+    groups: dict[int, list] = {}
+    for label, wi, xi in zip(labels, ws, xs, strict=True):
+        groups.setdefault(int(label), []).append((wi, xi))
+    mean = sum(ws) / len(ws)
+    means = {k: (sum(a for a, _ in g) / len(g), sum(b for _, b in g) / len(g))
+             for k, g in groups.items()}
+    sxx = sum((b - means[k][1]) ** 2 for k, g in groups.items() for _, b in g)
+    sxw = sum((b - means[k][1]) * (a - means[k][0]) for k, g in groups.items() for a, b in g)
+    between = sum(len(g) * (means[k][0] - mean) ** 2 for k, g in groups.items())
+    return math.sqrt(float((between + (sxw * sxw / sxx if sxx else 0)) / len(ws))) / float(mean)
+
+
 def test_knife_model_cv_is_the_least_squares_fit_over_the_knives_as_labelled():
     """Any integer labels (negative, gaps, unsorted): the fit of one width per label + a trend,
-    bit for bit the ``np.unique`` grouping's."""
+    the ``np.unique`` grouping's least squares (``lstsq``, itself good to ~1e-10 here) to
+    rounding, and the exact fit's (rational arithmetic) to 1e-11."""
     rng = np.random.default_rng(11)
-    for _ in range(300):
-        n = int(rng.integers(1, 30))
+    for i in range(300):
+        n = int(rng.integers(1, 50))
         labels = rng.choice([-3, 0, 2, 5, 7, 40], size=n)
-        w = rng.uniform(0.5, 3.0, n)
+        w = rng.uniform(0.5, 3.0, n) if i % 2 else 1.5 + 0.01 * rng.standard_normal(n)
         x = np.sort(rng.uniform(0.0, 40.0, n))
         knives, group = np.unique(labels, return_inverse=True)
+        got = knife_model_cv(w, labels, x)
         if n - knives.size - 1 < KNIFE_MODEL_MIN_DOF:
-            want = float(w.std() / w.mean())
-        else:
-            design = np.zeros((n, knives.size + 1))
-            design[np.arange(n), group] = 1.0
-            design[:, -1] = x - x.mean()
-            coef, *_ = np.linalg.lstsq(design, w, rcond=None)
-            want = float((design @ coef).std() / w.mean())
-        assert knife_model_cv(w, labels, x) == want
+            assert got == pytest.approx(float(w.std() / w.mean()), rel=1e-12)
+            continue
+        design = np.zeros((n, knives.size + 1))
+        design[np.arange(n), group] = 1.0
+        design[:, -1] = x - x.mean()
+        coef, *_ = np.linalg.lstsq(design, w, rcond=None)
+        assert got == pytest.approx(float((design @ coef).std() / w.mean()), rel=1e-9)
+        assert got == pytest.approx(_exact_model_cv(w, labels, x), rel=1e-11)
+
+
+def test_positions_that_do_not_spread_within_a_knife_fit_no_trend():
+    """Every knife's marks at one position: the trend column lies in the knives' span, the
+    least-squares projection is the knives' mean widths (no trend), as lstsq's minimum norm."""
+    rng = np.random.default_rng(3)
+    knife = np.arange(24) % 4
+    w = 1.5 + 0.02 * rng.standard_normal(24)
+    x = 10.0 * knife.astype(float)
+    means = np.array([w[knife == k].mean() for k in range(4)])[knife]
+    assert knife_model_cv(w, knife, x) == pytest.approx(means.std() / w.mean(), rel=1e-12)

@@ -14,6 +14,7 @@ from controller.service.alerts import (
     KnifeChipMonitor,
     OperatorAlerts,
     TargetReach,
+    _column_medians,
 )
 from controller.service.events import EventKind, EventLog
 
@@ -141,3 +142,18 @@ def test_a_table_of_other_knives_or_none_is_no_comparison():
     assert not mon.pair(0.0, widths_mm=[1.5] * 4, pitch_mm=1.5, cut_at_s=None)  # no table yet
     mon.timeline.note(0.0, ())  # an actuator that has not been told its knives
     assert not mon.pair(0.1, widths_mm=[1.5] * 4, pitch_mm=1.5, cut_at_s=0.05)
+
+
+@pytest.mark.parametrize("rows", [1, 2, 4, 5, 6])
+def test_column_medians_are_numpys(rows):
+    """The chip reference's medians per knife: ``np.median(axis=0)`` bit for bit (odd and even
+    counts, ties, signed zeros), NaN where a column holds one."""
+    rng = np.random.default_rng(rows)
+    for _ in range(200):
+        z = int(rng.integers(3, 9))
+        a = np.round(rng.normal(0.0, 3.0, (rows, z)), int(rng.integers(0, 4)))
+        if rng.random() < 0.1:
+            a[rng.integers(rows), rng.integers(z)] = np.nan
+        want = np.median(a, axis=0)
+        got = _column_medians(list(a))
+        np.testing.assert_array_equal(np.array(got), want)
