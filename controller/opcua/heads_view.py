@@ -91,6 +91,8 @@ class MoulderView:
                       for name in self.configs}
         self._plc: dict[str, dict[str, Any]] = {name: {} for name in self.configs}
         self._machine: dict[str, Any] = {}
+        self._paths: dict[tuple[str | None, str], dict[str, str]] = {}
+        """Each variable's path by (head, part) and name, made at its first update."""
 
     @property
     def names(self) -> list[str]:
@@ -193,20 +195,33 @@ class MoulderView:
             "State/Machine/Overview/CurrentState": int(_machine_state(parts[0])),
             "State/Machine/Overview/CurrentMode": int(_machine_mode(parts[1])),
         }
-        out.update({f"State/Machine/Flags/{k}": v for k, v in _machine_flags(parts[2]).items()})
-        out.update({f"State/Machine/Values/{k}": v
-                    for k, v in _machine_values(parts[3]).items()})
+        out.update(self._at(None, "Flags", _machine_flags(parts[2])))
+        out.update(self._at(None, "Values", _machine_values(parts[3])))
         out["ManufacturerSpecific/FeedSetpointMmS"] = _num(self._machine.get("feed_mm_s"))
         out["ManufacturerSpecific/Heads"] = self.names
         out["ManufacturerSpecific/LimitingHeads"] = [
             str(h) for h in self._machine.get("limiting") or ()]
         for head, (state, mode, flags, values) in heads.items():
-            out[head_path(head, "Overview/CurrentState")] = int(state)
-            out[head_path(head, "Overview/CurrentMode")] = int(mode)
-            out.update({head_path(head, f"Flags/{k}"): v for k, v in flags.items()})
-            out.update({head_path(head, f"Values/{k}"): v for k, v in values.items()})
-            out.update({head_path(head, f"ManufacturerSpecific/{k}"): v
-                        for k, v in self.head_manufacturer(head).items()})
+            out.update(self._at(head, "Overview", {"CurrentState": int(state),
+                                                   "CurrentMode": int(mode)}))
+            out.update(self._at(head, "Flags", flags))
+            out.update(self._at(head, "Values", values))
+            out.update(self._at(head, "ManufacturerSpecific", self.head_manufacturer(head)))
+        return out
+
+    def _at(self, head: str | None, part: str, values: Mapping[str, Any]) -> dict[str, Any]:
+        """``values`` by their paths in ``part`` of ``head`` (``None``: the machine's state).
+
+        A variable's path is made once, at its first update (the same few hundred every time).
+        """
+        paths = self._paths.setdefault((head, part), {})
+        out = {}
+        for name, value in values.items():
+            path = paths.get(name)
+            if path is None:
+                path = paths[name] = (f"State/Machine/{part}/{name}" if head is None
+                                      else head_path(head, f"{part}/{name}"))
+            out[path] = value
         return out
 
 

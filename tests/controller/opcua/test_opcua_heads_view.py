@@ -62,8 +62,15 @@ def test_all_values_asks_each_head_once_for_its_values_and_flags(monkeypatch):
             return real(self)
 
         monkeypatch.setattr(MachineView, name, counted)
-    view.all_values()
+    first = view.all_values()
     assert calls == {"values": 4, "flags": 4}
+    # every variable's path is made at its first update, not at every update
+    from controller.opcua import heads_view
+
+    made = []
+    real_path = heads_view.head_path
+    monkeypatch.setattr(heads_view, "head_path", lambda *a: made.append(a) or real_path(*a))
+    assert view.all_values() == first and made == []
 
 
 @pytest.mark.parametrize("n", [1, 2])
