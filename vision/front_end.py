@@ -516,11 +516,7 @@ class FrontEnd:
         if t is not None and t.map_x.shape[0] > 0:
             src = image.bins[t.rows]
             if image._norm is None:
-                c0, c1 = self.columns
-                f = src.astype(np.float32)
-                mean = f[:, c0:c1].mean(axis=1, keepdims=True)
-                f /= np.where(mean > 0, mean, np.float32(1.0))
-                image._norm = f
+                image._norm = self._over_row_means(src)
             # rotated rows carry their own shading: divided by the profile of the rows taken
             return TextureRows(_remapper(image._norm, t, cols), t.map_x.shape[0], n_cols, None)
         t = self._texture_table(0.0, False)
@@ -533,6 +529,25 @@ class FrontEnd:
             return TextureRows(lambda key: src[pick[key], c0:c1], pick.size, n_cols, prof)
 
         return TextureRows(_remapper(src, t, cols), t.map_x.shape[0], n_cols, prof)
+
+    def _over_row_means(self, src: np.ndarray) -> np.ndarray:
+        """``src`` (``float32``) divided row by row by its mean over the columns (1 if <= 0)."""
+        c0, c1 = self.columns
+        if src.dtype == np.uint16 and src.ndim == 2 and c1 - c0 < 65537:
+            # The same numbers in two passes instead of five: a row's integer sum is exact in
+            # float32 below 2**24 (numpy's float32 mean adds exact integers then), the mean
+            # and each quotient one correctly rounded float32 division either way.
+            sums = src[:, c0:c1].sum(axis=1, dtype=np.uint32)
+            if sums.size and int(sums.max()) < 1 << 24:
+                means = sums.astype(np.float32) / np.float32(c1 - c0)
+                means[~(means > 0)] = np.float32(1.0)
+                out = np.empty(src.shape, dtype=np.float32)
+                kernels.rows_over(src, means, out)
+                return out
+        f = src.astype(np.float32)
+        mean = f[:, c0:c1].mean(axis=1, keepdims=True)
+        f /= np.where(mean > 0, mean, np.float32(1.0))
+        return f
 
 
 def mean_profile(rows: np.ndarray, factor: int) -> np.ndarray:
@@ -593,6 +608,11 @@ class TextureRows:
                 inv = self._inv = _inverse(self._profile)
             else:
                 inv = _inverse(cv2.reduce(rows, 0, cv2.REDUCE_AVG, dtype=cv2.CV_64F).ravel())
+        if (rows.dtype in (np.uint16, np.float32) and rows.ndim == 2 and rows.size
+                and inv.shape == (rows.shape[1],)):
+            tex = np.empty(rows.shape, dtype=np.float32)
+            kernels.scaled_less_one(np.ascontiguousarray(rows), inv, tex)  # the same numbers
+            return tex
         tex = np.multiply(rows, inv[None, :], dtype=np.float32)
         tex -= np.float32(1.0)
         return tex

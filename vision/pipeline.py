@@ -644,8 +644,9 @@ class Measurer:
             if len(marks.widths_mm) - len(m_cal.widths_mm) > max(
                     1, len(marks.widths_mm) // 10):
                 continue
-            pays = cal.scatter_fraction > 0 and not np.array_equal(s_cal, slope_raw / cal.gain)
-            return replace(cal, deblurred=bool(deblur and pays)), s_cal, h_cal, m_cal, raw_depth
+            pays = deblur and cal.scatter_fraction > 0 and not np.array_equal(
+                s_cal, slope_raw / cal.gain)
+            return replace(cal, deblurred=bool(pays)), s_cal, h_cal, m_cal, raw_depth
         return cal, slope, height, marks, raw_depth
 
     def _registered_profile(self, prof_a: np.ndarray, prof_b: np.ndarray, registered: bool,

@@ -90,3 +90,35 @@ def test_warm_up_is_idempotent():
     kernels.warm_up()
     kernels.warm_up()
     assert kernels._WARM[0]
+
+
+@pytest.mark.parametrize("top", [2, 256, 1276, 4081])
+def test_rows_over_means_are_numpys_float32_quotients(top):
+    # the rotated texture's rows over their means: bit for bit the numpy expression it replaced
+    from vision.front_end import FrontEnd
+
+    rng = np.random.default_rng(top)
+    for n, w in ((98, 659), (7, 40), (1, 3)):
+        bins = rng.integers(0, top, (n, w)).astype(np.uint16)
+        bins[n // 2] = 0  # a dark row: divided by 1
+        c0, c1 = (2, w - 1) if w > 4 else (0, w)
+        front = FrontEnd.__new__(FrontEnd)
+        front.columns = (c0, c1)
+        want = bins.astype(np.float32)
+        mean = want[:, c0:c1].mean(axis=1, keepdims=True)
+        want /= np.where(mean > 0, mean, np.float32(1.0))
+        got = front._over_row_means(bins)
+        assert got.dtype == np.float32
+        assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_scaled_less_one_is_numpys_product_less_one(dtype):
+    rng = np.random.default_rng(7)
+    rows = (rng.random((16, 659)) * 1300).astype(dtype)
+    scale = (1.0 / (rng.random(659) * 900 + 1)).astype(np.float32)
+    want = np.multiply(rows, scale[None, :], dtype=np.float32)
+    want -= np.float32(1.0)
+    got = np.empty(rows.shape, dtype=np.float32)
+    kernels.scaled_less_one(rows, scale, got)
+    assert np.array_equal(got, want)

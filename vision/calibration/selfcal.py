@@ -34,6 +34,7 @@ from core.checks import check_positive
 from vision import ffts, kernels
 
 SCATTER_GRID_MM = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8)
+_POSITIVE_GRID = tuple(e for e in SCATTER_GRID_MM if e > 0)  # fit_calibration's lengths
 
 
 @dataclass(frozen=True)
@@ -113,9 +114,24 @@ def kinematic_depths_um(cusps_mm: np.ndarray, bottoms_mm: np.ndarray, *,
     return 1000.0 * ((c[:-1] - b) ** 2 + (c[1:] - b) ** 2) / (4.0 * r)
 
 
+_FREQS: dict[tuple[int, float], np.ndarray] = {}
+
+
+def _frequencies(n_fft: int, dx_mm: float) -> np.ndarray:
+    """``scipy.fft.rfftfreq(n_fft, d=dx_mm)`` (cached: a measurer's profiles have few lengths)."""
+    key = (n_fft, dx_mm)
+    nu = _FREQS.get(key)
+    if nu is None:
+        if len(_FREQS) > 64:
+            _FREQS.clear()
+        nu = _FREQS[key] = scipy.fft.rfftfreq(n_fft, d=dx_mm)
+        nu.flags.writeable = False
+    return nu
+
+
 def _exp_transfer(n_fft: int, dx_mm: float, scatter_mm: float) -> np.ndarray:
     """Transfer function of the unit two-sided exponential of length ``scatter_mm``."""
-    nu = scipy.fft.rfftfreq(n_fft, d=dx_mm)
+    nu = _frequencies(n_fft, dx_mm)
     return 1.0 / (1.0 + (2.0 * math.pi * scatter_mm * nu) ** 2)
 
 
@@ -201,7 +217,8 @@ def fit_calibration(
     x = _unit_axis(n)
     if not pm.max() > pm.min():  # a constant slope: nothing to calibrate on
         return Calibration()
-    ells = tuple(e for e in scatter_grid_mm if e > 0)
+    ells = _POSITIVE_GRID if scatter_grid_mm is SCATTER_GRID_MM else tuple(
+        e for e in scatter_grid_mm if e > 0)
     n_l = len(ells)
     # One sample range for every length (the widest guard: the blurred model is wrong within
     # ~2 l of the profile's ends), so that all fits share their sums: normal equations, batched.
@@ -315,8 +332,10 @@ def apply_calibration(slope: np.ndarray, calibration: Calibration, *, dx_mm: flo
     if not deblur or not deblurs(calibration, pitch_mm=pitch_mm, min_gain_loss=min_gain_loss):
         return p
     n = p.size
-    ext = np.concatenate([p, p[::-1]])  # even extension: no wrap-around jump
-    nf = ext.size
+    nf = 2 * n
+    ext = np.empty(nf)  # even extension: no wrap-around jump
+    ext[:n] = p
+    ext[n:] = p[::-1]
     h = scatter_transfer(nf, dx_mm=dx_mm, scatter_mm=ell, fraction=f)
     out = ffts.irfft(ffts.rfft(ext, nf) * h / (h * h + regularisation), nf)
     return out[:n]
