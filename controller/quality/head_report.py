@@ -18,9 +18,10 @@ from matplotlib.figure import Figure
 
 from controller.quality.log import QualityClass, QualityRecord
 from controller.quality.report import (
-    FIGURE_NAMES,
     build_figures,
+    figure_paths,
     format_summary,
+    save_figures,
     summarise,
 )
 
@@ -31,6 +32,7 @@ __all__ = [
     "head_stem",
     "head_summaries",
     "records_by_head",
+    "save_head_figures",
 ]
 
 
@@ -140,10 +142,26 @@ def head_figure_paths(out_dir: str | Path, *, stem: str,
     The keys (``<head>_<figure>``) are those of ``planer report --json``'s ``figures`` for a
     log of several heads.
     """
-    return {f"{head}_{name}": Path(out_dir) / f"{stem}_{head}_{name}.png"
-            for head in heads for name in FIGURE_NAMES}
+    return {f"{head}_{name}": path for head in heads
+            for name, path in figure_paths(out_dir, stem=head_stem(stem, head)).items()}
 
 
 def head_stem(stem: str, head: str) -> str:
     """The file-name stem of ``head``'s figures (``<stem>_<head>``)."""
     return f"{stem}_{head}"
+
+
+def save_head_figures(figures: Mapping[str, Mapping[str, Figure]], out_dir: str | Path, *,
+                      stem: str) -> dict[str, dict[str, str]]:
+    """Write each head's figures where :func:`head_figure_paths` says, each atomically.
+
+    ``figures``: :func:`build_head_figures`.
+
+    Returns
+    -------
+    dict of str to dict
+        By head, its figures' paths by figure name (:func:`save_figures` of the head's stem);
+        ``{f"{head}_{name}": path}`` of them all is ``planer report --json``'s ``figures``.
+    """
+    return {head: save_figures(dict(figs), out_dir, stem=head_stem(stem, head))
+            for head, figs in figures.items()}

@@ -831,9 +831,14 @@ FIGURE_NAMES = ("pitch_uniformity", "setpoints", "profile", "knife_condition", "
 """The figures :func:`build_figures` may draw (``<stem>_<name>.png``)."""
 
 
+def figure_path(out_dir: str | Path, *, stem: str, name: str) -> Path:
+    """The one rule of a figure's file: ``<out_dir>/<stem>_<name>.png``."""
+    return Path(out_dir) / f"{stem}_{name}.png"
+
+
 def figure_paths(out_dir: str | Path, *, stem: str) -> dict[str, Path]:
     """Where :func:`save_figures` writes each figure it may draw, by name (for checks before)."""
-    return {name: Path(out_dir) / f"{stem}_{name}.png" for name in FIGURE_NAMES}
+    return {name: figure_path(out_dir, stem=stem, name=name) for name in FIGURE_NAMES}
 
 
 def save_figures(
@@ -854,7 +859,7 @@ def save_figures(
 
     written: dict[str, str] = {}
     for name, fig in figures.items():
-        path = Path(out_dir) / f"{stem}_{name}.png"
+        path = figure_path(out_dir, stem=stem, name=name)
         with atomic_writer(path, binary=True) as fh:
             fig.savefig(fh, format="png")
         written[name] = str(path)

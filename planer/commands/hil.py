@@ -321,17 +321,14 @@ def _write_figures(summary: dict, progress: Callable[[str], None]) -> dict[str, 
             quality_class = log.quality_class()
         out_dir.mkdir(parents=True, exist_ok=True)
         if summary.get("machine") == "moulder":  # each head's figures, <stem>_<head>_<name>
-            from controller.quality.head_report import build_head_figures, head_stem
+            from controller.quality.head_report import build_head_figures, save_head_figures
 
             with QualityLog(path, create=False) as log:
                 classes = {h["name"]: log.quality_class(head=h["name"])
                            for h in summary["heads"]}
-            paths: dict[str, str] = {}
-            for head, figs in build_head_figures(records, classes).items():
-                for name, where in save_figures(figs, out_dir,
-                                                stem=head_stem(stem, head)).items():
-                    paths[f"{head}_{name}"] = where
-            return paths
+            saved = save_head_figures(build_head_figures(records, classes), out_dir, stem=stem)
+            return {f"{head}_{name}": where for head, mine in saved.items()
+                    for name, where in mine.items()}
         figures = build_figures(records, quality_class=quality_class,
                                 safe_periods_s=summary.get("safe_periods_s"))
         return save_figures(figures, out_dir, stem=stem)

@@ -67,8 +67,10 @@ def run(args: argparse.Namespace) -> int:
         default_out, stem = Path.cwd(), _database_stem(str(log_path))
     else:
         default_out, stem = Path(log_path).absolute().parent, Path(log_path).stem
-    if args.head is not None:
-        stem = f"{stem}_{args.head}"  # one head's figures beside the whole log's
+    if args.head is not None:  # one head's figures beside the whole log's
+        from controller.quality.head_report import head_stem
+
+        stem = head_stem(stem, args.head)
     out_dir = Path(args.out) if args.out is not None else default_out
     journal = default_journal_path(log_path)
     inputs = {"LOG": None if is_database_url(log_path) else log_path,
@@ -153,14 +155,18 @@ def _summary_and_figures(records: list, quality_class: Any, classes: dict, out_d
             written = save_figures(build_figures(records, quality_class=quality_class),
                                    out_dir, stem=stem)  # each PNG written atomically
         return summary, written
-    from controller.quality.head_report import build_head_figures, head_stem, head_summaries
+    from controller.quality.head_report import (
+        build_head_figures,
+        head_summaries,
+        save_head_figures,
+    )
 
     per_head = head_summaries(records, classes)
     with writing(out_opt, out_dir):
-        for head, figures in build_head_figures(records, classes).items():
-            mine = save_figures(figures, out_dir, stem=head_stem(stem, head))
-            per_head[head]["figures"] = mine
-            written.update({f"{head}_{name}": path for name, path in mine.items()})
+        saved = save_head_figures(build_head_figures(records, classes), out_dir, stem=stem)
+    for head, mine in saved.items():
+        per_head[head]["figures"] = mine
+        written.update({f"{head}_{name}": path for name, path in mine.items()})
     summary["per_head"] = per_head
     return summary, written
 

@@ -249,3 +249,22 @@ def test_cli_reports_a_version_7_log_as_head_main(tmp_path, capsys):
     assert s["n_records"] == len(recs) and s["heads"] == ["main"]
     assert main(["report", str(path), "--head", "top", "--out", str(tmp_path / "f")]) == 2
     assert "its heads: main" in capsys.readouterr().err
+
+
+def test_each_heads_figures_are_written_where_their_paths_are_told(tmp_path):
+    """One rule of a figure's file (report.figure_path): the paths checked before writing are
+    those written, a head's as the whole log's with the head's stem."""
+    from pathlib import Path
+
+    from controller.quality.head_report import head_stem, save_head_figures
+    from controller.quality.report import figure_paths
+
+    recs = moulder_run(2)
+    saved = save_head_figures(build_head_figures(recs, CLASSES), tmp_path, stem="m")
+    told = head_figure_paths(tmp_path, stem="m", heads=["bottom", "top"])
+    written = {f"{head}_{name}": path for head, mine in saved.items()
+               for name, path in mine.items()}
+    assert written and written == {k: str(p) for k, p in told.items() if k in written}
+    assert all(Path(p).is_file() for p in written.values())
+    assert {f"top_{n}": p for n, p in figure_paths(tmp_path, stem=head_stem("m", "top")).items()
+            } == {k: p for k, p in told.items() if k.startswith("top_")}
