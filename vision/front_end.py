@@ -606,6 +606,11 @@ class TextureRows:
         if inv is None:
             if self._profile is not None:
                 inv = self._inv = _inverse(self._profile)
+            elif rows.dtype == np.float32 and rows.ndim == 2 and rows.shape[0] > 0:
+                # cv2.reduce's float64 column means, inverted in float32: one compiled pass
+                inv = np.empty(rows.shape[1], dtype=np.float32)
+                kernels.inverse_column_means(np.ascontiguousarray(rows),
+                                             np.empty(rows.shape[1]), inv)
             else:
                 inv = _inverse(cv2.reduce(rows, 0, cv2.REDUCE_AVG, dtype=cv2.CV_64F).ravel())
         if (rows.dtype in (np.uint16, np.float32) and rows.ndim == 2 and rows.size

@@ -11,6 +11,7 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
 * :func:`column_sums` -- the column sums of ``uint16`` rows (the profile's), exact;
 * :func:`rows_over` -- ``uint16`` rows divided by their means (the rotated texture's);
 * :func:`scaled_less_one` -- rows times a column scale, less one (the shading-free texture);
+* :func:`inverse_column_means` -- the inverse of rows' column means (the rotated texture's);
 * :func:`running_mean_1d`, :func:`running_mean_2d` -- running means of fractional length
   (cumulative sums and linear interpolation, as
   :func:`vision.calibration.illumination.running_mean`);
@@ -155,6 +156,30 @@ def scaled_less_one(rows: np.ndarray, scale: np.ndarray,
         o = out[r]
         for c in range(w):
             o[c] = np.float32(np.float32(row[c]) * scale[c]) - one
+
+
+@njit(**_JIT)
+def inverse_column_means(rows: np.ndarray, acc: np.ndarray,
+                         out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``out = 1 / float32(mean of rows down each column)`` (0 where the mean is not > 0).
+
+    As ``_inverse(cv2.reduce(rows, 0, cv2.REDUCE_AVG, dtype=cv2.CV_64F).ravel())`` of the
+    texture rows: each column summed in ``float64`` row after row (``acc``, scratch of shape
+    ``(width,)``), times ``1 / rows`` (OpenCV's average), rounded to ``float32`` and inverted in
+    ``float32``: the same numbers without the reduction's and the masked division's calls.
+    """
+    n, w = rows.shape
+    for c in range(w):
+        acc[c] = np.float64(rows[0, c])
+    for r in range(1, n):
+        row = rows[r]
+        for c in range(w):
+            acc[c] += np.float64(row[c])
+    scale = 1.0 / n
+    one = np.float32(1.0)
+    for c in range(w):
+        mean = np.float32(acc[c] * scale)
+        out[c] = one / mean if mean > np.float32(0.0) else np.float32(0.0)
 
 
 @njit(**_JIT)
@@ -758,6 +783,7 @@ def warm_up() -> None:
     scale, tex = np.ones(8, dtype=np.float32), np.empty((2, 8), dtype=np.float32)
     scaled_less_one(tex, scale, tex)
     scaled_less_one(bins, scale, tex)
+    inverse_column_means(tex, np.empty(8), scale)
     v = np.arange(8.0)
     running_mean_1d(v, 2.5)
     running_mean_2d(np.ones((8, 3)), 2.5)

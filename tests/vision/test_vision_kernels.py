@@ -122,3 +122,19 @@ def test_scaled_less_one_is_numpys_product_less_one(dtype):
     got = np.empty(rows.shape, dtype=np.float32)
     kernels.scaled_less_one(rows, scale, got)
     assert np.array_equal(got, want)
+
+
+def test_inverse_column_means_are_cv2s_average_inverted():
+    import cv2
+
+    from vision.front_end import _inverse
+
+    rng = np.random.default_rng(11)
+    for n, w, spread in ((16, 659, 0.3), (1, 9, 1.0), (5, 40, 1000.0)):
+        rows = (1.0 + spread * rng.standard_normal((n, w))).astype(np.float32)
+        rows[:, 3] = -1.0  # a column whose mean is not positive: 0
+        want = _inverse(cv2.reduce(rows, 0, cv2.REDUCE_AVG, dtype=cv2.CV_64F).ravel())
+        got = np.empty(w, dtype=np.float32)
+        kernels.inverse_column_means(rows, np.empty(w), got)
+        assert got[3] == 0.0
+        assert np.array_equal(got, want)
