@@ -34,12 +34,9 @@ def _cpu_s(pid: int | None) -> float | None:
         return total_ns * 1e-9
     except (OSError, ValueError, IndexError):
         pass
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            fields = fh.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return None
+    from planer.benchmarks.service import proc_cpu_s  # (service imports this module)
+
+    return proc_cpu_s(pid, missing=None)
 
 
 async def _pool_rate(pool: Any, frames: list, facts: Any) -> float:

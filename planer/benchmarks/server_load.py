@@ -242,15 +242,6 @@ def load_for(http_port: int | None, opcua_port: int | None, seconds: float,
     out.put(clients.counts)
 
 
-def _cpu_s(pid: int) -> float:
-    """CPU time (user + system) process ``pid`` used so far, s (0 when gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 def _children(pid: int) -> list[int]:
     """The processes whose parent is ``pid``."""
     out = []
@@ -264,8 +255,10 @@ def _children(pid: int) -> list[int]:
 
 def _tree_cpu_s(pid: int) -> dict[str, float]:
     """CPU time so far of ``planer hil`` (``service``) and its servers' process (``servers``)."""
-    servers = sum(_cpu_s(c) for c in _children(pid))
-    return {"service": _cpu_s(pid), "servers": servers}
+    from planer.benchmarks.service import proc_cpu_s  # 0 for a process gone
+
+    servers = sum(proc_cpu_s(c) or 0.0 for c in _children(pid))
+    return {"service": proc_cpu_s(pid) or 0.0, "servers": servers}
 
 
 async def _find(client: Any, path: str) -> Any:

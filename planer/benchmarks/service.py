@@ -78,13 +78,32 @@ QUEUE_PAIRS = 8
 longer queue."""
 
 
-def _stats(values: list[float]) -> dict[str, float]:
-    """``median``, ``p99``, ``max`` of ``values`` (ms), or ``{}`` for none."""
+def latency_stats(values: list[float], *, middle: str = "median") -> dict[str, float]:
+    """The median, ``p99`` and ``max`` of ``values`` (ms), or ``{}`` for none.
+
+    ``middle`` is the median's key: ``"median"`` in this bench's figures, ``"p50"`` in the
+    moulder bench's (:mod:`planer.benchmarks.moulder`; each its JSON's contract).
+    """
     if not values:
         return {}
     a = np.asarray(values, dtype=float)
-    return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)),
+    return {middle: float(np.median(a)), "p99": float(np.percentile(a, 99)),
             "max": float(a.max())}
+
+
+def proc_cpu_s(pid: int | None, *, missing: float | None = 0.0) -> float | None:
+    """User + system CPU seconds of process ``pid`` so far (``/proc/PID/stat``, 10 ms ticks).
+
+    ``missing`` when it cannot be read (no ``pid``, the process gone).
+    """
+    if pid is None:
+        return missing
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            fields = fh.read().rsplit(b")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return missing
 
 
 def machine_description() -> dict[str, Any]:
@@ -479,8 +498,8 @@ def _latency_figures(service: Any, put_at: dict[int, float], stored_at: dict[int
         # the first pairs after the idle start-up (cold caches, first calls) are not the
         # steady state the p99 describes: reported apart; the max counts every pair
         warm = min(WARMUP_PAIRS, len(lat) - 1)
-        s = _stats(lat[warm:])
-        every = _stats(lat)
+        s = latency_stats(lat[warm:])
+        every = latency_stats(lat)
         out.update(median_ms=s["median"], p99_ms=s["p99"], max_ms=every["max"],
                    warmup_pairs=warm, warmup_max_ms=max(lat[:warm], default=None),
                    p99_all_ms=every["p99"])
@@ -490,9 +509,9 @@ def _latency_figures(service: Any, put_at: dict[int, float], stored_at: dict[int
             "p99_over_median": out["p99_over_median"] is not None
             and out["p99_over_median"] <= TARGETS["p99_over_median"],
         }
-    out["handle_ms"] = _stats(handle)  # from the service taking the pair (the old figure)
-    out["breakdown_ms"] = {k: _stats(v) for k, v in parts.items()}
-    out["record_after_setpoint_ms"] = _stats(after)
+    out["handle_ms"] = latency_stats(handle)  # from the service taking the pair (the old figure)
+    out["breakdown_ms"] = {k: latency_stats(v) for k, v in parts.items()}
+    out["record_after_setpoint_ms"] = latency_stats(after)
     records = service.records
     batches = getattr(records, "batches", 0)
     out["commits"] = batches

@@ -10,6 +10,7 @@ import sys
 import pytest
 
 from planer.benchmarks import server_load
+from planer.benchmarks.service import latency_stats, proc_cpu_s
 
 
 def test_cpu_time_of_a_process_and_of_its_children():
@@ -20,14 +21,23 @@ def test_cpu_time_of_a_process_and_of_its_children():
                              stdout=subprocess.PIPE, text=True)
     try:
         assert child.stdout.readline().strip() == "burnt"  # 0.3 s of CPU used, now it waits
-        assert server_load._cpu_s(child.pid) >= 0.25
+        assert proc_cpu_s(child.pid) >= 0.25
         assert child.pid in server_load._children(os.getpid())
         tree = server_load._tree_cpu_s(os.getpid())
         assert tree["servers"] >= 0.25  # a child's CPU is counted as the servers' process's
-        assert tree["service"] == pytest.approx(server_load._cpu_s(os.getpid()), abs=0.5)
+        assert tree["service"] == pytest.approx(proc_cpu_s(os.getpid()), abs=0.5)
     finally:
         child.communicate("")
-    assert server_load._cpu_s(child.pid) == 0.0  # gone: nothing
+    assert proc_cpu_s(child.pid) == 0.0  # gone: nothing
+    assert proc_cpu_s(child.pid, missing=None) is None and proc_cpu_s(None) == 0.0
+
+
+def test_latency_stats_name_their_median_as_each_bench_does():
+    values = [1.0, 2.0, 3.0, 4.0, 100.0]
+    assert latency_stats(values) == {"median": 3.0, "p99": pytest.approx(96.16), "max": 100.0}
+    assert latency_stats(values, middle="p50") == {"p50": 3.0, "p99": pytest.approx(96.16),
+                                                   "max": 100.0}
+    assert latency_stats([]) == {}
 
 
 def test_the_clients_process_takes_its_nice_and_stops_when_told():
