@@ -531,7 +531,10 @@ class ActuatorIdentifier:
 
     def confidence(self) -> np.ndarray:
         """Per mode ``1 - 2 sigma_m / |a_m|`` clipped to [0, 1] (0 before ``min_samples``)."""
-        se = self.gain_stderr()
+        return self._confidence(self.gain_stderr())
+
+    def _confidence(self, se: np.ndarray) -> np.ndarray:
+        """:meth:`confidence` from the modes' :meth:`gain_stderr` ``se``."""
         mag = np.maximum(np.abs(self._raw), 1e-12)
         conf = np.clip(1.0 - 2.0 * se / mag, 0.0, 1.0)
         conf[np.array(self._n) < self.min_samples - 1e-9] = 0.0
@@ -541,7 +544,7 @@ class ActuatorIdentifier:
     def mode_states(self) -> tuple[str, ...]:
         """Each mode's state (:data:`MODE_STATES`); mode 0 is always ``usable``."""
         se = self.gain_stderr()
-        conf = self.confidence()
+        conf = self._confidence(se)  # (the stderr computed once)
         out = ["usable"]
         for m in range(1, self.knives):
             mag = abs(complex(self._raw[m]))

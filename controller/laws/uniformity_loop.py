@@ -682,7 +682,7 @@ class UniformityLoop:
         now = self._offsets.tolist()
         new = project_zero_mean_box(
             np.array([o + g * (b - o) for o, b in zip(now, best, strict=True)]), bound=bound)
-        if cfg.vanished_step and not self._held:
+        if cfg.vanished_step and not self._held and not all(v > 0.0 for v in ws):
             new = bring_back(new, best_a, ws, self._d @ np.array(a_rows), bound)
         if self._held:  # the hold's penalty only nearly holds: never a step the model regrets
             new, g = _monotone_step(self._offsets, new, g, self.model_spread_um)

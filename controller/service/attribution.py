@@ -409,7 +409,8 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any, *,
     if why is not None:
         raise ValueError(why)
     marks_pitch = float(meas.pitch_mm)
-    if pa.missing == 0:
+    missing = pa.missing
+    if missing == 0:
         pitch = marks_pitch  # the mean mark width, as measured
     else:  # the feed per pass from the knives' BDCs: the widths' sum over the passes
         pitch = float(pa.pass_mm)  # spanned is off by the widened end marks' overhang
@@ -420,7 +421,7 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any, *,
     return Attributed(
         knife_widths_mm=per_knife,
         pass_pitch_mm=pitch,
-        missing_passes=pa.missing,
+        missing_passes=missing,
         spread=float(pa.spread),
         reliable_marks=int(np.count_nonzero(pa.reliable)),
         mark_knife=tuple(pa.knife.tolist()),
@@ -430,7 +431,7 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any, *,
         marks_pitch_mm=marks_pitch,
         marks_cv=_marks_cv(meas, widths),
         bdc_pitch_mm=float(pa.pass_mm),
-        knife_cv=knife_model_cv(widths, pa.knife, bottoms) if pa.missing == 0 else math.nan,
+        knife_cv=knife_model_cv(widths, pa.knife, bottoms) if missing == 0 else math.nan,
         cut_feed=cut,
     )
 
@@ -444,8 +445,9 @@ def _cut_feed_of(bottoms: np.ndarray, frame: Frame, snap: PlcSnapshot, rig: Any,
     if (pairs is None and plc is None) or bottoms.size == 0:
         return None
     cam = rig.camera
+    # the bottoms do not decrease (attribute_marks refuses them otherwise): first and last
     ends = [snap.cutter_to_camera_mm + float(x) - cam.cx / cam.px_per_mm
-            for x in (bottoms.min(), bottoms.max())]
+            for x in (bottoms[0], bottoms[-1])]
     return cut_feed(pairs, plc, counts=int(frame.counts_a), t_s=getattr(snap, "t_s", None),
                     knives=snap.knives, back_mm=(min(ends), max(ends)),
                     counts_per_mm=snap.counts_per_mm, counter_bits=rig.encoder.counter_bits)

@@ -24,6 +24,7 @@ may refuse the first pairs). With no reading at all nothing is checked. Pure: no
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -152,8 +153,9 @@ class PairFeedHistory:
         pos = self._pos
         if not pos or pos[0] > lo_pos or pos[-1] < hi_pos:
             return None
-        first = max(i for i, p in enumerate(pos) if p <= lo_pos)
-        last = min(i for i, p in enumerate(pos) if p >= hi_pos)
+        # the positions ascend strictly (note): the last at or behind, the first at or ahead
+        first = bisect.bisect_right(pos, lo_pos) - 1
+        last = bisect.bisect_left(pos, hi_pos)
         span = range(first, last + 1)
         if any(self._knives[i] != knives for i in span):
             return None

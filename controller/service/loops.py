@@ -374,7 +374,7 @@ class ControlLoops:
             self.alerts.target.update(t, pitch_mm=pitch, feed_mm_s=feed, feed_limits_mm_s=(lo, hi),
                                       held_pitch_mm=loop.pitch_setpoint_mm)
             try:
-                if np.any(np.isfinite(widths)):
+                if any(map(math.isfinite, np.asarray(widths, dtype=float).tolist())):
                     interval = loop.cut_interval_s(measured_at)
                     cut = None if interval is None else (min(interval[0], t),
                                                          min(interval[1], t))

@@ -105,3 +105,31 @@ def test_nothing_known_nothing_checked_and_bad_arguments_refused():
 def test_pass_tolerance_is_checked_on_load(value):
     with pytest.raises(ConfigError, match="pass_tolerance"):
         machine_from_dict({"plausibility": {"pass_tolerance": value}})
+
+
+def test_the_bracket_is_the_scan_over_every_pair():
+    """The bracketing pairs found by bisection are the straightforward scan's (the last at or
+    behind the cut, the first at or ahead; positions exactly on a pair; knives changing)."""
+    import random
+
+    rng = random.Random(4)
+    for _ in range(300):
+        h = PairFeedHistory()
+        pos = 0
+        for i in range(rng.randrange(1, 60)):
+            pos += rng.randrange(1, 400)
+            h.note(pos % (1 << BITS), 0.01 * i, rng.uniform(0.3, 2.0),
+                   4 if rng.random() < 0.9 else 2, counter_bits=BITS, counts_per_mm=CPM,
+                   keep_mm=1e6)
+        p, pitch, knives = list(h._pos), list(h._pitch), list(h._knives)
+        for _ in range(20):
+            lo = rng.choice(p) if rng.random() < 0.3 else rng.uniform(-50, p[-1] + 50)
+            hi = lo + rng.choice([0.0, rng.uniform(0, 2000)])
+            want = None
+            if p[0] <= lo and p[-1] >= hi:
+                first = max(i for i, v in enumerate(p) if v <= lo)
+                last = min(i for i, v in enumerate(p) if v >= hi)
+                if all(knives[i] == 4 for i in range(first, last + 1)):
+                    span = pitch[first:last + 1]
+                    want = (min(span), max(span))
+            assert h.bracket(lo, hi, 4) == want
