@@ -805,7 +805,8 @@ class DefectFinder:
         without the encoder's shift or the pitch, pays nothing more.
         """
         s = self.settings
-        res = residual(self.mapper(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg), s)
+        res = residual(self.mapper(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg,
+                                   albedo=False), s)
         if (pitch_mm is None or not math.isfinite(pitch_mm) or pitch_mm <= 0
                 or encoder_shift_px is None or not math.isfinite(encoder_shift_px)):
             return res
@@ -818,7 +819,8 @@ class DefectFinder:
             return res
         best = res
         for alt in alts:
-            other = residual(self.mapper(rows_a, rows_b, shift_px=alt, roll_deg=roll_deg), s)
+            other = residual(self.mapper(rows_a, rows_b, shift_px=alt, roll_deg=roll_deg,
+                                         albedo=False), s)
             if (other.median < s.slip_median * best.median
                     and np.count_nonzero(other.marked) < s.slip_cells * n_marked):
                 best = other

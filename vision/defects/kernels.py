@@ -47,9 +47,11 @@ def register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka
         Board motion from A to B, map columns: ``b_reg[:, j] = b[:, j + d]`` (linear).
     ka, kb : float
         ``cos(azimuth) tan(slant)`` of light A and B (seed Eq. 4).
-    slope, albedo : ndarray of float32, shape (rows, cols)
-        Out: ``dz/dx`` with the pair's constant imbalance removed, and the albedo relative to
-        the map's mean; 0 where not ``both``.
+    slope : ndarray of float32, shape (rows, cols)
+        Out: ``dz/dx`` with the pair's constant imbalance removed; 0 where not ``both``.
+    albedo : ndarray of float32, shape (rows, cols) or (0, 0)
+        Out (unless empty: not wanted): the albedo relative to the map's mean; 0 where not
+        ``both``.
     both : ndarray of bool, shape (rows, cols)
         Out: both shots see the sample.
 
@@ -61,39 +63,50 @@ def register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka
     rows, cols = a.shape
     k = int(math.floor(d))
     t = np.float32(d - k)
-    sa = 0.0
-    sb = 0.0
-    n = 0
+    u = np.float32(1.0) - t
+    zero = np.float32(0.0)
+    # columns whose B samples j + k, j + k + 1 lie on the map; the others are not seen
+    lo = min(max(0, -k), cols)
+    hi = max(min(cols, cols - k - 1), lo)
+    m = hi - lo
+    # branch-free rows over slices (the loop vectorises), sums per column: the same sums
+    sum_a = np.zeros(m)
+    sum_b = np.zeros(m)
+    count = np.zeros(m, dtype=np.int64)
     for i in range(rows):
-        for j in range(cols):
-            jj = j + k
-            ok = False
-            bv = np.float32(0.0)
-            if valid[i, j] and jj >= 0 and jj + 1 < cols and valid[i, jj] and valid[i, jj + 1]:
-                bv = b[i, jj] * (np.float32(1.0) - t) + b[i, jj + 1] * t
-                ok = a[i, j] > 0 and bv > 0
-            both[i, j] = ok
-            if ok:
-                slope[i, j] = bv  # B registered, kept here for the second pass
-                sa += a[i, j]
-                sb += bv
-                n += 1
+        for j in range(lo):
+            both[i, j] = False
+        for j in range(hi, cols):
+            both[i, j] = False
+        ar, vr, sr, br_ = a[i, lo:hi], valid[i, lo:hi], slope[i, lo:hi], both[i, lo:hi]
+        vb, bb = valid[i, lo + k:hi + k + 1], b[i, lo + k:hi + k + 1]
+        for q in range(m):
+            bv = bb[q] * u + bb[q + 1] * t
+            av = ar[q]
+            ok = vr[q] & vb[q] & vb[q + 1] & (av > zero) & (bv > zero)
+            br_[q] = ok
+            sr[q] = bv  # B registered, kept here for the second pass
+            sum_a[q] += av if ok else zero
+            sum_b[q] += bv if ok else zero
+            count[q] += ok
+    sa, sb, n = sum_a.sum(), sum_b.sum(), int(count.sum())
     if not (sa > 0 and sb > 0):
         sa = 1.0
         sb = 1.0
     gain = np.float32(sa / sb)
     fka, fkb = np.float32(ka), np.float32(kb)
-    scale = np.float32(max(n, 1) / (2.0 * sa))
+    if albedo.size > 0:  # before the slope replaces B
+        scale = np.float32(max(n, 1) / (2.0 * sa))
+        for i in range(rows):
+            for j in range(cols):
+                w = (a[i, j] + slope[i, j] * gain) * scale
+                albedo[i, j] = w if both[i, j] else zero
     for i in range(rows):
         for j in range(cols):
-            if both[i, j]:
-                av = a[i, j]
-                r = slope[i, j] * gain
-                slope[i, j] = (r - av) / (r * fka - av * fkb)
-                albedo[i, j] = (av + r) * scale
-            else:
-                slope[i, j] = 0.0
-                albedo[i, j] = 0.0
+            av = a[i, j]
+            r = slope[i, j] * gain
+            v = (r - av) / (r * fka - av * fkb)
+            slope[i, j] = v if both[i, j] else zero
     return n
 
 
@@ -217,17 +230,26 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     gw = np.zeros((n_g, cols), dtype=np.int32)
     total = np.zeros(cols)
     count = np.zeros(cols, dtype=np.int32)
-    for i in range(rows):
+    zero = np.float32(0.0)
+    for i in range(rows):  # branch-free over row views (vectorises; adding 0 changes no bit)
         g = i // group
-        grouped = g < n_g
-        for c in range(cols):
-            v = p[i, c]
-            if valid[i, c] and abs(v) < lim:
-                total[c] += v
-                count[c] += 1
-                if grouped:
-                    gs[g, c] += v
-                    gw[g, c] += 1
+        pr, vr = p[i], valid[i]
+        if g < n_g:
+            gsr, gwr = gs[g], gw[g]
+            for c in range(cols):
+                v = pr[c]
+                ok = vr[c] & (abs(v) < lim)
+                x = v if ok else zero
+                total[c] += x
+                count[c] += ok
+                gsr[c] += x
+                gwr[c] += ok
+        else:
+            for c in range(cols):
+                v = pr[c]
+                ok = vr[c] & (abs(v) < lim)
+                total[c] += v if ok else zero
+                count[c] += ok
     gm = np.empty(n_g, dtype=np.float64)
     loc = np.empty(cols, dtype=np.float64)
     half = 0.5 * group
@@ -265,11 +287,12 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     near = np.zeros(cols)
     n_near = np.zeros(cols, dtype=np.int32)
     for i in range(rows):
+        pr, vr = p[i], valid[i]
         for c in range(cols):
-            v = p[i, c]
-            if valid[i, c] and abs(v) < lim and abs(v - loc[c]) <= limit:
-                near[c] += v
-                n_near[c] += 1
+            v = pr[c]
+            ok = vr[c] & (abs(v) < lim) & (abs(v - loc[c]) <= limit)
+            near[c] += v if ok else zero
+            n_near[c] += ok
     for c in range(cols):
         if count[c] == 0:
             profile[c] = 0.0  # no sample of the column enters the profile
@@ -278,7 +301,6 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     n_cells = cols // cell
     nc = 0
     prof32 = profile.astype(np.float32)
-    zero = np.float32(0.0)
     half_cell = 0.5 * cell
     acc = np.empty(n_cells)
     w = np.empty(n_cells, dtype=np.int32)
@@ -499,7 +521,8 @@ def warm_up() -> None:
     a = np.ones((8, 12), dtype=np.float32)
     valid = np.ones((8, 12), dtype=np.bool_)
     out = np.empty_like(a)
-    register_ratio(a, a, valid, 1.5, 7.1, -7.1, out, np.empty_like(a), np.empty_like(valid))
+    for alb in (np.empty_like(a), np.empty((0, 0), np.float32)):
+        register_ratio(a, a, valid, 1.5, 7.1, -7.1, out, alb, np.empty_like(valid))
     column_means_u16(np.ones((8, 12), dtype=np.uint16), 1, 3, 6, np.empty((2, 2), np.float32))
     cells = np.empty((8, 4), dtype=np.float32)
     residual_map(a, valid, 0.07, 2, 2, 3, np.empty(12), out, cells,

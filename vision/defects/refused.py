@@ -174,7 +174,8 @@ def refused_surface(finder: DefectFinder, rows_a: np.ndarray, rows_b: np.ndarray
     col_px = float(mapper.bin_cols)  # image px per map column
 
     def scored(shift: float) -> tuple[float, Residual]:
-        res = residual(mapper(rows_a, rows_b, shift_px=shift, roll_deg=roll_deg), settings)
+        res = residual(mapper(rows_a, rows_b, shift_px=shift, roll_deg=roll_deg,
+                                  albedo=False), settings)
         return res.median, res
 
     best_shift = enc

@@ -57,8 +57,9 @@ class SurfaceMap:
     slope_along_feed : ndarray of float32, shape (rows, cols)
         ``dz/dx`` along the feed (dimensionless); the pair's constant imbalance removed
         (a surface tilt along the feed cannot be told from it); 0 where ``valid`` is False.
-    albedo : ndarray of float32, shape (rows, cols)
-        Reflectance relative to the map's mean (1 = typical); 0 where ``valid`` is False.
+    albedo : ndarray of float32, shape (rows, cols), or None
+        Reflectance relative to the map's mean (1 = typical); 0 where ``valid`` is False;
+        ``None`` where the mapper was asked not to make it (``albedo=False``).
     valid : ndarray of bool, shape (rows, cols)
         Both shots see the point, inside the images.
     col0_px : float
@@ -79,7 +80,7 @@ class SurfaceMap:
     """
 
     slope_along_feed: np.ndarray
-    albedo: np.ndarray
+    albedo: np.ndarray | None
     valid: np.ndarray
     col0_px: float
     row0_px: float
@@ -318,7 +319,7 @@ class SurfaceMapper:
         return r.astype(np.float32, copy=False)
 
     def __call__(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
-                 roll_deg: float = 0.0) -> SurfaceMap:
+                 roll_deg: float = 0.0, albedo: bool = True) -> SurfaceMap:
         """The map of one pair from its row-binned images.
 
         Parameters
@@ -330,6 +331,9 @@ class SurfaceMapper:
             Board motion from A to B along the feed, pixels (``Measurement.shift_px``).
         roll_deg : float, optional
             Direction of the feed in the image (``Measurement.roll_deg``), degrees.
+        albedo : bool, optional
+            Also the albedo (``SurfaceMap.albedo``; the detectors do not read it: the
+            :class:`vision.defects.detect.DefectFinder` leaves it out, ``None``).
 
         Returns
         -------
@@ -347,12 +351,12 @@ class SurfaceMapper:
         b = cv2.remap(self._coarse(rows_b), mx, my, cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_REPLICATE)
         slope = np.empty_like(a)
-        albedo = np.empty_like(a)
+        alb = np.empty_like(a) if albedo else np.empty((0, 0), dtype=np.float32)
         both = np.empty(a.shape, dtype=bool)
         # B registered onto A (b_reg[:, j] = b[:, j + d], linear), Eq. 4, the albedo
-        kernels.register_ratio(a, b, valid, d, self._ka, self._kb, slope, albedo, both)
+        kernels.register_ratio(a, b, valid, d, self._ka, self._kb, slope, alb, both)
         return SurfaceMap(
-            slope_along_feed=slope, albedo=albedo, valid=both,
+            slope_along_feed=slope, albedo=alb if albedo else None, valid=both,
             col0_px=self.col0_px, row0_px=self.row0_px,
             row_step_px=float(self.bin_rows * self.merge_rows),
             roll_deg=float(round(roll / _ROLL_KEY_DEG) * _ROLL_KEY_DEG),

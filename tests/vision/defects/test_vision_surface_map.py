@@ -182,3 +182,15 @@ def test_uint16_row_bins_give_the_same_map_as_float_ones():
         # DN of ~250, a slope error below 1e-3 against marks of +-0.013)
         np.testing.assert_allclose(fast.slope_along_feed, ref.slope_along_feed, atol=1e-3)
         assert np.abs(fast.slope_along_feed - ref.slope_along_feed).max() > 0
+
+
+def test_a_map_without_the_albedo_has_the_same_slope():
+    """``albedo=False`` (what the DefectFinder asks): no albedo, the slope and samples as ever."""
+    a, b, _, _ = _pair(17, gain_b=1.07)
+    mapper = SurfaceMapper(_camera(), Lights(slant_deg=SLANT), a.shape, bin_rows=1,
+                           merge_rows=5, bin_cols=2)
+    full = mapper(a, b, shift_px=17.0)
+    bare = mapper(a, b, shift_px=17.0, albedo=False)
+    assert bare.albedo is None and full.albedo is not None
+    assert np.array_equal(bare.valid, full.valid)
+    assert np.array_equal(bare.slope_along_feed, full.slope_along_feed)
