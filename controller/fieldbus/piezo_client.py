@@ -258,14 +258,22 @@ class PiezoClient:
             self._sent_offsets = None
 
     def _checked(self, offsets_um: Sequence[float]) -> tuple[float, ...]:
-        vals = tuple(check_finite(f"offsets_um[{k}]", v) for k, v in enumerate(offsets_um))
+        try:  # plain floats, checked at once; a bad value is named below
+            vals = tuple(map(float, offsets_um.tolist() if hasattr(offsets_um, "tolist")
+                             else offsets_um))
+        except (TypeError, ValueError):
+            vals = ()
+        if not vals or not all(map(math.isfinite, vals)):
+            vals = tuple(check_finite(f"offsets_um[{k}]", v) for k, v in enumerate(offsets_um))
         if len(vals) != self.knives:
             raise ValueError(f"offsets_um must have {self.knives} values, got {len(vals)}")
         return vals
 
     def _planned(self, vals: Sequence[float]) -> tuple[float, ...]:
-        s = math.floor(self.limit.limit_um * 1000.0 + 1e-6) / 1000.0  # on the wire's grid
-        planned = self.limit.plan(vals)
+        lim = self.limit.limit_um
+        s = math.floor(lim * 1000.0 + 1e-6) / 1000.0  # on the wire's grid
+        # a table inside the bound is the plan (replan_offsets' own first test, in plain floats)
+        planned = vals if vals and max(map(abs, vals)) <= lim else self.limit.plan(vals)
         return tuple(min(max(round(float(v), 3), -s), s) + 0.0 for v in planned)
 
     def clamp(self, offsets_um: Sequence[float]) -> tuple[float, ...]:

@@ -680,8 +680,7 @@ class UniformityLoop:
             best_a = project_zero_mean_box(best_a - p @ best_a + p @ hold, bound=bound)
         best = best_a.tolist()
         now = self._offsets.tolist()
-        new = project_zero_mean_box(
-            np.array([o + g * (b - o) for o, b in zip(now, best, strict=True)]), bound=bound)
+        new = _zero_mean_in_box([o + g * (b - o) for o, b in zip(now, best, strict=True)], bound)
         if cfg.vanished_step and not self._held and not all(v > 0.0 for v in ws):
             new = bring_back(new, best_a, ws, self._d @ np.array(a_rows), bound)
         if self._held:  # the hold's penalty only nearly holds: never a step the model regrets
@@ -865,6 +864,62 @@ def _runout_estimate(a_rows: tuple[tuple[float, ...], ...], o_cut: list[float],
     s_est = [v - e for v, e in zip(_matvec(a_rows, o_cut), y, strict=True)]
     s_mean = _mean(s_est)
     return [v - s_mean for v in s_est]
+
+
+def _zero_mean_in_box(values: list[float], bound: float) -> np.ndarray:
+    """``project_zero_mean_box(np.array(values), bound=bound)``, its common case in plain floats.
+
+    A table whose shift to zero mean lies inside the box is that shift (the projection's own
+    first test); the mean is numpy's (:func:`numpy_sum`), so the result is the projection's bit
+    for bit. Otherwise (or for values that are not finite) the projection itself.
+    """
+    n = len(values)
+    if n and bound > 0 and all(map(math.isfinite, values)):
+        m = numpy_sum(values) / n
+        shifted = [v - m for v in values]
+        if max(map(abs, shifted)) <= bound:
+            return np.array(shifted)
+    return project_zero_mean_box(np.array(values), bound=bound)
+
+
+def numpy_sum(values: Sequence[float]) -> float:
+    """``np.add.reduce`` of a 1-D float64 array of ``values``, bit for bit, in plain floats.
+
+    numpy's pairwise summation onto its identity 0.0: under 8 values in order; up to 128 in
+    eight running sums (element ``i`` into sum ``i mod 8``) combined as ``((r0 + r1) + (r2 +
+    r3)) + ((r4 + r5) + (r6 + r7))``, then the rest in order; beyond, the two halves (the first
+    a multiple of 8) summed apart. A knife table has at most 8 values: one numpy call costs more
+    than the sum.
+    """
+    if len(values) < 8:
+        total = 0.0
+        for v in values:
+            total += v
+        return total
+    return 0.0 + _pairwise_sum(values)
+
+
+def _pairwise_sum(values: Sequence[float]) -> float:
+    n = len(values)
+    if n < 8:
+        total = 0.0
+        for v in values:
+            total += v
+        return total
+    if n > 128:
+        half = n // 2
+        half -= half % 8
+        return _pairwise_sum(values[:half]) + _pairwise_sum(values[half:])
+    r = list(values[:8])
+    i, whole = 8, n - n % 8
+    while i < whole:
+        for j in range(8):
+            r[j] += values[i + j]
+        i += 8
+    total = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    for v in values[whole:]:
+        total += v
+    return total
 
 
 def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:

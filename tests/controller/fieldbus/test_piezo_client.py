@@ -433,3 +433,35 @@ def test_pdo_frames_are_the_librarys_bytes(buses):
     assert len(fast) == 3 * len(cases) and fast == slow
     assert fast[0] == cf.command(cases[0][0], 8, cases[0][1] & 0xFF)
     assert fast[1:3] == cf.offsets(cases[0][2])
+
+
+def test_clamp_is_the_replanned_table_rounded_to_the_wire(buses):
+    """Tables inside and beyond the bound, as arrays, tuples and lists: the offsets sent are
+    ``replan_offsets`` rounded to 1 nm and clipped to the wire's grid, bit for bit; a value that
+    is no finite number is refused naming its place."""
+    import math
+    import random
+
+    import numpy as np
+
+    from controller.laws.limits import replan_offsets
+
+    service, amp = buses
+    c = PiezoClient(service, knives=4, stroke_um=20.0)
+    report_limits(c, amp, stroke_um=6.0, now_s=0.0)
+    lim = c.limit.limit_um
+    s = math.floor(lim * 1000.0 + 1e-6) / 1000.0
+    rng = random.Random(7)
+    for i in range(300):
+        table = [rng.uniform(-2.0, 2.0) * rng.choice([0.5, 2.0, 4.0]) for _ in range(4)]
+        if i % 5 == 0:
+            table[rng.randrange(4)] = rng.choice([lim, -lim])  # exactly on the bound
+        want = tuple(min(max(round(float(v), 3), -s), s) + 0.0
+                     for v in replan_offsets(table, limit_um=lim))
+        for given in (table, tuple(table), np.array(table)):
+            assert c.clamp(given) == want
+    for bad in ([1.0, math.nan, 0.0, 0.0], [0.0, 0.0, math.inf, 0.0], [0.0, "x", 0.0, 0.0]):
+        with pytest.raises(ValueError, match=r"offsets_um\[\d\]"):
+            c.clamp(bad)
+    with pytest.raises(ValueError, match="4 values"):
+        c.clamp([0.0, 0.0])
