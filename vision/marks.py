@@ -113,12 +113,15 @@ def knife_means(values: np.ndarray, *, knives: int, phase: int) -> np.ndarray:
     v = np.asarray(values, dtype=np.float64)
     if v.ndim != 1:
         raise ValueError(f"values must be 1-D, got shape {v.shape}")
-    knife = (ph + np.arange(v.size)) % z
-    sums = np.bincount(knife, weights=v, minlength=z)
-    counts = np.bincount(knife, minlength=z)
-    out = np.full(z, np.nan)
-    np.divide(sums, counts, out=out, where=counts > 0)
-    return out
+    # bincount's sums (in order of the marks) and the quotients on Python floats: the same
+    # numbers without four numpy calls on a handful of marks
+    sums = [0.0] * z
+    counts = [0] * z
+    for i, value in enumerate(v.tolist()):
+        k = (ph + i) % z
+        sums[k] += value
+        counts[k] += 1
+    return np.array([s / c if c > 0 else math.nan for s, c in zip(sums, counts, strict=True)])
 
 
 _HANNING: dict[int, np.ndarray] = {}
