@@ -48,8 +48,6 @@ class CutFeedSource(Enum):
     """The pairs whose board positions bracket the cut."""
     PLC = "plc"
     """The PLC's readings over the time the cut may lie back."""
-    SEEN = "seen"
-    """The PLC's readings since its history began (it does not reach back to the cut)."""
 
 
 @dataclass(frozen=True)

@@ -133,3 +133,17 @@ def test_the_bracket_is_the_scan_over_every_pair():
                     span = pitch[first:last + 1]
                     want = (min(span), max(span))
             assert h.bracket(lo, hi, 4) == want
+
+
+def test_every_source_is_one_cut_feed_gives():
+    """No source named that nothing produces: the pairs' bracket, else the PLC's readings."""
+    pairs = [(20.0 * i, 0.5) for i in range(25)]
+    plc = FeedHistory()
+    for i in range(300):
+        plc.note(PlcSnapshot(values={
+            "knives": 4, "feed_min_mm_s": 50.0, "feed_max_mm_s": 1000.0, "spindle_rpm": 6000.0,
+            "cutterhead_radius_mm": 60.0, "cutter_to_camera_mm": L_MM,
+            "feed_setpoint_mm_s": 200.0, "feed_actual_mm_s": 200.0}, t_s=0.02 * i))
+    given = {_cut(_history(pairs), 400.0).source,
+             _cut(_history([(0.0, 0.5), (20.0, 0.5)]), 40.0, plc=plc, t_s=5.9).source}
+    assert given == set(CutFeedSource)
