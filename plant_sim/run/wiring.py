@@ -115,8 +115,8 @@ def wire_runner(
 
 
 def _wire(cls: Any, cfg: Any, machine: Any, *, core: Callable[[], Any],
-          parts: Callable[[], dict[str, Any]], realtime_interfaces: bool,
-          time_scale: float | None, modbus_port: int | None, can_bus: Any,
+          parts: Callable[[], dict[str, Any]], realtime_interfaces: bool = True,
+          time_scale: float | None = None, modbus_port: int | None = None, can_bus: Any = None,
           **kwargs: Any) -> Any:
     """The runner ``cls`` over ``machine``: its PLC process, its amplifier's node(s) on the bus.
 
@@ -168,23 +168,10 @@ def _plc(cfg: Any, machine: Any, modbus_port: int | None, realtime: bool) -> Plc
     )
 
 
-def wire_moulder(
-    cls: Any,
-    cfg: Any,
-    *,
-    machine: Any = None,
-    seed: int = 0,
-    render_images: bool = True,
-    render_workers: int = 2,
-    render_nice: int | None = RENDER_NICE,
-    realtime_interfaces: bool = True,
-    time_scale: float | None = None,
-    modbus_port: int | None = None,
-    spool_dir: str | Path | None = None,
-    sinks: Any = None,
-    can_bus: Any = None,
-    **kwargs: Any,
-) -> Any:
+def wire_moulder(cls: Any, cfg: Any, *, machine: Any = None, seed: int = 0,
+                 render_images: bool = True, render_workers: int = 2,
+                 render_nice: int | None = RENDER_NICE, spool_dir: str | Path | None = None,
+                 sinks: Any = None, **options: Any) -> Any:
     """A :class:`~plant_sim.run.moulder_runner.MoulderRunner` wired as ``cfg`` says.
 
     As :func:`wire_runner`, for a moulder: the PLC process serves the common registers and
@@ -203,8 +190,11 @@ def wire_moulder(
         Default: ``Moulder(cfg, seed=seed, render_images=False)``, rendering deferred.
     sinks : mapping of str to FrameSink, optional
         Each head's sink instead of its spool directory.
-    **others
+    seed, render_images, render_workers, render_nice, spool_dir
         As :func:`wire_runner`.
+    **options
+        As :func:`wire_runner` (``realtime_interfaces``, ``time_scale``, ``modbus_port``,
+        ``can_bus``) and the constructor's.
     """
     from config.sim import head_sim_config
     from plant_sim.machine.moulder import Moulder, head_seed
@@ -241,5 +231,4 @@ def wire_moulder(
 
     return _wire(cls, cfg, machine,
                  core=lambda: MoulderDriver.amp_core(machine, eds=cfg.can.eds, seed=seed),
-                 parts=parts, realtime_interfaces=realtime_interfaces, time_scale=time_scale,
-                 modbus_port=modbus_port, can_bus=can_bus, **kwargs)
+                 parts=parts, **options)
