@@ -40,8 +40,6 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-import numpy as np
-
 from controller.service.events import EventKind
 from planer.benchmarks.service import (
     DRAIN_TIMEOUT_S,
@@ -50,7 +48,9 @@ from planer.benchmarks.service import (
     WARMUP_PAIRS,
     _latency_figures,
     _plc_for,
+    latency_stats,
     machine_description,
+    proc_cpu_s,
 )
 
 HEADS: tuple[tuple[str, int], ...] = (("bottom", 2), ("right", 3), ("left", 4), ("top", 5))
@@ -67,27 +67,6 @@ QUICK_PAIRS = 150
 """Pairs per head of a quick run."""
 SLOWEST = 5
 """The slowest pairs reported per head (``slowest``: ``[pair's place in the run, ms]``)."""
-
-
-def _stats(values: list[float]) -> dict[str, float]:
-    """``p50``, ``p99``, ``max`` (ms) of ``values`` (``{}`` for none)."""
-    if not values:
-        return {}
-    a = np.asarray(values, dtype=float)
-    return {"p50": float(np.median(a)), "p99": float(np.percentile(a, 99)),
-            "max": float(a.max())}
-
-
-def _proc_cpu_s(pid: int | None) -> float:
-    """User + system CPU seconds of process ``pid`` so far (0 when it cannot be read)."""
-    if pid is None:
-        return 0.0
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as fh:
-            fields = fh.read().rsplit(b")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
 
 
 class _CpuMeter:
@@ -112,8 +91,8 @@ class _CpuMeter:
         return {"service": t.user + t.system - self.stand_in[0],
                 "service_loop": time.thread_time() - self.stand_in[0],
                 "stand_ins": self.stand_in[0],
-                "workers": sum(_proc_cpu_s(p) for p in pids),
-                "plc": _proc_cpu_s(getattr(proc, "pid", None))}
+                "workers": sum(proc_cpu_s(p) for p in pids),
+                "plc": proc_cpu_s(getattr(proc, "pid", None))}
 
     def begin(self) -> None:
         """Take the first reading (when the first pair goes in)."""
@@ -407,7 +386,7 @@ def _figures(bench: list[_Head], frames: list, *, rate_hz: float, workers: int,
         warm = min(WARMUP_PAIRS, max(0, len(lat) - 1))
         steady += lat[warm:]
         every += lat
-        s = _stats(lat[warm:])
+        s = latency_stats(lat[warm:], middle="p50")
         per_head[head.name] = {
             "node_id": int(head.service.cfg.can.node_id),
             "writes_feed": bool(getattr(head.service.out, "owns_feed", True)),
@@ -419,7 +398,7 @@ def _figures(bench: list[_Head], frames: list, *, rate_hz: float, workers: int,
             "dropped": int(head.source.dropped),
             "unfinished": unfinished.get(head.name, 0),
             "p50_ms": s.get("p50"), "p99_ms": s.get("p99"),
-            "max_ms": _stats(lat).get("max"),
+            "max_ms": latency_stats(lat, middle="p50").get("max"),
             "slowest": [[k, round(v, 2)] for k, v in sorted(
                 enumerate(lat), key=lambda kv: -kv[1])[:SLOWEST]],
             "breakdown_ms": fig["breakdown_ms"],
@@ -433,12 +412,12 @@ def _figures(bench: list[_Head], frames: list, *, rate_hz: float, workers: int,
                                            if not r.ok})[:3]}
                if "failed_reasons" in fig else {}),
         }
-    s_all = _stats(steady)
+    s_all = latency_stats(steady, middle="p50")
     totals = {k: sum(int(p[k]) for p in per_head.values())
               for k in ("pairs_in", "handled", "measured", "applied", "failed", "dropped",
                         "unfinished")}
     overall = {**totals, "p50_ms": s_all.get("p50"), "p99_ms": s_all.get("p99"),
-               "max_ms": _stats(every).get("max"), **cpu}
+               "max_ms": latency_stats(every, middle="p50").get("max"), **cpu}
     overall["pairs_per_s"] = (totals["handled"] / cpu["wall_s"]
                               if cpu.get("wall_s") else None)
     # every pair handled: none dropped by a source nor left unfinished (a pair the checks
