@@ -30,7 +30,7 @@ import re
 import sys
 import threading
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -42,8 +42,8 @@ from controller.quality.log import (
     database_url,
     is_database_url,
     record_from_dict,
-    record_to_dict,
-    storable_record,
+    record_json,
+    storable,
 )
 from controller.quality.schema import check_head
 from core.fileio import atomic_write_text, fsync_dir
@@ -59,6 +59,7 @@ __all__ = [
     "one_line",
     "parse_line",
     "read_journal",
+    "takes_keyword",
 ]
 
 #: Version written in each journal line (``"v"``).
@@ -154,29 +155,31 @@ def parse_line(raw: bytes) -> JournalEntry:
         uid = obj["uid"]
         if not isinstance(uid, str) or not uid:
             raise ValueError("uid must be a non-empty string")
-        return JournalEntry(uid, storable_record(record_from_dict(obj["record"])))
+        return JournalEntry(uid, *storable(record_from_dict(obj["record"])))
     except (KeyError, TypeError, RecursionError, AttributeError) as exc:
         raise ValueError(f"not a journal record: {exc}") from None
 
 
 @dataclass(frozen=True)
 class JournalEntry:
-    """One journalled record and its identity (the uid the log stores with it)."""
+    """One journalled record and its identity (the uid the log stores with it).
+
+    ``extra_json``: the record's ``extra`` as the log stores it (:func:`storable`'s text),
+    when known: the journal line and the log's row reuse it (a record is encoded once).
+    """
 
     uid: str
     record: QualityRecord
+    extra_json: str | None = field(default=None, compare=False, repr=False)
 
     def line(self) -> str:
         """The journal line (a record that cannot be JSON becomes a failed one saying why)."""
+        head = f'{{"v":{JOURNAL_VERSION},"uid":{json.dumps(self.uid)},"record":'
         try:
-            rec = record_to_dict(self.record)
-            text = json.dumps({"v": JOURNAL_VERSION, "uid": self.uid, "record": rec},
-                              allow_nan=False, separators=(",", ":"))
+            rec = record_json(self.record, extra_json=self.extra_json)
         except (TypeError, ValueError, RecursionError) as exc:
-            rec = record_to_dict(bare_failed(self.record, exc))
-            text = json.dumps({"v": JOURNAL_VERSION, "uid": self.uid, "record": rec},
-                              allow_nan=False, separators=(",", ":"))
-        return text + "\n"
+            rec = record_json(bare_failed(self.record, exc))
+        return f"{head}{rec}}}\n"
 
 
 def bare_failed(record: QualityRecord, exc: BaseException) -> QualityRecord:
@@ -207,14 +210,20 @@ def checked_sink_args(log: Any, journal_path: str | Path) -> tuple[bool, Path]:
     """
     if not hasattr(log, "append"):
         raise ValueError(f"log must be a QualityLog, got {type(log).__name__}")
-    try:  # a log without identities (a test double) still works, without exactly-once
-        uid_ok = "uid" in inspect.signature(log.append).parameters
-    except (TypeError, ValueError):
-        uid_ok = False
+    # a log without identities (a test double) still works, without exactly-once
+    uid_ok = takes_keyword(log.append, "uid")
     path = Path(journal_path)
     if path.is_dir():
         raise IsADirectoryError(f"journal path is a directory: {path}")
     return uid_ok, path
+
+
+def takes_keyword(method: Any, name: str) -> bool:
+    """Whether ``method`` takes the keyword argument ``name`` (a log's ``uid``, ...)."""
+    try:
+        return name in inspect.signature(method).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 class RecordSink:
@@ -245,6 +254,7 @@ class RecordSink:
     def __init__(self, log: QualityLog, *, journal_path: Path) -> None:
         self.log = log
         self._uid_ok, self.journal_path = checked_sink_args(log, journal_path)
+        self._text_ok = takes_keyword(log.append, "extra_json")
         self._lock = threading.RLock()
         self._entries: list[JournalEntry] = []  # in the journal file, not known to be in the log
         self._bad_lines: list[str] = []  # journal lines that are not records (kept, never lost)
@@ -356,17 +366,19 @@ class RecordSink:
     def _to_log(self, entry: JournalEntry) -> bool:
         """Write one entry to the log; ``False`` (and the reason noted) when it cannot."""
         record = entry.record
+        kw: dict[str, Any] = {"extra_json": entry.extra_json} if self._text_ok else {}
         for attempt in (0, 1):
             try:
                 if self._uid_ok:
-                    self.log.append(record, uid=entry.uid)
+                    self.log.append(record, uid=entry.uid, **kw)
                 else:
-                    self.log.append(record)
+                    self.log.append(record, **kw)
             except RecordRefusedError as exc:
                 if attempt == 1:  # even the bare record refused: the log's trouble
                     self._log_error = f"quality log refused a record: {one_line(exc)}"
                     return False
                 record = bare_failed(record, exc)  # never blocks the records behind it
+                kw = {}
                 self.counters["rewritten"] += 1
                 continue
             except (OSError, ValueError) as exc:  # the log's trouble: the journal keeps it
@@ -425,8 +437,8 @@ class RecordSink:
         """
         if not isinstance(record, QualityRecord):
             raise ValueError(f"record must be a QualityRecord, got {type(record).__name__}")
-        rec = storable_record(record)
-        entry = JournalEntry(uuid.uuid4().hex, rec)
+        rec, text = storable(record)
+        entry = JournalEntry(uuid.uuid4().hex, rec, text)
         with self._lock:
             if rec is not record:
                 self.counters["rewritten"] += 1
@@ -462,15 +474,17 @@ class RecordSink:
                 for record in records:
                     self.append(record)
                 return [None] * len(records)
-            recs = [storable_record(r) for r in records]
-            entries = [JournalEntry(uuid.uuid4().hex, r) for r in recs]
+            made = [storable(r) for r in records]
+            entries = [JournalEntry(uuid.uuid4().hex, r, text) for r, text in made]
             self.counters["rewritten"] += sum(
-                r is not o for r, o in zip(recs, records, strict=True))
+                m[0] is not o for m, o in zip(made, records, strict=True))
+            kw: dict[str, Any] = {}
+            if self._uid_ok:
+                kw["uids"] = [e.uid for e in entries]
+            if takes_keyword(batch, "extra_json"):
+                kw["extra_json"] = [e.extra_json for e in entries]
             try:
-                if self._uid_ok:
-                    ids = batch([e.record for e in entries], uids=[e.uid for e in entries])
-                else:
-                    ids = batch([e.record for e in entries])
+                ids = batch([e.record for e in entries], **kw)
             except RecordRefusedError:  # one record refused: record by record, rewritten
                 for e in entries:
                     if self._entries or self._unsaved or not self._to_log(e):

@@ -10,7 +10,6 @@ readers never block). Field meanings and units: ``docs/quality_log.md``.
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import math
 import re
@@ -46,8 +45,10 @@ from controller.quality.schema import (
     judge,
     quality_class_from_section,
     record_from_dict,
+    record_json,
     record_to_dict,
     record_to_json,
+    storable,
     storable_record,
     utc_iso,
     vision_fields,
@@ -66,6 +67,7 @@ __all__ = [
     "RecordRefusedError",
     "SQLITE_INT_MAX",
     "check_storable",
+    "storable",
     "storable_record",
     "QualityRecord",
     "QualityClass",
@@ -75,6 +77,7 @@ __all__ = [
     "quality_class_from_section",
     "record_from_dict",
     "record_to_dict",
+    "record_json",
     "record_to_json",
     "utc_iso",
     "MACHINE_ID_MAX",
@@ -226,7 +229,8 @@ class QualityLog:
 
     # -- writing ------------------------------------------------------------------------------
 
-    def append(self, record: QualityRecord, *, uid: str | None = None) -> int:
+    def append(self, record: QualityRecord, *, uid: str | None = None,
+               extra_json: str | None = None) -> int:
         """Append one record; returns its id once it is committed.
 
         Parameters
@@ -237,6 +241,10 @@ class QualityLog:
             A unique identity of the record (e.g. a UUID the journal gave it). A record whose
             ``uid`` the log already holds is not appended again: the id of the stored one is
             returned (exactly once when a journal is replayed after a crash).
+        extra_json : str, keyword-only, optional
+            ``record.extra`` as :func:`check_storable` (or :func:`storable`) returned it for
+            this record: stored as it is, not encoded again (the journal's writer encodes a
+            record once).
 
         Returns
         -------
@@ -253,31 +261,37 @@ class QualityLog:
             The database cannot be written (disk full, locked beyond ``timeout_s``, I/O
             error, connection lost).
         """
-        return int(self._call("insert", self._row(record, uid), uid=uid))
+        return int(self._call("insert", self._row(record, uid, extra_json), uid=uid))
 
-    def _row(self, record: QualityRecord, uid: str | None) -> tuple:
+    def _row(self, record: QualityRecord, uid: str | None, extra_json: str | None) -> tuple:
         """The store's row of ``record`` (checked: type, ``uid``, storable values)."""
         if not isinstance(record, QualityRecord):
             raise ValueError(f"record must be a QualityRecord, got {type(record).__name__}")
         if uid is not None and (not isinstance(uid, str) or not uid or not uid.isprintable()):
             raise ValueError(f"uid must be a non-empty printable string, got {uid!r}")
-        if record.machine_id is None:
-            record = dataclasses.replace(record, machine_id=self.machine_id)
-        check_storable(record)
-        return tuple(_to_row(record))
+        if extra_json is not None and not isinstance(extra_json, str):
+            raise ValueError(f"extra_json must be text, got {type(extra_json).__name__}")
+        text = check_storable(record, extra_json=extra_json)
+        return _to_row(record, extra_json=text, machine_id=self.machine_id)
 
     def append_many(self, records: Sequence[QualityRecord], *,
-                    uids: Sequence[str | None] | None = None) -> list[int]:
+                    uids: Sequence[str | None] | None = None,
+                    extra_json: Sequence[str | None] | None = None) -> list[int]:
         """Append records in one transaction (one commit, all or nothing); their ids.
 
-        As :meth:`append` for each record (``uids`` one per record, or ``None``); a record the
-        schema refuses raises :class:`RecordRefusedError` before anything is written. A
-        backend without batches appends them one after the other.
+        As :meth:`append` for each record (``uids`` and ``extra_json`` one per record, or
+        ``None``); a record the schema refuses raises :class:`RecordRefusedError` before
+        anything is written. A backend without batches appends them one after the other.
         """
         uids = [None] * len(records) if uids is None else list(uids)
         if len(uids) != len(records):
             raise ValueError(f"uids must be one per record: {len(uids)} for {len(records)}")
-        rows = [self._row(record, uid) for record, uid in zip(records, uids, strict=True)]
+        texts = [None] * len(records) if extra_json is None else list(extra_json)
+        if len(texts) != len(records):
+            raise ValueError(f"extra_json must be one per record: {len(texts)} for "
+                             f"{len(records)}")
+        rows = [self._row(record, uid, text)
+                for record, uid, text in zip(records, uids, texts, strict=True)]
         if not rows:
             return []
         if hasattr(self._store, "insert_many"):

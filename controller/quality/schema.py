@@ -506,12 +506,24 @@ def knife_condition_fields(condition: Mapping[str, Any] | None) -> dict[str, Any
     return out
 
 
-def check_storable(record: QualityRecord) -> None:
+def check_storable(record: QualityRecord, *, extra_json: str | None = None) -> str:
     """Raise :class:`RecordRefusedError` naming the first field the log cannot store.
 
     A valid :class:`QualityRecord` may still hold values the SQLite schema refuses: integers
     beyond 64 bits (``seq``, ``board_id``), text that is not valid Unicode (lone surrogates) or
     an ``extra`` that is not JSON serialisable.
+
+    Parameters
+    ----------
+    record : QualityRecord
+        The record.
+    extra_json : str, keyword-only, optional
+        ``extra``'s text as an earlier call on this record returned it: not encoded again.
+
+    Returns
+    -------
+    str
+        ``extra`` as the log stores it (JSON text; the row's ``extra_json``).
     """
     for name in _INT_FIELDS:
         v = getattr(record, name)
@@ -526,13 +538,23 @@ def check_storable(record: QualityRecord) -> None:
             except UnicodeEncodeError:
                 raise RecordRefusedError(
                     name, f"{name} is not valid Unicode text: {v!r:.80}") from None
+    if extra_json is not None:
+        return extra_json
     try:
-        json.dumps(record.extra, default=_json_default)
+        return json.dumps(record.extra, default=_json_default)
     except (TypeError, ValueError, RecursionError) as exc:
         raise RecordRefusedError("extra", f"extra is not JSON serialisable: {exc}") from None
 
 
 def storable_record(record: QualityRecord) -> QualityRecord:
+    """``record`` itself when the log can store it, else a failed record naming the fields.
+
+    :func:`storable` without the text of ``extra``.
+    """
+    return storable(record)[0]
+
+
+def storable(record: QualityRecord) -> tuple[QualityRecord, str]:
     """``record`` itself when the log can store it, else a failed record naming the fields.
 
     Each refused value is replaced (an integer by 0, text by its escaped form, ``extra`` by
@@ -543,16 +565,18 @@ def storable_record(record: QualityRecord) -> QualityRecord:
 
     Returns
     -------
-    QualityRecord
-        A record :meth:`QualityLog.append` accepts.
+    (QualityRecord, str)
+        A record :meth:`QualityLog.append` accepts, and its ``extra`` as the log stores it
+        (:func:`check_storable`'s text: encoded once for the journal and the log).
     """
     reasons: list[str] = []
     refused: dict[str, str] = {}
     changes: dict[str, Any] = {}
     current = record
+    text = ""
     for _ in range(len(_INT_FIELDS) + len(_TEXT_FIELDS) + 1):
         try:
-            check_storable(current)
+            text = check_storable(current)
             break
         except RecordRefusedError as exc:
             name = exc.field
@@ -571,7 +595,7 @@ def storable_record(record: QualityRecord) -> QualityRecord:
                 changes[name] = {}
             current = dataclasses.replace(current, **changes)
     if not reasons:
-        return record
+        return record, text
     base = current
     error = "record refused: " + "; ".join(reasons)
     if not base.ok and base.error:
@@ -584,8 +608,7 @@ def storable_record(record: QualityRecord) -> QualityRecord:
         "true_uniformity_cv", "roll_deg", "roll_confidence", "calibration_state",
         *CALIBRATION_FIELDS, "flag_reason", *KNIFE_CONDITION_FIELDS, *DEFECT_FIELDS, "head")}
     out = QualityRecord(**kept, ok=False, error=error, extra=extra)
-    check_storable(out)
-    return out
+    return out, check_storable(out)
 
 
 # --------------------------------------------------------------------------------------------
@@ -919,17 +942,43 @@ def _finite_json(value: Any) -> Any:
 
 def record_to_dict(record: QualityRecord) -> dict[str, Any]:
     """One record as a JSON-ready dict (fields by name; NaN as ``None``, also inside ``extra``)."""
+    out = _plain_fields(record)
+    out["extra"] = _finite_json(record.extra)
+    return {name: out[name] for name in _FIELD_NAMES}
+
+
+def _plain_fields(record: QualityRecord) -> dict[str, Any]:
+    """The JSON-ready fields of a record but ``extra`` (NaN in a list as ``None``)."""
     out: dict[str, Any] = {}
     for name in _FIELD_NAMES:
+        if name == "extra":
+            continue
         v = getattr(record, name)
         if name in _TUPLES:
             v = [None if math.isnan(x) else x for x in v]
-        elif name == "extra":
-            v = _finite_json(v)
         elif name in _JSON_FIELDS and v is not None:
             v = list(v) if name == "defects" else dict(v)
         out[name] = v
     return out
+
+
+def record_json(record: QualityRecord, *, extra_json: str | None = None) -> str:
+    """One record as compact strict JSON (``record_to_dict``'s object; the journal's lines).
+
+    ``extra_json``: ``extra``'s text as :func:`check_storable` gave it, reused when it holds
+    no ``NaN`` or ``Infinity`` (else ``extra`` is encoded again with them as ``null``): a
+    record is encoded once for the journal and the log. ``extra`` is the object's last key.
+
+    Raises
+    ------
+    ValueError, TypeError
+        A field that is not JSON (the caller records why instead).
+    """
+    body = json.dumps(_plain_fields(record), allow_nan=False, separators=(",", ":"))
+    if extra_json is None or "NaN" in extra_json or "Infinity" in extra_json:
+        extra_json = json.dumps(_finite_json(record.extra), allow_nan=False,
+                                separators=(",", ":"))
+    return f'{body[:-1]},"extra":{extra_json}}}'
 
 
 def record_to_json(record: QualityRecord) -> str:
@@ -963,7 +1012,13 @@ def record_from_dict(data: Mapping[str, Any]) -> QualityRecord:
         raise ValueError(f"not a quality record: {exc}") from None
 
 
-def _to_row(rec: QualityRecord) -> tuple[Any, ...]:
+def _to_row(rec: QualityRecord, *, extra_json: str | None = None,
+            machine_id: str | None = None) -> tuple[Any, ...]:
+    """The row of a record (field order).
+
+    ``extra_json`` (:func:`check_storable`'s text) is not encoded again; ``machine_id`` is
+    stored when the record names none.
+    """
     row: list[Any] = []
     for name in _FIELD_NAMES:
         v = getattr(rec, name)
@@ -972,10 +1027,15 @@ def _to_row(rec: QualityRecord) -> tuple[Any, ...]:
         elif name in _JSON_FIELDS:
             v = None if v is None else json.dumps(list(v) if name == "defects" else v)
         elif name == "extra":
-            try:
-                v = json.dumps(v, default=_json_default)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"extra is not JSON serialisable: {exc}") from None
+            if extra_json is not None:
+                v = extra_json
+            else:
+                try:
+                    v = json.dumps(v, default=_json_default)
+                except (TypeError, ValueError) as exc:
+                    raise ValueError(f"extra is not JSON serialisable: {exc}") from None
+        elif name == "machine_id" and v is None:
+            v = machine_id
         elif isinstance(v, bool):
             v = int(v)
         row.append(v)

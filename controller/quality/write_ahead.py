@@ -5,18 +5,24 @@ nothing the caller's thread (the event loop) can be held up by:
 
 * the **journal thread** takes what :meth:`WriteAheadSink.put` queued, makes the records
   (``make``), appends them to the journal (``<log>.journal.jsonl``, JSON lines) with one
-  ``fsync`` per batch, says so (``on_durable``) and hands them on. It never waits for the
-  database: a record is durable on local disk within one fsync of its pair, whatever the log
-  does. A batch the journal could not take is answered ``on_durable(items, False)`` and, once
-  its records are durable after all (the journal's retry, or the log took them), answered
-  again with ``True``: every item is answered durable exactly once, or never (nowhere durable
-  at :meth:`~WriteAheadSink.close`).
+  ``fsync`` (``fdatasync``) per batch, says so (``on_durable``) and hands them on. It appends
+  at most once per :data:`JOURNAL_WAIT_S` (what comes meanwhile joins the next batch; the
+  first record after a pause goes at once) and never waits for the database: a record is
+  durable on local disk within :data:`JOURNAL_WAIT_S` and one fsync of its pair, whatever
+  the log does. A batch the journal could not take is answered ``on_durable(items, False)``
+  and, once its records are durable after all (the journal's retry, or the log took them),
+  answered again with ``True``: every item is answered durable exactly once, or never
+  (nowhere durable at :meth:`~WriteAheadSink.close`).
 * the **database thread** writes the journalled records to the log, in order, each batch in
   one transaction with the records' UUIDs (the log skips a uid it holds, so a journal that
-  still holds logged records is replayed safely). A failed write is tried again after a
-  back-off (0.2 s doubling to 5 s). Every call has a time limit (:data:`DB_TIMEOUT_S`,
-  :meth:`QualityLog.set_write_timeout`); a call that never returns (a PostgreSQL server
-  stopped) holds up only this thread.
+  still holds logged records is replayed safely), at most one transaction per
+  :data:`DB_WAIT_S`. A failed write is tried again after a back-off (0.2 s doubling to 5 s).
+  Every call has a time limit (:data:`DB_TIMEOUT_S`, :meth:`QualityLog.set_write_timeout`);
+  a call that never returns (a PostgreSQL server stopped) holds up only this thread.
+
+A record is encoded once: the journal line and the log's row share the JSON text of its
+``extra`` (:func:`~controller.quality.schema.storable`). Neither thread waits for more records
+while :meth:`~WriteAheadSink.close` or :meth:`~WriteAheadSink.wait_logged` waits for them.
 
 The journal is truncated when everything in it is logged and it has grown beyond
 :data:`COMPACT_BYTES` or nothing came for :data:`COMPACT_IDLE_S` (not per batch: the steady
@@ -51,8 +57,9 @@ from controller.quality.journal import (
     log_unavailable,
     one_line,
     parse_line,
+    takes_keyword,
 )
-from controller.quality.log import QualityRecord, RecordRefusedError, storable_record
+from controller.quality.log import QualityRecord, RecordRefusedError, storable
 from core.fileio import atomic_write_text, fsync_dir
 
 __all__ = [
@@ -83,7 +90,17 @@ RETRY_MAX_S = 5.0
 """Back-off between failed database writes: from the first to the last value, doubling, s."""
 CLOSE_TIMEOUT_S = 5.0
 """How long :meth:`WriteAheadSink.close` waits for the database by default, s."""
+JOURNAL_WAIT_S = 0.04
+"""At most one journal append (one fsync) per this long, s: the records that come meanwhile
+wait for the next (at 100 pairs/s about four a batch). The first after a pause goes at once."""
+DB_WAIT_S = 0.25
+"""At most one database transaction per this long, s (the records are durable in the journal
+meanwhile). Neither wait holds up :meth:`WriteAheadSink.close` or
+:meth:`~WriteAheadSink.wait_logged`."""
 _READ_CHUNK = 1 << 20
+_datasync = getattr(os, "fdatasync", os.fsync)
+"""Flush an append's data and the size it needs to be read back (the same durability as fsync
+for a journal that is only appended to; fsync where there is no fdatasync)."""
 
 
 @dataclass(frozen=True)
@@ -166,6 +183,8 @@ class WriteAheadSink:
                  db_timeout_s: float = DB_TIMEOUT_S) -> None:
         self.log = log
         self._uid_ok, self.journal_path = checked_sink_args(log, journal_path)
+        self._many = getattr(log, "append_many", None)
+        self._text_ok = self._many is not None and takes_keyword(self._many, "extra_json")
         setter = getattr(log, "set_write_timeout", None)
         if setter is not None:
             with contextlib.suppress(OSError, ValueError):
@@ -191,6 +210,8 @@ class WriteAheadSink:
         self._log_unavailable = False
         self._journal_error: str | None = None
         self._last_put = time.monotonic()
+        self._journal_at = self._db_at = 0.0  # the last journal append, database write
+        self._hurry = 0  # callers of wait_logged: no waiting for more records meanwhile
         self._closing = False
         self._stop_db = False
         self._abandoned = False
@@ -268,10 +289,15 @@ class WriteAheadSink:
                     self._cond.wait(1.0 if self._unsaved else None)
                     if self._unsaved and not self._inbox:
                         break  # try the journal again for the records only in memory
+                while self._inbox and (left := self._wait_left(
+                        self._journal_at + JOURNAL_WAIT_S, len(self._inbox),
+                        JOURNAL_BATCH_MAX)) > 0:
+                    self._cond.wait(left)  # more records for this append (one fsync)
                 if not self._inbox and self._closing:
                     return
                 items = [self._inbox.popleft()
                          for _ in range(min(len(self._inbox), JOURNAL_BATCH_MAX))]
+                self._journal_at = time.monotonic()
                 self._in_journal = len(items)
                 retry = list(self._unsaved.values())
             entries = [self._entry(item) for item in items]
@@ -282,6 +308,12 @@ class WriteAheadSink:
                 if late:
                     self._on_durable(late, True)
 
+    def _wait_left(self, until: float, waiting: int, most: int) -> float:
+        """How long a writer thread still waits for more records (``_cond`` held), s."""
+        if self._closing or self._stop_db or self._hurry or waiting >= most:
+            return 0.0
+        return until - time.monotonic()
+
     def _entry(self, item: Any) -> JournalEntry:
         try:
             record = self._make(item)
@@ -289,11 +321,11 @@ class WriteAheadSink:
             # odd values in a result: a failed record that says why, never a lost pair
             record = bare_failed(QualityRecord(t_s=0.0, wall_time="", seq=0, board_id=0,
                                                board_position_mm=0.0, ok=False), exc)
-        rec = storable_record(record)
+        rec, text = storable(record)
         if rec is not record:
             with self._cond:
                 self._counts["rewritten"] += 1
-        return JournalEntry(uuid.uuid4().hex, rec)
+        return JournalEntry(uuid.uuid4().hex, rec, text)
 
     def _journal(self, retry: list[JournalEntry], entries: list[JournalEntry],
                  items: list[Any]) -> tuple[bool, list[Any]]:
@@ -355,7 +387,7 @@ class WriteAheadSink:
             view = memoryview(body)
             while view:
                 view = view[os.write(fd, view):]
-            os.fsync(fd)
+            _datasync(fd)
         except OSError:
             with contextlib.suppress(OSError):
                 os.ftruncate(fd, start)  # no torn line left behind
@@ -375,6 +407,9 @@ class WriteAheadSink:
                     if self._compact_due():
                         break
                     self._cond.wait(COMPACT_IDLE_S)
+                while self._todo and (left := self._wait_left(
+                        self._db_at + DB_WAIT_S, len(self._todo), DB_BATCH_MAX)) > 0:
+                    self._cond.wait(left)  # more records for this transaction
                 if self._abandoned or (self._stop_db and not self._todo and self._spill is None):
                     return
                 spill = self._spill if not self._todo else None
@@ -385,6 +420,7 @@ class WriteAheadSink:
             if not batch:
                 self._compact(force=False)
                 continue
+            self._db_at = time.monotonic()
             written = self._write(batch)
             late: list[Any] = []
             with self._cond:
@@ -413,13 +449,15 @@ class WriteAheadSink:
 
     def _write(self, batch: list[JournalEntry]) -> int:
         """Write entries to the log, in order: how many went in (the rest wait)."""
-        many = getattr(self.log, "append_many", None)
-        if many is not None and len(batch) > 1:
+        many = self._many
+        if many is not None:
+            kw: dict[str, Any] = {}
+            if self._uid_ok:
+                kw["uids"] = [e.uid for e in batch]
+            if self._text_ok:
+                kw["extra_json"] = [e.extra_json for e in batch]
             try:
-                if self._uid_ok:
-                    many([e.record for e in batch], uids=[e.uid for e in batch])
-                else:
-                    many([e.record for e in batch])
+                many([e.record for e in batch], **kw)
                 self._counts["db_batches"] += 1
                 return len(batch)
             except RecordRefusedError:
@@ -435,12 +473,12 @@ class WriteAheadSink:
 
     def _write_one(self, entry: JournalEntry) -> bool:
         record = entry.record
+        kw: dict[str, Any] = {"uid": entry.uid} if self._uid_ok else {}
+        if self._text_ok and takes_keyword(self.log.append, "extra_json"):
+            kw["extra_json"] = entry.extra_json
         for attempt in (0, 1):
             try:
-                if self._uid_ok:
-                    self.log.append(record, uid=entry.uid)
-                else:
-                    self.log.append(record)
+                self.log.append(record, **kw)
                 return True
             except RecordRefusedError as exc:
                 if attempt == 1:  # even the bare record refused: the log's trouble
@@ -449,6 +487,7 @@ class WriteAheadSink:
                         self._log_unavailable = False
                     return False
                 record = bare_failed(record, exc)  # never blocks the records behind it
+                kw.pop("extra_json", None)
                 with self._cond:
                     self._counts["rewritten"] += 1
             except (OSError, ValueError) as exc:
@@ -612,12 +651,17 @@ class WriteAheadSink:
         with self._cond:
             if self._pending:
                 self._start()
-            while self._pending and not self._abandoned:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._cond.wait(min(left, 0.1))
-            return not self._pending
+            self._hurry += 1
+            self._cond.notify_all()
+            try:
+                while self._pending and not self._abandoned:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        return False
+                    self._cond.wait(min(left, 0.1))
+                return not self._pending
+            finally:
+                self._hurry -= 1
 
     @property
     def database_busy(self) -> bool:
