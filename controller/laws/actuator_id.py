@@ -531,10 +531,7 @@ class ActuatorIdentifier:
 
     def confidence(self) -> np.ndarray:
         """Per mode ``1 - 2 sigma_m / |a_m|`` clipped to [0, 1] (0 before ``min_samples``)."""
-        return self._confidence(self.gain_stderr())
-
-    def _confidence(self, se: np.ndarray) -> np.ndarray:
-        """:meth:`confidence` from the modes' :meth:`gain_stderr` ``se``."""
+        se = self.gain_stderr()
         mag = np.maximum(np.abs(self._raw), 1e-12)
         conf = np.clip(1.0 - 2.0 * se / mag, 0.0, 1.0)
         conf[np.array(self._n) < self.min_samples - 1e-9] = 0.0
@@ -543,16 +540,19 @@ class ActuatorIdentifier:
 
     def mode_states(self) -> tuple[str, ...]:
         """Each mode's state (:data:`MODE_STATES`); mode 0 is always ``usable``."""
-        se = self.gain_stderr()
-        conf = self._confidence(se)  # (the stderr computed once)
+        # per mode in plain floats: gain_stderr's and confidence's values, bit for bit
+        raw = self._raw.tolist()
         out = ["usable"]
         for m in range(1, self.knives):
-            mag = abs(complex(self._raw[m]))
+            mag = abs(complex(raw[m]))
             n = self._n[m]
-            if ((n >= self.min_samples - 1e-9 and mag + 2.0 * se[m] < self.gain_min)
+            se = math.inf if n < 1.5 else self._stderr(m)
+            conf = (0.0 if n < self.min_samples - 1e-9
+                    else min(max(1.0 - 2.0 * se / max(mag, 1e-12), 0.0), 1.0))
+            if ((n >= self.min_samples - 1e-9 and mag + 2.0 * se < self.gain_min)
                     or self._still[m] >= self.still_samples):
                 out.append("no_authority")
-            elif conf[m] > 0.0 and mag >= self.gain_min:
+            elif conf > 0.0 and mag >= self.gain_min:
                 out.append("usable")
             elif n >= self.unidentifiable_samples - 1e-9:
                 out.append("unidentifiable")

@@ -17,6 +17,8 @@ remain.
 
 from __future__ import annotations
 
+import bisect
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -112,24 +114,25 @@ class FeedHistory:
         """
         t = check_finite("t_s", t_s)
         travel = check_positive("travel_mm", travel_mm)
-        idx = [i for i, ti in enumerate(self._t) if ti <= t]
-        if not idx:
+        # the times ascend strictly (note): the readings up to t are the first `upto`
+        upto = bisect.bisect_right(self._t, t)
+        if not upto:
             return None
-        last = idx[-1]
-        slowest = min(self._feed[i] for i in idx)  # the longest the travel may have taken
+        last = upto - 1
+        slowest = min(itertools.islice(self._feed, upto))  # the longest the travel may take
         t0 = t - travel / slowest - LATENCY_S
         if self._t[0] > t0:
             return None  # the history does not reach back to the cut
-        first = max(i for i in idx if self._t[i] <= t0)
-        span = range(first, last + 1)
-        if len({self._knives[i] for i in span}) != 1:
+        first = bisect.bisect_right(self._t, t0, 0, upto) - 1
+        knives = list(itertools.islice(self._knives, first, upto))
+        if knives.count(knives[-1]) != len(knives):
             return None
-        pitches = [self._pitch[i] for i in span]
+        pitches = list(itertools.islice(self._pitch, first, upto))
         mean = sum(pitches) / len(pitches)
         n = len(pitches)
         return CuttingFeed(
-            feed_mm_s=sum(self._feed[i] for i in span) / n,
-            spindle_rpm=sum(self._rpm[i] for i in span) / n,
+            feed_mm_s=sum(itertools.islice(self._feed, first, upto)) / n,
+            spindle_rpm=sum(itertools.islice(self._rpm, first, upto)) / n,
             knives=self._knives[last],
             spread=(max(pitches) - min(pitches)) / mean,
         )

@@ -296,3 +296,44 @@ def test_large_moves_that_move_nothing_are_no_authority_without_a_fit():
         ident.add(o, y - y.mean() + 0.02 * rng.standard_normal(4))
     assert ident.differences[2] == 0  # nothing entered the fit
     assert ident.mode_states()[2] == "no_authority"
+
+
+def _states_by_arrays(ident):
+    """``mode_states`` from the public ``gain_stderr`` and ``confidence`` (numpy arrays)."""
+    se, conf = ident.gain_stderr(), ident.confidence()
+    out = ["usable"]
+    for m in range(1, ident.knives):
+        mag = abs(complex(ident.raw_gains[m]))
+        n = ident.differences[m]
+        if ((n >= ident.min_samples - 1e-9 and mag + 2.0 * se[m] < ident.gain_min)
+                or ident._still[m] >= ident.still_samples):
+            out.append("no_authority")
+        elif conf[m] > 0.0 and mag >= ident.gain_min:
+            out.append("usable")
+        elif n >= ident.unidentifiable_samples - 1e-9:
+            out.append("unidentifiable")
+        else:
+            out.append("unknown")
+    return tuple(out)
+
+
+def test_mode_states_agree_with_the_stderr_and_confidence_arrays():
+    """The states judged per mode in plain floats are those of ``gain_stderr`` and
+    ``confidence``, along learning transients of actuators strong, weak, turned and still."""
+    rng = np.random.default_rng(8)
+    seen = set()
+    for case in range(40):
+        z = int(rng.integers(2, 8))
+        col = rng.normal(0.0, 1.0, z) * rng.choice([0.02, 0.3, 1.0])
+        col[0] += rng.choice([0.0, 0.5, 1.0])
+        ident = ActuatorIdentifier(z, gain_min=0.1, min_samples=3, unidentifiable_samples=6)
+        o = np.zeros(z)
+        target = rng.normal(0.0, 6.0, z)
+        for _ in range(40):
+            o = o + 0.15 * (target - o) + rng.normal(0.0, 0.3, z)
+            y = circulant(col) @ o - np.linspace(-1.0, 1.0, z)
+            ident.add(o, y - y.mean() + 0.05 * rng.standard_normal(z))
+            states = ident.mode_states()
+            assert states == _states_by_arrays(ident), case
+            seen.update(states)
+    assert {"usable", "no_authority", "unknown"} <= seen

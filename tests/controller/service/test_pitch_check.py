@@ -161,3 +161,43 @@ def test_pitch_tolerance_is_a_checked_config_key():
     for bad in (0.0, -0.01, 0.9, "x"):
         with pytest.raises(ConfigError, match="plausibility.pitch_tolerance"):
             machine_from_dict({"plausibility": {"pitch_tolerance": bad}})
+
+
+def _cutting_feed_by_scan(h: FeedHistory, t: float, travel: float):
+    """The straightforward scan over every reading: what ``cutting_feed`` must give."""
+    ts, feed, rpm = list(h._t), list(h._feed), list(h._rpm)
+    knives, pitch = list(h._knives), list(h._pitch)
+    idx = [i for i, ti in enumerate(ts) if ti <= t]
+    if not idx:
+        return None
+    t0 = t - travel / min(feed[i] for i in idx) - LATENCY_S
+    if ts[0] > t0:
+        return None
+    span = range(max(i for i in idx if ts[i] <= t0), idx[-1] + 1)
+    if len({knives[i] for i in span}) != 1:
+        return None
+    p = [pitch[i] for i in span]
+    n = len(p)
+    return CuttingFeed(feed_mm_s=sum(feed[i] for i in span) / n,
+                       spindle_rpm=sum(rpm[i] for i in span) / n, knives=knives[idx[-1]],
+                       spread=(max(p) - min(p)) / (sum(p) / n))
+
+
+def test_the_cutting_feed_is_the_scan_over_every_reading():
+    """Readings found by bisection are the scan's, bit for bit: feeds, speeds and knives that
+    change, times asked between, on and beyond the readings."""
+    import random
+
+    rng = random.Random(5)
+    for _ in range(200):
+        h = FeedHistory(history_s=rng.choice([1.0, 10.0]))
+        t = 0.0
+        for _ in range(rng.randrange(1, 400)):
+            t += rng.choice([0.005, 0.02, 0.05])
+            h.note(_snap(t, feed=rng.uniform(100.0, 900.0), rpm=rng.uniform(3000.0, 8000.0),
+                         knives=4 if rng.random() < 0.97 else 2))
+        ts = list(h._t)
+        for _ in range(20):
+            at = rng.choice(ts) if rng.random() < 0.3 else rng.uniform(ts[0] - 0.5, t + 0.5)
+            travel = rng.uniform(10.0, 600.0)
+            assert h.cutting_feed(at, travel_mm=travel) == _cutting_feed_by_scan(h, at, travel)
