@@ -271,13 +271,16 @@ def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
     r = np.empty((rows, cols), dtype=np.float32)
     e = np.empty((rows, cols // cell), dtype=np.float32)
     valid_cells = np.empty((rows, cols // cell), dtype=bool)
+    cells = np.empty(e.size, dtype=np.float32)
     sat = 0.5 * smap.shadow_slope if math.isfinite(smap.shadow_slope) else 1e30
     mad, n_cells = kernels.residual_map(
         np.ascontiguousarray(p, dtype=np.float32), np.ascontiguousarray(valid), sat, group,
-        max(2, min(n_g, int(math.ceil(0.35 * n_g)))), cell, profile, r, e, valid_cells)
+        max(2, min(n_g, int(math.ceil(0.35 * n_g)))), cell, profile, r, e, valid_cells, cells)
     median = 1.0
     if n_cells:  # the valid cells' (upper) median mean square (numpy's selection: the fastest)
-        median = float(np.partition(e[valid_cells], n_cells // 2)[n_cells // 2])
+        valid_e = cells[:n_cells]
+        valid_e.partition(n_cells // 2)
+        median = float(valid_e[n_cells // 2])
     median = max(median, 1e-12)
     base = max(median, settings.floor_slope ** 2)
     smooth = cv2.blur(e, (3, 3), borderType=cv2.BORDER_REFLECT)
@@ -847,11 +850,14 @@ def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, f
         return 0.0, 0.0, 0
     # the pairs of rows (4 i, 4 i + 1): half the rows transformed, a quarter of the pairs
     pairs, size = _coherence_rows(res.r.shape[0], res.r.shape[1] + max_lag_px)
-    r = res.r.take(pairs, axis=0)
-    np.clip(r, np.float32(-4 * scale), np.float32(4 * scale), out=r)
+    # the rows clipped straight into the transform's zero padding, and their power
+    r = np.zeros((pairs.size, size), dtype=np.float32)
+    r2 = np.empty(pairs.size)
+    kernels.clipped_pairs(res.r, pairs, 4 * scale, r, r2)
     f = ffts.rfft(r, size, axis=1)  # scipy.fft's numbers without its dispatch
-    x = ffts.irfft((np.conj(f[0::2]) * f[1::2]).sum(axis=0), size)
-    r2 = (r * r).sum(axis=1, dtype=np.float64)
+    spectrum = np.empty(f.shape[1], dtype=f.dtype)
+    kernels.cross_spectrum(f, spectrum)
+    x = ffts.irfft(spectrum, size)
     norm = float(r2[0::2].sum() * r2[1::2].sum()) ** 0.5
     if norm <= 0:
         return 0.0, 0.0, 0

@@ -200,7 +200,8 @@ def _sort_columns(v: np.ndarray) -> None:  # pragma: no cover - compiled
 @njit(**_JIT)
 def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int, k: int,
                  cell: int, profile: np.ndarray, r: np.ndarray, e: np.ndarray,
-                 valid_cells: np.ndarray) -> tuple[float, int]:  # pragma: no cover
+                 valid_cells: np.ndarray,
+                 cells: np.ndarray) -> tuple[float, int]:  # pragma: no cover
     """The marks' robust column profile, the residual and its cells (see ``residual``).
 
     Parameters
@@ -222,6 +223,9 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
         Out: each cell's mean square of ``r`` (0 where not ``valid_cells``).
     valid_cells : ndarray of bool, shape (rows, cols // cell)
         Out: at least half the cell's samples valid.
+    cells : ndarray of float32, shape (rows * (cols // cell),)
+        Out: the valid cells' mean squares in row-major order (``e[valid_cells]``), first
+        ``n`` of them.
 
     Returns
     -------
@@ -339,7 +343,10 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
             ok = w[j] >= half_cell
             vc[j] = ok
             er[j] = acc[j] / max(w[j], 1) if ok else 0.0
-            nc += ok
+        for j in range(n_cells):  # the valid cells' values in order, for their median
+            if vc[j]:
+                cells[nc] = er[j]
+                nc += 1
     return scale, nc
 
 
@@ -525,6 +532,44 @@ def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
             energy[i] = s2 / nbins
 
 
+@njit(**_JIT)
+def clipped_pairs(r: np.ndarray, rows: np.ndarray, limit: float, out: np.ndarray,
+                  r2: np.ndarray) -> None:  # pragma: no cover - compiled
+    """The rows ``rows`` of the residual clipped to ``+-limit``, zero-padded, and their power.
+
+    ``out[k, :cols]`` is ``r[rows[k]]`` clipped (``out`` zero beyond: the FFT's padding,
+    left as given); ``r2[k]`` the sum of its squares (float64)
+    (:func:`vision.defects.detect.oriented_coherence`).
+    """
+    cols = r.shape[1]
+    hi = np.float32(limit)
+    lo = -hi
+    for k in range(rows.size):
+        src, dst = r[rows[k]], out[k]
+        s = 0.0
+        for c in range(cols):
+            x = min(max(src[c], lo), hi)
+            dst[c] = x
+            s += x * x
+        r2[k] = s
+
+
+@njit(**_JIT)
+def cross_spectrum(f: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``out = sum_k conj(f[2 k]) f[2 k + 1]`` over the row pairs, in order (complex64).
+
+    numpy's ``(np.conj(f[0::2]) * f[1::2]).sum(axis=0)`` without its two temporaries (its
+    numbers to float32 rounding).
+    """
+    n = f.shape[1]
+    for j in range(n):
+        out[j] = 0
+    for k in range(f.shape[0] // 2):
+        a, b = f[2 * k], f[2 * k + 1]
+        for j in range(n):
+            out[j] += np.conj(a[j]) * b[j]
+
+
 _WARM = [False]
 
 
@@ -544,7 +589,10 @@ def warm_up() -> None:
     column_means_u16(np.ones((8, 12), dtype=np.uint16), 1, 3, 6, np.empty((2, 2), np.float32))
     cells = np.empty((8, 4), dtype=np.float32)
     residual_map(a, valid, 0.07, 2, 2, 3, np.empty(12), out, cells,
-                 np.empty((8, 4), dtype=np.bool_))
+                 np.empty((8, 4), dtype=np.bool_), np.empty(32, dtype=np.float32))
     fold_rows(a, valid, 0, 4.0, 4, 3, 6, 4, 0.3, np.empty((8, 4)), np.empty(8))
     row_depth(a, 0, 4, 0, 10, np.ones((4, 10), dtype=np.bool_), 160.0)
+    pad = np.zeros((2, 16), dtype=np.float32)
+    clipped_pairs(a, np.array([0, 1], dtype=np.int64), 0.5, pad, np.empty(2))
+    cross_spectrum(np.ones((2, 9), dtype=np.complex64), np.empty(9, dtype=np.complex64))
     _WARM[0] = True

@@ -99,7 +99,8 @@ def test_residual_map_as_numpy():
     r = np.empty_like(p)
     e = np.empty((rows, cols // cell), np.float32)
     vc = np.empty((rows, cols // cell), bool)
-    mad, n_cells = kernels.residual_map(p, valid, 0.07, 3, 6, cell, profile, r, e, vc)
+    cells = np.empty(e.size, np.float32)
+    mad, n_cells = kernels.residual_map(p, valid, 0.07, 3, 6, cell, profile, r, e, vc, cells)
     ref_profile, ref_mad = _reference_profile(p, valid, 0.07, 3, 6)
     assert mad == pytest.approx(ref_mad, rel=1e-5)
     np.testing.assert_allclose(profile, ref_profile, atol=1e-6)
@@ -110,8 +111,26 @@ def test_residual_map_as_numpy():
     ref_e = (ref_r[:, :cols // cell * cell] ** 2).reshape(rows, -1, cell).sum(axis=2)
     ref_vc = w >= 0.5 * cell
     assert np.array_equal(vc, ref_vc) and n_cells == int(ref_vc.sum())
+    assert np.array_equal(cells[:n_cells], e[vc])  # the valid cells in order
     np.testing.assert_allclose(e, np.where(ref_vc, ref_e / np.maximum(w, 1), 0.0),
                                rtol=1e-5, atol=1e-9)
+
+
+def test_clipped_pairs_and_cross_spectrum_as_numpy():
+    rng = np.random.default_rng(6)
+    r = rng.standard_normal((20, 37)).astype(np.float32)
+    rows = np.array([0, 1, 4, 5, 8, 9], dtype=np.int64)
+    out = np.zeros((rows.size, 48), np.float32)
+    r2 = np.empty(rows.size)
+    kernels.clipped_pairs(r, rows, 1.5, out, r2)
+    ref = np.clip(r[rows], np.float32(-1.5), np.float32(1.5))
+    assert np.array_equal(out[:, :37], ref) and not out[:, 37:].any()
+    np.testing.assert_allclose(r2, (ref * ref).sum(axis=1, dtype=np.float64), rtol=1e-12)
+    f = np.fft.rfft(out, axis=1).astype(np.complex64)
+    got = np.empty(f.shape[1], np.complex64)
+    kernels.cross_spectrum(f, got)
+    ref = (np.conj(f[0::2].astype(np.complex128)) * f[1::2]).sum(axis=0)
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
 
 
 def test_fold_rows_as_numpy():
