@@ -631,12 +631,11 @@ def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> li
     if cols.size < 16:
         return []
     c0, c1 = int(cols[0]), int(cols[-1]) + 1
-    y = prof[c0:c1]
+    k = 0  # no smoothing without the pitch
     if pitch_mm is not None and math.isfinite(pitch_mm) and pitch_mm > 0:
         k = max(1, int(round(pitch_mm * smap.cols_per_mm)))
-        if k < y.size // 3:
-            y = np.convolve(y, np.ones(k) / k, mode="valid")
-    c2, c1_ = _centred_quadratic(y, 1.0 / smap.cols_per_mm)
+    # smoothed over one mark (k < a third of the columns) and fitted: one compiled pass
+    c2, c1_ = kernels.snipe_fit(prof, c0, c1, k, 1.0 / smap.cols_per_mm)
     half = 0.5 * (c1 - c0) / smap.cols_per_mm
     sag, dip = _sag_um(c1_, c2, half)  # concave: the middle above the chord
     if sag < settings.snipe_um or dip < -0.5 * sag:
@@ -648,24 +647,6 @@ def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> li
     cs = (c0, c0 + span) if left else (c1 - span, c1)
     conf = min(1.0, sag / (2 * settings.snipe_um))
     return [_defect(res, DefectKind.SNIPE, cs, (int(rows[0]), int(rows[-1]) + 1), sag, conf)]
-
-
-def _centred_quadratic(y: np.ndarray, dx: float) -> tuple[float, float]:
-    """``(c2, c1)`` of the least-squares ``c2 x^2 + c1 x + c0`` through ``y``.
-
-    ``x`` spaced ``dx`` apart and centred on the middle sample (as ``np.polyfit(x, y, 2)``;
-    the grid's odd moments vanish, its even ones are closed sums).
-    """
-    n = y.size
-    m = 0.5 * (n - 1)
-    i = np.arange(n, dtype=np.float64) - m
-    s2 = n * (n * n - 1.0) / 12.0 * dx ** 2  # sum x^2
-    s4 = n * (n * n - 1.0) * (3.0 * n * n - 7.0) / 240.0 * dx ** 4  # sum x^4
-    sy = float(y.sum())
-    sxy = float(i @ y) * dx
-    sx2y = float((i * i) @ y) * dx ** 2
-    det = s4 * n - s2 * s2
-    return (n * sx2y - s2 * sy) / det, sxy / s2
 
 
 def _sag_um(c1: float, c2: float, half: float) -> tuple[float, float]:

@@ -18,7 +18,8 @@ faster), so the remap and every step after it run on the coarse grid.  On that g
 board's motion between the shots is a shift along the columns alone, so B is registered
 with the measurement's shift (``Measurement.shift_px``, px along the feed) by a linear
 interpolation along the rows, in one compiled pass with the ratio and the
-albedo (:func:`vision.defects.kernels.register_ratio`).  With ``bin_rows = 1`` and
+albedo (:func:`vision.defects.kernels.register_ratio`; the albedo only where asked for: the
+detectors do not read it).  With ``bin_rows = 1`` and
 ``bin_cols = 1`` the map has the camera's full resolution; the
 :class:`vision.pipeline.Measurer`'s :class:`vision.defects.detect.DefectFinder` builds it from
 the row bins the Measurer has already summed, on ~0.16 x 0.4 mm samples, so the map costs one small

@@ -291,15 +291,25 @@ def test_acceptance_on_independent_boards():
 
 @pytest.mark.parametrize("n", [17, 50, 331])
 def test_snipes_fit_and_sag_as_polyfit_and_dense_sampling(n):
-    from vision.defects.detect import _centred_quadratic, _sag_um
+    from vision.defects import kernels
+    from vision.defects.detect import _sag_um
 
     rng = np.random.default_rng(n)
     y = 0.002 * rng.standard_normal(n) + 1e-4 * np.arange(n) ** 2 / n
     dx = 0.16
     x = (np.arange(n) - 0.5 * (n - 1)) * dx
     c2, c1, _ = np.polyfit(x, y, 2)
-    got = _centred_quadratic(y, dx)
+    padded = np.r_[9.0, 9.0, y, 9.0]  # the columns outside [c0, c1) are not read
+    got = kernels.snipe_fit(padded, 2, 2 + n, 0, dx)
     assert got == pytest.approx((c2, c1), rel=1e-9, abs=1e-15)
+    # smoothed over k columns first (np.convolve's moving average), k < a third of them
+    k = max(1, n // 4 - 1)
+    ys = np.convolve(y, np.ones(k) / k, mode="valid")
+    xs_ = (np.arange(ys.size) - 0.5 * (ys.size - 1)) * dx
+    s2, s1, _ = np.polyfit(xs_, ys, 2)
+    assert kernels.snipe_fit(padded, 2, 2 + n, k, dx) == pytest.approx((s2, s1), rel=1e-9,
+                                                                       abs=1e-15)
+    assert kernels.snipe_fit(padded, 2, 2 + n, n // 3, dx) == pytest.approx(got)  # too wide
     half = 0.5 * n * dx
     for a, b in ((c1, c2), (0.001, 0.0003), (-0.002, 1e-4), (0.003, 0.0)):
         xs = np.linspace(-half, half, 100001)
