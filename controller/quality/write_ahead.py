@@ -192,7 +192,10 @@ class WriteAheadSink:
         self._make = make or (lambda item: item)
         self._on_durable = on_durable
         end, lines = _tail_of(self.journal_path)
-        self._cond = threading.Condition()  # the queues below; never held across I/O
+        lock = threading.RLock()  # the queues below; never held across I/O
+        self._cond = threading.Condition(lock)  # who waits for the state (close, wait_logged)
+        self._journal_cv = threading.Condition(lock)  # the journal thread waits for records
+        self._db_cv = threading.Condition(lock)  # the database thread waits for records
         self._inbox: deque[Any] = deque()  # put, not yet with the journal thread
         self._todo: deque[JournalEntry] = deque()  # for the database thread, in order
         self._spill: tuple[int, int] | None = (0, end) if end else None  # journal bytes
@@ -251,12 +254,18 @@ class WriteAheadSink:
             self._inbox.append(item)
             self._pending += 1
             self._start()
-            self._cond.notify_all()
+            if len(self._inbox) == 1 or len(self._inbox) >= JOURNAL_BATCH_MAX:
+                self._journal_cv.notify()  # else it waits for more until its time anyway
 
     @property
     def queued(self) -> int:
         """Items not yet journalled (queued or with the journal thread now)."""
         return len(self._inbox) + self._in_journal
+
+    def _wake(self) -> None:
+        """Wake both writer threads and who waits for the state (``_cond`` held)."""
+        for cv in (self._cond, self._journal_cv, self._db_cv):
+            cv.notify_all()
 
     def _publish(self) -> None:
         """Replace :attr:`state` and wake who waits for it (called with ``_cond`` held)."""
@@ -286,13 +295,13 @@ class WriteAheadSink:
         while True:
             with self._cond:
                 while not self._inbox and not self._closing:
-                    self._cond.wait(1.0 if self._unsaved else None)
+                    self._journal_cv.wait(1.0 if self._unsaved else None)
                     if self._unsaved and not self._inbox:
                         break  # try the journal again for the records only in memory
                 while self._inbox and (left := self._wait_left(
                         self._journal_at + JOURNAL_WAIT_S, len(self._inbox),
                         JOURNAL_BATCH_MAX)) > 0:
-                    self._cond.wait(left)  # more records for this append (one fsync)
+                    self._journal_cv.wait(left)  # more records for this append (one fsync)
                 if not self._inbox and self._closing:
                     return
                 items = [self._inbox.popleft()
@@ -353,19 +362,22 @@ class WriteAheadSink:
                     end = start + sum(len(b) for b in lines)
                     self._counts["journalled"] += len(entries) + len(retry)
                     self._counts["batches"] += 1
+                    idle = not self._todo and self._spill is None
                     if self._spill is None and len(self._todo) + len(entries) <= MAX_IN_MEMORY:
                         self._todo.extend(entries)
                     elif entries:  # the backlog waits on disk, read back later
                         self._spill = (self._spill[0] if self._spill else first, end)
+                    if idle or len(self._todo) >= DB_BATCH_MAX:
+                        self._db_cv.notify()  # else it waits for more until its time anyway
                 else:
                     self._journal_error = err
                     for e, item in zip(entries, items, strict=True):
                         self._unsaved[e.uid] = e
                         self._unsaved_items[e.uid] = item
                     self._todo.extend(entries)  # the log may still take them
+                    self._db_cv.notify()
                 self._last_put = time.monotonic()
                 self._publish()
-                self._cond.notify_all()
         return ok, late
 
     def _take_unsaved_items(self, entries: list[JournalEntry]) -> list[Any]:
@@ -406,10 +418,10 @@ class WriteAheadSink:
                 while not self._todo and self._spill is None and not self._stop_db:
                     if self._compact_due():
                         break
-                    self._cond.wait(COMPACT_IDLE_S)
+                    self._db_cv.wait(COMPACT_IDLE_S)
                 while self._todo and (left := self._wait_left(
                         self._db_at + DB_WAIT_S, len(self._todo), DB_BATCH_MAX)) > 0:
-                    self._cond.wait(left)  # more records for this transaction
+                    self._db_cv.wait(left)  # more records for this transaction
                 if self._abandoned or (self._stop_db and not self._todo and self._spill is None):
                     return
                 spill = self._spill if not self._todo else None
@@ -433,14 +445,13 @@ class WriteAheadSink:
                 if written == len(batch):
                     self._log_error = None
                 self._publish()
-                self._cond.notify_all()
             if late and self._on_durable is not None:
                 self._on_durable(late, True)  # in the log: durable at last (no lock held)
             with self._cond:
                 if written < len(batch):
                     if self._stop_db:
                         return  # closing: what is left stays in the journal
-                    self._cond.wait(delay)  # close() wakes it
+                    self._db_cv.wait(delay)  # close() wakes it
                     delay = min(2 * delay, RETRY_MAX_S)
                     continue
             delay = RETRY_INITIAL_S
@@ -514,7 +525,7 @@ class WriteAheadSink:
             with self._cond:
                 self._journal_error = f"journal {self.journal_path} not readable: {one_line(exc)}"
                 self._publish()
-                self._cond.wait(RETRY_MAX_S)
+                self._db_cv.wait(RETRY_MAX_S)
             return
         blank = 0
         for raw in data.split(b"\n")[:-1]:  # whole lines only
@@ -612,7 +623,7 @@ class WriteAheadSink:
         with self._cond:
             self._closing = True
             self._start()  # a journal left by an earlier run is replayed even without pairs
-            self._cond.notify_all()
+            self._wake()
         self._journal_thread.join()  # local disk only
         deadline = time.monotonic() + max(0.0, timeout_s)
         with self._cond:  # the log gets what is left, but not forever
@@ -622,11 +633,11 @@ class WriteAheadSink:
                     break
                 self._cond.wait(min(left, 0.1))
             self._stop_db = True
-            self._cond.notify_all()
+            self._wake()
         self._db_thread.join(max(0.0, deadline - time.monotonic()) + 0.05)
         with self._cond:
             self._abandoned = True
-            self._cond.notify_all()
+            self._wake()
         if not self._db_thread.is_alive() and not self._pending:
             self._compact(force=True)
         with self._file_lock:
@@ -652,7 +663,7 @@ class WriteAheadSink:
             if self._pending:
                 self._start()
             self._hurry += 1
-            self._cond.notify_all()
+            self._wake()
             try:
                 while self._pending and not self._abandoned:
                     left = deadline - time.monotonic()

@@ -1,11 +1,12 @@
 """Write-ahead sink, what a record costs: batches that wait for more records, encoded once.
 
 The journal appends at most once per ``JOURNAL_WAIT_S`` and the database writes at most once
-per ``DB_WAIT_S``: records that come meanwhile join the next append (one fsync) or transaction.
-Judged by counts, never by time: the waits are made an hour long, so a record that went
-alone would show as a batch of its own. ``close`` and ``wait_logged`` wait for no more
-records. A record's ``extra`` is encoded to JSON once for both the journal and the log, and
-what either holds is what it held when each encoded the record on its own.
+per ``DB_WAIT_S``: records that come meanwhile join the next append (one fsync) or
+transaction, and a full batch goes at once. Judged by counts, never by time: the waits are
+made an hour long, so a record that went alone would show as a batch of its own. ``close``
+and ``wait_logged`` wait for no more records. A record's ``extra`` is encoded to JSON once for
+both the journal and the log, and what either holds is what it held when each encoded the
+record on its own.
 """
 
 from __future__ import annotations
@@ -101,6 +102,27 @@ def test_records_that_come_while_the_database_waits_join_one_transaction(tmp_pat
         assert sink.state.counters["db_batches"] == 2  # [0], [1, 2, 3, 4]: two commits
         assert sink.close() is None
         assert [r.seq for r in log.records()] == list(range(5))
+
+
+def test_a_full_batch_waits_for_no_more_records(tmp_path, monkeypatch):
+    monkeypatch.setattr(write_ahead, "JOURNAL_WAIT_S", HOUR_S)
+    monkeypatch.setattr(write_ahead, "DB_WAIT_S", HOUR_S)
+    monkeypatch.setattr(write_ahead, "JOURNAL_BATCH_MAX", 3)
+    monkeypatch.setattr(write_ahead, "DB_BATCH_MAX", 3)
+    with QualityLog(tmp_path / "q.db") as log:
+        durable = Durable()
+        sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl", on_durable=durable)
+        sink.put(_rec(0))
+        durable.wait(1)
+        _until(sink, lambda st: st.counters["logged"] == 1)
+        for i in range(1, 4):
+            sink.put(_rec(i))
+        durable.wait(4)  # three waiting make a full append: it goes without its time
+        _until(sink, lambda st: st.counters["logged"] == 4)  # and a full transaction
+        st = sink.state
+        assert st.counters["batches"] == 2 and st.counters["db_batches"] == 2
+        assert sink.close() is None
+        assert [r.seq for r in log.records()] == list(range(4))
 
 
 def test_close_waits_for_no_more_records(tmp_path, monkeypatch):

@@ -1,0 +1,24 @@
+"""The quality log's write-path benchmark: every record handed in is in the log, counted once."""
+
+from __future__ import annotations
+
+from controller.quality.log import QualityLog
+from planer.benchmarks import quality_log
+
+
+def test_sample_records_are_a_moulders_heads_in_turn_with_a_profile_every_tenth():
+    recs = quality_log.sample_records(21, heads=("bottom", "top"))
+    assert [r.head for r in recs[:4]] == ["bottom", "top", "bottom", "top"]
+    assert [i for i, r in enumerate(recs) if "profile" in r.extra] == [0, 10, 20]
+    assert len(recs[0].extra["profile"]["x_mm"]) == 800 and all(r.ok for r in recs)
+
+
+def test_every_record_reaches_the_log_and_the_figures_add_up(tmp_path):
+    out = quality_log.run(records=24, rate_hz=1000.0, heads=("bottom", "top"), folder=tmp_path)
+    assert out["all_logged"] and out["records"] == out["logged"] == 24
+    assert 1 <= out["journal_appends"] <= 24 and 1 <= out["db_transactions"] <= 24
+    assert out["records_per_append"] == 24 / out["journal_appends"]
+    assert out["cpu_ms_per_record"] > 0 and out["records_per_cpu_s"] > 0
+    with QualityLog(tmp_path / "quality.sqlite", create=False) as log:
+        assert [r.head for r in log.records()].count("top") == 12
+    assert "records per CPU-second" in quality_log.text(out)
