@@ -18,6 +18,8 @@ here do each step in one call, with the arithmetic of the numpy code they replac
 * :func:`clipped_pairs`, :func:`cross_spectrum` -- raised grain's row pairs clipped into the
   FFT's padding, and their cross-spectrum summed
   (:func:`vision.defects.detect.oriented_coherence`);
+* :func:`reference_median` -- the knife-nick folds' reference median and the rows standing
+  out from it (:func:`vision.defects.detect.knife_nicks`);
 * :func:`snipe_fit` -- the marks' profile smoothed over one mark and its quadratic
   (:func:`vision.defects.detect.snipe`).
 
@@ -616,6 +618,32 @@ def snipe_fit(profile: np.ndarray, c0: int, c1: int, k: int,
     return (n * sx2y * dx ** 2 - s2 * sy) / det, sxy * dx / s2
 
 
+@njit(**_JIT)
+def reference_median(energy: np.ndarray, every: int, ratio: float,
+                     out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """The median of the finite ``energy[::every]`` and how many rows stand out from it.
+
+    ``out = (n, median, hot)``: ``n`` finite reference energies, their median (the mean of
+    the two middle ones for even ``n``; 0 without any) and the rows whose
+    ``energy / max(median, 1e-18) >= ratio`` (:func:`vision.defects.detect.knife_nicks`).
+    """
+    buf = np.empty((energy.size + every - 1) // every)
+    n = 0
+    for i in range(0, energy.size, every):
+        v = energy[i]
+        if np.isfinite(v):
+            buf[n] = v
+            n += 1
+    median = _median(buf, n) if n > 0 else 0.0
+    m = max(median, 1e-18)
+    hot = 0
+    for i in range(energy.size):
+        hot += energy[i] / m >= ratio  # NaN: never
+    out[0] = n
+    out[1] = median
+    out[2] = hot
+
+
 _WARM = [False]
 
 
@@ -642,4 +670,5 @@ def warm_up() -> None:
     clipped_pairs(a, np.array([0, 1], dtype=np.int64), 0.5, pad, np.empty(2))
     cross_spectrum(np.ones((2, 9), dtype=np.complex64), np.empty(9, dtype=np.complex64))
     snipe_fit(np.ones(40), 2, 38, 3, 0.16)
+    reference_median(np.ones(16), 8, 12.0, np.empty(3))
     _WARM[0] = True

@@ -133,6 +133,22 @@ def test_clipped_pairs_and_cross_spectrum_as_numpy():
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("n", [30, 33, 40])
+def test_reference_median_as_numpy(n):
+    rng = np.random.default_rng(n)
+    energy = rng.random(n)
+    energy[[3, 16]] = np.nan  # rows not taken; 16 is a reference row
+    energy[5] = 50.0  # stands out
+    out = np.empty(3)
+    kernels.reference_median(energy, 8, 12.0, out)
+    ref = energy[::8]
+    ref = ref[np.isfinite(ref)]
+    median = np.median(ref)
+    with np.errstate(invalid="ignore"):
+        hot = int(np.count_nonzero(energy / max(median, 1e-18) >= 12.0))
+    assert (out[0], out[1], out[2]) == (ref.size, median, hot) and hot >= 1
+
+
 def test_fold_rows_as_numpy():
     rng = np.random.default_rng(5)
     rows, cols, period = 24, 200, 18.5
