@@ -283,9 +283,9 @@ def residual(smap: SurfaceMap, settings: DefectSettings) -> Residual:
         median = float(valid_e[n_cells // 2])
     median = max(median, 1e-12)
     base = max(median, settings.floor_slope ** 2)
-    smooth = cv2.blur(e, (3, 3), borderType=cv2.BORDER_REFLECT)
-    excess = smooth * np.float32(1.0 / base)
-    marked = (excess > settings.excess) & valid_cells
+    excess = np.empty_like(e)
+    marked = np.empty_like(valid_cells)
+    kernels.marked_cells(e, valid_cells, 1.0 / base, settings.excess, excess, marked)
     return Residual(smap, r, profile, excess, marked, valid_cells, cell, base, median,
                     1.4826 * mad)
 

@@ -12,6 +12,8 @@ here do each step in one call, with the arithmetic of the numpy code they replac
 * :func:`residual_map` -- the marks' robust column profile (the densest row groups, then the
   samples near it), the residual slope, its cells' mean squares and the valid ones in order
   for their median (:func:`vision.defects.detect.residual`);
+* :func:`marked_cells` -- the cells' smoothed excess over the field's median and the marked
+  cells (:func:`vision.defects.detect.residual`);
 * :func:`row_depth` -- a blob's depth below its rim (:func:`vision.defects.detect.blobs`);
 * :func:`fold_rows` -- each row's residual folded at one revolution, the median over the
   revolutions per phase, and its mean square (:func:`vision.defects.detect.knife_nicks`);
@@ -363,6 +365,31 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
 
 
 @njit(**_JIT)
+def marked_cells(e: np.ndarray, valid_cells: np.ndarray, inv_base: float, limit: float,
+                 excess: np.ndarray, marked: np.ndarray) -> None:  # pragma: no cover
+    """Each cell's mean square smoothed over 3 x 3 cells, over the base, and the marked cells.
+
+    ``excess`` is the 3 x 3 mean of ``e`` (the edges mirrored, the edge cell repeated:
+    OpenCV's ``BORDER_REFLECT``) times ``inv_base``; ``marked`` where it exceeds ``limit`` on
+    a valid cell (:func:`vision.defects.detect.residual`).
+    """
+    rows, cols = e.shape
+    ninth = np.float32(1.0 / 9.0)
+    f = np.float32(inv_base)
+    lim = np.float32(limit)
+    for i in range(rows):
+        up, mid, low = e[max(i - 1, 0)], e[i], e[min(i + 1, rows - 1)]
+        xr, mr, vr = excess[i], marked[i], valid_cells[i]
+        for j in range(cols):
+            jl = max(j - 1, 0)
+            jr = min(j + 1, cols - 1)
+            v = ((up[jl] + up[j] + up[jr]) + (mid[jl] + mid[j] + mid[jr])
+                 + (low[jl] + low[j] + low[jr])) * ninth * f
+            xr[j] = v
+            mr[j] = (v > lim) & vr[j]
+
+
+@njit(**_JIT)
 def _pairwise_mean(v: np.ndarray, lo: int, hi: int) -> float:  # pragma: no cover - compiled
     """The mean of ``v[lo:hi]`` as numpy's ``mean`` sums it (eight partial sums from 8 values).
 
@@ -671,4 +698,6 @@ def warm_up() -> None:
     cross_spectrum(np.ones((2, 9), dtype=np.complex64), np.empty(9, dtype=np.complex64))
     snipe_fit(np.ones(40), 2, 38, 3, 0.16)
     reference_median(np.ones(16), 8, 12.0, np.empty(3))
+    marked_cells(cells, np.ones((8, 4), dtype=np.bool_), 2.0, 4.0, np.empty_like(cells),
+                 np.empty((8, 4), dtype=np.bool_))
     _WARM[0] = True

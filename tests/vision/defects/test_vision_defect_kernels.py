@@ -149,6 +149,19 @@ def test_reference_median_as_numpy(n):
     assert (out[0], out[1], out[2]) == (ref.size, median, hot) and hot >= 1
 
 
+def test_marked_cells_as_opencv():
+    rng = np.random.default_rng(7)
+    e = (rng.random((30, 41)) ** 4).astype(np.float32)
+    valid = rng.random((30, 41)) > 0.1
+    excess = np.empty_like(e)
+    marked = np.empty_like(valid)
+    kernels.marked_cells(e, valid, 1.0 / 0.07, 4.0, excess, marked)
+    ref = cv2.blur(e, (3, 3), borderType=cv2.BORDER_REFLECT) * np.float32(1.0 / 0.07)
+    np.testing.assert_allclose(excess, ref, rtol=2e-6)
+    tie = np.abs(ref - 4.0) < 1e-5  # a hair from the limit: either side
+    assert np.array_equal(marked[~tie], ((ref > 4.0) & valid)[~tie]) and marked.any()
+
+
 def test_fold_rows_as_numpy():
     rng = np.random.default_rng(5)
     rows, cols, period = 24, 200, 18.5
