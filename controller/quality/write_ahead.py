@@ -130,6 +130,67 @@ class SinkState:
     counters: Mapping[str, int] = field(default_factory=lambda: MappingProxyType({}))
 
 
+def _parse_lines(data: bytes, start: int) -> tuple[list[JournalEntry], list[str], int, int]:
+    """The whole lines of a journal chunk read from offset ``start`` (at most a memory's).
+
+    Returns ``(entries, lines that are not records, blank lines, the offset after the last line
+    taken)``; at most :data:`MAX_IN_MEMORY` entries.
+    """
+    entries: list[JournalEntry] = []
+    bad: list[str] = []
+    blank, pos = 0, start
+    for raw in data.split(b"\n")[:-1]:  # whole lines only
+        pos += len(raw) + 1
+        if not raw.strip():
+            blank += 1
+        else:
+            try:
+                entries.append(parse_line(raw))
+            except ValueError:
+                bad.append(raw.decode("utf-8", "backslashreplace"))
+        if len(entries) >= MAX_IN_MEMORY:
+            break
+    return entries, bad, blank, pos
+
+
+def _append_synced(fd: int, body: bytes) -> int:
+    """Write ``body`` at the end of the file ``fd`` and flush it; its offset.
+
+    Raises ``OSError`` with nothing of ``body`` left behind (no torn line).
+    """
+    start = os.fstat(fd).st_size
+    try:
+        view = memoryview(body)
+        while view:
+            view = view[os.write(fd, view):]
+        _datasync(fd)
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.ftruncate(fd, start)
+        raise
+    return start
+
+
+def _empty_journal(path: Path, fd: int | None, bad: str, *, remove: bool) -> None:
+    """Leave the journal holding only ``bad`` (its lines that are not records), durably.
+
+    Without them: truncated through ``fd`` (or the path), or ``remove``d (at close).
+    """
+    if bad:
+        atomic_write_text(path, bad)
+    elif remove:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+            fsync_dir(path.parent)
+    elif fd is not None:
+        os.ftruncate(fd, 0)
+        os.fsync(fd)
+    else:
+        with open(path, "r+b") as fh:
+            fh.truncate(0)
+            os.fsync(fh.fileno())
+
+
 def _tail_of(path: Path) -> tuple[int, int]:
     """``(end of the last whole line, lines)`` of a journal; a torn last line is cut off."""
     try:
@@ -185,6 +246,7 @@ class WriteAheadSink:
         self._uid_ok, self.journal_path = checked_sink_args(log, journal_path)
         self._many = getattr(log, "append_many", None)
         self._text_ok = self._many is not None and takes_keyword(self._many, "extra_json")
+        self._one_text_ok = takes_keyword(log.append, "extra_json")
         setter = getattr(log, "set_write_timeout", None)
         if setter is not None:
             with contextlib.suppress(OSError, ValueError):
@@ -393,17 +455,7 @@ class WriteAheadSink:
                 p.parent.mkdir(parents=True, exist_ok=True)
             created = not p.exists()
             self._fd = os.open(p, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o666)
-        fd = self._fd
-        start = os.fstat(fd).st_size
-        try:
-            view = memoryview(body)
-            while view:
-                view = view[os.write(fd, view):]
-            _datasync(fd)
-        except OSError:
-            with contextlib.suppress(OSError):
-                os.ftruncate(fd, start)  # no torn line left behind
-            raise
+        start = _append_synced(self._fd, body)
         if created:
             fsync_dir(self.journal_path.parent)
         self._size = start + len(body)
@@ -485,7 +537,7 @@ class WriteAheadSink:
     def _write_one(self, entry: JournalEntry) -> bool:
         record = entry.record
         kw: dict[str, Any] = {"uid": entry.uid} if self._uid_ok else {}
-        if self._text_ok and takes_keyword(self.log.append, "extra_json"):
+        if self._one_text_ok:
             kw["extra_json"] = entry.extra_json
         for attempt in (0, 1):
             try:
@@ -514,9 +566,6 @@ class WriteAheadSink:
     def _read_back(self, spill: tuple[int, int]) -> None:
         """Read journalled entries the memory had no room for (``spill``: byte range)."""
         start, end = spill
-        entries: list[JournalEntry] = []
-        bad: list[str] = []
-        pos = start
         try:
             with open(self.journal_path, "rb") as fh:
                 fh.seek(start)
@@ -527,18 +576,7 @@ class WriteAheadSink:
                 self._publish()
                 self._db_cv.wait(RETRY_MAX_S)
             return
-        blank = 0
-        for raw in data.split(b"\n")[:-1]:  # whole lines only
-            pos += len(raw) + 1
-            if not raw.strip():
-                blank += 1
-            else:
-                try:
-                    entries.append(parse_line(raw))
-                except ValueError:
-                    bad.append(raw.decode("utf-8", "backslashreplace"))
-            if len(entries) >= MAX_IN_MEMORY:
-                break
+        entries, bad, blank, pos = _parse_lines(data, start)
         with self._cond:
             self._todo.extend(entries)
             self._bad_lines.extend(bad)
@@ -557,10 +595,8 @@ class WriteAheadSink:
             return False
         idle = now - self._last_put >= COMPACT_IDLE_S
         size = self._size
-        return size > self._bad_size() and (idle or size >= COMPACT_BYTES)
-
-    def _bad_size(self) -> int:
-        return sum(len(b.encode("utf-8")) + 1 for b in self._bad_lines)
+        bad = sum(len(b.encode("utf-8")) + 1 for b in self._bad_lines)  # kept in it
+        return size > bad and (idle or size >= COMPACT_BYTES)
 
     def _compact(self, *, force: bool) -> None:
         """Truncate the journal (keep lines that are not records) if everything is logged."""
@@ -573,21 +609,9 @@ class WriteAheadSink:
                     return
                 bad = "".join(b + "\n" for b in self._bad_lines)
             try:  # no lock the caller's thread takes is held here
-                if bad:
+                if bad or force:
                     self._close_fd()
-                    atomic_write_text(self.journal_path, bad)
-                elif force:
-                    self._close_fd()
-                    with contextlib.suppress(FileNotFoundError):
-                        os.unlink(self.journal_path)
-                        fsync_dir(self.journal_path.parent)
-                elif self._fd is not None:
-                    os.ftruncate(self._fd, 0)
-                    os.fsync(self._fd)
-                else:
-                    with open(self.journal_path, "r+b") as fh:
-                        fh.truncate(0)
-                        os.fsync(fh.fileno())
+                _empty_journal(self.journal_path, self._fd, bad, remove=force)
             except OSError as exc:  # replay skips what the log holds: no duplicate
                 with self._cond:
                     self._compact_failed_at = time.monotonic()
