@@ -25,6 +25,11 @@ def test_run_reports_every_size(monkeypatch):
     keys = ("width", "height", "pairs_per_s", "copy_pairs_per_s")  # more may follow
     assert [{k: row[k] for k in keys} for row in out] == [
         {"width": 400, "height": 300, "pairs_per_s": 123.0, "copy_pairs_per_s": 123.0}]
+    # the defects' added CPU per pair: the defects' time less the plain one's (its overhead)
+    row = out[0]
+    plain_ms = row["defects_ms"] / row["defects_overhead"]
+    assert row["defects_ms"] > 0
+    assert row["defects_cpu_ms"] == pytest.approx(plain_ms + row["defects_ms"], abs=0.02)
 
 
 def test_floor_ratios_compare_cpu_times_with_the_target():
