@@ -337,30 +337,29 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
     nc = 0
     prof32 = profile.astype(np.float32)
     half_cell = 0.5 * cell
-    acc = np.empty(n_cells)
-    w = np.empty(n_cells, dtype=np.int32)
+    sq = np.empty(cols)  # a row's squares (float32 products, as float64) and valid samples
+    vv = np.empty(cols, dtype=np.int32)
     for i in range(rows):
         pr, vr, rr, vc, er = p[i], valid[i], r[i], valid_cells[i], e[i]
         for c in range(cols):
-            rr[c] = pr[c] - prof32[c] if vr[c] else zero
+            x = pr[c] - prof32[c] if vr[c] else zero
+            rr[c] = x
+            sq[c] = x * x
+            vv[c] = vr[c]
         # each cell's sum over its columns in order (r is 0 outside valid: adds nothing)
         for j in range(n_cells):
-            x = rr[j * cell]
-            acc[j] = 0.0 + x * x
-            w[j] = np.int32(vr[j * cell])
-        for q in range(1, cell):
-            for j in range(n_cells):
-                x = rr[j * cell + q]
-                acc[j] += x * x
-                w[j] += np.int32(vr[j * cell + q])
-        for j in range(n_cells):
-            ok = w[j] >= half_cell
+            b = j * cell
+            acc = 0.0 + sq[b]
+            w = vv[b]
+            for q in range(1, cell):
+                acc += sq[b + q]
+                w += vv[b + q]
+            ok = w >= half_cell
             vc[j] = ok
-            er[j] = acc[j] / max(w[j], 1) if ok else 0.0
+            er[j] = acc / max(w, 1) if ok else 0.0
         for j in range(n_cells):  # the valid cells' values in order, for their median
-            if vc[j]:
-                cells[nc] = er[j]
-                nc += 1
+            cells[nc] = er[j]
+            nc += vc[j]
     return scale, nc
 
 
@@ -380,13 +379,16 @@ def marked_cells(e: np.ndarray, valid_cells: np.ndarray, inv_base: float, limit:
     for i in range(rows):
         up, mid, low = e[max(i - 1, 0)], e[i], e[min(i + 1, rows - 1)]
         xr, mr, vr = excess[i], marked[i], valid_cells[i]
-        for j in range(cols):
+        for j in (0, cols - 1):  # the edge columns: the edge cell repeated
             jl = max(j - 1, 0)
             jr = min(j + 1, cols - 1)
-            v = ((up[jl] + up[j] + up[jr]) + (mid[jl] + mid[j] + mid[jr])
-                 + (low[jl] + low[j] + low[jr])) * ninth * f
-            xr[j] = v
-            mr[j] = (v > lim) & vr[j]
+            xr[j] = ((up[jl] + up[j] + up[jr]) + (mid[jl] + mid[j] + mid[jr])
+                     + (low[jl] + low[j] + low[jr])) * ninth * f
+        for j in range(1, cols - 1):  # the inner columns (vectorises)
+            xr[j] = ((up[j - 1] + up[j] + up[j + 1]) + (mid[j - 1] + mid[j] + mid[j + 1])
+                     + (low[j - 1] + low[j] + low[j + 1])) * ninth * f
+        for j in range(cols):
+            mr[j] = (xr[j] > lim) & vr[j]
 
 
 @njit(**_JIT)
