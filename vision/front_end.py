@@ -533,7 +533,7 @@ class FrontEnd:
     def _over_row_means(self, src: np.ndarray) -> np.ndarray:
         """``src`` (``float32``) divided row by row by its mean over the columns (1 if <= 0)."""
         c0, c1 = self.columns
-        if src.dtype == np.uint16 and src.ndim == 2 and c1 - c0 < 65537:
+        if src.dtype == np.uint16 and src.ndim == 2 and 0 < c1 - c0 < 65537:
             # The same numbers in two passes instead of five: a row's integer sum is exact in
             # float32 below 2**24 (numpy's float32 mean adds exact integers then), the mean
             # and each quotient one correctly rounded float32 division either way.
