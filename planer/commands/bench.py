@@ -1,10 +1,10 @@
 """``planer bench``: throughput of the vision, real-time factor of the simulator, service latency.
 
 Each part is measured by its own module in :mod:`planer.benchmarks` (``vision``, ``sim``,
-``service``, ``camera``, ``moulder``), each exposing ``run(quick: bool)``. ``--json`` prints one
-JSON object whose keys are the parts; without it, a readable table. Without ``--only`` the
-parts of :data:`DEFAULT_PARTS` run (``moulder``, four heads through the service, only when
-named).
+``service``, ``camera``, ``quality_log``, ``moulder``), each exposing ``run(quick: bool)``.
+``--json`` prints one JSON object whose keys are the parts; without it, a readable table.
+Without ``--only`` the parts of :data:`DEFAULT_PARTS` run (``moulder``, four heads through the
+service, only when named).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import json
 import sys
 from typing import Any
 
-DEFAULT_PARTS = ("vision", "sim", "service", "camera")
+DEFAULT_PARTS = ("vision", "sim", "service", "camera", "quality_log")
 """The parts a bare ``planer bench`` runs."""
 PARTS = (*DEFAULT_PARTS, "moulder")
 """Every part ``--only`` takes."""
@@ -58,6 +58,10 @@ def _format(name: str, result: Any) -> str:
             return service_text(result)
         if name == "camera":
             return _camera_text(result)
+        if name == "quality_log":
+            from planer.benchmarks.quality_log import text as quality_log_text
+
+            return quality_log_text(result)
         if name == "moulder":
             from planer.benchmarks.moulder import text as moulder_text
 

@@ -64,3 +64,17 @@ def test_part_text_has_one_block_per_size() -> None:
 def test_unknown_shape_falls_back_to_json() -> None:
     bad = [{"width": 1}]
     assert _format("vision", bad) == f"vision: {json.dumps(bad, indent=2)}"
+
+
+def test_a_bare_bench_runs_the_quality_log_and_formats_it() -> None:
+    from planer.commands.bench import DEFAULT_PARTS
+
+    assert "quality_log" in DEFAULT_PARTS
+    result = {"heads": 4, "rate_hz_per_head": 100.0, "records": 1200, "all_logged": True,
+              "cpu_ms_per_record": 0.339, "records_per_cpu_s": 2953.0, "user_ms_per_record": 0.292,
+              "system_ms_per_record": 0.092, "records_per_append": 4.0,
+              "records_per_transaction": 22.6}
+    text = _format("quality_log", result)
+    assert "0.339 ms a record" in text
+    assert "2953 records per CPU-second" in text
+    assert "4.0 records an fsync'ed journal append, 22.6 a transaction" in text
