@@ -600,16 +600,7 @@ class UniformityLoop:
         t = check_time_forward(now_s, self._t_last)
         self._t_last = t
         f = check_positive("pitch_mm", pitch_mm)
-        w = np.asarray(knife_widths_mm, dtype=float)
-        if w.shape != (cfg.knives,):
-            raise ValueError(f"knife_widths_mm must have {cfg.knives} values, got shape {w.shape}")
-        ws = w.tolist()  # plain floats from here: Z is small, numpy calls cost more than they do
-        if any(math.isinf(v) or v < 0 for v in ws):  # (nan < 0 is false)
-            raise ValueError("knife_widths_mm must be >= 0, finite or nan")
-        if cut_at_s is not None:
-            check_finite("cut_at_s", cut_at_s)
-        if cut_until_s is not None:
-            check_finite("cut_until_s", cut_until_s)
+        ws = _checked_widths(knife_widths_mm, cfg.knives, cut_at_s, cut_until_s)
         self._undo = None
         self.last_gain = 0.0
         if all(math.isnan(v) for v in ws) or cfg.knives == 1:
@@ -864,6 +855,25 @@ def _runout_estimate(a_rows: tuple[tuple[float, ...], ...], o_cut: list[float],
     s_est = [v - e for v, e in zip(_matvec(a_rows, o_cut), y, strict=True)]
     s_mean = _mean(s_est)
     return [v - s_mean for v in s_est]
+
+
+def _checked_widths(knife_widths_mm: Sequence[float], knives: int, cut_at_s: float | None,
+                    cut_until_s: float | None) -> list[float]:
+    """:meth:`UniformityLoop.update`'s inputs checked; the widths as plain floats.
+
+    Plain floats from here: Z is small, numpy calls cost more than they do.
+    """
+    w = np.asarray(knife_widths_mm, dtype=float)
+    if w.shape != (knives,):
+        raise ValueError(f"knife_widths_mm must have {knives} values, got shape {w.shape}")
+    ws = w.tolist()
+    if any(math.isinf(v) or v < 0 for v in ws):  # (nan < 0 is false)
+        raise ValueError("knife_widths_mm must be >= 0, finite or nan")
+    if cut_at_s is not None:
+        check_finite("cut_at_s", cut_at_s)
+    if cut_until_s is not None:
+        check_finite("cut_until_s", cut_until_s)
+    return ws
 
 
 def _zero_mean_in_box(values: list[float], bound: float) -> np.ndarray:
