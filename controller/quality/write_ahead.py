@@ -7,18 +7,21 @@ nothing the caller's thread (the event loop) can be held up by:
   (``make``), appends them to the journal (``<log>.journal.jsonl``, JSON lines) with one
   ``fsync`` (``fdatasync``) per batch, says so (``on_durable``) and hands them on. It appends
   at most once per :data:`JOURNAL_WAIT_S` (what comes meanwhile joins the next batch; the
-  first record after a pause goes at once) and never waits for the database: a record is
-  durable on local disk within :data:`JOURNAL_WAIT_S` and one fsync of its pair, whatever
-  the log does. A batch the journal could not take is answered ``on_durable(items, False)``
-  and, once its records are durable after all (the journal's retry, or the log took them),
-  answered again with ``True``: every item is answered durable exactly once, or never
-  (nowhere durable at :meth:`~WriteAheadSink.close`).
+  first record after a pause, and a full batch, go at once) and never waits for the
+  database: a record is durable on local disk once the rest of that wait (or the append on
+  its way, when it takes longer) and its own fsync are over, whatever the log does. A batch
+  the journal could not take is answered ``on_durable(items, False)`` and, once its records
+  are durable after all (the journal's retry, or the log took them), answered again with
+  ``True`` (always after the ``False``: the database thread gets them only then): every item
+  is answered durable exactly once, or never (nowhere durable at
+  :meth:`~WriteAheadSink.close`).
 * the **database thread** writes the journalled records to the log, in order, each batch in
   one transaction with the records' UUIDs (the log skips a uid it holds, so a journal that
   still holds logged records is replayed safely), at most one transaction per
-  :data:`DB_WAIT_S`. A failed write is tried again after a back-off (0.2 s doubling to 5 s).
-  Every call has a time limit (:data:`DB_TIMEOUT_S`, :meth:`QualityLog.set_write_timeout`);
-  a call that never returns (a PostgreSQL server stopped) holds up only this thread.
+  :data:`DB_WAIT_S` (unless a full batch or a backlog on disk waits). A failed write is
+  tried again after a back-off (0.2 s doubling to 5 s). Every call has a time limit
+  (:data:`DB_TIMEOUT_S`, :meth:`QualityLog.set_write_timeout`); a call that never returns
+  (a PostgreSQL server stopped) holds up only this thread.
 
 A record is encoded once: the journal line and the log's row share the JSON text of its
 ``extra`` (:func:`~controller.quality.schema.storable`). Neither thread waits for more records
@@ -38,6 +41,7 @@ held across I/O.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import sys
 import threading
@@ -92,7 +96,8 @@ CLOSE_TIMEOUT_S = 5.0
 """How long :meth:`WriteAheadSink.close` waits for the database by default, s."""
 JOURNAL_WAIT_S = 0.04
 """At most one journal append (one fsync) per this long, s: the records that come meanwhile
-wait for the next (at 100 pairs/s about four a batch). The first after a pause goes at once."""
+wait for the next (at 100 pairs/s about four a batch). The first after a pause (or the start)
+and a full batch (:data:`JOURNAL_BATCH_MAX`) go at once."""
 DB_WAIT_S = 0.25
 """At most one database transaction per this long, s (the records are durable in the journal
 meanwhile). Neither wait holds up :meth:`WriteAheadSink.close` or
@@ -275,7 +280,9 @@ class WriteAheadSink:
         self._log_unavailable = False
         self._journal_error: str | None = None
         self._last_put = time.monotonic()
-        self._journal_at = self._db_at = 0.0  # the last journal append, database write
+        # the last journal append, database write: none yet (the first goes at once, however
+        # long the clock has run)
+        self._journal_at = self._db_at = -math.inf
         self._hurry = 0  # callers of wait_logged: no waiting for more records meanwhile
         self._closing = False
         self._stop_db = False
@@ -378,6 +385,10 @@ class WriteAheadSink:
                     self._on_durable(items, ok)
                 if late:
                     self._on_durable(late, True)
+            if not ok and entries:  # answered False first: the log's True comes after it
+                with self._cond:
+                    self._todo.extend(entries)  # the log may still take them
+                    self._db_cv.notify()
 
     def _wait_left(self, until: float, waiting: int, most: int) -> float:
         """How long a writer thread still waits for more records (``_cond`` held), s."""
@@ -400,9 +411,11 @@ class WriteAheadSink:
 
     def _journal(self, retry: list[JournalEntry], entries: list[JournalEntry],
                  items: list[Any]) -> tuple[bool, list[Any]]:
-        """Append and fsync; hand the entries to the database thread.
+        """Append and fsync; hand the entries to the database thread when that worked.
 
-        Returns whether it worked, and the items of ``retry`` now durable at last.
+        Returns whether it worked, and the items of ``retry`` now durable at last. Entries the
+        journal could not take are kept in memory (``_unsaved``); the caller hands them on
+        after answering them ``False``.
         """
         lines = [e.line().encode("utf-8") for e in retry + entries]
         with self._file_lock:
@@ -436,8 +449,6 @@ class WriteAheadSink:
                     for e, item in zip(entries, items, strict=True):
                         self._unsaved[e.uid] = e
                         self._unsaved_items[e.uid] = item
-                    self._todo.extend(entries)  # the log may still take them
-                    self._db_cv.notify()
                 self._last_put = time.monotonic()
                 self._publish()
         return ok, late
@@ -471,7 +482,7 @@ class WriteAheadSink:
                     if self._compact_due():
                         break
                     self._db_cv.wait(COMPACT_IDLE_S)
-                while self._todo and (left := self._wait_left(
+                while self._todo and self._spill is None and (left := self._wait_left(
                         self._db_at + DB_WAIT_S, len(self._todo), DB_BATCH_MAX)) > 0:
                     self._db_cv.wait(left)  # more records for this transaction
                 if self._abandoned or (self._stop_db and not self._todo and self._spill is None):

@@ -67,6 +67,7 @@ def _until(sink: WriteAheadSink, ok) -> None:
 
 def test_records_that_come_while_the_journal_waits_join_one_append(tmp_path, monkeypatch):
     monkeypatch.setattr(write_ahead, "JOURNAL_WAIT_S", HOUR_S)
+    monkeypatch.setattr(write_ahead, "COMPACT_IDLE_S", HOUR_S)  # the journal read below
     with QualityLog(tmp_path / "q.db") as log:
         durable = Durable()
         sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl", on_durable=durable)
@@ -125,17 +126,43 @@ def test_a_full_batch_waits_for_no_more_records(tmp_path, monkeypatch):
         assert [r.seq for r in log.records()] == list(range(4))
 
 
+class WatchedLog:
+    """A real log that notes, per transaction, whether the sink had already given up waiting."""
+
+    def __init__(self, log: QualityLog) -> None:
+        self.log = log
+        self.sink: WriteAheadSink | None = None
+        self.given_up: list[bool] = []
+
+    def append(self, record, *, uid=None, extra_json=None):
+        return self.append_many([record], uids=[uid], extra_json=[extra_json])[0]
+
+    def append_many(self, records, *, uids=None, extra_json=None):
+        self.given_up.append(self.sink._stop_db)
+        return self.log.append_many(records, uids=uids, extra_json=extra_json)
+
+    def __getattr__(self, name):
+        return getattr(self.log, name)
+
+
 def test_close_waits_for_no_more_records(tmp_path, monkeypatch):
     # were close to wait out the journal's or the database's wait, the records would still
-    # be pending after its time limit (the journal named, not None)
-    monkeypatch.setattr(write_ahead, "JOURNAL_WAIT_S", 30.0)
-    monkeypatch.setattr(write_ahead, "DB_WAIT_S", 30.0)
-    with QualityLog(tmp_path / "q.db") as log:
-        sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl")
-        for i in range(5):
+    # be pending when close stops waiting for the log (its time limit)
+    monkeypatch.setattr(write_ahead, "JOURNAL_WAIT_S", HOUR_S)
+    monkeypatch.setattr(write_ahead, "DB_WAIT_S", HOUR_S)
+    with QualityLog(tmp_path / "q.db") as real:
+        log = WatchedLog(real)
+        durable = Durable()
+        log.sink = sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl",
+                                         on_durable=durable)
+        sink.put(_rec(0))
+        _until(sink, lambda st: st.counters["logged"] == 1)  # both windows open from here
+        for i in range(1, 5):
             sink.put(_rec(i))
-        assert sink.close(timeout_s=10.0) is None and sink.state.pending == 0
-        assert [r.seq for r in log.records()] == list(range(5))
+        assert sink.close(timeout_s=BACKSTOP_S) is None and sink.state.pending == 0
+        assert log.given_up == [False, False]  # [0], [1, 2, 3, 4] while close still waited
+        assert [r.seq for r in real.records()] == list(range(5))
+        assert [r.seq for r in durable.items] == list(range(5))  # each answered once
 
 
 def test_a_record_is_encoded_once_for_the_journal_and_the_log(tmp_path, monkeypatch):
@@ -150,6 +177,7 @@ def test_a_record_is_encoded_once_for_the_journal_and_the_log(tmp_path, monkeypa
         return dumps(obj, *a, **kw)
 
     monkeypatch.setattr(schema.json, "dumps", counting)
+    monkeypatch.setattr(write_ahead, "COMPACT_IDLE_S", HOUR_S)  # the journal read below
     with QualityLog(tmp_path / "q.db", machine_id="m1") as log:
         sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl")
         sink.put(rec)
