@@ -380,15 +380,17 @@ class WriteAheadSink:
                 retry = list(self._unsaved.values())
             entries = [self._entry(item) for item in items]
             ok, late = self._journal(retry, entries, items)
-            if self._on_durable is not None:
-                if items:
-                    self._on_durable(items, ok)
-                if late:
-                    self._on_durable(late, True)
-            if not ok and entries:  # answered False first: the log's True comes after it
-                with self._cond:
-                    self._todo.extend(entries)  # the log may still take them
-                    self._db_cv.notify()
+            try:
+                if self._on_durable is not None:
+                    if items:
+                        self._on_durable(items, ok)
+                    if late:
+                        self._on_durable(late, True)
+            finally:
+                if not ok and entries:  # answered False first: the log's True comes after
+                    with self._cond:
+                        self._todo.extend(entries)  # the log may still take them
+                        self._db_cv.notify()
 
     def _wait_left(self, until: float, waiting: int, most: int) -> float:
         """How long a writer thread still waits for more records (``_cond`` held), s."""
