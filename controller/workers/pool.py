@@ -13,8 +13,10 @@ path), in batches of ``depth // 2`` while it is saturated (one wake-up of the se
 several pairs: what lets two workers on two cores scale). The service reads the pipe on its
 event loop (``loop.add_reader``: no thread in between; one ``os.read`` per wake-up, the whole
 messages cut out of it). The camera's roll is searched for on the pairs the service picks in
-sequence order (:class:`_RollPlan`: as often as in process, never less), and one deadline
-timer watches all pairs in flight (none per pair).
+sequence order (:class:`_RollPlan`: the pairs the board's calibrator searches on in process;
+a board's pairs handed out before its first confident roll came back go to one worker, which
+decides for them as in process), and one deadline timer watches all pairs in flight (none per
+pair).
 
 The pool only measures; the service consumes the results in sequence order
 (:meth:`controller.service.pipeline.PairPipeline.submit`), so the control loops see the pairs in
@@ -47,7 +49,7 @@ from typing import Any
 from controller.service.events import exc_name
 from controller.service.measurement import MachineFacts
 from controller.workers.link import WorkerLink, WorkerOutcome
-from controller.workers.process import _cal_state
+from controller.workers.process import RollChain, _cal_state
 
 __all__ = [
     "MeasureWorkerPool",
@@ -120,37 +122,105 @@ def plan_workers(requested: int, *, cores: int) -> tuple[int, str | None]:
                    f"process{'es' if cores != 1 else ''}")
 
 
+class _Chain:
+    """A board's pairs handed out before its first confident roll came back: one worker's.
+
+    Whether such a pair searches depends on what the searches before it found, which the
+    service does not know yet: they all go to ``link``'s worker, which measures them in order
+    and decides as the board's calibrator in process would (:class:`RollChain`). ``tickets``:
+    the chain's pairs not answered yet.
+    """
+
+    __slots__ = ("key", "link", "tickets")
+
+    def __init__(self, key: int, link: WorkerLink) -> None:
+        self.key = key
+        self.link = link
+        self.tickets: list[int] = []
+
+
 class _RollPlan:
     """When a board's pairs search for the camera's roll, decided in sequence order.
 
     In process the board's calibrator searches on one pair in ``roll_every`` and the pairs
-    between use the last confident roll. A worker's copy of the calibrator cannot count the
-    pairs in flight (without this each pair searched: 8-10 % more work per pair than in
-    process), so the service decides at :meth:`MeasureWorkerPool.submit` (sequence order): a
-    search every ``roll_every`` pairs as in process, and one on every pair while no confident
-    roll came back yet (a new board's first pairs are in flight at once): never less work than
-    in process. The newest confident result by sequence is the one handed out.
+    between use the last confident roll (on every pair while it has none). A worker's copy of
+    the calibrator cannot count the pairs in flight, so the service decides at
+    :meth:`MeasureWorkerPool.submit` (sequence order): once a confident roll came back, a
+    search every ``roll_every`` pairs as in process, the pairs between given the newest
+    confident roll that came back (any worker measures them). Before that (a board's first
+    pairs, in flight at once) the pairs form a :class:`_Chain`: one worker decides for them
+    as in process, and the first confident roll to come back tells the service where the
+    chain's count stands (:meth:`found`). The same pairs search as in process, whatever the
+    timing (without the chain every pair in flight before the first roll came back searched:
+    twice the searches of in process in the moulder's bench).
     """
 
-    __slots__ = ("age", "roll", "ticket")
+    __slots__ = ("age", "chain", "every", "roll", "ticket")
 
     def __init__(self) -> None:
         self.age = 0  # pairs handed the roll since the last search was handed out
         self.roll: tuple[float, float] | None = None
         self.ticket = 0  # the pair that found it
+        self.chain: _Chain | None = None
+        self.every = 1
 
-    def next(self, roll_every: int) -> tuple[float, ...]:
-        """The next pair's directive: ``()`` search, ``(roll_deg, confidence)`` use it."""
-        if self.roll is None or self.age + 1 >= roll_every:
+    def next(self, roll_every: int, ticket: int = 0,
+             link: Callable[[], WorkerLink | None] | None = None) -> tuple[Any, ...]:
+        """The next pair's directive: ``()`` search, ``(roll_deg, confidence)`` use it.
+
+        Without a confident roll yet: a :class:`RollChain` (the pair ``ticket`` joins the
+        chain, started on the worker ``link()`` picks), or ``()`` when there is no ``link``
+        or it picks none.
+        """
+        self.every = roll_every
+        if self.roll is None:
+            chain = self.chain
+            start = chain is None
+            if start:
+                w = None if link is None else link()
+                if w is None:
+                    return ()
+                chain = self.chain = _Chain(next(_CHAIN_KEYS), w)
+            chain.tickets.append(ticket)
+            return RollChain(chain.key, start)
+        if self.age + 1 >= roll_every:
             self.age = 0
             return ()
         self.age += 1
         return self.roll
 
     def found(self, ticket: int, roll: tuple[float, float] | None) -> None:
-        """A pair's search came back (any order): keep it if confident and the newest."""
+        """A pair came back (any order) with its search's confident roll (or ``None``).
+
+        The newest confident roll by sequence is kept. A chain's first confident roll ends
+        the chain: the count goes on from it over the chain's pairs behind it, as their
+        worker counts. A chain whose pairs all came back without one ends too (the next
+        pair searches).
+        """
+        chain = self.chain
+        if chain is not None and ticket in chain.tickets:
+            chain.tickets.remove(ticket)
+            if roll is not None:
+                self.chain = None
+                self.roll, self.ticket, self.age = roll, ticket, 0
+                for _ in range(sum(1 for t in chain.tickets if t > ticket)):
+                    self.next(self.every)  # the chain's pairs behind it, as counted there
+            elif not chain.tickets:
+                self.chain = None
+            return
         if roll is not None and ticket > self.ticket:
             self.roll, self.ticket = roll, ticket
+
+    def lost(self, ticket: int) -> None:
+        """Pair ``ticket`` will not come back (failed while waiting for a worker)."""
+        chain = self.chain
+        if chain is not None and ticket in chain.tickets:
+            chain.tickets.remove(ticket)
+            if not chain.tickets:
+                self.chain = None
+
+
+_CHAIN_KEYS = itertools.count(1)
 
 
 @dataclass
@@ -162,27 +232,10 @@ class _Job:
     calibrator: Any
     deadline: float = math.inf  # event-loop time it fails at (waiting, then measuring)
     slot: int | None = None
-    roll: tuple[float, ...] | None = None  # the roll directive (_RollPlan.next)
+    roll: tuple[Any, ...] | None = None  # the roll directive (_RollPlan.next)
     plan: _RollPlan | None = None
     factory: int = 0  # which factory measures it (MeasureWorkerPool.factory_index)
-
-
-def _plan_roll(rolls: Any, job: _Job) -> None:
-    """``job``'s roll directive, decided in sequence order (:class:`_RollPlan`).
-
-    ``rolls`` maps each calibrator (weakly) to its plan.
-    """
-    cal = job.calibrator
-    every = getattr(cal, "roll_every", None)
-    if cal is None or isinstance(every, bool) or not isinstance(every, int):
-        return  # a calibrator without a roll schedule: left to it
-    try:
-        plan = rolls.get(cal)
-        if plan is None:
-            plan = rolls[cal] = _RollPlan()
-    except TypeError:  # not weakly referable: left to the calibrator
-        return
-    job.plan, job.roll = plan, plan.next(every)
+    chain: _Chain | None = None  # its roll chain: only its worker measures it
 
 
 def _settle(job: _Job, outcome: WorkerOutcome | BaseException) -> None:
@@ -215,8 +268,7 @@ class PoolForFactory:
         self.index = pool.factory_index(factory)
 
     def submit(self, frame: Any, *, facts: MachineFacts | None = None,
-               calibrator: Any = None,
-               factory: Callable[..., Any] | None = None) -> asyncio.Future:
+               calibrator: Any = None) -> asyncio.Future:
         """:meth:`MeasureWorkerPool.submit` with this service's factory."""
         return self.pool.submit(frame, facts=facts, calibrator=calibrator, factory=self.factory)
 
@@ -499,12 +551,40 @@ class MeasureWorkerPool:
         if not any(w.conn is not None for w in self._workers):
             _settle(job, WorkerOutcome(f"measurement failed: {self._gone()}"))
             return job.future
-        _plan_roll(self._rolls, job)
+        self._plan_roll(job)
         job.deadline = loop.time() + WAIT_FOR_WORKER_S
         self._backlog.append(job)
         self._pump()
         self._watch()
         return job.future
+
+    def _plan_roll(self, job: _Job) -> None:
+        """``job``'s roll directive, decided in sequence order (:class:`_RollPlan`).
+
+        One plan per calibrator (weakly: a board's, of one head); a calibrator without a roll
+        schedule, or one not weakly referable, is left to decide itself.
+        """
+        cal = job.calibrator
+        every = getattr(cal, "roll_every", None)
+        if cal is None or isinstance(every, bool) or not isinstance(every, int):
+            return
+        try:
+            plan = self._rolls.get(cal)
+            if plan is None:
+                plan = self._rolls[cal] = _RollPlan()
+        except TypeError:
+            return
+        job.plan, job.roll = plan, plan.next(every, job.ticket, self._least_busy)
+        if type(job.roll) is RollChain:
+            job.chain = plan.chain
+
+    def _least_busy(self) -> WorkerLink | None:
+        """The ready worker holding the fewest pairs (the lowest index first), or ``None``."""
+        best = None
+        for w in self._workers:
+            if w.ready and w.conn is not None and (best is None or len(w.jobs) < len(best.jobs)):
+                best = w
+        return best
 
     def _gone(self) -> str:
         return "no measurement worker left: " + ("; ".join(self.problems[-2:]) or "none started")
@@ -525,17 +605,33 @@ class MeasureWorkerPool:
             self._loop.remove_reader(w.conn.fileno())
 
     def _pump(self) -> None:
-        """Hand waiting pairs to free workers (the least busy first, then the lowest index)."""
+        """Hand waiting pairs to free workers (the least busy first, then the lowest index).
+
+        A pair of a roll chain goes only to its chain's worker: while that one is full the
+        pairs behind it go on to the others.
+        """
         depth = self.depth
-        while self._backlog:
-            best = None
-            for w in self._workers:
-                if w.ready and len(w.jobs) < depth and (best is None
-                                                        or len(w.jobs) < len(best.jobs)):
-                    best = w
-            if best is None:
+        backlog = self._backlog
+        at = 0
+        while at < len(backlog):
+            job = backlog[at]
+            if job.chain is not None:
+                w = job.chain.link
+                if not (w.ready and len(w.jobs) < depth):
+                    at += 1
+                    continue
+            else:
+                w = None
+                for x in self._workers:
+                    if x.ready and len(x.jobs) < depth and (w is None
+                                                            or len(x.jobs) < len(w.jobs)):
+                        w = x
+                if w is None:
+                    return
+            del backlog[at]
+            self._send(w, job)
+            if w.conn is None:  # it died: the pump comes again (_died)
                 return
-            self._send(best, self._backlog.popleft())
 
     def _send(self, w: WorkerLink, job: _Job) -> None:
         frame = job.frame
@@ -603,6 +699,8 @@ class MeasureWorkerPool:
         now = self._loop.time()
         for job in [j for j in self._backlog if j.deadline <= now]:
             self._backlog.remove(job)
+            if job.plan is not None:
+                job.plan.lost(job.ticket)
             _settle(job, WorkerOutcome(
                 f"measurement failed: no measurement worker free for {WAIT_FOR_WORKER_S:g} s"))
         for w in self._workers:
@@ -632,6 +730,15 @@ class MeasureWorkerPool:
                 self._backlog.appendleft(job)
         return len(failed)
 
+    def _unchain(self, w: WorkerLink) -> None:
+        """End the roll chains of the gone worker ``w``: their pairs left search (never less)."""
+        for plan in list(self._rolls.values()):
+            if plan.chain is not None and plan.chain.link is w:
+                plan.chain = None
+        for job in self._backlog:
+            if job.chain is not None and job.chain.link is w:
+                job.chain, job.roll = None, ()
+
     def _died(self, w: WorkerLink, why: str) -> None:
         """A worker is gone: another one starts; what it held is answered or handed on.
 
@@ -648,6 +755,7 @@ class MeasureWorkerPool:
             self._answer(w, reply)
         text = f"measurement worker {w.index} {why}"
         n = self._hand_on(w, f"measurement failed: {text}")
+        self._unchain(w)
         if self._closed:
             return
         if was_ready:

@@ -38,19 +38,54 @@ _HEADER = struct.Struct("!i")  # Connection.send's length header ...
 _LONG_HEADER = struct.Struct("!Q")  # ... and its long form after -1
 
 
+class RollChain(NamedTuple):
+    """The roll directive of a board's pairs handed out before its first confident roll came.
+
+    The service cannot know yet whether such a pair searches (the pairs before it may find no
+    confident roll), so all of them go to one worker, in sequence order, and that worker
+    decides as the board's calibrator in process would: with the calibrator of the chain's
+    first pair (``start``), kept under ``key`` (:class:`controller.workers.pool._RollPlan`).
+    """
+
+    key: int
+    start: bool
+
+
+KEEP_CHAINS = 32
+"""Roll chains a worker keeps (a chain lives only until its first confident roll reached the
+service: a few per head sharing the workers)."""
+
+
+def _chain_keeper(chains: dict[int, Any], chain: RollChain, calibrator: Any) -> Any:
+    """The calibrator that decides the roll of ``chain``'s pairs in this worker.
+
+    The chain's first pair's calibrator (kept); a chain this worker does not know (it cannot
+    happen with the pool's pinning) starts anew with the pair's own: a search, never less.
+    """
+    keeper = None if chain.start else chains.get(chain.key)
+    if keeper is None:
+        keeper = chains[chain.key] = calibrator
+        while len(chains) > KEEP_CHAINS:
+            del chains[next(iter(chains))]  # the oldest
+    return keeper
+
+
 class _RecordingCalibrator:
     """The board's calibrator as the worker got it, noting each estimate folded in.
 
     ``roll`` is the service's word on the camera's roll for this pair
     (:class:`controller.workers.pool._RollPlan`): ``None`` leaves it to the calibrator,
-    ``()`` has the pair search for it, ``(roll_deg, confidence)`` has it use that; a search's
-    confident result is noted in :attr:`found`.
+    ``()`` has the pair search for it, ``(roll_deg, confidence)`` has it use that, a
+    :class:`RollChain` leaves it to ``keeper`` (the chain's calibrator in this worker); a
+    search's confident result is noted in :attr:`found`.
     """
 
-    def __init__(self, calibrator: Any, roll: tuple[float, ...] | None = None) -> None:
+    def __init__(self, calibrator: Any, roll: tuple[Any, ...] | None = None,
+                 keeper: Any = None) -> None:
         self.calibrator = calibrator
         self.estimates: list[Any] = []
         self.roll = roll
+        self.keeper = calibrator if roll is None else keeper
         self.found: tuple[float, float] | None = None
 
     def update(self, estimate: Any) -> Any:
@@ -58,15 +93,15 @@ class _RecordingCalibrator:
         return self.calibrator.update(estimate)
 
     def known_roll(self) -> tuple[float, float] | None:
-        if self.roll is None:
-            return self.calibrator.known_roll()
+        if self.keeper is not None:
+            return self.keeper.known_roll()
         return (self.roll[0], self.roll[1]) if self.roll else None
 
     def note_roll(self, roll_deg: float, confidence: float, *, min_confidence: float) -> None:
         if math.isfinite(confidence) and confidence >= min_confidence:
             self.found = (float(roll_deg), float(confidence))
-        if self.roll is None:
-            self.calibrator.note_roll(roll_deg, confidence, min_confidence=min_confidence)
+        if self.keeper is not None:
+            self.keeper.note_roll(roll_deg, confidence, min_confidence=min_confidence)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.calibrator, name)
@@ -454,6 +489,7 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
     gc.freeze()  # the set-up's objects never need collecting
     collector = IdleCollector().install()  # the collections after a reply, not inside a pair
     blocks: dict[str, Any] = {}
+    chains: dict[int, Any] = {}  # the roll chains' calibrators (RollChain)
     conn.send(("ready", index, os.getpid()))
     inbox, replies = _Inbox(conn), _Replies(conn, hold=hold)
     try:
@@ -476,7 +512,8 @@ def _worker_main(conn: Any, factory: Any, shape: tuple[int, int] | None, index: 
                     pass
                 continue
             try:  # a job: its factory's number last
-                reply, slot = _run_job(stages.stage(msg[6], msg[-1]), blocks, msg[:-1])
+                reply, slot = _run_job(stages.stage(msg[6], msg[-1]), blocks, msg[:-1],
+                                       chains)
             except BaseException as exc:  # a bug: told to the service, then ends with it
                 replies.flush()
                 _send_whole(conn, ("fault", msg[1], f"{exc_name(exc)}: {exc}"))
@@ -502,9 +539,12 @@ def _attach(blocks: dict[str, Any], name: str) -> Any:
     return block
 
 
-def _run_job(stage: MeasurementStage, blocks: dict[str, Any],
-             msg: tuple) -> tuple[tuple, tuple[Any, int, int] | None]:
-    """Measure one pair: the reply for the service, and the pair's slot (``None``: none)."""
+def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple,
+             chains: dict[int, Any] | None = None) -> tuple[tuple, tuple[Any, int, int] | None]:
+    """Measure one pair: the reply for the service, and the pair's slot (``None``: none).
+
+    ``chains``: the worker's roll chains' calibrators (:class:`RollChain`).
+    """
     from protocol.frames import Frame
 
     (_, ticket, where, counts_a, counts_b, speed_mm_s, facts, cal, cal_values, roll) = msg
@@ -523,7 +563,10 @@ def _run_job(stage: MeasurementStage, blocks: dict[str, Any],
     kwargs: dict[str, Any] = {}
     recorder = None
     if calibrator is not None:
-        recorder = _RecordingCalibrator(calibrator, roll)
+        keeper = None
+        if type(roll) is RollChain:
+            keeper = _chain_keeper({} if chains is None else chains, roll, calibrator)
+        recorder = _RecordingCalibrator(calibrator, roll, keeper)
         kwargs["calibrator"] = recorder
     slot = None if buf is None else (buf, offset, 2 * nbytes)
     t0 = time.perf_counter()

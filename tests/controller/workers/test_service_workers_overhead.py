@@ -4,8 +4,9 @@ The service reads each worker's replies with one ``os.read`` per wake-up and cut
 out itself: a reply split over reads, or several in one, must reach their own pairs, in any
 order of completion, with failures reported as such. The camera's roll is searched for on the
 pairs the service picks in sequence order (:class:`controller.workers.pool._RollPlan`):
-exactly as the board's calibrator in process when each pair comes back before the next, and
-never less often (at most the pairs in flight more) when they overlap.
+exactly the pairs the board's calibrator picks in process, however the pairs in flight overlap
+(a board's first pairs, before a confident roll came back, go as one worker's chain); without a
+worker to chain on, never less often (at most the pairs in flight more).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.workers.pool import MeasurementWorkerError, MeasureWorkerPool, _RollPlan
+from controller.workers.process import RollChain, _chain_keeper
 from vision.calibration.selfcal import SelfCalibrator
 
 MIN_CONFIDENCE = 0.3
@@ -76,6 +78,62 @@ def test_roll_plan_with_pairs_in_flight_never_searches_less_and_at_most_capacity
         in_flight.append((ticket, directive))
     in_process = -(-n // every)  # pairs 0, every, 2 every, ... search
     assert in_process <= searches <= in_process + capacity - 1
+
+
+def _in_process_searches(confidences: list[float], every: int) -> list[bool]:
+    """Which pairs the board's calibrator searches on in process (pair i finds 0.01 i)."""
+    cal, out = SelfCalibrator(roll_every=every), []
+    for i, conf in enumerate(confidences, start=1):
+        known = cal.known_roll()
+        if known is None:
+            cal.note_roll(0.01 * i, conf, min_confidence=MIN_CONFIDENCE)
+        out.append(known is None)
+    return out
+
+
+@settings(max_examples=100, deadline=None)
+@given(every=st.integers(1, 10), capacity=st.integers(1, 8),
+       confidences=st.lists(st.sampled_from([0.0, 0.2, 0.9, 0.9, 0.9]), min_size=1,
+                            max_size=50),
+       data=st.data())
+def test_roll_plan_with_pairs_in_flight_searches_on_the_pairs_in_process_would(
+        every, capacity, confidences, data):
+    n = len(confidences)
+    plan, chains, link = _RollPlan(), {}, object()  # one worker holds the chains' pairs
+    in_flight: list[tuple[int, tuple]] = []
+    searched: dict[int, bool] = {}
+    confident: set[float] = set()
+
+    def measure(ticket: int, directive: tuple) -> None:
+        conf = confidences[ticket - 1]
+        if type(directive) is RollChain:  # the worker decides, as the calibrator would
+            keeper = _chain_keeper(chains, directive, SelfCalibrator(roll_every=every))
+            known = keeper.known_roll()
+            if known is None:
+                keeper.note_roll(0.01 * ticket, conf, min_confidence=MIN_CONFIDENCE)
+        else:
+            known = directive or None
+            if known is not None:  # a roll a search found before, a confident one
+                assert known[0] in confident, (ticket, known)
+        searched[ticket] = known is None
+        found = (0.01 * ticket, conf) if known is None and conf >= MIN_CONFIDENCE else None
+        if found is not None:
+            confident.add(found[0])
+        plan.found(ticket, found)
+
+    def finish_one() -> None:  # any pair in flight, but a chain's pairs in their order
+        k = data.draw(st.integers(0, len(in_flight) - 1))
+        if type(in_flight[k][1]) is RollChain:
+            k = next(i for i, (_, d) in enumerate(in_flight) if type(d) is RollChain)
+        measure(*in_flight.pop(k))
+
+    for ticket in range(1, n + 1):
+        if len(in_flight) == capacity:
+            finish_one()
+        in_flight.append((ticket, plan.next(every, ticket, lambda: link)))
+    while in_flight:
+        finish_one()
+    assert [searched[t] for t in range(1, n + 1)] == _in_process_searches(confidences, every)
 
 
 def test_a_roll_plan_keeps_the_newest_result_whatever_order_they_come_in():
@@ -131,11 +189,9 @@ def test_workers_search_for_the_roll_on_the_pairs_the_plan_picks():
     assert [o.measurement.seq for o in out] == list(range(n))  # in sequence order
     assert len({o.measurement.pid for o in out}) == 2  # both workers measured
     searched = [o.measurement.seq for o in out if o.measurement.used is None]
-    # the first pairs in flight all search (no roll back yet), then one in `every`
-    assert searched[:capacity] == list(range(capacity))
-    assert all(b - a == every for a, b in zip(searched[capacity - 1:], searched[capacity:],
-                                              strict=False))
-    assert -(-n // every) <= len(searched) <= -(-n // every) + capacity - 1
+    # as in process: the first pair, then one in `every` (the first pairs in flight, before
+    # its roll came back, wait for it in its worker)
+    assert capacity > every and searched == list(range(0, n, every))
     for o in out:  # the others used a roll a search found
         if o.measurement.used is not None:
             assert round(o.measurement.used[0] / 0.001) in searched

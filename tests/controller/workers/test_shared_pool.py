@@ -175,3 +175,98 @@ def test_two_services_on_one_pool_each_get_their_own_pairs_in_order(tmp_path):
         assert [r.seq for r in rs] == [f.seq for f in ps]
         assert all(r.ok for r in rs), [r.error for r in rs]
         assert [r.counts_a for r in rs] == [int(f.counts_a) for f in ps]
+
+
+ROLL_CONFIDENCE = 0.3
+
+
+@dataclass(frozen=True)
+class RollHead:
+    """A head's factory whose measurers report whether the pair searched for the roll."""
+
+    tag: str
+
+    def __call__(self, shape):
+        return RollMeasurer(self.tag)
+
+
+class RollMeasurer:
+    """Searches when the calibrator has no roll for the pair (as the vision's ``_orient``).
+
+    Pair ``k``'s search finds roll ``0.001 k``, confident but on one pair in five and on a
+    board's first pair (``counts_b`` = 1: not confident), so a board's first search finds
+    nothing and the next pairs must search too.
+    """
+
+    def __init__(self, tag):
+        self.tag = tag
+
+    def measure(self, image_a, image_b, *, counts_a, counts_b, speed_mm_s=None,
+                calibrator=None):
+        known = calibrator.known_roll()
+        if known is None:
+            conf = 0.1 if counts_b == 1 or counts_a % 5 == 0 else 0.9
+            calibrator.note_roll(0.001 * counts_a, conf, min_confidence=ROLL_CONFIDENCE)
+        return SimpleNamespace(tag=self.tag, k=counts_a, used=known)
+
+
+def _head_pairs(head: int, boards: int, per_board: int) -> list[tuple[int, Frame]]:
+    """A head's pairs: (board, frame), the pair's number unique over the heads."""
+    img = np.zeros((4, 6), dtype=np.uint8)
+    out = []
+    for b in range(boards):
+        for i in range(per_board):
+            k = 10_000 * head + 100 * b + i
+            out.append((b, Frame(seq=k, t_s=0.0, image_a=img, image_b=img, counts_a=k,
+                                 counts_b=1 if i == 0 else 2, speed_mm_s=600.0)))
+    return out
+
+
+def _in_process(pairs, every):
+    """Pair number -> whether it searched, one calibrator per board as the service does."""
+    from vision.calibration.selfcal import SelfCalibrator
+
+    measurer, out, cals = RollMeasurer("-"), {}, {}
+    for board, frame in pairs:
+        cal = cals.setdefault(board, SelfCalibrator(roll_every=every))
+        m = measurer.measure(frame.image_a, frame.image_b, counts_a=frame.counts_a,
+                             counts_b=frame.counts_b, calibrator=cal)
+        out[m.k] = m.used is None
+    return out
+
+
+def test_four_heads_on_two_workers_search_for_the_roll_on_the_pairs_in_process_would():
+    from vision.calibration.selfcal import SelfCalibrator
+
+    every, boards, per_board = 8, 4, 30
+    names = ["bottom", "right", "left", "top"]
+    pairs = {h: _head_pairs(h, boards, per_board) for h in range(len(names))}
+
+    async def run_all():
+        pool = MeasureWorkerPool(RollHead(names[0]), workers=2, timeout_s=60.0).start()
+        views = [pool] + [PoolForFactory(pool, RollHead(n)) for n in names[1:]]
+        cals = {(h, b): SelfCalibrator(roll_every=every) for h in pairs for b in range(boards)}
+        try:
+            futures = []
+            for k in range(boards * per_board):  # the heads' pairs in turn, many in flight
+                for h, view in enumerate(views):
+                    board, frame = pairs[h][k]
+                    futures.append(view.submit(frame, calibrator=cals[(h, board)]))
+            return [await asyncio.wait_for(f, 60.0) for f in futures]
+        finally:
+            pool.close()
+
+    outcomes = asyncio.run(run_all())
+    got = {o.measurement.k: o.measurement for o in outcomes}
+    assert all(o.error is None for o in outcomes) and len(got) == 4 * boards * per_board
+    for h, name in enumerate(names):
+        expected = _in_process(pairs[h], every)
+        mine = {k: m for k, m in got.items() if k // 10_000 == h}
+        assert {m.tag for m in mine.values()} == {name}  # its own factory
+        searched = {k: m.used is None for k, m in mine.items()}
+        assert searched == expected, name  # the same pairs search, so as many
+        assert sum(searched.values()) < len(searched) / 3  # not every pair in flight
+        for k, m in mine.items():  # the others use a confident roll of their own board
+            if m.used is not None:
+                found = round(m.used[0] / 0.001)
+                assert found < k and found // 100 == k // 100 and searched[found]
