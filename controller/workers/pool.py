@@ -200,7 +200,11 @@ class _RollPlan:
         chain = self.chain
         if chain is not None and ticket in chain.tickets:
             chain.tickets.remove(ticket)
-            if roll is not None:
+            if roll is not None and self.roll is not None:  # one came another way (a pair
+                self.chain = None  # handed on from a gone chain's worker): counted from it
+                if ticket > self.ticket:
+                    self.roll, self.ticket = roll, ticket
+            elif roll is not None:
                 self.chain = None
                 self.roll, self.ticket, self.age = roll, ticket, 0
                 for _ in range(sum(1 for t in chain.tickets if t > ticket)):
@@ -630,7 +634,7 @@ class MeasureWorkerPool:
                     return
             del backlog[at]
             self._send(w, job)
-            if w.conn is None:  # it died: the pump comes again (_died)
+            if not w.ready:  # it died (being started again): the pump comes again (_died)
                 return
 
     def _send(self, w: WorkerLink, job: _Job) -> None:

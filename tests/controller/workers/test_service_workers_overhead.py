@@ -415,3 +415,54 @@ def test_what_is_not_a_plain_dataclass_of_float_arrays_goes_as_it_is(meas):
     from controller.workers.process import _pack
 
     assert _pack(meas) is meas
+
+
+def test_a_roll_chains_pairs_search_on_another_worker_when_the_chains_worker_dies():
+    image = np.zeros((4, 5), np.uint8)
+
+    def pair(i):
+        return SimpleNamespace(image_a=image, image_b=image, counts_a=i, counts_b=i,
+                               speed_mm_s=1.0)
+
+    def done(job, found=None):
+        return _message(("done", job[1], None, ("m", job[3]), (), 0.0, found))
+
+    async def main():
+        pool, ends = _fake_pool(2)  # depth 2
+        cal = SelfCalibrator(roll_every=8)
+        try:
+            futures = [pool.submit(pair(i), calibrator=cal) for i in range(5)]
+            held = [ends[0].recv(), ends[0].recv()]  # the chain: all wait for one worker
+            assert not ends[1].poll()
+            assert [j[9] for j in held] == [RollChain(held[0][9].key, True),
+                                            RollChain(held[0][9].key, False)]
+            w = pool._workers[0]  # noqa: SLF001 - it dies while setting up anew: gone
+            w.ready = False
+            pool._died(w, "died (test)")  # noqa: SLF001
+            moved = []
+            while len(moved) < 4:
+                for _ in range(10_000):  # a pair never handed on fails the test, no hang
+                    if ends[1].poll():
+                        break
+                    await asyncio.sleep(0)
+                job = ends[1].recv() if ends[1].poll() else None
+                assert job is not None, f"pairs handed on: {len(moved)} of 4"
+                moved.append(job)
+                found = (0.5, 0.9) if job[3] == 2 else None
+                os.write(ends[1].fileno(), done(job, found))
+            outs = [await asyncio.wait_for(f, BACKSTOP_S) for f in futures]
+            later = pool.submit(pair(5), calibrator=cal)
+            last = ends[1].recv()
+            os.write(ends[1].fileno(), done(last))
+            await asyncio.wait_for(later, BACKSTOP_S)
+            return outs, moved, last
+        finally:
+            pool.close()
+            for far in ends:
+                far.close()
+
+    outs, moved, last = asyncio.run(main())
+    assert "died (test)" in outs[0].error  # the pair it was measuring
+    assert [o.measurement for o in outs[1:]] == [("m", i) for i in range(1, 5)]
+    assert [(j[3], j[9]) for j in moved] == [(i, ()) for i in range(1, 5)]  # all search
+    assert last[9] == (0.5, 0.9)  # then the roll one of them found
