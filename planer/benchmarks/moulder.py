@@ -41,6 +41,7 @@ from types import SimpleNamespace
 from typing import Any
 
 from controller.service.events import EventKind
+from planer.benchmarks.figures import latency_stats, proc_cpu_s
 from planer.benchmarks.service import (
     DRAIN_TIMEOUT_S,
     QUEUE_PAIRS,
@@ -48,9 +49,7 @@ from planer.benchmarks.service import (
     WARMUP_PAIRS,
     _latency_figures,
     _plc_for,
-    latency_stats,
     machine_description,
-    proc_cpu_s,
 )
 
 HEADS: tuple[tuple[str, int], ...] = (("bottom", 2), ("right", 3), ("left", 4), ("top", 5))

@@ -34,7 +34,7 @@ def _cpu_s(pid: int | None) -> float | None:
         return total_ns * 1e-9
     except (OSError, ValueError, IndexError):
         pass
-    from planer.benchmarks.service import proc_cpu_s  # (service imports this module)
+    from planer.benchmarks.figures import proc_cpu_s
 
     return proc_cpu_s(pid, missing=None)
 

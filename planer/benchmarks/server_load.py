@@ -255,7 +255,7 @@ def _children(pid: int) -> list[int]:
 
 def _tree_cpu_s(pid: int) -> dict[str, float]:
     """CPU time so far of ``planer hil`` (``service``) and its servers' process (``servers``)."""
-    from planer.benchmarks.service import proc_cpu_s  # 0 for a process gone
+    from planer.benchmarks.figures import proc_cpu_s
 
     servers = sum(proc_cpu_s(c) or 0.0 for c in _children(pid))
     return {"service": proc_cpu_s(pid) or 0.0, "servers": servers}

@@ -42,9 +42,8 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-import numpy as np
-
 from controller.service.events import EventKind
+from planer.benchmarks.figures import latency_stats
 from planer.benchmarks.scaling import scaling
 
 READY_TIMEOUT_S = 60.0
@@ -76,34 +75,6 @@ QUEUE_PAIRS = 8
 """Pairs the frame source holds; a camera does not wait: when full the oldest pair is dropped
 (counted in ``dropped``), so a service slower than the camera shows as drops, not as an ever
 longer queue."""
-
-
-def latency_stats(values: list[float], *, middle: str = "median") -> dict[str, float]:
-    """The median, ``p99`` and ``max`` of ``values`` (ms), or ``{}`` for none.
-
-    ``middle`` is the median's key: ``"median"`` in this bench's figures, ``"p50"`` in the
-    moulder bench's (:mod:`planer.benchmarks.moulder`; each its JSON's contract).
-    """
-    if not values:
-        return {}
-    a = np.asarray(values, dtype=float)
-    return {middle: float(np.median(a)), "p99": float(np.percentile(a, 99)),
-            "max": float(a.max())}
-
-
-def proc_cpu_s(pid: int | None, *, missing: float | None = 0.0) -> float | None:
-    """User + system CPU seconds of process ``pid`` so far (``/proc/PID/stat``, 10 ms ticks).
-
-    ``missing`` when it cannot be read (no ``pid``, the process gone).
-    """
-    if pid is None:
-        return missing
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as fh:
-            fields = fh.read().rsplit(b")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return missing
 
 
 def machine_description() -> dict[str, Any]:

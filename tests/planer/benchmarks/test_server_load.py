@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from planer.benchmarks import server_load
-from planer.benchmarks.service import latency_stats, proc_cpu_s
+from planer.benchmarks.figures import latency_stats, proc_cpu_s
 
 
 def test_cpu_time_of_a_process_and_of_its_children():
