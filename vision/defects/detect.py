@@ -691,12 +691,27 @@ def detect_defects(smap: SurfaceMap, *, bottoms_mm: np.ndarray | None = None,
         Sorted along the feed.
     """
     s = DefectSettings() if settings is None else settings
-    return _detect(residual(smap, s), bottoms_mm, knives, pitch_mm, s)
+    return detect_in_residual(residual(smap, s), bottoms_mm, knives, pitch_mm, s)
 
 
-def _detect(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
-            pitch_mm: float | None, s: DefectSettings) -> tuple[Defect, ...]:
-    """Every detector on one pair's residual (:func:`detect_defects`)."""
+def detect_in_residual(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
+                       pitch_mm: float | None, s: DefectSettings) -> tuple[Defect, ...]:
+    """Every detector on one pair's residual: :func:`detect_defects` on a residual made.
+
+    Parameters
+    ----------
+    res : Residual
+        The pair's residual (:func:`residual` of its map with ``s``).
+    bottoms_mm, knives, pitch_mm
+        As :func:`detect_defects`.
+    s : DefectSettings
+        The settings ``res`` was made with.
+
+    Returns
+    -------
+    tuple of Defect
+        Sorted along the feed.
+    """
     nicks, taken = knife_nicks(res, s, pitch_mm, knives)
     if taken:
         res = dataclasses.replace(res, marked=_unmark(res.marked, taken))
@@ -768,7 +783,7 @@ class DefectFinder:
         """
         res = self.registered(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg,
                               pitch_mm=pitch_mm, encoder_shift_px=encoder_shift_px)
-        return _detect(res, bottoms_mm, self.knives, pitch_mm, self.settings)
+        return detect_in_residual(res, bottoms_mm, self.knives, pitch_mm, self.settings)
 
     def registered(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
                    roll_deg: float, pitch_mm: float | None = None,

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from core.checks import check_finite, check_positive
-from vision.defects.detect import Defect, Residual, detect_defects, residual
+from vision.defects.detect import Defect, Residual, detect_in_residual, residual
 from vision.defects.grading import pair_grade
 from vision.marks import dominant_period_px
 from vision.registration.registrar import encoder_shift_px
@@ -175,7 +175,7 @@ def refused_surface(finder: DefectFinder, rows_a: np.ndarray, rows_b: np.ndarray
 
     def scored(shift: float) -> tuple[float, Residual]:
         res = residual(mapper(rows_a, rows_b, shift_px=shift, roll_deg=roll_deg,
-                                  albedo=False), settings)
+                              albedo=False), settings)
         return res.median, res
 
     best_shift = enc
@@ -194,8 +194,9 @@ def refused_surface(finder: DefectFinder, rows_a: np.ndarray, rows_b: np.ndarray
             if value < best_score:
                 best_shift, best_score, best_res = shift, value, res
     pitch = map_pitch_mm(best_res)
-    found = detect_defects(best_res.smap, knives=finder.knives,
-                           pitch_mm=pitch if math.isfinite(pitch) else None, settings=settings)
+    # the detectors on the residual already made (not a second one from its map)
+    found = detect_in_residual(best_res, None, finder.knives,
+                               pitch if math.isfinite(pitch) else None, settings)
     g = pair_grade(found)
     return RefusedSurface(found, g.grade, g.reason, best_shift, enc, pitch)
 
