@@ -444,9 +444,7 @@ def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None 
     if n_ref < 4 or n_hot == 0:
         return [], set()
     ratio = energy / max(median, 1e-18)  # NaN on rows without samples: never hot
-    hot = ratio >= settings.nick_ratio
-    if not hot.any():
-        return [], set()
+    hot = ratio >= settings.nick_ratio  # n_hot of them
     edges = np.flatnonzero(np.diff(np.r_[0, hot.astype(np.int8), 0]))
     bands = list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
     if len(bands) > 2:

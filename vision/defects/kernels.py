@@ -373,6 +373,8 @@ def marked_cells(e: np.ndarray, valid_cells: np.ndarray, inv_base: float, limit:
     a valid cell (:func:`vision.defects.detect.residual`).
     """
     rows, cols = e.shape
+    if cols == 0:  # no cells (the edge columns' writes would leave the arrays)
+        return
     ninth = np.float32(1.0 / 9.0)
     f = np.float32(inv_base)
     lim = np.float32(limit)

@@ -160,6 +160,13 @@ def test_marked_cells_as_opencv():
     np.testing.assert_allclose(excess, ref, rtol=2e-6)
     tie = np.abs(ref - 4.0) < 1e-5  # a hair from the limit: either side
     assert np.array_equal(marked[~tie], ((ref > 4.0) & valid)[~tie]) and marked.any()
+    one = e[:, :1].copy()  # one column: both edges at once
+    x1, m1 = np.empty_like(one), np.empty((30, 1), dtype=bool)
+    kernels.marked_cells(one, valid[:, :1].copy(), 1.0, 0.0, x1, m1)
+    np.testing.assert_allclose(x1, cv2.blur(one, (3, 3), borderType=cv2.BORDER_REFLECT),
+                               rtol=2e-6)
+    kernels.marked_cells(e[:, :0].copy(), valid[:, :0].copy(), 1.0, 4.0,
+                         np.empty((30, 0), np.float32), np.empty((30, 0), bool))  # no cells
 
 
 def test_fold_rows_as_numpy():
