@@ -246,8 +246,7 @@ class AmpBus:
         for _ in range(max_frames):
             if not self._take(self._recv(0.0), now_s, heard):
                 break
-        amps = (list(self.amplifiers.values()) if only is None
-                else [self.amplifiers[only]] if only in self.amplifiers else [])
+        amps = self._served(only)
         self._serve(amps, now_s)
         end = time.monotonic() + self.sdo_wait_s
         while any(a.reading for a in amps):
@@ -276,9 +275,13 @@ class AmpBus:
 
     def serve(self, now_s: float, *, only: int | None = None) -> None:
         """What each amplifier (``only``: that node's) has due at ``now_s``: SDO, NMT start."""
-        amps = self.amplifiers.values() if only is None else (
-            [self.amplifiers[only]] if only in self.amplifiers else [])
-        self._serve(amps, now_s)
+        self._serve(self._served(only), now_s)
+
+    def _served(self, only: int | None) -> list[CanopenAmplifier]:
+        """The amplifiers served: every one, or node ``only``'s (none when it has none)."""
+        if only is None:
+            return list(self.amplifiers.values())
+        return [self.amplifiers[only]] if only in self.amplifiers else []
 
     def _serve(self, amps: Any, now_s: float) -> None:
         self.now_s = float(now_s)
