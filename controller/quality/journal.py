@@ -255,6 +255,7 @@ class RecordSink:
         self.log = log
         self._uid_ok, self.journal_path = checked_sink_args(log, journal_path)
         self._text_ok = takes_keyword(log.append, "extra_json")
+        self._many_text_ok = takes_keyword(getattr(log, "append_many", None), "extra_json")
         self._lock = threading.RLock()
         self._entries: list[JournalEntry] = []  # in the journal file, not known to be in the log
         self._bad_lines: list[str] = []  # journal lines that are not records (kept, never lost)
@@ -481,7 +482,7 @@ class RecordSink:
             kw: dict[str, Any] = {}
             if self._uid_ok:
                 kw["uids"] = [e.uid for e in entries]
-            if takes_keyword(batch, "extra_json"):
+            if self._many_text_ok:
                 kw["extra_json"] = [e.extra_json for e in entries]
             try:
                 ids = batch([e.record for e in entries], **kw)
