@@ -34,7 +34,6 @@ from core.checks import check_positive
 from vision import ffts, kernels
 
 SCATTER_GRID_MM = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8)
-_POSITIVE_GRID = tuple(e for e in SCATTER_GRID_MM if e > 0)  # fit_calibration's lengths
 
 
 @dataclass(frozen=True)
@@ -217,8 +216,7 @@ def fit_calibration(
     x = _unit_axis(n)
     if not pm.max() > pm.min():  # a constant slope: nothing to calibrate on
         return Calibration()
-    ells = _POSITIVE_GRID if scatter_grid_mm is SCATTER_GRID_MM else tuple(
-        e for e in scatter_grid_mm if e > 0)
+    ells = tuple(e for e in scatter_grid_mm if e > 0)
     n_l = len(ells)
     # One sample range for every length (the widest guard: the blurred model is wrong within
     # ~2 l of the profile's ends), so that all fits share their sums: normal equations, batched.
