@@ -20,7 +20,7 @@ from controller.opcua.view import (
     UnitMode,
     UnitState,
     WwEvent,
-    _num,
+    as_number,
 )
 from controller.quality.schema import QualityClass
 from controller.service.events import ServiceEvent
@@ -171,11 +171,11 @@ class MoulderView:
             **view.manufacturer(),
             "Face": str(cfg.get("face") or ""),
             "Knives": int(knives) if knives is not None and math.isfinite(knives) else 0,
-            "TargetPitchMm": _num(cfg.get("target_pitch_mm")),
-            "SpindleRpm": _num(rpm if rpm is not None else cfg.get("rpm")),
-            "SpindleRpmMin": _num(cfg.get("rpm_min")),
-            "SpindleRpmMax": _num(cfg.get("rpm_max")),
-            "SpindleSetpointRpm": _num(setpoints.get(head)),
+            "TargetPitchMm": as_number(cfg.get("target_pitch_mm")),
+            "SpindleRpm": as_number(rpm if rpm is not None else cfg.get("rpm")),
+            "SpindleRpmMin": as_number(cfg.get("rpm_min")),
+            "SpindleRpmMax": as_number(cfg.get("rpm_max")),
+            "SpindleSetpointRpm": as_number(setpoints.get(head)),
             "SafeState": bool(status is not None and status.state == "safe"),
             "LimitsFeed": head in (self._machine.get("limiting") or ()),
         }
@@ -197,7 +197,7 @@ class MoulderView:
         }
         out.update(self._at(None, "Flags", _machine_flags(parts[2])))
         out.update(self._at(None, "Values", _machine_values(parts[3])))
-        out["ManufacturerSpecific/FeedSetpointMmS"] = _num(self._machine.get("feed_mm_s"))
+        out["ManufacturerSpecific/FeedSetpointMmS"] = as_number(self._machine.get("feed_mm_s"))
         out["ManufacturerSpecific/Heads"] = self.names
         out["ManufacturerSpecific/LimitingHeads"] = [
             str(h) for h in self._machine.get("limiting") or ()]

@@ -39,6 +39,7 @@ __all__ = [
     "UnitState",
     "WwEvent",
     "WwEventCategory",
+    "as_number",
 ]
 
 
@@ -157,19 +158,19 @@ def knife_condition_values(s: ServiceStatus | None) -> dict[str, Any]:
     knife = kc.get("knife")
     last_chip = chip.get("knife")
     return {
-        "BoardTravelM": _num(kc.get("board_travel_m")),
-        "KnifeWearUmPerM": [_num(k.get("drift_um_per_m")) for k in knives],
-        "KnifeReserveUm": [_num(k.get("reserve_um")) for k in knives],
+        "BoardTravelM": as_number(kc.get("board_travel_m")),
+        "KnifeWearUmPerM": [as_number(k.get("drift_um_per_m")) for k in knives],
+        "KnifeReserveUm": [as_number(k.get("reserve_um")) for k in knives],
         "JointingState": str(kc.get("state") or ""),
         "JointingForecast": str(kc.get("text") or ""),
-        "JointingDueM": _num(kc.get("due_in_m")),
-        "JointingDueBoards": _num(kc.get("due_in_boards")),
-        "JointingDueH": _num(kc.get("due_in_h")),
+        "JointingDueM": as_number(kc.get("due_in_m")),
+        "JointingDueBoards": as_number(kc.get("due_in_boards")),
+        "JointingDueH": as_number(kc.get("due_in_h")),
         "JointingKnife": int(knife) if isinstance(knife, int) else -1,
         "JointingTrend": str(kc.get("trend") or ""),
         "KnifeChips": int(s.counters.get("knife_chips", 0)) if s is not None else 0,
         "LastChippedKnife": int(last_chip) if isinstance(last_chip, int) else -1,
-        "LastChipRunoutStepUm": _num(chip.get("runout_step_um")),
+        "LastChipRunoutStepUm": as_number(chip.get("runout_step_um")),
         "LastChipCause": str(chip.get("cause") or ""),
     }
 
@@ -208,7 +209,8 @@ class WwEvent:
     path_parts: tuple[str, ...] = ("Machine", "Service")
 
 
-def _num(v: Any) -> float:
+def as_number(v: Any) -> float:
+    """``v`` as a float; NaN when it is none (``None``, not a number)."""
     try:
         f = float(v)
     except (TypeError, ValueError):
@@ -274,7 +276,7 @@ class MachineView:
             self._length_mm += feed * (t - self._last_t_s)
         if t is not None:
             self._last_t_s = t if self._last_t_s is None else max(self._last_t_s, t)
-            self._last_feed_mm_s = _num(status.feed_actual_mm_s)
+            self._last_feed_mm_s = as_number(status.feed_actual_mm_s)
             self._check_board_gone(t)
         self._status = status
 
@@ -315,7 +317,7 @@ class MachineView:
         if s is None or s.t_s is None:
             return UnitState.OFFLINE
         if s.state == "run":
-            return UnitState.WORKING if _num(s.feed_actual_mm_s) > 0 else UnitState.READY
+            return UnitState.WORKING if as_number(s.feed_actual_mm_s) > 0 else UnitState.READY
         if not s.missing:  # safe, nothing missing: confirming the recovery
             return UnitState.STANDBY
         return UnitState.ERROR
@@ -333,7 +335,7 @@ class MachineView:
         s = self._status
         known = s is not None and s.t_s is not None
         missing = set(s.missing) if s is not None else set()
-        feed_runs = known and _num(s.feed_actual_mm_s) > 0
+        feed_runs = known and as_number(s.feed_actual_mm_s) > 0
         last = self._last_result
         warning = known and (
             s.log_problem is not None or s.records_pending > 0
@@ -357,7 +359,7 @@ class MachineView:
     def values(self) -> dict[str, float | int]:
         """``State/Machine/Values`` by name (:data:`VALUE_NAMES`)."""
         s = self._status
-        feed_mm_s = _num(s.feed_actual_mm_s) if s is not None else math.nan
+        feed_mm_s = as_number(s.feed_actual_mm_s) if s is not None else math.nan
         length = int(round(self._length_mm))
         return {
             "FeedSpeed": feed_mm_s * 0.06,  # mm/s -> m/min
@@ -376,18 +378,18 @@ class MachineView:
         offsets: Sequence[float] = s.offsets_um if s is not None else (
             r.offsets_um if r is not None else ())
         return {
-            "PitchMm": _num(r.reported_pitch_mm if m is not None else None),
-            "UniformityCv": _num(r.reported_uniformity_cv if m is not None else None),
-            "DepthUm": _num(getattr(m, "depth_um", None)),
-            "KnifeWidthsMm": [_num(w) for w in (r.knife_widths_mm if r is not None else ())],
-            "PiezoOffsetsUm": [_num(v) for v in offsets],
-            "Confidence": _num(getattr(r.measurement, "confidence", None)) if r else math.nan,
+            "PitchMm": as_number(r.reported_pitch_mm if m is not None else None),
+            "UniformityCv": as_number(r.reported_uniformity_cv if m is not None else None),
+            "DepthUm": as_number(getattr(m, "depth_um", None)),
+            "KnifeWidthsMm": [as_number(w) for w in (r.knife_widths_mm if r is not None else ())],
+            "PiezoOffsetsUm": [as_number(v) for v in offsets],
+            "Confidence": as_number(getattr(r.measurement, "confidence", None)) if r else math.nan,
             "QualityClass": self.quality_class.name if self.quality_class else "",
             "Passed": bool(self._passed),
             "MeasurementOk": bool(r is not None and r.ok),
             "MeasurementError": (r.error or "") if r is not None else "",
             "SafeReason": (s.safe_reason or "") if s is not None else "",
-            "FeedSetpointMmS": _num(s.feed_setpoint_mm_s) if s is not None else math.nan,
+            "FeedSetpointMmS": as_number(s.feed_setpoint_mm_s) if s is not None else math.nan,
             "LastBoardPairs": int(self._last_board.get("pairs", 0)),
             "LastBoardPairsOk": int(self._last_board.get("pairs_ok", 0)),
             "LastBoardPassRate": self._last_board.get("pass_rate", math.nan),
@@ -454,8 +456,8 @@ class MachineView:
 
     def _summarise(self, board: Sequence[FrameResult]) -> dict[str, float]:
         ok = [r for r in board if r.ok]
-        pitches = [_num(r.reported_pitch_mm) for r in ok]
-        cvs = [_num(r.reported_uniformity_cv) for r in ok]
+        pitches = [as_number(r.reported_pitch_mm) for r in ok]
+        cvs = [as_number(r.reported_uniformity_cv) for r in ok]
         judged = [self._judge(r) for r in ok]
         judged = [j for j in judged if j is not None]
 
