@@ -783,6 +783,12 @@ class DefectFinder:
                               pitch_mm=pitch_mm, encoder_shift_px=encoder_shift_px)
         return detect_in_residual(res, bottoms_mm, self.knives, pitch_mm, self.settings)
 
+    def residual_at(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
+                    roll_deg: float) -> Residual:
+        """The pair's residual registered at ``shift_px`` (its map without the albedo)."""
+        return residual(self.mapper(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg,
+                                    albedo=False), self.settings)
+
     def registered(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
                    roll_deg: float, pitch_mm: float | None = None,
                    encoder_shift_px: float | None = None) -> Residual:
@@ -796,16 +802,16 @@ class DefectFinder:
         Where at least ``slip_marked`` of the cells are marked, the map is also made at
         ``shift_px +- pitch`` nearer ``encoder_shift_px`` than ``shift_px`` is, and kept where
         its cells' median mean square is below ``slip_median`` and its marked cells below
-        ``slip_cells`` of the registered one's (the simulator's six such pairs: medians
-        0.13-0.24, marked cells 0.06-0.43). Only toward the encoder, and both: a field of
-        raised grain can have a lower median a pitch off (the independent renderer's 480
-        pairs of two splits mapped a pitch off their true shift: medians down to 0.21, five
-        of them below 0.5 with half the cells marked; none below 0.3). A clean pair, or one
+        ``slip_cells`` of the registered one's (the simulator's seven such pairs of two
+        runs: medians 0.13-0.24, marked cells 0.06-0.43). Only toward the encoder, and both:
+        a field of raised grain can have a lower median a pitch off (the independent
+        renderer's 480 pairs of two splits mapped a pitch off their true shift: medians down
+        to 0.21, five of them below 0.5 with half the cells marked; none below 0.3). A clean
+        pair, or one
         without the encoder's shift or the pitch, pays nothing more.
         """
         s = self.settings
-        res = residual(self.mapper(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg,
-                                   albedo=False), s)
+        res = self.residual_at(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg)
         if (pitch_mm is None or not math.isfinite(pitch_mm) or pitch_mm <= 0
                 or encoder_shift_px is None or not math.isfinite(encoder_shift_px)):
             return res
@@ -818,8 +824,7 @@ class DefectFinder:
             return res
         best = res
         for alt in alts:
-            other = residual(self.mapper(rows_a, rows_b, shift_px=alt, roll_deg=roll_deg,
-                                         albedo=False), s)
+            other = self.residual_at(rows_a, rows_b, shift_px=alt, roll_deg=roll_deg)
             if (other.median < s.slip_median * best.median
                     and np.count_nonzero(other.marked) < s.slip_cells * n_marked):
                 best = other

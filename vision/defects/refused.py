@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from core.checks import check_finite, check_positive
-from vision.defects.detect import Defect, Residual, detect_in_residual, residual
+from vision.defects.detect import Defect, Residual, detect_in_residual
 from vision.defects.grading import pair_grade
 from vision.marks import dominant_period_px
 from vision.registration.registrar import encoder_shift_px
@@ -170,12 +170,11 @@ def refused_surface(finder: DefectFinder, rows_a: np.ndarray, rows_b: np.ndarray
     """
     enc = check_finite("encoder_shift_px", encoder_shift_px)
     slip = check_positive("slip_px", slip_px, allow_zero=True)
-    mapper, settings = finder.mapper, finder.settings
-    col_px = float(mapper.bin_cols)  # image px per map column
+    settings = finder.settings
+    col_px = float(finder.mapper.bin_cols)  # image px per map column
 
     def scored(shift: float) -> tuple[float, Residual]:
-        res = residual(mapper(rows_a, rows_b, shift_px=shift, roll_deg=roll_deg,
-                              albedo=False), settings)
+        res = finder.residual_at(rows_a, rows_b, shift_px=shift, roll_deg=roll_deg)
         return res.median, res
 
     best_shift = enc
