@@ -115,7 +115,7 @@ def test_open_moulder_service_puts_every_amplifier_on_one_master(tmp_path):
     finally:
         moulder.close()
     assert moulder.shared[0].network.bus is None  # closed once, after every head
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="node_id 2 is already an amplifier"):  # one master
         open_moulder_service(replace(cfg, declared_heads=cfg.declared_heads[:1] * 2),
                              log_path=tmp_path / "r.sqlite",
                              can_bus=can.Bus(interface="virtual", channel=channel))
