@@ -28,6 +28,7 @@ knives cut evenly, ~0.004 in the fit). Pure: no I/O.
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -221,7 +222,7 @@ def _knife_model_std(ws: list[float], xs: list[float], labels: list[Any],
     n = len(ws)
     xm = sum(xs) / n
     spread = sum((xi - xm) * (xi - xm) for xi in xs)
-    if sxx > (n * 2.220446049250313e-16) ** 2 * max(spread, 1.0):  # else: no trend to fit
+    if sxx > (n * sys.float_info.epsilon) ** 2 * max(spread, 1.0):  # else: no trend to fit
         between += sxw * sxw / sxx
     return math.sqrt(max(between, 0.0) / n)
 
