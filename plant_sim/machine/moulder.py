@@ -30,7 +30,6 @@ The PLC's view (:mod:`plant_sim.interfaces.register_bus`, :mod:`plant_sim.interf
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -100,7 +99,7 @@ class Moulder:
         self.head_configs: tuple[SimHeadConfig, ...] = tuple(sim_cfg.heads)
         self.names: tuple[str, ...] = tuple(h.name for h in self.head_configs)
         for spec in sim_cfg.faults:  # a one-head fault without its head: refused here
-            self._targets(spec.kind, spec.head)
+            fault_heads(spec.kind, spec.head, self.names)
         self.heads: dict[str, Machine] = {}
         owner: Machine | None = None
         x0 = self.head_configs[0].position_mm
@@ -241,9 +240,6 @@ class Moulder:
             m.set_service_heartbeat(value)
 
     # ------------------------------------------------------------------ faults
-    def _targets(self, kind: str, head: str | None) -> Sequence[str]:
-        return fault_heads(kind, head, self.names)
-
     def inject(self, fault: str, *, head: str | None = None, **params: Any) -> None:
         """Inject a fault into a head (``head``) or where the kind belongs (module docstring).
 
@@ -255,7 +251,7 @@ class Moulder:
             Unknown head, a one-head kind without ``head`` in a moulder of several, or what
             :meth:`Machine.inject` refuses.
         """
-        for name in self._targets(fault, head):
+        for name in fault_heads(fault, head, self.names):
             self.heads[name].inject(fault, **params)
 
     def reset_faults(self) -> None:
