@@ -540,7 +540,7 @@ def _attach(blocks: dict[str, Any], name: str) -> Any:
 
 
 def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple,
-             chains: dict[int, Any] | None = None) -> tuple[tuple, tuple[Any, int, int] | None]:
+             chains: dict[int, Any]) -> tuple[tuple, tuple[Any, int, int] | None]:
     """Measure one pair: the reply for the service, and the pair's slot (``None``: none).
 
     ``chains``: the worker's roll chains' calibrators (:class:`RollChain`).
@@ -565,7 +565,7 @@ def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple,
     if calibrator is not None:
         keeper = None
         if type(roll) is RollChain:
-            keeper = _chain_keeper({} if chains is None else chains, roll, calibrator)
+            keeper = _chain_keeper(chains, roll, calibrator)
         recorder = _RecordingCalibrator(calibrator, roll, keeper)
         kwargs["calibrator"] = recorder
     slot = None if buf is None else (buf, offset, 2 * nbytes)
