@@ -270,7 +270,7 @@ def head_identity(t: Section) -> tuple[str, Face, float, int]:
     return name, face, position_mm, t.integer("node_id", lo=1, hi=127)
 
 
-def _head(t: Section, key: str, *, rig: Path | None, spool_dir: Path, camera_id: str,
+def _head(t: Section, *, rig: Path | None, spool_dir: Path, camera_id: str,
           target_pitch_mm: float) -> HeadConfig:
     name, face, position_mm, node_id = head_identity(t)
 
@@ -279,7 +279,7 @@ def _head(t: Section, key: str, *, rig: Path | None, spool_dir: Path, camera_id:
 
     rpm, rpm_min, rpm_max = rpm_range(
         opt_number("rpm", lo=100.0, hi=30000.0), opt_number("rpm_min", lo=100.0, hi=30000.0),
-        opt_number("rpm_max", lo=100.0, hi=30000.0), key)
+        opt_number("rpm_max", lo=100.0, hi=30000.0), t.prefix)
     rig_raw = t.string("rig", "")
     head = HeadConfig(
         name=name,
@@ -326,7 +326,7 @@ def heads_from_toml(raw: Any, *, rig: Path | None, spool_dir: Path, camera_id: s
         Not a non-empty list of tables, a key missing, mistyped or out of range, unknown, or a
         name or node id given twice; the message names ``heads[i].key`` and the bad value.
     """
-    out = tuple(_head(t, t.prefix, rig=rig, spool_dir=spool_dir, camera_id=camera_id,
+    out = tuple(_head(t, rig=rig, spool_dir=spool_dir, camera_id=camera_id,
                       target_pitch_mm=target_pitch_mm) for t in head_sections(raw, key))
     check_unique((h.name for h in out), "name", key)
     check_unique((h.node_id for h in out), "node_id", key)
