@@ -114,6 +114,14 @@ _OPEN_ERRORS: tuple[type[BaseException], ...] = (
 """What opening a CAN bus may raise (each becomes a ``FieldbusError``)."""
 
 
+def default_send_timeout_s(command_period_s: float) -> float:
+    """The longest a send waits for room in the transmit queue unless given, s.
+
+    ``min(SEND_TIMEOUT_S, command_period_s / 4)``: a full queue never holds up a cycle.
+    """
+    return min(SEND_TIMEOUT_S, command_period_s / 4)
+
+
 def open_bus(interface: str, channel: str, options: dict[str, Any] | None = None) -> Any:
     """Open a python-can bus from configuration values.
 
@@ -190,7 +198,7 @@ class PiezoClient:
         self.command_period_s = check_positive("command_period_s", command_period_s)
         self.offsets_period_s = check_positive("offsets_period_s", offsets_period_s)
         self.send_timeout_s = (
-            min(SEND_TIMEOUT_S, self.command_period_s / 4)
+            default_send_timeout_s(self.command_period_s)
             if send_timeout_s is None
             else min(check_positive("send_timeout_s", send_timeout_s), self.command_period_s / 2)
         )

@@ -50,8 +50,8 @@ def open_moulder_service(
         one opened.
     """
     from config.rig import load_rig
-    from controller.fieldbus.canopen_amp import SEND_TIMEOUT_S, AmpBus
-    from controller.fieldbus.piezo_client import PiezoClient, open_bus
+    from controller.fieldbus.canopen_amp import AmpBus
+    from controller.fieldbus.piezo_client import PiezoClient, default_send_timeout_s, open_bus
     from controller.fieldbus.plc_client import PlcClient
     from controller.fieldbus.plc_protocol import Backoff
     from controller.laws.moulder_feed import MoulderFeedConfig, MoulderFeedLaw
@@ -81,8 +81,8 @@ def open_moulder_service(
                 bus = can_bus if can_bus is not None and not masters else open_bus(
                     hcfg.can.interface, hcfg.can.channel, dict(hcfg.can.options))
                 opened.append(bus.shutdown)  # until its master owns it (a bad EDS: closed)
-                masters[where] = AmpBus(bus, eds=eds_path(hcfg), send_timeout_s=min(
-                    SEND_TIMEOUT_S, hcfg.can.command_period_s / 4))
+                masters[where] = AmpBus(bus, eds=eds_path(hcfg), send_timeout_s=(
+                    default_send_timeout_s(hcfg.can.command_period_s)))
                 opened[-1] = masters[where].close
             piezo = PiezoClient(None, knives=hc.knives or 4, node_id=hcfg.can.node_id,
                                 eds=eds_path(hcfg), command_period_s=hcfg.can.command_period_s,
