@@ -19,6 +19,7 @@ import pytest
 
 from controller.opcua.view import MachineView
 from controller.quality.log import QualityLog
+from controller.service.events import EventKind
 from controller.service.frame_result import Refused, refused_surface_of
 from controller.service.measurement import failure_reason
 from controller.web.board_strip import defect_fields_json
@@ -160,6 +161,6 @@ def test_a_nick_seen_only_on_refused_pairs_is_told(tmp_path, refusal):
             await plant.close()
 
     events = asyncio.run(main())
-    chipped = [e for e in events if e.kind.value == "knife_chipped"]
+    chipped = [e for e in events if e.kind is EventKind.KNIFE_CHIPPED]
     assert chipped, [e.text for e in events]
     assert "nick" in chipped[0].text
