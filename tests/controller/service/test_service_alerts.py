@@ -146,8 +146,9 @@ def test_a_table_of_other_knives_or_none_is_no_comparison():
 
 @pytest.mark.parametrize("rows", [1, 2, 4, 5, 6])
 def test_column_medians_are_numpys(rows):
-    """The chip reference's medians per knife: ``np.median(axis=0)`` bit for bit (odd and even
-    counts, ties, signed zeros), NaN where a column holds one."""
+    """The chip reference's medians per knife: ``np.median(axis=0)``'s values (odd and even
+    counts, ties; a median of zeros may differ in its sign, which the monitor's absolute
+    differences do not see), NaN where a column holds one."""
     rng = np.random.default_rng(rows)
     for _ in range(200):
         z = int(rng.integers(3, 9))
