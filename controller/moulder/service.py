@@ -10,7 +10,7 @@ own safe state (its offsets) while the others stay controlled.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Mapping, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from typing import Any
 
 from config.heads import HeadConfig
@@ -64,11 +64,7 @@ class MoulderService:
         """One control cycle: every head's buses and supervisor, then the one feed."""
         for svc in self.heads.values():
             await svc.tick(now_s)
-        first = self.first
-        with first.keeper.boundary(now_s, "feed coordinator", part="plc") as g:
-            await self.feed.cycle(now_s)
-        if g.failed:  # as in plc_cycle: the feed safe for a recovery time
-            self.feed.fault(now_s, hold_s=first.cfg.safety.recovery_s)
+        await self._coordinate(now_s, lambda: self.feed.cycle(now_s))
         assert self.feed.last is not None
         return self.feed.last
 
@@ -93,20 +89,31 @@ class MoulderService:
         its words of the common span offered to every head (:attr:`sharing_common`), whose
         read then asks only for its block; the coordinator decides after the heads' cycles.
         """
-        first = self.first
-        # the coordinator's own unexpected error is reported as the first head's service
-        # error (the one boundary); the feed then holds its safe state (MoulderFeed.fault)
-        with first.keeper.boundary(first.service_clock.now(), "feed coordinator", part="plc"):
+        clock = self.first.service_clock
+
+        async def sample() -> None:
             snap = await self.feed.sample()
             words = self.feed.plc.last_common if snap is not None else None
             for name in self.sharing_common:  # none this cycle: each head reads its own
                 self.heads[name].plc.offer_common(words)
+
+        await self._coordinate(clock.now(), sample)
         for svc in self.heads.values():
             await svc.plc_cycle()
-        t = first.service_clock.now()
+        t = clock.now()
+        await self._coordinate(t, lambda: self.feed.decide(t))
+
+    async def _coordinate(self, t: float, step: Callable[[], Awaitable[Any]]) -> None:
+        """One step of the coordinator inside the first head's supervisor boundary.
+
+        The coordinator's own unexpected error is reported as the first head's service error
+        (the one boundary), and the feed then holds the machine-wide safe state for the
+        recovery time (:meth:`MoulderFeed.fault`), whichever step failed.
+        """
+        first = self.first
         with first.keeper.boundary(t, "feed coordinator", part="plc") as g:
-            await self.feed.decide(t)
-        if g.failed:  # the law's own error: the feed in the safe state for a recovery time
+            await step()
+        if g.failed:
             self.feed.fault(t, hold_s=first.cfg.safety.recovery_s)
 
     def can_cycle(self) -> None:

@@ -141,3 +141,34 @@ def test_share_workers_gives_every_head_one_pool_with_its_own_factory(tmp_path):
         moulder.close()
         if pool is not None:
             pool.close()
+
+
+def test_the_coordinators_own_error_in_its_read_holds_the_feed_safe_as_in_its_law(tmp_path):
+    """An unexpected error of the coordinator's sample (not the PLC's trouble) in the real-time
+    PLC cycle: reported once, the feed held safe for the recovery time, then governed again."""
+    plant = _plant(tmp_path)
+    moulder = plant.service
+
+    async def go():
+        try:
+            for _ in range(3):
+                await plant.step()
+            real = moulder.feed.sample
+
+            async def broken():
+                raise RuntimeError("a bug in the coordinator's read")
+
+            moulder.feed.sample = broken
+            await moulder.plc_cycle()
+            moulder.feed.sample = real
+            assert moulder.feed.counts["faults"] == 1
+            assert moulder.feed.last.safe and moulder.feed.last.feed_mm_s is None
+            await moulder.plc_cycle()  # within the recovery time: the safe path, not the law
+            assert moulder.feed.last.safe
+            assert moulder.feed.counts["safe_cycles"] >= 1
+            errors = [e for e in moulder.first.events if e.kind.value == "service_error"]
+            assert errors and "a bug in the coordinator's read" in errors[-1].text
+        finally:
+            await plant.close()
+
+    asyncio.run(go())
