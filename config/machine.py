@@ -121,6 +121,13 @@ class FramesConfig:
     trigger_source: str = "Line1"  # PLC trigger line; "Software" for tests
     packet_size: int = 0  # GigE Vision packet size, bytes; 0: negotiated
 
+    @property
+    def image_shape(self) -> tuple[int, int] | None:
+        """``(image_height, image_width)``, pixels, when both are set; else ``None``."""
+        if self.image_width > 0 and self.image_height > 0:
+            return (self.image_height, self.image_width)
+        return None
+
 
 @dataclass(frozen=True)
 class QualityConfig:

@@ -157,9 +157,7 @@ class ServiceRuntime:
             return
         service = self.service
         assert service is not None
-        fr = self.cfg.frames
-        shape = ((fr.image_height, fr.image_width) if fr.image_width > 0 and fr.image_height > 0
-                 else None)
+        shape = self.cfg.frames.image_shape
         cores = None if opt.plan_workers else workers
         # off the event loop: each worker sets up for the image size before it answers
         pool, warning = await asyncio.get_running_loop().run_in_executor(

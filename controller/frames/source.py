@@ -418,8 +418,7 @@ def open_frame_source(cfg: FramesConfig, *, inprocess: Any = None,
         return open_camera_source(cfg, latch_reader=latch_reader)  # docs/camera.md
     if cfg.source == "spool":
         Path(cfg.spool_dir).mkdir(parents=True, exist_ok=True)
-        shape = ((cfg.image_height, cfg.image_width)
-                 if cfg.image_width > 0 and cfg.image_height > 0 else None)
+        shape = cfg.image_shape
         limits = SpoolLimits(image_shape=shape, max_pixels=max(
             SpoolLimits.max_pixels, shape[0] * shape[1] if shape else 0))
         return SpoolFrameSource(SpoolReader(cfg.spool_dir, limits=limits), poll_s=cfg.poll_s)

@@ -115,12 +115,12 @@ class Service:
         if measurer_factory is None:
             measurer_factory = VisionMeasurers(rig, defects=cfg.quality.defects)
         self.measurement = MeasurementStage(cfg.plausibility, measurer_factory, threaded=threaded)
-        fr = cfg.frames
-        if fr.image_width > 0 and fr.image_height > 0:
+        shape = cfg.frames.image_shape
+        if shape is not None:
             # set-up before the first pair (imports, tables); a factory taking the machine's
             # facts builds again, once, at the first pair with the PLC's R and Z (20-60 ms, in
             # the worker thread in real time)
-            self.measurement.measurer((fr.image_height, fr.image_width))
+            self.measurement.measurer(shape)
         self.service_clock = ServiceClock(clock, self.report)
         amp_monitor = AmplifierMonitor()
         self.out = Actuators(plc, piezo, self.report, amp_monitor, stroke_um=cfg.stroke_um,

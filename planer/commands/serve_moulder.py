@@ -50,9 +50,7 @@ async def serve_moulder(cfg: MachineConfig, *, log_path: Path | str, opcua: str 
             moulder = open_moulder_service(cfg, log_path=log_path)
             n = cfg.service.workers if workers is None else workers
             if n:
-                fr = cfg.frames
-                shape = ((fr.image_height, fr.image_width)
-                         if fr.image_width > 0 and fr.image_height > 0 else None)
+                shape = cfg.frames.image_shape
                 opened = moulder  # started off the event loop (each worker sets up first)
                 pool, warning = await asyncio.get_running_loop().run_in_executor(
                     None, lambda: share_workers(opened, n, shape=shape, nice=MEASURE_NICE,

@@ -144,3 +144,14 @@ def test_missing_keys_take_the_dataclass_defaults():
     # and a table with one key set keeps every other field's default
     cfg = machine_from_dict({"safety": {"recovery_s": 1.25}})
     assert cfg.safety == MachineConfig().safety.__class__(recovery_s=1.25)
+
+
+@pytest.mark.parametrize(("width", "height", "shape"), [
+    (659, 493, (493, 659)),  # (rows, columns): numpy's order
+    (0, 493, None),  # either unset: the measurement sets up on the first pair
+    (659, 0, None),
+    (0, 0, None),
+])
+def test_frames_image_shape_is_height_width_when_both_are_set(width, height, shape):
+    cfg = machine_from_dict({"frames": {"image_width": width, "image_height": height}})
+    assert cfg.frames.image_shape == shape
