@@ -90,6 +90,7 @@ from controller.laws.feed_loop import config_from_mapping, integral_gain
 from controller.laws.limits import check_time_forward, project_zero_mean_box
 from controller.laws.offset_history import OffsetHistory
 from controller.laws.offset_qp import OffsetPlanner, best_offsets_um
+from controller.laws.plain_floats import numpy_sum
 from controller.laws.uniformity_guard import TableGuard, Verdict
 from controller.laws.uniformity_status import AuthorityNotice, authority_notice, describe_loop
 from core.checks import check_finite, check_int, check_positive, check_range
@@ -880,8 +881,9 @@ def _zero_mean_in_box(values: list[float], bound: float) -> np.ndarray:
     """``project_zero_mean_box(np.array(values), bound=bound)``, its common case in plain floats.
 
     A table whose shift to zero mean lies inside the box is that shift (the projection's own
-    first test); the mean is numpy's (:func:`numpy_sum`), so the result is the projection's bit
-    for bit. Otherwise (or for values that are not finite) the projection itself.
+    first test); the mean is numpy's (:func:`~controller.laws.plain_floats.numpy_sum`), so the
+    result is the projection's bit for bit. Otherwise (or for values that are not finite) the
+    projection itself.
     """
     n = len(values)
     if n and bound > 0 and all(map(math.isfinite, values)):
@@ -890,46 +892,6 @@ def _zero_mean_in_box(values: list[float], bound: float) -> np.ndarray:
         if max(map(abs, shifted)) <= bound:
             return np.array(shifted)
     return project_zero_mean_box(np.array(values), bound=bound)
-
-
-def numpy_sum(values: Sequence[float]) -> float:
-    """``np.add.reduce`` of a 1-D float64 array of ``values``, bit for bit, in plain floats.
-
-    numpy's pairwise summation onto its identity 0.0: under 8 values in order; up to 128 in
-    eight running sums (element ``i`` into sum ``i mod 8``) combined as ``((r0 + r1) + (r2 +
-    r3)) + ((r4 + r5) + (r6 + r7))``, then the rest in order; beyond, the two halves (the first
-    a multiple of 8) summed apart. A knife table has at most 8 values: one numpy call costs more
-    than the sum.
-    """
-    if len(values) < 8:
-        total = 0.0
-        for v in values:
-            total += v
-        return total
-    return 0.0 + _pairwise_sum(values)
-
-
-def _pairwise_sum(values: Sequence[float]) -> float:
-    n = len(values)
-    if n < 8:
-        total = 0.0
-        for v in values:
-            total += v
-        return total
-    if n > 128:
-        half = n // 2
-        half -= half % 8
-        return _pairwise_sum(values[:half]) + _pairwise_sum(values[half:])
-    r = list(values[:8])
-    i, whole = 8, n - n % 8
-    while i < whole:
-        for j in range(8):
-            r[j] += values[i + j]
-        i += 8
-    total = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
-    for v in values[whole:]:
-        total += v
-    return total
 
 
 def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:

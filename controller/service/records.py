@@ -97,10 +97,46 @@ def decimated_profile(
     if x.size > max_points:
         idx = np.unique(np.round(np.linspace(0, x.size - 1, max_points)).astype(int))
         x, h = x[idx], h[idx]
-    return {
-        "x_mm": [round(float(v), 3) for v in x],
-        "height_um": [round(float(v), 1) for v in h],
-    }
+    return {"x_mm": rounded(x, 3), "height_um": rounded(h, 1)}
+
+
+def rounded(values: np.ndarray, digits: int) -> list[float]:
+    """``[round(float(v), digits) for v in values]``, the same floats, for a finite float array.
+
+    numpy's ``np.round`` (``rint(v * 10**digits) / 10**digits``) gives Python's correctly
+    rounded value wherever ``v * 10**digits`` did not round onto or across a half: there both
+    round the same integer and divide it alike. The few values whose scaled product lies within
+    a hair of a half (or is too large for the test) are rounded by Python, so the result is
+    Python's bit for bit at a numpy call's cost (800 samples: ~0.4 ms as a comprehension).
+
+    Parameters
+    ----------
+    values : ndarray, shape (n,)
+        Finite floats.
+    digits : int
+        Decimal places, >= 0.
+
+    Returns
+    -------
+    list of float
+    """
+    scale = 10.0**digits
+    y = values * scale
+    k = np.rint(y)
+    out = (k / scale).tolist()
+    near = (np.abs(np.abs(y - k) - 0.5) <= _HALF_MARGIN) | ~(np.abs(y) < _EXACT_BELOW)
+    if near.any():
+        for i in np.flatnonzero(near).tolist():
+            out[i] = round(float(values[i]), digits)
+    return out
+
+
+_HALF_MARGIN = 1e-6
+"""How near a half the scaled value must lie (in units of the last digit kept) to be rounded
+by Python: well above the product's rounding error (half an ulp of a value below
+:data:`_EXACT_BELOW`, 1.2e-7)."""
+_EXACT_BELOW = 2.0**30
+"""Scaled values at or above this (or not finite) are rounded by Python."""
 
 
 def quality_class_of(cfg: MachineConfig) -> QualityClass:

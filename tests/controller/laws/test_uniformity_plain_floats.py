@@ -1,9 +1,10 @@
 """The uniformity loop's plain-float shortcuts are numpy's results bit for bit.
 
 A knife table has 2-8 values: one numpy call costs more than the arithmetic, so the loop sums and
-projects in plain floats where that gives the same bits (``numpy_sum``: numpy's pairwise
-summation; ``_zero_mean_in_box``: the projection's common case). These tests pin them to numpy
-(a numpy that sums otherwise fails here, not silently in the loop).
+projects in plain floats where that gives the same bits (``plain_floats.numpy_sum``: numpy's
+pairwise summation, also of a field's marks; ``_zero_mean_in_box``: the projection's common
+case). These tests pin them to numpy (a numpy that sums otherwise fails here, not silently in
+the loop).
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ import random
 import numpy as np
 
 from controller.laws.limits import project_zero_mean_box
-from controller.laws.uniformity_loop import _zero_mean_in_box, numpy_sum
+from controller.laws.plain_floats import PAIRWISE_BLOCK, numpy_mean, numpy_sum
+from controller.laws.uniformity_loop import _zero_mean_in_box
 
 
 def _value(rng: random.Random) -> float:
@@ -30,7 +32,8 @@ def test_numpy_sum_is_add_reduce_bit_for_bit():
             got = numpy_sum(v)
             assert repr(got) == repr(want), (n, v)
             if n:
-                assert got / n == float(np.array(v).mean())
+                assert repr(numpy_mean(v)) == repr(float(np.array(v).mean()))
+    assert PAIRWISE_BLOCK == 128  # past it numpy sums the halves apart: numpy_sum calls numpy
 
 
 def test_the_table_projection_is_project_zero_mean_box_bit_for_bit():

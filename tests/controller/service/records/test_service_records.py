@@ -21,7 +21,12 @@ import pytest
 from controller.quality.log import QualityLog, record_to_json
 from controller.quality.report import last_profile
 from controller.service.events import EventKind
-from controller.service.records import PROFILE_EVERY, PROFILE_MAX_POINTS, decimated_profile
+from controller.service.records import (
+    PROFILE_EVERY,
+    PROFILE_MAX_POINTS,
+    decimated_profile,
+    rounded,
+)
 from controller.service.supervisor import SafetyState
 from protocol.register_bus import BusRefused
 from tests.controller.service.test_service_loop import TruthMeasurer, make_plant
@@ -69,6 +74,36 @@ def test_decimated_profile_is_small_rounded_and_keeps_the_ends(n):
     idx = np.searchsorted(x, xs - 1e-3)
     assert np.all(np.abs(h[idx] - hs) <= 0.05 + 1e-9)
     json.dumps(out)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_rounded_gives_pythons_round_bit_for_bit(seed):
+    """The profile's rounding in numpy (``rounded``) is the comprehension it replaced: the same
+    floats (bits, signs of zero), also for values whose scaled product lands on a half."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 3000))
+    values = np.concatenate([
+        rng.normal(0.0, 10.0 ** rng.uniform(-4, 6), n),
+        (rng.integers(-10**7, 10**7, n) + 0.5) / 1000.0,  # halves of the 3rd digit
+        (rng.integers(-10**6, 10**6, n) + 0.5) / 10.0,  # halves of the 1st
+        rng.uniform(-1e-3, 1e-3, n),  # rounds to +-0.0
+        np.array([0.0, -0.0, 2.0**40 + 0.5, -(2.0**33), 1e15 / 7]),
+    ])
+    for digits in (1, 3):
+        new = rounded(values, digits)
+        old = [round(float(v), digits) for v in values]
+        assert [v.hex() for v in new] == [v.hex() for v in old]
+        assert all(type(v) is float for v in new)
+
+
+def test_decimated_profile_keeps_the_records_floats():
+    """The record's profile is what the per-value ``round`` gave (pinned on a real-size one)."""
+    x = np.arange(N_COLUMNS) / 12.5 + 1.234567e-5
+    h = 3.0 * np.sin(2 * np.pi * x / 1.5) + 0.04449
+    out = decimated_profile(x, h)
+    idx = np.unique(np.round(np.linspace(0, x.size - 1, PROFILE_MAX_POINTS)).astype(int))
+    assert out == {"x_mm": [round(float(v), 3) for v in x[idx]],
+                   "height_um": [round(float(v), 1) for v in h[idx]]}
 
 
 @pytest.mark.parametrize(
