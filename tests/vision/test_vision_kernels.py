@@ -138,3 +138,32 @@ def test_inverse_column_means_are_cv2s_average_inverted():
         kernels.inverse_column_means(rows, np.empty(w), got)
         assert got[3] == 0.0
         assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("m, top", [(1, 6000), (5, 1276), (7, 9000)])
+def test_bin_groups_are_numpys_uint16_sums(m, top):
+    # the sheared profile's bins: the reshape-and-sum they replaced, integer for integer
+    rng = np.random.default_rng(m)
+    bins = rng.integers(0, top, (m * 9 + 3, 37)).astype(np.uint16)
+    for start in (0, 2):
+        g = (bins.shape[0] - start) // m
+        want = bins[start:start + g * m].reshape(g, m, 37).sum(axis=1, dtype=np.uint16)
+        got = np.empty((g, 37), dtype=np.uint16)
+        kernels.bin_groups(bins, start, m, got)
+        assert np.array_equal(got, want)
+
+
+def test_row_sums_over_declines_sums_not_exact_in_float32():
+    # a row summing to 2**24 or more: numpy's path decides (the front end's fallback)
+    from vision.front_end import FrontEnd
+
+    bins = np.full((3, 300), 60000, dtype=np.uint16)  # 1.8e7 > 2**24 per row
+    out = np.zeros(bins.shape, dtype=np.float32)
+    assert not kernels.row_sums_over(bins, 0, 300, out)
+    assert not out.any()
+    front = FrontEnd.__new__(FrontEnd)
+    front.columns = (0, 300)
+    want = bins.astype(np.float32)
+    want /= want.mean(axis=1, keepdims=True)
+    assert np.array_equal(front._over_row_means(bins), want)
+    assert not kernels.row_sums_over(bins[:0], 0, 300, out[:0])

@@ -23,6 +23,7 @@ difference (fibre spring-back, tear-out, chatter) shows instead of being calibra
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -113,18 +114,11 @@ def kinematic_depths_um(cusps_mm: np.ndarray, bottoms_mm: np.ndarray, *,
     return 1000.0 * ((c[:-1] - b) ** 2 + (c[1:] - b) ** 2) / (4.0 * r)
 
 
-_FREQS: dict[tuple[int, float], np.ndarray] = {}
-
-
+@functools.lru_cache(maxsize=64)
 def _frequencies(n_fft: int, dx_mm: float) -> np.ndarray:
-    """``scipy.fft.rfftfreq(n_fft, d=dx_mm)`` (cached: a measurer's profiles have few lengths)."""
-    key = (n_fft, dx_mm)
-    nu = _FREQS.get(key)
-    if nu is None:
-        if len(_FREQS) > 64:
-            _FREQS.clear()
-        nu = _FREQS[key] = scipy.fft.rfftfreq(n_fft, d=dx_mm)
-        nu.flags.writeable = False
+    """``scipy.fft.rfftfreq(n_fft, d=dx_mm)``, read-only (a measurer has few profile lengths)."""
+    nu = scipy.fft.rfftfreq(n_fft, d=dx_mm)
+    nu.flags.writeable = False
     return nu
 
 
@@ -266,16 +260,11 @@ def fit_calibration(
                        trusted=conf >= min_confidence and 0.25 <= gain <= 4.0)
 
 
-_AXES: dict[int, np.ndarray] = {}
-
-
+@functools.lru_cache(maxsize=64)
 def _unit_axis(n: int) -> np.ndarray:
-    """``np.linspace(-1, 1, n)`` (cached: profiles of one measurer have few lengths)."""
-    x = _AXES.get(n)
-    if x is None:
-        if len(_AXES) > 64:
-            _AXES.clear()
-        x = _AXES[n] = np.linspace(-1.0, 1.0, n)
+    """``np.linspace(-1, 1, n)``, read-only (profiles of one measurer have few lengths)."""
+    x = np.linspace(-1.0, 1.0, n)
+    x.flags.writeable = False
     return x
 
 
