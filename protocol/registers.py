@@ -237,12 +237,17 @@ class HeadBlock:
     registers : tuple of Register
         The block's registers, ``address`` being the offset inside the block; an entry named
         like a register of the single map carries that register's type, unit and description.
+    read_across : bool
+        The PLC answers one read that runs across consecutive blocks it serves (the reserved
+        words read 0): a client may read several heads' blocks in one request
+        (``[heads] read_across``; default ``False``: a read stays in one block).
     """
 
     base: int
     stride: int
     count: int
     registers: tuple[Register, ...]
+    read_across: bool = False
 
     @property
     def used(self) -> int:
@@ -939,6 +944,7 @@ def _parse_heads(s: Section, present: bool, single: Sequence[Register]) -> HeadB
     base = s.integer("base", lo=0, hi=0xFFFF)
     stride = s.integer("stride", lo=1, hi=0x1_0000)
     count = s.integer("count", lo=1, hi=0x1_0000)
+    read_across = s.boolean("read_across", False)
     raw = s.raw("register")
     s.reject_unknown()
     if base + stride * count - 1 > 0xFFFF:
@@ -969,7 +975,8 @@ def _parse_heads(s: Section, present: bool, single: Sequence[Register]) -> HeadB
                 f"heads.register {r.name}: offset {r.address} + {r.count} words exceeds the "
                 f"stride {stride}"
             )
-    return HeadBlock(base=base, stride=stride, count=count, registers=tuple(regs))
+    return HeadBlock(base=base, stride=stride, count=count, registers=tuple(regs),
+                     read_across=read_across)
 
 
 def _validate_heads(whole: RegisterMap, heads: HeadBlock) -> None:

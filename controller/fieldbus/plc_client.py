@@ -205,7 +205,10 @@ class PlcClient:
     writes the service heartbeat again (the value this client last wrote, else the one just
     read: no change the watchdog could mistake for life) and reads the block; function 3 where
     the map does not offer 23 or the bus cannot send it. The snapshot then holds the head's
-    ``spindle_rpm``, ``knives``, ... under their usual names.
+    ``spindle_rpm``, ``knives``, ... under their usual names. A moulder's coordinator reads
+    the common span once (:meth:`beat_and_read`) and every head's block in as few requests as
+    the map allows (:meth:`read_blocks`) and offers each head its words
+    (:meth:`offer_common`, :meth:`offer_block`): that head's read then asks for nothing.
     """
 
     def __init__(
@@ -228,6 +231,7 @@ class PlcClient:
         self.failures = 0
         self._heartbeat: int | None = None
         self._offered: list[int] | None = None  # the common span's words of another read
+        self._offered_block: list[int] | None = None  # this view's block, of another read
         self.last_common: list[int] | None = None
         """The words of the common span (``protocol.ranges[0]``) of the last read."""
         self._views: dict[int, PlcProtocol] = {}
@@ -330,9 +334,86 @@ class PlcClient:
         """
         async with self._bus_lock():
             offered, self._offered = self._offered, None
-            snap = await self._sample(self.protocol, common=offered)
+            block, self._offered_block = self._offered_block, None
+            snap = await self._sample(self.protocol, common=offered,
+                                      block=block if offered is not None else None)
         self.last = snap
         return snap
+
+    async def beat_and_read(self, value: int) -> PlcSnapshot:
+        """Write the service heartbeat, then read every register.
+
+        :meth:`write_heartbeat` and :meth:`read` in ONE function 23 transaction where this
+        client's map is no head's view, offers 23 and the bus can send it (else the two
+        requests).
+
+        The write comes first (function 23 writes before it reads), so the snapshot holds
+        ``value`` (wrapped to 16 bits) as ``heartbeat_service``; a refused or failed
+        transaction writes nothing and reads nothing (the heartbeat is not taken).
+        """
+        p = self.protocol
+        rw = getattr(self.bus, "read_write", None)
+        if p.block is not None or rw is None or 23 not in p.regmap.function_codes:
+            await self.write_heartbeat(value)
+            return await self.read()
+        wa, ww = p.heartbeat_request(value)
+        a, n = p.ranges[0]
+        async with self._bus_lock():
+            self._offered = None
+            words = await self._do_locked(
+                "writing the heartbeat and reading (function 23)", a, n,
+                lambda: rw(a, n, wa, ww), p)
+            self._heartbeat = ww[0]
+            snap = PlcSnapshot(values=p.decode_range(0, words), t_s=self.clock())
+            self.last_common = list(words)
+        self.last = snap
+        return snap
+
+    async def read_blocks(self, heads: Sequence[int]) -> dict[int, list[int]]:
+        """The words of the blocks of ``heads`` (each its used words), for their clients.
+
+        In as few requests as the map allows (:meth:`PlcProtocol.blocks_reads`: one for
+        consecutive heads where the map's ``[heads] read_across`` says so); the heads' clients
+        take them through :meth:`offer_block`.
+
+        Raises
+        ------
+        FieldbusError
+            Not connected, connection lost or no answer (no words of any head then).
+        ModbusRefused
+            The PLC answered with an exception.
+        """
+        p = self.protocol
+        out: dict[int, list[int]] = {}
+        async with self._bus_lock():
+            for read in p.blocks_reads(heads):
+                a, n, _ = read
+                words = await self._do_locked(
+                    "reading", a, n, lambda a=a, n=n: self.bus.read(a, n), p)
+                out.update(p.split_blocks(read, words))
+        return out
+
+    def offer_block(self, words: Sequence[int] | None) -> None:
+        """The words of the block of the client's view another client has just read.
+
+        Read by :meth:`read_blocks`.
+
+        With an offer of the common span (:meth:`offer_common`) the next :meth:`read` asks the
+        PLC for nothing: both ranges are taken from the offers. Used once, like
+        :meth:`offer_common`; ``None`` withdraws it; ``ValueError`` when ``words`` are not the
+        block's length or the client is over no head's view.
+        """
+        if words is None:
+            self._offered_block = None
+            return
+        if self.protocol.block is None:
+            raise ValueError("words: the client's register map is no head's view "
+                             "(RegisterMap.for_head(i)): it has no block to offer")
+        ws = [int(w) for w in words]
+        if len(ws) != self.protocol.block[1]:
+            raise ValueError(f"words must be the block's {self.protocol.block[1]} words, "
+                             f"got {len(ws)}")
+        self._offered_block = ws
 
     def offer_common(self, words: Sequence[int] | None) -> None:
         """The common span's words another client has just read, for this client's next read.
@@ -375,10 +456,12 @@ class PlcClient:
             self.last = snap
         return snap
 
-    async def _sample(self, p: PlcProtocol, *, common: list[int] | None = None) -> PlcSnapshot:
+    async def _sample(self, p: PlcProtocol, *, common: list[int] | None = None,
+                      block: list[int] | None = None) -> PlcSnapshot:
         """Read every range of ``p`` (the bus lock held): one snapshot.
 
-        ``common``: the words of ``p.ranges[0]`` already read (:meth:`offer_common`).
+        ``common``: the words of ``p.ranges[0]`` already read (:meth:`offer_common`);
+        ``block``: those of ``p.block`` (:meth:`offer_block`).
         """
         a, n = p.ranges[0]
         if common is None:
@@ -388,7 +471,9 @@ class PlcClient:
         values = p.decode_range(0, words)
         if p is self.protocol:
             self.last_common = list(words)
-        if p.block is not None:
+        if p.block is not None and block is not None:
+            values.update(p.decode_range(1, block))
+        elif p.block is not None:
             b, m = p.block
             rw = getattr(self.bus, "read_write", None)
             if rw is not None and 23 in p.regmap.function_codes:

@@ -159,6 +159,8 @@ class PlcSnapshot:
 
 MAX_KNIVES = 8
 """Most knives the piezo frames carry."""
+MAX_READ_WORDS = 125
+"""Most registers one Modbus read (function 3 or 23) returns."""
 _POSITIVE = (
     "feed_min_mm_s",
     "feed_max_mm_s",
@@ -188,6 +190,54 @@ class PlcProtocol:
         self._feed = regmap["feed_setpoint_mm_s"]
         self._hb = regmap["heartbeat_service"]
         self._spindle = regmap.registers.get("spindle_setpoint_rpm")
+
+    def blocks_reads(self, heads: Sequence[int]) -> tuple[tuple[int, int, tuple[int, ...]], ...]:
+        """The reads that fetch the blocks of ``heads``: ``(address, words, heads)`` each.
+
+        One read per block, or, where the map's ``[heads] read_across`` lets a read run across
+        blocks, one per run of consecutive heads (at most :data:`MAX_READ_WORDS` words: the
+        last block's used words, the others' whole stride with their reserved words).
+        ``ValueError`` naming a head outside the map's blocks (or a map without blocks).
+        """
+        block = self.regmap.heads
+        if block is None:
+            raise ValueError("heads: the register map has no [heads] blocks")
+        for h in heads:
+            block.address(h)  # ValueError naming a bad head
+        order = sorted({int(h) for h in heads})
+        out: list[tuple[int, int, tuple[int, ...]]] = []
+        run: list[int] = []
+        for h in order:
+            fits = (block.read_across and run and h == run[-1] + 1
+                    and (h - run[0]) * block.stride + block.used <= MAX_READ_WORDS)
+            if run and not fits:
+                out.append(self._blocks_read(run))
+                run = []
+            run.append(h)
+        if run:
+            out.append(self._blocks_read(run))
+        return tuple(out)
+
+    def _blocks_read(self, run: Sequence[int]) -> tuple[int, int, tuple[int, ...]]:
+        block = self.regmap.heads
+        assert block is not None
+        first = block.address(run[0])
+        return first, (len(run) - 1) * block.stride + block.used, tuple(run)
+
+    def split_blocks(self, read: tuple[int, int, tuple[int, ...]],
+                     words: Sequence[int]) -> dict[int, list[int]]:
+        """The words of each head's block (its used words) in the answer to one read.
+
+        ``read`` is one of :meth:`blocks_reads`; ``FieldbusError`` when the answer has another
+        length.
+        """
+        address, count, heads = read
+        if len(words) != count:
+            raise FieldbusError(f"PLC answered {len(words)} registers, expected {count}")
+        block = self.regmap.heads
+        assert block is not None
+        return {h: [int(w) for w in words[(h - heads[0]) * block.stride:][: block.used]]
+                for h in heads}
 
     def decode_read(self, words: Sequence[int]) -> dict[str, float | int]:
         """Decode the words of one whole-span read into every register's value."""

@@ -112,18 +112,33 @@ class MoulderFeed:
     async def sample(self) -> PlcSnapshot | None:
         """The cycle's first half: the heartbeat, then one read of the common registers.
 
-        A moulder's PLC cycle takes it before the heads' own reads and offers its words to
-        each head (:meth:`PlcClient.offer_common`): the machine-wide registers are read once
-        per cycle. ``None`` when the PLC did not answer (:meth:`decide` then writes nothing).
+        Both in one function 23 transaction where the map offers it
+        (:meth:`PlcClient.beat_and_read`). A moulder's PLC cycle takes it before the heads'
+        own reads and offers its words to each head (:meth:`PlcClient.offer_common`): the
+        machine-wide registers are read once per cycle. ``None`` when the PLC did not answer
+        (:meth:`decide` then writes nothing).
         """
         self._snap = None
         try:
             self.heartbeat = (self.heartbeat + 1) & 0xFFFF
-            await self.plc.write_heartbeat(self.heartbeat)
-            self._snap = await self.plc.read()
+            self._snap = await self.plc.beat_and_read(self.heartbeat)
         except FieldbusError:
             self.counts["plc_errors"] += 1
         return self._snap
+
+    async def read_blocks(self, heads: Sequence[int]) -> dict[int, list[int]]:
+        """The blocks of ``heads`` in as few requests as the map allows, for the heads' reads.
+
+        :meth:`PlcClient.read_blocks`; empty when the PLC did not answer (each head then reads
+        its own block).
+        """
+        if not heads:
+            return {}
+        try:
+            return await self.plc.read_blocks(heads)
+        except FieldbusError:
+            self.counts["plc_errors"] += 1
+            return {}
 
     async def decide(self, t: float) -> FeedDecision:
         """The cycle's second half on the registers :meth:`sample` read: decide, write."""

@@ -59,6 +59,10 @@ class MoulderService:
             name for name, svc in self.heads.items()
             if span is not None and _common_span(svc.plc) == span)
         """The heads whose PLC cycle takes the coordinator's read of the common registers."""
+        self.sharing_blocks: dict[str, int] = {
+            name: head for name in self.sharing_common
+            if (head := _block_head(self.heads[name].plc, feed.plc)) is not None}
+        """The heads (and their block's index) whose block the coordinator reads for them."""
 
     async def tick(self, now_s: float) -> FeedDecision:
         """One control cycle: every head's buses and supervisor, then the one feed."""
@@ -85,17 +89,25 @@ class MoulderService:
     async def plc_cycle(self) -> None:
         """Every head's PLC cycle (its registers, its supervisor), then the one feed.
 
-        The machine-wide registers are read once: the coordinator's heartbeat and read first,
-        its words of the common span offered to every head (:attr:`sharing_common`), whose
-        read then asks only for its block; the coordinator decides after the heads' cycles.
+        The machine-wide registers are read once: the coordinator's heartbeat and read first
+        (one function 23), its words of the common span offered to every head
+        (:attr:`sharing_common`); then the coordinator reads the heads' blocks
+        (:attr:`sharing_blocks`) in as few requests as the map allows and offers each head its
+        block, whose read then asks the PLC for nothing. A head offered no block reads its
+        own; one offered nothing (the PLC did not answer) reads both itself. The coordinator
+        decides after the heads' cycles.
         """
         clock = self.first.service_clock
 
         async def sample() -> None:
             snap = await self.feed.sample()
             words = self.feed.plc.last_common if snap is not None else None
+            blocks = ({} if words is None
+                      else await self.feed.read_blocks(list(self.sharing_blocks.values())))
             for name in self.sharing_common:  # none this cycle: each head reads its own
-                self.heads[name].plc.offer_common(words)
+                plc = self.heads[name].plc
+                plc.offer_common(words)
+                plc.offer_block(blocks.get(self.sharing_blocks.get(name, -1)))
 
         await self._coordinate(clock.now(), sample)
         for svc in self.heads.values():
@@ -162,6 +174,19 @@ def _common_span(plc: Any) -> tuple[int, int] | None:
     protocol = getattr(plc, "protocol", None)
     ranges = getattr(protocol, "ranges", None)
     return tuple(ranges[0]) if ranges else None
+
+
+def _block_head(plc: Any, coordinator: Any) -> int | None:
+    """The head whose block a head's PLC client reads, if the coordinator's can read it.
+
+    That is when the client is over a head's view of the coordinator's map; else ``None``.
+    """
+    regmap = getattr(getattr(plc, "protocol", None), "regmap", None)
+    whole = getattr(getattr(coordinator, "protocol", None), "regmap", None)
+    head = getattr(regmap, "head", None)
+    if head is None or whole is None or regmap.heads != whole.heads:
+        return None
+    return int(head)
 
 
 async def _finish_all(items: list[tuple[Service, Any]]) -> None:

@@ -12,7 +12,8 @@ run by :meth:`MoulderService.run` (one PLC task, one CAN task, a frame task per 
 event loop. The simulated moulder (:class:`plant_sim.machine.moulder.Moulder`,
 ``config/sim_moulder.toml``) stands in for the machine: its PLC's Modbus server in its own
 process on 127.0.0.1 serving the common registers and every head's block, every head's
-amplifier node on the one virtual CAN bus (``MoulderDriver.amp_core``), pumped every 5 ms.
+amplifier node on the one virtual CAN bus (``MoulderDriver.amp_core``), pumped every 10 ms
+(their status period; the PLC's registers every PLC cycle: :func:`_pump_plant`).
 
 Each head's pairs are rendered by the simulated moulder before timing (its camera's, 659 x 493)
 and go to the head's frame source (an in-process queue of
@@ -66,6 +67,9 @@ QUICK_PAIRS = 150
 """Pairs per head of a quick run."""
 SLOWEST = 5
 """The slowest pairs reported per head (``slowest``: ``[pair's place in the run, ms]``)."""
+AMP_PUMP_S = 0.010
+"""Period of the simulated amplifiers' pump, s: their status period
+(``protocol.piezo_canopen.STATUS_PERIOD_S``)."""
 
 
 class _CpuMeter:
@@ -163,19 +167,29 @@ def _machine_config(host: str, port: int, shape: tuple[int, int], workdir: Path,
                             declared_heads=cfg.declared_heads[:heads])
 
 
-async def _pump_plant(amp: Any, plc_pump: Any, stop: asyncio.Event, spent: list[float]) -> None:
-    """Step the simulated amplifiers and PLC every 5 ms until ``stop`` (as the service bench).
+async def _pump_plant(amp: Any, plc_pump: Any, stop: asyncio.Event, spent: list[float], *,
+                      plc_period_s: float) -> None:
+    """Step the simulated amplifiers and PLC until ``stop``.
 
-    The CPU time it takes in this process (the stand-ins for the amplifiers and the PLC's
-    register image, not the service) is added to ``spent[0]``, s.
+    The amplifiers every :data:`AMP_PUMP_S` (their status period: each node's TPDO1 leaves on
+    its 10 ms, its heartbeat on its 100 ms, what the master sent is taken within 10 ms); the
+    PLC (its writes applied, its registers published) every ``plc_period_s``, the service's
+    PLC cycle: the moulder is not stepped while the pairs go in, so its registers change only
+    by the service's writes, which the PLC serves from the moment it takes them. The CPU time
+    it takes in this process (the stand-ins for the amplifiers and the PLC's register image,
+    not the service) is added to ``spent[0]``, s.
     """
     t0 = time.monotonic()
+    next_plc = t0
     while not stop.is_set():
         c0 = time.thread_time()
-        amp.pump(time.monotonic() - t0)
-        plc_pump()
+        now = time.monotonic()
+        amp.pump(now - t0)
+        if now >= next_plc:
+            plc_pump()
+            next_plc = max(next_plc + plc_period_s, now)
         spent[0] += time.thread_time() - c0
-        await asyncio.sleep(0.005)
+        await asyncio.sleep(AMP_PUMP_S)
 
 
 class _Head:
@@ -334,7 +348,8 @@ async def _run(
             wall[1] = time.monotonic()
             stop.set()
 
-        pump = asyncio.create_task(_pump_plant(amp, plc_pump, stop, meter.stand_in))
+        pump = asyncio.create_task(_pump_plant(amp, plc_pump, stop, meter.stand_in,
+                                               plc_period_s=cfg.safety.cycle_s))
         feeder = asyncio.create_task(feed_frames())
         tune_for_latency()  # once for every head, after their set-up (its collection not timed)
         gc_pauses = GcPauses()

@@ -165,9 +165,7 @@ def _serve(shm_name: str, rmap: RegisterMap, heads: int, host: str, port: int, u
                 snap = block.try_read()
                 if snap is not None:
                     seq, applied, words = snap
-                    image.load_flat(words)
-                    server.load_snapshot(image.values, applied=applied,
-                                         heads=image.head_values)
+                    server.load_words(words, applied=applied)
                     seen[0] = seq
 
         def counted(write: Any) -> None:

@@ -217,11 +217,27 @@ class PlcServer:
             Each served head's block values.
         """
         with self._lock:
-            done = applied - (self._queued - len(self._pending))
-            for _ in range(max(0, min(done, len(self._pending)))):
-                self._pending.popleft()
+            self._applied(applied)
             self._image.load(values, heads)
             self._image.overlay(self._pending)
+
+    def load_words(self, words: Sequence[int], *, applied: int) -> None:
+        """Serve register words published by another process, as they are.
+
+        As :meth:`load_snapshot` with the words of
+        :meth:`~plant_sim.interfaces.register_image.RegisterImage.flat` (the single span, then
+        each served block): nothing is decoded or encoded until a write needs the values.
+        """
+        with self._lock:
+            self._applied(applied)
+            self._image.load_flat(words)
+            self._image.overlay(self._pending)
+
+    def _applied(self, applied: int) -> None:
+        """Writes the stepping side has applied leave the overlay (the lock held)."""
+        done = applied - (self._queued - len(self._pending))
+        for _ in range(max(0, min(done, len(self._pending)))):
+            self._pending.popleft()
 
     def apply_writes(self) -> int:
         """Apply the queued writes to the machine, in order (on the stepping thread).

@@ -6,7 +6,9 @@ The PLC server (:mod:`plant_sim.interfaces.plc_server`), its process
 
 * reads lie wholly in the single map's span (``RegisterMap.common_span``, the legacy registers:
   the first head's fields at their old addresses) or wholly in one served head's block
-  (``RegisterMap.head_span``; the block's reserved words read 0); anything else is refused
+  (``RegisterMap.head_span``; the block's reserved words read 0), or, where the map's
+  ``[heads] read_across`` says so, wholly in the served blocks (one read over several heads'
+  consecutive blocks); anything else is refused
   (:class:`~protocol.registers.RegisterAccessError`, exception 02);
 * a write in the single span is checked by the whole map, one in block ``i`` by head ``i``'s
   view (``RegisterMap.for_head``), its limits resolved against that head's values
@@ -86,10 +88,30 @@ class RegisterImage:
         self._bases = [block.address(i) for i in range(self.heads)] if block is not None else []
         """Each served block's first address."""
         self._used = block.used if block is not None else 0
-        self.values: dict[str, float | int] = {}
-        self.head_values: list[dict[str, float | int]] = [{} for _ in range(self.heads)]
+        self._across = block is not None and block.read_across
+        """Reads may run across the served blocks (``[heads] read_across``)."""
+        self._values: dict[str, float | int] | None = {}
+        self._head_values: list[dict[str, float | int]] | None = [{} for _ in range(self.heads)]
         self.words: list[int] = [0] * self.count
         self.head_words: list[list[int]] = [[0] * self.stride for _ in range(self.heads)]
+
+    @property
+    def values(self) -> dict[str, float | int]:
+        """The single map's values (decoded from the words when they were loaded as words)."""
+        if self._values is None:
+            self._values = self.rmap.decode_block(self.words, self.first)
+        return self._values
+
+    @property
+    def head_values(self) -> list[dict[str, float | int]]:
+        """Each served head's block values (decoded likewise)."""
+        if self._head_values is None:
+            heads = []
+            for i, view in enumerate(self.views):
+                decoded = view.decode_block(self.head_words[i][: self._used], self._bases[i])
+                heads.append({k: v for k, v in decoded.items() if k in self._slots})
+            self._head_values = heads
+        return self._head_values
 
     @property
     def size(self) -> int:
@@ -100,9 +122,9 @@ class RegisterImage:
         """Encode the single map's ``values`` and each served head's values."""
         if len(heads) != self.heads:
             raise ValueError(f"expected values of {self.heads} heads, got {len(heads)}")
-        self.values = dict(values)
-        self.words = self.rmap.encode_block(self.values)
-        self.head_values = [dict(h) for h in heads]
+        self._values = dict(values)
+        self.words = self.rmap.encode_block(self._values)
+        self._head_values = [dict(h) for h in heads]
         self.head_words = [self._encode_head(i) for i in range(self.heads)]
 
     def _encode_head(self, i: int) -> list[int]:
@@ -124,17 +146,22 @@ class RegisterImage:
         return out
 
     def load_flat(self, words: Sequence[int]) -> None:
-        """Load words laid out as :meth:`flat` gives them (decoding the values too)."""
+        """Load words laid out as :meth:`flat` gives them.
+
+        The words are served as they are (a block's reserved words read 0); the values are
+        decoded from them when first asked for (:attr:`values`, :attr:`head_values`: a write's
+        check), not per load.
+        """
         ws = [int(w) for w in words]
         if len(ws) != self.size:
             raise ValueError(f"expected {self.size} words, got {len(ws)}")
-        values = self.rmap.decode_block(ws[: self.count], self.first)
-        heads = []
-        for i, view in enumerate(self.views):
-            start = self.count + i * self.stride
-            decoded = view.decode_block(ws[start : start + self._used], self._bases[i])
-            heads.append({k: v for k, v in decoded.items() if k in self._slots})
-        self.load(values, heads)
+        self.words = ws[: self.count]
+        used, stride = self._used, self.stride
+        self.head_words = [
+            ws[start : start + used] + [0] * (stride - used)
+            for start in range(self.count, self.size, stride)]
+        self._values = None
+        self._head_values = None
 
     def _head_of(self, address: int) -> int | None:
         """The served head whose block covers ``address`` (``None``: no served block)."""
@@ -145,6 +172,9 @@ class RegisterImage:
 
     def read(self, address: int, count: int) -> list[int]:
         """Words ``[address, address + count)``; refused unless wholly in one range.
+
+        One range: the single span, one served block, or (``[heads] read_across``) the
+        served blocks together.
 
         Raises
         ------
@@ -159,6 +189,10 @@ class RegisterImage:
             off = a - self._bases[i]
             if off + n <= self.stride:
                 return self.head_words[i][off : off + n]
+            if self._across and off + n <= (self.heads - i) * self.stride:
+                last = i + (off + n - 1) // self.stride
+                words = [w for block in self.head_words[i : last + 1] for w in block]
+                return words[off : off + n]
         raise RegisterAccessError(f"read of {n} registers at {a} outside the served map")
 
     def parse_write(self, address: int, words: Sequence[int]) -> HeadWrite:

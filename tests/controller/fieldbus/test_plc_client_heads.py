@@ -243,3 +243,132 @@ def test_offered_common_words_spare_the_heads_read_of_them_once():
             await server.stop()
 
     asyncio.run(main())
+
+
+def _one_block_map() -> RegisterMap:
+    """The shipped map whose PLC reads no further than one block (no ``read_across``)."""
+    from config.loading import load_toml
+
+    doc = load_toml(default_path("registers.toml"))
+    doc["heads"]["read_across"] = False
+    return RegisterMap.from_dict(doc)
+
+
+def test_blocks_reads_group_consecutive_heads_where_the_map_reads_across():
+    from controller.fieldbus.plc_protocol import MAX_READ_WORDS, PlcProtocol
+
+    assert RMAP.heads.read_across
+    p = PlcProtocol(RMAP)
+    base, stride, used = RMAP.heads.base, RMAP.heads.stride, RMAP.heads.used
+    assert p.blocks_reads([0, 1, 2, 3]) == ((base, 3 * stride + used, (0, 1, 2, 3)),)
+    assert p.blocks_reads([3, 1, 0, 1]) == ((base, stride + used, (0, 1)),
+                                            (base + 3 * stride, used, (3,)))
+    eight = p.blocks_reads(range(8))  # 8 blocks do not fit one read of 125 words
+    assert [r[2] for r in eight] == [(0, 1, 2, 3), (4, 5, 6, 7)]
+    assert all(n <= MAX_READ_WORDS for _, n, _ in eight)
+    single = PlcProtocol(_one_block_map())
+    assert single.blocks_reads([0, 1]) == ((base, used, (0,)), (base + stride, used, (1,)))
+    with pytest.raises(ValueError, match="head"):
+        p.blocks_reads([8])
+    words = list(range(stride + used))
+    got = p.split_blocks((base, stride + used, (0, 1)), words)
+    assert got == {0: words[:used], 1: words[stride:]}
+    from core.errors import FieldbusError
+
+    with pytest.raises(FieldbusError, match="expected"):
+        p.split_blocks((base, stride + used, (0, 1)), words[:-1])
+
+
+@pytest.mark.parametrize("across", [True, False])
+def test_offered_blocks_spare_the_heads_every_request(across):
+    """The coordinator reads every head's block (one request where the map reads across) and
+    offers each head its block with the common span: the head then asks the PLC nothing, and
+    decodes what it would have read itself."""
+    rmap = RMAP if across else _one_block_map()
+
+    async def main():
+        target = HeadTarget(4)
+        server, host, port = await _serve(target, rmap)
+        seen = _recording(server)
+        try:
+            common = PlcClient.tcp(host, port, timeout_s=2.0, regmap=rmap)
+            heads = [PlcClient.tcp(host, port, timeout_s=2.0, regmap=rmap, head=i)
+                     for i in range(4)]
+            own = [(await h.read()).values for h in heads]
+            seen.clear()
+            await common.read()
+            blocks = await common.read_blocks([0, 1, 2, 3])
+            assert seen == ([3, 3] if across else [3, 3, 3, 3, 3])
+            seen.clear()
+            for i, h in enumerate(heads):
+                h.offer_common(common.last_common)
+                h.offer_block(blocks[i])
+                assert (await h.read()).values == own[i]
+            assert seen == []  # nothing asked of the PLC
+            heads[2].offer_block(blocks[2])  # a block without the common span: not used
+            await heads[2].read()
+            assert seen == [3, 23]
+            seen.clear()
+            heads[1].offer_common(common.last_common)
+            heads[1].offer_block(blocks[1])
+            heads[1].offer_block(None)  # withdrawn: its own block read
+            await heads[1].read()
+            assert seen == [23]
+            with pytest.raises(ValueError, match="block's"):
+                heads[0].offer_block([0] * 3)
+            with pytest.raises(ValueError, match="no head's view"):
+                common.offer_block(blocks[0])
+            for c in (common, *heads):
+                c.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())
+
+
+def test_beat_and_read_is_one_function_23_writing_before_it_reads():
+    async def main():
+        target = HeadTarget()
+        server, host, port = await _serve(target)
+        seen = _recording(server)
+        try:
+            c = PlcClient.tcp(host, port, timeout_s=2.0)
+            snap = await c.beat_and_read(70000)  # wrapped to 16 bits
+            assert seen == [23]
+            assert target.heartbeat_service == 70000 & 0xFFFF
+            assert snap["heartbeat_service"] == 70000 & 0xFFFF  # the write came first
+            assert c.last is snap
+            words = list(c.last_common)
+            assert (await c.read()).values == snap.values and c.last_common == words
+            head = PlcClient.tcp(host, port, timeout_s=2.0, head=1)
+            seen.clear()
+            await head.beat_and_read(5)  # a head's view: its heartbeat write, then its read
+            assert seen == [6, 3, 23] and target.heartbeat_service == 5
+            c.close()
+            head.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())
+
+
+def test_beat_and_read_without_function_23_is_the_two_requests():
+    from config.loading import load_toml
+
+    doc = load_toml(default_path("registers.toml"))
+    doc["map"]["function_codes"] = [3, 6, 16]
+    rmap = RegisterMap.from_dict(doc)
+
+    async def main():
+        target = HeadTarget()
+        server, host, port = await _serve(target, rmap)
+        seen = _recording(server)
+        try:
+            c = PlcClient.tcp(host, port, timeout_s=2.0, regmap=rmap)
+            snap = await c.beat_and_read(9)
+            assert seen == [6, 3] and snap["heartbeat_service"] == 9
+            c.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(main())

@@ -28,9 +28,10 @@ def _plant(tmp_path: Path) -> MoulderPlant:
 
 
 def _count_requests(plc) -> list[str]:
-    """Record the kind of every request ``plc``'s bus gets (``read``, ``read_write``)."""
+    """Record the kind of every request ``plc``'s bus gets (``read``, ``read_write``,
+    ``write``)."""
     seen: list[str] = []
-    for name in ("read", "read_write"):
+    for name in ("read", "read_write", "write"):
         inner = getattr(plc.bus, name)
 
         async def wrapped(*args, _inner=inner, _name=name):
@@ -53,16 +54,21 @@ def test_the_common_registers_are_read_once_per_plc_cycle_for_every_head(tmp_pat
             coordinator = _count_requests(moulder.feed.plc)
             heads = {name: _count_requests(svc.plc) for name, svc in moulder.heads.items()}
             cycles = moulder.feed.counts["cycles"]
+            beat = moulder.feed.heartbeat
             await moulder.plc_cycle()
-            assert coordinator == ["read"]  # (and its heartbeat's write)
-            assert all(seen == ["read_write"] for seen in heads.values()), heads
+            # its heartbeat and the common registers in one function 23, then every head's
+            # block in one read (the map's [heads] read_across); the heads ask for nothing
+            assert coordinator[:2] == ["read_write", "read"], coordinator
+            assert "write" not in coordinator[:2]
+            assert all(seen == [] for seen in heads.values()), heads
+            assert moulder.feed.plc.last["heartbeat_service"] == beat + 1
             assert moulder.feed.counts["cycles"] == cycles + 1
             assert moulder.feed.last is not None and moulder.feed.last.feed_mm_s is not None
             for name, svc in moulder.heads.items():  # what each head would have read itself
                 shared = svc.plc.last.values
                 own = (await svc.plc.read()).values
                 assert shared == own, name
-                assert heads[name][-2:] == ["read", "read_write"]  # the offer was used once
+                assert heads[name] == ["read", "read_write"]  # the offers were used once
         finally:
             await plant.close()
 
@@ -78,17 +84,46 @@ def test_without_the_coordinators_read_each_head_reads_its_own(tmp_path):
             for _ in range(3):
                 await plant.step()
 
-            async def refused() -> None:
+            async def refused(*_args) -> None:
                 from core.errors import FieldbusError
 
                 raise FieldbusError("PLC gone")
 
-            moulder.feed.plc.read = refused  # the coordinator's read fails this cycle
+            moulder.feed.plc.beat_and_read = refused  # the coordinator's read fails this cycle
             heads = {name: _count_requests(svc.plc) for name, svc in moulder.heads.items()}
             await moulder.plc_cycle()
             assert all(seen == ["read", "read_write"] for seen in heads.values()), heads
             assert moulder.feed.last.feed_mm_s is None and moulder.feed.last.safe
             assert moulder.feed.counts["plc_errors"] == 1
+        finally:
+            await plant.close()
+
+    asyncio.run(go())
+
+
+def test_without_the_coordinators_block_read_each_head_reads_its_block(tmp_path):
+    plant = _plant(tmp_path)
+    moulder = plant.service
+
+    async def go():
+        try:
+            for _ in range(3):
+                await plant.step()
+
+            async def refused(*_args) -> None:
+                from core.errors import FieldbusError
+
+                raise FieldbusError("PLC gone")
+
+            moulder.feed.plc.read_blocks = refused  # the common read answers, the blocks not
+            heads = {name: _count_requests(svc.plc) for name, svc in moulder.heads.items()}
+            await moulder.plc_cycle()
+            # the common registers offered, each head's block its own function 23
+            assert all(seen == ["read_write"] for seen in heads.values()), heads
+            assert moulder.feed.counts["plc_errors"] == 1
+            assert moulder.feed.last.feed_mm_s is not None  # decided on the common registers
+            for name, svc in moulder.heads.items():
+                assert svc.plc.last.values == (await svc.plc.read()).values, name
         finally:
             await plant.close()
 

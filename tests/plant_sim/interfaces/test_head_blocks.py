@@ -20,6 +20,19 @@ from tests.support.head_target import HeadTarget
 RMAP = RegisterMap.load()
 
 
+def _map(read_across: bool) -> RegisterMap:
+    """The shipped map with ``[heads] read_across`` set as given."""
+    from config.loading import default_path, load_toml
+
+    doc = load_toml(default_path("registers.toml"))
+    doc["heads"]["read_across"] = read_across
+    return RegisterMap.from_dict(doc)
+
+
+ONE_BLOCK = _map(False)
+"""The map whose reads stay in one block (a PLC that does not read across blocks)."""
+
+
 def _block(i: int) -> tuple[int, int]:
     return RMAP.head_span(i)
 
@@ -65,16 +78,28 @@ def test_bus_reads_each_heads_block_under_the_head_names(head):
     assert single["spindle_rpm"] == 6000.0 and single["knives"] == 4
 
 
-def test_bus_refuses_blocks_beyond_the_machine_and_reads_across_ranges():
-    bus = MachineRegisterBus(HeadTarget(2), RMAP)
+@pytest.mark.parametrize("regmap", [RMAP, ONE_BLOCK], ids=["read_across", "one_block"])
+def test_bus_refuses_blocks_beyond_the_machine_and_reads_across_ranges(regmap):
+    bus = MachineRegisterBus(HeadTarget(2), regmap)
     run(bus.connect())
-    for address, count in [(_block(2)[0], 4), (_block(7)[0], 1), (36, 966), (1020, 20),
-                           (1000 + 31, 2)]:
+    for address, count in [(_block(2)[0], 4), (_block(7)[0], 1), (36, 966), (1020, 45),
+                           (1000 + 63, 2)]:
         with pytest.raises(BusRefused) as err:
             run(bus.read(address, count))
         assert err.value.code == 2, (address, count)
     used = RMAP.heads.used
     assert run(bus.read(1000 + used, 32 - used)) == [0] * (32 - used)  # reserved words read 0
+    if not regmap.heads.read_across:  # from one block into the next: refused
+        for address, count in [(1000 + 31, 2), (1020, 20), (1000, 32 + used)]:
+            with pytest.raises(BusRefused) as err:
+                run(bus.read(address, count))
+            assert err.value.code == 2, (address, count)
+        return
+    # across the served blocks: block 0 (its reserved words 0), then block 1's
+    both = run(bus.read(1000, 32 + used))
+    assert both[:32] == run(bus.read(1000, 32)) and both[32:] == run(bus.read(1032, used))
+    assert both[used:32] == [0] * (32 - used)
+    assert _decode(1, both[32:]) == pytest.approx(HeadTarget(2).head_register_values(1))
 
 
 def test_bus_routes_a_spindle_setpoint_write_to_its_head_and_refuses_out_of_range():
@@ -282,17 +307,21 @@ _END = RMAP.heads.base + RMAP.heads.stride * RMAP.heads.count + 4
     start=st.one_of(st.integers(0, 60), st.integers(990, _END), st.integers(0, 0xFFFF)),
     qty=st.integers(1, 125),
     heads=st.integers(1, 4),
+    across=st.booleans(),
 )
-def test_any_read_is_served_from_exactly_one_range_or_refused_with_02(start, qty, heads):
+def test_any_read_is_served_from_exactly_one_range_or_refused_with_02(start, qty, heads,
+                                                                     across):
+    regmap = RMAP if across else ONE_BLOCK
     target = HeadTarget(heads)
-    server = PlcServer(target, port=0)
+    server = PlcServer(target, register_map=regmap, port=0)
     reply = server.respond(1, struct.pack(">BHH", 3, start, qty))
     first, count = RMAP.common_span()
     in_common = first <= start and start + qty <= first + count
     block = RMAP.heads.head_at(start)
-    in_block = (block is not None and block < heads
-                and start + qty <= RMAP.heads.base + (block + 1) * RMAP.heads.stride)
-    if not (in_common or in_block):
+    last = RMAP.heads.head_at(start + qty - 1)
+    in_blocks = (block is not None and last is not None and last < heads
+                 and (last == block or across))
+    if not (in_common or in_blocks):
         assert reply == bytes([0x83, 2])
         return
     words = list(struct.unpack(f">{qty}H", reply[2:]))
@@ -300,10 +329,13 @@ def test_any_read_is_served_from_exactly_one_range_or_refused_with_02(start, qty
     if in_common:
         expect = RMAP.encode_block(target.register_values())[start - first : start - first + qty]
     else:
-        view = RMAP.for_head(block)  # its span starts at 0: list index == address
-        full = view.encode_block(target.head_register_values(block))
-        expect = full[start : start + qty]
-        expect += [0] * (qty - len(expect))  # the block's reserved words
+        blocks: list[int] = []  # every served block's stride of words, from block 0 on
+        for i in range(heads):
+            view = RMAP.for_head(i)  # its span starts at 0: list index == address
+            full = view.encode_block(target.head_register_values(i))[RMAP.heads.address(i):]
+            blocks += full + [0] * (RMAP.heads.stride - len(full))  # the reserved words
+        off = start - RMAP.heads.base
+        expect = blocks[off : off + qty]
     assert words == expect
 
 
