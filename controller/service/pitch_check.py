@@ -147,13 +147,24 @@ class FeedHistory:
         """
         t = check_finite("t_s", t_s)
         travel = check_positive("travel_mm", travel_mm)
-        idx = [i for i, ti in enumerate(self._t) if ti <= t and self._knives[i] == knives]
+        # the times ascend strictly (note): the readings up to t are the first `upto`
+        upto = bisect.bisect_right(self._t, t)
+        kept = self._knives if upto == len(self._t) else list(itertools.islice(self._knives, upto))
+        if upto and kept.count(knives) == upto:  # one knife set throughout: slices
+            t0 = t - travel / min(itertools.islice(self._feed, upto)) - LATENCY_S
+            behind = bisect.bisect_right(self._t, t0, 0, upto)  # readings at or before t0
+            pitches = list(itertools.islice(self._pitch, max(behind - 1, 0), upto))
+            return min(pitches), max(pitches), behind > 0 and self._t[0] <= t0
+        idx = [i for i, k in enumerate(itertools.islice(kept, upto)) if k == knives]
         if not idx:
             return None
-        t0 = t - travel / min(self._feed[i] for i in idx) - LATENCY_S
-        back = [i for i in idx if self._t[i] <= t0]
+        feed = list(itertools.islice(self._feed, upto))
+        times = list(itertools.islice(self._t, upto))
+        t0 = t - travel / min(feed[i] for i in idx) - LATENCY_S
+        back = [i for i in idx if times[i] <= t0]
         first = back[-1] if back else idx[0]
-        pitches = [self._pitch[i] for i in idx if i >= first]
+        pitch = list(itertools.islice(self._pitch, upto))
+        pitches = [pitch[i] for i in idx if i >= first]
         return min(pitches), max(pitches), bool(back) and self._t[0] <= t0
 
 

@@ -8,6 +8,7 @@ own flag, and the flagged pair's record.
 from __future__ import annotations
 
 import math
+import random
 from types import SimpleNamespace
 
 import pytest
@@ -201,3 +202,37 @@ def test_the_cutting_feed_is_the_scan_over_every_reading():
             at = rng.choice(ts) if rng.random() < 0.3 else rng.uniform(ts[0] - 0.5, t + 0.5)
             travel = rng.uniform(10.0, 600.0)
             assert h.cutting_feed(at, travel_mm=travel) == _cutting_feed_by_scan(h, at, travel)
+
+
+def _pitch_range_as_scanned(h: FeedHistory, t: float, travel: float, knives: int):
+    """:meth:`FeedHistory.pitch_range` as it scanned every reading (the formula it keeps)."""
+    ts, kn, fd, pt = list(h._t), list(h._knives), list(h._feed), list(h._pitch)
+    idx = [i for i, ti in enumerate(ts) if ti <= t and kn[i] == knives]
+    if not idx:
+        return None
+    t0 = t - travel / min(fd[i] for i in idx) - LATENCY_S
+    back = [i for i in idx if ts[i] <= t0]
+    first = back[-1] if back else idx[0]
+    pitches = [pt[i] for i in idx if i >= first]
+    return min(pitches), max(pitches), bool(back) and ts[0] <= t0
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_pitch_range_is_the_scan_of_every_reading(seed):
+    """Random feeds and spindles, knife changes or none, times inside, before and after."""
+    rng = random.Random(seed)
+    h = FeedHistory(history_s=rng.choice([0.5, 3.0, 10.0]))
+    t = 0.0
+    change = rng.random() < 0.5
+    for i in range(rng.randint(0, 600)):
+        t += rng.uniform(0.001, 0.03)
+        knives = rng.choice([2, 4]) if change and rng.random() < 0.05 else 4
+        h.note(_snap(t, feed=rng.uniform(100.0, 900.0), rpm=rng.uniform(3000, 9000),
+                     knives=knives))
+        if i % 7 == 0:
+            for _ in range(3):
+                q = rng.uniform(-0.5, t + 0.5)
+                travel = rng.choice([1e-9, rng.uniform(0.1, 400.0), 5000.0])
+                for z in (2, 4, 6):
+                    assert h.pitch_range(q, travel_mm=travel, knives=z) == \
+                        _pitch_range_as_scanned(h, q, travel, z)
