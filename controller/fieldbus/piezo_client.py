@@ -171,7 +171,8 @@ class PiezoClient:
     send_timeout_s : float
         Longest a send may wait for room in the transmit queue, s (default
         ``min(0.005, command_period_s / 4)``): a full queue raises ``FieldbusError`` instead of
-        holding up the cycle; the amplifier's setpoint timeout acts on its own.
+        holding up the cycle; the amplifier's setpoint timeout acts on its own. Not with
+        ``ampbus`` (``ValueError``): the shared master's own is in force.
     ampbus : AmpBus, optional
         A master the client shares with other heads' clients (one CAN connection for every
         amplifier of a moulder: each frame received and decoded once). ``bus`` is then
@@ -197,21 +198,25 @@ class PiezoClient:
         self.knives = check_int("knives", knives, lo=1, hi=MAX_KNIVES)
         self.command_period_s = check_positive("command_period_s", command_period_s)
         self.offsets_period_s = check_positive("offsets_period_s", offsets_period_s)
-        self.send_timeout_s = (
-            default_send_timeout_s(self.command_period_s)
-            if send_timeout_s is None
-            else min(check_positive("send_timeout_s", send_timeout_s), self.command_period_s / 2)
-        )
         self.limit = OffsetLimit(check_positive("stroke_um", stroke_um),
                                  wire_bound_um=WIRE_BOUND_UM)
         """The bound on the offsets in force (machine.toml, the amplifier, refusals)."""
         self.refusal_grace_s = check_positive("refusal_grace_s", refusal_grace_s, allow_zero=True)
         if ampbus is not None and bus is not None and bus is not ampbus.bus:
             raise ValueError("bus must be the shared master's bus (ampbus.bus) or None")
+        if ampbus is not None and send_timeout_s is not None:
+            raise ValueError(f"send_timeout_s is the shared master's (AmpBus(send_timeout_s=...))"
+                             f", not a client's: got {send_timeout_s!r} with ampbus")
         self.shared = ampbus is not None
         """The bus is shared with other heads' clients (not closed by :meth:`close`)."""
-        self.ampbus = ampbus if ampbus is not None else AmpBus(
-            bus, eds=eds, send_timeout_s=self.send_timeout_s)
+        if ampbus is None:
+            ampbus = AmpBus(bus, eds=eds, send_timeout_s=(
+                default_send_timeout_s(self.command_period_s) if send_timeout_s is None
+                else min(check_positive("send_timeout_s", send_timeout_s),
+                         self.command_period_s / 2)))
+        self.ampbus = ampbus
+        self.send_timeout_s = ampbus.network.send_timeout_s
+        """The longest a send waits for room in the transmit queue, s (the master's)."""
         self.bus = self.ampbus.bus
         self.amp: CanopenAmplifier = self.ampbus.amplifier(
             node_id, knives=self.knives, heartbeat_lost_after=heartbeat_lost_after)

@@ -43,6 +43,7 @@ import numpy as np
 
 from controller.laws.uniformity_loop import second_difference, width_sensitivity_mm_per_um
 from controller.service.events import EventKind, EventLog
+from vision.defects.grading import median
 
 CONFIRM_PAIRS = 5
 """Measurements in a row that confirm (or clear) an unreachable target."""
@@ -238,19 +239,11 @@ class KnifeChipMonitor:
 def _column_medians(rows: list[np.ndarray]) -> list[float]:
     """``np.median(rows, axis=0)`` of a few rows of finite values, as plain floats.
 
-    The middle value of each column sorted (the mean of the middle two for an even count, as
-    numpy's); NaN where a column holds one (numpy's too).
+    The middle value of each column sorted (:func:`vision.defects.grading.median`: the mean of
+    the middle two for an even count, as numpy's); NaN where a column holds one (numpy's too).
     """
-    n = len(rows)
-    mid = n // 2
-    out = []
-    for col in zip(*(r.tolist() for r in rows), strict=True):
-        if any(math.isnan(v) for v in col):
-            out.append(math.nan)
-            continue
-        srt = sorted(col)
-        out.append(srt[mid] if n % 2 else (srt[mid - 1] + srt[mid]) / 2.0)
-    return out
+    return [math.nan if any(map(math.isnan, col)) else median(sorted(col))
+            for col in zip(*(r.tolist() for r in rows), strict=True)]
 
 
 class FailureMonitor:

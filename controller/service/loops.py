@@ -356,7 +356,6 @@ class ControlLoops:
             return False
         lo, hi = snap.feed_min_mm_s, snap.feed_max_mm_s
         pitch = float(att.pass_pitch_mm)
-        widths = att.knife_widths_mm
         applied = False
         async with self._feed_lock():
             t = self.loop_time(t)
@@ -374,7 +373,8 @@ class ControlLoops:
             self.alerts.target.update(t, pitch_mm=pitch, feed_mm_s=feed, feed_limits_mm_s=(lo, hi),
                                       held_pitch_mm=loop.pitch_setpoint_mm)
             try:
-                if any(map(math.isfinite, np.asarray(widths, dtype=float).tolist())):
+                widths = np.asarray(att.knife_widths_mm, dtype=float).tolist()  # both loops'
+                if any(map(math.isfinite, widths)):
                     interval = loop.cut_interval_s(measured_at)
                     cut = None if interval is None else (min(interval[0], t),
                                                          min(interval[1], t))
@@ -438,7 +438,7 @@ class ControlLoops:
         return 1.0 / (1.0 + PASS_TOL) <= fitted / at_cut <= 1.0 + PASS_TOL
 
     def _learn_offsets(
-        self, widths: np.ndarray, pitch: float, cut: tuple[float, float] | None, t: float
+        self, widths: list[float], pitch: float, cut: tuple[float, float] | None, t: float
     ) -> bool:
         """One uniformity-loop update and its offsets on CAN; whether they were sent.
 

@@ -391,6 +391,9 @@ def test_heads_share_one_master_each_frame_taken_once(buses):
     with pytest.raises(ValueError, match="shared master"):
         PiezoClient(elsewhere, knives=2, node_id=4, ampbus=master)
     elsewhere.shutdown()
+    with pytest.raises(ValueError, match="send_timeout_s.*0.001"):  # the master's rules
+        PiezoClient(None, knives=2, node_id=4, ampbus=master, send_timeout_s=0.001)
+    assert a.send_timeout_s == b.send_timeout_s == master.network.send_timeout_s
     assert a.bus is b.bus is service
     for node, state in ((2, 5), (3, 5), (3, 5)):
         fid, data = cf.heartbeat(state, node_id=node)
