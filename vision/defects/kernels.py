@@ -5,7 +5,7 @@ it each (masks, sums, a sort per column), which cost more than their arithmetic.
 here do each step in one call, with the arithmetic of the numpy code they replace:
 
 * :func:`column_means_u16` -- the map's coarse source: whole blocks of columns of
-  ``uint16`` row bins averaged (:class:`vision.defects.surface_map.SurfaceMapper`);
+  ``uint16`` row bins averaged, as ``float32`` (:class:`vision.defects.surface_map.SurfaceMapper`);
 * :func:`register_ratio` -- B registered onto A along the rows (linear), the samples both
   shots see, the pair's constant imbalance removed, the slope by seed Eq. 4 and (when
   wanted) the albedo (:class:`vision.defects.surface_map.SurfaceMapper`);
@@ -132,7 +132,9 @@ def column_means_u16(src: np.ndarray, row0: int, row_step: int, k: int,
     ``out[i, x]`` is the mean of ``src[row0 + i * row_step, x * k:(x + 1) * k]`` rounded to
     the nearest integer (half to even) -- the integers OpenCV's ``INTER_AREA`` resize by a
     whole factor ``k`` along the rows gives a ``uint16`` image (the integer sum times the
-    ``float32`` ``1 / k``, rounded), as ``float32``.
+    ``float32`` ``1 / k``, rounded), as ``float32``.  An even ``k`` sums the columns in pairs
+    first (a loop that vectorises), then ``k / 2`` pair sums; the integer sums are exact in
+    any order, so the means are the same.
 
     Parameters
     ----------
@@ -140,19 +142,42 @@ def column_means_u16(src: np.ndarray, row0: int, row_step: int, k: int,
     row0, row_step : int
         The rows read.
     k : int
-        Columns per mean.
+        Columns per mean, at most 32768 (the sums fit an int32).
     out : ndarray of float32, shape (n_out, w_out)
         Out; ``w_out * k <= cols``.
     """
     scale = np.float32(1.0) / np.float32(k)
     n_out, w_out = out.shape
+    half = k // 2
+    pairs = np.empty(w_out * half if k % 2 == 0 else 0, dtype=np.int32)
     for i in range(n_out):
-        r = row0 + i * row_step
-        for x in range(w_out):
-            s = np.int64(0)
-            for q in range(k):
-                s += np.int64(src[r, x * k + q])
-            out[i, x] = np.rint(np.float32(s) * scale)
+        s = src[row0 + i * row_step]
+        o = out[i]
+        if k % 2 == 0:
+            for c in range(w_out * half):
+                pairs[c] = np.int32(s[2 * c]) + np.int32(s[2 * c + 1])
+            if half == 1:
+                for x in range(w_out):
+                    o[x] = np.rint(np.float32(pairs[x]) * scale)
+            elif half == 2:
+                for x in range(w_out):
+                    o[x] = np.rint(np.float32(pairs[2 * x] + pairs[2 * x + 1]) * scale)
+            elif half == 3:
+                for x in range(w_out):
+                    o[x] = np.rint(np.float32(pairs[3 * x] + pairs[3 * x + 1]
+                                              + pairs[3 * x + 2]) * scale)
+            else:
+                for x in range(w_out):
+                    a = np.int32(0)
+                    for q in range(half):
+                        a += pairs[x * half + q]
+                    o[x] = np.rint(np.float32(a) * scale)
+        else:
+            for x in range(w_out):
+                a = np.int32(0)
+                for q in range(k):
+                    a += np.int32(s[x * k + q])
+                o[x] = np.rint(np.float32(a) * scale)
 
 
 @njit(**_JIT)
@@ -209,6 +234,42 @@ def _sort_columns(v: np.ndarray) -> None:  # pragma: no cover - compiled
                 x, y = lo[c], hi[c]
                 lo[c] = min(x, y)
                 hi[c] = max(x, y)
+
+
+@njit(**_JIT)
+def _cell_means(sq: np.ndarray, vv: np.ndarray, cell: int, n_cells: int, half_cell: float,
+                vc: np.ndarray, er: np.ndarray) -> None:  # pragma: no cover - compiled
+    """A row's cells: each cell's mean of ``sq`` over its valid samples ``vv``.
+
+    The sum over the cell's ``cell`` columns in order over its valid samples (``vc``: at
+    least ``half_cell`` of them; ``er`` 0 where not).  Cells of 2 and 3 columns (the maps'
+    ~0.4 mm) have loops of their own that vectorise: the same additions in the same order.
+    """
+    if cell == 3:
+        for j in range(n_cells):
+            acc = ((0.0 + sq[3 * j]) + sq[3 * j + 1]) + sq[3 * j + 2]
+            w = (vv[3 * j] + vv[3 * j + 1]) + vv[3 * j + 2]
+            ok = w >= half_cell
+            vc[j] = ok
+            er[j] = acc / max(w, 1) if ok else 0.0
+    elif cell == 2:
+        for j in range(n_cells):
+            acc = (0.0 + sq[2 * j]) + sq[2 * j + 1]
+            w = vv[2 * j] + vv[2 * j + 1]
+            ok = w >= half_cell
+            vc[j] = ok
+            er[j] = acc / max(w, 1) if ok else 0.0
+    else:
+        for j in range(n_cells):
+            b = j * cell
+            acc = 0.0 + sq[b]
+            w = vv[b]
+            for q in range(1, cell):
+                acc += sq[b + q]
+                w += vv[b + q]
+            ok = w >= half_cell
+            vc[j] = ok
+            er[j] = acc / max(w, 1) if ok else 0.0
 
 
 @njit(**_JIT)
@@ -347,16 +408,7 @@ def residual_map(p: np.ndarray, valid: np.ndarray, sat_limit: float, group: int,
             sq[c] = x * x
             vv[c] = vr[c]
         # each cell's sum over its columns in order (r is 0 outside valid: adds nothing)
-        for j in range(n_cells):
-            b = j * cell
-            acc = 0.0 + sq[b]
-            w = vv[b]
-            for q in range(1, cell):
-                acc += sq[b + q]
-                w += vv[b + q]
-            ok = w >= half_cell
-            vc[j] = ok
-            er[j] = acc / max(w, 1) if ok else 0.0
+        _cell_means(sq, vv, cell, n_cells, half_cell, vc, er)
         for j in range(n_cells):  # the valid cells' values in order, for their median
             cells[nc] = er[j]
             nc += vc[j]
@@ -472,7 +524,11 @@ def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
     bin the median over the periods that saw it.  The medians are taken on every
     ``every``-th row (the reference) and on the rows whose residual folded as the plain mean
     over all periods (cheap) has a mean square above ``slack`` times the median row's: a
-    row whose median fold stands out has a mean fold that does too.
+    row whose median fold stands out has a mean fold that does too.  A row valid over all
+    its folded columns (nearly every row) takes the columns' counts per bin and cell, set up
+    once, and sums without a test per sample; the taken rows' medians come from one sort of
+    all their (row, bin) columns of period means at once (:func:`_sort_columns`; the same
+    values as a selection per bin).
 
     Parameters
     ----------
@@ -498,35 +554,50 @@ def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
     """
     rows, cols = r.shape
     x1 = min(cols, c0 + int(n_per * period))
-    where = np.empty(max(x1 - c0, 0), dtype=np.int64)  # (period, bin) cell of each column
-    phase = np.empty(max(x1 - c0, 0), dtype=np.int64)  # and its bin alone
+    span = max(x1 - c0, 0)
+    # the (period, bin) cell of each column, and its bin alone; columns past the last period
+    # go to a spare cell / bin (n_cells, nb) that is never read
+    n_cells = n_per * nb
+    where = np.empty(span, dtype=np.int64)
+    phase = np.empty(span, dtype=np.int64)
+    full_cell = np.zeros(n_cells + 1, dtype=np.int64)  # columns per cell and per bin
+    full_bin = np.zeros(nb + 1, dtype=np.int64)
     for c in range(c0, x1):
         ph = (c - c0) / period
         per = int(math.floor(ph))
         b = min(int(math.floor((ph - per) * nb)), nb - 1)
-        where[c - c0] = per * nb + b if per < n_per else -1
-        phase[c - c0] = b if per < n_per else -1
-    sums = np.zeros(n_per * nb)
-    counts = np.zeros(n_per * nb, dtype=np.int64)
-    vals = np.empty(n_per)
-    # the plain mean fold of every row
+        where[c - c0] = per * nb + b if per < n_per else n_cells
+        phase[c - c0] = b if per < n_per else nb
+        full_cell[where[c - c0]] += 1
+        full_bin[phase[c - c0]] += 1
+    # the plain mean fold of every row; a row valid over all its folded columns (nearly
+    # every row) takes the columns' counts, set up once, and sums without a test per sample
     plain = np.full(rows, np.nan)
-    bsum = np.zeros(nb)
-    bcount = np.zeros(nb, dtype=np.int64)
+    bsum = np.zeros(nb + 1)
+    bcount = np.zeros(nb + 1, dtype=np.int64)
+    whole = np.zeros(rows, dtype=np.bool_)
     for i in range(rows):
+        vr, rr = valid[i], r[i]
         nv = 0
         for c in range(cols):
-            if valid[i, c]:
-                nv += 1
+            nv += vr[c]
         if nv < min_valid:
             continue
-        bsum[:] = 0.0
-        bcount[:] = 0
+        inside = 0
         for c in range(c0, x1):
-            b = phase[c - c0]
-            if valid[i, c] and b >= 0:
-                bsum[b] += r[i, c]
-                bcount[b] += 1
+            inside += vr[c]
+        whole[i] = inside == span
+        bsum[:] = 0.0
+        if whole[i]:
+            bcount[:] = full_bin
+            for c in range(c0, x1):
+                bsum[phase[c - c0]] += rr[c]
+        else:
+            bcount[:] = 0
+            for c in range(c0, x1):
+                if vr[c]:
+                    bsum[phase[c - c0]] += rr[c]
+                    bcount[phase[c - c0]] += 1
         s2 = 0.0
         n = 0
         for b in range(nb):
@@ -543,31 +614,57 @@ def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
             buf[n_ok] = plain[i]
             n_ok += 1
     limit = slack * _median(buf, n_ok) if n_ok > 0 else np.inf
+    taken = np.empty(rows, dtype=np.int64)
+    n_taken = 0
     for i in range(rows):
         energy[i] = np.nan
         for b in range(nb):
             folded[i, b] = np.nan
-        if np.isnan(plain[i]) or (i % every != 0 and plain[i] < limit):
-            continue
+        if not (np.isnan(plain[i]) or (i % every != 0 and plain[i] < limit)):
+            taken[n_taken] = i
+            n_taken += 1
+    # the taken rows' cell means, one column per (row, bin), the periods down the rows;
+    # +inf where no sample of the cell is valid (sorted last: the finite ones first, so the
+    # median of a bin's m valid periods is the middle of its first m sorted values)
+    lanes = n_taken * nb
+    cm = np.empty((n_per, lanes))
+    seen = np.zeros(lanes, dtype=np.int64)
+    sums = np.zeros(n_cells + 1)
+    counts = np.zeros(n_cells + 1, dtype=np.int64)
+    for t in range(n_taken):
+        i = taken[t]
+        vr, rr = valid[i], r[i]
         sums[:] = 0.0
-        counts[:] = 0
-        for c in range(c0, x1):
-            q = where[c - c0]
-            if valid[i, c] and q >= 0:
-                sums[q] += r[i, c]
-                counts[q] += 1
+        if whole[i]:
+            counts[:] = full_cell
+            for c in range(c0, x1):
+                sums[where[c - c0]] += rr[c]
+        else:
+            counts[:] = 0
+            for c in range(c0, x1):
+                if vr[c]:
+                    sums[where[c - c0]] += rr[c]
+                    counts[where[c - c0]] += 1
+        for per in range(n_per):
+            row = cm[per]
+            for b in range(nb):
+                q = per * nb + b
+                if counts[q] > 0:
+                    row[t * nb + b] = sums[q] / counts[q]
+                    seen[t * nb + b] += 1
+                else:
+                    row[t * nb + b] = np.inf
+    _sort_columns(cm)  # every (row, bin) at once: the same values as one selection each
+    for t in range(n_taken):
+        i = taken[t]
         s2 = 0.0
         nbins = 0
         for b in range(nb):
-            m = 0
-            for per in range(n_per):
-                q = per * nb + b
-                if counts[q] > 0:
-                    vals[m] = sums[q] / counts[q]
-                    m += 1
+            m = seen[t * nb + b]
             if m == 0:
                 continue
-            med = _median(vals, m)
+            hi = cm[m // 2, t * nb + b]
+            med = hi if m % 2 else 0.5 * (cm[m // 2 - 1, t * nb + b] + hi)
             folded[i, b] = med
             s2 += med * med
             nbins += 1

@@ -196,7 +196,7 @@ def test_fold_rows_as_numpy():
         assert energy[i] == pytest.approx(np.mean(ref ** 2), rel=1e-6)
 
 
-@pytest.mark.parametrize("k", [2, 3, 6, 7])
+@pytest.mark.parametrize("k", [1, 2, 3, 4, 6, 7, 8])
 def test_column_means_are_opencvs_area_resize(k):
     """The map's coarse source: INTER_AREA's integers, whether OpenCV or the kernel makes them."""
     rng = np.random.default_rng(k)

@@ -1,0 +1,165 @@
+"""The defects' compiled loops pinned to their earlier forms: random inputs, the same bits.
+
+Each loop restructured for speed keeps the arithmetic of the form it replaced (the same
+additions in the same order, the same selections); the earlier forms are kept here.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from numba import njit
+
+from vision.defects import kernels
+
+
+@njit(cache=False)
+def old_fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int, n_per: int,
+              min_valid: int, every: int, slack: float, folded: np.ndarray,
+              energy: np.ndarray) -> None:
+    """``kernels.fold_rows`` as it was: a pass per row, one selection per phase bin."""
+    rows, cols = r.shape
+    x1 = min(cols, c0 + int(n_per * period))
+    where = np.empty(max(x1 - c0, 0), dtype=np.int64)  # (period, bin) cell of each column
+    phase = np.empty(max(x1 - c0, 0), dtype=np.int64)  # and its bin alone
+    for c in range(c0, x1):
+        ph = (c - c0) / period
+        per = int(math.floor(ph))
+        b = min(int(math.floor((ph - per) * nb)), nb - 1)
+        where[c - c0] = per * nb + b if per < n_per else -1
+        phase[c - c0] = b if per < n_per else -1
+    sums = np.zeros(n_per * nb)
+    counts = np.zeros(n_per * nb, dtype=np.int64)
+    vals = np.empty(n_per)
+    # the plain mean fold of every row
+    plain = np.full(rows, np.nan)
+    bsum = np.zeros(nb)
+    bcount = np.zeros(nb, dtype=np.int64)
+    for i in range(rows):
+        nv = 0
+        for c in range(cols):
+            if valid[i, c]:
+                nv += 1
+        if nv < min_valid:
+            continue
+        bsum[:] = 0.0
+        bcount[:] = 0
+        for c in range(c0, x1):
+            b = phase[c - c0]
+            if valid[i, c] and b >= 0:
+                bsum[b] += r[i, c]
+                bcount[b] += 1
+        s2 = 0.0
+        n = 0
+        for b in range(nb):
+            if bcount[b] > 0:
+                m = bsum[b] / bcount[b]
+                s2 += m * m
+                n += 1
+        if n > 0:
+            plain[i] = s2 / n
+    buf = np.empty(rows)
+    n_ok = 0
+    for i in range(rows):
+        if not np.isnan(plain[i]):
+            buf[n_ok] = plain[i]
+            n_ok += 1
+    limit = slack * kernels._median(buf, n_ok) if n_ok > 0 else np.inf
+    for i in range(rows):
+        energy[i] = np.nan
+        for b in range(nb):
+            folded[i, b] = np.nan
+        if np.isnan(plain[i]) or (i % every != 0 and plain[i] < limit):
+            continue
+        sums[:] = 0.0
+        counts[:] = 0
+        for c in range(c0, x1):
+            q = where[c - c0]
+            if valid[i, c] and q >= 0:
+                sums[q] += r[i, c]
+                counts[q] += 1
+        s2 = 0.0
+        nbins = 0
+        for b in range(nb):
+            m = 0
+            for per in range(n_per):
+                q = per * nb + b
+                if counts[q] > 0:
+                    vals[m] = sums[q] / counts[q]
+                    m += 1
+            if m == 0:
+                continue
+            med = kernels._median(vals, m)
+            folded[i, b] = med
+            s2 += med * med
+            nbins += 1
+        if nbins > 0:
+            energy[i] = s2 / nbins
+
+
+@njit(cache=False)
+def old_cell_means(sq, vv, cell, n_cells, half_cell, vc, er):
+    """The residual's cells as ``kernels.residual_map`` summed them: one loop for any cell."""
+    for j in range(n_cells):
+        b = j * cell
+        acc = 0.0 + sq[b]
+        w = vv[b]
+        for q in range(1, cell):
+            acc += sq[b + q]
+            w += vv[b + q]
+        ok = w >= half_cell
+        vc[j] = ok
+        er[j] = acc / max(w, 1) if ok else 0.0
+
+
+def _fold_case(rng):
+    rows, cols = int(rng.integers(8, 60)), int(rng.integers(40, 300))
+    period = float(rng.uniform(4.0, 30.0))
+    c0 = int(rng.integers(0, 10))
+    n_per = max(1, int((cols - c0) // period))
+    r = rng.standard_normal((rows, cols)).astype(np.float32)
+    if rng.random() < 0.5:
+        r = np.round(r, 1)  # ties among the periods' means
+    for i in rng.integers(0, rows, 3):  # rows that stand out
+        r[i] += np.where(np.arange(cols) % period < period / 4, 3.0, 0.0).astype(np.float32)
+    valid = rng.random((rows, cols)) > rng.choice([0.0, 0.01, 0.3])
+    if rng.random() < 0.3:
+        valid[:, :c0] = False
+    valid[int(rng.integers(0, rows)), :] = False
+    r = np.where(valid, r, 0.0).astype(np.float32)
+    return (r, valid, c0, period, max(4, int(round(period))), n_per,
+            int(rng.integers(1, cols)), int(rng.integers(1, 9)), float(rng.uniform(0.5, 5.0)))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_fold_rows_is_its_earlier_form(seed):
+    """Whole rows summed without a test per sample and every bin's median from one sort of
+    all the taken rows' periods: the same folds and energies, bit for bit."""
+    rng = np.random.default_rng(seed)
+    for _ in range(40):
+        r, valid, c0, period, nb, n_per, min_valid, every, slack = _fold_case(rng)
+        rows = r.shape[0]
+        got = np.empty((rows, nb)), np.empty(rows)
+        ref = np.empty((rows, nb)), np.empty(rows)
+        kernels.fold_rows(r, valid, c0, period, nb, n_per, min_valid, every, slack, *got)
+        old_fold_rows(r, valid, c0, period, nb, n_per, min_valid, every, slack, *ref)
+        assert np.array_equal(got[0], ref[0], equal_nan=True)
+        assert np.array_equal(got[1], ref[1], equal_nan=True)
+
+
+@pytest.mark.parametrize("cell", [1, 2, 3, 4, 5])
+def test_cell_means_are_their_earlier_form(cell):
+    rng = np.random.default_rng(cell)
+    for _ in range(30):
+        n_cells = int(rng.integers(0, 120))
+        x = rng.standard_normal(n_cells * cell + int(rng.integers(0, cell))).astype(np.float32)
+        sq = (x * x).astype(np.float64)
+        vv = (rng.random(x.size) > rng.choice([0.0, 0.4])).astype(np.int32)
+        half = 0.5 * cell
+        got = np.empty(n_cells, bool), np.empty(n_cells, np.float32)
+        ref = np.empty(n_cells, bool), np.empty(n_cells, np.float32)
+        kernels._cell_means(sq, vv, cell, n_cells, half, *got)
+        old_cell_means(sq, vv, cell, n_cells, half, *ref)
+        assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
