@@ -140,6 +140,11 @@ class IdleCollector:
             gc.set_threshold(*self.thresholds)
             _installed = None
 
+    def due(self) -> bool:
+        """Whether a generation is due by the normal thresholds (:meth:`collect_due` would run)."""
+        t0 = self.thresholds[0]
+        return t0 > 0 and gc.get_count()[0] > t0
+
     def collect_due(self) -> int | None:
         """Collect the generation that is due by the normal thresholds, if any.
 

@@ -24,20 +24,28 @@ control code goes to the supervisor boundary (safe state), and the pair is still
 :meth:`PairPipeline.handle` takes one pair through every stage before it returns.
 :meth:`PairPipeline.submit` (real time, measurement in worker processes) runs stages 1-2 and
 hands the pair to a worker at once, then returns so the next pair can come while this one is
-measured; stages 3-6 of the pairs run in sequence order (each waits for the pair before it),
-so the loops see the pairs in order whichever worker finishes first. :meth:`PairPipeline.drain`
-waits for the pairs in flight.
+measured; stages 3-5 of the pairs run in sequence order (each waits for the pair before it
+to be through its setpoints), so the loops see the pairs in order whichever worker finishes
+first. What follows a pair's setpoints -- its record's profile, queueing the record, counting
+it, the garbage collector -- is bookkeeping: in real time it waits in the event loop's
+:class:`~controller.service.after_setpoint.AfterSetpoint` queue while a pair of any pipeline
+on the loop is ready for its setpoints (the records of each pipeline in order). Everything a
+record says of the service (setpoints, state, safe reason, the amplifier's fields, the knife
+condition) is taken when the pair's setpoints went out, as before.
+:meth:`PairPipeline.drain` waits for the pairs in flight and their bookkeeping.
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
 from controller.fieldbus.plc_protocol import PlcSnapshot
+from controller.service.after_setpoint import AfterSetpoint, after_setpoint_queue
 from controller.service.attribution import Attributed, attribute_or_reason
 from controller.service.bus_cycles import BusCycles
 from controller.service.clock import ServiceClock
@@ -72,6 +80,7 @@ class _Pair:
     wall_plc: float
     error: str | None = None
     pending: PendingMeasurement | None = None
+    passed: asyncio.Future | None = None  # real time: set once through its setpoints
 
 
 class PairPipeline:
@@ -112,13 +121,22 @@ class PairPipeline:
         self.keep_results = False
         self.results: list[FrameResult] = []
         self.on_result: Callable[[FrameResult], None] | None = None
-        self._tail: asyncio.Task | None = None  # the last submitted pair's stages 3-6
+        self._last: _Pair | None = None  # the last submitted pair (real time)
+        self._before_setpoints: deque[_Pair] = deque()  # submitted, not through setpoints
         self._in_flight: set[asyncio.Task] = set()
+        self._after: AfterSetpoint | None = None  # the running loop's bookkeeping queue
         records.on_handled = self._handled_later  # real time: handled once durable
 
     async def handle(self, frame: Frame, now_s: float | None = None) -> FrameResult:
         """Measure one pair, control, write setpoints, log it (see the module docstring)."""
-        return await self._finish(await self._begin(frame, now_s))
+        pair = await self._begin(frame, now_s)
+        result, meas = await self._setpoints(pair)
+        result = await self._book(pair, result, meas)
+        idle = len(self._in_flight) <= 1
+        self.loops.between_pairs(pair.t_arr, idle=idle)  # the knife condition's forecast, when due
+        if idle:  # no later pair waits for this one: a pause costs nothing
+            collect_between_pairs()
+        return result
 
     def use_workers(self, pool: Any) -> None:
         """Measure in worker processes from the next pair on (``None``: in this process again).
@@ -148,6 +166,20 @@ class PairPipeline:
         """Submitted pairs whose stages 3-6 have not finished."""
         return len(self._in_flight)
 
+    def setpoints_ready(self) -> bool:
+        """Whether the next pair could go through its setpoints now (real time).
+
+        Its measurement is back (or it has none: a pair failed on arrival) and the pairs before
+        it are through theirs: :class:`~controller.service.after_setpoint.AfterSetpoint` lets it
+        go before queued bookkeeping.
+        """
+        waiting = self._before_setpoints
+        if not waiting:
+            return False
+        pending = waiting[0].pending
+        future = None if pending is None else pending.future
+        return future is None or future.done()
+
     async def submit(self, frame: Frame) -> None:
         """Take one pair in real time; return as soon as the next one may come.
 
@@ -161,18 +193,60 @@ class PairPipeline:
             await self.handle(frame)
             return
         pair = await self._begin(frame, None)
-        task = asyncio.ensure_future(self._finish_after(self._tail, pair))
-        self._tail = task
+        loop = asyncio.get_running_loop()
+        if self._after is None or self._after.loop is not loop:
+            self._after = after_setpoint_queue(loop)
+            self._after.register(self)
+        pair.passed = loop.create_future()
+        previous, self._last = self._last, pair
+        self._before_setpoints.append(pair)
+        task = asyncio.ensure_future(self._finish_after(previous, pair))
         self._in_flight.add(task)
         task.add_done_callback(self._in_flight.discard)
         while len(self._in_flight) >= max(1, pool.capacity):
             await asyncio.wait(set(self._in_flight), return_when=asyncio.FIRST_COMPLETED)
 
-    async def _finish_after(self, previous: asyncio.Task | None, pair: _Pair) -> None:
-        if previous is not None and not previous.done():
-            await asyncio.wait({previous})  # the pairs before this one first, whatever they did
-        with self.keeper.boundary(pair.t_arr, f"pair {pair.frame.seq}"):
-            await self._finish(pair)
+    async def _finish_after(self, previous: _Pair | None, pair: _Pair) -> None:
+        """Real time: stages 3-5 after the pair before, then the bookkeeping in its turn."""
+        if previous is not None and previous.passed is not None and not previous.passed.done():
+            await asyncio.wait({previous.passed})  # the pairs before through their setpoints
+        what = f"pair {pair.frame.seq}"
+        out = None
+        idle = False
+        try:
+            with self.keeper.boundary(pair.t_arr, what):
+                out = await self._setpoints(pair)
+                idle = len(self._before_setpoints) <= 1  # no later pair submitted
+                self.loops.between_pairs(pair.t_arr, idle=idle)  # the knife condition, when due
+        finally:
+            self._passed(pair)
+        if out is None:
+            return
+        after = self._after
+        assert after is not None
+        await after.turn()  # no pair of any head on the loop ready for its setpoints
+        try:
+            with self.keeper.boundary(pair.t_arr, what):
+                await self._book(pair, *out)
+        finally:
+            after.done()
+        if idle:  # no later pair of this head: collect when no pair on the loop is ready
+            after.collect()
+
+    def _passed(self, pair: _Pair) -> None:
+        """``pair`` is through its setpoints (or failed on the way): the next one may go."""
+        waiting = self._before_setpoints
+        if waiting and waiting[0] is pair:
+            waiting.popleft()
+        else:
+            try:
+                waiting.remove(pair)
+            except ValueError:
+                pass
+        if pair.passed is not None and not pair.passed.done():
+            pair.passed.set_result(None)
+        if self._after is not None:
+            self._after.setpoint_done()
 
     async def drain(self) -> None:
         """Wait until every submitted pair went through all its stages."""
@@ -216,8 +290,12 @@ class PairPipeline:
         except (AttributeError, TypeError, ValueError, ArithmeticError):
             pass  # no position or feed of this pair: later pairs fall back on the PLC's
 
-    async def _finish(self, pair: _Pair) -> FrameResult:
-        """Stages 3-6: the measurement's result, attribution, control, the record."""
+    async def _setpoints(self, pair: _Pair) -> tuple[FrameResult, Any]:
+        """Stages 3-5: the measurement's result, attribution, control; the pair's result.
+
+        The result (without its profile, which :meth:`_book` adds) says what the service was
+        when the setpoints went out. Returns ``(result, measurement)``.
+        """
         frame, now_s, wall0, t_arr = pair.frame, pair.now_s, pair.wall0, pair.t_arr
         measured_at, snap, wall_plc = pair.measured_at, pair.snap, pair.wall_plc
         wall_meas = wall_plc
@@ -239,7 +317,6 @@ class PairPipeline:
                 checks_s = max(0.0, wall_meas - pair.pending.finished_at)
         ok = error is None
         applied = False
-        profile = None
         keeper = self.keeper
         if ok:
             keeper.supervisor.measurement_valid(t_arr)
@@ -254,8 +331,6 @@ class PairPipeline:
         if surface is not None:
             self.loops.nicks.pair(t_arr, getattr(surface, "defects", None), seq=frame.seq)
         wall1 = time.perf_counter()  # the setpoints are out: what follows is for the record
-        if ok:
-            profile = self.records.profile_of(meas, frame)  # up to 0.5 ms: after the setpoints
         out = self.loops.out
         plc_feed = None if snap is None else finite_or_none(snap.feed_setpoint_mm_s)
         result = FrameResult(
@@ -290,18 +365,22 @@ class PairPipeline:
                 "board_position_mm": finite_or_none(frame.board_position_mm),
                 "frame_centre_x_mm": self._frame_centre_mm,  # the optical axis in image A, mm
                 **({"passes": att.to_json()} if att is not None else {}),
-                **({"profile": profile} if profile is not None else {}),
             },
         )
-        rid = await self.records.append(result, frame, t_arr)
+        return result, meas
+
+    async def _book(self, pair: _Pair, result: FrameResult, meas: Any) -> FrameResult:
+        """Stage 6: the record (its profile, every tenth pair's: up to 0.5 ms), the count."""
+        frame = pair.frame
+        if result.ok:
+            profile = self.records.profile_of(meas, frame)
+            if profile is not None:  # the last key of the record's extra, as it always was
+                result.extra["profile"] = profile
+        rid = await self.records.append(result, frame, pair.t_arr)
         if rid is not None:
             result = replace(result, record_id=rid)
         if not self.records.defers_handling:  # the record is durable (or there is no log)
             self._handled(result)
-        idle = len(self._in_flight) <= 1
-        self.loops.between_pairs(t_arr, idle=idle)  # the knife condition's forecast, when due
-        if idle:  # no later pair waits for this one: a pause costs nothing
-            collect_between_pairs()
         return result
 
     def _handled(self, result: FrameResult) -> None:
