@@ -538,11 +538,15 @@ class FrontEnd:
         """``src`` (``float32``) divided row by row by its mean over the columns (1 if <= 0)."""
         c0, c1 = self.columns
         if src.dtype == np.uint16 and src.ndim == 2 and 0 < c1 - c0 < 65537:
-            # The same numbers in one call instead of five passes: a row's integer sum is exact
-            # in float32 below 2**24 (numpy's float32 mean adds exact integers then), the mean
+            # The same numbers in two passes instead of five: a row's integer sum is exact in
+            # float32 below 2**24 (numpy's float32 mean adds exact integers then), the mean
             # and each quotient one correctly rounded float32 division either way.
-            out = np.empty(src.shape, dtype=np.float32)
-            if kernels.row_sums_over(np.ascontiguousarray(src), c0, c1, out):
+            sums = src[:, c0:c1].sum(axis=1, dtype=np.uint32)
+            if sums.size and int(sums.max()) < 1 << 24:
+                means = sums.astype(np.float32) / np.float32(c1 - c0)
+                means[~(means > 0)] = np.float32(1.0)
+                out = np.empty(src.shape, dtype=np.float32)
+                kernels.rows_over(src, means, out)
                 return out
         f = src.astype(np.float32)
         mean = f[:, c0:c1].mean(axis=1, keepdims=True)

@@ -9,8 +9,7 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
   over a band, and that band's column sums, in one pass over the image;
 * :func:`group_sums` -- the orientation's groups of adjacent bins summed (``float32``);
 * :func:`column_sums` -- the column sums of ``uint16`` rows (the profile's), exact;
-* :func:`rows_over`, :func:`row_sums_over` -- ``uint16`` rows divided by their means (the
-  rotated texture's; the second with the rows' exact sums in the same call);
+* :func:`rows_over` -- ``uint16`` rows divided by their means (the rotated texture's);
 * :func:`bin_groups` -- ``uint16`` bins summed ``m`` at a time (the sheared profile's bins);
 * :func:`scaled_less_one` -- rows times a column scale, less one (the shading-free texture);
 * :func:`inverse_column_means` -- the inverse of rows' column means (the rotated texture's);
@@ -140,39 +139,6 @@ def rows_over(bins: np.ndarray, means: np.ndarray,
         mean = means[r]
         for c in range(w):
             o[c] = np.float32(row[c]) / mean
-
-
-@njit(**_JIT)
-def row_sums_over(bins: np.ndarray, c0: int, c1: int,
-                  out: np.ndarray) -> bool:  # pragma: no cover - compiled
-    """:func:`rows_over` by each row's mean over columns ``c0 .. c1 - 1`` (1 where not > 0).
-
-    The mean as ``float32(sum) / float32(c1 - c0)`` of the row's exact integer sum, so the
-    same quotients as ``rows_over(bins, sums.astype(float32) / float32(c1 - c0), out)``;
-    ``False`` (``out`` not written) when a sum reaches ``2**24`` (not exact in ``float32``)
-    or there are no rows: the caller takes numpy's path.
-    """
-    n, w = bins.shape
-    if n == 0:
-        return False
-    means = np.empty(n, dtype=np.float32)
-    count = np.float32(c1 - c0)
-    for r in range(n):
-        row = bins[r]
-        total = np.uint64(0)
-        for c in range(c0, c1):
-            total += np.uint64(row[c])
-        if total >= np.uint64(1 << 24):
-            return False
-        mean = np.float32(total) / count
-        means[r] = mean if mean > 0 else np.float32(1.0)
-    for r in range(n):
-        row = bins[r]
-        o = out[r]
-        mean = means[r]
-        for c in range(w):
-            o[c] = np.float32(row[c]) / mean
-    return True
 
 
 @njit(**_JIT)
@@ -836,7 +802,6 @@ def warm_up() -> None:
     group_sums(bins, 0, 1, np.empty((2, 8), dtype=np.float32))
     column_sums(bins, np.empty(8, dtype=np.uint32), cols)
     rows_over(bins, np.ones(2, dtype=np.float32), np.empty((2, 8), dtype=np.float32))
-    row_sums_over(bins, 0, 8, np.empty((2, 8), dtype=np.float32))
     bin_groups(bins, 0, 1, np.empty((2, 8), dtype=np.uint16))
     scale, tex = np.ones(8, dtype=np.float32), np.empty((2, 8), dtype=np.float32)
     scaled_less_one(tex, scale, tex)

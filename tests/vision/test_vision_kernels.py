@@ -152,18 +152,3 @@ def test_bin_groups_are_numpys_uint16_sums(m, top):
         kernels.bin_groups(bins, start, m, got)
         assert np.array_equal(got, want)
 
-
-def test_row_sums_over_declines_sums_not_exact_in_float32():
-    # a row summing to 2**24 or more: numpy's path decides (the front end's fallback)
-    from vision.front_end import FrontEnd
-
-    bins = np.full((3, 300), 60000, dtype=np.uint16)  # 1.8e7 > 2**24 per row
-    out = np.zeros(bins.shape, dtype=np.float32)
-    assert not kernels.row_sums_over(bins, 0, 300, out)
-    assert not out.any()
-    front = FrontEnd.__new__(FrontEnd)
-    front.columns = (0, 300)
-    want = bins.astype(np.float32)
-    want /= want.mean(axis=1, keepdims=True)
-    assert np.array_equal(front._over_row_means(bins), want)
-    assert not kernels.row_sums_over(bins[:0], 0, 300, out[:0])
