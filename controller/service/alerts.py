@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from controller.laws.plain_floats import numpy_mean
 from controller.laws.uniformity_loop import second_difference, width_sensitivity_mm_per_um
 from controller.service.events import EventKind, EventLog
 from vision.defects.grading import median
@@ -169,7 +170,7 @@ class KnifeChipMonitor:
         self.radius_mm = float(radius_mm)
         self._d_pinv = np.linalg.pinv(second_difference(self.knives))
         self.timeline = OffsetTimeline()
-        self._ref: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=CHIP_REF_PAIRS)
+        self._ref: deque[tuple[list[float], list[float]]] = deque(maxlen=CHIP_REF_PAIRS)
         self._pending: tuple[int, float] | None = None
         self.last: dict[str, Any] | None = None
         """The last chip reported (``None``: none)."""
@@ -181,11 +182,20 @@ class KnifeChipMonitor:
         self._pending = None
 
     def _runout(self, widths: Sequence[float], pitch_mm: float,
-                o_cut: np.ndarray) -> np.ndarray:
-        w = np.array([0.0 if not math.isfinite(v) else float(v) for v in widths])
-        y = self._d_pinv @ (w - w.mean()) / width_sensitivity_mm_per_um(pitch_mm, self.radius_mm)
-        s = o_cut - y
-        return s - s.mean()
+                o_cut: list[float]) -> list[float]:
+        """``s - mean(s)``, ``s = o_cut - D^+ (w - mean(w)) / G``: the runout the pair shows, um.
+
+        Plain floats but for the product with ``D^+`` (numpy's summation): the means are
+        numpy's (:func:`~controller.laws.plain_floats.numpy_mean`), so the values are the
+        arrays' bit for bit.
+        """
+        w = [0.0 if not math.isfinite(v) else float(v) for v in widths]
+        w_mean = numpy_mean(w)
+        y = (self._d_pinv @ np.array([v - w_mean for v in w])).tolist()
+        g = width_sensitivity_mm_per_um(pitch_mm, self.radius_mm)
+        s = [o - v / g for o, v in zip(o_cut, y, strict=True)]
+        s_mean = numpy_mean(s)
+        return [v - s_mean for v in s]
 
     def pair(self, t: float, *, widths_mm: Sequence[float], pitch_mm: float,
              cut_at_s: float | None, seq: int | None = None) -> bool:
@@ -196,7 +206,7 @@ class KnifeChipMonitor:
         if (o is None or len(o) != self.knives
                 or all(math.isnan(float(v)) for v in widths_mm)):
             return False  # no table of these knives known yet, or no mark at all
-        o_cut = np.asarray(o, float)
+        o_cut = [float(v) for v in o]
         s = self._runout(widths_mm, pitch_mm, o_cut)
         if len(self._ref) < self._ref.maxlen:  # type: ignore[operator]
             self._ref.append((s, o_cut))
@@ -204,10 +214,10 @@ class KnifeChipMonitor:
         # plain floats (a few knives): np.median's and np.argmax's results, without their cost
         ref_s = _column_medians([r[0] for r in self._ref])
         ref_o = _column_medians([r[1] for r in self._ref])
-        ds = [a - b for a, b in zip(s.tolist(), ref_s, strict=True)]
+        ds = [a - b for a, b in zip(s, ref_s, strict=True)]
         size = [abs(v) for v in ds]
         k = size.index(max(size))  # the first largest, as np.argmax
-        moved = max(abs(a - b) for a, b in zip(o_cut.tolist(), ref_o, strict=True))
+        moved = max(abs(a - b) for a, b in zip(o_cut, ref_o, strict=True))
         step = size[k]  # a step of one knife shows (Z - 1) / Z of it here
         if (step * self.knives / (self.knives - 1) < CHIP_STEP_UM + moved
                 or max(size[:k] + size[k + 1:]) > 0.5 * step):
@@ -236,14 +246,14 @@ class KnifeChipMonitor:
         return True
 
 
-def _column_medians(rows: list[np.ndarray]) -> list[float]:
+def _column_medians(rows: Sequence[Sequence[float]]) -> list[float]:
     """``np.median(rows, axis=0)`` of a few rows of finite values, as plain floats.
 
     The middle value of each column sorted (:func:`vision.defects.grading.median`: the mean of
     the middle two for an even count, as numpy's); NaN where a column holds one (numpy's too).
     """
     return [math.nan if any(map(math.isnan, col)) else median(sorted(col))
-            for col in zip(*(r.tolist() for r in rows), strict=True)]
+            for col in zip(*rows, strict=True)]
 
 
 class FailureMonitor:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
-from controller.laws.uniformity_loop import linear_widths_mm
+from controller.laws.uniformity_loop import linear_widths_mm, width_sensitivity_mm_per_um
 from controller.service.alerts import (
     CHIP_STEP_UM,
     CONFIRM_PAIRS,
@@ -158,3 +160,25 @@ def test_column_medians_are_numpys(rows):
         want = np.median(a, axis=0)
         got = _column_medians(list(a))
         np.testing.assert_array_equal(np.array(got), want)
+
+
+@pytest.mark.parametrize("knives", [3, 4, 6, 8])
+def test_the_runout_a_pair_shows_is_the_array_formula_bit_for_bit(knives):
+    """The chip monitor's runout in plain floats is ``s - s.mean()``, ``s = o - D^+ (w -
+    w.mean()) / G`` on arrays (the formula it replaced), the same bits; a vanished mark (NaN)
+    counts 0."""
+    rng = np.random.default_rng(knives)
+    mon = KnifeChipMonitor(EventLog(), knives=knives, radius_mm=60.0)
+    for _ in range(300):
+        pitch = float(rng.uniform(0.5, 3.0))
+        widths = rng.normal(pitch, 0.05 * pitch, knives)
+        if rng.random() < 0.2:
+            widths[rng.integers(knives)] = np.nan
+        o_cut = rng.normal(0.0, 5.0, knives)
+        w = np.array([0.0 if not math.isfinite(v) else float(v) for v in widths])
+        y = mon._d_pinv @ (w - w.mean()) / width_sensitivity_mm_per_um(pitch, 60.0)
+        s = o_cut - y
+        want = s - s.mean()
+        got = mon._runout(widths.tolist(), pitch, o_cut.tolist())
+        assert [v.hex() for v in got] == [float(v).hex() for v in want]
+
