@@ -5,11 +5,12 @@ Modbus TCP client over its head's view of the register map (its block read with 
 the common registers the coordinator reads once per cycle for every head), a client of its
 amplifier (its node id) on ONE CAN connection the heads share (one CANopen master,
 :class:`~controller.fieldbus.canopen_amp.AmpBus`: every frame received and decoded once), its
-rig, its connection to the quality log (each record with its ``head``, its own journal and
-learned state); the coordinator a Modbus client of its own over the common registers (the feed,
-the heartbeat). Nothing is contacted until the first cycle. :func:`share_workers` gives every
-head's pipeline one pool of measurement worker processes, each head's pairs measured with its
-own rig.
+rig, its view of the ONE quality log the heads share (each record with its ``head``, its own
+journal and learned state; one connection, one journal thread and one database thread for every
+head's records: :class:`~controller.quality.write_ahead.WriterGroup`); the coordinator a Modbus
+client of its own over the common registers (the feed, the heartbeat). Nothing is contacted
+until the first cycle. :func:`share_workers` gives every head's pipeline one pool of
+measurement worker processes, each head's pairs measured with its own rig.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ def open_moulder_service(
     from controller.fieldbus.plc_protocol import Backoff
     from controller.laws.moulder_feed import MoulderFeedConfig, MoulderFeedLaw
     from controller.quality.log import open_quality_log
+    from controller.quality.write_ahead import WriterGroup
     from controller.service.measurement import VisionMeasurers
     from controller.service.service import Service, default_log_path
     from protocol.registers import RegisterMap
@@ -72,6 +74,9 @@ def open_moulder_service(
     heads: dict[str, Service] = {}
     opened: list[Any] = []
     masters: dict[tuple, AmpBus] = {}  # one CAN connection per bus the heads name
+    # ONE connection to the log and one pair of writer threads for every head's records
+    writers = WriterGroup(open_quality_log(path, machine_id=cfg.log.machine_id or None))
+    opened.append(writers.close)
     try:
         for i, hc in enumerate(cfg.heads):
             hcfg = head_config(cfg, hc.name)
@@ -88,14 +93,13 @@ def open_moulder_service(
                                 eds=eds_path(hcfg), command_period_s=hcfg.can.command_period_s,
                                 offsets_period_s=hcfg.can.offsets_period_s,
                                 stroke_um=hcfg.stroke_um, ampbus=masters[where])
-            log = open_quality_log(path, machine_id=cfg.log.machine_id or None)
-            opened.append(log.close)
+            log = writers.head_log()  # the head's view: its sink joins the one group
             rig = load_rig(rig_path(hcfg))
             svc = Service(hcfg, plc=plc(regmap.for_head(i)), piezo=piezo, rig=rig, log=log,
                           clock=clock, threaded=threaded,
                           measurer_factory=VisionMeasurers(rig, defects=hcfg.quality.defects),
                           pairs_per_s=hcfg.frames.pairs_per_s, owns_feed=False)
-            opened[-1] = svc.close  # the service closes its log (the shared bus stays open)
+            opened.append(svc.close)  # the service closes its view (the shared parts stay open)
             log.set_quality_class(svc.quality_class, head=hc.name)
             heads[hc.name] = svc
         feed = MoulderFeed(heads, cfg.heads, plc=plc(regmap), law=MoulderFeedLaw(
@@ -104,7 +108,7 @@ def open_moulder_service(
         for close in reversed(opened):
             close()
         raise
-    return MoulderService(heads, cfg.heads, feed=feed, shared=tuple(masters.values()))
+    return MoulderService(heads, cfg.heads, feed=feed, shared=(*masters.values(), writers))
 
 
 def share_workers(moulder: MoulderService, workers: int, *, shape: tuple[int, int] | None,

@@ -50,6 +50,7 @@ import uuid
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from itertools import islice
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -63,7 +64,7 @@ from controller.quality.journal import (
     parse_line,
     takes_keyword,
 )
-from controller.quality.log import QualityRecord, RecordRefusedError, storable
+from controller.quality.log import QualityRecord, RecordRefusedError, storable, utc_iso
 from core.fileio import atomic_write_text, fsync_dir
 
 __all__ = [
@@ -72,8 +73,10 @@ __all__ = [
     "COMPACT_IDLE_S",
     "DB_TIMEOUT_S",
     "MAX_IN_MEMORY",
+    "SharedLog",
     "SinkState",
     "WriteAheadSink",
+    "WriterGroup",
 ]
 
 DB_TIMEOUT_S = 2.0
@@ -220,13 +223,344 @@ def _tail_of(path: Path) -> tuple[int, int]:
     return end, lines
 
 
+class WriterGroup:
+    """The two writer threads of one log, for one sink or for every head's sink of a moulder.
+
+    A :class:`WriteAheadSink` given a plain log makes a group of its own. A moulder's heads
+    share one (:meth:`head_log` gives each head its view of the one log): each head's sink
+    keeps its journal file, its items and answers and its :class:`SinkState`, while ONE
+    journal thread appends every head's batch (each to its journal, each fsync'ed) and ONE
+    database thread writes every head's journalled records in one transaction on the one
+    connection. A head's records reach the log in its order.
+
+    Parameters
+    ----------
+    log : QualityLog
+        The log the database thread writes. Its write timeout is set to ``db_timeout_s``.
+    db_timeout_s : float, keyword-only
+        Time limit of one database write.
+    """
+
+    def __init__(self, log: Any, *, db_timeout_s: float = DB_TIMEOUT_S) -> None:
+        if not hasattr(log, "append"):
+            raise ValueError(f"log must be a QualityLog, got {type(log).__name__}")
+        self.log = log
+        self._uid_ok = takes_keyword(log.append, "uid")
+        self._many = getattr(log, "append_many", None)
+        self._text_ok = self._many is not None and takes_keyword(self._many, "extra_json")
+        self._one_text_ok = takes_keyword(log.append, "extra_json")
+        setter = getattr(log, "set_write_timeout", None)
+        if setter is not None:
+            with contextlib.suppress(OSError, ValueError):
+                setter(db_timeout_s)
+        self.lock = threading.RLock()  # every member's queues; never held across I/O
+        self.journal_cv = threading.Condition(self.lock)  # the journal thread waits for items
+        self.db_cv = threading.Condition(self.lock)  # the database thread waits for records
+        self.members: list[WriteAheadSink] = []
+        # the last journal append, database write: none yet (the first goes at once, however
+        # long the clock has run)
+        self.journal_at = self.db_at = -math.inf
+        self._journal_thread = threading.Thread(target=self._run, args=(self._journal_loop,),
+                                                daemon=True, name="quality-journal")
+        self._db_thread = threading.Thread(target=self._run, args=(self._db_loop,),
+                                           daemon=True, name="quality-database")
+        self._started = False
+        self._closed = False
+        self._writing = False  # the database thread is inside a write
+        self.transactions = 0
+        """Database transactions the group wrote (each with records of one or more sinks)."""
+
+    def head_log(self) -> SharedLog:
+        """A head's view of the group's log: a sink given it joins this group."""
+        return SharedLog(self.log, self)
+
+    def join(self, sink: WriteAheadSink) -> None:
+        """Take ``sink`` in (before its first item; with :attr:`lock` held or not)."""
+        with self.lock:
+            if self._closed or (self._started and not self.members):
+                raise ValueError("the writer group is closed")
+            self.members.append(sink)
+
+    def leave(self, sink: WriteAheadSink) -> None:
+        """Let ``sink`` go (closed): the threads end once no sink is left."""
+        with self.lock:
+            if sink in self.members:
+                self.members.remove(sink)
+            self.wake()
+
+    def start(self) -> None:
+        """Start the two threads (with :attr:`lock` held; from a sink's first item)."""
+        if not self._started:
+            self._started = True
+            self._journal_thread.start()
+            self._db_thread.start()
+
+    def wake(self) -> None:
+        """Wake both threads (:attr:`lock` held)."""
+        self.journal_cv.notify_all()
+        self.db_cv.notify_all()
+
+    @property
+    def journal_alive(self) -> bool:
+        """Whether the journal thread runs."""
+        return self._journal_thread.is_alive()
+
+    @property
+    def database_alive(self) -> bool:
+        """Whether the database thread runs."""
+        return self._db_thread.is_alive()
+
+    def close(self) -> None:
+        """Close the log (every sink closed first) unless a write of it never returned."""
+        with self.lock:
+            self._closed = True
+            members = list(self.members)
+            self.wake()
+        for sink in members:  # a head whose service never closed (an error while opening)
+            sink.close()
+        with self.lock:
+            hung = self._writing and self._db_thread.is_alive()
+        if not hung:  # a call that never returns holds the log: leave it to the exit
+            self.log.close()
+
+    def _run(self, loop: Callable[[], None]) -> None:
+        with self.lock:
+            setups = [m.thread_setup for m in self.members if m.thread_setup is not None]
+        if setups:
+            setups[0]()
+        loop()
+
+    def _wait_left(self, until: float, waiting: int, most: int) -> float:
+        """How long a writer thread still waits for more records (:attr:`lock` held), s."""
+        if waiting >= most or any(m._closing or m._stop_db or m._hurry for m in self.members):
+            return 0.0
+        return until - time.monotonic()
+
+    # -- the journal thread -------------------------------------------------------------------
+
+    def _journal_loop(self) -> None:
+        while True:
+            with self.lock:
+                while not self._inbox_most() and not self._all_closing():
+                    unsaved = any(m._unsaved for m in self.members)
+                    self.journal_cv.wait(1.0 if unsaved else None)
+                    if unsaved and not self._inbox_most():
+                        break  # try the journal again for the records only in memory
+                while (n := self._inbox_most()) and (left := self._wait_left(
+                        self.journal_at + JOURNAL_WAIT_S, n, JOURNAL_BATCH_MAX)) > 0:
+                    self.journal_cv.wait(left)  # more records for this append (one fsync)
+                if not self._inbox_most() and self._all_closing():
+                    return
+                work = [w for m in self.members if (w := m._take_inbox()) is not None]
+                self.journal_at = time.monotonic()
+            for sink, items, retry in work:
+                sink._journal_batch(items, retry)
+
+    def _inbox_most(self) -> int:
+        return max((len(m._inbox) for m in self.members), default=0)
+
+    def _all_closing(self) -> bool:
+        return all(m._closing for m in self.members)
+
+    # -- the database thread ------------------------------------------------------------------
+
+    def _db_loop(self) -> None:
+        delay = RETRY_INITIAL_S
+        while True:
+            with self.lock:
+                active = self._db_wait()
+                if not active:
+                    return
+                spills = [(m, m._spill) for m in active if m._spill is not None and not m._todo]
+                batch: list[tuple[WriteAheadSink, JournalEntry]] = []
+                for m in active if not spills else ():
+                    batch += [(m, e) for e in islice(m._todo, DB_BATCH_MAX - len(batch))]
+                for m in {m: None for m, _ in batch}:
+                    m._db_in_call = True
+                self._writing = bool(batch)
+            if spills:
+                for m, spill in spills:
+                    m._read_back(spill)
+                continue
+            if not batch:
+                for m in active:
+                    m._compact(force=False)
+                continue
+            self.db_at = time.monotonic()
+            written = self._write(batch)
+            if self._after_write(batch, written):
+                delay = RETRY_INITIAL_S
+                continue
+            with self.lock:
+                if any(not m._db_done for m, _ in batch):
+                    self.db_cv.wait(delay)  # a close wakes it
+                    delay = min(2 * delay, RETRY_MAX_S)
+
+    def _db_wait(self) -> list[WriteAheadSink]:
+        """Wait for records (and a transaction's worth); the sinks still written (``lock``)."""
+        while True:
+            active = self._db_active()
+            if not active:
+                return []
+            if any(m._todo or m._spill is not None for m in active):
+                break
+            if any(m._compact_due() for m in active):
+                return active
+            self.db_cv.wait(COMPACT_IDLE_S)
+        while (n := sum(len(m._todo) for m in active)) and not any(
+                m._spill is not None for m in active) and (left := self._wait_left(
+                self.db_at + DB_WAIT_S, n, DB_BATCH_MAX)) > 0:
+            self.db_cv.wait(left)  # more records for this transaction
+            active = self._db_active()
+        return active
+
+    def _db_active(self) -> list[WriteAheadSink]:
+        """The sinks the database thread still writes (``lock``): the others are told done."""
+        active = []
+        for m in self.members:
+            if not m._db_done and (m._abandoned or (
+                    m._stop_db and not m._todo and m._spill is None)):
+                m._db_done = True
+                m._cond.notify_all()
+            if not m._db_done:
+                active.append(m)
+        return active
+
+    def _after_write(self, batch: list[tuple[WriteAheadSink, JournalEntry]],
+                     written: int) -> bool:
+        """What went in leaves the sinks' queues; whether all did."""
+        late: dict[WriteAheadSink, list[Any]] = {}
+        with self.lock:
+            self._writing = False
+            logged: dict[WriteAheadSink, int] = {m: 0 for m, _ in batch}
+            for m, e in batch[:written]:
+                m._todo.popleft()
+                logged[m] += 1
+                if m._unsaved.pop(e.uid, None) is not None:
+                    late.setdefault(m, []).extend(m._take_unsaved_items([e]))
+            for m, n in logged.items():
+                m._db_in_call = False
+                m._pending -= n
+                m._counts["logged"] += n
+                if written == len(batch):
+                    m._log_error = None
+                elif m._stop_db:
+                    m._db_done = True  # closing: what is left stays in the journal
+                m._publish()
+        for m, items in late.items():
+            if m._on_durable is not None:
+                m._on_durable(items, True)  # in the log: durable at last (no lock held)
+        if written < len(batch):
+            return False
+        for m in logged:
+            with self.lock:
+                idle = not m._todo and m._spill is None
+            if idle:
+                m._compact(force=False)
+        return True
+
+    def _write(self, batch: list[tuple[WriteAheadSink, JournalEntry]]) -> int:
+        """Write entries to the log, in order: how many went in (the rest wait)."""
+        many = self._many
+        if many is not None:
+            kw: dict[str, Any] = {}
+            if self._uid_ok:
+                kw["uids"] = [e.uid for _, e in batch]
+            if self._text_ok:
+                kw["extra_json"] = [e.extra_json for _, e in batch]
+            try:
+                many([e.record for _, e in batch], **kw)
+                self._count_transaction(batch)
+                return len(batch)
+            except RecordRefusedError:
+                pass  # record by record below: the refused one rewritten
+            except (OSError, ValueError) as exc:
+                self._note_log_error(batch, exc)
+                return 0
+        for n, (m, e) in enumerate(batch):
+            if not self._write_one(batch, m, e):
+                return n
+        self._count_transaction(batch)
+        return len(batch)
+
+    def _count_transaction(self, batch: list[tuple[WriteAheadSink, JournalEntry]]) -> None:
+        with self.lock:
+            self.transactions += 1
+            for m in {m: None for m, _ in batch}:
+                m._counts["db_batches"] += 1
+
+    def _write_one(self, batch: list[tuple[WriteAheadSink, JournalEntry]],
+                   sink: WriteAheadSink, entry: JournalEntry) -> bool:
+        record = entry.record
+        kw: dict[str, Any] = {"uid": entry.uid} if self._uid_ok else {}
+        if self._one_text_ok:
+            kw["extra_json"] = entry.extra_json
+        for attempt in (0, 1):
+            try:
+                self.log.append(record, **kw)
+                return True
+            except RecordRefusedError as exc:
+                if attempt == 1:  # even the bare record refused: the log's trouble
+                    with self.lock:
+                        for m in {m: None for m, _ in batch}:
+                            m._log_error = f"quality log refused a record: {one_line(exc)}"
+                            m._log_unavailable = False
+                    return False
+                record = bare_failed(record, exc)  # never blocks the records behind it
+                kw.pop("extra_json", None)
+                with self.lock:
+                    sink._counts["rewritten"] += 1
+            except (OSError, ValueError) as exc:
+                self._note_log_error(batch, exc)
+                return False
+        return False
+
+    def _note_log_error(self, batch: list[tuple[WriteAheadSink, JournalEntry]],
+                        exc: BaseException) -> None:
+        with self.lock:
+            for m in {m: None for m, _ in batch}:
+                m._log_error = f"quality log write failed: {one_line(exc)}"
+                m._log_unavailable = log_unavailable(exc)
+
+
+class SharedLog:
+    """A head's view of the one quality log a moulder's heads share (see :class:`WriterGroup`).
+
+    Everything is the log's but :meth:`close`, which only marks this view closed: the group
+    closes the log after every head (:meth:`WriterGroup.close`). A
+    :class:`WriteAheadSink` given this view joins the group.
+    """
+
+    def __init__(self, log: Any, group: WriterGroup) -> None:
+        self._log = log
+        self.writer_group = group
+        self.view_closed = False
+
+    def close(self) -> None:
+        """Mark this head done with the log (the group closes it after every head)."""
+        self.view_closed = True
+
+    def __len__(self) -> int:
+        return len(self._log)
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "_log":  # not set yet (a copy being made)
+            raise AttributeError(name)
+        return getattr(self._log, name)
+
+    def __repr__(self) -> str:
+        return f"SharedLog({self._log!r})"
+
+
 class WriteAheadSink:
     """Journal first (fsync), database after; two threads, none waits for the other.
 
     Parameters
     ----------
-    log : QualityLog
-        The quality log (not owned). Its write timeout is set to :data:`DB_TIMEOUT_S`.
+    log : QualityLog or SharedLog
+        The quality log (not owned). Its write timeout is set to :data:`DB_TIMEOUT_S`. A
+        head's view of a moulder's shared log (:meth:`WriterGroup.head_log`): this sink's
+        records go through that group's two threads, with every other head's.
     journal_path : Path, keyword-only
         The journal. One left by an earlier run (a crash, a log that was down at close) is
         written to the log first, in order (a torn last line is cut off).
@@ -240,7 +574,7 @@ class WriteAheadSink:
         their records are durable (on the journal thread after a journal retry, or on the
         database thread when the log took them); no lock of the sink is held during the call.
     db_timeout_s : float, keyword-only
-        Time limit of one database write.
+        Time limit of one database write (of a group of its own).
     """
 
     def __init__(self, log: Any, *, journal_path: Path,
@@ -248,21 +582,14 @@ class WriteAheadSink:
                  on_durable: Callable[[list[Any], bool], None] | None = None,
                  db_timeout_s: float = DB_TIMEOUT_S) -> None:
         self.log = log
-        self._uid_ok, self.journal_path = checked_sink_args(log, journal_path)
-        self._many = getattr(log, "append_many", None)
-        self._text_ok = self._many is not None and takes_keyword(self._many, "extra_json")
-        self._one_text_ok = takes_keyword(log.append, "extra_json")
-        setter = getattr(log, "set_write_timeout", None)
-        if setter is not None:
-            with contextlib.suppress(OSError, ValueError):
-                setter(db_timeout_s)
+        _, self.journal_path = checked_sink_args(log, journal_path)
+        group = getattr(log, "writer_group", None)
+        self._group = group if isinstance(group, WriterGroup) else WriterGroup(
+            log, db_timeout_s=db_timeout_s)
         self._make = make or (lambda item: item)
         self._on_durable = on_durable
         end, lines = _tail_of(self.journal_path)
-        lock = threading.RLock()  # the queues below; never held across I/O
-        self._cond = threading.Condition(lock)  # who waits for the state (close, wait_logged)
-        self._journal_cv = threading.Condition(lock)  # the journal thread waits for records
-        self._db_cv = threading.Condition(lock)  # the database thread waits for records
+        self._cond = threading.Condition(self._group.lock)  # who waits for the state
         self._inbox: deque[Any] = deque()  # put, not yet with the journal thread
         self._todo: deque[JournalEntry] = deque()  # for the database thread, in order
         self._spill: tuple[int, int] | None = (0, end) if end else None  # journal bytes
@@ -271,6 +598,9 @@ class WriteAheadSink:
         self._bad_lines: list[str] = []
         self._pending = lines  # handed in (or left in the journal), not yet logged
         self._in_journal = 0  # with the journal thread now
+        self._in_hand = False  # the journal thread works on this sink's batch (till answered)
+        self._db_in_call = False  # the database thread is inside a write of its records
+        self._db_done = False  # the database thread writes no more of its records (closing)
         self._file_lock = threading.Lock()  # the journal file (local disk I/O only)
         self._fd: int | None = None
         self._size = end  # bytes in the journal
@@ -280,9 +610,6 @@ class WriteAheadSink:
         self._log_unavailable = False
         self._journal_error: str | None = None
         self._last_put = time.monotonic()
-        # the last journal append, database write: none yet (the first goes at once, however
-        # long the clock has run)
-        self._journal_at = self._db_at = -math.inf
         self._hurry = 0  # callers of wait_logged: no waiting for more records meanwhile
         self._closing = False
         self._stop_db = False
@@ -294,24 +621,29 @@ class WriteAheadSink:
         with self._cond:
             self._publish()
         self.thread_setup: Callable[[], None] | None = None
-        """Called first on each of the two threads (e.g. to lower their priority)."""
-        self._journal_thread = threading.Thread(target=self._run, args=(self._journal_loop,),
-                                                daemon=True, name="quality-journal")
-        self._db_thread = threading.Thread(target=self._run, args=(self._db_loop,),
-                                           daemon=True, name="quality-database")
-        self._started = False
+        """Called first on each of the two threads (e.g. to lower their priority; of a
+        shared group, the first head's)."""
+        self._group.join(self)
+
+    @property
+    def _journal_cv(self) -> threading.Condition:
+        return self._group.journal_cv
+
+    @_journal_cv.setter
+    def _journal_cv(self, cv: threading.Condition) -> None:
+        self._group.journal_cv = cv
+
+    @property
+    def _db_cv(self) -> threading.Condition:
+        return self._group.db_cv
+
+    @_db_cv.setter
+    def _db_cv(self, cv: threading.Condition) -> None:
+        self._group.db_cv = cv
 
     def _start(self) -> None:
-        """Start the two threads (with ``_cond`` held; from the first :meth:`put`)."""
-        if not self._started:
-            self._started = True
-            self._journal_thread.start()
-            self._db_thread.start()
-
-    def _run(self, loop: Callable[[], None]) -> None:
-        if self.thread_setup is not None:
-            self.thread_setup()
-        loop()
+        """Start the group's threads (with ``_cond`` held; from the first :meth:`put`)."""
+        self._group.start()
 
     # -- the caller's side --------------------------------------------------------------------
 
@@ -358,26 +690,22 @@ class WriteAheadSink:
                                counters=MappingProxyType(dict(self._counts)))
         self._cond.notify_all()
 
-    # -- the journal thread -------------------------------------------------------------------
+    # -- on the journal thread ----------------------------------------------------------------
 
-    def _journal_loop(self) -> None:
-        while True:
-            with self._cond:
-                while not self._inbox and not self._closing:
-                    self._journal_cv.wait(1.0 if self._unsaved else None)
-                    if self._unsaved and not self._inbox:
-                        break  # try the journal again for the records only in memory
-                while self._inbox and (left := self._wait_left(
-                        self._journal_at + JOURNAL_WAIT_S, len(self._inbox),
-                        JOURNAL_BATCH_MAX)) > 0:
-                    self._journal_cv.wait(left)  # more records for this append (one fsync)
-                if not self._inbox and self._closing:
-                    return
-                items = [self._inbox.popleft()
-                         for _ in range(min(len(self._inbox), JOURNAL_BATCH_MAX))]
-                self._journal_at = time.monotonic()
-                self._in_journal = len(items)
-                retry = list(self._unsaved.values())
+    def _take_inbox(self) -> tuple[WriteAheadSink, list[Any], list[JournalEntry]] | None:
+        """A batch for the journal thread (with the group's lock held), or ``None``."""
+        items = [self._inbox.popleft()
+                 for _ in range(min(len(self._inbox), JOURNAL_BATCH_MAX))]
+        retry = list(self._unsaved.values())
+        if not items and not retry:
+            return None
+        self._in_journal = len(items)
+        self._in_hand = True
+        return self, items, retry
+
+    def _journal_batch(self, items: list[Any], retry: list[JournalEntry]) -> None:
+        """Make, journal and answer one batch (the journal thread, no lock held)."""
+        try:
             entries = [self._entry(item) for item in items]
             ok, late = self._journal(retry, entries, items)
             try:
@@ -391,20 +719,19 @@ class WriteAheadSink:
                     with self._cond:
                         self._todo.extend(entries)  # the log may still take them
                         self._db_cv.notify()
-
-    def _wait_left(self, until: float, waiting: int, most: int) -> float:
-        """How long a writer thread still waits for more records (``_cond`` held), s."""
-        if self._closing or self._stop_db or self._hurry or waiting >= most:
-            return 0.0
-        return until - time.monotonic()
+        finally:
+            with self._cond:
+                self._in_hand = False
+                self._cond.notify_all()
 
     def _entry(self, item: Any) -> JournalEntry:
         try:
             record = self._make(item)
         except (ValueError, TypeError, ArithmeticError, AttributeError, LookupError) as exc:
             # odd values in a result: a failed record that says why, never a lost pair
-            record = bare_failed(QualityRecord(t_s=0.0, wall_time="", seq=0, board_id=0,
-                                               board_position_mm=0.0, ok=False), exc)
+            record = bare_failed(QualityRecord(t_s=0.0, wall_time=utc_iso(time.time()),
+                                               seq=0, board_id=0, board_position_mm=0.0,
+                                               ok=False), exc)
         rec, text = storable(record)
         if rec is not record:
             with self._cond:
@@ -474,107 +801,7 @@ class WriteAheadSink:
         self._size = start + len(body)
         return start
 
-    # -- the database thread ------------------------------------------------------------------
-
-    def _db_loop(self) -> None:
-        delay = RETRY_INITIAL_S
-        while True:
-            with self._cond:
-                while not self._todo and self._spill is None and not self._stop_db:
-                    if self._compact_due():
-                        break
-                    self._db_cv.wait(COMPACT_IDLE_S)
-                while self._todo and self._spill is None and (left := self._wait_left(
-                        self._db_at + DB_WAIT_S, len(self._todo), DB_BATCH_MAX)) > 0:
-                    self._db_cv.wait(left)  # more records for this transaction
-                if self._abandoned or (self._stop_db and not self._todo and self._spill is None):
-                    return
-                spill = self._spill if not self._todo else None
-                batch = list(self._todo)[:DB_BATCH_MAX]
-            if spill is not None:
-                self._read_back(spill)
-                continue
-            if not batch:
-                self._compact(force=False)
-                continue
-            self._db_at = time.monotonic()
-            written = self._write(batch)
-            late: list[Any] = []
-            with self._cond:
-                for e in batch[:written]:
-                    self._todo.popleft()
-                    if self._unsaved.pop(e.uid, None) is not None:
-                        late += self._take_unsaved_items([e])
-                self._pending -= written
-                self._counts["logged"] += written
-                if written == len(batch):
-                    self._log_error = None
-                self._publish()
-            if late and self._on_durable is not None:
-                self._on_durable(late, True)  # in the log: durable at last (no lock held)
-            with self._cond:
-                if written < len(batch):
-                    if self._stop_db:
-                        return  # closing: what is left stays in the journal
-                    self._db_cv.wait(delay)  # close() wakes it
-                    delay = min(2 * delay, RETRY_MAX_S)
-                    continue
-            delay = RETRY_INITIAL_S
-            if not self._todo and self._spill is None:
-                self._compact(force=False)
-
-    def _write(self, batch: list[JournalEntry]) -> int:
-        """Write entries to the log, in order: how many went in (the rest wait)."""
-        many = self._many
-        if many is not None:
-            kw: dict[str, Any] = {}
-            if self._uid_ok:
-                kw["uids"] = [e.uid for e in batch]
-            if self._text_ok:
-                kw["extra_json"] = [e.extra_json for e in batch]
-            try:
-                many([e.record for e in batch], **kw)
-                self._counts["db_batches"] += 1
-                return len(batch)
-            except RecordRefusedError:
-                pass  # record by record below: the refused one rewritten
-            except (OSError, ValueError) as exc:
-                self._note_log_error(exc)
-                return 0
-        for n, e in enumerate(batch):
-            if not self._write_one(e):
-                return n
-        self._counts["db_batches"] += 1
-        return len(batch)
-
-    def _write_one(self, entry: JournalEntry) -> bool:
-        record = entry.record
-        kw: dict[str, Any] = {"uid": entry.uid} if self._uid_ok else {}
-        if self._one_text_ok:
-            kw["extra_json"] = entry.extra_json
-        for attempt in (0, 1):
-            try:
-                self.log.append(record, **kw)
-                return True
-            except RecordRefusedError as exc:
-                if attempt == 1:  # even the bare record refused: the log's trouble
-                    with self._cond:
-                        self._log_error = f"quality log refused a record: {one_line(exc)}"
-                        self._log_unavailable = False
-                    return False
-                record = bare_failed(record, exc)  # never blocks the records behind it
-                kw.pop("extra_json", None)
-                with self._cond:
-                    self._counts["rewritten"] += 1
-            except (OSError, ValueError) as exc:
-                self._note_log_error(exc)
-                return False
-        return False
-
-    def _note_log_error(self, exc: BaseException) -> None:
-        with self._cond:
-            self._log_error = f"quality log write failed: {one_line(exc)}"
-            self._log_unavailable = log_unavailable(exc)
+    # -- on the database thread ---------------------------------------------------------------
 
     def _read_back(self, spill: tuple[int, int]) -> None:
         """Read journalled entries the memory had no room for (``spill``: byte range)."""
@@ -657,25 +884,31 @@ class WriteAheadSink:
             ``None`` when every record is in the log (the journal is removed). Records neither
             the journal nor the log took are printed on stderr (``unsaved quality record:``).
         """
+        group = self._group
         with self._cond:
+            if self._abandoned:  # closed before
+                return self._left()
             self._closing = True
             self._start()  # a journal left by an earlier run is replayed even without pairs
             self._wake()
-        self._journal_thread.join()  # local disk only
+            while (self._inbox or self._in_hand) and group.journal_alive:
+                self._cond.wait(0.1)  # local disk only
         deadline = time.monotonic() + max(0.0, timeout_s)
         with self._cond:  # the log gets what is left, but not forever
-            while (self._todo or self._spill is not None) and self._db_thread.is_alive():
+            while (self._todo or self._spill is not None) and group.database_alive:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
                 self._cond.wait(min(left, 0.1))
             self._stop_db = True
             self._wake()
-        self._db_thread.join(max(0.0, deadline - time.monotonic()) + 0.05)
-        with self._cond:
+            until = max(deadline, time.monotonic()) + 0.05
+            while not self._db_done and group.database_alive and (
+                    left := until - time.monotonic()) > 0:
+                self._cond.wait(min(left, 0.1))
             self._abandoned = True
             self._wake()
-        if not self._db_thread.is_alive() and not self._pending:
+        if not self._db_in_call and not self._pending:
             self._compact(force=True)
         with self._file_lock:
             self._close_fd()
@@ -687,6 +920,12 @@ class WriteAheadSink:
             self._unsaved.clear()
             self._unsaved_items.clear()  # never answered durable: never handled
             self._publish()
+        group.leave(self)
+        return self._left()
+
+    def _left(self) -> Path | None:
+        """The journal still holding records the log has not taken, or ``None``."""
+        with self._cond:
             left = self._pending > 0 or bool(self._bad_lines)
         return self.journal_path if left and self.journal_path.exists() else None
 
@@ -713,8 +952,8 @@ class WriteAheadSink:
 
     @property
     def database_busy(self) -> bool:
-        """Whether the database thread is still inside a call (after :meth:`close`)."""
-        return self._db_thread.is_alive()
+        """Whether the database thread is still inside a write of this sink's records."""
+        return self._db_in_call and self._group.database_alive
 
     def __repr__(self) -> str:
         return f"WriteAheadSink({self.journal_path}, pending={self.state.pending})"
