@@ -382,6 +382,7 @@ class RegisterMap:
         self._common_span = self._span
         self._views: dict[int, RegisterMap] = {}
         self._whole: RegisterMap = self
+        self._plans: dict[tuple[int, int], _DecodePlan | None] = {}
         if heads is not None and head is None:
             _validate_heads(self, heads)
             self._views = {i: self.for_head(i) for i in range(heads.count)}
@@ -680,6 +681,23 @@ class RegisterMap:
             Register name to value, in address order.
         """
         s = self._span[0] if start is None else int(start)
+        key = (s, len(words))
+        plan = self._plans.get(key, _NO_PLAN)
+        if plan is _NO_PLAN:
+            plan = _decode_plan(self, s, len(words))
+            if len(self._plans) < _MAX_PLANS:  # the reads a client makes, not every fuzzed one
+                self._plans[key] = plan
+        if plan is not None:
+            try:
+                raw = plan.words.pack(*words)
+            except struct.error:
+                pass  # a word outside 0..65535 (or not an integer): the checks below name it
+            else:
+                return dict(zip(plan.names, plan.values.unpack(raw), strict=True))
+        return self._decode_each(words, s)
+
+    def _decode_each(self, words: Sequence[int], s: int) -> dict[str, float | int]:
+        """:meth:`decode_block` register by register (:meth:`decode`'s checks)."""
         end = s + len(words)
         out: dict[str, float | int] = {}
         for reg in self:
@@ -902,6 +920,45 @@ def apply_head_writes(
             raise
         except ValueError as exc:
             raise RegisterRangeError(f"register {name} of head {head}: {exc}") from None
+
+
+@dataclass(frozen=True)
+class _DecodePlan:
+    """One struct unpacking of a block's words into its registers' values (big word order)."""
+
+    words: struct.Struct
+    values: struct.Struct
+    names: tuple[str, ...]
+
+
+_NO_PLAN = object()
+_MAX_PLANS = 64
+"""Decode plans a map keeps (one per ``(start, words)`` read)."""
+_VALUE_CODES = {"u16": "H", "u32": "I", "i32": "i", "f32": "f"}
+
+
+def _decode_plan(rmap: RegisterMap, start: int, count: int) -> _DecodePlan | None:
+    """The plan decoding ``count`` words read from ``start`` (``None``: word order little).
+
+    Big-endian words packed as bytes are the registers' big-endian values one after the other:
+    ``>f`` of a float32's two words is the exact float32 value :meth:`RegisterMap.decode`
+    gives, ``>I`` / ``>i`` / ``>H`` its integers; gaps and registers cut by the block's ends
+    are skipped.
+    """
+    if rmap.word_order != "big":
+        return None
+    fmt, names, at = [">"], [], start
+    for reg in rmap:
+        if reg.address >= start and reg.last_address < start + count:
+            if reg.address > at:
+                fmt.append(f"{2 * (reg.address - at)}x")
+            fmt.append(_VALUE_CODES[reg.type])
+            names.append(reg.name)
+            at = reg.address + reg.count
+    if start + count > at:
+        fmt.append(f"{2 * (start + count - at)}x")
+    return _DecodePlan(words=struct.Struct(f">{count}H"), values=struct.Struct("".join(fmt)),
+                       names=tuple(names))
 
 
 def _parse_register(entry: object, where: str, offset_of: str = "") -> Register:

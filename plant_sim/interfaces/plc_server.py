@@ -14,7 +14,8 @@ register map offers (``docs/register_map.md``) and says nothing about its softwa
   exception 01 (ILLEGAL FUNCTION).
 * A quantity outside the spec's range (read 1..125, write 1..123, 23: 1..125 / 1..121), a byte
   count that does not match it or a PDU of the wrong length: exception 03 (ILLEGAL DATA VALUE).
-* A read outside the map (or across the single map and a block, or two blocks), a write to a
+* A read outside the map (or across the single map and a block, or into a block not served,
+  or, unless the map's ``[heads] read_across`` says so, across two blocks), a write to a
   read-only register, to a gap or to half of a 32-bit register: exception 02 (ILLEGAL DATA
   ADDRESS).
 * A value outside the register's limits (or one the machine refuses): exception 03, never clamped.
