@@ -157,7 +157,8 @@ def _mean(a: np.ndarray) -> np.floating | np.complexfloating:
 
 
 def _phase_of(resultant: complex) -> float:
-    return float(np.angle(resultant)) / (2.0 * np.pi)
+    # np.angle's value (its arctan2) without its wrapper
+    return float(np.arctan2(resultant.imag, resultant.real)) / (2.0 * np.pi)
 
 
 def _spread_of(resultant: complex) -> float:
@@ -320,21 +321,24 @@ def attribute_marks(
     cx = check_finite("cx_px", cx_px)
     base = wrapped_difference(counts_a, index_latch_counts, counter_bits=counter_bits)
     travel = (base - (length + b - cx / ppm) * cpm) / (1.0 * cpm)
-    travel_c = travel if centre is b else (base - (length + centre - cx / ppm) * cpm) / (1.0 * cpm)
-    t_rel = travel[reliable][::-1]  # increasing
+    t_fwd = travel[reliable]
+    t_rel = t_fwd[::-1]  # increasing
     gaps = t_rel[1:] - t_rel[:-1]
     t_dev = t_rel - _mean(t_rel)
     pitch = _travel_per_pass(gaps, t_dev, guide)
-    n_rel = travel[reliable] / pitch
-    resultant = _mean_resultant(n_rel)
+    resultant = _mean_resultant(t_fwd / pitch)
     phase = _phase_of(resultant)
     spread = _spread_of(resultant)
-    # order along the image: q = -(pass number) increases with x
-    q_real = -(np.where(reliable, travel, travel_c) / pitch - phase)
-    q = np.rint(q_real).astype(np.int64).tolist()
+    # order along the image: q = -(pass number) increases with x; an unreliable mark by its
+    # centre (every mark reliable: the bottoms alone)
+    if t_fwd.size < travel.size:
+        travel_c = (base - (length + centre - cx / ppm) * cpm) / (1.0 * cpm)
+        travel = np.where(reliable, travel, travel_c)
+    q = np.rint(-(travel / pitch - phase)).astype(np.int64).tolist()
     q = _one_pass_per_mark(q, reliable.tolist())
-    passes = np.array([-v for v in q], dtype=np.int64)
-    knife = np.array([(-v) % z for v in q], dtype=np.int64)
+    passes = np.array(q, dtype=np.int64)
+    np.negative(passes, out=passes)
+    knife = passes % z  # (floor modulo, as Python's: in [0, Z))
     first, span = -max(q), max(q) - min(q) + 1  # passes first .. first + span - 1, by knife
     per_knife = np.array([span // z + ((k - first) % z < span % z) for k in range(z)],
                          dtype=np.intp)
@@ -379,18 +383,20 @@ def _travel_per_pass(gaps: np.ndarray, t_dev: np.ndarray, guide: float) -> float
     """Board travel per knife pass from the reliable bottoms' gaps, refined twice (step 2)."""
     pitch = guide
     last_steps = None
+    count = np.zeros(gaps.size + 1)
     for _ in range(3):
-        steps = np.rint(gaps / pitch)
-        if (steps < 1).any():
-            j = int(np.argmin(steps))
+        steps_a = np.rint(gaps / pitch)
+        steps = steps_a.tolist()  # (the tests and the comparison in plain floats: cheaper)
+        low = min(steps)
+        if low < 1:
+            j = steps.index(low)  # the first smallest, as np.argmin
             raise ValueError(
                 f"two mark bottoms {gaps[j]:.3f} mm apart on one pass of {pitch:.3f} mm"
             )
-        if last_steps is not None and (steps == last_steps).all():
+        if steps == last_steps:
             break  # the same counts give the same slope again
         last_steps = steps
-        count = np.zeros(steps.size + 1)
-        np.cumsum(steps, out=count[1:])
+        np.add.accumulate(steps_a, out=count[1:])
         dc = count - _mean(count)
         pitch = float(dc @ t_dev / (dc @ dc))
         if not pitch > 0:
