@@ -326,12 +326,9 @@ def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
     large = np.flatnonzero(area * cell_mm * row_mm >= settings.min_blob_mm2)
     large = large[large > 0]
     # the mean excess of the large groups only: each one's cells in its box, summed in order
-    # (as np.bincount sums them)
+    # (as np.bincount sums them; one compiled pass)
     strength = np.zeros(n)
-    for lab in large.tolist():
-        x, y, w, h = (int(v) for v in stats[lab, :4])
-        box = res.excess[y:y + h, x:x + w][labels[y:y + h, x:x + w] == lab]
-        strength[lab] = float(np.cumsum(box, dtype=np.float64)[-1]) / area[lab]
+    kernels.blob_strengths(labels, stats, res.excess, large, strength)
     # confidence >= min_confidence  <=>  strength >= excess (1 - ln(1 - c) / 1.5)
     need = settings.excess * (1.0 - math.log(1.0 - min(settings.min_confidence, 0.999)) / 1.5)
     keep = large[strength[large] >= need]
@@ -341,16 +338,15 @@ def blobs(res: Residual, settings: DefectSettings) -> list[Blob]:
     hp = hp5 = None
     for lab in keep:
         x, y, w, h, a = (int(v) for v in stats[lab])
-        cells = labels[y:y + h, x:x + w] == lab
         pad = max(2, w // 2) * res.cell_px
         c0 = max(0, x * res.cell_px - pad)
         c1 = min(res.r.shape[1], (x + w) * res.cell_px + pad)
-        mask = np.zeros((h, c1 - c0), dtype=bool)  # the blob's samples, rows y..y+h, c0..c1
-        m0 = x * res.cell_px - c0
-        mask[:, m0:m0 + w * res.cell_px] = np.repeat(cells, res.cell_px, axis=1)
+        # the blob's samples, rows y..y+h, c0..c1, and the share of them at the shadow's slope
+        mask = np.empty((h, c1 - c0), dtype=bool)
+        shadow = kernels.blob_mask(labels, lab, x, y, w, res.cell_px, c0, smap.slope_along_feed,
+                                   0.7 * smap.shadow_slope, mask)
         depth = _row_depth_um(res, c0, c1, y, y + h, mask)
         p_in = smap.slope_along_feed[y:y + h, c0:c1]
-        shadow = float(np.mean(np.abs(p_in[mask]) >= 0.7 * smap.shadow_slope))
         if (depth < settings.dent_um and shadow < settings.torn_shadow
                 and a * cell_mm * row_mm < settings.min_fuzzy_mm2):
             continue  # a weak dent or a bump without shadows, smaller than a fuzzy patch

@@ -14,7 +14,9 @@ here do each step in one call, with the arithmetic of the numpy code they replac
   for their median (:func:`vision.defects.detect.residual`);
 * :func:`marked_cells` -- the cells' smoothed excess over the field's median and the marked
   cells (:func:`vision.defects.detect.residual`);
-* :func:`row_depth` -- a blob's depth below its rim (:func:`vision.defects.detect.blobs`);
+* :func:`blob_strengths`, :func:`blob_mask`, :func:`row_depth` -- the blobs' mean excess,
+  a blob's samples and their shadowed share, its depth below its rim
+  (:func:`vision.defects.detect.blobs`);
 * :func:`fold_rows` -- each row's residual folded at one revolution, the median over the
   revolutions per phase, and its mean square (:func:`vision.defects.detect.knife_nicks`);
 * :func:`clipped_pairs`, :func:`cross_spectrum` -- raised grain's row pairs clipped into the
@@ -515,6 +517,55 @@ def row_depth(r: np.ndarray, r0: int, r1: int, c0: int, c1: int, mask: np.ndarra
 
 
 @njit(**_JIT)
+def blob_strengths(labels: np.ndarray, stats: np.ndarray, excess: np.ndarray,
+                   large: np.ndarray, strength: np.ndarray) -> None:  # pragma: no cover
+    """The mean excess of the groups ``large``: each one's cells in its box, summed in order.
+
+    ``strength[lab]`` is the sum (float64, row by row through the group's bounding box, as
+    ``np.cumsum`` sums them) of ``excess`` over the cells labelled ``lab``, over the group's
+    area (``stats``: OpenCV's connected components' left, top, width, height, area)
+    (:func:`vision.defects.detect.blobs`).
+    """
+    for q in range(large.size):
+        lab = large[q]
+        x, y, w, h = stats[lab, 0], stats[lab, 1], stats[lab, 2], stats[lab, 3]
+        acc = 0.0
+        for i in range(y, y + h):
+            lr, er = labels[i], excess[i]
+            for j in range(x, x + w):
+                if lr[j] == lab:
+                    acc += np.float64(er[j])
+        strength[lab] = acc / np.float64(stats[lab, 4])
+
+
+@njit(**_JIT)
+def blob_mask(labels: np.ndarray, lab: int, x: int, y: int, w: int, cell: int, c0: int,
+              p: np.ndarray, limit: float, mask: np.ndarray) -> float:  # pragma: no cover
+    """A group's samples on the map and the share of them at the shadow's slope.
+
+    ``mask`` (shape ``(h, c1 - c0)``, rows ``y..y + h``, map columns ``c0..c1``) is True on
+    the samples of the cells labelled ``lab`` in the box ``x..x + w`` (each cell ``cell``
+    map columns from column ``x * cell``); returns the share of them whose ``|p|`` is at
+    least ``limit`` (:func:`vision.defects.detect.blobs`).
+    """
+    h, n = mask.shape
+    m0 = x * cell - c0
+    lim = np.float32(limit)  # as numpy compares float32 samples with a Python float
+    hits = 0
+    total = 0
+    for i in range(h):
+        mr, lr, pr = mask[i], labels[y + i], p[y + i]
+        for j in range(n):
+            mr[j] = False
+        for j in range(w * cell):
+            if lr[x + j // cell] == lab:
+                mr[m0 + j] = True
+                total += 1
+                hits += abs(pr[c0 + m0 + j]) >= lim
+    return hits / total if total > 0 else np.nan
+
+
+@njit(**_JIT)
 def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int, n_per: int,
               min_valid: int, every: int, slack: float, folded: np.ndarray,
               energy: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -794,6 +845,10 @@ def warm_up() -> None:
                  np.empty((8, 4), dtype=np.bool_), np.empty(32, dtype=np.float32))
     fold_rows(a, valid, 0, 4.0, 4, 3, 6, 4, 0.3, np.empty((8, 4)), np.empty(8))
     row_depth(a, 0, 4, 0, 10, np.ones((4, 10), dtype=np.bool_), 160.0)
+    labels = np.zeros((8, 4), dtype=np.int32)
+    stats = np.ones((2, 5), dtype=np.int32)
+    blob_strengths(labels, stats, cells, np.array([1], dtype=np.int64), np.zeros(2))
+    blob_mask(labels, 1, 0, 0, 1, 3, 0, a, 0.5, np.empty((1, 6), dtype=np.bool_))
     pad = np.zeros((2, 16), dtype=np.float32)
     clipped_pairs(a, np.array([0, 1], dtype=np.int64), 0.5, pad, np.empty(2))
     cross_spectrum(np.ones((2, 9), dtype=np.complex64), np.empty(9, dtype=np.complex64))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from numba import njit
@@ -163,3 +164,54 @@ def test_cell_means_are_their_earlier_form(cell):
         kernels._cell_means(sq, vv, cell, n_cells, half, *got)
         old_cell_means(sq, vv, cell, n_cells, half, *ref)
         assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
+
+
+def _labelled(rng, rows=40, cols=60):
+    """A map's marked cells and their groups, as ``vision.defects.detect.blobs`` labels them."""
+    marked = (rng.random((rows, cols)) < rng.uniform(0.05, 0.5)).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStatsWithAlgorithm(
+        marked, 8, cv2.CV_32S, cv2.CCL_BBDT)
+    return n, labels, stats
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_blob_strengths_are_their_earlier_form(seed):
+    rng = np.random.default_rng(seed)
+    for _ in range(20):
+        n, labels, stats = _labelled(rng)
+        excess = (10.0 * rng.random(labels.shape)).astype(np.float32)
+        large = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= rng.integers(1, 6))
+        large = large[large > 0]
+        got = np.zeros(n)
+        kernels.blob_strengths(labels, stats, excess, large, got)
+        ref = np.zeros(n)
+        area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
+        for lab in large.tolist():  # the earlier form: numpy over each group's box
+            x, y, w, h = (int(v) for v in stats[lab, :4])
+            box = excess[y:y + h, x:x + w][labels[y:y + h, x:x + w] == lab]
+            ref[lab] = float(np.cumsum(box, dtype=np.float64)[-1]) / area[lab]
+        assert np.array_equal(got, ref)
+
+
+@pytest.mark.parametrize("cell", [1, 2, 3])
+def test_blob_mask_is_its_earlier_form(cell):
+    """The blob's samples and their shadowed share as numpy made them (its float32
+    comparison with the Python float limit included)."""
+    rng = np.random.default_rng(cell)
+    for _ in range(10):
+        n, labels, stats = _labelled(rng)
+        p = (0.2 * rng.standard_normal((labels.shape[0], labels.shape[1] * cell))
+             ).astype(np.float32)
+        limit = 0.7 * float(rng.uniform(0.05, 0.3))
+        p[0, :4] = np.float32(limit)  # samples on the limit, either side of its float32
+        for lab in range(1, n):
+            x, y, w, h = (int(v) for v in stats[lab, :4])
+            pad = max(2, w // 2) * cell
+            c0, c1 = max(0, x * cell - pad), min(p.shape[1], (x + w) * cell + pad)
+            got = np.empty((h, c1 - c0), bool)
+            share = kernels.blob_mask(labels, lab, x, y, w, cell, c0, p, limit, got)
+            ref = np.zeros((h, c1 - c0), dtype=bool)  # the earlier form
+            m0 = x * cell - c0
+            ref[:, m0:m0 + w * cell] = np.repeat(labels[y:y + h, x:x + w] == lab, cell, axis=1)
+            assert np.array_equal(got, ref)
+            assert share == float(np.mean(np.abs(p[y:y + h, c0:c1][ref]) >= limit))
