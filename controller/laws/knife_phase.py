@@ -24,7 +24,6 @@ the first and the last mark that got no mark are the knives that left none.
 from __future__ import annotations
 
 import itertools
-import math
 import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -239,21 +238,10 @@ class PassAttribution:
         w = np.asarray(widths_mm, dtype=float)
         if w.shape != self.knife.shape or not np.isfinite(w).all():
             raise ValueError(f"widths_mm must be {self.knife.size} finite values")
-        per = self.passes_per_knife.tolist()
-        if min(per, default=0) > 0:  # plain floats: the sums in mark order, as bincount adds
-            sums = [0.0] * z
-            marks = [0] * z
-            for k, v in zip(self.knife.tolist(), w.tolist(), strict=True):
-                sums[k] += v
-                marks[k] += 1
-            return np.array([s / p if m else math.nan
-                             for s, p, m in zip(sums, per, marks, strict=True)])
+        # bincount adds each knife's widths in mark order (from 0.0), as a loop over the marks
         sums = np.bincount(self.knife, weights=w, minlength=z)
-        counts = np.bincount(self.knife, minlength=z)
-        out = np.full(z, np.nan)
-        has = counts > 0
-        out[has] = sums[has] / self.passes_per_knife[has]
-        return out
+        has = np.bincount(self.knife, minlength=z) > 0
+        return np.divide(sums, self.passes_per_knife, out=np.full(z, np.nan), where=has)
 
 
 def attribute_marks(

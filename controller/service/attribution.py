@@ -82,7 +82,12 @@ def vanished_knives(passes_per_knife: Sequence[int], mark_knife: Sequence[int]) 
     marks = knife.tolist() if knife.ndim == 1 else None
     if marks is None or (marks and (min(marks) < 0 or max(marks) >= len(counts))):
         raise ValueError(f"mark_knife must hold knives in [0, {per.size}), got {knife!r}")
-    marked = {int(k) for k in marks}
+    return _vanished(counts, marks)
+
+
+def _vanished(counts: list[int], marks: list[int]) -> tuple[int, ...]:
+    """:func:`vanished_knives` of checked plain ints."""
+    marked = set(marks)
     return tuple(k for k, n in enumerate(counts) if n > 0 and k not in marked)
 
 
@@ -175,11 +180,15 @@ def knife_model_cv(widths_mm: Sequence[float], mark_knife: Sequence[int],
     ws, xs = w.tolist(), x.tolist()
     if not (all(map(math.isfinite, ws)) and all(map(math.isfinite, xs))):
         raise ValueError("widths_mm and position_mm must be finite")
+    return _knife_model_cv(ws, k.tolist(), xs)
+
+
+def _knife_model_cv(ws: list[float], labels: list[Any], xs: list[float]) -> float:
+    """:func:`knife_model_cv` of checked plain values (finite floats, labels, one length)."""
     n = len(ws)
     mean = sum(ws) / n if n else math.nan
     if not mean > 0:
         return math.nan
-    labels = k.tolist()
     groups: dict[Any, list[float]] = {}  # knife: [marks, sum of widths, sum of positions]
     for v, wi, xi in zip(labels, ws, xs, strict=True):
         g = groups.get(v)
@@ -415,8 +424,9 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any, *,
         pitch = marks_pitch  # the mean mark width, as measured
     else:  # the feed per pass from the knives' BDCs: the widths' sum over the passes
         pitch = float(pa.pass_mm)  # spanned is off by the widened end marks' overhang
-    per_knife = pa.knife_widths(widths)
-    gone = vanished_knives(pa.passes_per_knife, pa.knife)
+    per_knife = pa.knife_widths(widths)  # (checks the widths: finite, one per mark)
+    knife = pa.knife.tolist()
+    gone = _vanished(pa.passes_per_knife.tolist(), knife)  # (attribute_marks' own counts)
     if gone:
         per_knife[list(gone)] = 0.0  # no mark in any of its passes: width 0, not "unknown"
     return Attributed(
@@ -425,14 +435,15 @@ def attribute(meas: Any, frame: Frame, snap: PlcSnapshot, rig: Any, *,
         missing_passes=missing,
         spread=float(pa.spread),
         reliable_marks=int(np.count_nonzero(pa.reliable)),
-        mark_knife=tuple(pa.knife.tolist()),
+        mark_knife=tuple(knife),
         vanished_knives=gone,
         kinematic_cv=kinematic_cv(per_knife),
         feed_per_pass_mm=guide,
         marks_pitch_mm=marks_pitch,
         marks_cv=_marks_cv(meas, widths),
         bdc_pitch_mm=float(pa.pass_mm),
-        knife_cv=knife_model_cv(widths, pa.knife, bottoms) if missing == 0 else math.nan,
+        knife_cv=(_knife_model_cv(widths.tolist(), knife, bottoms.tolist()) if missing == 0
+                  else math.nan),  # (the bottoms checked finite by attribute_marks)
         cut_feed=cut,
     )
 

@@ -25,6 +25,7 @@ may refuse the first pairs). With no reading at all nothing is checked. Pure: no
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -154,10 +155,10 @@ class PairFeedHistory:
         # the positions ascend strictly (note): the last at or behind, the first at or ahead
         first = bisect.bisect_right(pos, lo_pos) - 1
         last = bisect.bisect_left(pos, hi_pos)
-        span = range(first, last + 1)
-        if any(self._knives[i] != knives for i in span):
+        kept = list(itertools.islice(self._knives, first, last + 1))
+        if kept.count(knives) != len(kept):
             return None
-        values = [self._pitch[i] for i in span]
+        values = list(itertools.islice(self._pitch, first, last + 1))
         return min(values), max(values)
 
 
