@@ -848,7 +848,7 @@ def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, f
     # the pairs of rows (4 i, 4 i + 1): half the rows transformed, a quarter of the pairs
     pairs, size = _coherence_rows(res.r.shape[0], res.r.shape[1] + max_lag_px)
     # the rows clipped straight into the transform's zero padding, and their power
-    r = np.zeros((pairs.size, size), dtype=np.float32)
+    r = np.empty((pairs.size, size), dtype=np.float32)
     r2 = np.empty(pairs.size)
     kernels.clipped_pairs(res.r, pairs, 4 * scale, r, r2)
     f = ffts.rfft(r, size, axis=1)  # scipy.fft's numbers without its dispatch

@@ -215,3 +215,20 @@ def test_blob_mask_is_its_earlier_form(cell):
             ref[:, m0:m0 + w * cell] = np.repeat(labels[y:y + h, x:x + w] == lab, cell, axis=1)
             assert np.array_equal(got, ref)
             assert share == float(np.mean(np.abs(p[y:y + h, c0:c1][ref]) >= limit))
+
+
+@pytest.mark.parametrize("n_rows", [1, 3, 4, 6, 9])
+def test_clipped_pairs_power_is_its_earlier_form(n_rows):
+    """Four rows' sums side by side: each row's squares still added in order, the same bits."""
+    rng = np.random.default_rng(n_rows)
+    r = rng.standard_normal((12, 101)).astype(np.float32)
+    rows = rng.integers(0, 12, n_rows).astype(np.int64)
+    out = np.full((n_rows, 120), np.nan, np.float32)
+    r2 = np.empty(n_rows)
+    kernels.clipped_pairs(r, rows, 1.2, out, r2)
+    for k in range(n_rows):  # the earlier form: one chain per row
+        s = 0.0
+        for x in np.clip(r[rows[k]], np.float32(-1.2), np.float32(1.2)):
+            s += float(x * x)
+        assert r2[k] == s
+    assert not out[:, 101:].any()
