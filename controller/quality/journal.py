@@ -11,7 +11,7 @@ journal replays it.
 
 A record holding a value the log's schema refuses (``seq`` = 10**20, text that is not Unicode,
 an ``extra`` that is not JSON) is never dropped: it is rewritten as a failed record naming the
-field (:func:`controller.quality.log.storable_record`).
+field (:func:`controller.quality.log.storable`).
 
 Exactly once: each record gets a UUID when it is appended to the sink; the log stores it in
 the same transaction as the record (``QualityLog.append(record, uid=...)``) and skips a

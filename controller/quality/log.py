@@ -49,7 +49,6 @@ from controller.quality.schema import (
     record_to_dict,
     record_to_json,
     storable,
-    storable_record,
     utc_iso,
     vision_fields,
 )
@@ -68,7 +67,6 @@ __all__ = [
     "SQLITE_INT_MAX",
     "check_storable",
     "storable",
-    "storable_record",
     "QualityRecord",
     "QualityClass",
     "QualityLog",

@@ -41,8 +41,8 @@ class RecordRefusedError(PlanerError, ValueError):
     """A record holds a value the log's schema cannot store; ``field`` names it.
 
     Raised by :meth:`QualityLog.append` before anything is written (e.g. a ``board_id`` beyond
-    SQLite's 64-bit integers). :func:`storable_record` turns such a record into a failed one
-    that the log takes.
+    SQLite's 64-bit integers). :func:`storable` turns such a record into a failed one that
+    the log takes.
     """
 
     def __init__(self, field: str, message: str) -> None:
@@ -544,14 +544,6 @@ def check_storable(record: QualityRecord, *, extra_json: str | None = None) -> s
         return json.dumps(record.extra, default=_json_default)
     except (TypeError, ValueError, RecursionError) as exc:
         raise RecordRefusedError("extra", f"extra is not JSON serialisable: {exc}") from None
-
-
-def storable_record(record: QualityRecord) -> QualityRecord:
-    """``record`` itself when the log can store it, else a failed record naming the fields.
-
-    :func:`storable` without the text of ``extra``.
-    """
-    return storable(record)[0]
 
 
 def storable(record: QualityRecord) -> tuple[QualityRecord, str]:

@@ -32,7 +32,7 @@ from controller.quality.schema import (
     columns_added_since,
     record_from_dict,
     record_to_dict,
-    storable_record,
+    storable,
 )
 from tests.support import pg_support
 from tests.support.old_logs import old_log
@@ -293,11 +293,11 @@ def test_a_board_bent_by_the_rig_alone_grades_one_and_counts_no_snipe():
 def test_a_refused_record_keeps_its_defects_and_drops_a_board_it_cannot_store(tmp_path):
     rec = _board_records()[0]
     huge = dataclasses.replace(rec, board_id=2**64)  # beyond SQLite's integers
-    kept = storable_record(huge)
+    kept = storable(huge)[0]
     assert not kept.ok and kept.error.startswith("record refused: board_id")
     assert kept.board_id == 0 and kept.board_grade is None and kept.board_defect_counts is None
     assert kept.defects == rec.defects and kept.grade == rec.grade
-    odd = storable_record(dataclasses.replace(rec, grade_reason="worst \udc80"))
+    odd = storable(dataclasses.replace(rec, grade_reason="worst \udc80"))[0]
     assert odd.grade_reason == "worst \\udc80" and odd.board_grade == rec.board_grade
     with QualityLog(tmp_path / "q.sqlite") as log:
         log.append(kept)

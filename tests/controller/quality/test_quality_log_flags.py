@@ -21,7 +21,7 @@ from controller.quality.schema import (
     columns_added_since,
     record_from_dict,
     record_to_dict,
-    storable_record,
+    storable,
 )
 from tests.support import pg_support
 from tests.support.old_logs import old_log
@@ -88,7 +88,7 @@ def test_flag_reason_that_is_not_unicode_is_refused_and_kept_escaped():
     with pytest.raises(RecordRefusedError) as info:
         check_storable(rec)
     assert info.value.field == "flag_reason"
-    kept = storable_record(rec)
+    kept = storable(rec)[0]
     check_storable(kept)
     assert kept.flag_reason == "bad \\udcff text" and "flag_reason" in kept.extra["refused"]
 

@@ -27,7 +27,7 @@ from controller.quality.log import (
     record_to_dict,
     utc_iso,
 )
-from controller.quality.schema import ADDED_IN_V8, storable_record
+from controller.quality.schema import ADDED_IN_V8, storable
 from tests.support import pg_support
 from tests.support.old_logs import downgrade, old_log
 
@@ -92,7 +92,7 @@ def test_head_round_trips_through_json_and_old_json_reads_main():
 
 def test_a_refused_record_keeps_its_head():
     rec = _rec(2, "top", extra={"bad": object()})
-    out = storable_record(rec)
+    out = storable(rec)[0]
     assert not out.ok and "extra" in out.error and out.head == "top"
 
 

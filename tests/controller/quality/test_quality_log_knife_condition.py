@@ -25,7 +25,7 @@ from controller.quality.schema import (
     knife_condition_fields,
     record_from_dict,
     record_to_dict,
-    storable_record,
+    storable,
 )
 from tests.support import pg_support
 from tests.support.old_logs import old_log
@@ -112,7 +112,7 @@ def test_a_failed_pair_carries_the_condition_in_force_and_it_round_trips(tmp_pat
                  uniformity_cv=None, mark_widths_mm=(), depth_um=None, **cond),
             _rec(2)]  # before the first table: none
     assert [record_from_dict(record_to_dict(r)) for r in recs] == recs
-    assert storable_record(recs[1]) is recs[1]
+    assert storable(recs[1])[0] is recs[1]
     path = tmp_path / "q.sqlite"
     with QualityLog(path) as log:
         for r in recs:

@@ -26,7 +26,7 @@ from controller.quality.log import (
     record_from_dict,
     record_to_dict,
     record_to_json,
-    storable_record,
+    storable,
     utc_iso,
     vision_fields,
 )
@@ -117,7 +117,7 @@ def test_good_vision_fields_and_nan_as_not_measured(state):
 
 def test_a_refused_record_keeps_its_orientation_and_calibration():
     r = _rec(board_id=2**64, **_vision(1))
-    out = storable_record(r)
+    out = storable(r)[0]
     assert not out.ok and "board_id" in out.error
     for name in ("roll_deg", "roll_confidence", "calibration_state", *CALIBRATION_FIELDS):
         assert getattr(out, name) == getattr(r, name)

@@ -25,7 +25,7 @@ from controller.quality.log import (
     RecordRefusedError,
     record_from_dict,
     record_to_dict,
-    storable_record,
+    storable,
     utc_iso,
 )
 from protocol.frames import Frame
@@ -81,9 +81,9 @@ def test_log_refuses_out_of_range_integers_naming_the_field(tmp_path, name, valu
         assert getattr(log.records()[0], name) == SQLITE_INT_MAX
 
 
-def test_storable_record_names_every_refused_field():
+def test_storable_names_every_refused_field():
     bad = _rec(3, seq=10**20, board_id=2**64, error=None, extra={"i": 3, "obj": object()})
-    out = storable_record(bad)
+    out = storable(bad)[0]
     assert not out.ok and out.seq == 0 and out.board_id == 0
     for name in ("seq", "board_id", "extra"):
         assert name in out.error and name in out.extra["refused"]
@@ -91,18 +91,18 @@ def test_storable_record_names_every_refused_field():
     assert out.feed_setpoint_mm_s == bad.feed_setpoint_mm_s and out.t_s == bad.t_s
     failed = _rec(4, ok=False, error="registration failed: low", pitch_mm=None,
                   mark_widths_mm=(), uniformity_cv=None, seq=10**20)
-    assert storable_record(failed).error.startswith("registration failed: low (record refused")
+    assert storable(failed)[0].error.startswith("registration failed: low (record refused")
     good = _rec(5)
-    assert storable_record(good) is good
+    assert storable(good)[0] is good
 
 
-def test_storable_record_escapes_lone_surrogates(tmp_path):
+def test_storable_escapes_lone_surrogates(tmp_path):
     bad = _rec(1, ok=False, error="bad \udcff byte", pitch_mm=None, mark_widths_mm=(),
                uniformity_cv=None)
     with QualityLog(tmp_path / "q.db") as log:
         with pytest.raises(RecordRefusedError, match="error"):
             log.append(bad)
-        log.append(storable_record(bad))
+        log.append(storable(bad)[0])
         assert "\\udcff" in log.records()[0].error
 
 

@@ -15,6 +15,7 @@ from controller.quality import write_ahead
 from controller.quality.journal import default_journal_path, read_journal
 from controller.quality.log import QualityLog, QualityRecord, utc_iso
 from controller.quality.write_ahead import SharedLog, WriteAheadSink, WriterGroup
+from tests.controller.quality.test_write_ahead import GatedLog
 
 BACKSTOP_S = 60.0
 HOUR_S = 3600.0
@@ -109,27 +110,8 @@ def test_a_head_that_closes_leaves_the_others_writing(tmp_path):
             ("bottom", i) for i in range(2, 6)]
 
 
-class HungLog:
-    """A real log whose batch writes wait at ``gate`` (``inside`` set), then fail."""
-
-    def __init__(self, path) -> None:
-        self.log = QualityLog(path)
-        self.gate, self.inside = threading.Event(), threading.Event()
-
-    def append(self, record, *, uid=None, extra_json=None):
-        return self.append_many([record], uids=[uid], extra_json=[extra_json])[0]
-
-    def append_many(self, records, *, uids=None, extra_json=None):
-        self.inside.set()
-        assert self.gate.wait(BACKSTOP_S)
-        raise ConnectionError("database gone")
-
-    def __getattr__(self, name):
-        return getattr(self.log, name)
-
-
 def test_a_write_that_never_returns_keeps_the_log_open_and_the_records_journalled(tmp_path):
-    hung = HungLog(tmp_path / "q.db")
+    hung = GatedLog(tmp_path / "q.db", threading.Event(), fail_on_release=True)
     group = WriterGroup(hung)
     view = group.head_log()
     assert isinstance(view, SharedLog) and view.path == tmp_path / "q.db"

@@ -15,6 +15,8 @@ import threading
 import time
 from collections import defaultdict
 
+import pytest
+
 from controller.quality import write_ahead
 from controller.quality.journal import read_journal
 from controller.quality.log import QualityLog, QualityRecord, RecordRefusedError, utc_iso
@@ -95,26 +97,42 @@ def test_the_first_record_goes_at_once_however_long_the_clock_has_run(tmp_path, 
         assert [r.seq for r in log.records()] == [0]
 
 
-def test_a_put_just_as_the_journal_thread_goes_to_sleep_wakes_it(tmp_path, monkeypatch):
+@pytest.fixture
+def quiet_sink(tmp_path, monkeypatch):
+    """``(log, sink, answers)``: a sink on a real log whose threads sleep until woken."""
     _quiet(monkeypatch)
     with QualityLog(tmp_path / "q.db") as log:
         answers = Answers()
         sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl", on_durable=answers)
-        sink._journal_cv = HookedCondition(
-            sink._cond._lock, when=lambda: not sink._inbox and sink._counts["journalled"] == 1,
-            hook=lambda: sink.put(_rec(1)))
-        sink.put(_rec(0))
-        answers.wait(2)  # [1] came as the journal thread fell asleep after [0]: woken
-        assert sink._journal_cv.fired.is_set()
-        _until(sink, lambda st: st.counters["logged"] == 2)
-        assert sink.close() is None
-        assert [r.seq for r in log.records()] == [0, 1]
-        assert dict(answers.flags) == {0: [True], 1: [True]}
+        yield log, sink, answers
 
 
-def test_a_put_while_the_journal_thread_appends_is_taken_without_another(tmp_path,
+def _put_one_as_it_sleeps(sink: WriteAheadSink, when) -> HookedCondition:
+    """A condition for a writer thread that puts record [1] just as ``when()`` it sleeps."""
+    return HookedCondition(sink._cond._lock, when=when, hook=lambda: sink.put(_rec(1)))
+
+
+def _logged_two(log, sink: WriteAheadSink) -> None:
+    """Both records in the log, in order; the sink closes with nothing left."""
+    _until(sink, lambda st: st.counters["logged"] == 2)
+    assert sink.close() is None
+    assert [r.seq for r in log.records()] == [0, 1]
+
+
+def test_a_put_just_as_the_journal_thread_goes_to_sleep_wakes_it(quiet_sink):
+    log, sink, answers = quiet_sink
+    sink._journal_cv = _put_one_as_it_sleeps(
+        sink, lambda: not sink._inbox and sink._counts["journalled"] == 1)
+    sink.put(_rec(0))
+    answers.wait(2)  # [1] came as the journal thread fell asleep after [0]: woken
+    assert sink._journal_cv.fired.is_set()
+    _logged_two(log, sink)
+    assert dict(answers.flags) == {0: [True], 1: [True]}
+
+
+def test_a_put_while_the_journal_thread_appends_is_taken_without_another(quiet_sink,
                                                                         monkeypatch):
-    _quiet(monkeypatch)
+    log, sink, answers = quiet_sink
     inside, gate = threading.Event(), threading.Event()
     synced = write_ahead._append_synced
 
@@ -125,34 +143,23 @@ def test_a_put_while_the_journal_thread_appends_is_taken_without_another(tmp_pat
         return synced(fd, body)
 
     monkeypatch.setattr(write_ahead, "_append_synced", held)
-    with QualityLog(tmp_path / "q.db") as log:
-        answers = Answers()
-        sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl", on_durable=answers)
-        sink.put(_rec(0))
-        assert inside.wait(BACKSTOP_S)  # the journal thread is inside its append of [0]
-        sink.put(_rec(1))  # its wake-up finds nobody asleep
-        gate.set()
-        answers.wait(2)  # ... yet [1] is journalled: the thread looks before it sleeps
-        _until(sink, lambda st: st.counters["logged"] == 2)
-        assert sink.state.counters["batches"] == 2
-        assert sink.close() is None
-        assert [r.seq for r in log.records()] == [0, 1]
+    sink.put(_rec(0))
+    assert inside.wait(BACKSTOP_S)  # the journal thread is inside its append of [0]
+    sink.put(_rec(1))  # its wake-up finds nobody asleep
+    gate.set()
+    answers.wait(2)  # ... yet [1] is journalled: the thread looks before it sleeps
+    _until(sink, lambda st: st.counters["logged"] == 2)
+    assert sink.state.counters["batches"] == 2  # two appends, no third
+    _logged_two(log, sink)
 
 
-def test_records_handed_on_just_as_the_database_thread_goes_to_sleep_wake_it(tmp_path,
-                                                                            monkeypatch):
-    _quiet(monkeypatch)
-    with QualityLog(tmp_path / "q.db") as log:
-        answers = Answers()
-        sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl", on_durable=answers)
-        sink._db_cv = HookedCondition(
-            sink._cond._lock, when=lambda: not sink._todo and sink._counts["logged"] == 1,
-            hook=lambda: sink.put(_rec(1)))
-        sink.put(_rec(0))
-        _until(sink, lambda st: st.counters["logged"] == 2)  # woken for [1], not an hour on
-        assert sink._db_cv.fired.is_set()
-        assert sink.close() is None
-        assert [r.seq for r in log.records()] == [0, 1]
+def test_records_handed_on_just_as_the_database_thread_goes_to_sleep_wake_it(quiet_sink):
+    log, sink, _ = quiet_sink
+    sink._db_cv = _put_one_as_it_sleeps(
+        sink, lambda: not sink._todo and sink._counts["logged"] == 1)
+    sink.put(_rec(0))
+    _logged_two(log, sink)  # woken for [1], not an hour on
+    assert sink._db_cv.fired.is_set()
 
 
 class GatedLog:
