@@ -120,6 +120,11 @@ class CanopenAmpNode:
         self.node.tpdo.read(from_od=True)
         for n in (1, 2, 3):
             self.node.rpdo[n].add_callback(self._on_rpdo)
+        self._slots = {id(pdo): _byte_slots(pdo) for pdo in (
+            self.node.rpdo[1], self.node.rpdo[2], self.node.rpdo[3], self.node.tpdo[1])}
+        """Each PDO's variables as byte ranges of its data (``None``: one not byte-aligned),
+        from its mapping read above: a local node's PDO maps are read once (an SDO write of
+        its mapping objects changes the dictionary, not the maps)."""
         self.offsets_um = [0.0] * MAX_KNIVES
         """The offset table received, um (all eight; the head plays its first ``knives``)."""
         self.last_command: dict[str, int] | None = None
@@ -157,12 +162,37 @@ class CanopenAmpNode:
             return  # PDOs are acted on only when operational
         self.pdos += 1
         if pdo is self.node.rpdo[3]:
-            self._command([v.raw for v in pdo])
+            self._command(self._received(pdo))
         else:
             first = 0 if pdo is self.node.rpdo[1] else 4
-            for k, var in enumerate(pdo):
-                self.offsets_um[first + k] = um_from_nm(var.raw)
+            for k, raw in enumerate(self._received(pdo)):
+                self.offsets_um[first + k] = um_from_nm(raw)
             self._table()
+
+    def _received(self, pdo: Any) -> list[Any]:
+        """The raw values of a received PDO's variables (``var.raw`` of each, in order).
+
+        Decoded from the PDO's data by the variables' dictionary entries directly: what
+        ``var.raw`` gives, without its per-variable lookups and log records.
+        """
+        slots = self._slots.get(id(pdo))
+        if slots is None:
+            return [v.raw for v in pdo]
+        data = pdo.data
+        return [od.decode_raw(data[a:b]) for a, b, od in slots]
+
+    def _send(self, pdo: Any, values: Sequence[int]) -> None:
+        """Set a transmit PDO's variables to ``values`` (as ``var.raw = v``) and send it."""
+        slots = self._slots.get(id(pdo))
+        if slots is None:
+            for var, v in zip(pdo, values, strict=True):
+                var.raw = v
+        else:
+            data = pdo.data
+            for (a, b, od), v in zip(slots, values, strict=True):
+                data[a:b] = od.encode_raw(v)
+            pdo.update()
+        pdo.transmit()
 
     def _command(self, values: Sequence[int]) -> None:
         enable, knives, alive = (int(v) for v in values[:3])
@@ -233,18 +263,18 @@ class CanopenAmpNode:
             if period > 0:
                 self._next_heartbeat_s = _next(self._next_heartbeat_s, period, now_s)
                 self.network.send_message(self.cob_ids["heartbeat"], bytes([self.nmt_state]))
-        if self.nmt_state is not NmtState.OPERATIONAL:
+        if self.node.nmt._state != NmtState.OPERATIONAL:
             return
         if now_s >= self._next_status_s - 1e-9:
             self._next_status_s = _next(self._next_status_s, STATUS_PERIOD_S, now_s)
             raw = self._status_raw()
             pdo = self.node.tpdo[1]
-            for sub, var in enumerate(pdo, 1):
-                var.raw = raw[sub]
-            pdo.transmit()
+            self._send(pdo, [raw[sub] for sub in range(1, len(pdo) + 1)])
             self._emergencies(AmpFault(raw[3]))
 
     def _emergencies(self, fault: AmpFault) -> None:
+        if fault == self._faults_sent:
+            return  # nothing rose, nothing cleared
         risen = fault & ~self._faults_sent
         for bit in AmpFault:
             if bit in risen:
@@ -252,6 +282,21 @@ class CanopenAmpNode:
         if self._faults_sent and not fault:
             self.node.emcy.reset()  # code 0x0000: no error any more
         self._faults_sent = fault
+
+
+def _byte_slots(pdo: Any) -> tuple[tuple[int, int, Any], ...] | None:
+    """``(first byte, end byte, dictionary entry)`` of each variable of ``pdo``, in order.
+
+    ``None`` when one is not whole bytes at a byte boundary (its value then goes through the
+    library's bit handling: ``var.raw``).
+    """
+    slots = []
+    for var in pdo:
+        byte, bit = divmod(int(var.offset), 8)
+        if bit or var.length % 8 or var.length != len(var.od):
+            return None
+        slots.append((byte, byte + var.length // 8, var.od))
+    return tuple(slots)
 
 
 def _next(scheduled: float, period: float, now_s: float) -> float:
