@@ -102,6 +102,8 @@ class ControlLoops:
         self.cfg = cfg
         self.rig = rig
         self.out = actuators
+        self._writes_feed = bool(getattr(actuators, "owns_feed", True))
+        """Whether a pair's feed goes to the PLC (a moulder's head: the coordinator writes)."""
         self._report = report
         self._amp_monitor = amp_monitor
         self.pairs_per_s = float(pairs_per_s)
@@ -403,7 +405,15 @@ class ControlLoops:
         The task runs until it waits for the PLC's answer (the request is on the wire, or waits
         for the bus behind the PLC cycle's request) before this returns: one turn of the event
         loop. Awaiting it later gives the same result as awaiting the write here.
+
+        A moulder's head writes no feed (:attr:`Actuators.owns_feed` false: the coordinator
+        writes the one feed, :meth:`Actuators.write_feed` takes it at once): a finished write,
+        without a task or a turn of the loop in the middle of the pair.
         """
+        if not self._writes_feed:
+            taken = asyncio.get_running_loop().create_future()
+            taken.set_result(True)  # (write_feed's answer for a head that owns no feed)
+            return taken
         write = asyncio.ensure_future(self.out.write_feed(feed_mm_s, t))
         await asyncio.sleep(0)  # the write's task runs up to its first wait
         return write

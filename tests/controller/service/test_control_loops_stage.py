@@ -18,7 +18,8 @@ from core.errors import FieldbusError
 class FakeActuators:
     """Records what went out; refuses offsets while ``fail`` is set."""
 
-    def __init__(self):
+    def __init__(self, owns_feed=True):
+        self.owns_feed = owns_feed
         self.fail = False
         self.sent = []
         self.offsets_um = ()
@@ -48,12 +49,12 @@ def _snap(**values):
     } | values, t_s=0.0)
 
 
-def _stage():
+def _stage(owns_feed=True):
     cfg = machine_from_dict({"piezo": {"stroke_um": 20.0}})  # machine.toml says 20 um
     rig = SimpleNamespace(camera=SimpleNamespace(cx=320.0, px_per_mm=16.0))
     amp = SimpleNamespace(untracked_s=None)
     report = EventLog()
-    return ControlLoops(cfg, rig, FakeActuators(), report, amp, pairs_per_s=10.0)
+    return ControlLoops(cfg, rig, FakeActuators(owns_feed), report, amp, pairs_per_s=10.0)
 
 
 RUNOUT = np.array([0.5, 15.0, -8.5, 5.0])
@@ -142,3 +143,30 @@ def test_a_pair_whose_passes_do_not_fit_the_cut_feed_does_not_teach_offsets(rati
     assert bool(calls) is learns
     assert stage._report.counters["uniformity_skipped"] == (0 if learns else 1)
     assert np.array_equal(stage.uniformity_loop.offsets_um == 0.0, np.full(4, not learns))
+
+
+def test_a_head_that_owns_no_feed_applies_without_a_turn_of_the_loop():
+    """A moulder's head (``owns_feed`` false): its feed is the coordinator's, so a pair's
+    control writes none and goes on without a task or a turn of the event loop in between
+    (what ran in that turn would delay the pair); it applies as before."""
+    async def run(owns_feed):
+        stage = _stage(owns_feed)
+        calls = []
+        write = stage.out.write_feed
+
+        async def counted(feed_mm_s, t):
+            calls.append(feed_mm_s)
+            return await write(feed_mm_s, t)
+
+        stage.out.write_feed = counted
+        stage.ensure(_snap())
+        turned = []
+        asyncio.get_running_loop().call_soon(turned.append, True)
+        att = SimpleNamespace(pass_pitch_mm=1.5, knife_widths_mm=_widths(np.zeros(4)),
+                              bdc_pitch_mm=1.5)
+        applied = await stage.apply(att, 5.0, _snap(), 5.0)
+        return applied, bool(turned), len(calls), stage._report.counters.get("applied")
+
+    assert asyncio.run(run(False)) == (True, False, 0, 1)
+    assert asyncio.run(run(True)) == (True, True, 1, 1)
+
