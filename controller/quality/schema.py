@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
@@ -911,10 +912,6 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
-def _list_to_json(values: tuple[float, ...]) -> str:
-    return json.dumps([None if math.isnan(v) else v for v in values])
-
-
 def _list_from_json(text: str) -> tuple[float, ...]:
     return tuple(math.nan if v is None else float(v) for v in json.loads(text))
 
@@ -939,18 +936,28 @@ def record_to_dict(record: QualityRecord) -> dict[str, Any]:
     return {name: out[name] for name in _FIELD_NAMES}
 
 
+_GET_FIELDS = operator.attrgetter(*_FIELD_NAMES)
+"""A record's fields in field order, in one call."""
+_TUPLE_AT = tuple(_FIELD_NAMES.index(n) for n in _TUPLES)
+_EXTRA_AT = _FIELD_NAMES.index("extra")
+_MACHINE_AT = _FIELD_NAMES.index("machine_id")
+_DEFECTS_AT = _FIELD_NAMES.index("defects")
+_JSON_AT = tuple(_FIELD_NAMES.index(n) for n in _JSON_FIELDS)
+_PLAIN_AT = tuple(i for i, n in enumerate(_FIELD_NAMES)
+                  if n not in _TUPLES and n not in _JSON_FIELDS and n != "extra")
+"""Where a row holds a tuple (JSON list), JSON text, ``extra``, ``machine_id``; the rest."""
+
+
 def _plain_fields(record: QualityRecord) -> dict[str, Any]:
     """The JSON-ready fields of a record but ``extra`` (NaN in a list as ``None``)."""
-    out: dict[str, Any] = {}
-    for name in _FIELD_NAMES:
-        if name == "extra":
-            continue
-        v = getattr(record, name)
-        if name in _TUPLES:
-            v = [None if math.isnan(x) else x for x in v]
-        elif name in _JSON_FIELDS and v is not None:
-            v = list(v) if name == "defects" else dict(v)
-        out[name] = v
+    out = dict(zip(_FIELD_NAMES, _GET_FIELDS(record), strict=True))
+    del out["extra"]
+    for name in _TUPLES:
+        out[name] = [None if x != x else x for x in out[name]]  # x != x: NaN
+    for name in _JSON_FIELDS:
+        v = out[name]
+        if v is not None:
+            out[name] = list(v) if name == "defects" else dict(v)
     return out
 
 
@@ -1009,28 +1016,31 @@ def _to_row(rec: QualityRecord, *, extra_json: str | None = None,
     """The row of a record (field order).
 
     ``extra_json`` (:func:`check_storable`'s text) is not encoded again; ``machine_id`` is
-    stored when the record names none.
+    stored when the record names none. Tuples are JSON lists (``null`` for NaN), ``defects``
+    and ``board_defect_counts`` JSON text, booleans 0/1.
     """
-    row: list[Any] = []
-    for name in _FIELD_NAMES:
-        v = getattr(rec, name)
-        if name in _TUPLES:
-            v = _list_to_json(v)
-        elif name in _JSON_FIELDS:
-            v = None if v is None else json.dumps(list(v) if name == "defects" else v)
-        elif name == "extra":
-            if extra_json is not None:
-                v = extra_json
-            else:
-                try:
-                    v = json.dumps(v, default=_json_default)
-                except (TypeError, ValueError) as exc:
-                    raise ValueError(f"extra is not JSON serialisable: {exc}") from None
-        elif name == "machine_id" and v is None:
-            v = machine_id
-        elif isinstance(v, bool):
-            v = int(v)
-        row.append(v)
+    row = list(_GET_FIELDS(rec))
+    for i in _PLAIN_AT:
+        if row[i].__class__ is bool:
+            row[i] = int(row[i])
+    for i in _TUPLE_AT:  # json.dumps's text: floats by repr, NaN as null
+        text = "[" + ", ".join(["null" if x != x else repr(x) for x in row[i]]) + "]"
+        if "inf" in text:  # an infinity (never in a checked record): json.dumps's spelling
+            text = json.dumps([None if x != x else x for x in row[i]])
+        row[i] = text
+    for i in _JSON_AT:
+        v = row[i]
+        if v is not None:
+            row[i] = json.dumps(list(v) if i == _DEFECTS_AT else v)
+    if extra_json is not None:
+        row[_EXTRA_AT] = extra_json
+    else:
+        try:
+            row[_EXTRA_AT] = json.dumps(row[_EXTRA_AT], default=_json_default)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"extra is not JSON serialisable: {exc}") from None
+    if row[_MACHINE_AT] is None:
+        row[_MACHINE_AT] = machine_id
     return tuple(row)
 
 
