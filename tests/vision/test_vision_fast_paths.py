@@ -214,3 +214,25 @@ def test_the_board_calibrator_searches_the_roll_every_few_pairs(monkeypatch):
     unsure = SelfCalibrator()
     unsure.note_roll(1.0, 0.1, min_confidence=0.3)  # not confident: not kept
     assert unsure.known_roll() is None
+
+
+def test_selfcal_transfer_tables_do_not_depend_on_which_spacing_came_first():
+    """Two spacings equal to 1e-9 mm share one cached table, computed at the rounded spacing:
+    the same table whichever of them a process met first (a pair's numbers never depend on
+    the pairs measured before it)."""
+    from vision.calibration import selfcal
+
+    dx1 = 0.08 * math.cos(math.radians(0.41))
+    dx2 = dx1 + 3e-12  # a roll estimate's last digits
+    assert round(dx1, 9) == round(dx2, 9) and dx1 != dx2
+    ells = (0.01, 0.03)
+    tables = []
+    for order in ((dx1, dx2), (dx2, dx1)):
+        selfcal._TRANSFERS.clear()
+        got = [selfcal._transfers(1266, dx, ells).copy() for dx in order]
+        np.testing.assert_array_equal(got[0], got[1])
+        tables.append(got[0])
+    np.testing.assert_array_equal(tables[0], tables[1])
+    direct = np.stack([selfcal._exp_transfer(1266, round(dx1, 9), e) for e in ells])
+    np.testing.assert_array_equal(tables[0], direct)
+    selfcal._TRANSFERS.clear()

@@ -132,13 +132,18 @@ _TRANSFERS: dict[tuple[int, float, tuple[float, ...]], np.ndarray] = {}
 
 
 def _transfers(n_fft: int, dx_mm: float, ells: tuple[float, ...]) -> np.ndarray:
-    """Exponential transfer functions for several lengths (cached: set up once per size)."""
-    key = (n_fft, round(dx_mm, 9), ells)
+    """Exponential transfer functions for several lengths (cached: set up once per size).
+
+    Computed at ``dx_mm`` rounded to 1e-9 mm, the cache's key, so a pair's tables never depend
+    on which pair came first (a roll's ``cos`` moves the spacing in its last digits).
+    """
+    dx_key = round(dx_mm, 9)
+    key = (n_fft, dx_key, ells)
     h = _TRANSFERS.get(key)
     if h is None:
         if len(_TRANSFERS) > 32:
             _TRANSFERS.clear()
-        h = _TRANSFERS[key] = np.stack([_exp_transfer(n_fft, dx_mm, e) for e in ells])
+        h = _TRANSFERS[key] = np.stack([_exp_transfer(n_fft, dx_key, e) for e in ells])
     return h
 
 
