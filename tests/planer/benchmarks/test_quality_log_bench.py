@@ -22,3 +22,25 @@ def test_every_record_reaches_the_log_and_the_figures_add_up(tmp_path):
     with QualityLog(tmp_path / "quality.sqlite", create=False) as log:
         assert [r.head for r in log.records()].count("top") == 12
     assert "records per CPU-second" in quality_log.text(out)
+
+
+def test_the_heads_are_the_moulders_and_a_given_folder_is_used_as_it_is(tmp_path, monkeypatch):
+    from config.loading import default_path
+    from config.machine import load_machine
+
+    names = tuple(h.name for h in load_machine(default_path("machine_moulder.toml")).heads)
+    assert quality_log.moulder_heads() == names
+    assert {r.head for r in quality_log.sample_records(8)} == set(names)
+
+    def no_temporary_folder(*args, **kw):
+        raise AssertionError("a temporary folder made although a folder was given")
+
+    monkeypatch.setattr(quality_log.tempfile, "TemporaryDirectory", no_temporary_folder)
+    for shared in (True, False):
+        folder = tmp_path / f"shared-{shared}"
+        folder.mkdir()
+        out = quality_log.run(records=16, rate_hz=1000.0, heads=("bottom", "top"),
+                              folder=folder, shared=shared)
+        assert out["all_logged"] and out["shared_writer"] is shared
+        assert out["records_per_transaction"] == 16 / out["db_transactions"]
+        assert (folder / "quality.sqlite").exists()
