@@ -4,6 +4,8 @@ The map of a pair is ~330 x 100 samples; as numpy chains, its steps were dozens 
 it each (masks, sums, a sort per column), which cost more than their arithmetic.  The loops
 here do each step in one call, with the arithmetic of the numpy code they replace:
 
+* :func:`remap_pair` -- both coarse images sampled on the map's grid at once, OpenCV's
+  remap's numbers (:class:`vision.defects.surface_map.SurfaceMapper`);
 * :func:`column_means_u16` -- the map's coarse source: whole blocks of columns of
   ``uint16`` row bins averaged, as ``float32`` (:class:`vision.defects.surface_map.SurfaceMapper`);
 * :func:`register_ratio` -- B registered onto A along the rows (linear), the samples both
@@ -42,9 +44,91 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 _JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
+
+
+@intrinsic
+def _fma32(typingctx, a, b, c):  # type: ignore[no-untyped-def]  # pragma: no cover
+    """``a * b + c`` rounded once (float32): LLVM's ``fma``, as OpenCV's remap computes it."""
+    sig = types.float32(types.float32, types.float32, types.float32)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        f = ir.FloatType()
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(f, [f, f, f]),
+                                            "llvm.fma.f32")
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+@njit(**_JIT)
+def remap_pair(a: np.ndarray, b: np.ndarray, off: np.ndarray, ax: np.ndarray, ay: np.ndarray,
+               x0: np.ndarray, y0: np.ndarray, inside: np.ndarray, out_a: np.ndarray,
+               out_b: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Both images of a pair sampled bilinearly at the same grid points, as ``cv2.remap`` does.
+
+    ``out[i, j]`` is ``a`` at ``(x0 + ax, y0 + ay)`` (column, row) by OpenCV's arithmetic for
+    ``float32`` images and maps (``INTER_LINEAR``, ``BORDER_REPLICATE``): the fraction
+    ``ax = x - floor(x)``, then ``v0 = fma(p01 - p00, ax, p00)``, ``v1 = fma(p11 - p10, ax,
+    p10)``, ``fma(v1 - v0, ay, v0)`` -- the same bits as OpenCV 5's remap.  The two images
+    share the taps (:class:`vision.defects.surface_map.SurfaceMapper`'s table per roll).
+
+    Parameters
+    ----------
+    a, b : ndarray of float32, shape (h, w), C-contiguous
+        The coarse sources.
+    off : ndarray of uint32, shape (rows, cols)
+        ``y0 * w + x0`` (read on the rows ``inside``).
+    ax, ay : ndarray of float32, shape (rows, cols)
+        The fractions.
+    x0, y0 : ndarray of int32, shape (rows, cols)
+        ``floor`` of the coordinates (read on the other rows, where taps are clamped to the
+        image: OpenCV's ``BORDER_REPLICATE``).
+    inside : ndarray of bool, shape (rows,)
+        Rows all of whose taps lie inside the image.
+    out_a, out_b : ndarray of float32, shape (rows, cols)
+        Out.
+    """
+    h, w = a.shape
+    af = a.reshape(a.size)
+    bf = b.reshape(b.size)
+    rows, cols = out_a.shape
+    one = np.uint64(1)
+    step = np.uint64(w)
+    for i in range(rows):
+        txr, tyr, ra, rb = ax[i], ay[i], out_a[i], out_b[i]
+        if inside[i]:  # no tap to clamp: unsigned offsets (the loop has no index checks)
+            orow = off[i]
+            for j in range(cols):
+                o = np.uint64(orow[j])
+                tx = txr[j]
+                ty = tyr[j]
+                p00, p01, p10, p11 = af[o], af[o + one], af[o + step], af[o + step + one]
+                v0 = _fma32(p01 - p00, tx, p00)
+                ra[j] = _fma32(_fma32(p11 - p10, tx, p10) - v0, ty, v0)
+                p00, p01, p10, p11 = bf[o], bf[o + one], bf[o + step], bf[o + step + one]
+                v0 = _fma32(p01 - p00, tx, p00)
+                rb[j] = _fma32(_fma32(p11 - p10, tx, p10) - v0, ty, v0)
+        else:
+            xr, yr = x0[i], y0[i]
+            for j in range(cols):
+                xa = min(max(xr[j], 0), w - 1)
+                xb = min(max(xr[j] + 1, 0), w - 1)
+                ya = min(max(yr[j], 0), h - 1)
+                yb = min(max(yr[j] + 1, 0), h - 1)
+                tx = txr[j]
+                ty = tyr[j]
+                p00, p01, p10, p11 = a[ya, xa], a[ya, xb], a[yb, xa], a[yb, xb]
+                v0 = _fma32(p01 - p00, tx, p00)
+                ra[j] = _fma32(_fma32(p11 - p10, tx, p10) - v0, ty, v0)
+                p00, p01, p10, p11 = b[ya, xa], b[ya, xb], b[yb, xa], b[yb, xb]
+                v0 = _fma32(p01 - p00, tx, p00)
+                rb[j] = _fma32(_fma32(p11 - p10, tx, p10) - v0, ty, v0)
 
 
 @njit(**_JIT)
@@ -867,6 +951,11 @@ def warm_up() -> None:
     for alb in (np.empty_like(a), np.empty((0, 0), np.float32)):
         register_ratio(a, a, valid, 1.5, 7.1, -7.1, out, alb, np.empty_like(valid))
     column_means_u16(np.ones((8, 12), dtype=np.uint16), 1, 3, 6, np.empty((2, 2), np.float32))
+    grid = np.zeros((2, 3), dtype=np.int32)
+    for inside in (np.ones(2, dtype=np.bool_), np.zeros(2, dtype=np.bool_)):
+        remap_pair(a, a, np.zeros((2, 3), dtype=np.uint32), np.zeros((2, 3), np.float32),
+                   np.zeros((2, 3), np.float32), grid, grid, inside,
+                   np.empty((2, 3), np.float32), np.empty((2, 3), np.float32))
     cells = np.empty((8, 4), dtype=np.float32)
     residual_map(a, valid, 0.07, 2, 2, 3, np.empty(12), out, cells,
                  np.empty((8, 4), dtype=np.bool_), np.empty(32, dtype=np.float32))

@@ -165,6 +165,37 @@ class SurfaceMap:
         return h - (h * self.valid).sum(axis=1, keepdims=True) / n
 
 
+@dataclass(frozen=True)
+class _Taps:
+    """Where each grid point samples the coarse source (:func:`kernels.remap_pair`'s table).
+
+    ``x0``, ``y0``: ``floor`` of the remap coordinates (int32); ``ax``, ``ay``: the fractions
+    (float32, exact); ``off``: ``y0 * width + x0`` (uint32; 0 on rows not ``inside``);
+    ``inside``: the rows whose four taps all lie inside the source.
+    """
+
+    off: np.ndarray
+    ax: np.ndarray
+    ay: np.ndarray
+    x0: np.ndarray
+    y0: np.ndarray
+    inside: np.ndarray
+
+    @classmethod
+    def of(cls, mx: np.ndarray, my: np.ndarray, width: int, height: int) -> _Taps:
+        """The taps of float32 remap coordinates ``mx``, ``my`` on a ``height x width`` source."""
+        fx, fy = np.floor(mx), np.floor(my)
+        ax, ay = mx - fx, my - fy  # exact in float32: OpenCV's fractions
+        with np.errstate(invalid="ignore"):
+            x0 = np.clip(fx, -2, width + 1).astype(np.int32)
+            y0 = np.clip(fy, -2, height + 1).astype(np.int32)
+        ok = (x0 >= 0) & (x0 + 1 <= width - 1) & (y0 >= 0) & (y0 + 1 <= height - 1)
+        inside = ok.all(axis=1)
+        off = np.where(inside[:, None], y0.astype(np.int64) * width + x0, 0).astype(np.uint32)
+        return cls(off, np.ascontiguousarray(ax, dtype=np.float32),
+                   np.ascontiguousarray(ay, dtype=np.float32), x0, y0, inside)
+
+
 class SurfaceMapper:
     """Builds :class:`SurfaceMap` of one camera, lights and image shape (tables set up once).
 
@@ -238,8 +269,7 @@ class SurfaceMapper:
         if self._ka == self._kb:
             raise ValueError("the lights must stand on opposite sides along the feed")
         self._cache_size = check_int("cache", cache, lo=1)
-        self._tables: OrderedDict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = (
-            OrderedDict())
+        self._tables: OrderedDict[float, tuple[_Taps, np.ndarray]] = OrderedDict()
         kernels.warm_up()  # compiled (or loaded from the cache) here, never on a frame
 
     @property
@@ -252,8 +282,8 @@ class SurfaceMapper:
         """Undistorted row of map row 0."""
         return self.first_row_px + (self.merge_rows - 1) / 2.0 * self.bin_rows
 
-    def _table(self, roll_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Remap table (x, y in coarse source cells) and validity of the grid turned by roll."""
+    def _table(self, roll_deg: float) -> tuple[_Taps, np.ndarray]:
+        """Remap taps (x, y in coarse source cells) and validity of the grid turned by roll."""
         key = round(roll_deg / _ROLL_KEY_DEG) * _ROLL_KEY_DEG
         hit = self._tables.get(key)
         if hit is not None:
@@ -288,8 +318,9 @@ class SurfaceMapper:
                  - (self.merge_rows - 1) / 2) / self.merge_rows
         valid = ((src_x >= 0) & (src_x <= self._w_red - 1) & (src_y >= 0)
                  & (src_y <= self._n_red - 1))
-        hit = (np.ascontiguousarray(src_x, dtype=np.float32),
-               np.ascontiguousarray(src_y, dtype=np.float32), valid)
+        hit = (_Taps.of(np.ascontiguousarray(src_x, dtype=np.float32),
+                        np.ascontiguousarray(src_y, dtype=np.float32),
+                        self._w_red, self._n_red), valid)
         self._tables[key] = hit
         if len(self._tables) > self._cache_size:
             self._tables.popitem(last=False)
@@ -349,11 +380,13 @@ class SurfaceMapper:
             if np.shape(r) != (self.n_src, self.width):
                 raise ValueError(f"{name} must have shape {(self.n_src, self.width)}, "
                                  f"got {np.shape(r)}")
-        mx, my, valid = self._table(roll)
-        a = cv2.remap(self._coarse(rows_a), mx, my, cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_REPLICATE)
-        b = cv2.remap(self._coarse(rows_b), mx, my, cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_REPLICATE)
+        taps, valid = self._table(roll)
+        # both images at once, cv2.remap's numbers (INTER_LINEAR, BORDER_REPLICATE)
+        a = np.empty(valid.shape, dtype=np.float32)
+        b = np.empty_like(a)
+        kernels.remap_pair(np.ascontiguousarray(self._coarse(rows_a)),
+                           np.ascontiguousarray(self._coarse(rows_b)), taps.off, taps.ax,
+                           taps.ay, taps.x0, taps.y0, taps.inside, a, b)
         slope = np.empty_like(a)
         alb = np.empty_like(a) if albedo else np.empty((0, 0), dtype=np.float32)
         both = np.empty(a.shape, dtype=bool)

@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 from numba import njit
 
+from config.rig import Camera, Lights
 from vision.defects import kernels
+from vision.defects.surface_map import SurfaceMapper, _Taps
 
 
 @njit(cache=False)
@@ -232,3 +234,51 @@ def test_clipped_pairs_power_is_its_earlier_form(n_rows):
             s += float(x * x)
         assert r2[k] == s
     assert not out[:, 101:].any()
+
+
+@pytest.mark.parametrize("where", ["inside", "edges", "anywhere"])
+def test_remap_pair_is_opencvs_remap(where):
+    """Both images sampled at once with the table's taps: cv2.remap's numbers (the map's
+    earlier form), bit for bit, on the source's edges and beyond (BORDER_REPLICATE) too."""
+    rng = np.random.default_rng(len(where))
+    for _ in range(60):
+        h, w = int(rng.integers(2, 40)), int(rng.integers(2, 60))
+        shape = (int(rng.integers(1, 30)), int(rng.integers(1, 50)))
+        a, b = ((1000 * rng.random((h, w))).astype(np.float32) for _ in range(2))
+        if where == "inside":
+            mx, my = rng.uniform(0, w - 1, shape), rng.uniform(0, h - 1, shape)
+        elif where == "edges":
+            mx = rng.choice([0.0, w - 1.0, -0.5, w - 0.5, w + 3.0, -4.2, 1.25], shape)
+            my = rng.choice([0.0, h - 1.0, -0.5, h - 0.5, 0.75], shape)
+        else:
+            mx, my = rng.uniform(-3, w + 2, shape), rng.uniform(-3, h + 2, shape)
+        mx, my = mx.astype(np.float32), my.astype(np.float32)
+        t = _Taps.of(mx, my, w, h)
+        got_a, got_b = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        kernels.remap_pair(a, b, t.off, t.ax, t.ay, t.x0, t.y0, t.inside, got_a, got_b)
+        for img, got in ((a, got_a), (b, got_b)):
+            ref = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            assert np.array_equal(got, ref)
+
+
+def test_the_mapper_is_its_earlier_form():
+    """A distorted, rolled camera's map: the slope and validity as with cv2.remap of the
+    coarse images through the float tables (the taps' x0 + ax is the table's float32)."""
+    cam = Camera(fx=1400.0, fy=1400.0, cx=329.0, cy=120.0, dist=(-0.12, 0.0, 0.0, 0.0, 0.0),
+                 px_per_mm=12.5, exposure_ms=0.05)
+    rng = np.random.default_rng(11)
+    rows_a = (1000 + 200 * rng.random((48, 659))).astype(np.uint16)
+    rows_b = (1000 + 200 * rng.random((48, 659))).astype(np.uint16)
+    mapper = SurfaceMapper(cam, Lights(slant_deg=82.0), (240, 659), bin_rows=5, bin_cols=2)
+    for roll in (0.0, 0.7, -2.3):
+        got = mapper(rows_a, rows_b, shift_px=14.6, roll_deg=roll, albedo=False)
+        taps, valid = mapper._table(roll)
+        mx = (taps.x0 + taps.ax).astype(np.float32)
+        my = (taps.y0 + taps.ay).astype(np.float32)
+        assert not taps.inside.all() or roll == 0.0  # the rolled grids leave the source
+        a, b = (cv2.remap(mapper._coarse(r), mx, my, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE) for r in (rows_a, rows_b))
+        slope, both = np.empty_like(a), np.empty(a.shape, bool)
+        kernels.register_ratio(a, b, valid, 14.6 / 2, mapper._ka, mapper._kb, slope,
+                               np.empty((0, 0), np.float32), both)
+        assert np.array_equal(got.valid, both) and np.array_equal(got.slope_along_feed, slope)
