@@ -814,9 +814,11 @@ class DefectFinder:
         step = pitch_mm * res.smap.px_per_mm
         alts = [a for a in (shift_px - step, shift_px + step)
                 if abs(a - encoder_shift_px) < abs(shift_px - encoder_shift_px)]
+        if not alts:  # registered nearer the encoder than a pitch off either way
+            return res
         n_valid = int(np.count_nonzero(res.valid_cells))
         n_marked = int(np.count_nonzero(res.marked))
-        if not alts or n_valid == 0 or n_marked < s.slip_marked * n_valid:
+        if n_valid == 0 or n_marked < s.slip_marked * n_valid:
             return res
         best = res
         for alt in alts:
