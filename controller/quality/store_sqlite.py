@@ -32,6 +32,8 @@ __all__ = ["SqliteStore"]
 #: Created on first use, so logs written before it need no migration.
 _UIDS_TABLE = ("CREATE TABLE IF NOT EXISTS record_uids "
                "(uid TEXT PRIMARY KEY, record_id INTEGER NOT NULL)")
+_UIDS_PER_QUERY = 500
+"""Most uids one ``IN (...)`` query looks up (well below SQLite's 999 parameters)."""
 
 #: Column renames of version 1 -> 2 (the CSV header's names).
 _RENAMES_V2 = (("id", "record_id"), ("wall_time", "wall_time_utc"), ("extra", "extra_json"))
@@ -222,26 +224,15 @@ class SqliteStore:
 
         All or nothing: on any error none of them is stored.
         """
+        if len(rows) != len(uids):
+            raise ValueError(f"uids must be one per row: {len(uids)} for {len(rows)}")
         conn = self._connection()
         cols = column_names(self.schema_version)[1]
         sql = f"INSERT INTO records ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})"
-        ids: list[int] = []
         try:
             conn.execute("BEGIN IMMEDIATE")
             try:
-                if any(u is not None for u in uids):
-                    conn.execute(_UIDS_TABLE)
-                for row, uid in zip(rows, uids, strict=True):
-                    known = None if uid is None else conn.execute(
-                        "SELECT record_id FROM record_uids WHERE uid = ?", (uid,)).fetchone()
-                    if known is not None:
-                        ids.append(int(known[0]))
-                        continue
-                    rid = int(conn.execute(sql, tuple(row)[:len(cols)]).lastrowid)
-                    if uid is not None:
-                        conn.execute("INSERT INTO record_uids (uid, record_id) VALUES (?, ?)",
-                                     (uid, rid))
-                    ids.append(rid)
+                ids = self._insert_rows(conn, sql, len(cols), rows, uids)
                 conn.execute("COMMIT")
             except BaseException:
                 if conn.in_transaction:
@@ -251,6 +242,71 @@ class SqliteStore:
             raise RecordRefusedError("record", f"record refused by the log: {exc}") from None
         except sqlite3.Error as exc:
             raise _write_error(f"cannot append to quality log {self.path}", exc) from None
+        return ids
+
+    @staticmethod
+    def _insert_rows(conn: sqlite3.Connection, sql: str, width: int,
+                     rows: Sequence[Sequence[Any]], uids: Sequence[str | None]) -> list[int]:
+        """Insert inside the open transaction: the new rows with one ``executemany``.
+
+        A uid the log (or an earlier row of the batch) holds gives that record's id and adds
+        no row. The new rows' ids are consecutive (the write lock is held; ``AUTOINCREMENT``);
+        were they not, the batch is inserted row by row instead (:meth:`_insert_each`).
+        """
+        if any(u is not None for u in uids):
+            conn.execute(_UIDS_TABLE)
+        known: dict[str, int] = {}
+        wanted = list(dict.fromkeys(u for u in uids if u is not None))
+        for i in range(0, len(wanted), _UIDS_PER_QUERY):
+            part = wanted[i:i + _UIDS_PER_QUERY]
+            known.update(conn.execute(
+                f"SELECT uid, record_id FROM record_uids WHERE uid IN "
+                f"({', '.join('?' * len(part))})", part).fetchall())
+        new: list[tuple[Any, ...]] = []
+        where: list[int | str] = []  # per row: its index in ``new``, or a known uid
+        first_of: dict[str, int] = {}  # uid -> index in ``new`` of its row in this batch
+        for row, uid in zip(rows, uids, strict=True):
+            if uid is not None and (uid in known or uid in first_of):
+                where.append(uid)
+                continue
+            if uid is not None:
+                first_of[uid] = len(new)
+            where.append(len(new))
+            new.append(tuple(row)[:width])
+        if not new:
+            return [int(known[u]) for u in where]  # type: ignore[index]
+        conn.execute("SAVEPOINT batch")
+        before = conn.execute("SELECT COALESCE(MAX(rowid), 0) FROM records").fetchone()[0]
+        conn.executemany(sql, new)
+        last = conn.execute("SELECT last_insert_rowid()").fetchone()[0]
+        if last != before + len(new):  # ids not consecutive: one by one, as they come
+            conn.execute("ROLLBACK TO batch")
+            conn.execute("RELEASE batch")
+            return SqliteStore._insert_each(conn, sql, width, rows, uids)
+        conn.execute("RELEASE batch")
+        new_uids = [(u, before + 1 + k) for u, k in first_of.items()]
+        if new_uids:
+            conn.executemany("INSERT INTO record_uids (uid, record_id) VALUES (?, ?)", new_uids)
+        ids_of = {u: rid for u, rid in new_uids}
+        return [int(before + 1 + w) if isinstance(w, int) else int(known.get(w, ids_of.get(w, 0)))
+                for w in where]
+
+    @staticmethod
+    def _insert_each(conn: sqlite3.Connection, sql: str, width: int,
+                     rows: Sequence[Sequence[Any]], uids: Sequence[str | None]) -> list[int]:
+        """Insert inside the open transaction, row by row (a uid the log holds: its id)."""
+        ids: list[int] = []
+        for row, uid in zip(rows, uids, strict=True):
+            found = None if uid is None else conn.execute(
+                "SELECT record_id FROM record_uids WHERE uid = ?", (uid,)).fetchone()
+            if found is not None:
+                ids.append(int(found[0]))
+                continue
+            rid = int(conn.execute(sql, tuple(row)[:width]).lastrowid)
+            if uid is not None:
+                conn.execute("INSERT INTO record_uids (uid, record_id) VALUES (?, ?)",
+                             (uid, rid))
+            ids.append(rid)
         return ids
 
     def set_write_timeout(self, timeout_s: float) -> None:
