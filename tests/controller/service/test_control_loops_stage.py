@@ -169,4 +169,3 @@ def test_a_head_that_owns_no_feed_applies_without_a_turn_of_the_loop():
 
     assert asyncio.run(run(False)) == (True, False, 0, 1)
     assert asyncio.run(run(True)) == (True, True, 1, 1)
-

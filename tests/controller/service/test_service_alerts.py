@@ -181,4 +181,3 @@ def test_the_runout_a_pair_shows_is_the_array_formula_bit_for_bit(knives):
         want = s - s.mean()
         got = mon._runout(widths.tolist(), pitch, o_cut.tolist())
         assert [v.hex() for v in got] == [float(v).hex() for v in want]
-
