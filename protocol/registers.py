@@ -681,30 +681,8 @@ class RegisterMap:
             Register name to value, in address order.
         """
         s = self._span[0] if start is None else int(start)
-        key = (s, len(words))
-        plan = self._plans.get(key, _NO_PLAN)
-        if plan is _NO_PLAN:
-            plan = _decode_plan(self, s, len(words))
-            if len(self._plans) < _MAX_PLANS:  # the reads a client makes, not every fuzzed one
-                self._plans[key] = plan
-        if plan is not None:
-            try:
-                raw = plan.words.pack(*words)
-            except struct.error:
-                pass  # a word outside 0..65535 (or not an integer): the checks below name it
-            else:
-                return dict(zip(plan.names, plan.values.unpack(raw), strict=True))
-        return self._decode_each(words, s)
-
-    def _decode_each(self, words: Sequence[int], s: int) -> dict[str, float | int]:
-        """:meth:`decode_block` register by register (:meth:`decode`'s checks)."""
-        end = s + len(words)
-        out: dict[str, float | int] = {}
-        for reg in self:
-            if reg.address >= s and reg.last_address < end:
-                i = reg.address - s
-                out[reg.name] = self.decode(reg.name, words[i : i + reg.count])
-        return out
+        out = _decode_planned(self, words, s)
+        return _decode_each(self, words, s) if out is None else out
 
     # ------------------------------------------------------------------ limits and writes
     def limits(self, name: str, values: Mapping[str, float | int]) -> tuple[float, float]:
@@ -935,6 +913,39 @@ _NO_PLAN = object()
 _MAX_PLANS = 64
 """Decode plans a map keeps (one per ``(start, words)`` read)."""
 _VALUE_CODES = {"u16": "H", "u32": "I", "i32": "i", "f32": "f"}
+
+
+def _decode_planned(rmap: RegisterMap, words: Sequence[int],
+                    start: int) -> dict[str, float | int] | None:
+    """:meth:`RegisterMap.decode_block` in one struct unpacking (its plan kept on the map).
+
+    ``None`` when there is no plan (word order little) or the words do not pack (a word outside
+    0..65535 or not an integer: :func:`_decode_each`'s checks then name it).
+    """
+    key = (start, len(words))
+    plan = rmap._plans.get(key, _NO_PLAN)
+    if plan is _NO_PLAN:
+        plan = _decode_plan(rmap, start, len(words))
+        if len(rmap._plans) < _MAX_PLANS:  # the reads a client makes, not every fuzzed one
+            rmap._plans[key] = plan
+    if plan is None:
+        return None
+    try:
+        raw = plan.words.pack(*words)
+    except struct.error:
+        return None
+    return dict(zip(plan.names, plan.values.unpack(raw), strict=True))
+
+
+def _decode_each(rmap: RegisterMap, words: Sequence[int], s: int) -> dict[str, float | int]:
+    """:meth:`RegisterMap.decode_block` register by register (with its decode's checks)."""
+    end = s + len(words)
+    out: dict[str, float | int] = {}
+    for reg in rmap:
+        if reg.address >= s and reg.last_address < end:
+            i = reg.address - s
+            out[reg.name] = rmap.decode(reg.name, words[i : i + reg.count])
+    return out
 
 
 def _decode_plan(rmap: RegisterMap, start: int, count: int) -> _DecodePlan | None:

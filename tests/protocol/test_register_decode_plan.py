@@ -1,6 +1,7 @@
 """RegisterMap.decode_block's one struct unpacking is pinned to the register-by-register decode
-it replaces (RegisterMap._decode_each): the same names in the same order, the same values of the
-same types, bit for bit, for any words and any block; words it cannot pack fall back to it."""
+it replaces (protocol.registers._decode_each): the same names in the same order, the same values
+of the same types, bit for bit, for any words and any block; words it cannot pack fall back to
+it."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from config.loading import default_path, load_toml
-from protocol.registers import RegisterMap
+from protocol.registers import RegisterMap, _decode_each
 
 RMAP = RegisterMap.load()
 _DOC = load_toml(default_path("registers.toml"))
@@ -43,8 +44,8 @@ def _same(a: dict, b: dict) -> bool:
 )
 def test_decode_block_is_the_register_by_register_decode(which, start, words):
     rmap = MAPS[which]
-    assert _same(rmap.decode_block(words, start), rmap._decode_each(words, start))
-    assert _same(rmap.decode_block(tuple(words), start), rmap._decode_each(words, start))
+    assert _same(rmap.decode_block(words, start), _decode_each(rmap, words, start))
+    assert _same(rmap.decode_block(tuple(words), start), _decode_each(rmap, words, start))
 
 
 @given(f=st.floats(width=32, allow_nan=False, allow_infinity=False),
@@ -53,9 +54,9 @@ def test_float32_and_counters_round_trip_through_the_plan(f, u, nan_low):
     words = RMAP.encode_block({"feed_setpoint_mm_s": f, "encoder_counts": u})
     got = RMAP.decode_block(words)
     assert got["feed_setpoint_mm_s"] == f and got["encoder_counts"] == u
-    assert _same(got, RMAP._decode_each(words, 0))
+    assert _same(got, _decode_each(RMAP, words, 0))
     words[2:4] = [0x7F80, nan_low]  # a NaN with a payload (a PLC answering nonsense)
-    assert _same(RMAP.decode_block(words), RMAP._decode_each(words, 0))
+    assert _same(RMAP.decode_block(words), _decode_each(RMAP, words, 0))
 
 
 @pytest.mark.parametrize("bad", [[70000], [-1], [1.5]])
