@@ -542,7 +542,7 @@ def check_storable(record: QualityRecord, *, extra_json: str | None = None) -> s
     if extra_json is not None:
         return extra_json
     try:
-        return json.dumps(record.extra, default=_json_default)
+        return _EXTRA_ENCODER.encode(record.extra)  # json.dumps(extra, default=_json_default)
     except (TypeError, ValueError, RecursionError) as exc:
         raise RecordRefusedError("extra", f"extra is not JSON serialisable: {exc}") from None
 
@@ -912,6 +912,12 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
+_EXTRA_ENCODER = json.JSONEncoder(default=_json_default)
+"""``json.dumps(extra, default=_json_default)``'s encoder, made once (no state per call)."""
+_LINE_ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
+"""``json.dumps(fields, allow_nan=False, separators=(",", ":"))``'s encoder, made once."""
+
+
 def _list_from_json(text: str) -> tuple[float, ...]:
     return tuple(math.nan if v is None else float(v) for v in json.loads(text))
 
@@ -973,7 +979,7 @@ def record_json(record: QualityRecord, *, extra_json: str | None = None) -> str:
     ValueError, TypeError
         A field that is not JSON (the caller records why instead).
     """
-    body = json.dumps(_plain_fields(record), allow_nan=False, separators=(",", ":"))
+    body = _LINE_ENCODER.encode(_plain_fields(record))
     if extra_json is None or "NaN" in extra_json or "Infinity" in extra_json:
         extra_json = json.dumps(_finite_json(record.extra), allow_nan=False,
                                 separators=(",", ":"))

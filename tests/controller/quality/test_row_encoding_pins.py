@@ -20,6 +20,7 @@ from controller.quality.schema import (
     _FIELD_NAMES,
     _JSON_FIELDS,
     _TUPLES,
+    _finite_json,
     _json_default,
     _plain_fields,
     _to_row,
@@ -120,6 +121,25 @@ def test_the_row_is_the_field_by_field_row(seed):
             assert _to_row(rec, extra_json=text, machine_id=mid) == _old_to_row(
                 rec, extra_json=text, machine_id=mid)
             assert _to_row(rec, machine_id=mid) == _old_to_row(rec, machine_id=mid)
+
+
+def _old_record_json(record: QualityRecord, *, extra_json: str | None = None) -> str:
+    body = json.dumps(_old_plain_fields(record), allow_nan=False, separators=(",", ":"))
+    if extra_json is None or "NaN" in extra_json or "Infinity" in extra_json:
+        extra_json = json.dumps(_finite_json(record.extra), allow_nan=False,
+                                separators=(",", ":"))
+    return f'{body[:-1]},"extra":{extra_json}}}'
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_journal_line_and_extras_text_are_json_dumps(seed):
+    rng = np.random.default_rng(200 + seed)
+    for i in range(150):
+        rec = _random_record(rng, i)
+        text = check_storable(rec)
+        assert text == json.dumps(rec.extra, default=_json_default)
+        assert record_json(rec) == _old_record_json(rec)
+        assert record_json(rec, extra_json=text) == _old_record_json(rec, extra_json=text)
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -176,7 +176,14 @@ def test_a_record_is_encoded_once_for_the_journal_and_the_log(tmp_path, monkeypa
             encoded.append(obj)
         return dumps(obj, *a, **kw)
 
+    class CountingEncoder(json.JSONEncoder):
+        def encode(self, obj):
+            if obj is rec.extra:
+                encoded.append(obj)
+            return super().encode(obj)
+
     monkeypatch.setattr(schema.json, "dumps", counting)
+    monkeypatch.setattr(schema, "_EXTRA_ENCODER", CountingEncoder(default=schema._json_default))
     monkeypatch.setattr(write_ahead, "COMPACT_IDLE_S", HOUR_S)  # the journal read below
     with QualityLog(tmp_path / "q.db", machine_id="m1") as log:
         sink = WriteAheadSink(log, journal_path=tmp_path / "j.jsonl")
