@@ -11,9 +11,10 @@ per event loop, shared by the pair pipelines on it (a moulder's heads):
   its setpoints* (its measurement back, the pairs before it through their setpoints); else it
   waits, in the order the pairs reached their setpoints (so each head's records keep their
   order), until none is ready;
-* one at a time, each released on a timer of the loop due at once: the loop takes what the
-  workers' pipes brought first (a reply read then makes its pair ready, and the bookkeeping
-  waits for its setpoints);
+* released on a timer of the loop due at once: the loop takes what the workers' pipes brought
+  first (a reply read then makes its pair ready, and the bookkeeping waits for its setpoints);
+  all that is queued at once (they run one after the other, in order, in the loop's next
+  round), the next release once they are all done;
 * bounded: with :data:`MAX_WAITING` pairs' bookkeeping queued the oldest runs whatever is
   ready (a loop that is never idle still writes its records; the pipeline's own limit of pairs
   in flight then holds the camera back as before);
@@ -70,7 +71,7 @@ class AfterSetpoint:
         self.max_waiting = max_waiting
         self._members: weakref.WeakSet[ReadyForSetpoints] = weakref.WeakSet()
         self._waiting: deque[asyncio.Future] = deque()
-        self._running = False
+        self._running = 0  # released (or run at once) and not done
         self._check_handle: asyncio.TimerHandle | None = None
         self._gc_wanted = False
         self.deferred = 0
@@ -104,7 +105,7 @@ class AfterSetpoint:
         The caller runs its bookkeeping and then calls :meth:`done`, also when it failed.
         """
         if not self._running and not self._waiting and not self.ready():
-            self._running = True
+            self._running = 1
             return
         self.deferred += 1
         fut = self._loop.create_future()
@@ -124,8 +125,8 @@ class AfterSetpoint:
 
     def done(self) -> None:
         """The bookkeeping that had its :meth:`turn` is over: the next may go."""
-        self._running = False
-        if self._waiting or self._gc_wanted:
+        self._running = max(0, self._running - 1)
+        if not self._running and (self._waiting or self._gc_wanted):
             self._check_soon()
 
     def setpoint_done(self) -> None:
@@ -160,10 +161,16 @@ class AfterSetpoint:
         if waiting:
             if ready and len(waiting) < self.max_waiting:
                 return  # setpoint_done() checks again
-            if ready:
+            if ready:  # the oldest only
                 self.forced += 1
-            self._running = True
-            waiting.popleft().set_result(None)
+                self._running = 1
+                waiting.popleft().set_result(None)
+                return
+            while waiting:  # all queued, in order (the loop's next round runs them in turn)
+                fut = waiting.popleft()
+                if not fut.done():
+                    self._running += 1
+                    fut.set_result(None)
             return
         if self._gc_wanted and not ready:
             self._gc_wanted = False

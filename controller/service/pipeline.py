@@ -370,7 +370,11 @@ class PairPipeline:
         return result, meas
 
     async def _book(self, pair: _Pair, result: FrameResult, meas: Any) -> FrameResult:
-        """Stage 6: the record (its profile, every tenth pair's: up to 0.5 ms), the count."""
+        """Stage 6: the record (its profile, every tenth pair's: up to 0.5 ms), the count.
+
+        Nothing here waits before the record is queued (only after, for the journal's room):
+        bookkeeping released together queues its records in the order it was released.
+        """
         frame = pair.frame
         if result.ok:
             profile = self.records.profile_of(meas, frame)
