@@ -121,7 +121,7 @@ class PairPipeline:
         self.keep_results = False
         self.results: list[FrameResult] = []
         self.on_result: Callable[[FrameResult], None] | None = None
-        self._last: _Pair | None = None  # the last submitted pair (real time)
+        self._tail: asyncio.Future | None = None  # the last submitted pair's `passed`
         self._before_setpoints: deque[_Pair] = deque()  # submitted, not through setpoints
         self._in_flight: set[asyncio.Task] = set()
         self._after: AfterSetpoint | None = None  # the running loop's bookkeeping queue
@@ -198,7 +198,7 @@ class PairPipeline:
             self._after = after_setpoint_queue(loop)
             self._after.register(self)
         pair.passed = loop.create_future()
-        previous, self._last = self._last, pair
+        previous, self._tail = self._tail, pair.passed
         self._before_setpoints.append(pair)
         task = asyncio.ensure_future(self._finish_after(previous, pair))
         self._in_flight.add(task)
@@ -206,10 +206,13 @@ class PairPipeline:
         while len(self._in_flight) >= max(1, pool.capacity):
             await asyncio.wait(set(self._in_flight), return_when=asyncio.FIRST_COMPLETED)
 
-    async def _finish_after(self, previous: _Pair | None, pair: _Pair) -> None:
-        """Real time: stages 3-5 after the pair before, then the bookkeeping in its turn."""
-        if previous is not None and previous.passed is not None and not previous.passed.done():
-            await asyncio.wait({previous.passed})  # the pairs before through their setpoints
+    async def _finish_after(self, previous: asyncio.Future | None, pair: _Pair) -> None:
+        """Real time: stages 3-5, then the bookkeeping in its turn.
+
+        ``previous``: the ``passed`` of the pair submitted before (stages 3-5 wait for it).
+        """
+        if previous is not None and not previous.done():
+            await asyncio.wait({previous})  # the pairs before through their setpoints
         what = f"pair {pair.frame.seq}"
         out = None
         idle = False
