@@ -232,6 +232,19 @@ class ActuatorIdentifier:
         self._gains = gains
         self._matrix = None  # built again when asked for
         self.version += 1
+        self._changed()
+
+    def _changed(self) -> None:
+        """The fit's sums, counts or estimate changed: the judgements made of them are stale.
+
+        Every change of what :meth:`mode_states` and :meth:`amplitude_dependent` read (the
+        sums, ``_n``, ``_still``, ``_raw``, the prior) comes through here (:meth:`add`,
+        :meth:`_forget_mode`, :meth:`_set_gains` after each fit, reset or start): both are then
+        computed again when next asked, and kept while nothing changes (a pair whose table
+        did not move, most of a run once learnt).
+        """
+        self._states: tuple[str, ...] | None = None
+        self._amp_dependent: bool | None = None
 
     def add(self, offsets_um: Sequence[float], equivalent_um: Sequence[float]) -> None:
         """Take one complete measurement.
@@ -270,11 +283,13 @@ class ActuatorIdentifier:
                 ratio = dy / do
                 if abs(ratio) < 0.25 * self.gain_min and abs(do) >= 4.0 * self.min_step_um:
                     self._still[m] += 1  # a large move that moved nothing
+                    self._changed()
                     continue
                 if (not 0.25 * self.gain_min <= abs(ratio) <= 1.5 * self.gain_max
                         or abs(cmath.phase(ratio)) > self.gate_phase):
                     continue
                 self._still[m] = 0
+                self._changed()  # (an accepted difference or an outlier: the sums may move)
                 if not self._consistent(m, do, dy, amp):
                     self._rejected[m] += 1
                     if self._rejected[m] >= self.reject_reset:  # the actuator changed: relearn
@@ -360,6 +375,7 @@ class ActuatorIdentifier:
 
     def _forget_mode(self, m: int) -> None:
         """Forget what mode ``m`` (and its conjugate) learnt: back to the prior."""
+        self._changed()
         for k in {m, (self.knives - m) % self.knives}:
             self._soo[k], self._soy[k], self._syy[k], self._n[k] = 0.0, 0j, 0.0, 0.0
             self._sao[k], self._saao[k], self._saoy[k] = 0.0, 0.0, 0j
@@ -450,8 +466,14 @@ class ActuatorIdentifier:
         return (slope if keep else 0j), centre
 
     def amplitude_dependent(self) -> bool:
-        """Whether some mode's gain depends on its amplitude (:meth:`amplitude_slope`)."""
-        return any(self.amplitude_slope(m)[0] != 0 for m in range(1, self.knives // 2 + 1))
+        """Whether some mode's gain depends on its amplitude (:meth:`amplitude_slope`).
+
+        Computed once per change of the fit (:meth:`_changed`).
+        """
+        if self._amp_dependent is None:
+            self._amp_dependent = any(self.amplitude_slope(m)[0] != 0
+                                      for m in range(1, self.knives // 2 + 1))
+        return self._amp_dependent
 
     def mode_amplitudes(self, table_um: Sequence[float]) -> np.ndarray:
         """``|O_m|`` of a table per mode (the amplitude :meth:`gains_at` takes), um, shape (Z,)."""
@@ -539,7 +561,16 @@ class ActuatorIdentifier:
         return conf
 
     def mode_states(self) -> tuple[str, ...]:
-        """Each mode's state (:data:`MODE_STATES`); mode 0 is always ``usable``."""
+        """Each mode's state (:data:`MODE_STATES`); mode 0 is always ``usable``.
+
+        Computed once per change of the fit (:meth:`_changed`).
+        """
+        if self._states is None:
+            self._states = self._mode_states_now()
+        return self._states
+
+    def _mode_states_now(self) -> tuple[str, ...]:
+        """:meth:`mode_states` computed from the fit as it is."""
         # per mode in plain floats: gain_stderr's and confidence's values, bit for bit
         raw = self._raw.tolist()
         out = ["usable"]

@@ -337,3 +337,44 @@ def test_mode_states_agree_with_the_stderr_and_confidence_arrays():
             assert states == _states_by_arrays(ident), case
             seen.update(states)
     assert {"usable", "no_authority", "unknown"} <= seen
+
+
+def test_the_judgements_kept_between_changes_are_those_computed_afresh():
+    """``mode_states`` and ``amplitude_dependent`` are kept while the fit does not change:
+    along runs that hold the table (kept), move it, meet outliers and runout steps, push a
+    pattern the actuator barely moves (moves that move nothing, then one that does), and
+    move a hysteretic actuator by small and large cycles, both equal what the fit gives
+    afresh after every pair (and they were kept for most of the held pairs)."""
+    rng = np.random.default_rng(11)
+    kept = 0
+    for case in range(45):
+        kind = case % 3
+        z = 4 if kind == 2 else int(rng.integers(2, 8))
+        if kind == 2:  # the alternating pattern barely moves (a 60 Hz piezo)
+            a = _modal_actuator(0.42 * np.exp(-2.2j), 0.01)
+        else:
+            col = rng.normal(0.0, 1.0, z) * rng.choice([0.05, 0.5, 1.0])
+            col[0] += rng.choice([0.3, 1.0])
+            a = circulant(col)
+        ident = ActuatorIdentifier(z, gain_min=0.1, min_samples=3, unidentifiable_samples=6)
+        runout = rng.normal(0.0, 3.0, z)
+        o = np.zeros(z)
+        for k in range(80):
+            phase = (k // 10) % 3
+            if phase == 1 and kind == 2:  # push the alternating pattern, now and then moved
+                o = np.array([1.0, -1.0, 1.0, -1.0]) * 0.5 * k
+                if k >= 40 and rng.random() < 0.3:  # (the first push: no authority found)
+                    a = _modal_actuator(0.42 * np.exp(-2.2j), 0.5)
+            elif phase == 1:  # a move: large or small cycles (a hysteretic stack scales them)
+                o = o + rng.normal(0.0, rng.choice([0.3, 3.0]), z)
+            if rng.random() < 0.05:
+                runout = runout + rng.normal(0.0, 2.0, z)  # a knife stepped
+            scale = 1.0 if kind == 2 or np.abs(o).max() > 2.0 else 0.4  # gain grows with size
+            y = scale * a @ o - runout
+            before = ident._states is not None
+            ident.add(o, y - y.mean() + 0.02 * rng.standard_normal(z))
+            kept += before and ident._states is not None
+            assert ident.mode_states() == ident._mode_states_now(), (case, k)
+            assert ident.amplitude_dependent() == any(
+                ident.amplitude_slope(m)[0] != 0 for m in range(1, z // 2 + 1)), (case, k)
+    assert kept > 500
