@@ -171,16 +171,17 @@ async def _pump_plant(amp: Any, plc_pump: Any, stop: asyncio.Event, spent: list[
                       plc_period_s: float) -> None:
     """Step the simulated amplifiers and PLC until ``stop``.
 
-    The amplifiers every :data:`AMP_PUMP_S` (their status period: each node's TPDO1 leaves on
-    its 10 ms, its heartbeat on its 100 ms, what the master sent is taken within 10 ms); the
-    PLC (its writes applied, its registers published) every ``plc_period_s``, the service's
-    PLC cycle: the moulder is not stepped while the pairs go in, so its registers change only
-    by the service's writes, which the PLC serves from the moment it takes them. The CPU time
+    The amplifiers every :data:`AMP_PUMP_S` on a fixed schedule (their status period: each
+    node's TPDO1 leaves on its 10 ms, its heartbeat on its 100 ms, what the master sent is taken
+    within 10 ms); the PLC (its writes applied, its registers published) every
+    ``plc_period_s``, the service's PLC cycle: the moulder is not stepped while the pairs go
+    in, so its registers change only by the service's writes, which the PLC serves from the
+    moment it takes them. The CPU time
     it takes in this process (the stand-ins for the amplifiers and the PLC's register image,
     not the service) is added to ``spent[0]``, s.
     """
     t0 = time.monotonic()
-    next_plc = t0
+    next_amp = next_plc = t0
     while not stop.is_set():
         c0 = time.thread_time()
         now = time.monotonic()
@@ -189,7 +190,13 @@ async def _pump_plant(amp: Any, plc_pump: Any, stop: asyncio.Event, spent: list[
             plc_pump()
             next_plc = max(next_plc + plc_period_s, now)
         spent[0] += time.thread_time() - c0
-        await asyncio.sleep(AMP_PUMP_S)
+        # on a fixed schedule (a late pump does not push the next ones back: each node's
+        # status leaves 100 times a second), started again from now after a longer stall
+        next_amp += AMP_PUMP_S
+        now = time.monotonic()
+        if next_amp < now - AMP_PUMP_S:
+            next_amp = now
+        await asyncio.sleep(max(0.0, next_amp - now))
 
 
 class _Head:
