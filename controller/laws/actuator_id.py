@@ -566,30 +566,8 @@ class ActuatorIdentifier:
         Computed once per change of the fit (:meth:`_changed`).
         """
         if self._states is None:
-            self._states = self._mode_states_now()
+            self._states = _mode_states_now(self)
         return self._states
-
-    def _mode_states_now(self) -> tuple[str, ...]:
-        """:meth:`mode_states` computed from the fit as it is."""
-        # per mode in plain floats: gain_stderr's and confidence's values, bit for bit
-        raw = self._raw.tolist()
-        out = ["usable"]
-        for m in range(1, self.knives):
-            mag = abs(complex(raw[m]))
-            n = self._n[m]
-            se = math.inf if n < 1.5 else self._stderr(m)
-            conf = (0.0 if n < self.min_samples - 1e-9
-                    else min(max(1.0 - 2.0 * se / max(mag, 1e-12), 0.0), 1.0))
-            if ((n >= self.min_samples - 1e-9 and mag + 2.0 * se < self.gain_min)
-                    or self._still[m] >= self.still_samples):
-                out.append("no_authority")
-            elif conf > 0.0 and mag >= self.gain_min:
-                out.append("usable")
-            elif n >= self.unidentifiable_samples - 1e-9:
-                out.append("unidentifiable")
-            else:
-                out.append("unknown")
-        return tuple(out)
 
     def matrix(self) -> np.ndarray:
         """The estimated effective gain as a real circulant matrix, shape (Z, Z) (a copy)."""
@@ -600,3 +578,26 @@ class ActuatorIdentifier:
         if self._matrix is None:
             self._matrix = circulant_from_mode_gains(self._gains)
         return self._matrix
+
+
+def _mode_states_now(ident: ActuatorIdentifier) -> tuple[str, ...]:
+    """:meth:`ActuatorIdentifier.mode_states` computed from the fit as it is."""
+    # per mode in plain floats: gain_stderr's and confidence's values, bit for bit
+    raw = ident._raw.tolist()
+    out = ["usable"]
+    for m in range(1, ident.knives):
+        mag = abs(complex(raw[m]))
+        n = ident._n[m]
+        se = math.inf if n < 1.5 else ident._stderr(m)
+        conf = (0.0 if n < ident.min_samples - 1e-9
+                else min(max(1.0 - 2.0 * se / max(mag, 1e-12), 0.0), 1.0))
+        if ((n >= ident.min_samples - 1e-9 and mag + 2.0 * se < ident.gain_min)
+                or ident._still[m] >= ident.still_samples):
+            out.append("no_authority")
+        elif conf > 0.0 and mag >= ident.gain_min:
+            out.append("usable")
+        elif n >= ident.unidentifiable_samples - 1e-9:
+            out.append("unidentifiable")
+        else:
+            out.append("unknown")
+    return tuple(out)
