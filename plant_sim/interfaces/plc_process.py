@@ -108,7 +108,7 @@ class _Published:
     """The machine as the server process first sees it: the snapshot decoded in ``image``.
 
     What the :class:`~plant_sim.interfaces.plc_server.PlcServer` reads when it is built (later
-    snapshots reach it through ``load_snapshot``); it never writes to it (its writes are
+    snapshots reach it through ``load_words``); it never writes to it (its writes are
     queued to the stepping side).
     """
 

@@ -196,38 +196,20 @@ class PlcServer:
             self._image.load(values, heads)
             self._image.overlay(self._pending)
 
-    def load_snapshot(
-        self,
-        values: Mapping[str, float | int],
-        *,
-        applied: int,
-        heads: Sequence[Mapping[str, float | int]] = (),
-    ) -> None:
-        """Serve register values published by another process.
+    def load_words(self, words: Sequence[int], *, applied: int) -> None:
+        """Serve register words published by another process, as they are.
 
         The publisher is :mod:`plant_sim.interfaces.plc_process`.
 
         Parameters
         ----------
-        values : mapping
-            Every register's value as the stepping side published it.
+        words : sequence of int
+            The words of :meth:`~plant_sim.interfaces.register_image.RegisterImage.flat` (the
+            single span, then each served block): nothing is decoded or encoded until a write
+            needs the values.
         applied : int
             How many of the writes this server ever queued the stepping side had applied when
             it published; those leave the overlay of written values.
-        heads : sequence of mapping
-            Each served head's block values.
-        """
-        with self._lock:
-            self._applied(applied)
-            self._image.load(values, heads)
-            self._image.overlay(self._pending)
-
-    def load_words(self, words: Sequence[int], *, applied: int) -> None:
-        """Serve register words published by another process, as they are.
-
-        As :meth:`load_snapshot` with the words of
-        :meth:`~plant_sim.interfaces.register_image.RegisterImage.flat` (the single span, then
-        each served block): nothing is decoded or encoded until a write needs the values.
         """
         with self._lock:
             self._applied(applied)
