@@ -287,9 +287,8 @@ class SqliteStore:
         new_uids = [(u, before + 1 + k) for u, k in first_of.items()]
         if new_uids:
             conn.executemany("INSERT INTO record_uids (uid, record_id) VALUES (?, ?)", new_uids)
-        ids_of = {u: rid for u, rid in new_uids}
-        return [int(before + 1 + w) if isinstance(w, int) else int(known.get(w, ids_of.get(w, 0)))
-                for w in where]
+        known.update(new_uids)  # a uid repeated in the batch: its first row's id
+        return [int(before + 1 + w) if isinstance(w, int) else int(known[w]) for w in where]
 
     @staticmethod
     def _insert_each(conn: sqlite3.Connection, sql: str, width: int,
