@@ -625,22 +625,6 @@ class WriteAheadSink:
         shared group, the first head's)."""
         self._group.join(self)
 
-    @property
-    def _journal_cv(self) -> threading.Condition:
-        return self._group.journal_cv
-
-    @_journal_cv.setter
-    def _journal_cv(self, cv: threading.Condition) -> None:
-        self._group.journal_cv = cv
-
-    @property
-    def _db_cv(self) -> threading.Condition:
-        return self._group.db_cv
-
-    @_db_cv.setter
-    def _db_cv(self, cv: threading.Condition) -> None:
-        self._group.db_cv = cv
-
     def _start(self) -> None:
         """Start the group's threads (with ``_cond`` held; from the first :meth:`put`)."""
         self._group.start()
@@ -656,7 +640,7 @@ class WriteAheadSink:
             self._pending += 1
             self._start()
             if len(self._inbox) == 1 or len(self._inbox) >= JOURNAL_BATCH_MAX:
-                self._journal_cv.notify()  # else it waits for more until its time anyway
+                self._group.journal_cv.notify()  # else it waits for more until its time anyway
 
     @property
     def queued(self) -> int:
@@ -665,7 +649,7 @@ class WriteAheadSink:
 
     def _wake(self) -> None:
         """Wake both writer threads and who waits for the state (``_cond`` held)."""
-        for cv in (self._cond, self._journal_cv, self._db_cv):
+        for cv in (self._cond, self._group.journal_cv, self._group.db_cv):
             cv.notify_all()
 
     def _publish(self) -> None:
@@ -718,7 +702,7 @@ class WriteAheadSink:
                 if not ok and entries:  # answered False first: the log's True comes after
                     with self._cond:
                         self._todo.extend(entries)  # the log may still take them
-                        self._db_cv.notify()
+                        self._group.db_cv.notify()
         finally:
             with self._cond:
                 self._in_hand = False
@@ -772,7 +756,7 @@ class WriteAheadSink:
                     elif entries:  # the backlog waits on disk, read back later
                         self._spill = (self._spill[0] if self._spill else first, end)
                     if idle or len(self._todo) >= DB_BATCH_MAX:
-                        self._db_cv.notify()  # else it waits for more until its time anyway
+                        self._group.db_cv.notify()  # else it waits for more until its time anyway
                 else:
                     self._journal_error = err
                     for e, item in zip(entries, items, strict=True):
@@ -814,7 +798,7 @@ class WriteAheadSink:
             with self._cond:
                 self._journal_error = f"journal {self.journal_path} not readable: {one_line(exc)}"
                 self._publish()
-                self._db_cv.wait(RETRY_MAX_S)
+                self._group.db_cv.wait(RETRY_MAX_S)
             return
         entries, bad, blank, pos = _parse_lines(data, start)
         with self._cond:

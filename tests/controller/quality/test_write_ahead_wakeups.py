@@ -121,11 +121,11 @@ def _logged_two(log, sink: WriteAheadSink) -> None:
 
 def test_a_put_just_as_the_journal_thread_goes_to_sleep_wakes_it(quiet_sink):
     log, sink, answers = quiet_sink
-    sink._journal_cv = _put_one_as_it_sleeps(
+    sink._group.journal_cv = _put_one_as_it_sleeps(
         sink, lambda: not sink._inbox and sink._counts["journalled"] == 1)
     sink.put(_rec(0))
     answers.wait(2)  # [1] came as the journal thread fell asleep after [0]: woken
-    assert sink._journal_cv.fired.is_set()
+    assert sink._group.journal_cv.fired.is_set()
     _logged_two(log, sink)
     assert dict(answers.flags) == {0: [True], 1: [True]}
 
@@ -155,11 +155,11 @@ def test_a_put_while_the_journal_thread_appends_is_taken_without_another(quiet_s
 
 def test_records_handed_on_just_as_the_database_thread_goes_to_sleep_wake_it(quiet_sink):
     log, sink, _ = quiet_sink
-    sink._db_cv = _put_one_as_it_sleeps(
+    sink._group.db_cv = _put_one_as_it_sleeps(
         sink, lambda: not sink._todo and sink._counts["logged"] == 1)
     sink.put(_rec(0))
     _logged_two(log, sink)  # woken for [1], not an hour on
-    assert sink._db_cv.fired.is_set()
+    assert sink._group.db_cv.fired.is_set()
 
 
 class GatedLog:
