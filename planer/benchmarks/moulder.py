@@ -52,6 +52,7 @@ from planer.benchmarks.service import (
     _plc_for,
     machine_description,
 )
+from protocol.piezo_canopen import STATUS_PERIOD_S
 
 HEADS: tuple[tuple[str, int], ...] = (("bottom", 2), ("right", 3), ("left", 4), ("top", 5))
 """The moulder's heads: name and amplifier node id (config/machine_moulder.toml's, in order)."""
@@ -67,7 +68,7 @@ QUICK_PAIRS = 150
 """Pairs per head of a quick run."""
 SLOWEST = 5
 """The slowest pairs reported per head (``slowest``: ``[pair's place in the run, ms]``)."""
-AMP_PUMP_S = 0.010
+AMP_PUMP_S = STATUS_PERIOD_S
 """Period of the simulated amplifiers' pump, s: their status period
 (``protocol.piezo_canopen.STATUS_PERIOD_S``)."""
 
