@@ -141,7 +141,10 @@ class IdleCollector:
             _installed = None
 
     def due(self) -> bool:
-        """Whether a generation is due by the normal thresholds (:meth:`collect_due` would run)."""
+        """Whether a generation is due by the normal thresholds (:meth:`collect_due` would run).
+
+        CPython's rule: the youngest generation's count over its threshold (0: switched off).
+        """
         t0 = self.thresholds[0]
         return t0 > 0 and gc.get_count()[0] > t0
 
@@ -153,10 +156,10 @@ class IdleCollector:
         int or None
             The generation collected (0, 1 or 2), ``None`` when none was due.
         """
-        t0, t1, t2 = self.thresholds
-        c0, c1, c2 = gc.get_count()
-        if t0 <= 0 or c0 <= t0:  # CPython's rule: a count over its threshold
+        if not self.due():
             return None
+        _, t1, t2 = self.thresholds
+        _, c1, c2 = gc.get_count()
         gen = 2 if (c1 > t1 and c2 > t2) else 1 if c1 > t1 else 0
         gc.collect(gen)
         self.collections[gen] += 1
