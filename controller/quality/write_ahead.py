@@ -23,6 +23,11 @@ nothing the caller's thread (the event loop) can be held up by:
   (:data:`DB_TIMEOUT_S`, :meth:`QualityLog.set_write_timeout`); a call that never returns
   (a PostgreSQL server stopped) holds up only this thread.
 
+The two threads are a :class:`WriterGroup`'s: a sink given a plain log makes a group of its
+own; a moulder's heads share one (:meth:`WriterGroup.head_log`), whose journal thread appends
+every head's batch to that head's journal and whose database thread writes every head's
+records in one transaction on the one connection (each head's in its order).
+
 A record is encoded once: the journal line and the log's row share the JSON text of its
 ``extra`` (:func:`~controller.quality.schema.storable`). Neither thread waits for more records
 while :meth:`~WriteAheadSink.close` or :meth:`~WriteAheadSink.wait_logged` waits for them.
