@@ -231,7 +231,7 @@ class PlcProtocol:
         ``read`` is one of :meth:`blocks_reads`; ``FieldbusError`` when the answer has another
         length.
         """
-        address, count, heads = read
+        _, count, heads = read
         if len(words) != count:
             raise FieldbusError(f"PLC answered {len(words)} registers, expected {count}")
         block = self.regmap.heads
