@@ -562,6 +562,16 @@ class RegisterMap:
     def __iter__(self):
         return iter(sorted(self.registers.values(), key=lambda r: r.address))
 
+    def __getstate__(self) -> dict[str, object]:
+        """The map's state without its decode plans (``struct.Struct`` does not pickle).
+
+        A map goes to other processes (the PLC simulator's server process is spawned with
+        it) whether or not it has decoded words yet; the plans are built again there.
+        """
+        state = self.__dict__.copy()
+        state["_plans"] = {}
+        return state
+
     def span(self) -> tuple[int, int]:
         """First address and number of 16-bit registers covered (gaps included)."""
         return self._span

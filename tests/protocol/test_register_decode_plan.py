@@ -68,3 +68,21 @@ def test_words_it_cannot_pack_get_the_register_by_register_checks(bad):
         return
     with pytest.raises(ValueError, match="heartbeat_service"):
         RMAP.decode_block(words)
+
+
+def test_a_map_that_has_decoded_still_pickles_and_decodes_alike():
+    """A map goes to a spawned process (the PLC simulator's server) after it may have decoded:
+    its decode plans stay behind, the copy builds its own and decodes the same."""
+    import copy
+    import pickle
+
+    rmap = RegisterMap.load()
+    words = rmap.encode_block({"feed_setpoint_mm_s": 12.5})
+    head_words = rmap.for_head(1).encode_block({})
+    want = rmap.decode_block(words)
+    want_head = rmap.for_head(1).decode_block(head_words)
+    assert rmap._plans and rmap.for_head(1)._plans  # plans kept on the map and a view
+    for twin in (pickle.loads(pickle.dumps(rmap)), copy.deepcopy(rmap)):
+        assert _same(twin.decode_block(words), want)
+        assert _same(twin.for_head(1).decode_block(head_words), want_head)
+    assert rmap._plans  # the original keeps its own
