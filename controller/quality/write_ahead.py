@@ -531,19 +531,17 @@ class WriterGroup:
 class SharedLog:
     """A head's view of the one quality log a moulder's heads share (see :class:`WriterGroup`).
 
-    Everything is the log's but :meth:`close`, which only marks this view closed: the group
-    closes the log after every head (:meth:`WriterGroup.close`). A
-    :class:`WriteAheadSink` given this view joins the group.
+    Everything is the log's but :meth:`close`, which does nothing: the group closes the log
+    after every head (:meth:`WriterGroup.close`). A :class:`WriteAheadSink` given this view
+    joins the group.
     """
 
     def __init__(self, log: Any, group: WriterGroup) -> None:
         self._log = log
         self.writer_group = group
-        self.view_closed = False
 
     def close(self) -> None:
-        """Mark this head done with the log (the group closes it after every head)."""
-        self.view_closed = True
+        """Nothing: the group closes the log after every head (:meth:`WriterGroup.close`)."""
 
     def __len__(self) -> int:
         return len(self._log)
