@@ -981,8 +981,7 @@ def record_json(record: QualityRecord, *, extra_json: str | None = None) -> str:
     """
     body = _LINE_ENCODER.encode(_plain_fields(record))
     if extra_json is None or "NaN" in extra_json or "Infinity" in extra_json:
-        extra_json = json.dumps(_finite_json(record.extra), allow_nan=False,
-                                separators=(",", ":"))
+        extra_json = _LINE_ENCODER.encode(_finite_json(record.extra))
     return f'{body[:-1]},"extra":{extra_json}}}'
 
 
@@ -1042,7 +1041,7 @@ def _to_row(rec: QualityRecord, *, extra_json: str | None = None,
         row[_EXTRA_AT] = extra_json
     else:
         try:
-            row[_EXTRA_AT] = json.dumps(row[_EXTRA_AT], default=_json_default)
+            row[_EXTRA_AT] = _EXTRA_ENCODER.encode(row[_EXTRA_AT])
         except (TypeError, ValueError) as exc:
             raise ValueError(f"extra is not JSON serialisable: {exc}") from None
     if row[_MACHINE_AT] is None:
