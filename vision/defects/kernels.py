@@ -650,6 +650,88 @@ def blob_mask(labels: np.ndarray, lab: int, x: int, y: int, w: int, cell: int, c
 
 
 @njit(**_JIT)
+def _fold_columns(c0: int, x1: int, period: float, nb: int,
+                  n_per: int) -> tuple:  # pragma: no cover - compiled
+    """:func:`fold_rows`' table of its columns ``c0..x1`` (set up once per call).
+
+    Each column's (period, bin) cell and its bin alone, and the columns per cell and per bin.
+    Columns past the last period go to a spare cell / bin (``n_per * nb``, ``nb``) that is
+    never read.
+    """
+    n_cells = n_per * nb
+    span = max(x1 - c0, 0)
+    where = np.empty(span, dtype=np.int64)
+    phase = np.empty(span, dtype=np.int64)
+    full_cell = np.zeros(n_cells + 1, dtype=np.int64)
+    full_bin = np.zeros(nb + 1, dtype=np.int64)
+    for c in range(c0, x1):
+        ph = (c - c0) / period
+        per = int(math.floor(ph))
+        b = min(int(math.floor((ph - per) * nb)), nb - 1)
+        where[c - c0] = per * nb + b if per < n_per else n_cells
+        phase[c - c0] = b if per < n_per else nb
+        full_cell[where[c - c0]] += 1
+        full_bin[phase[c - c0]] += 1
+    return where, phase, full_cell, full_bin
+
+
+@njit(**_JIT)
+def _taken_rows(plain: np.ndarray, every: int, slack: float, folded: np.ndarray,
+                energy: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """:func:`fold_rows`' rows that take the median fold, ``(rows, how many)``.
+
+    Every ``every``-th row with a plain mean fold and those whose plain fold's mean square
+    ``plain`` is at least ``slack`` times the median row's; ``folded`` and ``energy`` are
+    set to NaN on every row (the taken ones' are written later).
+    """
+    rows, nb = folded.shape
+    buf = np.empty(rows)
+    n_ok = 0
+    for i in range(rows):
+        if not np.isnan(plain[i]):
+            buf[n_ok] = plain[i]
+            n_ok += 1
+    limit = slack * _median(buf, n_ok) if n_ok > 0 else np.inf
+    taken = np.empty(rows, dtype=np.int64)
+    n_taken = 0
+    for i in range(rows):
+        energy[i] = np.nan
+        for b in range(nb):
+            folded[i, b] = np.nan
+        if not (np.isnan(plain[i]) or (i % every != 0 and plain[i] < limit)):
+            taken[n_taken] = i
+            n_taken += 1
+    return taken, n_taken
+
+
+@njit(**_JIT)
+def _fold_medians(cm: np.ndarray, seen: np.ndarray, taken: np.ndarray, n_taken: int,
+                  folded: np.ndarray, energy: np.ndarray) -> None:  # pragma: no cover
+    """:func:`fold_rows`' medians of the taken rows from their sorted columns ``cm``.
+
+    Column ``t * nb + b`` holds row ``taken[t]``'s bin ``b`` over the periods, its ``seen``
+    valid ones first: the median is the middle of those; ``energy`` the mean square of the
+    row's medians.
+    """
+    nb = folded.shape[1]
+    for t in range(n_taken):
+        i = taken[t]
+        s2 = 0.0
+        nbins = 0
+        for b in range(nb):
+            m = seen[t * nb + b]
+            if m == 0:
+                continue
+            hi = cm[m // 2, t * nb + b]
+            med = hi if m % 2 else 0.5 * (cm[m // 2 - 1, t * nb + b] + hi)
+            folded[i, b] = med
+            s2 += med * med
+            nbins += 1
+        if nbins > 0:
+            energy[i] = s2 / nbins
+
+
+@njit(**_JIT)
 def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int, n_per: int,
               min_valid: int, every: int, slack: float, folded: np.ndarray,
               energy: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -690,21 +772,8 @@ def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
     rows, cols = r.shape
     x1 = min(cols, c0 + int(n_per * period))
     span = max(x1 - c0, 0)
-    # the (period, bin) cell of each column, and its bin alone; columns past the last period
-    # go to a spare cell / bin (n_cells, nb) that is never read
     n_cells = n_per * nb
-    where = np.empty(span, dtype=np.int64)
-    phase = np.empty(span, dtype=np.int64)
-    full_cell = np.zeros(n_cells + 1, dtype=np.int64)  # columns per cell and per bin
-    full_bin = np.zeros(nb + 1, dtype=np.int64)
-    for c in range(c0, x1):
-        ph = (c - c0) / period
-        per = int(math.floor(ph))
-        b = min(int(math.floor((ph - per) * nb)), nb - 1)
-        where[c - c0] = per * nb + b if per < n_per else n_cells
-        phase[c - c0] = b if per < n_per else nb
-        full_cell[where[c - c0]] += 1
-        full_bin[phase[c - c0]] += 1
+    where, phase, full_cell, full_bin = _fold_columns(c0, x1, period, nb, n_per)
     # the plain mean fold of every row; a row valid over all its folded columns (nearly
     # every row) takes the columns' counts, set up once, and sums without a test per sample
     plain = np.full(rows, np.nan)
@@ -742,22 +811,7 @@ def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
                 n += 1
         if n > 0:
             plain[i] = s2 / n
-    buf = np.empty(rows)
-    n_ok = 0
-    for i in range(rows):
-        if not np.isnan(plain[i]):
-            buf[n_ok] = plain[i]
-            n_ok += 1
-    limit = slack * _median(buf, n_ok) if n_ok > 0 else np.inf
-    taken = np.empty(rows, dtype=np.int64)
-    n_taken = 0
-    for i in range(rows):
-        energy[i] = np.nan
-        for b in range(nb):
-            folded[i, b] = np.nan
-        if not (np.isnan(plain[i]) or (i % every != 0 and plain[i] < limit)):
-            taken[n_taken] = i
-            n_taken += 1
+    taken, n_taken = _taken_rows(plain, every, slack, folded, energy)
     # the taken rows' cell means, one column per (row, bin), the periods down the rows;
     # +inf where no sample of the cell is valid (sorted last: the finite ones first, so the
     # median of a bin's m valid periods is the middle of its first m sorted values)
@@ -790,21 +844,7 @@ def fold_rows(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
                 else:
                     row[t * nb + b] = np.inf
     _sort_columns(cm)  # every (row, bin) at once: the same values as one selection each
-    for t in range(n_taken):
-        i = taken[t]
-        s2 = 0.0
-        nbins = 0
-        for b in range(nb):
-            m = seen[t * nb + b]
-            if m == 0:
-                continue
-            hi = cm[m // 2, t * nb + b]
-            med = hi if m % 2 else 0.5 * (cm[m // 2 - 1, t * nb + b] + hi)
-            folded[i, b] = med
-            s2 += med * med
-            nbins += 1
-        if nbins > 0:
-            energy[i] = s2 / nbins
+    _fold_medians(cm, seen, taken, n_taken, folded, energy)
 
 
 @njit(**_JIT)
