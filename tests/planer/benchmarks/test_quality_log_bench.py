@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from controller.quality import write_ahead
 from controller.quality.log import QualityLog
 from planer.benchmarks import quality_log
 
@@ -35,12 +36,22 @@ def test_the_heads_are_the_moulders_and_a_given_folder_is_used_as_it_is(tmp_path
     def no_temporary_folder(*args, **kw):
         raise AssertionError("a temporary folder made although a folder was given")
 
+    made = []  # the writer groups the bench opens: one shared, or one per head
+
+    class CountedGroup(write_ahead.WriterGroup):
+        def __init__(self, *args, **kw):
+            super().__init__(*args, **kw)
+            made.append(self)
+
     monkeypatch.setattr(quality_log.tempfile, "TemporaryDirectory", no_temporary_folder)
+    monkeypatch.setattr(write_ahead, "WriterGroup", CountedGroup)
     for shared in (True, False):
         folder = tmp_path / f"shared-{shared}"
         folder.mkdir()
+        made.clear()
         out = quality_log.run(records=16, rate_hz=1000.0, heads=("bottom", "top"),
                               folder=folder, shared=shared)
         assert out["all_logged"] and out["shared_writer"] is shared
+        assert len(made) == (1 if shared else 2)
         assert out["records_per_transaction"] == 16 / out["db_transactions"]
         assert (folder / "quality.sqlite").exists()
