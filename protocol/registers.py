@@ -374,7 +374,7 @@ class RegisterMap:
                 self._by_address[a] = reg
         for reg in self.registers.values():
             self._validate_limits(reg)
-            self._validate_bits(reg)
+            _validate_bits(reg)
         first = min(r.address for r in self.registers.values())
         last = max(r.last_address for r in self.registers.values())
         self._span = (first, last - first + 1)
@@ -537,16 +537,6 @@ class RegisterMap:
         if isinstance(reg.min, (int, float)) and isinstance(reg.max, (int, float)):
             if reg.min > reg.max:
                 raise ConfigError(f"register {reg.name}: min {reg.min} > max {reg.max}")
-
-    def _validate_bits(self, reg: Register) -> None:
-        flags = BIT_FLAGS.get(reg.name)
-        if reg.bits and reg.type not in ("u16", "u32"):
-            raise ConfigError(f"register {reg.name}: bits only on u16 or u32 registers")
-        if flags is not None and tuple(reg.bits) != flag_names(flags):
-            raise ConfigError(
-                f"register {reg.name}: bits must be {list(flag_names(flags))} "
-                f"(protocol.registers.{flags.__name__}), got {list(reg.bits)}"
-            )
 
     # ------------------------------------------------------------------ lookup
     def __getitem__(self, name: str) -> Register:
@@ -1150,3 +1140,15 @@ def _bits(s: Section, rtype: str) -> tuple[str, ...]:
     if len(set(val)) != len(val):
         raise ConfigError(f"{s.key('bits')}: duplicate names")
     return tuple(val)
+
+
+def _validate_bits(reg: Register) -> None:
+    """ConfigError unless ``reg``'s bits suit its type and match its flag enum (if it has one)."""
+    flags = BIT_FLAGS.get(reg.name)
+    if reg.bits and reg.type not in ("u16", "u32"):
+        raise ConfigError(f"register {reg.name}: bits only on u16 or u32 registers")
+    if flags is not None and tuple(reg.bits) != flag_names(flags):
+        raise ConfigError(
+            f"register {reg.name}: bits must be {list(flag_names(flags))} "
+            f"(protocol.registers.{flags.__name__}), got {list(reg.bits)}"
+        )
