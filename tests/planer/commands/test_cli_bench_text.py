@@ -73,8 +73,9 @@ def test_a_bare_bench_runs_the_quality_log_and_formats_it() -> None:
     result = {"heads": 4, "rate_hz_per_head": 100.0, "records": 1200, "all_logged": True,
               "cpu_ms_per_record": 0.339, "records_per_cpu_s": 2953.0, "user_ms_per_record": 0.292,
               "system_ms_per_record": 0.092, "records_per_append": 4.0,
-              "records_per_transaction": 22.6}
+              "records_per_transaction": 22.6, "shared_writer": True}
     text = _format("quality_log", result)
+    assert "one writer group" in text
     assert "0.339 ms a record" in text
     assert "2953 records per CPU-second" in text
     assert "4.0 records an fsync'ed journal append, 22.6 a transaction" in text
