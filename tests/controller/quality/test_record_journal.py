@@ -372,7 +372,10 @@ def test_sigkill_at_random_points_loses_no_acknowledged_pair(tmp_path):
             acked.append(int(line.split()[1]))
         child.send_signal(signal.SIGKILL)  # lands anywhere: log commit, journal write, rewrite
         rest, _ = child.communicate()
-        acked += [int(ln.split()[1]) for ln in rest.splitlines() if ln.startswith("ack")]
+        # whole lines only: the kill may land inside the flush of one (an "ack" cut short,
+        # "ack 1" of "ack 12", acknowledges nothing the parent may count on)
+        whole = rest.split("\n")[:-1]
+        acked += [int(ln.split()[1]) for ln in whole if ln.startswith("ack ")]
         assert child.returncode == -signal.SIGKILL
     with QualityLog(db) as log:
         assert RecordSink(log, journal_path=journal).close() is None  # the last replay
