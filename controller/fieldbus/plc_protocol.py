@@ -161,8 +161,6 @@ MAX_KNIVES = 8
 """Most knives the piezo frames carry."""
 MAX_READ_WORDS = 125
 """Most registers one Modbus read (function 3 or 23) returns."""
-BlocksReads = tuple[tuple[int, int, tuple[int, ...]], ...]
-"""Reads of head blocks: ``(address, words, heads)`` each (:meth:`PlcProtocol.blocks_reads`)."""
 _POSITIVE = (
     "feed_min_mm_s",
     "feed_max_mm_s",
@@ -192,25 +190,15 @@ class PlcProtocol:
         self._feed = regmap["feed_setpoint_mm_s"]
         self._hb = regmap["heartbeat_service"]
         self._spindle = regmap.registers.get("spindle_setpoint_rpm")
-        self._blocks_reads: dict[tuple[int, ...], BlocksReads] = {}
 
-    def blocks_reads(self, heads: Sequence[int]) -> BlocksReads:
+    def blocks_reads(self, heads: Sequence[int]) -> tuple[tuple[int, int, tuple[int, ...]], ...]:
         """The reads that fetch the blocks of ``heads``: ``(address, words, heads)`` each.
 
         One read per block, or, where the map's ``[heads] read_across`` lets a read run across
         blocks, one per run of consecutive heads (at most :data:`MAX_READ_WORDS` words: the
         last block's used words, the others' whole stride with their reserved words).
         ``ValueError`` naming a head outside the map's blocks (or a map without blocks).
-        Planned once per set of heads (a moulder asks for the same heads every PLC cycle).
         """
-        key = tuple(int(h) for h in heads)
-        plan = self._blocks_reads.get(key)
-        if plan is None:
-            plan = self._blocks_reads[key] = self._plan_blocks_reads(key)
-        return plan
-
-    def _plan_blocks_reads(self, heads: tuple[int, ...]) -> BlocksReads:
-        """:meth:`blocks_reads` worked out."""
         block = self.regmap.heads
         if block is None:
             raise ValueError("heads: the register map has no [heads] blocks")

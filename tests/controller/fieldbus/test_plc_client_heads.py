@@ -261,7 +261,6 @@ def test_blocks_reads_group_consecutive_heads_where_the_map_reads_across():
     p = PlcProtocol(RMAP)
     base, stride, used = RMAP.heads.base, RMAP.heads.stride, RMAP.heads.used
     assert p.blocks_reads([0, 1, 2, 3]) == ((base, 3 * stride + used, (0, 1, 2, 3)),)
-    assert p.blocks_reads([0, 1, 2, 3]) is p.blocks_reads((0, 1, 2, 3))  # planned once
     assert p.blocks_reads([3, 1, 0, 1]) == ((base, stride + used, (0, 1)),
                                             (base + 3 * stride, used, (3,)))
     eight = p.blocks_reads(range(8))  # 8 blocks do not fit one read of 125 words
