@@ -419,7 +419,7 @@ class FrontEnd:
             acc = np.uint16 if part.dtype == np.uint16 and m * self.k0 <= 257 else np.float32
             if acc == np.uint16 and part.flags.c_contiguous:  # the same sums, one pass
                 out = np.empty((part.shape[0] // m, part.shape[1]), dtype=np.uint16)
-                kernels.bin_groups(part, 0, m, out)
+                kernels.group_sums(part, 0, m, out)
                 return out
             part = part.reshape(-1, m, part.shape[1]).sum(axis=1, dtype=acc)
         return part

@@ -7,10 +7,10 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
 
 * :func:`bin_rows` -- an 8-bit image summed into ``k``-row bins, those summed ``m`` at a time
   over a band, and that band's column sums, in one pass over the image;
-* :func:`group_sums` -- the orientation's groups of adjacent bins summed (``float32``);
+* :func:`group_sums` -- groups of adjacent ``uint16`` bins summed in the output's dtype: the
+  orientation's groups (``float32``) and the sheared profile's bins (``uint16``), one kernel;
 * :func:`column_sums` -- the column sums of ``uint16`` rows (the profile's), exact;
 * :func:`rows_over` -- ``uint16`` rows divided by their means (the rotated texture's);
-* :func:`bin_groups` -- ``uint16`` bins summed ``m`` at a time (the sheared profile's bins);
 * :func:`scaled_less_one` -- rows times a column scale, less one (the shading-free texture);
 * :func:`inverse_column_means` -- the inverse of rows' column means (the rotated texture's);
 * :func:`running_mean_1d`, :func:`running_mean_2d` -- running means of fractional length
@@ -104,24 +104,27 @@ def bin_rows(image: np.ndarray, r0: int, k: int, bins: np.ndarray, start: int, m
 @njit(**_JIT)
 def group_sums(bins: np.ndarray, first: int, size: int,
                out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """``out[q] = sum(bins[first + q size : first + (q + 1) size])`` in ``float32``.
+    """``out[q] = sum(bins[first + q size : first + (q + 1) size])`` in ``out``'s dtype.
 
-    As ``bins[first:first + g size].reshape(g, size, w).sum(axis=1, dtype=np.float32)`` for
-    ``out`` of shape ``(g, w)``: integer bins whose sums stay below ``2**24`` (``uint16``
-    bins, ``size <= 256``) are exact in ``float32`` in any order, so the result is the same;
-    one pass, no ``uint16`` to ``float32`` temporaries.
+    The row-group sums of integer bins, one pass, each bin converted to ``out``'s dtype and
+    added there: as ``bins[first:first + g size].reshape(g, size, w).sum(axis=1,
+    dtype=out.dtype)`` for ``out`` of shape ``(g, w)``. The front end's two uses: the
+    orientation's groups in ``float32`` (``uint16`` bins, ``size <= 256``: the sums stay below
+    ``2**24``, exact in ``float32`` in any order) and the unsheared profile's bins in
+    ``uint16`` (sums that fit it: integers, any order). The same sums, no temporaries.
     """
     g, w = out.shape
+    cast = out.dtype.type  # the accumulator: out's dtype (float32 or uint16)
     for q in range(g):
         o = out[q]
         r0 = first + q * size
         row = bins[r0]
         for c in range(w):
-            o[c] = np.float32(row[c])
+            o[c] = cast(row[c])
         for s in range(1, size):
             row = bins[r0 + s]
             for c in range(w):
-                o[c] += np.float32(row[c])
+                o[c] += cast(row[c])
 
 
 @njit(**_JIT)
@@ -139,27 +142,6 @@ def rows_over(bins: np.ndarray, means: np.ndarray,
         mean = means[r]
         for c in range(w):
             o[c] = np.float32(row[c]) / mean
-
-
-@njit(**_JIT)
-def bin_groups(bins: np.ndarray, start: int, m: int,
-               out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """``out[q] = sum(bins[start + q m : start + (q + 1) m])`` of ``uint16`` bins, exact.
-
-    As ``bins[start:start + g m].reshape(g, m, w).sum(axis=1, dtype=np.uint16)`` for ``out`` of
-    shape ``(g, w)`` whose sums fit ``uint16`` (integers: any order, the same sums); one pass.
-    """
-    g, w = out.shape
-    for q in range(g):
-        o = out[q]
-        r0 = start + q * m
-        row = bins[r0]
-        for c in range(w):
-            o[c] = row[c]
-        for s in range(1, m):
-            row = bins[r0 + s]
-            for c in range(w):
-                o[c] += row[c]
 
 
 @njit(**_JIT)
@@ -802,7 +784,7 @@ def warm_up() -> None:
     group_sums(bins, 0, 1, np.empty((2, 8), dtype=np.float32))
     column_sums(bins, np.empty(8, dtype=np.uint32), cols)
     rows_over(bins, np.ones(2, dtype=np.float32), np.empty((2, 8), dtype=np.float32))
-    bin_groups(bins, 0, 1, np.empty((2, 8), dtype=np.uint16))
+    group_sums(bins, 0, 1, np.empty((2, 8), dtype=np.uint16))
     scale, tex = np.ones(8, dtype=np.float32), np.empty((2, 8), dtype=np.float32)
     scaled_less_one(tex, scale, tex)
     scaled_less_one(bins, scale, tex)

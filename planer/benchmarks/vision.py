@@ -231,6 +231,26 @@ def _remap_pair(rig: Any, a: np.ndarray, b: np.ndarray) -> Any:
     return remap
 
 
+def _service_defects_cpu(rig: Any, a: np.ndarray, b: np.ndarray, ca: int, cb: int,
+                         min_time: float) -> dict[str, float]:
+    """CPU ms per pair of the service's measurement without and with the defects, in turns.
+
+    As the service measures every pair: the PLC's cutting radius and knives given (with the
+    knives chatter is looked for) and a ``SelfCalibrator`` of the board, one for each variant
+    so that both see every pair alike. Keys ``service`` and ``defects``.
+    """
+    from vision.calibration.selfcal import SelfCalibrator
+    from vision.pipeline import Measurer
+
+    fns = {}
+    for name, defects in (("service", False), ("defects", True)):
+        measurer = Measurer(rig, a.shape, radius_mm=SELFCAL_RADIUS_MM, knives=SELFCAL_KNIVES,
+                            defects=defects)
+        fns[name] = _measure_fn(measurer, a, b, ca, cb, calibrator=SelfCalibrator())
+    _, cpu_ms = _interleaved_rates(fns, min_time, 20)
+    return cpu_ms
+
+
 def run(quick: bool) -> list[dict[str, Any]]:
     """Measure the vision throughput at 659x493 and 1920x1200.
 
@@ -253,7 +273,11 @@ def run(quick: bool) -> list[dict[str, Any]]:
         (its CPU time over the plain measurement's, less 1) and ``defects_ms`` (the CPU time
         per pair the defects add, ms: what the defects cost whatever the plain measurement
         costs), timed in turns with the plain measurement apart from the other variants (with
-        them, its large temporaries slowed their timings by 2-10 %).
+        them, its large temporaries slowed their timings by 2-10 %); the same on the service's
+        measurement (``selfcal_pairs_per_s``'s: radius, knives, a ``SelfCalibrator``; with the
+        knives chatter is looked for), timed in turns with it without the defects:
+        ``service_defects_ms`` (the CPU time per pair the defects add to it, ms) and
+        ``service_defects_overhead`` (its CPU time over the service's measurement's, less 1).
     """
     import cv2
 
@@ -288,6 +312,9 @@ def run(quick: bool) -> list[dict[str, Any]]:
             defects = _measure_fn(Measurer(rig, a.shape, defects=True), a, b, ca, cb)
             def_rates, def_cpu = _interleaved_rates(
                 {"plain": fns["pairs_per_s"], "defects": defects}, min_time, 20)
+            # and on the service's measurement (the PLC's radius and knives, a SelfCalibrator
+            # each: chatter is looked for), in turns with it without the defects
+            service_cpu = _service_defects_cpu(rig, a, b, ca, cb, min_time)
 
             def copy(a: np.ndarray = a, b: np.ndarray = b) -> None:
                 a.copy()
@@ -317,6 +344,10 @@ def run(quick: bool) -> list[dict[str, Any]]:
                     "defects_cpu_ms": round(def_cpu["defects"], 2),
                     "defects_overhead": round(def_cpu["defects"] / def_cpu["plain"] - 1.0, 3),
                     "defects_ms": round(def_cpu["defects"] - def_cpu["plain"], 3),
+                    "service_defects_ms": round(service_cpu["defects"]
+                                                - service_cpu["service"], 3),
+                    "service_defects_overhead": round(service_cpu["defects"]
+                                                      / service_cpu["service"] - 1.0, 3),
                     **_floor_ratios(cpu_ms, TARGETS.get((width, height), 1.0)),
                 }
             )

@@ -30,6 +30,29 @@ def test_run_reports_every_size(monkeypatch):
     plain_ms = row["defects_ms"] / row["defects_overhead"]
     assert row["defects_ms"] > 0
     assert row["defects_cpu_ms"] == pytest.approx(plain_ms + row["defects_ms"], abs=0.02)
+    # and on the service's measurement (radius, knives, a SelfCalibrator): it costs more too
+    assert row["service_defects_ms"] > 0 and row["service_defects_overhead"] > 0
+    service_ms = row["service_defects_ms"] / row["service_defects_overhead"]
+    assert service_ms > 0
+
+
+def test_service_defects_are_timed_on_the_service_measurement(monkeypatch):
+    """The service's variants: radius and knives given, a calibrator each, defects or not."""
+    rig, a, b, ca, cb = bench.synthetic_pair(400, 300)
+    built = []
+
+    class Recording(Measurer):
+        def __init__(self, *args, **kw):
+            super().__init__(*args, **kw)
+            built.append(kw)
+
+    monkeypatch.setattr("vision.pipeline.Measurer", Recording)
+    monkeypatch.setattr(bench, "_rate", lambda fn, t, n, **kw: (fn(), 50.0)[1])
+    cpu = bench._service_defects_cpu(rig, a, b, ca, cb, 0.01)
+    assert set(cpu) == {"service", "defects"} and cpu["defects"] > 0
+    assert [(kw["radius_mm"], kw["knives"], kw["defects"]) for kw in built] == [
+        (bench.SELFCAL_RADIUS_MM, bench.SELFCAL_KNIVES, False),
+        (bench.SELFCAL_RADIUS_MM, bench.SELFCAL_KNIVES, True)]
 
 
 def test_floor_ratios_compare_cpu_times_with_the_target():

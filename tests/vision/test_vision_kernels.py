@@ -141,7 +141,7 @@ def test_inverse_column_means_are_cv2s_average_inverted():
 
 
 @pytest.mark.parametrize("m, top", [(1, 6000), (5, 1276), (7, 9000)])
-def test_bin_groups_are_numpys_uint16_sums(m, top):
+def test_group_sums_into_uint16_are_numpys_uint16_sums(m, top):
     # the sheared profile's bins: the reshape-and-sum they replaced, integer for integer
     rng = np.random.default_rng(m)
     bins = rng.integers(0, top, (m * 9 + 3, 37)).astype(np.uint16)
@@ -149,6 +149,6 @@ def test_bin_groups_are_numpys_uint16_sums(m, top):
         g = (bins.shape[0] - start) // m
         want = bins[start:start + g * m].reshape(g, m, 37).sum(axis=1, dtype=np.uint16)
         got = np.empty((g, 37), dtype=np.uint16)
-        kernels.bin_groups(bins, start, m, got)
+        kernels.group_sums(bins, start, m, got)  # the same kernel as float32 groups
         assert np.array_equal(got, want)
 
