@@ -20,6 +20,7 @@ from config.sim import load_sim
 from plant_sim.run.moulder_runner import MoulderRunner, runner_for
 from plant_sim.run.runner import SimRunner, parse_banner
 from protocol import can_transport
+from protocol.piezo_canopen import NmtState
 from protocol.spool import SpoolReader
 
 HEADS = ("bottom", "right", "left", "top")
@@ -68,6 +69,18 @@ def spool_frames(folder: Path) -> list:
     while (f := reader.poll()) is not None:
         out.append(f)
     return out
+
+
+def every_node_started(amps) -> bool:
+    """Every node operational and its limits read (the master's view): what the service drives.
+
+    Operational alone is not it: a node heard again after its heartbeat was lost (this file's
+    ``can_silence``) is read anew by SDO while it stays operational, its limits ``None`` for
+    those few cycles (the service's bound is zero meanwhile: ``test_piezo_client.py``,
+    ``test_limits_are_read_anew_after_a_reconnect``).
+    """
+    return all(a.nmt_state is NmtState.OPERATIONAL and a.limits is not None
+               for a in amps.values())
 
 
 async def until(cond, runner, *, limit_s: float, what: str) -> None:
@@ -130,7 +143,6 @@ def test_every_head_served_on_modbus_can_and_its_own_spool(tmp_path):
     fault addressed to one head, every head's pairs in its own spool."""
     from controller.fieldbus.canopen_amp import AmpBus
     from controller.fieldbus.plc_client import PlcClient
-    from protocol.piezo_canopen import NmtState
 
     cfg = moulder_cfg(tmp_path)
     clock, lines = FakeClock(), []
@@ -152,9 +164,9 @@ def test_every_head_served_on_modbus_can_and_its_own_spool(tmp_path):
         try:
             def nodes_up() -> bool:
                 master.poll(runner.machine.t_s)
-                return all(a.nmt_state is NmtState.OPERATIONAL for a in amps.values())
+                return every_node_started(amps)
 
-            await until(nodes_up, runner, limit_s=60.0, what="every node operational")
+            await until(nodes_up, runner, limit_s=60.0, what="every node read and started")
             seen["limits"] = {n: a.limits for n, a in amps.items()}
             seen["before"] = {n: (await c.read()).values for n, c in clients.items()}
             await clients["top"].write_spindle_setpoint(8000.0)
@@ -208,6 +220,55 @@ def test_every_head_served_on_modbus_can_and_its_own_spool(tmp_path):
     assert "head top: face top, node 5, block 3" in "\n".join(lines)
     progress = [line for line in lines if line.startswith("t=")]
     assert progress and "spindle bottom=" in progress[0] and "frames bottom=" in progress[0]
+
+
+def test_a_node_is_started_once_read_even_when_heard_again_while_operational():
+    """The ordering that made the test above fail under load, forced on simulated time.
+
+    The runner's nodes answer SDO from a receiving thread: on a loaded machine the six reads
+    of a node may take most of a second of machine time (asked again after each 0.1 s
+    time-out), so the left head's ``can_silence`` at 1.0 s can find it just started. Here,
+    in lockstep: node 3 is read and started, then silent for 0.5 s (lost after 0.3 s); node
+    2 is read only near the end of the silence, so its first operational heartbeat comes
+    with node 3's first one after it. Node 3, heard again, is read anew while it stays
+    operational: every node reads OPERATIONAL while its limits are ``None``. Started is
+    operational *and* read (:func:`every_node_started`).
+    """
+    import can
+
+    from config.sim import default_sim
+    from controller.fieldbus.canopen_amp import AmpBus
+    from plant_sim.interfaces.amp_node import AmpNode, AmpNodeCore
+    from plant_sim.machine.machine import Machine
+
+    channel = f"moulder-runner-{next(_channels)}"
+    machines = [Machine(default_sim(), seed=i, render_images=False) for i in range(2)]
+    core = AmpNodeCore(machines[0], knives=4, node_id=2)
+    core.add_node(3, machines[1], knives=4)
+    sim = AmpNode(can.Bus(interface="virtual", channel=channel), core, own_bus=True)
+    master = AmpBus(can.Bus(interface="virtual", channel=channel), sdo_wait_s=0.0)
+    amps = {2: master.amplifier(2), 3: master.amplifier(3)}
+    core.inject("silence", node_id=3, start_s=0.5, duration_s=0.5)
+    operational_unread, started_at, limits_then = [], None, {}
+    try:
+        for i in range(1, 151):  # 10 ms steps
+            t = i * 0.01
+            for m in machines:
+                m.advance(0.01)
+            sim.pump(t)
+            master.poll(t, only=3 if t < 0.9 else None)  # node 2 read from 0.9 s on
+            if all(a.nmt_state is NmtState.OPERATIONAL for a in amps.values()):
+                operational_unread += [n for n, a in amps.items() if a.limits is None]
+            if started_at is None and every_node_started(amps):
+                started_at, limits_then = t, {n: a.limits for n, a in amps.items()}
+    finally:
+        sim.close()
+        master.close()
+    # the ordering happened: node 3 lost, heard again operational, read anew meanwhile
+    assert amps[3].restarts == 1 and amps[3].limits_read == 2 and amps[2].limits_read == 1
+    assert 3 in operational_unread
+    assert started_at is not None and started_at > 1.0  # once node 3 was read again
+    assert all(lim is not None and lim.stroke_um > 0 for lim in limits_then.values())
 
 
 def test_each_heads_images_are_rendered_as_the_moulder_renders_them(tmp_path):
