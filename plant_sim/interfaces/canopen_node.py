@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import canopen
+from canopen.nmt import NMT_STATES
 
 from protocol.piezo_canopen import (
     EMCY_CODES,
@@ -49,6 +50,11 @@ from protocol.piezo_canopen import (
 __all__ = ["CanopenAmpNode", "OutboxNetwork"]
 
 log = logging.getLogger(__name__)
+
+_STATE_OF_NAME = {name: NmtState(code) for code, name in NMT_STATES.items()
+                  if code in NmtState._value2member_map_}
+"""Our :class:`NmtState` of each state name the library's ``nmt.state`` gives (its
+``INITIALISING`` is the boot-up state, 0)."""
 
 
 class _NoTask:
@@ -140,15 +146,23 @@ class CanopenAmpNode:
     # -- NMT -----------------------------------------------------------------------------------
 
     def _boot(self) -> None:
-        """Boot-up message, then pre-operational (heartbeats from :meth:`pump`, machine time)."""
-        self.network.send_message(self.cob_ids["heartbeat"], bytes([NmtState.BOOT_UP]))
-        # the state is set directly: NmtSlave's own transition starts a heartbeat task
-        self.node.nmt._state = int(NmtState.PRE_OPERATIONAL)
+        """Boot-up message, then pre-operational (heartbeats from :meth:`pump`, machine time).
+
+        Through the library's own NMT slave: initialising sends the boot-up message; its
+        transition to pre-operational starts its heartbeat task, which the network makes a
+        no-op (:meth:`OutboxNetwork.send_periodic`).
+        """
+        self.node.nmt.state = "INITIALISING"
+        self.node.nmt.state = "PRE-OPERATIONAL"
 
     @property
     def nmt_state(self) -> NmtState:
-        """The node's NMT state."""
-        return NmtState(self.node.nmt._state if self.node.nmt._state else NmtState.BOOT_UP)
+        """The node's NMT state (the library's ``nmt.state``)."""
+        name = self.node.nmt.state
+        state = _STATE_OF_NAME.get(name)
+        if state is None:
+            raise ValueError(f"nmt state {name!r} is none of {list(_STATE_OF_NAME)}")
+        return state
 
     @property
     def heartbeat_period_s(self) -> float:
@@ -254,16 +268,18 @@ class CanopenAmpNode:
 
         A late call sends each once and re-aligns its schedule (no burst of backlog).
         """
-        if self.node.nmt._state == 0:  # reset by the master: boot again
+        state = self.nmt_state
+        if state is NmtState.BOOT_UP:  # reset by the master: boot again
             self._boot()
+            state = NmtState.PRE_OPERATIONAL
         if self._next_status_s is None or self._next_heartbeat_s is None:
             self._next_status_s = self._next_heartbeat_s = now_s
         if now_s >= self._next_heartbeat_s - 1e-9:
             period = self.heartbeat_period_s
             if period > 0:
                 self._next_heartbeat_s = _next(self._next_heartbeat_s, period, now_s)
-                self.network.send_message(self.cob_ids["heartbeat"], bytes([self.nmt_state]))
-        if self.node.nmt._state != NmtState.OPERATIONAL:
+                self.network.send_message(self.cob_ids["heartbeat"], bytes([state]))
+        if state is not NmtState.OPERATIONAL:
             return
         if now_s >= self._next_status_s - 1e-9:
             self._next_status_s = _next(self._next_status_s, STATUS_PERIOD_S, now_s)

@@ -80,3 +80,38 @@ def test_the_amplifiers_pdos_are_byte_ranges():
     assert all(node._slots[id(p)] is not None
                for p in (node.node.rpdo[1], node.node.rpdo[2], node.node.rpdo[3],
                          node.node.tpdo[1]))
+
+
+def _nmt_run(core: AmpNodeCore) -> list:
+    """Boot, then NMT commands between polls: every frame sent and the state after each."""
+    out = [("boot", core.poll(0.0), core.node.nmt_state)]
+    t = 0.0
+    for cmd in (1, 2, 1, 0x80, 0x81, 1, 0x82, 1, 2):
+        core.on_frame(0x000, bytes([cmd, NODE]), t)
+        for _ in range(12):  # past one heartbeat period (0.1 s)
+            t = round(t + 0.01, 9)
+            out.append((cmd, core.poll(t), core.node.nmt_state))
+    return out
+
+
+def test_nmt_through_the_librarys_public_state():
+    """The node's NMT goes through the library's public ``nmt.state`` (not its ``_state``):
+    the boot-up message, a reset (0x81) or a reset of communication (0x82) booting it again
+    (boot-up, then pre-operational), the heartbeat carrying each state, the status only when
+    operational; the same frames as the node that set ``nmt._state`` itself sent."""
+    from protocol.piezo_canopen import NmtState
+
+    core = AmpNodeCore(StatusMachine(knives=4, stroke_um=20.0), knives=4, node_id=NODE)
+    run = _nmt_run(core)
+    hb = IDS["heartbeat"]
+    beats = [(cmd, f[1]) for cmd, frames, _ in run for f in frames if f[0] == hb]
+    assert beats == [("boot", b"\x00"), ("boot", b"\x7f"),  # boot-up, then pre-operational
+                     (1, b"\x05"), (2, b"\x04"), (1, b"\x05"), (0x80, b"\x7f"),
+                     (0x81, b"\x00"), (0x81, b"\x7f"), (0x81, b"\x7f"), (1, b"\x05"),
+                     (0x82, b"\x00"), (0x82, b"\x7f"), (1, b"\x05"), (2, b"\x04")]
+    states = {cmd: state for cmd, _, state in run}  # each command's last state
+    assert states == {"boot": NmtState.PRE_OPERATIONAL, 1: NmtState.OPERATIONAL,
+                      2: NmtState.STOPPED, 0x80: NmtState.PRE_OPERATIONAL,
+                      0x81: NmtState.PRE_OPERATIONAL, 0x82: NmtState.PRE_OPERATIONAL}
+    statuses = {cmd for cmd, frames, _ in run for f in frames if f[0] == IDS["tpdo1"]}
+    assert statuses == {1}  # the status only while operational
