@@ -54,6 +54,8 @@ __all__ = [
     "JournalEntry",
     "RecordSink",
     "bare_failed",
+    "checked_log",
+    "checked_sink_args",
     "default_journal_path",
     "log_unavailable",
     "one_line",
@@ -208,14 +210,26 @@ def checked_sink_args(log: Any, journal_path: str | Path) -> tuple[bool, Path]:
     IsADirectoryError
         ``journal_path`` is a folder.
     """
-    if not hasattr(log, "append"):
-        raise ValueError(f"log must be a QualityLog, got {type(log).__name__}")
-    # a log without identities (a test double) still works, without exactly-once
-    uid_ok = takes_keyword(log.append, "uid")
+    uid_ok = checked_log(log)
     path = Path(journal_path)
     if path.is_dir():
         raise IsADirectoryError(f"journal path is a directory: {path}")
     return uid_ok, path
+
+
+def checked_log(log: Any) -> bool:
+    """A writer's log checked (the one place): whether it stores records' uids.
+
+    A log without identities (a test double) still works, without exactly-once.
+
+    Raises
+    ------
+    ValueError
+        ``log`` has no ``append``.
+    """
+    if not hasattr(log, "append"):
+        raise ValueError(f"log must be a QualityLog, got {type(log).__name__}")
+    return takes_keyword(log.append, "uid")
 
 
 def takes_keyword(method: Any, name: str) -> bool:

@@ -63,6 +63,7 @@ from typing import Any
 from controller.quality.journal import (
     JournalEntry,
     bare_failed,
+    checked_log,
     checked_sink_args,
     log_unavailable,
     one_line,
@@ -247,10 +248,8 @@ class WriterGroup:
     """
 
     def __init__(self, log: Any, *, db_timeout_s: float = DB_TIMEOUT_S) -> None:
-        if not hasattr(log, "append"):
-            raise ValueError(f"log must be a QualityLog, got {type(log).__name__}")
+        self._uid_ok = checked_log(log)
         self.log = log
-        self._uid_ok = takes_keyword(log.append, "uid")
         self._many = getattr(log, "append_many", None)
         self._text_ok = self._many is not None and takes_keyword(self._many, "extra_json")
         self._one_text_ok = takes_keyword(log.append, "extra_json")

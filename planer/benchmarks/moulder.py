@@ -54,8 +54,6 @@ from planer.benchmarks.service import (
 )
 from protocol.piezo_canopen import STATUS_PERIOD_S
 
-HEADS: tuple[tuple[str, int], ...] = (("bottom", 2), ("right", 3), ("left", 4), ("top", 5))
-"""The moulder's heads: name and amplifier node id (config/machine_moulder.toml's, in order)."""
 RATE_HZ = 100.0
 """Pairs per second of each head's camera."""
 WORKERS = 2
@@ -129,6 +127,15 @@ MOULDER_SIM = "sim_moulder.toml"
 """The simulated moulder (``config/``)."""
 
 
+def moulder_heads() -> tuple[tuple[str, int], ...]:
+    """The moulder's heads: name and amplifier node id, in order (:data:`MOULDER_CONFIG`'s)."""
+    from config.loading import default_path
+    from config.machine import load_machine
+
+    return tuple((h.name, h.node_id)
+                 for h in load_machine(default_path(MOULDER_CONFIG)).heads)
+
+
 def _moulder_frames(n: int, *, seed: int = 1) -> tuple[dict[str, list], Any]:
     """``n`` rendered pairs of every head, and the moulder in its first state for the PLC.
 
@@ -151,7 +158,7 @@ def _moulder_frames(n: int, *, seed: int = 1) -> tuple[dict[str, list], Any]:
 
 
 def _machine_config(host: str, port: int, shape: tuple[int, int], workdir: Path,
-                    heads: int) -> Any:
+                    heads: int | None) -> Any:
     """``machine_moulder.toml`` for the bench.
 
     With the simulated PLC's port, the images' size, its first ``heads`` heads and a quality
@@ -286,7 +293,7 @@ async def _run(
     rate_hz: float = RATE_HZ,
     workdir: Path,
     workers: int = WORKERS,
-    heads: int = len(HEADS),
+    heads: int | None = None,
     ready_timeout_s: float = READY_TIMEOUT_S,
     priority: bool = False,
     depth: int | None = None,
@@ -452,7 +459,7 @@ def _figures(bench: list[_Head], frames: list, *, rate_hz: float, workers: int,
         "overall": overall,
         "meets": meets,
         "target_p99_ms": TARGET_P99_MS,
-        "at_target_rate": rate_hz >= RATE_HZ and len(bench) == len(HEADS),
+        "at_target_rate": rate_hz >= RATE_HZ and len(bench) == len(moulder_heads()),
         "width": int(w), "height": int(h),
         "rate_hz_per_head": rate_hz,
         "pairs_per_head": len(frames),
@@ -478,7 +485,7 @@ class _NoGc:
 
 
 def run(quick: bool = False, *, workers: int = WORKERS, rate_hz: float = RATE_HZ,
-        heads: int = len(HEADS), depth: int | None = None) -> dict[str, Any]:
+        heads: int | None = None, depth: int | None = None) -> dict[str, Any]:
     """Four heads at :data:`RATE_HZ` pairs/s each, one shared pool of ``workers`` processes.
 
     Parameters
@@ -489,8 +496,9 @@ def run(quick: bool = False, *, workers: int = WORKERS, rate_hz: float = RATE_HZ
         Measurement worker processes shared by the heads (0: in the service's process).
     rate_hz : float
         Pairs per second of each head (what fits: a sweep below the target rate).
-    heads : int
-        The first this many of :data:`HEADS` (1: a single head through the same bench).
+    heads : int, optional
+        The first this many of :func:`moulder_heads` (1: a single head through the same
+        bench); default all of them.
     depth : int, optional
         Pairs a worker holds at once (default
         :data:`controller.workers.pool.DEFAULT_DEPTH`).
@@ -509,7 +517,8 @@ def run(quick: bool = False, *, workers: int = WORKERS, rate_hz: float = RATE_HZ
     from core.checks import check_int, check_positive
 
     check_int("workers", workers, lo=0)
-    check_int("heads", heads, lo=1, hi=len(HEADS))
+    every = len(moulder_heads())
+    heads = every if heads is None else check_int("heads", heads, lo=1, hi=every)
     check_positive("rate_hz", rate_hz)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     n = QUICK_PAIRS if quick else PAIRS_PER_HEAD

@@ -37,8 +37,8 @@ def test_four_heads_share_one_pool_and_every_pair_comes_back_to_its_head(
 
     out = _run(tmp_path, frames_and_machine, workers=1)
     heads = out["heads"]
-    assert list(heads) == [name for name, _ in moulder.HEADS]
-    assert [h["node_id"] for h in heads.values()] == [node for _, node in moulder.HEADS]
+    assert list(heads) == [name for name, _ in moulder.moulder_heads()]
+    assert [h["node_id"] for h in heads.values()] == [node for _, node in moulder.moulder_heads()]
     for name, h in heads.items():
         assert h["pairs_in"] == N_PAIRS, name
         assert h["handled"] + h["dropped"] + h["unfinished"] == h["pairs_in"], name
@@ -51,7 +51,7 @@ def test_four_heads_share_one_pool_and_every_pair_comes_back_to_its_head(
     o = out["overall"]
     for key in ("pairs_in", "handled", "measured", "applied", "failed", "dropped"):
         assert o[key] == sum(h[key] for h in heads.values()), key
-    assert o["handled"] == len(moulder.HEADS) * N_PAIRS and o["measured"] >= 1
+    assert o["handled"] == len(moulder.moulder_heads()) * N_PAIRS and o["measured"] >= 1
     assert out["workers"] == 1 and out["workers_shared"]
     assert out["meets"]["nothing_dropped"]  # every pair handled (a flagged one too)
     assert not any(h["writes_feed"] for h in heads.values())  # the coordinator does
@@ -66,7 +66,7 @@ def test_four_heads_share_one_pool_and_every_pair_comes_back_to_its_head(
     assert [p.name for p in tmp_path.glob("*.sqlite")] == ["moulder.sqlite"]  # one log
     json.dumps(out)  # what --json prints
     text = moulder.text({**out, "machine": {"cores": 2, "load_avg": [1.0, 1.0, 1.0]}})
-    assert all(f"{name} (node {node})" in text for name, node in moulder.HEADS)
+    assert all(f"{name} (node {node})" in text for name, node in moulder.moulder_heads())
     assert f"{o['handled']}/{o['pairs_in']} handled" in text
 
 
@@ -97,3 +97,15 @@ def test_run_refuses_nonsense_naming_the_parameter(kw, name):
 
     with pytest.raises(ValueError, match=name):
         moulder.run(quick=True, **kw)
+
+
+def test_the_heads_are_the_configuration_files_and_the_simulated_moulders():
+    """The bench's heads come from ``machine_moulder.toml``; its pairs are the simulator's."""
+    from config.loading import default_path
+    from config.sim import load_sim
+    from planer.benchmarks import moulder
+
+    heads = moulder.moulder_heads()
+    assert len(heads) == 4 and len({node for _, node in heads}) == 4  # a node id each
+    sim = load_sim(default_path(moulder.MOULDER_SIM))
+    assert [name for name, _ in heads] == [h.name for h in sim.heads]
