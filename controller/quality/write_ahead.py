@@ -264,6 +264,9 @@ class WriterGroup:
         # the last journal append, database write: none yet (the first goes at once, however
         # long the clock has run)
         self.journal_at = self.db_at = -math.inf
+        # a thread that waits for its first record (no timed wait for more): a record woken
+        # for; one that waits for more until its time, or writes, finds them when it looks
+        self.journal_idle = self.db_idle = False
         self._journal_thread = threading.Thread(target=self._run, args=(self._journal_loop,),
                                                 daemon=True, name="quality-journal")
         self._db_thread = threading.Thread(target=self._run, args=(self._db_loop,),
@@ -347,7 +350,9 @@ class WriterGroup:
             with self.lock:
                 while not self._inbox_most() and not self._all_closing():
                     unsaved = any(m._unsaved for m in self.members)
+                    self.journal_idle = True
                     self.journal_cv.wait(1.0 if unsaved else None)
+                    self.journal_idle = False
                     if unsaved and not self._inbox_most():
                         break  # try the journal again for the records only in memory
                 while (n := self._inbox_most()) and (left := self._wait_left(
@@ -410,7 +415,9 @@ class WriterGroup:
                 break
             if any(m._compact_due() for m in active):
                 return active
+            self.db_idle = True
             self.db_cv.wait(COMPACT_IDLE_S)
+            self.db_idle = False
         while (n := sum(len(m._todo) for m in active)) and not any(
                 m._spill is not None for m in active) and (left := self._wait_left(
                 self.db_at + DB_WAIT_S, n, DB_BATCH_MAX)) > 0:
@@ -641,8 +648,10 @@ class WriteAheadSink:
             self._inbox.append(item)
             self._pending += 1
             self._start()
-            if len(self._inbox) == 1 or len(self._inbox) >= JOURNAL_BATCH_MAX:
-                self._group.journal_cv.notify()  # else it waits for more until its time anyway
+            group = self._group
+            if (len(self._inbox) == 1 and group.journal_idle) or \
+                    len(self._inbox) >= JOURNAL_BATCH_MAX:
+                group.journal_cv.notify()  # else it waits for more until its time anyway
 
     @property
     def queued(self) -> int:
@@ -757,7 +766,7 @@ class WriteAheadSink:
                         self._todo.extend(entries)
                     elif entries:  # the backlog waits on disk, read back later
                         self._spill = (self._spill[0] if self._spill else first, end)
-                    if idle or len(self._todo) >= DB_BATCH_MAX:
+                    if (idle and self._group.db_idle) or len(self._todo) >= DB_BATCH_MAX:
                         self._group.db_cv.notify()  # else it waits for more until its time anyway
                 else:
                     self._journal_error = err
