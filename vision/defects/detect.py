@@ -553,25 +553,12 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
     smap = res.smap
     prof = res.profile
     h = np.cumsum(prof) * 1000.0 / smap.cols_per_mm
-    xs = smap.feed_mm(np.arange(prof.size)) + smap.cx / smap.px_per_mm  # Measurement.x_mm
+    xs = _feed_positions(prof.size, smap.col0_px, smap.col_step_px, smap.cx, smap.px_per_mm)
     d = np.diff(np.interp(np.asarray(bottoms_mm, dtype=np.float64), xs, h))
-    m = d.size
-    basis = _chatter_basis(m, knives)
-    if basis is None:
+    fit = _chatter_fit(d, knives)
+    if fit is None:
         return []
-    knife, per_knife, trend, f, sn, cs, gss, gsc, gcc = basis
-    e = d - (per_knife @ d)[knife]
-    e = e - trend * float(trend @ e) / float(trend @ trend)
-    bs, bc = sn @ e, cs @ e
-    det = np.maximum(gss * gcc - gsc * gsc, 1e-18)
-    a_s, a_c = (gcc * bs - gsc * bc) / det, (gss * bc - gsc * bs) / det
-    fitted = a_s * bs + a_c * bc  # |fit|^2 of the least-squares fit
-    ee = max(float(e @ e), 1e-18)
-    k = int(np.argmax(fitted))
-    explained = float(fitted[k]) / ee
-    amp_d = float(np.hypot(a_s[k], a_c[k]))
-    noise = math.sqrt(max(ee - float(fitted[k]), 0.0) / m) * math.sqrt(2.0 / m)
-    amp = amp_d / (2.0 * math.sin(math.pi * float(f[k])))
+    explained, amp_d, noise, amp = fit
     if amp < settings.chatter_um or explained < 0.5 or amp_d < 4.5 * noise:
         return []
     cols = smap.valid_cols
@@ -581,12 +568,55 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
                     (int(rows[0]), int(rows[-1]) + 1), amp, conf)]
 
 
+@functools.lru_cache(maxsize=8)
+def _feed_positions(n: int, col0_px: float, col_step_px: float, cx: float,
+                    px_per_mm: float) -> np.ndarray:
+    """The map columns' positions along the feed as ``Measurement.x_mm`` (mm), once per grid.
+
+    ``smap.feed_mm(np.arange(n)) + smap.cx / smap.px_per_mm`` of a map with this grid: the
+    same numbers (read-only).
+    """
+    c = np.arange(n).astype(np.float64)
+    xs = (col0_px + c * col_step_px - cx) / px_per_mm + cx / px_per_mm
+    xs.flags.writeable = False
+    return xs
+
+
+def _chatter_fit(d: np.ndarray, knives: int) -> tuple[float, float, float, float] | None:
+    """The best sinusoid of :func:`chatter` on the differences ``d`` of the marks' heights.
+
+    Returns ``(explained, amp_d, noise, amp)``: the share of the variance the best period
+    explains, its amplitude of the differences, their noise's standard error, the heights'
+    amplitude; ``None`` without a period to fit. The basis and its determinants are set up
+    once per number of marks (:func:`_chatter_basis`).
+    """
+    m = d.size
+    basis = _chatter_basis(m, knives)
+    if basis is None:
+        return None
+    knife, per_knife, trend, f, sn, cs, gss, gsc, gcc, tt, det = basis
+    e = d - (per_knife @ d)[knife]
+    e = e - trend * float(trend @ e) / tt
+    bs, bc = sn @ e, cs @ e
+    a_s, a_c = (gcc * bs - gsc * bc) / det, (gss * bc - gsc * bs) / det
+    fitted = a_s * bs + a_c * bc  # |fit|^2 of the least-squares fit
+    ee = max(float(e @ e), 1e-18)
+    k = int(np.argmax(fitted))
+    explained = float(fitted[k]) / ee
+    amp_d = float(np.hypot(a_s[k], a_c[k]))
+    noise = math.sqrt(max(ee - float(fitted[k]), 0.0) / m) * math.sqrt(2.0 / m)
+    amp = amp_d / (2.0 * math.sin(math.pi * float(f[k])))
+    return explained, amp_d, noise, amp
+
+
 @functools.lru_cache(maxsize=32)
-def _chatter_basis(m: int, knives: int) -> tuple[np.ndarray, ...] | None:
+def _chatter_basis(m: int, knives: int) -> tuple[Any, ...] | None:
     """The sinusoids :func:`chatter` fits to ``m`` differences (``knives`` knives), set up once.
 
     Each knife's mean and a linear trend removed from them as from the data; returns
-    ``(knife, per_knife, trend, f, sin, cos, gss, gsc, gcc)`` or ``None`` without a frequency.
+    ``(knife, per_knife, trend, f, sin, cos, gss, gsc, gcc, tt, det)`` (``tt`` the trend's
+    square, ``det`` each frequency's normal equations' determinant, floored at ``1e-18``) or
+    ``None`` without a frequency.
     """
     j = np.arange(m)
     knife = j % knives
@@ -606,11 +636,12 @@ def _chatter_basis(m: int, knives: int) -> tuple[np.ndarray, ...] | None:
     for b in (sn, cs):  # the same knife means and trend removed as from the data
         b -= (b @ per_knife.T)[:, knife]
         b -= np.outer(b @ trend, trend) / tt
-    out = (knife, per_knife, trend, f, sn, cs, (sn * sn).sum(1), (sn * cs).sum(1),
-           (cs * cs).sum(1))
-    for a in out:
+    gss, gsc, gcc = (sn * sn).sum(1), (sn * cs).sum(1), (cs * cs).sum(1)
+    det = np.maximum(gss * gcc - gsc * gsc, 1e-18)
+    arrays = (knife, per_knife, trend, f, sn, cs, gss, gsc, gcc, det)
+    for a in arrays:
         a.flags.writeable = False
-    return out
+    return (*arrays[:9], float(trend @ trend), det)
 
 
 def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> list[Defect]:
@@ -768,26 +799,34 @@ class DefectFinder:
 
     def __call__(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
                  roll_deg: float, bottoms_mm: np.ndarray | None = None,
-                 pitch_mm: float | None = None,
-                 encoder_shift_px: float | None = None) -> tuple[Defect, ...]:
+                 pitch_mm: float | None = None, encoder_shift_px: float | None = None,
+                 coarse: tuple[np.ndarray | None, np.ndarray | None] | None = None
+                 ) -> tuple[Defect, ...]:
         """The defects of one pair from its row bins.
 
         Registered at ``shift_px`` (px along the feed) with the feed at ``roll_deg``; or one
-        marks' pitch off it, toward the encoder's shift (:meth:`registered`).
+        marks' pitch off it, toward the encoder's shift (:meth:`registered`). ``coarse``: the
+        map's coarse sources of A and B where already made
+        (:meth:`vision.defects.surface_map.SurfaceMapper.coarse_source`).
         """
         res = self.registered(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg,
-                              pitch_mm=pitch_mm, encoder_shift_px=encoder_shift_px)
+                              pitch_mm=pitch_mm, encoder_shift_px=encoder_shift_px,
+                              coarse=coarse)
         return detect_in_residual(res, bottoms_mm, self.knives, pitch_mm, self.settings)
 
     def residual_at(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
-                    roll_deg: float) -> Residual:
+                    roll_deg: float,
+                    coarse: tuple[np.ndarray | None, np.ndarray | None] | None = None
+                    ) -> Residual:
         """The pair's residual registered at ``shift_px`` (its map without the albedo)."""
         return residual(self.mapper(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg,
-                                    albedo=False), self.settings)
+                                    albedo=False, coarse=coarse), self.settings)
 
     def registered(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
                    roll_deg: float, pitch_mm: float | None = None,
-                   encoder_shift_px: float | None = None) -> Residual:
+                   encoder_shift_px: float | None = None,
+                   coarse: tuple[np.ndarray | None, np.ndarray | None] | None = None
+                   ) -> Residual:
         """The pair's residual at ``shift_px``, or one marks' pitch off it toward the encoder.
 
         The marks repeat every pitch, so a registration can lock one pitch off the encoder's
@@ -807,7 +846,11 @@ class DefectFinder:
         without the encoder's shift or the pitch, pays nothing more.
         """
         s = self.settings
-        res = self.residual_at(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg)
+        ca, cb = (None, None) if coarse is None else coarse  # made once for every map made
+        coarse = (self.mapper.coarse_source(rows_a) if ca is None else ca,
+                  self.mapper.coarse_source(rows_b) if cb is None else cb)
+        res = self.residual_at(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg,
+                               coarse=coarse)
         if (pitch_mm is None or not math.isfinite(pitch_mm) or pitch_mm <= 0
                 or encoder_shift_px is None or not math.isfinite(encoder_shift_px)):
             return res
@@ -822,7 +865,8 @@ class DefectFinder:
             return res
         best = res
         for alt in alts:
-            other = self.residual_at(rows_a, rows_b, shift_px=alt, roll_deg=roll_deg)
+            other = self.residual_at(rows_a, rows_b, shift_px=alt, roll_deg=roll_deg,
+                                     coarse=coarse)
             if (other.median < s.slip_median * best.median
                     and np.count_nonzero(other.marked) < s.slip_cells * n_marked):
                 best = other

@@ -146,7 +146,8 @@ def _grid(centre: float, half: float, step: float) -> np.ndarray:
 
 
 def refused_surface(finder: DefectFinder, rows_a: np.ndarray, rows_b: np.ndarray, *,
-                    encoder_shift_px: float, roll_deg: float, slip_px: float
+                    encoder_shift_px: float, roll_deg: float, slip_px: float,
+                    coarse: tuple[np.ndarray | None, np.ndarray | None] | None = None
                     ) -> RefusedSurface:
     """The defects of a refused pair (see the module's docstring).
 
@@ -163,6 +164,9 @@ def refused_surface(finder: DefectFinder, rows_a: np.ndarray, rows_b: np.ndarray
     slip_px : float
         How far from the encoder's shift the board may have moved (the belt's slip), px;
         0: the encoder's shift as it is.
+    coarse : tuple of ndarray or None, optional
+        The map's coarse sources of A and B where already made (as
+        :meth:`DefectFinder.__call__`); made here once otherwise, not for every shift tried.
 
     Returns
     -------
@@ -172,9 +176,14 @@ def refused_surface(finder: DefectFinder, rows_a: np.ndarray, rows_b: np.ndarray
     slip = check_positive("slip_px", slip_px, allow_zero=True)
     settings = finder.settings
     col_px = float(finder.mapper.bin_cols)  # image px per map column
+    # the coarse sources made once for every shift tried
+    ca, cb = (None, None) if coarse is None else coarse
+    coarse = (finder.mapper.coarse_source(rows_a) if ca is None else ca,
+              finder.mapper.coarse_source(rows_b) if cb is None else cb)
 
     def scored(shift: float) -> tuple[float, Residual]:
-        res = finder.residual_at(rows_a, rows_b, shift_px=shift, roll_deg=roll_deg)
+        res = finder.residual_at(rows_a, rows_b, shift_px=shift, roll_deg=roll_deg,
+                                 coarse=coarse)
         return res.median, res
 
     best_shift = enc

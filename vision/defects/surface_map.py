@@ -326,6 +326,17 @@ class SurfaceMapper:
             self._tables.popitem(last=False)
         return hit
 
+    def coarse_source(self, rows: np.ndarray) -> np.ndarray:
+        """The coarse source of one image's source rows (what :meth:`__call__` remaps).
+
+        Made once where several maps of the same pair are made (``coarse`` of
+        :meth:`__call__`): float32, shape ``(rows // merge_rows, width // bin_cols)``.
+        """
+        if np.shape(rows) != (self.n_src, self.width):
+            raise ValueError(f"rows must have shape {(self.n_src, self.width)}, "
+                             f"got {np.shape(rows)}")
+        return np.ascontiguousarray(self._coarse(rows))
+
     def _coarse(self, rows: np.ndarray) -> np.ndarray:
         """The source rows averaged over ``merge_rows x bin_cols`` blocks, float32."""
         src = r = np.asarray(rows)
@@ -353,8 +364,20 @@ class SurfaceMapper:
                            (self._w_red, self._n_red), interpolation=cv2.INTER_AREA)
         return r.astype(np.float32, copy=False)
 
+    def _given(self, coarse: np.ndarray, name: str) -> np.ndarray:
+        """A coarse source handed in (:meth:`coarse_source`'s), checked: float32, its shape."""
+        if (not isinstance(coarse, np.ndarray) or coarse.dtype != np.float32
+                or coarse.shape != (self._n_red, self._w_red)):
+            raise ValueError(f"{name} must be a float32 array of shape "
+                             f"{(self._n_red, self._w_red)}, got "
+                             f"{getattr(coarse, 'dtype', type(coarse).__name__)} "
+                             f"{np.shape(coarse)}")
+        return np.ascontiguousarray(coarse)
+
     def __call__(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
-                 roll_deg: float = 0.0, albedo: bool = True) -> SurfaceMap:
+                 roll_deg: float = 0.0, albedo: bool = True,
+                 coarse: tuple[np.ndarray | None, np.ndarray | None] | None = None
+                 ) -> SurfaceMap:
         """The map of one pair from its row-binned images.
 
         Parameters
@@ -369,6 +392,10 @@ class SurfaceMapper:
         albedo : bool, optional
             Also the albedo (``SurfaceMap.albedo``; the detectors do not read it: the
             :class:`vision.defects.detect.DefectFinder` leaves it out, ``None``).
+        coarse : tuple of ndarray or None, optional
+            The coarse sources of A and B already made from ``rows_a`` and ``rows_b``
+            (:meth:`coarse_source`: made once where several maps of one pair are made);
+            either ``None``: made here from its rows.
 
         Returns
         -------
@@ -384,9 +411,12 @@ class SurfaceMapper:
         # both images at once, cv2.remap's numbers (INTER_LINEAR, BORDER_REPLICATE)
         a = np.empty(valid.shape, dtype=np.float32)
         b = np.empty_like(a)
-        kernels.remap_pair(np.ascontiguousarray(self._coarse(rows_a)),
-                           np.ascontiguousarray(self._coarse(rows_b)), taps.off, taps.ax,
-                           taps.ay, taps.x0, taps.y0, taps.inside, a, b)
+        ca, cb = (None, None) if coarse is None else coarse
+        kernels.remap_pair(self._given(ca, "coarse[0]") if ca is not None
+                           else np.ascontiguousarray(self._coarse(rows_a)),
+                           self._given(cb, "coarse[1]") if cb is not None
+                           else np.ascontiguousarray(self._coarse(rows_b)), taps.off,
+                           taps.ax, taps.ay, taps.x0, taps.y0, taps.inside, a, b)
         slope = np.empty_like(a)
         alb = np.empty_like(a) if albedo else np.empty((0, 0), dtype=np.float32)
         both = np.empty(a.shape, dtype=bool)

@@ -70,6 +70,9 @@ def test_a_clean_pair_is_mapped_once():
             calls.append(kw["shift_px"])
             return mapper(*args, **kw)
 
+        def coarse_source(self, rows):  # made once per pair, not a map
+            return mapper.coarse_source(rows)
+
     finder.mapper = Counting()
     try:
         found = finder(a, b, shift_px=board.shift_px, roll_deg=roll, pitch_mm=PITCH_MM,

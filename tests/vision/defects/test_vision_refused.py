@@ -83,6 +83,28 @@ def test_the_shift_is_refined_on_the_map_within_the_slip():
     assert [d.kind for d in found.defects] == [DefectKind.FUZZY_GRAIN]
 
 
+def test_the_coarse_sources_are_made_once_for_every_shift_tried(monkeypatch):
+    board = cached_board(**board_spec(REFUSED_FUZZY_SLIPPED))
+    m = _measurer(board)
+    ba, bb = m._binned(board.image_a, "a"), m._binned(board.image_b, "b")
+    _, roll = _orient(m, ba, bb, None)
+    enc = _encoder_px(board)
+    mapper = m.defect_finder.mapper
+    made, maps = [], []
+    coarse, call = mapper._coarse, type(mapper).__call__
+    monkeypatch.setattr(mapper, "_coarse", lambda rows: made.append(1) or coarse(rows))
+    monkeypatch.setattr(type(mapper), "__call__",
+                        lambda self, *a, **kw: maps.append(1) or call(self, *a, **kw))
+    found = refused_surface(m.defect_finder, ba.bins, bb.bins, encoder_shift_px=enc,
+                            roll_deg=roll, slip_px=6.0)
+    assert len(maps) > 5 and len(made) == 2  # ~15 maps of one pair, its two sources once
+    # the same surface as with the sources handed in
+    given = refused_surface(m.defect_finder, ba.bins, bb.bins, encoder_shift_px=enc,
+                            roll_deg=roll, slip_px=6.0,
+                            coarse=(coarse(ba.bins), coarse(bb.bins)))
+    assert given == found and len(made) == 2
+
+
 def test_the_pitch_is_read_from_the_maps_marks():
     board = cached_board(**board_spec(REFUSED_NICK))
     m = _measurer(board)

@@ -194,3 +194,32 @@ def test_a_map_without_the_albedo_has_the_same_slope():
     assert bare.albedo is None and full.albedo is not None
     assert np.array_equal(bare.valid, full.valid)
     assert np.array_equal(bare.slope_along_feed, full.slope_along_feed)
+
+
+def test_coarse_sources_made_once_give_the_same_map():
+    """Where several maps of one pair are made (a pitch off, a refused pair's shifts), the
+    coarse sources are made once (``coarse_source``) and handed in: the same map."""
+    cam = Camera(fx=1400.0, fy=1400.0, cx=329.0, cy=120.0, dist=(-0.12, 0.0, 0.0, 0.0, 0.0),
+                 px_per_mm=12.5)
+    rng = np.random.default_rng(5)
+    rows_a = (1000 + 200 * rng.random((48, 659))).astype(np.uint16)
+    rows_b = (1000 + 200 * rng.random((48, 659))).astype(np.uint16)
+    mapper = SurfaceMapper(cam, Lights(slant_deg=SLANT), (240, 659), bin_rows=5, bin_cols=2)
+    coarse = (mapper.coarse_source(rows_a), mapper.coarse_source(rows_b))
+    assert coarse[0].dtype == np.float32 and coarse[0].flags.c_contiguous
+    for shift in (14.6, -3.2):
+        want = mapper(rows_a, rows_b, shift_px=shift, roll_deg=0.4, albedo=False)
+        got = mapper(rows_a, rows_b, shift_px=shift, roll_deg=0.4, albedo=False, coarse=coarse)
+        assert np.array_equal(got.slope_along_feed, want.slope_along_feed)
+        assert np.array_equal(got.valid, want.valid)
+    # either one left None: made from its rows
+    half = mapper(rows_a, rows_b, shift_px=14.6, roll_deg=0.4, albedo=False,
+                  coarse=(None, coarse[1]))
+    assert np.array_equal(half.slope_along_feed, mapper(rows_a, rows_b, shift_px=14.6,
+                                                        roll_deg=0.4).slope_along_feed)
+    with pytest.raises(ValueError, match=r"coarse\[0\]"):
+        mapper(rows_a, rows_b, shift_px=14.6, coarse=(coarse[0].astype(np.float64), None))
+    with pytest.raises(ValueError, match=r"coarse\[1\]"):
+        mapper(rows_a, rows_b, shift_px=14.6, coarse=(None, coarse[1][:-1]))
+    with pytest.raises(ValueError, match="rows"):
+        mapper.coarse_source(rows_a[:-1])
