@@ -161,6 +161,8 @@ MAX_KNIVES = 8
 """Most knives the piezo frames carry."""
 MAX_READ_WORDS = 125
 """Most registers one Modbus read (function 3 or 23) returns."""
+BlocksReads = tuple[tuple[int, int, tuple[int, ...]], ...]
+"""Reads of head blocks: ``(address, words, heads)`` each (:meth:`PlcProtocol.blocks_reads`)."""
 _POSITIVE = (
     "feed_min_mm_s",
     "feed_max_mm_s",
@@ -190,15 +192,30 @@ class PlcProtocol:
         self._feed = regmap["feed_setpoint_mm_s"]
         self._hb = regmap["heartbeat_service"]
         self._spindle = regmap.registers.get("spindle_setpoint_rpm")
+        self._block_used = regmap.heads.used if regmap.heads is not None else 0
+        """Words of a head's block its registers cover (``HeadBlock.used``, worked out once)."""
+        self._blocks_reads: dict[tuple[int, ...], BlocksReads] = {}
 
-    def blocks_reads(self, heads: Sequence[int]) -> tuple[tuple[int, int, tuple[int, ...]], ...]:
+    def blocks_reads(self, heads: Sequence[int]) -> BlocksReads:
         """The reads that fetch the blocks of ``heads``: ``(address, words, heads)`` each.
 
         One read per block, or, where the map's ``[heads] read_across`` lets a read run across
         blocks, one per run of consecutive heads (at most :data:`MAX_READ_WORDS` words: the
         last block's used words, the others' whole stride with their reserved words).
         ``ValueError`` naming a head outside the map's blocks (or a map without blocks).
+        Planned once per sequence of heads given as plain ints (a moulder's coordinator asks
+        for the same heads every PLC cycle); any other kind of index is checked each time.
         """
+        key = tuple(heads)
+        if all(type(h) is int for h in key):  # bools and other numbers take the long way
+            plan = self._blocks_reads.get(key)
+            if plan is None:
+                plan = self._blocks_reads[key] = self._plan_blocks_reads(key)
+            return plan
+        return self._plan_blocks_reads(key)
+
+    def _plan_blocks_reads(self, heads: Sequence[int]) -> BlocksReads:
+        """:meth:`blocks_reads` worked out (every head checked)."""
         block = self.regmap.heads
         if block is None:
             raise ValueError("heads: the register map has no [heads] blocks")
@@ -207,9 +224,10 @@ class PlcProtocol:
         order = sorted({int(h) for h in heads})
         out: list[tuple[int, int, tuple[int, ...]]] = []
         run: list[int] = []
+        used = self._block_used
         for h in order:
             fits = (block.read_across and run and h == run[-1] + 1
-                    and (h - run[0]) * block.stride + block.used <= MAX_READ_WORDS)
+                    and (h - run[0]) * block.stride + used <= MAX_READ_WORDS)
             if run and not fits:
                 out.append(self._blocks_read(run))
                 run = []
@@ -222,7 +240,7 @@ class PlcProtocol:
         block = self.regmap.heads
         assert block is not None
         first = block.address(run[0])
-        return first, (len(run) - 1) * block.stride + block.used, tuple(run)
+        return first, (len(run) - 1) * block.stride + self._block_used, tuple(run)
 
     def split_blocks(self, read: tuple[int, int, tuple[int, ...]],
                      words: Sequence[int]) -> dict[int, list[int]]:
@@ -236,8 +254,8 @@ class PlcProtocol:
             raise FieldbusError(f"PLC answered {len(words)} registers, expected {count}")
         block = self.regmap.heads
         assert block is not None
-        return {h: [int(w) for w in words[(h - heads[0]) * block.stride:][: block.used]]
-                for h in heads}
+        stride, used, h0 = block.stride, self._block_used, heads[0]
+        return {h: [int(w) for w in words[(h - h0) * stride:][:used]] for h in heads}
 
     def decode_read(self, words: Sequence[int]) -> dict[str, float | int]:
         """Decode the words of one whole-span read into every register's value."""

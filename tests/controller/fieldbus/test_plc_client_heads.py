@@ -372,3 +372,69 @@ def test_beat_and_read_without_function_23_is_the_two_requests():
             await server.stop()
 
     asyncio.run(main())
+
+
+def _blocks_reads_before(p, heads):
+    """``PlcProtocol.blocks_reads`` as it was before its plans were kept (re-planned each call)."""
+    from controller.fieldbus.plc_protocol import MAX_READ_WORDS
+
+    block = p.regmap.heads
+    if block is None:
+        raise ValueError("heads: the register map has no [heads] blocks")
+    for h in heads:
+        block.address(h)
+    order = sorted({int(h) for h in heads})
+    out, run = [], []
+
+    def one(run):
+        return block.address(run[0]), (len(run) - 1) * block.stride + block.used, tuple(run)
+
+    for h in order:
+        fits = (block.read_across and run and h == run[-1] + 1
+                and (h - run[0]) * block.stride + block.used <= MAX_READ_WORDS)
+        if run and not fits:
+            out.append(one(run))
+            run = []
+        run.append(h)
+    if run:
+        out.append(one(run))
+    return tuple(out)
+
+
+def test_blocks_reads_planned_once_are_the_plans_worked_out_each_time():
+    """Random sequences of heads, asked again and again (lists, tuples, ranges, numpy
+    integers, bad indices among them): the kept plan is the one worked out each time, a bad
+    index is refused every time (a bool is no head even after head 1 was planned), and the
+    caller's list may change afterwards."""
+    import random
+
+    import numpy as np
+
+    from controller.fieldbus.plc_protocol import PlcProtocol
+
+    rng = random.Random(7)
+    maps = (RMAP, _one_block_map())
+    for _ in range(400):
+        m = rng.choice(maps)
+        p = PlcProtocol(m)
+        for _ in range(6):
+            heads = [rng.randrange(-1, 10) for _ in range(rng.randrange(0, 9))]
+            if rng.random() < 0.1:
+                heads.append(rng.choice([True, 1.0, np.int64(2), "1"]))
+            shape = rng.choice([list, tuple])
+            try:
+                want = _blocks_reads_before(p, heads)
+            except (ValueError, TypeError) as exc:
+                with pytest.raises(type(exc)):
+                    p.blocks_reads(shape(heads))
+                continue
+            asked = shape(heads)
+            assert p.blocks_reads(asked) == want
+            if isinstance(asked, list):
+                asked.append(9)  # the caller's list changed: the kept plan did not
+            assert p.blocks_reads(shape(heads)) == want
+    p = PlcProtocol(RMAP)
+    assert p.blocks_reads([1]) is p.blocks_reads((1,))  # planned once
+    with pytest.raises(ValueError, match="integer"):
+        p.blocks_reads([True])
+    assert p.blocks_reads(range(4)) == _blocks_reads_before(p, range(4))
