@@ -8,6 +8,7 @@ here do each step in one call, with the arithmetic of the numpy code they replac
   remap's numbers (:class:`vision.defects.surface_map.SurfaceMapper`);
 * :func:`column_means_u16` -- the map's coarse source: whole blocks of columns of
   ``uint16`` row bins averaged, as ``float32`` (:class:`vision.defects.surface_map.SurfaceMapper`);
+* :func:`valid_any` -- the map's valid rows and columns in one pass;
 * :func:`register_ratio` -- B registered onto A along the rows (linear), the samples both
   shots see, the pair's constant imbalance removed, the slope by seed Eq. 4 and (when
   wanted) the albedo (:class:`vision.defects.surface_map.SurfaceMapper`);
@@ -208,6 +209,28 @@ def register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka
             v = (r - av) / (r * fka - av * fkb)
             slope[i, j] = v if both[i, j] else zero
     return n
+
+
+@njit(**_JIT)
+def valid_any(valid: np.ndarray, rows: np.ndarray,
+              cols: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Which rows and which columns of ``valid`` hold a valid sample, in one pass.
+
+    As ``valid.any(axis=1)`` into ``rows`` and ``valid.any(axis=0)`` into ``cols`` (the map's
+    valid rows and columns, :attr:`vision.defects.surface_map.SurfaceMap.valid_rows`), ~2x
+    faster than numpy's two reductions on a map of ~100 x 330 samples.
+    """
+    n, w = valid.shape
+    for c in range(w):
+        cols[c] = False
+    for r in range(n):
+        row = valid[r]
+        hit = False
+        for c in range(w):
+            v = row[c]
+            cols[c] |= v
+            hit |= v
+        rows[r] = hit
 
 
 @njit(**_JIT)
@@ -991,6 +1014,7 @@ def warm_up() -> None:
     for alb in (np.empty_like(a), np.empty((0, 0), np.float32)):
         register_ratio(a, a, valid, 1.5, 7.1, -7.1, out, alb, np.empty_like(valid))
     column_means_u16(np.ones((8, 12), dtype=np.uint16), 1, 3, 6, np.empty((2, 2), np.float32))
+    valid_any(np.ones((2, 3), dtype=bool), np.empty(2, dtype=bool), np.empty(3, dtype=bool))
     grid = np.zeros((2, 3), dtype=np.int32)
     for inside in (np.ones(2, dtype=np.bool_), np.zeros(2, dtype=np.bool_)):
         remap_pair(a, a, np.zeros((2, 3), dtype=np.uint32), np.zeros((2, 3), np.float32),

@@ -99,18 +99,26 @@ class SurfaceMap:
         return self.slope_along_feed.shape  # type: ignore[return-value]
 
     @functools.cached_property
+    def _valid_extent(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(valid_rows, valid_cols)``, both found in one compiled pass (once per map)."""
+        valid = np.ascontiguousarray(self.valid)
+        any_rows = np.empty(valid.shape[0], dtype=bool)
+        any_cols = np.empty(valid.shape[1], dtype=bool)
+        kernels.valid_any(valid, any_rows, any_cols)
+        rows, cols = np.flatnonzero(any_rows), np.flatnonzero(any_cols)
+        rows.flags.writeable = False
+        cols.flags.writeable = False
+        return rows, cols
+
+    @property
     def valid_cols(self) -> np.ndarray:
         """Map columns with at least one valid sample (found once per map; read-only)."""
-        cols = np.flatnonzero(self.valid.any(axis=0))
-        cols.flags.writeable = False
-        return cols
+        return self._valid_extent[1]
 
-    @functools.cached_property
+    @property
     def valid_rows(self) -> np.ndarray:
         """Map rows with at least one valid sample (found once per map; read-only)."""
-        rows = np.flatnonzero(self.valid.any(axis=1))
-        rows.flags.writeable = False
-        return rows
+        return self._valid_extent[0]
 
     @property
     def cols_per_mm(self) -> float:

@@ -15,7 +15,7 @@ from numba import njit
 
 from config.rig import Camera, Lights
 from vision.defects import kernels
-from vision.defects.surface_map import SurfaceMapper, _Taps
+from vision.defects.surface_map import SurfaceMap, SurfaceMapper, _Taps
 
 
 @njit(cache=False)
@@ -282,3 +282,27 @@ def test_the_mapper_is_its_earlier_form():
         kernels.register_ratio(a, b, valid, 14.6 / 2, mapper._ka, mapper._kb, slope,
                                np.empty((0, 0), np.float32), both)
         assert np.array_equal(got.valid, both) and np.array_equal(got.slope_along_feed, slope)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (7, 13), (98, 329), (80, 320)])
+def test_valid_any_is_numpys_any_along_both_axes(shape):
+    """The map's valid rows and columns in one pass: ``valid.any(axis=1)``, ``any(axis=0)``."""
+    rng = np.random.default_rng(shape[1])
+    for p in (0.0, 0.002, 0.5, 1.0):
+        valid = rng.random(shape) < p
+        rows, cols = np.empty(shape[0], bool), np.empty(shape[1], bool)
+        kernels.valid_any(valid, rows, cols)
+        assert np.array_equal(rows, valid.any(axis=1))
+        assert np.array_equal(cols, valid.any(axis=0))
+
+
+def test_the_maps_valid_rows_and_columns_are_numpys():
+    valid = np.zeros((9, 21), bool)
+    valid[2:7, 3:18] = True
+    valid[8, 20] = True
+    smap = SurfaceMap(slope_along_feed=np.zeros(valid.shape, np.float32), albedo=None,
+                      valid=valid, col0_px=0.0, row0_px=0.0, row_step_px=1.0, roll_deg=0.0,
+                      cx=0.0, cy=0.0, px_per_mm=1.0)
+    assert np.array_equal(smap.valid_cols, np.flatnonzero(valid.any(axis=0)))
+    assert np.array_equal(smap.valid_rows, np.flatnonzero(valid.any(axis=1)))
+    assert smap.valid_cols is smap.valid_cols and not smap.valid_rows.flags.writeable
