@@ -36,6 +36,7 @@ from typing import Any
 
 import can
 import canopen
+from canopen.objectdictionary.datatypes import INTEGER_TYPES
 
 from controller.laws.limits import AmpLimits
 from core.checks import check_int, check_positive
@@ -62,6 +63,10 @@ from protocol.piezo_canopen import (
 __all__ = ["AmpBus", "CanopenAmplifier", "CanopenStatus", "Emergency"]
 
 _FAULT_OF_CODE = {code: fault for fault, code in EMCY_CODES.items()}
+_FAULT_OF_BITS = tuple(AmpFault(bits) for bits in range(16))
+"""``AmpFault(bits)`` of each value of the status' four fault bits (built once)."""
+_STATE_OF_BYTE = tuple(AmpState(min(raw, AmpState.FAULT)) for raw in range(256))
+"""``AmpState(min(raw, FAULT))`` of each value of the status' state byte (built once)."""
 _LIMIT_READS = ((LIMITS, 1), (LIMITS, 2), (LIMITS, 3), (LIMITS, 4), (LIMITS, 5),
                 (HEARTBEAT_TIME, 0))
 """What the master reads by SDO before it starts a node, in this order."""
@@ -311,6 +316,27 @@ def _pdo_layout(pdo: Any) -> tuple[tuple[int, Any], ...] | None:
     return tuple(layout) or None
 
 
+def _pdo_packer(pdo: Any, layout: tuple[tuple[int, Any], ...] | None) -> struct.Struct | None:
+    """One ``struct`` giving a PDO's data from its values as each object's ``encode_raw`` does.
+
+    Only for a PDO whose objects are integers without limits (``encode_raw`` then converts
+    with ``int`` and packs with the object's own ``struct``), laid end to end over the whole
+    data; ``None`` otherwise (its values then go one by one through ``encode_raw``).
+    """
+    if layout is None:
+        return None
+    fmt, at = "<", 0
+    for offset, od_var in layout:
+        packer = od_var.STRUCT_TYPES.get(od_var.data_type)
+        if (offset != at or od_var.data_type not in INTEGER_TYPES or packer is None
+                or od_var.min is not None or od_var.max is not None
+                or packer.size * 8 != len(od_var)):
+            return None
+        fmt += packer.format.lstrip("<>=!@")
+        at += packer.size
+    return struct.Struct(fmt) if at == len(pdo.data) else None
+
+
 class CanopenAmplifier:
     """One head's piezo amplifier as a CANopen remote node.
 
@@ -344,6 +370,8 @@ class CanopenAmplifier:
         self.node.rpdo.read(from_od=True)
         self.node.tpdo.read(from_od=True)
         self._layouts = {no: _pdo_layout(self.node.rpdo[no]) for no in (1, 2, 3)}
+        self._packers = {no: _pdo_packer(self.node.rpdo[no], self._layouts[no])
+                         for no in (1, 2, 3)}
         self._status_layout = _pdo_layout(self.node.tpdo[1])
         self.node.tpdo[1].add_callback(self._on_status)
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
@@ -363,7 +391,8 @@ class CanopenAmplifier:
         """When its last heartbeat came (service clock), s: the heartbeat consumer's."""
         self.last_frame_s: float | None = None
         """When its last frame of any service came (heartbeat, status, EMCY, SDO), s."""
-        self.status: CanopenStatus | None = None
+        self._status: CanopenStatus | None = None
+        self._status_in: tuple[bytes, float] | None = None  # the last TPDO1 not yet decoded
         self.emergencies: list[Emergency] = []
         self.wanted = NmtState.OPERATIONAL
         """The NMT state the master keeps it in (:meth:`stop` makes it STOPPED)."""
@@ -497,11 +526,22 @@ class CanopenAmplifier:
 
         The bytes are the library's (each value encoded by its object's ``encode_raw`` at its
         place in the PDO's data, as ``var.raw = value`` sets them) without its per-value
-        logging; a map with a value off the byte grid goes through the library itself.
+        logging: in one ``struct`` for a PDO of integers end to end (:func:`_pdo_packer`); a
+        map with a value off the byte grid goes through the library itself.
         """
         pdo = self.node.rpdo[pdo_no]
         layout = self._layouts[pdo_no]
-        if layout is None or len(layout) != len(values):
+        packer = self._packers[pdo_no]
+        packed = None
+        if packer is not None and len(values) == len(layout or ()):
+            try:
+                packed = packer.pack(*[int(v) for v in values])
+            except (struct.error, TypeError, ValueError, OverflowError):
+                packed = None  # one by one below: the library's error, where it raises it
+        if packed is not None:
+            pdo.data[:] = packed
+            pdo.update()
+        elif layout is None or len(layout) != len(values):
             for var, value in zip(pdo, values, strict=True):
                 var.raw = value
         else:
@@ -530,22 +570,48 @@ class CanopenAmplifier:
         self.limits_problem = None
         self._reads = []
 
+    @property
+    def status(self) -> CanopenStatus | None:
+        """The amplifier's last TPDO1 (``None`` before the first), a new object per frame.
+
+        Decoded when first asked for: of the statuses a poll drains (two per node at a 20 ms
+        cycle) only the last is read.
+        """
+        if self._status_in is not None:
+            data, t_s = self._status_in
+            self._status_in = None
+            self._status = self._status_of(self._status_values(data), t_s)
+        return self._status
+
     def _on_status(self, pdo: Any) -> None:
         layout = self._status_layout
-        if layout is None or len(layout) != 4:
-            disp, temp, fault, state = (var.raw for var in pdo)  # STATUS' four objects
-        else:  # the same values from the PDO's bytes, without the library's per-value logging
-            data = pdo.data
-            disp, temp, fault, state = (od_var.decode_raw(data[at:at + len(od_var) // 8])
-                                        for at, od_var in layout)
-        self.status = CanopenStatus(
+        if layout is None or len(layout) != 4:  # off the byte grid: the library's reading now
+            self._status_in = None
+            self._status = self._status_of(tuple(var.raw for var in pdo), self.ampbus.now_s)
+        else:  # its bytes, decoded when asked for (``status``)
+            self._status_in = (bytes(pdo.data), self.ampbus.now_s)
+        self.counts["statuses"] += 1
+
+    def _status_values(self, data: bytes) -> tuple[int, ...]:
+        """STATUS' four values from a TPDO1's bytes (what ``var.raw`` of each reads).
+
+        By its layout, without the library's per-value logging.
+        """
+        layout = self._status_layout
+        assert layout is not None
+        return tuple(od_var.decode_raw(data[at:at + len(od_var) // 8]) for at, od_var in layout)
+
+    @staticmethod
+    def _status_of(values: Sequence[int], t_s: float) -> CanopenStatus:
+        disp, temp, fault, state = values
+        return CanopenStatus(
             displacement_um=um_from_nm(disp),
             temperature_c=temp / 10.0,
-            fault=AmpFault(fault & 0x0F),
-            state=AmpState(min(state, AmpState.FAULT)),
-            t_s=self.ampbus.now_s,
+            fault=_FAULT_OF_BITS[fault & 0x0F],
+            state=(_STATE_OF_BYTE[state] if 0 <= state < 256
+                   else AmpState(min(state, AmpState.FAULT))),
+            t_s=t_s,
         )
-        self.counts["statuses"] += 1
 
     def _on_emcy(self, err: Any) -> None:
         e = Emergency(code=int(err.code), register=int(err.register),

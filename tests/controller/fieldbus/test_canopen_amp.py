@@ -390,3 +390,82 @@ def test_a_poll_waits_for_the_sdo_answers_while_the_limits_are_read(rig):
     finally:
         stop.set()
         server.join(5)
+
+
+def test_the_status_decoded_when_asked_is_the_one_decoded_on_arrival():
+    """Random TPDO1s to two amplifiers, one decoding through the library's ``var.raw`` on
+    arrival (its layout withdrawn: the path of a map off the byte grid), one keeping the bytes
+    until ``status`` is asked for: read after any number of frames, the same status, a new
+    object after each new frame and the same one until then."""
+    import random
+
+    rng = random.Random(3)
+    master = AmpBus(can.Bus(interface="virtual", channel=f"canopen-test-{next(_channels)}"))
+    try:
+        lazy, eager = master.amplifier(2), master.amplifier(3)
+        eager._status_layout = None
+        last = None
+        for i in range(3000):
+            data = bytes(rng.randrange(256) for _ in range(6))  # TPDO1: 2 + 2 + 1 + 1 bytes
+            if rng.random() < 0.3:  # the states and faults a node sends
+                data = data[:4] + bytes([rng.randrange(16), rng.randrange(5)])
+            t = i * 0.001
+            master.deliver(0x180 + 2, data, t)
+            master.deliver(0x180 + 3, data, t)
+            if rng.random() < 0.4:
+                got = lazy.status
+                assert got == eager.status and got.t_s == t
+                disp, temp, fault, state = (v.raw for v in eager.node.tpdo[1])  # the library's
+                assert (got.displacement_um, got.temperature_c, got.fault, got.state) == (
+                    um_from_nm(disp), temp / 10.0, AmpFault(fault & 0x0F),
+                    AmpState(min(state, AmpState.FAULT)))
+                assert got is not last and lazy.status is got
+                last = got
+        assert lazy.counts["statuses"] == eager.counts["statuses"] == 3000
+    finally:
+        master.close()
+
+
+def test_pdos_packed_in_one_struct_are_the_bytes_value_by_value():
+    """RPDO1/2/3 packed by one ``struct`` each: for random values (in range, out of range,
+    floats, bools, bytes, strings) the same frames and the same errors as each value through
+    its object's ``encode_raw`` (the packers withdrawn)."""
+    import random
+
+    rng = random.Random(5)
+    channel = f"canopen-test-{next(_channels)}"
+    master = AmpBus(can.Bus(interface="virtual", channel=channel))
+    spy = can.Bus(interface="virtual", channel=channel)
+    try:
+        fast, slow = master.amplifier(2), master.amplifier(3)
+        assert all(p is not None for p in fast._packers.values())
+        slow._packers = dict.fromkeys(slow._packers)
+
+        def value():
+            kind = rng.random()
+            if kind < 0.7:
+                return rng.randrange(-40000, 70000)
+            return rng.choice([rng.uniform(-5e4, 5e4), True, False, b"\x01", "7", "x", None])
+
+        def outcome(amp, no, values):
+            try:
+                amp._transmit(no, values)
+            except Exception as exc:  # noqa: BLE001 - the error is what is compared
+                return type(exc), bytes(amp.node.rpdo[no].data)
+            msg = spy.recv(timeout=1.0)
+            return msg.arbitration_id - amp.node_id, bytes(msg.data)
+
+        seen = set()
+        for _ in range(3000):
+            no = rng.choice([1, 2, 3])
+            values = [value() for _ in range(len(fast._layouts[no]))]
+            if no == 3 and rng.random() < 0.5:  # what command() sends
+                values = [rng.randrange(2), rng.randrange(1, 9), rng.randrange(256)]
+            got = outcome(fast, no, values)
+            assert got == outcome(slow, no, values), values
+            seen.add(type(got[0]))
+        assert seen == {int, type}  # frames sent and values refused
+        assert spy.recv(timeout=0.0) is None
+    finally:
+        spy.shutdown()
+        master.close()
