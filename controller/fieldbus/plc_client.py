@@ -24,7 +24,13 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from config.machine import PlcConfig
-from controller.fieldbus.plc_protocol import MODBUS_EXCEPTIONS, Backoff, PlcProtocol, PlcSnapshot
+from controller.fieldbus.plc_protocol import (
+    MODBUS_EXCEPTIONS,
+    Backoff,
+    PlcProtocol,
+    PlcSnapshot,
+    int_words,
+)
 from core.checks import check_int, check_positive
 from core.errors import FieldbusError, ModbusRefused
 from protocol.register_bus import BusRefused, RegisterBus
@@ -409,7 +415,7 @@ class PlcClient:
         if self.protocol.block is None:
             raise ValueError("words: the client's register map is no head's view "
                              "(RegisterMap.for_head(i)): it has no block to offer")
-        ws = [int(w) for w in words]
+        ws = int_words(words)
         if len(ws) != self.protocol.block[1]:
             raise ValueError(f"words must be the block's {self.protocol.block[1]} words, "
                              f"got {len(ws)}")
@@ -427,7 +433,7 @@ class PlcClient:
         if words is None:
             self._offered = None
             return
-        ws = [int(w) for w in words]
+        ws = int_words(words)
         if len(ws) != self.protocol.read_count:
             raise ValueError(f"words must be the common span's {self.protocol.read_count} "
                              f"words, got {len(ws)}")

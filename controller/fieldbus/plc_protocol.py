@@ -161,6 +161,7 @@ MAX_KNIVES = 8
 """Most knives the piezo frames carry."""
 MAX_READ_WORDS = 125
 """Most registers one Modbus read (function 3 or 23) returns."""
+_INT_ONLY = frozenset({int})
 BlocksReads = tuple[tuple[int, int, tuple[int, ...]], ...]
 """Reads of head blocks: ``(address, words, heads)`` each (:meth:`PlcProtocol.blocks_reads`)."""
 _POSITIVE = (
@@ -171,6 +172,19 @@ _POSITIVE = (
     "cutterhead_radius_mm",
 )
 _NON_NEGATIVE = ("spindle_rpm", "feed_accel_max_mm_s2")
+
+
+def int_words(words: Sequence[int]) -> list[int]:
+    """``[int(w) for w in words]``: a new list of the words as plain ints.
+
+    Words that are plain ints already (what a bus answers) are copied as they are, without a
+    conversion each; any other word (a numpy integer, a float, a bool) is converted, and a word
+    ``int`` refuses raises as it did.
+    """
+    ws = list(words)
+    if set(map(type, ws)) <= _INT_ONLY:
+        return ws
+    return [int(w) for w in ws]
 
 
 class PlcProtocol:
@@ -255,7 +269,7 @@ class PlcProtocol:
         block = self.regmap.heads
         assert block is not None
         stride, used, h0 = block.stride, self._block_used, heads[0]
-        return {h: [int(w) for w in words[(h - h0) * stride:][:used]] for h in heads}
+        return {h: int_words(words[(h - h0) * stride:][:used]) for h in heads}
 
     def decode_read(self, words: Sequence[int]) -> dict[str, float | int]:
         """Decode the words of one whole-span read into every register's value."""

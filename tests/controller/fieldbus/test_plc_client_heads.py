@@ -438,3 +438,38 @@ def test_blocks_reads_planned_once_are_the_plans_worked_out_each_time():
     with pytest.raises(ValueError, match="integer"):
         p.blocks_reads([True])
     assert p.blocks_reads(range(4)) == _blocks_reads_before(p, range(4))
+
+
+def test_int_words_is_int_of_each_word():
+    """``int_words`` against ``[int(w) for w in words]`` for random words of every kind a
+    caller might pass (ints, bools, numpy integers and arrays, floats, strings, None, tuples,
+    ranges): the same list (a new one, plain ints) or the same error."""
+    import random
+
+    import numpy as np
+
+    from controller.fieldbus.plc_protocol import int_words
+
+    rng = random.Random(11)
+    kinds = [lambda: rng.randrange(0, 65536), lambda: rng.randrange(-5, 5), lambda: True,
+             lambda: np.uint16(rng.randrange(65536)), lambda: rng.uniform(-1e5, 1e5),
+             lambda: str(rng.randrange(100)), lambda: "x", lambda: None, lambda: 2 ** 70]
+    for _ in range(3000):
+        n = rng.randrange(0, 40)
+        if rng.random() < 0.6:
+            words = [rng.randrange(0, 65536) for _ in range(n)]
+        else:
+            words = [rng.choice(kinds)() for _ in range(n)]
+        shaped = rng.choice([list, tuple, lambda w: w])(words)
+        if rng.random() < 0.1 and all(type(w) is int and 0 <= w < 65536 for w in words):
+            shaped = np.array(words, dtype=np.uint16)
+        try:
+            want = [int(w) for w in shaped]
+        except Exception as exc:  # noqa: BLE001 - the error is what is compared
+            with pytest.raises(type(exc)):
+                int_words(shaped)
+            continue
+        got = int_words(shaped)
+        assert got == want and all(type(w) is int for w in got)
+        assert got is not shaped
+    assert int_words(range(3)) == [0, 1, 2]
