@@ -114,10 +114,10 @@ class WorkerLink:
                 if slot is None or self.block is None or 8 * n > self.slot_bytes - SLOT_HEAD:
                     return WorkerOutcome(f"measurement failed: measurement worker {self.index} "
                                          "sent a reply without its arrays", worker=self.index)
-                meas = meas._replace(blob=np.ndarray(
-                    (n,), np.float64, buffer=self.block.buf,
-                    offset=slot * self.slot_bytes + SLOT_HEAD).copy())
-            meas = meas.unpack()
+                meas = meas.unpack(np.ndarray((n,), np.float64, buffer=self.block.buf,
+                                              offset=slot * self.slot_bytes + SLOT_HEAD).copy())
+            else:
+                meas = meas.unpack()
         return WorkerOutcome(error, meas, estimates, self.index, measure_s)
 
     def slotted(self, job: OpenPair) -> tuple | None:

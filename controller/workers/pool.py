@@ -49,7 +49,7 @@ from typing import Any
 from controller.service.events import exc_name
 from controller.service.measurement import MachineFacts
 from controller.workers.link import WorkerLink, WorkerOutcome
-from controller.workers.process import RollChain, _cal_state
+from controller.workers.process import RollChain, _cal_state, _send_whole
 
 __all__ = [
     "MeasureWorkerPool",
@@ -646,7 +646,7 @@ class MeasureWorkerPool:
         job.deadline = self._loop.time() + self.timeout_s  # the measurement's own limit
         w.jobs[job.ticket] = job
         try:
-            w.conn.send(msg)
+            _send_whole(w.conn, msg)  # the C pickler, one write (Connection.send's framing)
         except (OSError, ValueError) as exc:  # the worker is gone: its reader tells why
             self._died(w, f"not reachable ({exc_name(exc)})")
 

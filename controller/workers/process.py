@@ -33,6 +33,7 @@ import numpy as np
 from controller.service.events import exc_name
 from controller.service.latency import IdleCollector
 from controller.service.measurement import VISION_ERRORS, MeasurementStage, failure_reason
+from protocol.frames import Frame
 
 _HEADER = struct.Struct("!i")  # Connection.send's length header ...
 _LONG_HEADER = struct.Struct("!Q")  # ... and its long form after -1
@@ -116,16 +117,48 @@ class _Packed(NamedTuple):
     lengths: tuple[int, ...]
     blob: np.ndarray | None  # None: in the pair's slot (:func:`_blob_into_slot`)
 
-    def unpack(self) -> Any:
-        """The measurement as pickle would rebuild it (no ``__init__``), arrays as views."""
+    def unpack(self, blob: np.ndarray | None = None) -> Any:
+        """The measurement as pickle would rebuild it (no ``__init__``), arrays as views.
+
+        ``blob``: the arrays when they came apart (read from the pair's slot), else
+        :attr:`blob`.
+        """
+        if blob is None:
+            blob = self.blob
         obj = self.cls.__new__(self.cls)
         d = obj.__dict__
         d.update(self.state)
         start = 0
         for name, n in zip(self.names, self.lengths, strict=True):
-            d[name] = self.blob[start:start + n]
+            d[name] = blob[start:start + n]
             start += n
         return obj
+
+
+_F64 = np.dtype(np.float64)
+_PACKABLE: dict[type, bool] = {}  # a class's answer to _packable_state's test, once
+
+
+def _packable_state(meas: Any) -> dict[str, Any] | None:
+    """``meas.__dict__`` when ``meas`` is a plain dataclass pickled the default way, else ``None``.
+
+    The class's part of the test is made once per class (:data:`_PACKABLE`).
+    """
+    cls = type(meas)
+    ok = _PACKABLE.get(cls)
+    if ok is None:
+        ok = _PACKABLE[cls] = (dataclasses.is_dataclass(cls)
+                               and not hasattr(cls, "__setstate__")
+                               and cls.__reduce_ex__ is object.__reduce_ex__
+                               and cls.__reduce__ is object.__reduce__)
+    return getattr(meas, "__dict__", None) if ok else None
+
+
+def _float_arrays(state: dict[str, Any]) -> list[str]:
+    """The fields of ``state`` holding a 1-D float64 array, in the fields' order."""
+    f64 = _F64
+    return [k for k, v in state.items()
+            if type(v) is np.ndarray and v.ndim == 1 and (v.dtype is f64 or v.dtype == f64)]
 
 
 def _pack(meas: Any) -> Any:
@@ -135,21 +168,17 @@ def _pack(meas: Any) -> Any:
     path per array, cold after the measurement); one array and a dict of the rest cost a
     third of that, and the service rebuilds the same fields (:meth:`_Packed.unpack`).
     """
-    cls = type(meas)
-    state = getattr(meas, "__dict__", None)
-    if (state is None or not dataclasses.is_dataclass(cls) or hasattr(cls, "__setstate__")
-            or cls.__reduce_ex__ is not object.__reduce_ex__
-            or cls.__reduce__ is not object.__reduce__):
+    state = _packable_state(meas)
+    if state is None:
         return meas
-    names = [k for k, v in state.items()
-             if type(v) is np.ndarray and v.ndim == 1 and v.dtype == np.float64]
+    names = _float_arrays(state)
     if len(names) < 2:
         return meas
     arrays = [state[k] for k in names]
     rest = dict(state)
     for k in names:
         rest[k] = None  # keeps the fields' order
-    return _Packed(cls, rest, tuple(names), tuple(a.size for a in arrays),
+    return _Packed(type(meas), rest, tuple(names), tuple(a.size for a in arrays),
                    np.concatenate(arrays))
 
 
@@ -165,6 +194,30 @@ def _blob_into_slot(packed: Any, buf: Any, offset: int, room: int) -> Any:
         return packed
     np.ndarray(packed.blob.shape, np.float64, buffer=buf, offset=offset)[:] = packed.blob
     return packed._replace(blob=None)
+
+
+def _pack_into_slot(meas: Any, buf: Any, offset: int, room: int) -> Any:
+    """``_blob_into_slot(_pack(meas), buf, offset, room)`` without the concatenated array.
+
+    Each float array is written straight into the slot (one copy instead of two, no 16 KB
+    allocation); the result, and the slot's bytes, are those of the two steps.
+    """
+    state = _packable_state(meas)
+    if state is None:
+        return meas
+    names = _float_arrays(state)
+    if len(names) < 2:
+        return meas
+    lengths = tuple(state[k].size for k in names)
+    if 8 * sum(lengths) > room:
+        return _pack(meas)  # the arrays go with the reply
+    rest = dict(state)
+    start = offset
+    for k, n in zip(names, lengths, strict=True):
+        np.ndarray((n,), np.float64, buffer=buf, offset=start)[:] = state[k]
+        start += 8 * n
+        rest[k] = None  # keeps the fields' order
+    return _Packed(type(meas), rest, tuple(names), lengths, None)
 
 
 SLOT_HEAD = 64
@@ -235,6 +288,7 @@ def _unpickled(raw: Any) -> tuple[Any, str | None]:
 _PLAIN = (float, int, bool, str, type(None))
 
 
+_PLAIN_CLASSES: dict[type, bool] = {}  # a class's part of _cal_state's test, once
 _SCHEMAS: dict[tuple, bytes] = {}  # the service's side: (class, fields, arrays) -> its pickle
 _BUILT: dict[bytes, tuple] = {}  # the worker's side: that pickle -> (class, fields, arrays)
 
@@ -249,16 +303,20 @@ def _cal_state(cal: Any) -> tuple[Any, tuple | None]:
     a 1-D float64 array (sent as a tuple). Anything else: ``(cal, None)``.
     """
     cls = type(cal)
-    state = getattr(cal, "__dict__", None)
-    if (state is None or hasattr(cls, "__setstate__") or hasattr(cls, "__slots__")
+    ok = _PLAIN_CLASSES.get(cls)
+    if ok is None:
+        ok = _PLAIN_CLASSES[cls] = not (
+            hasattr(cls, "__setstate__") or hasattr(cls, "__slots__")
             or cls.__reduce_ex__ is not object.__reduce_ex__
-            or cls.__reduce__ is not object.__reduce__):
+            or cls.__reduce__ is not object.__reduce__)
+    state = getattr(cal, "__dict__", None) if ok else None
+    if state is None:
         return cal, None
     values: list[Any] = []
     arrays: list[int] = []
     for v in state.values():
         t = type(v)
-        if t is np.ndarray and v.ndim == 1 and v.dtype == np.float64:
+        if t is np.ndarray and v.ndim == 1 and (v.dtype is _F64 or v.dtype == _F64):
             arrays.append(len(values))
             v = tuple(v.tolist())
         elif not (t in _PLAIN or (t is tuple and all(type(x) in _PLAIN for x in v))):
@@ -301,11 +359,14 @@ longer message comes in several reads."""
 
 
 def _framed(obj: Any) -> bytes:
-    """``obj`` as ``Connection.send`` frames it (a 4-byte length, then the pickle)."""
-    body = ForkingPickler.dumps(obj)
+    """``obj`` as ``Connection.send`` frames it (a 4-byte length, then the pickle).
+
+    The pickle is :func:`_dumps`'s: ``ForkingPickler``'s bytes by the C pickler.
+    """
+    body = _dumps(obj)
     if len(body) > 0x7FFFFFFF:
-        return _HEADER.pack(-1) + _LONG_HEADER.pack(len(body)) + bytes(body)
-    return _HEADER.pack(len(body)) + bytes(body)
+        return _HEADER.pack(-1) + _LONG_HEADER.pack(len(body)) + body
+    return _HEADER.pack(len(body)) + body
 
 
 def _send_whole(conn: Any, obj: Any) -> None:
@@ -545,8 +606,6 @@ def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple,
 
     ``chains``: the worker's roll chains' calibrators (:class:`RollChain`).
     """
-    from protocol.frames import Frame
-
     (_, ticket, where, counts_a, counts_b, speed_mm_s, facts, cal, cal_values, roll) = msg
     calibrator = _cal_from(cal, cal_values)
     buf, offset, nbytes = None, 0, 0
@@ -578,9 +637,10 @@ def _run_job(stage: MeasurementStage, blocks: dict[str, Any], msg: tuple,
                 found), slot
     finally:
         del image_a, image_b, frame  # no view of the slot outlives the job
-    packed = _pack(meas)
     if buf is not None:  # the slot's images are done with: the arrays go back in it
-        packed = _blob_into_slot(packed, buf, offset + SLOT_HEAD, 2 * nbytes - SLOT_HEAD)
+        packed = _pack_into_slot(meas, buf, offset + SLOT_HEAD, 2 * nbytes - SLOT_HEAD)
+    else:
+        packed = _pack(meas)
     if recorder is None:
         return ("done", ticket, None, packed, (), time.perf_counter() - t0, None), slot
     return ("done", ticket, None, packed, tuple(recorder.estimates),
