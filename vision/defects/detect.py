@@ -846,9 +846,6 @@ class DefectFinder:
         without the encoder's shift or the pitch, pays nothing more.
         """
         s = self.settings
-        ca, cb = (None, None) if coarse is None else coarse  # made once for every map made
-        coarse = (self.mapper.coarse_source(rows_a) if ca is None else ca,
-                  self.mapper.coarse_source(rows_b) if cb is None else cb)
         res = self.residual_at(rows_a, rows_b, shift_px=shift_px, roll_deg=roll_deg,
                                coarse=coarse)
         if (pitch_mm is None or not math.isfinite(pitch_mm) or pitch_mm <= 0
@@ -864,6 +861,9 @@ class DefectFinder:
         if n_valid == 0 or n_marked < s.slip_marked * n_valid:
             return res
         best = res
+        ca, cb = (None, None) if coarse is None else coarse  # made once for the maps a pitch off
+        coarse = (self.mapper.coarse_source(rows_a) if ca is None else ca,
+                  self.mapper.coarse_source(rows_b) if cb is None else cb)
         for alt in alts:
             other = self.residual_at(rows_a, rows_b, shift_px=alt, roll_deg=roll_deg,
                                      coarse=coarse)
