@@ -30,7 +30,6 @@ taking part the feed goes to ``feed_min``.
 from __future__ import annotations
 
 import enum
-import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -54,14 +53,8 @@ class FeedBound(enum.Enum):
     """No head takes part: the smallest feed."""
 
 
-@functools.lru_cache(maxsize=64)
-def _is_head_name(name: str) -> bool:
-    """Whether ``name`` is a head's name; a machine's few names are matched once each."""
-    return HEAD_NAME.fullmatch(name) is not None
-
-
 def _check_name(name: Any) -> str:
-    if not isinstance(name, str) or not _is_head_name(name):
+    if not isinstance(name, str) or HEAD_NAME.fullmatch(name) is None:
         raise ValueError(f"name must match [a-z][a-z0-9_]*, got {name!r}")
     return name
 

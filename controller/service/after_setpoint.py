@@ -74,12 +74,6 @@ class AfterSetpoint:
         self._running = 0  # released (or run at once) and not done
         self._check_handle: asyncio.TimerHandle | None = None
         self._gc_wanted = False
-        self.deferred = 0
-        """Pairs whose bookkeeping waited (a pair was ready, or others were queued)."""
-        self.forced = 0
-        """Pairs' bookkeeping run while a pair was ready (:data:`MAX_WAITING` queued)."""
-        self.collections = 0
-        """Garbage collections run by :meth:`collect`."""
 
     @property
     def loop(self) -> asyncio.AbstractEventLoop:
@@ -107,7 +101,6 @@ class AfterSetpoint:
         if not self._running and not self._waiting and not self.ready():
             self._running = 1
             return
-        self.deferred += 1
         fut = self._loop.create_future()
         self._waiting.append(fut)
         self._check_soon()
@@ -162,7 +155,6 @@ class AfterSetpoint:
             if ready and len(waiting) < self.max_waiting:
                 return  # setpoint_done() checks again
             if ready:  # the oldest only
-                self.forced += 1
                 self._running = 1
                 waiting.popleft().set_result(None)
                 return
@@ -174,8 +166,7 @@ class AfterSetpoint:
             return
         if self._gc_wanted and not ready:
             self._gc_wanted = False
-            if collect_between_pairs() is not None:
-                self.collections += 1
+            collect_between_pairs()
 
 
 _QUEUES: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, AfterSetpoint] = (

@@ -19,7 +19,7 @@ fitted to the knives' BDCs (the mark bottoms inside their marks): ``V / (n Z)`` 
 only the guide, since the marks were cut ``L / V`` earlier, at the feed of then.
 
 Complete marks: the pair reports the CV of the widths as the knives cut them
-(:func:`knife_model_cv`): each mark's width is its knife's plus a trend along the field (a feed
+(:func:`_knife_model_cv`): each mark's width is its knife's plus a trend along the field (a feed
 change), fitted over the field's marks. The CV of the widths as found
 (:attr:`Attributed.marks_cv`) holds the read noise once per mark (at 30 DN ~0.013 where the
 knives cut evenly, ~0.004 in the fit). Pure: no I/O.
@@ -58,35 +58,14 @@ MIN_BOTTOM_INSET_SAMPLES = 1.0
 was clipped there by the vision (narrow mark, BDC outside it) and does not set the phase."""
 
 
-def vanished_knives(passes_per_knife: Sequence[int], mark_knife: Sequence[int]) -> tuple[int, ...]:
-    """Knives that had passes over the marks' span but left no mark there.
-
-    Parameters
-    ----------
-    passes_per_knife : sequence of int, shape (Z,)
-        Passes of each knife from the first mark's pass to the last mark's
-        (:attr:`controller.laws.knife_phase.PassAttribution.passes_per_knife`).
-    mark_knife : sequence of int, shape (n,)
-        Knife of each mark, in ``[0, Z)``.
-
-    Returns
-    -------
-    tuple of int
-        The vanished knives, ascending (empty when every knife with a pass left a mark).
-    """
-    per = np.asarray(passes_per_knife)
-    counts = per.tolist() if per.ndim == 1 else []
-    if not counts or min(counts) < 0:
-        raise ValueError(f"passes_per_knife must be counts >= 0, one per knife, got {per!r}")
-    knife = np.asarray(mark_knife)
-    marks = knife.tolist() if knife.ndim == 1 else None
-    if marks is None or (marks and (min(marks) < 0 or max(marks) >= len(counts))):
-        raise ValueError(f"mark_knife must hold knives in [0, {per.size}), got {knife!r}")
-    return _vanished(counts, marks)
-
-
 def _vanished(counts: list[int], marks: list[int]) -> tuple[int, ...]:
-    """:func:`vanished_knives` of checked plain ints."""
+    """Knives that had passes over the marks' span but left no mark there, ascending.
+
+    ``counts``: passes of each knife from the first mark's pass to the last mark's
+    (:attr:`controller.laws.knife_phase.PassAttribution.passes_per_knife`); ``marks``: the
+    knife of each mark, in ``[0, Z)`` (both as :func:`attribute` has them from
+    :func:`controller.laws.knife_phase.attribute_marks`).
+    """
     marked = set(marks)
     return tuple(k for k, n in enumerate(counts) if n > 0 and k not in marked)
 
@@ -143,8 +122,7 @@ KNIFE_MODEL_MIN_DOF = 3
 """Fewer marks than knives with marks + 1 + this: the CV of the widths as found is reported."""
 
 
-def knife_model_cv(widths_mm: Sequence[float], mark_knife: Sequence[int],
-                   position_mm: Sequence[float]) -> float:
+def _knife_model_cv(ws: list[float], labels: list[Any], xs: list[float]) -> float:
     """CV of the mark widths as the knives cut them: each knife's width, not each mark's.
 
     Each mark's width is modelled as its knife's width plus a trend along the field (the feed
@@ -157,12 +135,12 @@ def knife_model_cv(widths_mm: Sequence[float], mark_knife: Sequence[int],
 
     Parameters
     ----------
-    widths_mm : sequence of float, shape (n,)
+    ws : list of float, shape (n,)
         Width of each mark, mm (finite, > 0 on average).
-    mark_knife : sequence of int, shape (n,)
-        Knife of each mark (any integers: marks of one knife share a value).
-    position_mm : sequence of float, shape (n,)
-        Position of each mark along the field (its lowest point), mm.
+    labels : list, shape (n,)
+        Knife of each mark (any hashable values: marks of one knife share a value).
+    xs : list of float, shape (n,)
+        Position of each mark along the field (its lowest point), mm (finite).
 
     Returns
     -------
@@ -171,20 +149,6 @@ def knife_model_cv(widths_mm: Sequence[float], mark_knife: Sequence[int],
         for the model (fewer than ``K + 1 + KNIFE_MODEL_MIN_DOF``, ``K`` the knives with
         marks); NaN for no marks or a mean <= 0.
     """
-    w = np.asarray(widths_mm, dtype=float)
-    k = np.asarray(mark_knife)
-    x = np.asarray(position_mm, dtype=float)
-    if w.ndim != 1 or k.shape != w.shape or x.shape != w.shape:
-        raise ValueError(f"widths_mm, mark_knife and position_mm must be 1-D of one length, "
-                         f"got {w.shape}, {k.shape}, {x.shape}")
-    ws, xs = w.tolist(), x.tolist()
-    if not (all(map(math.isfinite, ws)) and all(map(math.isfinite, xs))):
-        raise ValueError("widths_mm and position_mm must be finite")
-    return _knife_model_cv(ws, k.tolist(), xs)
-
-
-def _knife_model_cv(ws: list[float], labels: list[Any], xs: list[float]) -> float:
-    """:func:`knife_model_cv` of checked plain values (finite floats, labels, one length)."""
     n = len(ws)
     mean = sum(ws) / n if n else math.nan
     if not mean > 0:
@@ -213,7 +177,7 @@ def _knife_model_std(ws: list[float], xs: list[float], labels: list[Any],
     fitted widths' sum of squares about their mean (the widths' mean) is
     ``sum_k n_k (mean_k w - mean w)^2 + Sxw^2 / Sxx``: the least-squares projection
     (``np.linalg.lstsq`` of the design with one column per knife and the centred positions) to
-    rounding, without its set-up (:func:`knife_model_cv`, a knife table of at most ~50 marks).
+    rounding, without its set-up (:func:`_knife_model_cv`, a knife table of at most ~50 marks).
     Positions that do not spread within any knife's marks (``Sxx`` nil against the field's)
     leave no trend to fit: ``c = 0``, as the least-squares minimum norm solution.
     """
@@ -261,7 +225,7 @@ class Attributed:
     mark_knife : tuple of int, shape (n,)
         Knife of each mark, in the order of the measurement's marks.
     vanished_knives : tuple of int
-        Knives with passes in the span and no mark (:func:`vanished_knives`).
+        Knives with passes in the span and no mark (:func:`_vanished`).
     kinematic_cv : float
         :func:`kinematic_cv` of ``knife_widths_mm``.
     feed_per_pass_mm : float
@@ -270,7 +234,7 @@ class Attributed:
     marks_pitch_mm, marks_cv : float
         The measurement's own pitch (mean mark width) and CV over the marks found.
     knife_cv : float
-        :func:`knife_model_cv` of the marks found: their CV as the knives cut them (each
+        :func:`_knife_model_cv` of the marks found: their CV as the knives cut them (each
         knife's width and a trend along the field; NaN when passes left no mark: not
         computed).
     bdc_pitch_mm : float

@@ -131,12 +131,36 @@ class PairPipeline:
         """Measure one pair, control, write setpoints, log it (see the module docstring)."""
         pair = await self._begin(frame, now_s)
         result, meas = await self._setpoints(pair)
+        idle = self._between_pairs(pair, waiting=len(self._in_flight))
         result = await self._book(pair, result, meas)
-        idle = len(self._in_flight) <= 1
-        self.loops.between_pairs(pair.t_arr, idle=idle)  # the knife condition's forecast, when due
-        if idle:  # no later pair waits for this one: a pause costs nothing
-            collect_between_pairs()
+        self._collect(idle, None)
         return result
+
+    def _between_pairs(self, pair: _Pair, *, waiting: int) -> bool:
+        """After a pair's setpoints: the knife condition's forecast when due; whether idle.
+
+        ``waiting``: the pairs not yet through (this one and any later); idle when no later
+        pair waits for this one. The forecast is renewed here, never inside a pair's control
+        (:meth:`ControlLoops.between_pairs`); both paths (:meth:`handle`, real time's
+        :meth:`_finish_after`) end a pair through this and :meth:`_collect`.
+        """
+        idle = waiting <= 1
+        self.loops.between_pairs(pair.t_arr, idle=idle)
+        return idle
+
+    @staticmethod
+    def _collect(idle: bool, after: AfterSetpoint | None) -> None:
+        """After a pair's record: the garbage collector when due, if no later pair waits.
+
+        At once inline (``after`` ``None``: a pause costs nothing); in real time when no pair
+        of any pipeline on the loop is ready for its setpoints (:meth:`AfterSetpoint.collect`).
+        """
+        if not idle:
+            return
+        if after is None:
+            collect_between_pairs()
+        else:
+            after.collect()
 
     def use_workers(self, pool: Any) -> None:
         """Measure in worker processes from the next pair on (``None``: in this process again).
@@ -219,8 +243,7 @@ class PairPipeline:
         try:
             with self.keeper.boundary(pair.t_arr, what):
                 out = await self._setpoints(pair)
-                idle = len(self._before_setpoints) <= 1  # no later pair submitted
-                self.loops.between_pairs(pair.t_arr, idle=idle)  # the knife condition, when due
+                idle = self._between_pairs(pair, waiting=len(self._before_setpoints))
         finally:
             self._passed(pair)
         if out is None:
@@ -233,8 +256,7 @@ class PairPipeline:
                 await self._book(pair, *out)
         finally:
             after.done()
-        if idle:  # no later pair of this head: collect when no pair on the loop is ready
-            after.collect()
+        self._collect(idle, after)  # no later pair of this head: when no pair on the loop is ready
 
     def _passed(self, pair: _Pair) -> None:
         """``pair`` is through its setpoints (or failed on the way): the next one may go."""

@@ -78,6 +78,9 @@ class FeedHistory:
         self._feed: deque[float] = deque()
         self._rpm: deque[float] = deque()
         self._knives: deque[int] = deque()
+        # the slowest feed of the readings kept, kept as they come and go: ``(t, feed)`` of
+        # each reading no later one is slower than (ascending feeds; the first the slowest)
+        self._slow: deque[tuple[float, float]] = deque()
 
     def __len__(self) -> int:
         return len(self._t)
@@ -101,9 +104,21 @@ class FeedHistory:
         self._rpm.append(rpm)
         self._knives.append(knives)
         self._pitch.append(feed / (rpm / 60.0 * knives))
+        slow = self._slow
+        while slow and slow[-1][1] > feed:
+            slow.pop()
+        slow.append((t, feed))
         while self._t and self._t[0] < t - self.history_s:
+            if slow[0][0] == self._t[0]:
+                slow.popleft()
             for q in (self._t, self._feed, self._rpm, self._knives, self._pitch):
                 q.popleft()
+
+    def _slowest(self, upto: int) -> float:
+        """The slowest feed of the first ``upto`` readings (``upto`` > 0)."""
+        if upto == len(self._t):  # all of them (a pair's own read is the newest): kept
+            return self._slow[0][1]
+        return min(itertools.islice(self._feed, upto))
 
     def cutting_feed(self, t_s: float, *, travel_mm: float) -> CuttingFeed | None:
         """The readings from ``travel_mm`` of board travel before ``t_s`` up to ``t_s``.
@@ -119,7 +134,7 @@ class FeedHistory:
         if not upto:
             return None
         last = upto - 1
-        slowest = min(itertools.islice(self._feed, upto))  # the longest the travel may take
+        slowest = self._slowest(upto)  # the longest the travel may take
         t0 = t - travel / slowest - LATENCY_S
         if self._t[0] > t0:
             return None  # the history does not reach back to the cut
@@ -151,7 +166,7 @@ class FeedHistory:
         upto = bisect.bisect_right(self._t, t)
         kept = self._knives if upto == len(self._t) else list(itertools.islice(self._knives, upto))
         if upto and kept.count(knives) == upto:  # one knife set throughout: slices
-            t0 = t - travel / min(itertools.islice(self._feed, upto)) - LATENCY_S
+            t0 = t - travel / self._slowest(upto) - LATENCY_S
             behind = bisect.bisect_right(self._t, t0, 0, upto)  # readings at or before t0
             pitches = list(itertools.islice(self._pitch, max(behind - 1, 0), upto))
             return min(pitches), max(pitches), behind > 0 and self._t[0] <= t0

@@ -19,9 +19,9 @@ logged with its traceback, recorded (``SERVICE_ERROR``, counter ``errors``), fai
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from types import TracebackType
 from typing import Any
 
 from config.machine import SafetyConfig
@@ -53,6 +53,37 @@ class Guarded:
     failed: bool = False
     status: SafetyStatus | None = None
     error: BaseException | None = None
+
+
+class Boundary:
+    """The context of :meth:`SafeStateKeeper.boundary` (a class: entered ~10 times a pair).
+
+    The one supervisor boundary of the service (every entry point runs inside it): the
+    service must survive anything its own code does -- the heartbeats go on, the machine
+    goes to the safe state and the fault is recorded -- so here, and only here, any
+    ``Exception`` is caught (:meth:`SafeStateKeeper.fault`); a ``BaseException`` that is not
+    one (a cancellation) goes on. Expected trouble (buses, vision, log) is handled by name
+    where it arises.
+    """
+
+    __slots__ = ("_keeper", "_t", "_where", "_part", "_guarded")
+
+    def __init__(self, keeper: SafeStateKeeper, t: float, where: str, part: str) -> None:
+        self._keeper, self._t, self._where, self._part = keeper, t, where, part
+        self._guarded = Guarded()
+
+    def __enter__(self) -> Guarded:
+        return self._guarded
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> bool:
+        if exc is None or not isinstance(exc, Exception):
+            return False
+        guarded = self._guarded
+        guarded.failed = True
+        guarded.error = exc
+        guarded.status = self._keeper.fault(self._t, self._where, exc, part=self._part)
+        return True
 
 
 class SafeStateKeeper:
@@ -192,25 +223,15 @@ class SafeStateKeeper:
             self._report.emit(t, kind, text)
 
     # ------------------------------------------------------------------ the boundary
-    @contextmanager
-    def boundary(self, t: float, where: str, *, part: str = "pair") -> Iterator[Guarded]:
+    def boundary(self, t: float, where: str, *, part: str = "pair") -> Boundary:
         """Run the body; an unexpected error of the service's own code becomes a safe state.
 
         ``part`` (``"plc"``, ``"can"``, ``"pair"``, ``"source"``) is cleared by the next clean
         run of that part (a pair's error by any clean run); until then the ``service``
-        condition fails. The body's ``Guarded`` says whether it failed.
+        condition fails. The body's ``Guarded`` (``with keeper.boundary(...) as g``) says
+        whether it failed.
         """
-        guarded = Guarded()
-        try:
-            yield guarded
-        # The one supervisor boundary of the service (every entry point runs inside it): the
-        # service must survive anything its own code does -- the heartbeats go on, the machine
-        # goes to the safe state and the fault is recorded -- so here, and only here, any
-        # Exception is caught. Expected trouble (buses, vision, log) is handled by name below.
-        except Exception as exc:  # noqa: BLE001 - the supervisor boundary (see above)
-            guarded.failed = True
-            guarded.error = exc
-            guarded.status = self.fault(t, where, exc, part=part)
+        return Boundary(self, t, where, part)
 
     def fault(self, t: float, where: str, exc: BaseException, *, part: str) -> SafetyStatus:
         """Record an unexpected error, go safe (offsets zero, disabled), keep the beat."""

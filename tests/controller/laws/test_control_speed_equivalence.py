@@ -30,7 +30,7 @@ from controller.laws.uniformity_loop import (
     second_difference,
     width_sensitivity_mm_per_um,
 )
-from controller.service.attribution import kinematic_cv, mean_std, vanished_knives
+from controller.service.attribution import _vanished, kinematic_cv, mean_std
 
 # ------------------------------------------------------------------------------ the box QP
 
@@ -453,7 +453,7 @@ def test_widths_per_knife_and_vanished_knives_are_the_bincount_formulas(knives, 
     knife = np.asarray(marks, dtype=np.int64)
     ppk = np.asarray(per, dtype=np.intp)
     marked = np.bincount(knife, minlength=knives) > 0
-    assert vanished_knives(ppk, knife) == tuple(
+    assert _vanished(ppk.tolist(), knife.tolist()) == tuple(
         int(k) for k in np.flatnonzero((ppk > 0) & ~marked))
     pa = PassAttribution(passes=-knife, knife=knife, reliable=np.ones(knife.size, bool),
                          pass_mm=1.0, phase=0.0, spread=0.0, passes_per_knife=ppk)

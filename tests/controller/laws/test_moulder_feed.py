@@ -265,31 +265,6 @@ def head_from_loop(name: str, loop: FeedLoop, *, rpm_min: float, rpm_max: float,
                     correction=loop.correction)
 
 
-def test_a_heads_name_is_matched_once_its_numbers_every_step(monkeypatch):
-    from controller.laws import moulder_feed
-
-    matched = []
-    pattern = moulder_feed.HEAD_NAME
-
-    class Counting:
-        def fullmatch(self, name):
-            matched.append(name)
-            return pattern.fullmatch(name)
-
-    monkeypatch.setattr(moulder_feed, "HEAD_NAME", Counting())
-    moulder_feed._is_head_name.cache_clear()
-    for step in range(50):  # a coordinator's 50 cycles of two heads
-        HeadFeed(**{**GOOD, "name": "top", "spindle_rpm": 6000.0 + step})
-        HeadFeed(**{**GOOD, "name": "bottom"})
-    assert matched == ["top", "bottom"]
-    with pytest.raises(ValueError, match="top.spindle_rpm"):  # the numbers still, each step
-        HeadFeed(**{**GOOD, "spindle_rpm": -1.0})
-    for _ in range(2):
-        with pytest.raises(ValueError, match="name must match"):
-            HeadFeed(**{**GOOD, "name": "Top"})
-    moulder_feed._is_head_name.cache_clear()  # nothing matched by the stand-in stays
-
-
 # -- bad inputs ----------------------------------------------------------------------------
 GOOD = {"name": "top", "knives": 6, "target_pitch_mm": 1.0, "rpm_min": 4000.0,
         "rpm_max": 8000.0, "spindle_rpm": 6000.0}

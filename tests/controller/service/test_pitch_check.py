@@ -236,3 +236,19 @@ def test_pitch_range_is_the_scan_of_every_reading(seed):
                 for z in (2, 4, 6):
                     assert h.pitch_range(q, travel_mm=travel, knives=z) == \
                         _pitch_range_as_scanned(h, q, travel, z)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_slowest_feed_kept_is_the_minimum_of_the_readings_kept(seed):
+    """Kept as the readings come and go (expiry, equal feeds, readings refused): after every
+    reading the slowest of all of them and of the first few is the scan's ``min``."""
+    rng = random.Random(seed)
+    h = FeedHistory(history_s=rng.choice([0.2, 1.0, 10.0]))
+    t = 0.0
+    for _ in range(rng.randint(50, 700)):
+        t += rng.choice([0.0, 0.004, 0.02, 0.05])  # 0.0: the same read again (refused)
+        h.note(_snap(t, feed=rng.choice([300.0, rng.uniform(100.0, 900.0)])))
+        feeds = list(h._feed)
+        assert h._slowest(len(feeds)) == min(feeds)
+        upto = rng.randint(1, len(feeds))
+        assert h._slowest(upto) == min(feeds[:upto])

@@ -260,10 +260,13 @@ def test_vision_bench_times_orientation_and_self_calibration_as_the_service_runs
     from vision.pipeline import Measurer
 
     seen = []
+    users: dict[int, set[int]] = {}  # calibrator: the measurers it calibrated
     real = Measurer.measure
 
     def spy(self, a, b, **kw):
         seen.append((self.max_roll_deg, self.radius_mm, self.knives, kw.get("calibrator")))
+        if kw.get("calibrator") is not None:
+            users.setdefault(id(kw["calibrator"]), set()).add(id(self))
         return real(self, a, b, **kw)
 
     monkeypatch.setattr(Measurer, "measure", spy)
@@ -279,8 +282,9 @@ def test_vision_bench_times_orientation_and_self_calibration_as_the_service_runs
     variants = {(roll, radius, knives, cal is not None) for roll, radius, knives, cal in seen}
     assert variants == {(5.0, None, None, False), (0.0, None, None, False),
                         (5.0, bench.SELFCAL_RADIUS_MM, bench.SELFCAL_KNIVES, True)}
-    calibrators = {id(cal) for *_, cal in seen if cal is not None}
-    assert len(calibrators) == 1  # one board: one calibrator over the timed pairs
+    # one board: one calibrator over each variant's timed pairs (the self-calibration's, the
+    # service's measurement without and with the defects)
+    assert len(users) == 3 and all(len(u) == 1 for u in users.values())
 
 
 def test_the_measurer_in_use_is_what_the_service_shows():

@@ -19,10 +19,10 @@ import pytest
 
 from config.machine import load_machine
 from controller.service.attribution import (
+    _vanished,
     attribute,
     attribute_or_reason,
     kinematic_cv,
-    vanished_knives,
 )
 from controller.service.events import EventLog
 from controller.service.frame_result import FrameResult
@@ -220,17 +220,7 @@ def test_kinematic_cv_of_nothing_is_nan():
     ],
 )
 def test_vanished_knives_table(per_knife, marks, expect):
-    assert vanished_knives(per_knife, marks) == expect
-
-
-@pytest.mark.parametrize(
-    ("per_knife", "marks", "name"),
-    [([2, -1], [0], "passes_per_knife"), ([], [], "passes_per_knife"),
-     ([2, 2], [2], "mark_knife"), ([2, 2], [-1], "mark_knife")],
-)
-def test_vanished_knives_rejects(per_knife, marks, name):
-    with pytest.raises(ValueError, match=name):
-        vanished_knives(per_knife, marks)
+    assert _vanished(per_knife, marks) == expect
 
 
 def test_bad_measurements_are_a_reason_not_a_crash():
