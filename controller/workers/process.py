@@ -4,12 +4,13 @@
 process. A job message carries the pair's place in the pool's shared memory (or the images),
 its numbers, the machine's facts and the board's calibrator as its fields' values
 (:func:`_cal_state` / :func:`_cal_from`: the class and field names pickled once); the reply
-carries the ``Measurement`` with its float arrays (:func:`_pack`, :meth:`_Packed.unpack`) and
-the calibration estimates the pair contributed (:class:`_RecordingCalibrator`). The worker
+carries the ``Measurement`` with its float arrays (:func:`_pack`, :meth:`_Packed.unpack`; its
+class's and fields' names pickled once, :meth:`_Packed.__reduce__`) and the calibration
+estimates the pair contributed (:class:`_RecordingCalibrator`). The worker
 reads all that has come at once (:class:`_Inbox`: it knows how many jobs wait behind the pair
 it finished). It writes each reply into the pair's slot, whose images are done with (layout:
 a record of :data:`SLOT_HEAD` bytes, the float arrays, the pickled reply:
-:func:`_blob_into_slot`, :func:`_reply_into_slot`, read back by :func:`_reply_from_slot`), and
+:func:`_pack_into_slot`, :func:`_reply_into_slot`, read back by :func:`_reply_from_slot`), and
 tells the service which slots hold replies in ``("slotted", tickets)`` messages, several in one
 while it is saturated (:class:`_Replies`). Messages go as one write each (:func:`_send_whole`)
 and are cut out of what the other side reads with :func:`_whole_messages`.
