@@ -10,7 +10,9 @@ journal thread, one database thread; each head its own journal). ``--separate`` 
 head a group of its own instead (its own connection and two threads), for comparison. The
 records are made beforehand, like a service's (a decimated profile on every tenth, the
 timings, the passes and the marks in ``extra``), so what is measured is the sinks' own work:
-each record checked, encoded, journalled (fsync) and inserted. ``cpu_ms_per_record`` is this
+each record checked, encoded, journalled (fsync) and inserted; ``--made`` hands in each record's
+fields instead and the journal thread makes the record (``QualityRecord(**fields)``, its
+checks), as the service's ``make`` does. ``cpu_ms_per_record`` is this
 process's CPU less the feeding thread's (the writer threads, user and system),
 ``records_per_cpu_s`` its inverse; ``records_per_append`` and ``records_per_transaction`` show
 the batching.
@@ -92,7 +94,7 @@ def sample_records(n: int, *, heads: tuple[str, ...] | None = None,
 
 def run(quick: bool = False, *, heads: tuple[str, ...] | None = None,
         rate_hz: float = RATE_HZ, records: int | None = None, folder: Path | None = None,
-        shared: bool = True) -> dict[str, Any]:
+        shared: bool = True, made: bool = False) -> dict[str, Any]:
     """Hand ``records`` records to a sink per head at ``rate_hz`` each; the figures.
 
     Parameters
@@ -110,6 +112,9 @@ def run(quick: bool = False, *, heads: tuple[str, ...] | None = None,
     shared : bool
         Every head's sink in one :class:`~controller.quality.write_ahead.WriterGroup` (as a
         moulder's service); ``False``: each head a group (connection, threads) of its own.
+    made : bool
+        Hand in each record's fields; the journal thread makes the record
+        (``QualityRecord(**fields)``, as the service's ``make``). Result key ``made``.
     """
     from core.checks import check_int, check_positive
 
@@ -119,20 +124,25 @@ def run(quick: bool = False, *, heads: tuple[str, ...] | None = None,
     n = check_int("records", QUICK_RECORDS if quick and records is None else
                   RECORDS if records is None else records, lo=1)
     rate = check_positive("rate_hz", rate_hz) * len(heads)
-    recs = sample_records(n, heads=heads)
+    recs: list[Any] = sample_records(n, heads=heads)
+    if made:
+        from dataclasses import fields
+
+        names = [f.name for f in fields(recs[0])]
+        recs = [{k: getattr(r, k) for k in names} for r in recs]
     if folder is not None:
-        out = _run_in(Path(folder), heads, recs, rate, shared)
+        out = _run_in(Path(folder), heads, recs, rate, shared, made)
     else:
         with tempfile.TemporaryDirectory(prefix="planer-qlog-") as tmp:
-            out = _run_in(Path(tmp), heads, recs, rate, shared)
+            out = _run_in(Path(tmp), heads, recs, rate, shared, made)
     return {"rate_hz_per_head": rate_hz, **out}
 
 
 def _run_in(folder: Path, heads: tuple[str, ...], recs: list[Any], rate: float,
-            shared: bool) -> dict[str, Any]:
+            shared: bool, made: bool) -> dict[str, Any]:
     """:func:`run` in ``folder``: the sinks opened, fed at ``rate`` in all, closed."""
     from controller.quality.journal import default_journal_path
-    from controller.quality.log import QualityLog
+    from controller.quality.log import QualityLog, QualityRecord
     from controller.quality.write_ahead import (
         DB_WAIT_S,
         JOURNAL_WAIT_S,
@@ -149,7 +159,8 @@ def _run_in(folder: Path, heads: tuple[str, ...], recs: list[Any], rate: float,
         groups = [WriterGroup(QualityLog(path, machine_id="bench")) for _ in heads]
         logs = [g.head_log() for g in groups]
     try:
-        sinks = [WriteAheadSink(log, journal_path=default_journal_path(path, head=h))
+        make = (lambda kw: QualityRecord(**kw)) if made else None
+        sinks = [WriteAheadSink(log, journal_path=default_journal_path(path, head=h), make=make)
                  for log, h in zip(logs, heads, strict=True)]
         t0, c0, f0 = time.monotonic(), os.times(), time.thread_time()
         for i, rec in enumerate(recs):
@@ -173,7 +184,7 @@ def _run_in(folder: Path, heads: tuple[str, ...], recs: list[Any], rate: float,
     appends = sum(c["batches"] for c in counts)
     return {
         "records": n, "logged": stored, "all_logged": done and stored == n,
-        "heads": len(heads), "shared_writer": shared, "wall_s": wall,
+        "heads": len(heads), "shared_writer": shared, "made": made, "wall_s": wall,
         "cpu_ms_per_record": cpu * 1e3 / n, "records_per_cpu_s": n / cpu,
         "user_ms_per_record": user * 1e3 / n, "system_ms_per_record": system * 1e3 / n,
         "journal_appends": appends, "db_transactions": commits,
@@ -188,6 +199,8 @@ def text(result: dict[str, Any]) -> str:
     r = result
     writers = ("one writer group" if r["shared_writer"] or r["heads"] == 1
                else "a writer group per head")
+    if r.get("made"):
+        writers += ", records made by the journal thread"
     return (f"quality log ({r['heads']} heads x {r['rate_hz_per_head']:g} records/s, "
             f"{writers}, {r['records']} records, all logged: {r['all_logged']}):\n"
             f"  writer CPU {r['cpu_ms_per_record']:.3f} ms a record "
@@ -207,6 +220,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="the first this many of the moulder's heads (1: the single head)")
     parser.add_argument("--separate", action="store_true",
                         help="each head its own writer group (connection, two threads)")
+    parser.add_argument("--made", action="store_true",
+                        help="hand in fields: the journal thread makes each record (as the "
+                             "service's make)")
     args = parser.parse_args(argv)
     heads = None
     if args.heads is not None:
@@ -214,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         if not 1 <= args.heads <= len(every):
             parser.error(f"--heads must be 1..{len(every)}, got {args.heads}")
         heads = ("main",) if args.heads == 1 else every[:args.heads]
-    result = run(args.quick, heads=heads, shared=not args.separate)
+    result = run(args.quick, heads=heads, shared=not args.separate, made=args.made)
     print(json.dumps(result) if args.json else text(result))
     return 0
 

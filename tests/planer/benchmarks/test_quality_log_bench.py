@@ -55,3 +55,19 @@ def test_the_heads_are_the_moulders_and_a_given_folder_is_used_as_it_is(tmp_path
         assert len(made) == (1 if shared else 2)
         assert out["records_per_transaction"] == 16 / out["db_transactions"]
         assert (folder / "quality.sqlite").exists()
+
+
+def test_made_records_are_the_sample_records_made_by_the_journal_thread(tmp_path):
+    out = quality_log.run(records=12, rate_hz=1000.0, heads=("bottom", "top"),
+                          folder=tmp_path, made=True)
+    assert out["all_logged"] and out["made"] and out["records"] == out["logged"] == 12
+    with QualityLog(tmp_path / "quality.sqlite", create=False) as log:
+        stored = log.records()
+    want = quality_log.sample_records(12, heads=("bottom", "top"))
+
+    def key(r):
+        return r.head, r.seq
+
+    assert [(key(r), r.extra) for r in sorted(stored, key=key)] == [
+        (key(r), r.extra) for r in sorted(want, key=key)]  # each head's in its order
+    assert "records made by the journal thread" in quality_log.text(out)
