@@ -24,7 +24,6 @@ the first and the last mark that got no mark are the knives that left none.
 from __future__ import annotations
 
 import itertools
-import math
 import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -235,20 +234,14 @@ class PassAttribution:
             Width per knife, mm; ``nan`` for a knife that left no mark in the field (the
             uniformity loop takes it as 0). Without missing passes: the mean width of its marks.
         """
-        per = self.passes_per_knife.tolist()
-        knife = self.knife.tolist()
+        z = self.passes_per_knife.size
         w = np.asarray(widths_mm, dtype=float)
-        values = w.tolist()
-        if w.shape != self.knife.shape or not all(map(math.isfinite, values)):
+        if w.shape != self.knife.shape or not np.isfinite(w).all():
             raise ValueError(f"widths_mm must be {self.knife.size} finite values")
-        # each knife's widths added in mark order from 0.0 (bincount's sums), over its passes
-        sums = [0.0] * len(per)
-        marks = [0] * len(per)
-        for k, v in zip(knife, values, strict=True):
-            sums[k] += v
-            marks[k] += 1
-        return np.array([s / p if m else math.nan
-                         for s, p, m in zip(sums, per, marks, strict=True)])
+        # bincount adds each knife's widths in mark order (from 0.0), as a loop over the marks
+        sums = np.bincount(self.knife, weights=w, minlength=z)
+        has = np.bincount(self.knife, minlength=z) > 0
+        return np.divide(sums, self.passes_per_knife, out=np.full(z, np.nan), where=has)
 
 
 def attribute_marks(
@@ -315,10 +308,8 @@ def attribute_marks(
     ppm = check_positive("px_per_mm", px_per_mm)
     cx = check_finite("cx_px", cx_px)
     base = wrapped_difference(counts_a, index_latch_counts, counter_bits=counter_bits)
-    # (in plain floats, term by term as pass_numbers' array expression: the same values)
-    off, per_mm = cx / ppm, 1.0 * cpm
-    travel = [(base - (length + x - off) * cpm) / per_mm for x in b]
-    t_fwd = np.array(list(itertools.compress(travel, reliable)))
+    travel = (base - (length + b - cx / ppm) * cpm) / (1.0 * cpm)
+    t_fwd = travel[reliable]
     t_rel = t_fwd[::-1]  # increasing
     gaps = t_rel[1:] - t_rel[:-1]
     t_dev = t_rel - _mean(t_rel)
@@ -328,12 +319,13 @@ def attribute_marks(
     spread = _spread_of(resultant)
     # order along the image: q = -(pass number) increases with x; an unreliable mark by its
     # centre (every mark reliable: the bottoms alone)
-    if t_fwd.size < len(travel):
-        travel = [t if r else (base - (length + c - off) * cpm) / per_mm
-                  for t, r, c in zip(travel, reliable, centre, strict=True)]
-    q = [round(-(t / pitch - phase)) for t in travel]  # (round half to even, as np.rint)
-    q = _one_pass_per_mark(q, reliable)
-    passes = np.array([-v for v in q], dtype=np.int64)
+    if t_fwd.size < travel.size:
+        travel_c = (base - (length + centre - cx / ppm) * cpm) / (1.0 * cpm)
+        travel = np.where(reliable, travel, travel_c)
+    q = np.rint(-(travel / pitch - phase)).astype(np.int64).tolist()
+    q = _one_pass_per_mark(q, reliable.tolist())
+    passes = np.array(q, dtype=np.int64)
+    np.negative(passes, out=passes)
     knife = passes % z  # (floor modulo, as Python's: in [0, Z))
     first, span = -max(q), max(q) - min(q) + 1  # passes first .. first + span - 1, by knife
     per_knife = np.array([span // z + ((k - first) % z < span % z) for k in range(z)],
@@ -341,7 +333,7 @@ def attribute_marks(
     return PassAttribution(
         passes=passes,
         knife=knife,
-        reliable=np.array(reliable, dtype=bool),
+        reliable=reliable,
         pass_mm=pitch,
         phase=phase,
         spread=spread,
@@ -350,33 +342,26 @@ def attribute_marks(
 
 
 def _reliable_bottoms(bottom_x_mm: Sequence[float], cusps_x_mm: Sequence[float] | None,
-                      inset: float) -> tuple[list[float], list[float], list[bool]]:
-    """The bottoms (checked), the marks' centres and which bottoms are reliable (step 1).
-
-    Plain floats (a field has a few dozen marks: numpy's calls cost more than the loops);
-    the same values as the array expressions ``0.5 * (left + right)`` and
-    ``minimum(b - left, right - b) >= inset``.
-    """
-    arr = np.asarray(bottom_x_mm, dtype=float)
-    b = arr.tolist()
-    if arr.ndim != 1 or not all(map(math.isfinite, b)):
+                      inset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bottoms (checked), the marks' centres and which bottoms are reliable (step 1)."""
+    b = np.asarray(bottom_x_mm, dtype=float)
+    if b.ndim != 1 or not np.isfinite(b).all():
         raise ValueError("bottom_x_mm must be a finite 1-D sequence")
     if cusps_x_mm is None:
         centre = b
-        reliable = [True] * len(b)
+        reliable = np.ones(b.size, dtype=bool)
     else:
-        c_arr = np.asarray(cusps_x_mm, dtype=float)
-        if c_arr.shape != (len(b) + 1,) or not all(map(math.isfinite, c := c_arr.tolist())):
-            raise ValueError(f"cusps_x_mm must be {len(b) + 1} finite values, got {c_arr.shape}")
-        right = c[1:]
-        if any(map(operator.le, right, c)):  # (np.diff(c) <= 0 for finite values)
+        c = np.asarray(cusps_x_mm, dtype=float)
+        if c.shape != (b.size + 1,) or not np.isfinite(c).all():
+            raise ValueError(f"cusps_x_mm must be {b.size + 1} finite values, got {c.shape}")
+        left, right = c[:-1], c[1:]
+        if (right <= left).any():  # (np.diff(c) <= 0 for finite values)
             raise ValueError("cusps_x_mm must increase")
-        centre = [0.5 * (lo + hi) for lo, hi in zip(c, right, strict=False)]  # (n of n + 1)
-        reliable = [min(x - lo, hi - x) >= inset
-                    for x, lo, hi in zip(b, c, right, strict=False)]
-    if any(map(operator.lt, b[1:], b)):
+        centre = 0.5 * (left + right)
+        reliable = np.minimum(b - left, right - b) >= inset
+    if (b[1:] < b[:-1]).any():
         raise ValueError("bottom_x_mm must not decrease")
-    n_reliable = sum(reliable)
+    n_reliable = int(np.count_nonzero(reliable))
     if n_reliable < 2:
         raise ValueError(f"{n_reliable} mark bottoms inside their marks, need 2")
     return b, centre, reliable
