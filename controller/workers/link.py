@@ -109,7 +109,7 @@ class WorkerLink:
         """The :class:`WorkerOutcome` of a ``done`` reply (arrays copied out of ``slot``)."""
         _, _, error, meas, estimates, measure_s, _ = msg
         if type(meas) is _Packed:
-            if meas.blob is None:  # in the pair's slot, after its record (_blob_into_slot)
+            if meas.blob is None:  # in the pair's slot, after its record (_pack_into_slot)
                 n = sum(meas.lengths)
                 if slot is None or self.block is None or 8 * n > self.slot_bytes - SLOT_HEAD:
                     return WorkerOutcome(f"measurement failed: measurement worker {self.index} "

@@ -116,7 +116,7 @@ class _Packed(NamedTuple):
     state: dict[str, Any]  # the instance's fields, the packed arrays as None
     names: tuple[str, ...]
     lengths: tuple[int, ...]
-    blob: np.ndarray | None  # None: in the pair's slot (:func:`_blob_into_slot`)
+    blob: np.ndarray | None  # None: in the pair's slot (:func:`_pack_into_slot`)
 
     def unpack(self, blob: np.ndarray | None = None) -> Any:
         """The measurement as pickle would rebuild it (no ``__init__``), arrays as views.
@@ -210,25 +210,14 @@ def _pack(meas: Any) -> Any:
                    np.concatenate(arrays))
 
 
-def _blob_into_slot(packed: Any, buf: Any, offset: int, room: int) -> Any:
-    """``packed`` with its float array written into the pair's slot (``blob=None``) if it fits.
-
-    The slot's images are no longer needed once measured: the service copies the array out
-    of the slot (:meth:`controller.workers.link.WorkerLink.outcome`) instead of both
-    sides pickling, writing and reading it (16 KB at 659 px a row: 15-40 us a pair over both
-    processes).
-    """
-    if type(packed) is not _Packed or packed.blob.nbytes > room:
-        return packed
-    np.ndarray(packed.blob.shape, np.float64, buffer=buf, offset=offset)[:] = packed.blob
-    return packed._replace(blob=None)
-
-
 def _pack_into_slot(meas: Any, buf: Any, offset: int, room: int) -> Any:
-    """``_blob_into_slot(_pack(meas), buf, offset, room)`` without the concatenated array.
+    """The plain measurement, its float arrays written into the pair's slot (``blob=None``).
 
-    Each float array is written straight into the slot (one copy instead of two, no 16 KB
-    allocation); the result, and the slot's bytes, are those of the two steps.
+    The slot's images are no longer needed once measured: the service copies the arrays out
+    of the slot (:meth:`controller.workers.link.WorkerLink.outcome`) instead of both sides
+    pickling, writing and reading them (16 KB at 659 px a row: 15-40 us a pair over both
+    processes). Each array is written straight into the slot (no concatenated copy); when
+    they do not fit, :func:`_pack` (they go with the reply); not a plain dataclass: as is.
     """
     state = _packable_state(meas)
     if state is None:

@@ -2,9 +2,9 @@
 
 ``QualityRecord.__post_init__`` takes the values the service gives (exact floats, ints, bools,
 tuples of floats, no defects, a quiet jointing state) by a fast path and everything else
-through the checks of :func:`~controller.quality.schema._post_init_reference`, its earlier
-form. Random field values, good and bad (NaN, infinities, numpy scalars, ints for floats,
-lists and arrays for tuples, strings, negative and boolean integers, defects and grades,
+through the field-by-field checks (:func:`_post_init_reference` below, its earlier form).
+Random field values, good and bad (NaN, infinities, numpy scalars, ints for floats, lists and
+arrays for tuples, strings, negative and boolean integers, defects and grades,
 jointing figures, calibration values without a state, failed records with metrics) must give
 the same fields, or the same error, both ways.
 """
@@ -12,6 +12,7 @@ the same fields, or the same error, both ways.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import MISSING, fields
 from typing import Any
 
@@ -24,10 +25,82 @@ from controller.quality.schema import (
     _OPT_FLOATS,
     _TUPLES,
     CALIBRATION_FIELDS,
-    _post_init_reference,
+    CALIBRATION_STATES,
+    _check_jointing,
+    _check_machine_id,
+    _check_wall_time,
+    _float_tuple,
+    _opt_bool,
+    _opt_float,
+    check_defect_fields,
+    check_finite,
+    check_head,
+    check_int,
 )
 from vision.defects.detect import Defect, DefectKind
 from vision.defects.grading import grade_pair
+
+
+def _post_init_reference(rec: QualityRecord) -> None:
+    """:meth:`QualityRecord.__post_init__` field by field (its earlier form)."""
+
+    def put(name: str, value: Any) -> None:
+        object.__setattr__(rec, name, value)
+
+    put("t_s", check_finite("t_s", rec.t_s))
+    put("wall_time", _check_wall_time(rec.wall_time))
+    put("seq", check_int("seq", rec.seq, lo=0))
+    put("board_id", check_int("board_id", rec.board_id, lo=0))
+    put("board_position_mm", check_finite("board_position_mm", rec.board_position_mm))
+    ok = _opt_bool("ok", rec.ok)
+    if ok is None:
+        raise ValueError("ok must be true or false, got None")
+    put("ok", ok)
+    for name in _OPT_FLOATS:
+        put(name, _opt_float(name, getattr(rec, name)))
+    for name in _TUPLES:
+        put(name, _float_tuple(name, getattr(rec, name)))
+    put("passed", _opt_bool("passed", rec.passed))
+    put("machine_id", _check_machine_id("machine_id", rec.machine_id))
+    put("head", check_head("head", rec.head))
+    if rec.error is not None and not isinstance(rec.error, str):
+        raise ValueError(f"error must be a string or None, got {rec.error!r}")
+    if rec.flag_reason is not None:
+        if not isinstance(rec.flag_reason, str) or not rec.flag_reason:
+            raise ValueError(f"flag_reason must be a non-empty string or None, got "
+                             f"{rec.flag_reason!r:.80}")
+        put("flag_reason", str(rec.flag_reason))
+        if rec.ok:
+            raise ValueError("a flagged pair (flag_reason set) is not a successful "
+                             "measurement: ok must be false")
+    _check_jointing(rec)
+    for name, value in check_defect_fields(rec).items():  # schema version 7
+        put(name, value)
+    if rec.calibration_state not in (None, *CALIBRATION_STATES):
+        raise ValueError(f"calibration_state must be one of {', '.join(CALIBRATION_STATES)} "
+                         f"or None, got {rec.calibration_state!r:.80}")
+    if rec.calibration_state in (None, "off"):
+        given = [n for n in CALIBRATION_FIELDS if getattr(rec, n) is not None]
+        if given:
+            raise ValueError(f"{given[0]} needs calibration_state applied or untrusted, "
+                             f"got {rec.calibration_state!r}")
+    if not isinstance(rec.extra, Mapping) or not all(isinstance(k, str) for k in rec.extra):
+        raise ValueError(f"extra must be a dict with string keys, got {rec.extra!r:.80}")
+    put("extra", dict(rec.extra))
+    if rec.ok:
+        if rec.error is not None:
+            raise ValueError(f"error must be None for a successful measurement, got "
+                             f"{rec.error!r}")
+    else:
+        if not rec.error:
+            raise ValueError("error must say why the measurement failed (ok=False)")
+        carried = [n for n in ("pitch_mm", "uniformity_cv", "depth_um", "passed",
+                               "kinematic_depth_um", "uncalibrated_depth_um")
+                   if getattr(rec, n) is not None]
+        if rec.mark_widths_mm:
+            carried.append("mark_widths_mm")
+        if carried:
+            raise ValueError(f"a failed measurement carries no metrics, got {carried[0]}")
 
 
 def _number(rng: np.random.Generator, bad: float) -> Any:

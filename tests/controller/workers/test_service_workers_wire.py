@@ -23,7 +23,6 @@ from hypothesis import strategies as st
 from controller.workers.link import WorkerLink
 from controller.workers.process import (
     SLOT_HEAD,
-    _blob_into_slot,
     _cal_from,
     _cal_state,
     _pack,
@@ -31,6 +30,7 @@ from controller.workers.process import (
     _reply_from_slot,
     _reply_into_slot,
 )
+from tests.support.worker_forms import _blob_into_slot
 from vision.calibration.selfcal import Calibration, SelfCalibrator
 
 # ---------------------------------------------------------------------------------------------

@@ -23,13 +23,13 @@ from hypothesis import strategies as st
 from controller.service.measurement import MachineFacts
 from controller.workers.process import (
     RollChain,
-    _blob_into_slot,
     _cal_state,
     _framed,
     _pack,
     _pack_into_slot,
     _Packed,
 )
+from tests.support.worker_forms import _blob_into_slot
 from vision.calibration.selfcal import Calibration, SelfCalibrator
 
 

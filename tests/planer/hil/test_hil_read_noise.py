@@ -8,7 +8,7 @@ pass for a cusp now and then, splitting a mark in two (then "marks do not fit on
 pass": 58 % of the pairs measured at 30 DN); the arc model drops such cusps
 (``vision.marks.without_false_cusps``). Each mark's width carries ~0.02 mm of noise (a CV of
 ~0.013 where the knives cut evenly); the pair reports the CV of the widths as the knives cut
-them (``controller.service.attribution.knife_model_cv``).
+them (the knife model's CV of ``controller.service.attribution.attribute``).
 
 Done when (the envelope's item): at least 90 % of the pairs give a measurement with knife
 attribution, and the measured CV follows the true one within 0.005 or 20 %, whichever is
