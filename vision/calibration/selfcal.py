@@ -128,23 +128,20 @@ def _exp_transfer(n_fft: int, dx_mm: float, scatter_mm: float) -> np.ndarray:
     return 1.0 / (1.0 + (2.0 * math.pi * scatter_mm * nu) ** 2)
 
 
-_TRANSFERS: dict[tuple[int, float, tuple[float, ...]], np.ndarray] = {}
-
-
 def _transfers(n_fft: int, dx_mm: float, ells: tuple[float, ...]) -> np.ndarray:
     """Exponential transfer functions for several lengths (cached: set up once per size).
 
     Computed at ``dx_mm`` rounded to 1e-9 mm, the cache's key, so a pair's tables never depend
-    on which pair came first (a roll's ``cos`` moves the spacing in its last digits).
+    on which pair came first (a roll's ``cos`` moves the spacing in its last digits). The
+    table is shared: read it, never write it.
     """
-    dx_key = round(dx_mm, 9)
-    key = (n_fft, dx_key, ells)
-    h = _TRANSFERS.get(key)
-    if h is None:
-        if len(_TRANSFERS) > 32:
-            _TRANSFERS.clear()
-        h = _TRANSFERS[key] = np.stack([_exp_transfer(n_fft, dx_key, e) for e in ells])
-    return h
+    return _transfers_at(n_fft, round(dx_mm, 9), ells)
+
+
+@functools.lru_cache(maxsize=32)
+def _transfers_at(n_fft: int, dx_key: float, ells: tuple[float, ...]) -> np.ndarray:
+    """:func:`_transfers` at the rounded spacing ``dx_key``."""
+    return np.stack([_exp_transfer(n_fft, dx_key, e) for e in ells])
 
 
 def _transfers_packed(n_fft: int, dx_mm: float, ells: tuple[float, ...]) -> np.ndarray:
@@ -153,16 +150,18 @@ def _transfers_packed(n_fft: int, dx_mm: float, ells: tuple[float, ...]) -> np.n
     The packed spectrum is ``[Re0, Re1, Im1, ..., Re(n/2)]``; a real transfer function scales
     both parts of each frequency alike.
     """
-    key = (-n_fft, round(dx_mm, 9), ells)
-    h = _TRANSFERS.get(key)
-    if h is None:
-        full = _transfers(n_fft, dx_mm, ells)
-        h = np.empty((len(ells), n_fft))
-        h[:, 0] = full[:, 0]
-        h[:, 1:-1:2] = full[:, 1:-1]
-        h[:, 2:-1:2] = full[:, 1:-1]
-        h[:, -1] = full[:, -1]
-        _TRANSFERS[key] = h
+    return _packed_at(n_fft, round(dx_mm, 9), ells)
+
+
+@functools.lru_cache(maxsize=32)
+def _packed_at(n_fft: int, dx_key: float, ells: tuple[float, ...]) -> np.ndarray:
+    """:func:`_transfers_packed` at the rounded spacing ``dx_key``."""
+    full = _transfers_at(n_fft, dx_key, ells)
+    h = np.empty((len(ells), n_fft))
+    h[:, 0] = full[:, 0]
+    h[:, 1:-1:2] = full[:, 1:-1]
+    h[:, 2:-1:2] = full[:, 1:-1]
+    h[:, -1] = full[:, -1]
     return h
 
 
