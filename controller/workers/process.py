@@ -189,6 +189,18 @@ def _float_arrays(state: dict[str, Any]) -> list[str]:
             if type(v) is np.ndarray and v.ndim == 1 and (v.dtype is f64 or v.dtype == f64)]
 
 
+def _packable_arrays(meas: Any) -> tuple[dict[str, Any], list[str]] | None:
+    """``(fields, names of its 1-D float64 arrays)`` of a measurement worth packing, else None.
+
+    Worth packing: a plain dataclass (:func:`_packable_state`) with two such arrays or more.
+    """
+    state = _packable_state(meas)
+    if state is None:
+        return None
+    names = _float_arrays(state)
+    return None if len(names) < 2 else (state, names)
+
+
 def _pack(meas: Any) -> Any:
     """A plain dataclass measurement with its 1-D float64 arrays concatenated (else as is).
 
@@ -196,12 +208,10 @@ def _pack(meas: Any) -> Any:
     path per array, cold after the measurement); one array and a dict of the rest cost a
     third of that, and the service rebuilds the same fields (:meth:`_Packed.unpack`).
     """
-    state = _packable_state(meas)
-    if state is None:
+    found = _packable_arrays(meas)
+    if found is None:
         return meas
-    names = _float_arrays(state)
-    if len(names) < 2:
-        return meas
+    state, names = found
     arrays = [state[k] for k in names]
     rest = dict(state)
     for k in names:
@@ -219,12 +229,10 @@ def _pack_into_slot(meas: Any, buf: Any, offset: int, room: int) -> Any:
     processes). Each array is written straight into the slot (no concatenated copy); when
     they do not fit, :func:`_pack` (they go with the reply); not a plain dataclass: as is.
     """
-    state = _packable_state(meas)
-    if state is None:
+    found = _packable_arrays(meas)
+    if found is None:
         return meas
-    names = _float_arrays(state)
-    if len(names) < 2:
-        return meas
+    state, names = found
     lengths = tuple(state[k].size for k in names)
     if 8 * sum(lengths) > room:
         return _pack(meas)  # the arrays go with the reply

@@ -42,6 +42,8 @@ from typing import Any
 import numpy as np
 
 SIZES = ((659, 493), (1920, 1200))
+DEFECTS_BUDGET = 0.30
+"""The most the 2-D surface map and the planing defects may add to a pair's CPU (a fraction)."""
 
 
 def synthetic_pair(

@@ -93,7 +93,8 @@ def vision_row_text(row: dict[str, Any]) -> str:
         ``selfcal_pairs_per_s``, ``remap_pairs_per_s``, ``cpu_ms``, ``selfcal_cpu_ms``,
         ``remap_cpu_ms``, ``orientation_ms``, ``selfcal_ms``, ``rolled_cpu_ms``,
         ``remap_ratio``, ``selfcal_remap_ratio``, ``rolled_remap_ratio``,
-        ``target_remap_ratio``, ``meets_target``.
+        ``target_remap_ratio``, ``meets_target``, ``defects_ms``, ``defects_overhead``,
+        ``service_defects_ms``, ``service_defects_overhead``.
 
     Returns
     -------
@@ -101,8 +102,9 @@ def vision_row_text(row: dict[str, Any]) -> str:
         The measurement rate and CPU time with its speed as a multiple of one remap's (plain
         and as the service runs it, against the budget), its floors measured in the
         same run (a copy of the pair, one remap of the pair) as "N x faster" ratios, and the
-        CPU cost of the orientation and self-calibration steps and of a rolled camera; rows
-        without the step keys give one line.
+        CPU cost of the orientation and self-calibration steps and of a rolled camera, and
+        what the planing defects add (plain and as the service measures); rows without the
+        step keys give one line.
     """
     rate = row["pairs_per_s"]
     head = f"  {row['width']}x{row['height']}: {rate:.0f} pairs/s"
@@ -145,7 +147,30 @@ def vision_row_text(row: dict[str, Any]) -> str:
         steps.append(rolled)
     if steps:
         lines.append("    steps, CPU per pair: " + "; ".join(steps))
+    if "defects_ms" in row:
+        lines.append("    " + _defects_text(row))
     return "\n".join(lines)
+
+
+def _defects_text(row: dict[str, Any]) -> str:
+    """The line of the 2-D map and the planing defects, against their CPU budget."""
+    from planer.benchmarks.vision import DEFECTS_BUDGET
+
+    budget = f"the {100 * DEFECTS_BUDGET:+.0f} % budget"
+
+    def part(ms_key: str, share_key: str) -> str:
+        text = f"{float(row[ms_key]):+.2f} ms"
+        share = row.get(share_key)
+        if share is not None:
+            verdict = "within" if float(share) <= DEFECTS_BUDGET else "OVER"
+            text += f" = {100 * float(share):+.0f} % ({verdict} {budget})"
+        return text
+
+    text = "defects and 2-D map, CPU per pair: " + part("defects_ms", "defects_overhead")
+    if "service_defects_ms" in row:
+        text += "; on the service's measurement " + part("service_defects_ms",
+                                                          "service_defects_overhead")
+    return text
 
 
 def _ratio(value: Any) -> str:

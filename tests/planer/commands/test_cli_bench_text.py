@@ -52,6 +52,25 @@ def test_old_rows_without_the_steps_give_one_line_with_the_copy() -> None:
     assert "steps" not in text and "remap" not in text
 
 
+@pytest.mark.parametrize("plain,service,verdicts", [
+    (0.447, 0.29, ("OVER", "within")), (0.30, 0.301, ("within", "OVER")),
+    (0.12, None, ("within",)),
+])
+def test_defects_line_judges_each_overhead_against_the_budget(
+        plain: float, service: float | None, verdicts: tuple[str, ...]) -> None:
+    over = {"defects_ms": 0.64, "defects_overhead": plain}
+    if service is not None:
+        over.update(service_defects_ms=0.7, service_defects_overhead=service)
+    lines = vision_row_text(_row(**over)).splitlines()
+    assert len(lines) == 4
+    line = lines[-1]
+    assert line.startswith("    defects and 2-D map, CPU per pair: +0.64 ms")
+    assert f"= {100 * plain:+.0f} % ({verdicts[0]} the +30 % budget)" in line
+    assert ("on the service's measurement +0.70 ms" in line) == (service is not None)
+    if service is not None:
+        assert line.endswith(f"= {100 * service:+.0f} % ({verdicts[1]} the +30 % budget)")
+
+
 def test_part_text_has_one_block_per_size() -> None:
     rows = [_row(), _row(width=1920, height=1200, pairs_per_s=42.0)]
     text = vision_text(rows)
