@@ -8,7 +8,7 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
 * :func:`bin_rows` -- an 8-bit image summed into ``k``-row bins, those summed ``m`` at a time
   over a band, and that band's column sums, in one pass over the image;
 * :func:`group_sums` -- groups of adjacent ``uint16`` bins summed in the output's dtype: the
-  orientation's groups (``float32``) and the sheared profile's bins (``uint16``), one kernel;
+  orientation's groups (``float32``) and the unsheared profile's bins (``uint16``), one kernel;
 * :func:`column_sums` -- the column sums of ``uint16`` rows (the profile's), exact;
 * :func:`rows_over` -- ``uint16`` rows divided by their means (the rotated texture's);
 * :func:`scaled_less_one` -- rows times a column scale, less one (the shading-free texture);

@@ -332,7 +332,10 @@ def _pdo_packer(pdo: Any, layout: tuple[tuple[int, Any], ...] | None) -> struct.
                 or od_var.min is not None or od_var.max is not None
                 or packer.size * 8 != len(od_var)):
             return None
-        fmt += packer.format.lstrip("<>=!@")
+        code = packer.format.lstrip("<>=!@")
+        if struct.calcsize("<" + code) != packer.size:  # a 24/40/48/56-bit object: no struct
+            return None
+        fmt += code
         at += packer.size
     return struct.Struct(fmt) if at == len(pdo.data) else None
 
@@ -533,8 +536,9 @@ class CanopenAmplifier:
         layout = self._layouts[pdo_no]
         packer = self._packers[pdo_no]
         packed = None
-        if packer is not None and len(values) == len(layout or ()):
-            try:
+        if (packer is not None and len(values) == len(layout or ())
+                and not any(isinstance(v, (bytes, bytearray)) for v in values)):
+            try:  # (bytes go raw through encode_raw, never through int())
                 packed = packer.pack(*[int(v) for v in values])
             except (struct.error, TypeError, ValueError, OverflowError):
                 packed = None  # one by one below: the library's error, where it raises it

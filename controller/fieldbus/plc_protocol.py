@@ -161,6 +161,8 @@ MAX_KNIVES = 8
 """Most knives the piezo frames carry."""
 MAX_READ_WORDS = 125
 """Most registers one Modbus read (function 3 or 23) returns."""
+MAX_PLANS = 64
+"""Sequences of heads whose block reads a protocol keeps planned (a moulder asks for one)."""
 _INT_ONLY = frozenset({int})
 BlocksReads = tuple[tuple[int, int, tuple[int, ...]], ...]
 """Reads of head blocks: ``(address, words, heads)`` each (:meth:`PlcProtocol.blocks_reads`)."""
@@ -179,7 +181,7 @@ def int_words(words: Sequence[int]) -> list[int]:
 
     Words that are plain ints already (what a bus answers) are copied as they are, without a
     conversion each; any other word (a numpy integer, a float, a bool) is converted, and a word
-    ``int`` refuses raises as it did.
+    ``int`` refuses raises as ``int`` does.
     """
     ws = list(words)
     if set(map(type, ws)) <= _INT_ONLY:
@@ -224,6 +226,8 @@ class PlcProtocol:
         if all(type(h) is int for h in key):  # bools and other numbers take the long way
             plan = self._blocks_reads.get(key)
             if plan is None:
+                if len(self._blocks_reads) >= MAX_PLANS:  # a caller asking ever new sets
+                    self._blocks_reads.clear()
                 plan = self._blocks_reads[key] = self._plan_blocks_reads(key)
             return plan
         return self._plan_blocks_reads(key)

@@ -507,7 +507,7 @@ class ControlLoops:
         return out
 
     def between_pairs(self, t: float, *, idle: bool) -> None:
-        """Work that must not delay a pair, done after a pair's record.
+        """Work that must not delay a pair, done after a pair's setpoints, before its record.
 
         ``idle``: no later pair waits for this one. The knife condition's forecast is renewed
         here when due (:meth:`KnifeConditionWatch.renew`), never inside a pair's control.

@@ -277,9 +277,10 @@ def _reply_into_slot(reply: tuple, buf: Any, offset: int, room: int) -> bool:
 def _dumps(obj: Any) -> bytes:
     """``ForkingPickler.dumps(obj)``'s bytes by the C pickler (a third faster on a reply).
 
-    A reply holds numbers, strings, tuples, arrays and dataclasses: none of the types
-    ``ForkingPickler`` reduces its own way, so the bytes are the same; anything pickle itself
-    refuses goes through ``ForkingPickler`` as before.
+    A reply or a job holds numbers, strings, tuples, arrays and dataclasses: none of the
+    types ``ForkingPickler`` reduces its own way (connections, sockets: plain pickle would not
+    refuse them, so they must never be put in one), so the bytes are the same; anything
+    pickle itself refuses goes through ``ForkingPickler``.
     """
     try:
         return pickle.dumps(obj)

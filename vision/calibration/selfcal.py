@@ -140,8 +140,10 @@ def _transfers(n_fft: int, dx_mm: float, ells: tuple[float, ...]) -> np.ndarray:
 
 @functools.lru_cache(maxsize=32)
 def _transfers_at(n_fft: int, dx_key: float, ells: tuple[float, ...]) -> np.ndarray:
-    """:func:`_transfers` at the rounded spacing ``dx_key``."""
-    return np.stack([_exp_transfer(n_fft, dx_key, e) for e in ells])
+    """:func:`_transfers` at the rounded spacing ``dx_key`` (read-only: shared)."""
+    h = np.stack([_exp_transfer(n_fft, dx_key, e) for e in ells])
+    h.flags.writeable = False
+    return h
 
 
 def _transfers_packed(n_fft: int, dx_mm: float, ells: tuple[float, ...]) -> np.ndarray:
@@ -155,13 +157,14 @@ def _transfers_packed(n_fft: int, dx_mm: float, ells: tuple[float, ...]) -> np.n
 
 @functools.lru_cache(maxsize=32)
 def _packed_at(n_fft: int, dx_key: float, ells: tuple[float, ...]) -> np.ndarray:
-    """:func:`_transfers_packed` at the rounded spacing ``dx_key``."""
+    """:func:`_transfers_packed` at the rounded spacing ``dx_key`` (read-only: shared)."""
     full = _transfers_at(n_fft, dx_key, ells)
     h = np.empty((len(ells), n_fft))
     h[:, 0] = full[:, 0]
     h[:, 1:-1:2] = full[:, 1:-1]
     h[:, 2:-1:2] = full[:, 1:-1]
     h[:, -1] = full[:, -1]
+    h.flags.writeable = False
     return h
 
 

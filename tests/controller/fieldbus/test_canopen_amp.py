@@ -428,8 +428,8 @@ def test_the_status_decoded_when_asked_is_the_one_decoded_on_arrival():
 
 def test_pdos_packed_in_one_struct_are_the_bytes_value_by_value():
     """RPDO1/2/3 packed by one ``struct`` each: for random values (in range, out of range,
-    floats, bools, bytes, strings) the same frames and the same errors as each value through
-    its object's ``encode_raw`` (the packers withdrawn)."""
+    floats, bools, bytes (raw, even those int() would read), strings) the same frames and the
+    same errors as each value through its object's ``encode_raw`` (the packers withdrawn)."""
     import random
 
     rng = random.Random(5)
@@ -441,11 +441,13 @@ def test_pdos_packed_in_one_struct_are_the_bytes_value_by_value():
         assert all(p is not None for p in fast._packers.values())
         slow._packers = dict.fromkeys(slow._packers)
 
-        def value():
+        def value(size: int):
             kind = rng.random()
             if kind < 0.7:
                 return rng.randrange(-40000, 70000)
-            return rng.choice([rng.uniform(-5e4, 5e4), True, False, b"\x01", "7", "x", None])
+            # bytes of the object's size (others would resize the PDO's data for good)
+            return rng.choice([rng.uniform(-5e4, 5e4), True, False, b"\x01" * size,
+                               b"7" * size, bytearray(b"1" * size), "7", "x", None])
 
         def outcome(amp, no, values):
             try:
@@ -458,7 +460,7 @@ def test_pdos_packed_in_one_struct_are_the_bytes_value_by_value():
         seen = set()
         for _ in range(3000):
             no = rng.choice([1, 2, 3])
-            values = [value() for _ in range(len(fast._layouts[no]))]
+            values = [value(len(od) // 8) for _, od in fast._layouts[no]]
             if no == 3 and rng.random() < 0.5:  # what command() sends
                 values = [rng.randrange(2), rng.randrange(1, 9), rng.randrange(256)]
             got = outcome(fast, no, values)
@@ -469,3 +471,26 @@ def test_pdos_packed_in_one_struct_are_the_bytes_value_by_value():
     finally:
         spy.shutdown()
         master.close()
+
+
+@pytest.mark.parametrize("data_type,size", [(0x10, 3), (0x12, 5), (0x13, 6), (0x14, 7),
+                                            (0x16, 3), (0x18, 5)])
+def test_no_struct_for_objects_whose_struct_packs_more_bytes_than_they_have(
+        data_type: int, size: int) -> None:
+    """INTEGER24/40/48/56 (and unsigned): canopen's struct for them packs 4 or 8 bytes, so a
+    PDO holding one goes value by value through ``encode_raw`` (no one-struct packer)."""
+    from types import SimpleNamespace
+
+    from canopen.objectdictionary import INTEGER16, ODVariable
+
+    from controller.fieldbus.canopen_amp import _pdo_packer
+
+    odd = ODVariable("odd", 0x2000, 1)
+    odd.data_type = data_type
+    plain = ODVariable("plain", 0x2000, 2)
+    plain.data_type = INTEGER16
+    assert len(odd) == 8 * size
+    layout = ((0, odd), (size, plain))
+    pdo = SimpleNamespace(data=bytearray(size + 2))
+    assert _pdo_packer(pdo, layout) is None
+    assert _pdo_packer(SimpleNamespace(data=bytearray(2)), ((0, plain),)) is not None

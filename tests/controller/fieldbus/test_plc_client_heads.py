@@ -473,3 +473,20 @@ def test_int_words_is_int_of_each_word():
         assert got == want and all(type(w) is int for w in got)
         assert got is not shaped
     assert int_words(range(3)) == [0, 1, 2]
+
+
+def test_blocks_reads_keeps_at_most_max_plans_and_stays_right_past_them():
+    """A caller asking ever new sequences of heads: at most MAX_PLANS kept, every answer the
+    plan worked out afresh (before and after the kept plans are dropped)."""
+    import itertools
+
+    from controller.fieldbus.plc_protocol import MAX_PLANS, PlcProtocol
+
+    p = PlcProtocol(RMAP)
+    seqs = [s for n in range(1, 5) for s in itertools.permutations(range(8), n)]
+    assert len(seqs) > 3 * MAX_PLANS
+    for s in seqs[:3 * MAX_PLANS]:
+        assert p.blocks_reads(s) == _blocks_reads_before(p, s)
+        assert 1 <= len(p._blocks_reads) <= MAX_PLANS
+    again = seqs[3 * MAX_PLANS - 1]
+    assert p.blocks_reads(again) is p.blocks_reads(list(again))  # the last one still kept

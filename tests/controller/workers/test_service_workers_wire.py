@@ -25,12 +25,11 @@ from controller.workers.process import (
     SLOT_HEAD,
     _cal_from,
     _cal_state,
-    _pack,
+    _pack_into_slot,
     _Packed,
     _reply_from_slot,
     _reply_into_slot,
 )
-from tests.support.worker_forms import _blob_into_slot
 from vision.calibration.selfcal import Calibration, SelfCalibrator
 
 # ---------------------------------------------------------------------------------------------
@@ -159,7 +158,7 @@ def test_arrays_back_through_the_slot_rebuild_the_measurement(block, x, widths, 
     base = slot * slot_bytes
     meas = _Meas(x, pitch, widths, np.arange(3, dtype=np.int32), knife_mm=knife)
     ests = tuple(Calibration(gain=g) for g in estimates)
-    packed = _blob_into_slot(_pack(meas), block.buf, base + SLOT_HEAD, slot_bytes - SLOT_HEAD)
+    packed = _pack_into_slot(meas, block.buf, base + SLOT_HEAD, slot_bytes - SLOT_HEAD)
     assert type(packed) is _Packed
     fits = 8 * sum(packed.lengths) <= slot_bytes - SLOT_HEAD
     assert (packed.blob is None) == fits  # in the slot when it fits, else in the reply
@@ -189,7 +188,7 @@ def test_arrays_back_through_the_slot_rebuild_the_measurement(block, x, widths, 
 
 def test_a_reply_whose_arrays_are_in_a_slot_it_was_not_given_fails_its_pair(block):
     meas = _Meas(np.ones(4), 1.0, np.ones(3), np.zeros(1, np.int32))
-    packed = _blob_into_slot(_pack(meas), block.buf, SLOT_HEAD, 1024 - SLOT_HEAD)
+    packed = _pack_into_slot(meas, block.buf, SLOT_HEAD, 1024 - SLOT_HEAD)
     assert packed.blob is None
     reply = ("done", 1, None, packed, (), 0.0, None)
     no_slot = _worker_with(block, 1024).outcome(reply, None)
@@ -202,9 +201,14 @@ def test_a_reply_whose_arrays_are_in_a_slot_it_was_not_given_fails_its_pair(bloc
 
 def test_arrays_that_do_not_fit_the_slot_stay_in_the_reply(block):
     meas = _Meas(np.ones(100), 1.0, np.ones(100), np.zeros(1, np.int32))
-    packed = _pack(meas)
-    assert _blob_into_slot(packed, block.buf, 0, 8 * 200 - 1) is packed
-    assert _blob_into_slot(meas, block.buf, 0, 4096) is meas  # not packed: as it is
+    block.buf[:8 * 200] = b"\xee" * (8 * 200)
+    packed = _pack_into_slot(meas, block.buf, 0, 8 * 200 - 1)
+    assert type(packed) is _Packed and packed.blob is not None  # the arrays go with the reply
+    np.testing.assert_array_equal(packed.blob, np.ones(200))
+    assert packed.lengths == (100, 100) and packed.names == ("x_mm", "widths_mm")
+    assert bytes(block.buf[:8 * 200]) == b"\xee" * (8 * 200)  # the slot left as it was
+    not_plain = SimpleNamespace(x_mm=np.ones(3), widths_mm=np.ones(3))
+    assert _pack_into_slot(not_plain, block.buf, 0, 4096) is not_plain  # not packed: as it is
 
 
 # ---------------------------------------------------------------------------------------------
