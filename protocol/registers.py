@@ -28,6 +28,7 @@ Facts both sides share, written once here
 from __future__ import annotations
 
 import enum
+import functools
 import math
 import struct
 from collections.abc import Callable, Mapping, Sequence
@@ -249,9 +250,12 @@ class HeadBlock:
     registers: tuple[Register, ...]
     read_across: bool = False
 
-    @property
+    @functools.cached_property
     def used(self) -> int:
-        """Words of a block its registers cover (offset 0 to the last register's last word)."""
+        """Words of a block its registers cover (offset 0 to the last register's last word).
+
+        Worked out once (a moulder's PLC cycle asks for it for every head).
+        """
         return max(r.last_address for r in self.registers) + 1
 
     @property

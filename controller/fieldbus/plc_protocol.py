@@ -208,8 +208,6 @@ class PlcProtocol:
         self._feed = regmap["feed_setpoint_mm_s"]
         self._hb = regmap["heartbeat_service"]
         self._spindle = regmap.registers.get("spindle_setpoint_rpm")
-        self._block_used = regmap.heads.used if regmap.heads is not None else 0
-        """Words of a head's block its registers cover (``HeadBlock.used``, worked out once)."""
         self._blocks_reads: dict[tuple[int, ...], BlocksReads] = {}
 
     def blocks_reads(self, heads: Sequence[int]) -> BlocksReads:
@@ -242,7 +240,7 @@ class PlcProtocol:
         order = sorted({int(h) for h in heads})
         out: list[tuple[int, int, tuple[int, ...]]] = []
         run: list[int] = []
-        used = self._block_used
+        used = block.used
         for h in order:
             fits = (block.read_across and run and h == run[-1] + 1
                     and (h - run[0]) * block.stride + used <= MAX_READ_WORDS)
@@ -258,7 +256,7 @@ class PlcProtocol:
         block = self.regmap.heads
         assert block is not None
         first = block.address(run[0])
-        return first, (len(run) - 1) * block.stride + self._block_used, tuple(run)
+        return first, (len(run) - 1) * block.stride + block.used, tuple(run)
 
     def split_blocks(self, read: tuple[int, int, tuple[int, ...]],
                      words: Sequence[int]) -> dict[int, list[int]]:
@@ -272,7 +270,7 @@ class PlcProtocol:
             raise FieldbusError(f"PLC answered {len(words)} registers, expected {count}")
         block = self.regmap.heads
         assert block is not None
-        stride, used, h0 = block.stride, self._block_used, heads[0]
+        stride, used, h0 = block.stride, block.used, heads[0]
         return {h: int_words(words[(h - h0) * stride:][:used]) for h in heads}
 
     def decode_read(self, words: Sequence[int]) -> dict[str, float | int]:

@@ -86,3 +86,21 @@ def test_a_map_that_has_decoded_still_pickles_and_decodes_alike():
         assert _same(twin.decode_block(words), want)
         assert _same(twin.for_head(1).decode_block(head_words), want_head)
     assert rmap._plans  # the original keeps its own
+
+
+def test_a_head_block_works_out_its_used_words_once_and_still_pickles_and_compares():
+    """``HeadBlock.used`` is cached on the block (asked every PLC cycle), equal to the last
+    register's last word + 1; the cache changes neither equality, hashing nor pickling."""
+    import pickle
+
+    from protocol.registers import RegisterMap
+
+    block = RegisterMap.load().heads
+    assert block is not None
+    want = max(r.last_address for r in block.registers) + 1
+    assert block.used == want and "used" in vars(block)
+    assert block.used is block.used
+    fresh = RegisterMap.load().heads
+    assert fresh == block and hash(fresh) == hash(block)
+    back = pickle.loads(pickle.dumps(block))
+    assert back == block and back.used == want

@@ -247,10 +247,11 @@ def test_the_image_finds_the_block_layout_once_not_per_cycle(monkeypatch):
     heads = [target.head_register_values(i) for i in range(target.head_count)]
     calls = {"names": 0, "head_span": 0, "used": 0}
     for prop in ("names", "used"):
-        real = getattr(HeadBlock, prop)
+        real = HeadBlock.__dict__[prop]
+        get = getattr(real, "fget", None) or real.func  # a property or a cached_property
         monkeypatch.setattr(HeadBlock, prop, property(
-            lambda self, real=real, prop=prop: calls.__setitem__(prop, calls[prop] + 1)
-            or real.fget(self)))
+            lambda self, get=get, prop=prop: calls.__setitem__(prop, calls[prop] + 1)
+            or get(self)))
     real_span = RegisterMap.head_span
     monkeypatch.setattr(RegisterMap, "head_span", lambda self, i=None: calls.__setitem__(
         "head_span", calls["head_span"] + 1) or real_span(self, i))
