@@ -552,12 +552,15 @@ def chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
         return []
     smap = res.smap
     prof = res.profile
-    h = np.cumsum(prof) * 1000.0 / smap.cols_per_mm
-    xs = _feed_positions(prof.size, smap.col0_px, smap.col_step_px, smap.cx, smap.px_per_mm)
-    d = np.diff(np.interp(np.asarray(bottoms_mm, dtype=np.float64), xs, h))
-    fit = _chatter_fit(d, knives)
-    if fit is None:
+    bottoms = np.asarray(bottoms_mm, dtype=np.float64)
+    basis = _chatter_basis(bottoms.size - 1, knives)
+    if basis is None:
         return []
+    trend, tt, waves, coef = basis
+    xs = _feed_positions(prof.size, smap.col0_px, smap.col_step_px, smap.cx, smap.px_per_mm)
+    # the heights at the marks' lowest points, their differences and the fit: one call
+    fit = kernels.chatter_fit(prof, smap.cols_per_mm, xs,
+                              np.ascontiguousarray(bottoms), knives, trend, tt, waves, coef)
     explained, amp_d, noise, amp = fit
     if amp < settings.chatter_um or explained < 0.5 or amp_d < 4.5 * noise:
         return []
@@ -588,25 +591,15 @@ def _chatter_fit(d: np.ndarray, knives: int) -> tuple[float, float, float, float
     Returns ``(explained, amp_d, noise, amp)``: the share of the variance the best period
     explains, its amplitude of the differences, their noise's standard error, the heights'
     amplitude; ``None`` without a period to fit. The basis and its determinants are set up
-    once per number of marks (:func:`_chatter_basis`).
+    once per number of marks (:func:`_chatter_basis`); the fit is
+    :func:`vision.defects.kernels.chatter_fit`'s (what :func:`chatter` calls on the profile).
     """
-    m = d.size
-    basis = _chatter_basis(m, knives)
+    basis = _chatter_basis(d.size, knives)
     if basis is None:
         return None
-    knife, per_knife, trend, f, sn, cs, gss, gsc, gcc, tt, det = basis
-    e = d - (per_knife @ d)[knife]
-    e = e - trend * float(trend @ e) / tt
-    bs, bc = sn @ e, cs @ e
-    a_s, a_c = (gcc * bs - gsc * bc) / det, (gss * bc - gsc * bs) / det
-    fitted = a_s * bs + a_c * bc  # |fit|^2 of the least-squares fit
-    ee = max(float(e @ e), 1e-18)
-    k = int(np.argmax(fitted))
-    explained = float(fitted[k]) / ee
-    amp_d = float(np.hypot(a_s[k], a_c[k]))
-    noise = math.sqrt(max(ee - float(fitted[k]), 0.0) / m) * math.sqrt(2.0 / m)
-    amp = amp_d / (2.0 * math.sin(math.pi * float(f[k])))
-    return explained, amp_d, noise, amp
+    trend, tt, waves, coef = basis
+    return kernels._sinusoid_fit(np.ascontiguousarray(d, dtype=np.float64), knives, trend, tt,
+                                 waves, coef)
 
 
 @functools.lru_cache(maxsize=32)
@@ -614,9 +607,10 @@ def _chatter_basis(m: int, knives: int) -> tuple[Any, ...] | None:
     """The sinusoids :func:`chatter` fits to ``m`` differences (``knives`` knives), set up once.
 
     Each knife's mean and a linear trend removed from them as from the data; returns
-    ``(knife, per_knife, trend, f, sin, cos, gss, gsc, gcc, tt, det)`` (``tt`` the trend's
-    square, ``det`` each frequency's normal equations' determinant, floored at ``1e-18``) or
-    ``None`` without a frequency.
+    ``(trend, tt, waves, coef)`` (``tt`` the trend's square; ``waves``: the sines and cosines,
+    shape (2, frequencies, m); ``coef``: rows ``f``, ``gss``, ``gsc``, ``gcc`` and ``det``,
+    each frequency's normal equations' determinant floored at ``1e-18``: what
+    :func:`vision.defects.kernels.chatter_fit` reads) or ``None`` without a frequency.
     """
     j = np.arange(m)
     knife = j % knives
@@ -638,10 +632,10 @@ def _chatter_basis(m: int, knives: int) -> tuple[Any, ...] | None:
         b -= np.outer(b @ trend, trend) / tt
     gss, gsc, gcc = (sn * sn).sum(1), (sn * cs).sum(1), (cs * cs).sum(1)
     det = np.maximum(gss * gcc - gsc * gsc, 1e-18)
-    arrays = (knife, per_knife, trend, f, sn, cs, gss, gsc, gcc, det)
-    for a in arrays:
+    waves, coef = np.stack((sn, cs)), np.stack((f, gss, gsc, gcc, det))
+    for a in (trend, waves, coef):
         a.flags.writeable = False
-    return (*arrays[:9], float(trend @ trend), det)
+    return trend, float(trend @ trend), waves, coef
 
 
 def snipe(res: Residual, pitch_mm: float | None, settings: DefectSettings) -> list[Defect]:

@@ -997,6 +997,93 @@ def reference_median(energy: np.ndarray, every: int, ratio: float,
     out[2] = hot
 
 
+@njit(**_JIT)
+def _mark_differences(profile: np.ndarray, cols_per_mm: float, xs: np.ndarray,
+                      bottoms: np.ndarray, d: np.ndarray) -> None:  # pragma: no cover
+    """The differences of the marks' lowest points' heights from one mark to the next, um.
+
+    ``np.diff(np.interp(bottoms, xs, np.cumsum(profile) * 1000.0 / cols_per_mm))`` into ``d``
+    (shape ``bottoms.size - 1``): the same sums in the same order, numpy's interpolation (numba's
+    facsimile of it).
+    """
+    n = profile.size
+    h = np.empty(n)
+    acc = 0.0
+    for c in range(n):
+        acc += profile[c]
+        h[c] = acc * 1000.0 / cols_per_mm
+    at = np.interp(bottoms, xs, h)
+    for i in range(d.size):
+        d[i] = at[i + 1] - at[i]
+
+
+@njit(**_JIT)
+def _sinusoid_fit(d: np.ndarray, knives: int, trend: np.ndarray, tt: float,
+                  waves: np.ndarray, coef: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """Chatter's best sinusoid on the differences ``d`` (``detect._chatter_basis``'s basis).
+
+    Each knife's mean and the trend removed from ``d``, the least-squares sine and cosine of
+    every frequency (``waves[0]``, ``waves[1]``: shape (frequencies, m); ``coef``: rows
+    ``f, gss, gsc, gcc, det``), the one explaining most.  Returns ``(explained, amp_d, noise,
+    amp)`` as :func:`vision.defects.detect.chatter` reads them.  The sums run in order (numpy's
+    matrix products sum in BLAS's order: the same numbers to ~1e-15 relative).
+    """
+    m = d.size
+    e = np.empty(m)
+    for k in range(knives):  # each knife's mean (its samples times 1 / their count, in order)
+        w = 1.0 / len(range(k, m, knives))
+        s = 0.0
+        for j in range(k, m, knives):
+            s += d[j] * w
+        for j in range(k, m, knives):
+            e[j] = d[j] - s
+    te = 0.0
+    for j in range(m):
+        te += trend[j] * e[j]
+    ee = 0.0
+    for j in range(m):
+        e[j] = e[j] - trend[j] * te / tt
+        ee += e[j] * e[j]
+    ee = max(ee, 1e-18)
+    sn, cs = waves[0], waves[1]
+    best = -np.inf
+    k = -1
+    best_s = 0.0
+    best_c = 0.0
+    for q in range(sn.shape[0]):
+        rs, rc = sn[q], cs[q]
+        bs = 0.0
+        bc = 0.0
+        for j in range(m):
+            bs += rs[j] * e[j]
+            bc += rc[j] * e[j]
+        gss, gsc, gcc, det = coef[1, q], coef[2, q], coef[3, q], coef[4, q]
+        a_s = (gcc * bs - gsc * bc) / det
+        a_c = (gss * bc - gsc * bs) / det
+        fitted = a_s * bs + a_c * bc
+        if k < 0 or fitted > best or (np.isnan(fitted) and not np.isnan(best)):
+            best, k, best_s, best_c = fitted, q, a_s, a_c  # np.argmax: the first NaN or max
+    explained = best / ee
+    amp_d = math.hypot(best_s, best_c)
+    noise = math.sqrt(max(ee - best, 0.0) / m) * math.sqrt(2.0 / m)
+    amp = amp_d / (2.0 * math.sin(math.pi * coef[0, k]))
+    return explained, amp_d, noise, amp
+
+
+@njit(**_JIT)
+def chatter_fit(profile: np.ndarray, cols_per_mm: float, xs: np.ndarray, bottoms: np.ndarray,
+                knives: int, trend: np.ndarray, tt: float, waves: np.ndarray,
+                coef: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """Chatter's fit of one pair in one call (:func:`vision.defects.detect.chatter`).
+
+    The marks' heights at their lowest points, their differences
+    (:func:`_mark_differences`) and the best sinusoid on them (:func:`_sinusoid_fit`).
+    """
+    d = np.empty(bottoms.size - 1)
+    _mark_differences(profile, cols_per_mm, xs, bottoms, d)
+    return _sinusoid_fit(d, knives, trend, tt, waves, coef)
+
+
 _WARM = [False]
 
 
@@ -1034,6 +1121,11 @@ def warm_up() -> None:
     cross_spectrum(np.ones((2, 9), dtype=np.complex64), np.empty(9, dtype=np.complex64))
     snipe_fit(np.ones(40), 2, 38, 3, 0.16)
     reference_median(np.ones(16), 8, 12.0, np.empty(3))
+    fixed = [np.arange(40.0), np.ones(14), np.ones((2, 3, 14)), np.ones((5, 3))]
+    for v in fixed:  # read-only, as the caches hand them over
+        v.flags.writeable = False
+    chatter_fit(np.ones(40), 6.25, fixed[0], np.linspace(2.0, 30.0, 15), 2, fixed[1], 14.0,
+                fixed[2], fixed[3])
     marked_cells(cells, np.ones((8, 4), dtype=np.bool_), 2.0, 4.0, np.empty_like(cells),
                  np.empty((8, 4), dtype=np.bool_))
     _WARM[0] = True

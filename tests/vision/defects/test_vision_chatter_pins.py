@@ -1,4 +1,11 @@
-"""Chatter's fit restructured (set-up hoisted into caches) against its earlier form: old == new."""
+"""Chatter restructured against its earlier forms.
+
+The fit's set-up hoisted into caches (bit for bit), then the whole detector -- the profile's
+heights at the marks' lowest points, their differences and the fit -- one compiled call
+(:func:`vision.defects.kernels.chatter_fit`): the differences bit for bit, the fit's sums in
+order where numpy's matrix products sum in BLAS's order (the same numbers to 1e-12 relative,
+the same period and the same decisions).
+"""
 
 from __future__ import annotations
 
@@ -8,7 +15,9 @@ import math
 import numpy as np
 import pytest
 
-from vision.defects import detect
+from vision.defects import detect, kernels
+from vision.defects.detect import DefectKind, DefectSettings, Residual, residual
+from vision.defects.surface_map import SurfaceMap
 
 
 @functools.lru_cache(maxsize=32)
@@ -56,8 +65,55 @@ def _old_fit(d: np.ndarray, knives: int) -> tuple[float, float, float, float] | 
     return explained, amp_d, noise, amp
 
 
+def _old_chatter(res: Residual, bottoms_mm: np.ndarray | None, knives: int | None,
+                 settings: DefectSettings) -> list[detect.Defect]:
+    """:func:`vision.defects.detect.chatter` as numpy calls (before its compiled fit)."""
+    if bottoms_mm is None or knives is None or len(bottoms_mm) < 3 * knives + 3:
+        return []
+    smap = res.smap
+    prof = res.profile
+    h = np.cumsum(prof) * 1000.0 / smap.cols_per_mm
+    xs = smap.feed_mm(np.arange(prof.size)) + smap.cx / smap.px_per_mm
+    d = np.diff(np.interp(np.asarray(bottoms_mm, dtype=np.float64), xs, h))
+    fit = _old_fit(d, knives)
+    if fit is None:
+        return []
+    explained, amp_d, noise, amp = fit
+    if amp < settings.chatter_um or explained < 0.5 or amp_d < 4.5 * noise:
+        return []
+    cols = smap.valid_cols
+    rows = smap.valid_rows
+    conf = min(1.0, explained) * min(1.0, amp / (2 * settings.chatter_um))
+    return [detect._defect(res, DefectKind.CHATTER, (int(cols[0]), int(cols[-1]) + 1),
+                           (int(rows[0]), int(rows[-1]) + 1), amp, conf)]
+
+
+def _wavy_case(rng: np.random.Generator) -> tuple[Residual, np.ndarray, int]:
+    """A residual whose marks' lowest points carry runout, maybe chatter, and noise."""
+    knives = int(rng.choice([1, 2, 3, 4, 6]))
+    ppm, pitch = float(rng.uniform(6.0, 14.0)), float(rng.uniform(1.0, 2.5))
+    cols, rows = int(rng.integers(200, 480)), int(rng.integers(16, 40))
+    x = np.arange(cols) / ppm
+    j = np.floor(x / pitch)
+    h_um = rng.uniform(-2.0, 2.0, knives)[(j % knives).astype(int)]
+    if rng.random() < 0.6:  # chatter: off the revolution's period, or on it
+        h_um = h_um + rng.uniform(0.2, 3.0) * np.sin(2 * np.pi * (x / pitch)
+                                                    / rng.uniform(2.3, 12.0))
+    marks = ((x % pitch) - pitch / 2) / 60.0
+    slope = marks + np.gradient(h_um / 1000, 1 / ppm)
+    p = (slope[None, :] + rng.uniform(0.0005, 0.004) * rng.standard_normal((rows, cols)))
+    smap = SurfaceMap(p.astype(np.float32), None, np.ones(p.shape, bool),
+                      col0_px=float(rng.uniform(-3, 3)), row0_px=2.0, row_step_px=5.0,
+                      roll_deg=0.0, cx=cols / 2, cy=50.0, px_per_mm=ppm,
+                      shadow_slope=1 / math.tan(math.radians(82)),
+                      col_step_px=float(rng.choice([1.0, 2.0])))
+    span = x[-1] * smap.col_step_px
+    bottoms = (np.arange(1, int(span / pitch)) + rng.uniform(0.3, 0.7)) * pitch
+    return residual(smap, DefectSettings()), bottoms, knives
+
+
 @pytest.mark.parametrize("knives", [1, 2, 4, 6])
-def test_chatter_fit_is_the_inline_fit_bit_for_bit(knives):
+def test_chatter_fit_is_the_inline_fit(knives):
     rng = np.random.default_rng(knives)
     for _ in range(40):
         m = int(rng.integers(3 * knives + 2, 90))
@@ -65,15 +121,49 @@ def test_chatter_fit_is_the_inline_fit_bit_for_bit(knives):
         if rng.random() < 0.5:  # a chatter wave on top: the fit finds it
             period = rng.uniform(2.3, 15.0)
             d += rng.uniform(0.5, 4.0) * np.sin(2 * np.pi * np.arange(m) / period)
-        assert detect._chatter_fit(d, knives) == _old_fit(d, knives)
+        got, want = detect._chatter_fit(d, knives), _old_fit(d, knives)
+        # its sums in order, numpy's in BLAS's: the same best period, numbers to 1e-12
+        assert got == pytest.approx(want, rel=1e-12, abs=0.0)
+
+
+def test_the_mark_differences_are_numpys_bit_for_bit():
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        n = int(rng.integers(2, 400))
+        prof = rng.standard_normal(n) * 0.01
+        cpm = float(rng.uniform(3.0, 15.0))
+        xs = np.sort(rng.uniform(-5.0, 60.0, n))
+        b = np.sort(rng.uniform(-10.0, 70.0, int(rng.integers(2, 50))))  # some outside
+        b[::5] = xs[rng.integers(0, n, b[::5].size)]  # some exactly on a column
+        want = np.diff(np.interp(b, xs, np.cumsum(prof) * 1000.0 / cpm))
+        got = np.empty(b.size - 1)
+        kernels._mark_differences(prof, cpm, xs, b, got)
+        assert np.array_equal(got, want, equal_nan=True)
+
+
+def test_chatter_is_its_numpy_form():
+    """The same defects (place, size bit for bit; depth and confidence to 1e-12)."""
+    rng = np.random.default_rng(2024)
+    settings = DefectSettings()
+    found = 0
+    for _ in range(80):
+        res, bottoms, knives = _wavy_case(rng)
+        got = detect.chatter(res, bottoms, knives, settings)
+        want = _old_chatter(res, bottoms, knives, settings)
+        assert len(got) == len(want)
+        for g, w in zip(got, want, strict=True):
+            assert (g.kind, g.x_mm, g.y_mm, g.length_mm, g.width_mm) == (
+                w.kind, w.x_mm, w.y_mm, w.length_mm, w.width_mm)
+            assert g.depth_um == pytest.approx(w.depth_um, rel=1e-12, abs=0.0)
+            assert g.confidence == pytest.approx(w.confidence, rel=1e-12, abs=0.0)
+        found += len(got)
+    assert 15 <= found <= 65  # both decisions met often
 
 
 @pytest.mark.parametrize("n, col0, step, cx, ppm", [(330, 0.5, 2.0, 329.0, 12.5),
                                                     (320, 3.5, 6.0, 959.5, 36.4),
                                                     (17, -2.25, 1.0, 8.0, 7.0)])
 def test_feed_positions_are_the_maps_x_mm(n, col0, step, cx, ppm):
-    from vision.defects.surface_map import SurfaceMap
-
     smap = SurfaceMap(slope_along_feed=np.zeros((2, n), np.float32), albedo=None,
                       valid=np.ones((2, n), bool), col0_px=col0, row0_px=0.0, row_step_px=1.0,
                       roll_deg=0.0, cx=cx, cy=0.0, px_per_mm=ppm, col_step_px=step)
