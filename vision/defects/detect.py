@@ -895,13 +895,12 @@ def oriented_coherence(res: Residual, max_lag_mm: float = 2.0) -> tuple[float, f
     spectrum = np.empty(f.shape[1], dtype=f.dtype)
     kernels.cross_spectrum(f, spectrum)
     x = ffts.irfft(spectrum, size)
-    norm = float(r2[0::2].sum() * r2[1::2].sum()) ** 0.5
-    if norm <= 0:
+    # the correlations over the rows' powers at lags 0 .. max_lag_px, then -max_lag_px .. -1,
+    # and their peak: one compiled pass
+    peak, at0, lag, ok = kernels.coherence_peak(x, r2, max_lag_px)
+    if not ok:
         return 0.0, 0.0, 0
-    vals = np.concatenate((x[:max_lag_px + 1], x[-max_lag_px:])) / norm
-    k = int(np.argmax(vals))  # lags 0 .. max_lag_px, then -max_lag_px .. -1
-    lag = k if k <= max_lag_px else k - (2 * max_lag_px + 1)
-    return float(vals[k]), float(vals[0]), int(lag)
+    return peak, at0, lag
 
 
 @functools.lru_cache(maxsize=8)

@@ -8,7 +8,7 @@ here do each step in one call, with the arithmetic of the numpy code they replac
   remap's numbers (:class:`vision.defects.surface_map.SurfaceMapper`);
 * :func:`column_means_u16` -- the map's coarse source: whole blocks of columns of
   ``uint16`` row bins averaged, as ``float32`` (:class:`vision.defects.surface_map.SurfaceMapper`);
-* :func:`valid_any` -- the map's valid rows and columns in one pass;
+* :func:`valid_any`, :func:`valid_extent` -- the map's valid rows and columns in one pass;
 * :func:`register_ratio` -- B registered onto A along the rows (linear), the samples both
   shots see, the pair's constant imbalance removed, the slope by seed Eq. 4 and (when
   wanted) the albedo (:class:`vision.defects.surface_map.SurfaceMapper`);
@@ -232,6 +232,19 @@ def valid_any(valid: np.ndarray, rows: np.ndarray,
             hit |= v
         rows[r] = hit
 
+
+@njit(**_JIT)
+def valid_extent(valid: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """The indices of the rows and of the columns of ``valid`` holding a valid sample.
+
+    ``(np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0)))`` (int64) in one
+    call (:func:`valid_any`, then the indices):
+    :attr:`vision.defects.surface_map.SurfaceMap.valid_rows` and ``valid_cols``.
+    """
+    any_rows = np.empty(valid.shape[0], dtype=np.bool_)
+    any_cols = np.empty(valid.shape[1], dtype=np.bool_)
+    valid_any(valid, any_rows, any_cols)
+    return np.flatnonzero(any_rows), np.flatnonzero(any_cols)
 
 @njit(**_JIT)
 def column_means_u16(src: np.ndarray, row0: int, row_step: int, k: int,
@@ -936,6 +949,63 @@ def cross_spectrum(f: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover 
 
 
 @njit(**_JIT)
+def _pairwise_sum(v: np.ndarray, start: int, step: int) -> float:  # pragma: no cover
+    """``v[start::step].sum()`` as numpy sums it (float64; up to 128 values).
+
+    Fewer than 8 values in order from 0; more in eight interleaved partial sums, then the
+    rest in order (:func:`_pairwise_mean`'s order): the same bits.
+    """
+    n = (v.size - start + step - 1) // step if v.size > start else 0
+    if n < 8:
+        s = 0.0
+        for i in range(n):
+            s += v[start + i * step]
+        return s
+    r = np.empty(8)
+    for q in range(8):
+        r[q] = v[start + q * step]
+    i = 8
+    while i < n - n % 8:
+        for q in range(8):
+            r[q] += v[start + (i + q) * step]
+        i += 8
+    s = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    while i < n:
+        s += v[start + i * step]
+        i += 1
+    return s
+
+
+@njit(**_JIT)
+def coherence_peak(x: np.ndarray, r2: np.ndarray,
+                   max_lag: int) -> tuple:  # pragma: no cover - compiled
+    """The rows' correlation peak over lags ``-max_lag..max_lag`` (raised grain's last step).
+
+    ``x``: the summed cross-correlation (float32, the inverse FFT's, lags 0.. then negative
+    lags from the end); ``r2``: the row pairs' powers.  As numpy: ``norm = (r2[0::2].sum() *
+    r2[1::2].sum()) ** 0.5``, the float32 correlations at lags 0..max_lag then -max_lag..-1
+    over it, the first largest (``np.argmax``: the first NaN).  Returns ``(peak, at lag 0,
+    lag, ok)``; ``ok`` False where ``norm <= 0`` (no correlation).
+    """
+    norm = (_pairwise_sum(r2, 0, 2) * _pairwise_sum(r2, 1, 2)) ** 0.5
+    if norm <= 0:
+        return 0.0, 0.0, 0, False
+    f = np.float32(norm)
+    n = x.size
+    best = np.float32(0.0)
+    k = -1
+    at0 = x[0] / f
+    for q in range(2 * max_lag + 1):
+        v = x[q] / f if q <= max_lag else x[n - (2 * max_lag + 1) + q] / f
+        if k < 0 or v > best or (np.isnan(v) and not np.isnan(best)):
+            best, k = v, q
+        if np.isnan(best):
+            break  # np.argmax stops at the first NaN
+    lag = k if k <= max_lag else k - (2 * max_lag + 1)
+    return float(best), float(at0), lag, True
+
+
+@njit(**_JIT)
 def snipe_fit(profile: np.ndarray, c0: int, c1: int, k: int,
               dx: float) -> tuple[float, float]:  # pragma: no cover - compiled
     """``(c2, c1)`` of ``c2 x^2 + c1 x + c0`` fitted to the profile smoothed over ``k`` columns.
@@ -1102,6 +1172,7 @@ def warm_up() -> None:
         register_ratio(a, a, valid, 1.5, 7.1, -7.1, out, alb, np.empty_like(valid))
     column_means_u16(np.ones((8, 12), dtype=np.uint16), 1, 3, 6, np.empty((2, 2), np.float32))
     valid_any(np.ones((2, 3), dtype=bool), np.empty(2, dtype=bool), np.empty(3, dtype=bool))
+    valid_extent(np.ones((2, 3), dtype=bool))
     grid = np.zeros((2, 3), dtype=np.int32)
     for inside in (np.ones(2, dtype=np.bool_), np.zeros(2, dtype=np.bool_)):
         remap_pair(a, a, np.zeros((2, 3), dtype=np.uint32), np.zeros((2, 3), np.float32),
@@ -1120,6 +1191,7 @@ def warm_up() -> None:
     clipped_pairs(a, np.array([0, 1], dtype=np.int64), 0.5, pad, np.empty(2))
     cross_spectrum(np.ones((2, 9), dtype=np.complex64), np.empty(9, dtype=np.complex64))
     snipe_fit(np.ones(40), 2, 38, 3, 0.16)
+    coherence_peak(np.ones(16, dtype=np.float32), np.ones(6), 3)
     reference_median(np.ones(16), 8, 12.0, np.empty(3))
     fixed = [np.arange(40.0), np.ones(14), np.ones((2, 3, 14)), np.ones((5, 3))]
     for v in fixed:  # read-only, as the caches hand them over

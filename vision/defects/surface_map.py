@@ -101,11 +101,7 @@ class SurfaceMap:
     @functools.cached_property
     def _valid_extent(self) -> tuple[np.ndarray, np.ndarray]:
         """``(valid_rows, valid_cols)``, both found in one compiled pass (once per map)."""
-        valid = np.ascontiguousarray(self.valid)
-        any_rows = np.empty(valid.shape[0], dtype=bool)
-        any_cols = np.empty(valid.shape[1], dtype=bool)
-        kernels.valid_any(valid, any_rows, any_cols)
-        rows, cols = np.flatnonzero(any_rows), np.flatnonzero(any_cols)
+        rows, cols = kernels.valid_extent(np.ascontiguousarray(self.valid))
         rows.flags.writeable = False
         cols.flags.writeable = False
         return rows, cols

@@ -294,6 +294,10 @@ def test_valid_any_is_numpys_any_along_both_axes(shape):
         kernels.valid_any(valid, rows, cols)
         assert np.array_equal(rows, valid.any(axis=1))
         assert np.array_equal(cols, valid.any(axis=0))
+        got = kernels.valid_extent(valid)  # and their indices, as the map takes them
+        want = (np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0)))
+        for g, w in zip(got, want, strict=True):
+            assert g.dtype == w.dtype and np.array_equal(g, w)
 
 
 def test_the_maps_valid_rows_and_columns_are_numpys():
@@ -306,3 +310,36 @@ def test_the_maps_valid_rows_and_columns_are_numpys():
     assert np.array_equal(smap.valid_cols, np.flatnonzero(valid.any(axis=0)))
     assert np.array_equal(smap.valid_rows, np.flatnonzero(valid.any(axis=1)))
     assert smap.valid_cols is smap.valid_cols and not smap.valid_rows.flags.writeable
+
+
+def _old_peak(x: np.ndarray, r2: np.ndarray, max_lag_px: int) -> tuple[float, float, int]:
+    """:func:`vision.defects.detect.oriented_coherence`'s last step as numpy calls."""
+    norm = float(r2[0::2].sum() * r2[1::2].sum()) ** 0.5
+    if norm <= 0:
+        return 0.0, 0.0, 0
+    vals = np.concatenate((x[:max_lag_px + 1], x[-max_lag_px:])) / norm
+    k = int(np.argmax(vals))
+    lag = k if k <= max_lag_px else k - (2 * max_lag_px + 1)
+    return float(vals[k]), float(vals[0]), int(lag)
+
+
+@pytest.mark.parametrize("pairs", [1, 3, 4, 7, 8, 9, 25, 40, 64])
+def test_coherence_peak_is_its_numpy_form(pairs):
+    """Norm (numpy's pairwise sums), float32 correlations, the first peak: the same bits."""
+    rng = np.random.default_rng(pairs)
+    for trial in range(60):
+        size = int(rng.integers(12, 400))
+        max_lag = int(rng.integers(2, (size - 1) // 2))
+        x = (rng.standard_normal(size) * rng.uniform(0.01, 100.0)).astype(np.float32)
+        r2 = rng.uniform(0.0, 50.0, 2 * pairs) * rng.uniform(1e-3, 1e3)
+        if trial % 10 == 1:
+            r2[::2] = 0.0  # no power: no correlation
+        if trial % 10 == 2:
+            x[rng.integers(0, size, 3)] = np.nan
+        if trial % 10 == 3:
+            x[int(rng.integers(0, max_lag))] = x[-int(rng.integers(1, max_lag))] = 1e3  # a tie
+        peak, at0, lag, ok = kernels.coherence_peak(x, r2, max_lag)
+        want = _old_peak(x, r2, max_lag)
+        got = (peak, at0, lag) if ok else (0.0, 0.0, 0)
+        assert np.array_equal(np.array(got), np.array(want), equal_nan=True), (got, want)
+        assert isinstance(got[2], int)
