@@ -25,7 +25,12 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
 * :func:`arc_slopes` -- the kinematic slope of a chain of arcs;
 * :func:`delay_scores` -- the fine registration's scores of its grid of delays;
 * :func:`solve_small` -- a batch of small dense linear systems (partial pivoting);
-* :func:`blur_fits` -- the self-calibration's normal equations and their fits.
+* :func:`blur_fits` -- the self-calibration's normal equations and their fits;
+* :func:`model_span` -- the span of the kinematic slope the self-calibration fits over;
+* :func:`wiener_terms` -- the scattering deblur's transfer function and Wiener denominator;
+* :func:`ratio_slope` -- the slope from the intensity ratio (seed Eq. 4) and its finiteness;
+* :func:`power_spectrum` -- ``|X|^2`` of a complex spectrum (real and imaginary squared);
+* :func:`any_nonpositive` -- whether two profiles hold a sample ``<= 0``.
 
 All are compiled with ``cache=True`` (the machine code is kept in ``__pycache__`` beside this
 file, reused by later processes) and on first use; :func:`warm_up` compiles every one with the
@@ -763,6 +768,110 @@ def blur_fits(gram: np.ndarray, rhs: np.ndarray, yy: float, plain: bool, rss: np
     return best, best_resid
 
 
+@njit(**_JIT)
+def model_span(model: np.ndarray, slope: np.ndarray,
+               out: np.ndarray) -> tuple[int, int, int, bool]:  # pragma: no cover - compiled
+    """The samples of a kinematic slope the self-calibration fits over, in one pass.
+
+    As :func:`vision.calibration.selfcal.fit_calibration`'s ``inside = isfinite(model)``,
+    ``lo, hi`` (the first finite sample and one past the last), ``model[lo:hi]`` with its
+    non-finite samples set to 0 (written to ``out[:hi - lo]``), and ``slope[lo:hi].max() >
+    slope[lo:hi].min()`` (``False`` when that span holds a NaN, as numpy's ``max``/``min``
+    propagate it).  Returns ``(lo, hi, finite count, varies)``; ``(0, 0, 0, False)`` when no
+    sample is finite.
+    """
+    n = model.size
+    lo = -1
+    hi = 0
+    count = 0
+    for i in range(n):
+        if np.isfinite(model[i]):
+            if lo < 0:
+                lo = i
+            hi = i + 1
+            count += 1
+    if lo < 0:
+        return 0, 0, 0, False
+    top = -np.inf
+    bottom = np.inf
+    nan = False
+    for i in range(lo, hi):
+        v = model[i]
+        out[i - lo] = v if np.isfinite(v) else 0.0
+        s = slope[i]
+        if s != s:
+            nan = True
+        if s > top:
+            top = s
+        if s < bottom:
+            bottom = s
+    return lo, hi, count, (not nan) and top > bottom
+
+
+@njit(**_JIT)
+def wiener_terms(nu: np.ndarray, scale: float, fraction: float, regularisation: float,
+                 h: np.ndarray, den: np.ndarray) -> None:  # pragma: no cover - compiled
+    """The scattering deblur's ``h = (1 - f) + f / (1 + (scale nu)^2)`` and ``h h + c``.
+
+    The arithmetic of :func:`vision.calibration.selfcal.scatter_transfer` (``scale = 2 pi
+    l``, as its ``2.0 * math.pi * scatter_mm``) and of the Wiener denominator
+    ``h * h + regularisation``, each sample's operations in numpy's order, into ``h`` and
+    ``den``.
+    """
+    keep = 1.0 - fraction
+    for i in range(nu.size):
+        t = scale * nu[i]
+        k = 1.0 / (1.0 + t * t)
+        v = keep + fraction * k
+        h[i] = v
+        den[i] = v * v + regularisation
+
+
+@njit(**_JIT)
+def ratio_slope(ratio: np.ndarray, ca: float, tan_a: float, b: float,
+                out: np.ndarray) -> bool:  # pragma: no cover - compiled
+    """:class:`vision.slope.RatioSlope` of a 1-D ratio into ``out``; whether all is finite.
+
+    ``den = ratio * ca * tan_a - b``; ``(ratio - 1) / den``, NaN where ``den == 0`` (numpy's
+    operations in its order: ``(ratio * ca) * tan_a``).
+    """
+    finite = True
+    for i in range(ratio.size):
+        r = ratio[i]
+        den = r * ca * tan_a - b
+        if den != 0:
+            p = (r - 1.0) / den
+        else:
+            p = np.nan
+        out[i] = p
+        if not np.isfinite(p):
+            finite = False
+    return finite
+
+
+@njit(**_JIT)
+def power_spectrum(spec: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """``spec.real ** 2 + spec.imag ** 2`` of a 1-D complex spectrum."""
+    out = np.empty(spec.size)
+    for i in range(spec.size):
+        re = spec[i].real
+        im = spec[i].imag
+        out[i] = re * re + im * im
+    return out
+
+
+@njit(**_JIT)
+def any_nonpositive(a: np.ndarray, b: np.ndarray) -> bool:  # pragma: no cover - compiled
+    """``np.any(a <= 0) or np.any(b <= 0)`` of two 1-D float arrays (NaN is not ``<= 0``)."""
+    for i in range(a.size):
+        if a[i] <= 0:
+            return True
+    for i in range(b.size):
+        if b[i] <= 0:
+            return True
+    return False
+
+
 _WARM = [False]
 
 
@@ -806,6 +915,11 @@ def warm_up() -> None:
     repeat_lag(v, v, 2.5, np.array([1.0, 2.0]), 0.02)
     blur_fits(np.eye(5), np.ones(5), 1.0, True, np.empty(3), np.empty(3), np.empty(3), 8,
               1.0)
+    model_span(v, v, np.empty(8))
+    wiener_terms(v, 1.0, 0.5, 0.03, np.empty(8), np.empty(8))
+    ratio_slope(v, 1.0, 0.5, -0.5, np.empty(8))
+    power_spectrum(spec)
+    any_nonpositive(v, v)
     from vision import marks_kernels  # the cusps' choice (find_marks), compiled beside these
 
     marks_kernels.warm_up()

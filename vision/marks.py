@@ -207,7 +207,7 @@ def repeat_period_px(
     # and their parabolas in one compiled loop.
     nfft = scipy.fft.next_fast_len(2 * n, real=True)
     spec = ffts.rfft(s, nfft)
-    dots = ffts.irfft(spec.real**2 + spec.imag**2, nfft)[:n]
+    dots = ffts.irfft(kernels.power_spectrum(spec), nfft)[:n]  # spec.real**2 + spec.imag**2
     return float(kernels.repeat_lag(s, np.ascontiguousarray(dots), t,
                                      np.asarray(ks, dtype=np.float64), tolerance))
 

@@ -668,7 +668,8 @@ class Measurer:
         ia = prof_a[u0:u1]
         ib = (prof_b[u0:u1] if registered else
               shift_profile(prof_b, shift_px=d, start=u0, count=count))
-        if np.any(ia <= 0) or np.any(ib <= 0):
+        if kernels.any_nonpositive(np.ascontiguousarray(ia, dtype=np.float64),
+                                   np.ascontiguousarray(ib, dtype=np.float64)):
             raise MeasurementError(
                 "non-positive intensities in the overlap (dark or clipped images)"
             )
@@ -676,8 +677,8 @@ class Measurer:
         raw = log_b - log_a
         period = repeat_period_px(self.detrender(raw, start=u0))
         log_ratio = self.detrender(raw, start=u0, period_px=period)
-        slope = self._slope(np.exp(log_ratio))
-        if not np.all(np.isfinite(slope)):
+        slope, finite = self._slope.finite(np.exp(log_ratio))
+        if not finite:
             raise MeasurementError("slope is not finite (intensity ratio out of the lights' range)")
         height = self._heights(slope, cos_roll, period)
         cols = self._c0 + u0 + np.arange(count)

@@ -22,6 +22,7 @@ import math
 import numpy as np
 
 from core.checks import check_finite, check_range
+from vision import kernels
 
 
 def _angles(slant_deg: float, azimuth_a_deg: float, azimuth_b_deg: float) -> tuple[float, ...]:
@@ -158,7 +159,22 @@ class RatioSlope:
     def __call__(self, ratio_ba: np.ndarray) -> np.ndarray:
         """Slope ``p`` from ``I_B / I_A`` (NaN where the denominator vanishes)."""
         r = np.asarray(ratio_ba, dtype=np.float64)
+        if r.ndim == 1:
+            return self.finite(r)[0]
         den = r * self._ca * self._tan_a - self._b
         with np.errstate(divide="ignore", invalid="ignore"):
             p = (r - 1.0) / den
         return np.where(den != 0, p, np.nan)
+
+    def finite(self, ratio_ba: np.ndarray) -> tuple[np.ndarray, bool]:
+        """The slope of a 1-D ratio (as the call) and whether every sample of it is finite.
+
+        One compiled pass (:func:`vision.kernels.ratio_slope`: the call's operations in its
+        order).
+        """
+        r = np.ascontiguousarray(ratio_ba, dtype=np.float64)
+        if r.ndim != 1:
+            raise ValueError(f"ratio_ba must be 1-D, got shape {r.shape}")
+        out = np.empty(r.size)
+        ok = kernels.ratio_slope(r, self._ca, self._tan_a, self._b, out)
+        return out, bool(ok)

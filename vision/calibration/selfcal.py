@@ -199,29 +199,30 @@ def fit_calibration(
     -------
     Calibration
     """
-    p = np.asarray(slope, dtype=np.float64)
-    m = np.asarray(model, dtype=np.float64)
-    inside = np.isfinite(m)
-    idx = np.flatnonzero(inside)
-    if idx.size < 16 or marks < 2:
+    p = np.ascontiguousarray(slope, dtype=np.float64)
+    m = np.ascontiguousarray(model, dtype=np.float64)
+    if p.shape != m.shape or p.ndim != 1:
+        raise ValueError(f"slope and model must be 1-D of one length, got {p.shape}, {m.shape}")
+    # the model's finite span, its NaNs as 0 and whether the slope varies there, one pass
+    span = np.empty(m.size)
+    lo, hi, inside, varies = kernels.model_span(m, p, span)
+    if inside < 16 or marks < 2:
         return Calibration()
-    lo, hi = int(idx[0]), int(idx[-1]) + 1
-    mm = m[lo:hi].copy()
-    mm[~inside[lo:hi]] = 0.0
-    pm = p[lo:hi]
     n = hi - lo
+    mm = span[:n]
+    pm = p[lo:hi]
+    widest, ells, plain = _grid(tuple(scatter_grid_mm))
     # Zero-padding for a linear (not circular) blur: 12 lengths of the widest kernel leave a
     # wrap-around of e^-12 (~6e-6) of it; never more than the profile's own length.
-    pad = min(n, int(math.ceil(12.0 * float(max(scatter_grid_mm)) / dx_mm)))
+    pad = min(n, int(math.ceil(12.0 * widest / dx_mm)))
     nf = 2 * cv2.getOptimalDFTSize((n + pad + 1) // 2)  # even: OpenCV's packed spectra
     x = _unit_axis(n)
-    if not pm.max() > pm.min():  # a constant slope: nothing to calibrate on
+    if not varies:  # a constant slope: nothing to calibrate on
         return Calibration()
-    ells = tuple(e for e in scatter_grid_mm if e > 0)
     n_l = len(ells)
     # One sample range for every length (the widest guard: the blurred model is wrong within
     # ~2 l of the profile's ends), so that all fits share their sums: normal equations, batched.
-    guard = min(n // 4, int(math.ceil(2 * float(max(scatter_grid_mm)) / dx_mm)))
+    guard = min(n // 4, int(math.ceil(2 * widest / dx_mm)))
     sel = slice(guard, n - guard)
     y = pm[sel]
     dev = y - y.sum() / y.size
@@ -252,7 +253,7 @@ def fit_calibration(
     rhs_all = design @ y
     # every fit's small solve, and the best admissible one (a positive gain, not mostly a
     # negative unblurred part), in one compiled call
-    i, resid = kernels.blur_fits(gram_all, rhs_all, float(y @ y), 0.0 in scatter_grid_mm, rss,
+    i, resid = kernels.blur_fits(gram_all, rhs_all, float(y @ y), plain, rss,
                                  coef_a, coef_b, y.size, var)
     if i < 0:
         return Calibration()
@@ -265,6 +266,13 @@ def fit_calibration(
     return Calibration(gain=gain, gain_confidence=conf, scatter_mm=ell if f > 0.05 else 0.0,
                        scatter_fraction=f if f > 0.05 else 0.0, scatter_confidence=scatter_conf,
                        trusted=conf >= min_confidence and 0.25 <= gain <= 4.0)
+
+
+@functools.lru_cache(maxsize=16)
+def _grid(scatter_grid_mm: tuple[float, ...]) -> tuple[float, tuple[float, ...], bool]:
+    """A scattering grid's widest length, its positive lengths and whether it holds 0."""
+    grid = tuple(scatter_grid_mm)
+    return (float(max(grid)), tuple(e for e in grid if e > 0), 0.0 in grid)
 
 
 @functools.lru_cache(maxsize=64)
@@ -330,8 +338,13 @@ def apply_calibration(slope: np.ndarray, calibration: Calibration, *, dx_mm: flo
     ext = np.empty(nf)  # even extension: no wrap-around jump
     ext[:n] = p
     ext[n:] = p[::-1]
-    h = scatter_transfer(nf, dx_mm=dx_mm, scatter_mm=ell, fraction=f)
-    out = ffts.irfft(ffts.rfft(ext, nf) * h / (h * h + regularisation), nf)
+    # scatter_transfer's h and the Wiener denominator h h + c in one compiled pass (the same
+    # operations: 2 pi l is the same Python product as in _exp_transfer)
+    nu = _frequencies(nf, dx_mm)
+    h = np.empty(nu.size)
+    den = np.empty(nu.size)
+    kernels.wiener_terms(nu, 2.0 * math.pi * ell, f, regularisation, h, den)
+    out = ffts.irfft(ffts.rfft(ext, nf) * h / den, nf)
     return out[:n]
 
 

@@ -1,0 +1,264 @@
+"""The compiled forms of the self-calibration's and the registered profile's steps give, bit
+for bit, what the numpy forms they replace give (random inputs, old form == new form)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from vision import ffts, kernels
+from vision.calibration import selfcal
+from vision.calibration.selfcal import (
+    SCATTER_GRID_MM,
+    Calibration,
+    apply_calibration,
+    fit_calibration,
+    kinematic_slope,
+    scatter_transfer,
+)
+from vision.marks import dominant_period_px, repeat_period_px
+from vision.slope import RatioSlope
+
+
+def _old_fit(slope, model, *, dx_mm, marks, scatter_grid_mm=SCATTER_GRID_MM,
+             min_confidence=0.5):
+    """fit_calibration as it was: numpy for the model's span and the grid's lengths."""
+    p = np.asarray(slope, dtype=np.float64)
+    m = np.asarray(model, dtype=np.float64)
+    inside = np.isfinite(m)
+    idx = np.flatnonzero(inside)
+    if idx.size < 16 or marks < 2:
+        return Calibration()
+    lo, hi = int(idx[0]), int(idx[-1]) + 1
+    mm = m[lo:hi].copy()
+    mm[~inside[lo:hi]] = 0.0
+    pm = p[lo:hi]
+    n = hi - lo
+    pad = min(n, int(math.ceil(12.0 * float(max(scatter_grid_mm)) / dx_mm)))
+    nf = 2 * cv2.getOptimalDFTSize((n + pad + 1) // 2)
+    x = selfcal._unit_axis(n)
+    if not pm.max() > pm.min():
+        return Calibration()
+    ells = tuple(e for e in scatter_grid_mm if e > 0)
+    n_l = len(ells)
+    guard = min(n // 4, int(math.ceil(2 * float(max(scatter_grid_mm)) / dx_mm)))
+    sel = slice(guard, n - guard)
+    y = pm[sel]
+    dev = y - y.sum() / y.size
+    var = float(dev @ dev) / y.size
+    if not var > 0:
+        return Calibration()
+    design = np.empty((n_l + 3, y.size))
+    design[0] = mm[sel]
+    if n_l:
+        mean = mm.sum() / mm.size
+        padded = np.zeros((1, nf))
+        padded[0, :n] = mm
+        padded -= mean
+        padded[0, n:] = 0.0
+        spec = cv2.dft(padded)
+        blurred = cv2.dft(spec * selfcal._transfers_packed(nf, dx_mm, ells),
+                          flags=cv2.DFT_INVERSE | cv2.DFT_SCALE | cv2.DFT_ROWS)
+        design[1 : n_l + 1] = blurred[:, sel]
+        design[1 : n_l + 1] += mean
+    design[n_l + 1] = 1.0
+    design[n_l + 2] = x[sel]
+    rss = np.full(n_l + 1, np.nan)
+    coef_a = np.zeros(n_l + 1)
+    coef_b = np.zeros(n_l + 1)
+    gram_all = design @ design.T
+    rhs_all = design @ y
+    i, resid = kernels.blur_fits(gram_all, rhs_all, float(y @ y), 0.0 in scatter_grid_mm, rss,
+                                 coef_a, coef_b, y.size, var)
+    if i < 0:
+        return Calibration()
+    gain = float(coef_a[i] + coef_b[i])
+    f = min(1.0, max(0.0, float(coef_b[i]) / gain))
+    ell = 0.0 if i == 0 else float(ells[i - 1])
+    explained = min(1.0, max(0.0, 1.0 - resid))
+    conf = explained * min(1.0, marks / 4.0)
+    scatter_conf = conf if ell > 0 and f > 0.05 else 0.0
+    return Calibration(gain=gain, gain_confidence=conf, scatter_mm=ell if f > 0.05 else 0.0,
+                       scatter_fraction=f if f > 0.05 else 0.0, scatter_confidence=scatter_conf,
+                       trusted=conf >= min_confidence and 0.25 <= gain <= 4.0)
+
+
+def _old_apply(slope, calibration, *, dx_mm, pitch_mm, min_gain_loss=0.03,
+               regularisation=0.03, deblur=True):
+    """apply_calibration as it was: the transfer function and the filter in numpy."""
+    p = np.asarray(slope, dtype=np.float64) / calibration.gain
+    f, ell = calibration.scatter_fraction, calibration.scatter_mm
+    if not deblur or not selfcal.deblurs(calibration, pitch_mm=pitch_mm,
+                                         min_gain_loss=min_gain_loss):
+        return p
+    n = p.size
+    nf = 2 * n
+    ext = np.empty(nf)
+    ext[:n] = p
+    ext[n:] = p[::-1]
+    h = scatter_transfer(nf, dx_mm=dx_mm, scatter_mm=ell, fraction=f)
+    out = ffts.irfft(ffts.rfft(ext, nf) * h / (h * h + regularisation), nf)
+    return out[:n]
+
+
+def _marks_profile(rng, n):
+    """A measured-like slope of arcs (gain, blur, noise, trend) and its kinematic model."""
+    dx = float(rng.uniform(0.04, 0.12))
+    x = np.arange(n) * dx
+    pitch = float(rng.uniform(0.6, 2.5))
+    cusps = np.arange(x[0] + rng.uniform(0, pitch), x[-1], pitch)
+    cusps = cusps + rng.normal(0, 0.05 * pitch, cusps.size)
+    cusps.sort()
+    bottoms = 0.5 * (cusps[:-1] + cusps[1:]) + rng.normal(0, 0.03, cusps.size - 1)
+    model = kinematic_slope(x, cusps, bottoms, radius_mm=60.0)
+    true = np.nan_to_num(model)
+    slope = rng.uniform(0.5, 2.0) * true + rng.normal(0, rng.choice([1e-5, 1e-4, 1e-3]), n)
+    slope += rng.uniform(-1e-3, 1e-3) + rng.uniform(-1e-5, 1e-5) * np.arange(n)
+    return slope, model, dx, cusps.size - 1, pitch
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_fit_calibration_equals_its_numpy_form(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(40, 900))
+    slope, model, dx, marks, _ = _marks_profile(rng, n)
+    grid = SCATTER_GRID_MM if seed % 4 else (0.1, 0.2, 0.0)
+    if seed % 5 == 1:  # holes inside the model's span, NaNs at its ends
+        model = model.copy()
+        model[rng.integers(0, n, 8)] = np.nan
+    if seed % 7 == 2:  # a constant slope over the span
+        slope = np.full(n, 0.01)
+    if seed % 9 == 3:  # a NaN in the slope
+        slope = slope.copy()
+        slope[n // 2] = np.nan
+    new = fit_calibration(slope, model, dx_mm=dx, marks=marks, scatter_grid_mm=grid)
+    old = _old_fit(slope, model, dx_mm=dx, marks=marks, scatter_grid_mm=grid)
+    assert repr(new) == repr(old)  # every field, every bit (repr of floats round-trips)
+
+
+def test_fit_calibration_refuses_mismatched_lengths():
+    with pytest.raises(ValueError, match="slope and model"):
+        fit_calibration(np.zeros(40), np.zeros(41), dx_mm=0.08, marks=4)
+
+
+def test_model_span_edge_cases_equal_numpy():
+    out = np.empty(8)
+    assert kernels.model_span(np.full(8, np.nan), np.zeros(8), out) == (0, 0, 0, False)
+    m = np.array([np.nan, 1.0, np.nan, 2.0, np.nan, np.nan, 3.0, np.nan])
+    for p in (np.array([0, 1, 1, 1, 1, 1, 1, 0.0]), np.array([0, -np.inf, -np.inf, 5, 0, 0, 0, 0]),
+              np.array([0, 1, 2, 3, np.nan, 5, 6, 7.0]), np.array([9, 0.0, -0.0, 0, 0, 0, 0, 9])):
+        lo, hi, count, varies = kernels.model_span(m, p, out)
+        assert (lo, hi, count) == (1, 7, 3)
+        assert varies == bool(p[1:7].max() > p[1:7].min())
+        np.testing.assert_array_equal(out[:6], [1, 0, 2, 0, 0, 3])
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_apply_calibration_equals_its_numpy_form(seed):
+    rng = np.random.default_rng(100 + seed)
+    n = int(rng.integers(16, 1400))
+    slope = rng.normal(size=n) * 0.01
+    cal = Calibration(gain=float(rng.uniform(0.3, 3)), gain_confidence=0.9,
+                      scatter_mm=float(rng.choice([0.0, 0.05, rng.uniform(0.01, 0.8)])),
+                      scatter_fraction=float(rng.choice([0.0, rng.uniform(0, 1)])),
+                      trusted=True)
+    dx = float(rng.uniform(0.03, 0.15))
+    pitch = float(rng.uniform(0.3, 3))
+    reg = float(rng.choice([0.03, rng.uniform(1e-4, 0.5)]))
+    for deblur in (True, False):
+        new = apply_calibration(slope, cal, dx_mm=dx, pitch_mm=pitch, regularisation=reg,
+                                deblur=deblur)
+        old = _old_apply(slope, cal, dx_mm=dx, pitch_mm=pitch, regularisation=reg,
+                         deblur=deblur)
+        np.testing.assert_array_equal(new, old)
+        assert new.tobytes() == old.tobytes()  # the zeros' signs too
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_wiener_terms_equal_numpy(seed):
+    rng = np.random.default_rng(200 + seed)
+    nf = int(rng.integers(4, 3000))
+    dx, ell, f = float(rng.uniform(0.01, 0.2)), float(rng.uniform(0, 1)), float(rng.uniform(0, 1))
+    reg = float(rng.uniform(1e-4, 0.5))
+    nu = selfcal._frequencies(nf, dx)
+    h, den = np.empty(nu.size), np.empty(nu.size)
+    kernels.wiener_terms(nu, 2.0 * math.pi * ell, f, reg, h, den)
+    old_h = scatter_transfer(nf, dx_mm=dx, scatter_mm=ell, fraction=f)
+    assert h.tobytes() == old_h.tobytes()
+    assert den.tobytes() == (old_h * old_h + reg).tobytes()
+
+
+def _old_ratio_slope(rs: RatioSlope, ratio):
+    r = np.asarray(ratio, dtype=np.float64)
+    den = r * rs._ca * rs._tan_a - rs._b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = (r - 1.0) / den
+    return np.where(den != 0, p, np.nan)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_ratio_slope_equals_its_numpy_form(seed):
+    rng = np.random.default_rng(300 + seed)
+    rs = RatioSlope(slant_deg=float(rng.uniform(5, 60)), azimuth_a_deg=float(rng.uniform(-20, 20)),
+                    azimuth_b_deg=float(rng.uniform(160, 200)),
+                    slant_b_deg=None if seed % 2 else float(rng.uniform(5, 60)))
+    r = np.exp(rng.normal(0, 0.3, int(rng.integers(1, 900))))
+    if seed % 3 == 0:  # a ratio where the denominator vanishes, and a NaN, an inf, a zero
+        r[0] = rs._b / rs._ca / rs._tan_a
+        r[-1:] = [np.nan, np.inf, 0.0][seed % 9 // 3]
+    old = _old_ratio_slope(rs, r)
+    new, finite = rs.finite(r)
+    assert new.tobytes() == old.tobytes()
+    assert rs(r).tobytes() == old.tobytes()
+    assert finite == bool(np.all(np.isfinite(old)))
+    r2 = r[: r.size // 2 * 2].reshape(2, -1) if r.size > 1 else r.reshape(1, 1)
+    assert rs(r2).tobytes() == _old_ratio_slope(rs, r2).tobytes()  # 2-D: numpy as before
+
+
+def _old_repeat_period(signal, *, max_multiple=8, tolerance=0.02):
+    """repeat_period_px as it was: the power spectrum in numpy."""
+    import scipy.fft
+
+    s = np.asarray(signal, dtype=np.float64)
+    s = s - s.sum() / s.size
+    n = s.size
+    t = dominant_period_px(s)
+    if not math.isfinite(t):
+        return math.nan
+    s = kernels.smooth5(s)
+    ks = [k for k in range(1, max_multiple + 1) if k * t <= n / 3.0]
+    if not ks:
+        return t
+    nfft = scipy.fft.next_fast_len(2 * n, real=True)
+    spec = ffts.rfft(s, nfft)
+    dots = ffts.irfft(spec.real**2 + spec.imag**2, nfft)[:n]
+    return float(kernels.repeat_lag(s, np.ascontiguousarray(dots), t,
+                                     np.asarray(ks, dtype=np.float64), tolerance))
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_repeat_period_and_power_spectrum_equal_their_numpy_form(seed):
+    rng = np.random.default_rng(400 + seed)
+    n = int(rng.integers(40, 1000))
+    u = np.arange(n)
+    period = rng.uniform(5, n / 6)
+    s = np.sin(2 * np.pi * u / period) + 0.3 * np.sin(2 * np.pi * u / (period * 4))
+    s += rng.normal(0, rng.uniform(0.01, 1), n)
+    new, old = repeat_period_px(s), _old_repeat_period(s)
+    assert np.asarray(new).tobytes() == np.asarray(old).tobytes()
+    spec = rng.normal(size=n) + 1j * rng.normal(size=n)
+    spec[0] = complex(-0.0, 0.0)
+    assert kernels.power_spectrum(spec).tobytes() == (spec.real**2 + spec.imag**2).tobytes()
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_any_nonpositive_equals_numpy(seed):
+    rng = np.random.default_rng(500 + seed)
+    a, b = rng.uniform(0.1, 2, int(rng.integers(1, 50))), rng.uniform(0.1, 2, 30)
+    if seed % 2:
+        (a if seed % 4 == 1 else b)[int(rng.integers(0, 10))] = [0.0, -0.0, -1e-300, np.nan][
+            seed // 2 % 4]
+    assert kernels.any_nonpositive(a, b) == bool(np.any(a <= 0) or np.any(b <= 0))
