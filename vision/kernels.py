@@ -30,7 +30,9 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
 * :func:`wiener_terms` -- the scattering deblur's transfer function and Wiener denominator;
 * :func:`ratio_slope` -- the slope from the intensity ratio (seed Eq. 4) and its finiteness;
 * :func:`power_spectrum` -- ``|X|^2`` of a complex spectrum (real and imaginary squared);
-* :func:`any_nonpositive` -- whether two profiles hold a sample ``<= 0``.
+* :func:`any_nonpositive` -- whether two profiles hold a sample ``<= 0``;
+* :func:`knife_sums` -- a per-mark quantity summed per knife, in the marks' order;
+* :func:`arc_depths` -- the marks' kinematic depths from their cusps and lowest points.
 
 All are compiled with ``cache=True`` (the machine code is kept in ``__pycache__`` beside this
 file, reused by later processes) and on first use; :func:`warm_up` compiles every one with the
@@ -872,6 +874,36 @@ def any_nonpositive(a: np.ndarray, b: np.ndarray) -> bool:  # pragma: no cover -
     return False
 
 
+@njit(**_JIT)
+def knife_sums(values: np.ndarray, knives: int, phase: int, sums: np.ndarray,
+               counts: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Mark ``i``'s value added to knife ``(phase + i) mod knives`` (``sums``, ``counts``).
+
+    The sums run in the marks' order from 0.0, as :func:`vision.marks.knife_means`' loop on
+    Python floats; ``phase`` may be negative (Python's modulo).
+    """
+    for i in range(values.size):
+        k = (phase + i) % knives
+        if k < 0:
+            k += knives
+        sums[k] += values[i]
+        counts[k] += 1
+
+
+@njit(**_JIT)
+def arc_depths(cusps: np.ndarray, bottoms: np.ndarray,
+               radius: float) -> np.ndarray:  # pragma: no cover - compiled
+    """``1000 ((c_k - b_k)^2 + (c_(k+1) - b_k)^2) / (4 R)`` per mark, numpy's order."""
+    m = bottoms.size
+    out = np.empty(m)
+    four_r = 4.0 * radius
+    for k in range(m):
+        left = cusps[k] - bottoms[k]
+        right = cusps[k + 1] - bottoms[k]
+        out[k] = 1000.0 * (left * left + right * right) / four_r
+    return out
+
+
 _WARM = [False]
 
 
@@ -920,6 +952,8 @@ def warm_up() -> None:
     ratio_slope(v, 1.0, 0.5, -0.5, np.empty(8))
     power_spectrum(spec)
     any_nonpositive(v, v)
+    knife_sums(v, 3, 0, np.zeros(3), np.zeros(3, dtype=np.int64))
+    arc_depths(v, v[:7], 60.0)
     from vision import marks_kernels  # the cusps' choice (find_marks), compiled beside these
 
     marks_kernels.warm_up()

@@ -262,3 +262,108 @@ def test_any_nonpositive_equals_numpy(seed):
         (a if seed % 4 == 1 else b)[int(rng.integers(0, 10))] = [0.0, -0.0, -1e-300, np.nan][
             seed // 2 % 4]
     assert kernels.any_nonpositive(a, b) == bool(np.any(a <= 0) or np.any(b <= 0))
+
+
+def _old_knife_means(values, *, knives, phase):
+    v = np.asarray(values, dtype=np.float64)
+    sums = [0.0] * knives
+    counts = [0] * knives
+    for i, value in enumerate(v.tolist()):
+        k = (phase + i) % knives
+        sums[k] += value
+        counts[k] += 1
+    return np.array([s / c if c > 0 else math.nan for s, c in zip(sums, counts, strict=True)])
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_knife_means_and_kinematic_depths_equal_their_python_forms(seed):
+    from vision.calibration.selfcal import kinematic_depths_um
+    from vision.marks import knife_means
+
+    rng = np.random.default_rng(600 + seed)
+    m = int(rng.integers(0, 60))
+    values = rng.normal(1.0, 0.3, m) * 10 ** rng.uniform(-3, 3)
+    knives = int(rng.integers(1, 9))
+    phase = int(rng.integers(-10, 10))
+    new = knife_means(values, knives=knives, phase=phase)
+    assert new.tobytes() == _old_knife_means(values, knives=knives, phase=phase).tobytes()
+    cusps = np.sort(rng.uniform(0, 50, m + 1))
+    bottoms = 0.5 * (cusps[:-1] + cusps[1:]) + rng.normal(0, 0.1, m)
+    r = float(rng.uniform(20, 120))
+    old = 1000.0 * ((cusps[:-1] - bottoms) ** 2 + (cusps[1:] - bottoms) ** 2) / (4.0 * r)
+    assert kinematic_depths_um(cusps, bottoms, radius_mm=r).tobytes() == old.tobytes()
+
+
+class _OldCalibrator:
+    """SelfCalibrator.update's smoothing as it was (numpy arrays of two)."""
+
+    def __init__(self, weight=0.3, min_confidence=0.5):
+        self.weight, self.min_confidence = weight, min_confidence
+        self._log_gain, self._scatter, self._w, self._n = 0.0, np.zeros(2), 0.0, 0.0
+
+    def update(self, estimate):
+        decay = 1.0 - self.weight
+        c = float(estimate.gain_confidence)
+        w_old = decay * self._w
+        self._w = w_old + c
+        self._n = decay * self._n + 1.0
+        if c > 0 and estimate.gain > 0:
+            vec = np.array([estimate.scatter_mm, estimate.scatter_fraction])
+            self._log_gain = (w_old * self._log_gain + c * math.log(estimate.gain)) / self._w
+            self._scatter = (w_old * self._scatter + c * vec) / self._w
+        conf = self._w / self._n if self._n > 0 else 0.0
+        return Calibration(
+            gain=math.exp(self._log_gain), gain_confidence=conf,
+            scatter_mm=float(self._scatter[0]), scatter_fraction=float(self._scatter[1]),
+            scatter_confidence=conf if self._scatter[1] > 0 else 0.0,
+            trusted=conf >= self.min_confidence)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_self_calibrator_update_equals_its_numpy_form(seed):
+    from vision.calibration.selfcal import SelfCalibrator
+
+    rng = np.random.default_rng(700 + seed)
+    weight = float(rng.uniform(0.05, 1.0))
+    new, old = SelfCalibrator(weight=weight), _OldCalibrator(weight=weight)
+    for _ in range(40):
+        est = Calibration(gain=float(rng.choice([0.0, rng.uniform(0.2, 4)])),
+                          gain_confidence=float(rng.choice([0.0, rng.uniform(0, 1)])),
+                          scatter_mm=float(rng.choice(SCATTER_GRID_MM)),
+                          scatter_fraction=float(rng.choice([0.0, rng.uniform(0, 1)])))
+        assert repr(new.update(est)) == repr(old.update(est))
+        assert new._scatter.tobytes() == old._scatter.tobytes()
+        assert type(new._scatter) is np.ndarray and new._scatter.dtype == np.float64
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_fine_shift_fit_equals_its_numpy_form(seed):
+    from vision.registration.shift_estimators import FineShiftFit
+
+    rng = np.random.default_rng(800 + seed)
+    width = int(rng.integers(200, 1300))
+    fit = FineShiftFit(width, fine_px=3, max_frequency=0.25, min_overlap_px=64)
+    la, lb = rng.normal(size=width - 1), rng.normal(size=width - 1)
+    lb[5:] = la[:-5] + 0.1 * lb[5:]
+    guess = float(rng.uniform(2, 8))
+    import vision.registration.shift_estimators as se
+
+    new_result = fit(la, lb, guess)
+    # the numpy form, step for step
+    w, i0, m = la.size, int(round(guess)), fit.fine_px + 2
+    u0, u1 = max(0, -i0) + m, min(w, w - i0) - m
+    n = u1 - u0
+    both = np.empty((2, n))
+    both[0], both[1] = la[u0:u1], lb[u0 + i0 : u1 + i0]
+    both -= both.mean(axis=1, keepdims=True)
+    both *= fit._taper(n)
+    spec = ffts.rfft(both, fit.nfft, axis=1)[:, : fit._kmax]
+    score = np.empty(fit._fine_real.shape[0])
+    total = kernels.delay_scores(spec[0], spec[1], fit._fine_real, score)
+    j = int(np.argmax(score))
+    if j == 0 or j == score.size - 1:
+        old_result = (math.nan, float(score[j]) / total)
+    else:
+        frac, peak = se._parabolic_peak(score, j)
+        old_result = (i0 + float(fit._fine_grid[j]) + frac * fit._FINE_STEP_PX, peak / total)
+    assert repr(new_result) == repr(old_result)

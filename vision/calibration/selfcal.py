@@ -111,6 +111,8 @@ def kinematic_depths_um(cusps_mm: np.ndarray, bottoms_mm: np.ndarray, *,
     r = check_positive("radius_mm", radius_mm)
     c = np.asarray(cusps_mm, dtype=np.float64)
     b = np.asarray(bottoms_mm, dtype=np.float64)
+    if c.ndim == 1 and b.ndim == 1 and c.size == b.size + 1:  # one compiled pass, same numbers
+        return kernels.arc_depths(np.ascontiguousarray(c), np.ascontiguousarray(b), float(r))
     return 1000.0 * ((c[:-1] - b) ** 2 + (c[1:] - b) ** 2) / (4.0 * r)
 
 
@@ -425,13 +427,18 @@ class SelfCalibrator:
         self._w = w_old + c
         self._n = decay * self._n + 1.0
         if c > 0 and estimate.gain > 0:
-            vec = np.array([estimate.scatter_mm, estimate.scatter_fraction])
             self._log_gain = (w_old * self._log_gain + c * math.log(estimate.gain)) / self._w
-            self._scatter = (w_old * self._scatter + c * vec) / self._w
+            # the two running means on Python floats (numpy's element-wise operations, in its
+            # order), kept as the array the workers' wire carries
+            s0, s1 = self._scatter.tolist()
+            w = self._w
+            self._scatter = np.array([(w_old * s0 + c * float(estimate.scatter_mm)) / w,
+                                      (w_old * s1 + c * float(estimate.scatter_fraction)) / w])
         conf = self._w / self._n if self._n > 0 else 0.0
+        scatter_mm, fraction = self._scatter.tolist()
         return Calibration(
             gain=math.exp(self._log_gain), gain_confidence=conf,
-            scatter_mm=float(self._scatter[0]), scatter_fraction=float(self._scatter[1]),
-            scatter_confidence=conf if self._scatter[1] > 0 else 0.0,
+            scatter_mm=scatter_mm, scatter_fraction=fraction,
+            scatter_confidence=conf if fraction > 0 else 0.0,
             trusted=conf >= self.min_confidence,
         )
