@@ -12,6 +12,8 @@ here do each step in one call, with the arithmetic of the numpy code they replac
 * :func:`register_ratio` -- B registered onto A along the rows (linear), the samples both
   shots see, the pair's constant imbalance removed, the slope by seed Eq. 4 and (when
   wanted) the albedo (:class:`vision.defects.surface_map.SurfaceMapper`);
+* :func:`map_pair` -- :func:`remap_pair` and :func:`register_ratio` in one call, with the
+  map's valid rows and columns found in the ratio's pass (what the mapper calls);
 * :func:`residual_map` -- the marks' robust column profile (the densest row groups, then the
   samples near it), the residual slope, its cells' mean squares and the valid ones in order
   for their median (:func:`vision.defects.detect.residual`);
@@ -133,10 +135,16 @@ def remap_pair(a: np.ndarray, b: np.ndarray, off: np.ndarray, ax: np.ndarray, ay
 
 
 @njit(**_JIT)
-def register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka: float,
-                   kb: float, slope: np.ndarray, albedo: np.ndarray,
-                   both: np.ndarray) -> int:  # pragma: no cover - compiled
-    """Slope and albedo of a pair on the map grid (B shifted by ``d`` columns onto A).
+def _register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka: float,
+                    kb: float, slope: np.ndarray, albedo: np.ndarray, both: np.ndarray,
+                    any_rows: np.ndarray,
+                    any_cols: np.ndarray) -> int:  # pragma: no cover - compiled
+    """:func:`register_ratio`, and which rows and columns of ``both`` hold a sample.
+
+    ``any_rows``, ``any_cols`` (out): ``both.any(axis=1)``, ``both.any(axis=0)``, found in the
+    pass that writes ``both``.
+
+    Slope and albedo of a pair on the map grid (B shifted by ``d`` columns onto A).
 
     Parameters
     ----------
@@ -190,6 +198,14 @@ def register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka
             sum_a[q] += av if ok else zero
             sum_b[q] += bv if ok else zero
             count[q] += ok
+        hit = False
+        for q in range(m):  # a row with a sample: found at its first one (mostly the first)
+            if br_[q]:
+                hit = True
+                break
+        any_rows[i] = hit
+    for j in range(cols):  # a column with a sample: its count (none outside lo..hi)
+        any_cols[j] = lo <= j < hi and count[j - lo] > 0
     sa, sb, n = sum_a.sum(), sum_b.sum(), int(count.sum())
     if not (sa > 0 and sb > 0):
         sa = 1.0
@@ -209,6 +225,41 @@ def register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka
             v = (r - av) / (r * fka - av * fkb)
             slope[i, j] = v if both[i, j] else zero
     return n
+
+
+@njit(**_JIT)
+def register_ratio(a: np.ndarray, b: np.ndarray, valid: np.ndarray, d: float, ka: float,
+                   kb: float, slope: np.ndarray, albedo: np.ndarray,
+                   both: np.ndarray) -> int:  # pragma: no cover - compiled
+    """Slope and albedo of a pair on the map grid (B shifted by ``d`` columns onto A).
+
+    :func:`_register_ratio` (see there) without the valid rows and columns.
+    """
+    return _register_ratio(a, b, valid, d, ka, kb, slope, albedo, both,
+                           np.empty(a.shape[0], dtype=np.bool_),
+                           np.empty(a.shape[1], dtype=np.bool_))
+
+
+@njit(**_JIT)
+def map_pair(a: np.ndarray, b: np.ndarray, off: np.ndarray, ax: np.ndarray, ay: np.ndarray,
+             x0: np.ndarray, y0: np.ndarray, inside: np.ndarray, valid: np.ndarray, d: float,
+             ka: float, kb: float, slope: np.ndarray, albedo: np.ndarray,
+             both: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """A pair's map in one call: :func:`remap_pair`, then :func:`_register_ratio`.
+
+    ``a``, ``b``: the coarse sources; the taps as :func:`remap_pair`'s; ``valid`` and the
+    rest as :func:`register_ratio`'s (``slope``, ``albedo``, ``both`` out).  Returns the map's
+    valid rows and columns, ``(np.flatnonzero(both.any(axis=1)),
+    np.flatnonzero(both.any(axis=0)))`` (:func:`valid_extent`'s).
+    """
+    rows, cols = both.shape
+    out_a = np.empty((rows, cols), dtype=np.float32)
+    out_b = np.empty((rows, cols), dtype=np.float32)
+    remap_pair(a, b, off, ax, ay, x0, y0, inside, out_a, out_b)
+    any_rows = np.empty(rows, dtype=np.bool_)
+    any_cols = np.empty(cols, dtype=np.bool_)
+    _register_ratio(out_a, out_b, valid, d, ka, kb, slope, albedo, both, any_rows, any_cols)
+    return np.flatnonzero(any_rows), np.flatnonzero(any_cols)
 
 
 @njit(**_JIT)
@@ -1170,6 +1221,10 @@ def warm_up() -> None:
     out = np.empty_like(a)
     for alb in (np.empty_like(a), np.empty((0, 0), np.float32)):
         register_ratio(a, a, valid, 1.5, 7.1, -7.1, out, alb, np.empty_like(valid))
+        map_pair(a, a, np.zeros((8, 12), dtype=np.uint32), np.zeros((8, 12), np.float32),
+                 np.zeros((8, 12), np.float32), np.zeros((8, 12), np.int32),
+                 np.zeros((8, 12), np.int32), np.zeros(8, dtype=np.bool_), valid, 1.5, 7.1,
+                 -7.1, out, alb, np.empty_like(valid))
     column_means_u16(np.ones((8, 12), dtype=np.uint16), 1, 3, 6, np.empty((2, 2), np.float32))
     valid_any(np.ones((2, 3), dtype=bool), np.empty(2, dtype=bool), np.empty(3, dtype=bool))
     valid_extent(np.ones((2, 3), dtype=bool))

@@ -100,7 +100,10 @@ class SurfaceMap:
 
     @functools.cached_property
     def _valid_extent(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(valid_rows, valid_cols)``, both found in one compiled pass (once per map)."""
+        """``(valid_rows, valid_cols)``, both found in one compiled pass (once per map).
+
+        The :class:`SurfaceMapper`'s maps come with them (found in the ratio's pass).
+        """
         rows, cols = kernels.valid_extent(np.ascontiguousarray(self.valid))
         rows.flags.writeable = False
         cols.flags.writeable = False
@@ -412,21 +415,20 @@ class SurfaceMapper:
                 raise ValueError(f"{name} must have shape {(self.n_src, self.width)}, "
                                  f"got {np.shape(r)}")
         taps, valid = self._table(roll)
-        # both images at once, cv2.remap's numbers (INTER_LINEAR, BORDER_REPLICATE)
-        a = np.empty(valid.shape, dtype=np.float32)
-        b = np.empty_like(a)
         ca, cb = (None, None) if coarse is None else coarse
-        kernels.remap_pair(self._given(ca, "coarse[0]") if ca is not None
-                           else np.ascontiguousarray(self._coarse(rows_a)),
-                           self._given(cb, "coarse[1]") if cb is not None
-                           else np.ascontiguousarray(self._coarse(rows_b)), taps.off,
-                           taps.ax, taps.ay, taps.x0, taps.y0, taps.inside, a, b)
-        slope = np.empty_like(a)
-        alb = np.empty_like(a) if albedo else np.empty((0, 0), dtype=np.float32)
-        both = np.empty(a.shape, dtype=bool)
-        # B registered onto A (b_reg[:, j] = b[:, j + d], linear), Eq. 4, the albedo
-        kernels.register_ratio(a, b, valid, d, self._ka, self._kb, slope, alb, both)
-        return SurfaceMap(
+        slope = np.empty(valid.shape, dtype=np.float32)
+        alb = np.empty_like(slope) if albedo else np.empty((0, 0), dtype=np.float32)
+        both = np.empty(valid.shape, dtype=bool)
+        # one call: both images at once, cv2.remap's numbers (INTER_LINEAR, BORDER_REPLICATE),
+        # then B registered onto A (b_reg[:, j] = b[:, j + d], linear), Eq. 4, the albedo,
+        # and the map's valid rows and columns
+        extent = kernels.map_pair(
+            self._given(ca, "coarse[0]") if ca is not None
+            else np.ascontiguousarray(self._coarse(rows_a)),
+            self._given(cb, "coarse[1]") if cb is not None
+            else np.ascontiguousarray(self._coarse(rows_b)), taps.off, taps.ax, taps.ay,
+            taps.x0, taps.y0, taps.inside, valid, d, self._ka, self._kb, slope, alb, both)
+        smap = SurfaceMap(
             slope_along_feed=slope, albedo=alb if albedo else None, valid=both,
             col0_px=self.col0_px, row0_px=self.row0_px,
             row_step_px=float(self.bin_rows * self.merge_rows),
@@ -435,6 +437,10 @@ class SurfaceMapper:
             px_per_mm=float(self.camera.px_per_mm),
             shadow_slope=min(abs(1.0 / self._ka), abs(1.0 / self._kb)),
             col_step_px=float(self.bin_cols))
+        for ix in extent:
+            ix.flags.writeable = False
+        smap.__dict__["_valid_extent"] = extent  # what its cached property would find
+        return smap
 
 
 def surface_map(image_a: np.ndarray, image_b: np.ndarray, *, camera: Camera, lights: Lights,

@@ -284,6 +284,28 @@ def test_the_mapper_is_its_earlier_form():
         assert np.array_equal(got.valid, both) and np.array_equal(got.slope_along_feed, slope)
 
 
+def test_the_maps_valid_rows_and_columns_come_with_it():
+    """The mapper's maps carry their valid rows and columns (found in the ratio's pass):
+    numpy's of their ``valid``, also with rows and columns without a sample."""
+    cam = Camera(fx=1400.0, fy=1400.0, cx=329.0, cy=120.0, dist=(-0.12, 0.0, 0.0, 0.0, 0.0),
+                 px_per_mm=12.5, exposure_ms=0.05)
+    rng = np.random.default_rng(12)
+    rows_a = (1000 + 200 * rng.random((48, 659))).astype(np.uint16)
+    rows_b = (1000 + 200 * rng.random((48, 659))).astype(np.uint16)
+    rows_a[20:31] = 0  # dark rows: no sample
+    rows_b[:, 300:340] = 0
+    mapper = SurfaceMapper(cam, Lights(slant_deg=82.0), (240, 659), bin_rows=5, bin_cols=2)
+    for roll, shift in ((0.0, 14.6), (0.7, -40.3), (-2.3, 300.0), (0.0, 2000.0)):
+        got = mapper(rows_a, rows_b, shift_px=shift, roll_deg=roll, albedo=True)
+        carried = got.__dict__["_valid_extent"]
+        want = (np.flatnonzero(got.valid.any(axis=1)), np.flatnonzero(got.valid.any(axis=0)))
+        for g, w in zip(carried, want, strict=True):
+            assert g.dtype == w.dtype and np.array_equal(g, w) and not g.flags.writeable
+        assert got.valid_rows is carried[0] and got.valid_cols is carried[1]
+        if shift < 1000:
+            assert 0 < want[0].size < got.valid.shape[0]  # some rows without a sample
+
+
 @pytest.mark.parametrize("shape", [(1, 1), (7, 13), (98, 329), (80, 320)])
 def test_valid_any_is_numpys_any_along_both_axes(shape):
     """The map's valid rows and columns in one pass: ``valid.any(axis=1)``, ``any(axis=0)``."""
