@@ -430,13 +430,11 @@ def knife_nicks(res: Residual, settings: DefectSettings, pitch_mm: float | None 
     energy = np.empty(rows)
     # the median fold on every 8th row (the reference) and on the rows that may stand out
     every = 8
-    kernels.fold_rows(res.r, np.ascontiguousarray(smap.valid), c0, float(period), nb,
-                      int((c1 - c0) // period), int(math.ceil(0.5 * cols.size)), every,
-                      _NICK_SLACK * settings.nick_ratio, folded, energy)
-    # the reference rows' median, and whether any row stands out from it (one compiled pass)
-    stats = np.empty(3)
-    kernels.reference_median(energy, every, settings.nick_ratio, stats)
-    n_ref, median, n_hot = int(stats[0]), float(stats[1]), int(stats[2])
+    # ... then the reference rows' median, and whether any row stands out from it: one call
+    n_ref, median, n_hot = kernels.fold_reference(
+        res.r, np.ascontiguousarray(smap.valid), c0, float(period), nb,
+        int((c1 - c0) // period), int(math.ceil(0.5 * cols.size)), every,
+        _NICK_SLACK * settings.nick_ratio, settings.nick_ratio, folded, energy)
     if n_ref < 4 or n_hot == 0:
         return [], set()
     ratio = energy / max(median, 1e-18)  # NaN on rows without samples: never hot

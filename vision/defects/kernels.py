@@ -28,7 +28,8 @@ here do each step in one call, with the arithmetic of the numpy code they replac
   FFT's padding, and their cross-spectrum summed
   (:func:`vision.defects.detect.oriented_coherence`);
 * :func:`reference_median` -- the knife-nick folds' reference median and the rows standing
-  out from it (:func:`vision.defects.detect.knife_nicks`);
+  out from it (:func:`vision.defects.detect.knife_nicks`); :func:`fold_reference`: the fold
+  and it in one call;
 * :func:`snipe_fit` -- the marks' profile smoothed over one mark and its quadratic
   (:func:`vision.defects.detect.snipe`).
 
@@ -1119,6 +1120,20 @@ def reference_median(energy: np.ndarray, every: int, ratio: float,
 
 
 @njit(**_JIT)
+def fold_reference(r: np.ndarray, valid: np.ndarray, c0: int, period: float, nb: int,
+                   n_per: int, min_valid: int, every: int, slack: float, ratio: float,
+                   folded: np.ndarray, energy: np.ndarray) -> tuple:  # pragma: no cover
+    """:func:`fold_rows`, then :func:`reference_median` on its energies, in one call.
+
+    Returns ``(n, median, hot)``: the finite reference energies, their median and the rows
+    standing out ``ratio`` times from it (:func:`vision.defects.detect.knife_nicks`).
+    """
+    fold_rows(r, valid, c0, period, nb, n_per, min_valid, every, slack, folded, energy)
+    stats = np.empty(3)
+    reference_median(energy, every, ratio, stats)
+    return int(stats[0]), stats[1], int(stats[2])
+
+@njit(**_JIT)
 def _mark_differences(profile: np.ndarray, cols_per_mm: float, xs: np.ndarray,
                       bottoms: np.ndarray, d: np.ndarray) -> None:  # pragma: no cover
     """The differences of the marks' lowest points' heights from one mark to the next, um.
@@ -1248,6 +1263,7 @@ def warm_up() -> None:
     snipe_fit(np.ones(40), 2, 38, 3, 0.16)
     coherence_peak(np.ones(16, dtype=np.float32), np.ones(6), 3)
     reference_median(np.ones(16), 8, 12.0, np.empty(3))
+    fold_reference(a, valid, 0, 4.0, 4, 3, 6, 4, 0.3, 12.0, np.empty((8, 4)), np.empty(8))
     fixed = [np.arange(40.0), np.ones(14), np.ones((2, 3, 14)), np.ones((5, 3))]
     for v in fixed:  # read-only, as the caches hand them over
         v.flags.writeable = False

@@ -152,6 +152,30 @@ def test_fold_rows_is_its_earlier_form(seed):
         assert np.array_equal(got[1], ref[1], equal_nan=True)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_fold_reference_is_the_fold_then_its_reference_median(seed):
+    """The knife nicks' two calls in one: the same folds, energies and reference statistics."""
+    rng = np.random.default_rng(100 + seed)
+    hot = 0
+    for _ in range(40):
+        r, valid, c0, period, nb, n_per, min_valid, every, slack = _fold_case(rng)
+        ratio = float(rng.uniform(1.5, 12.0))
+        rows = r.shape[0]
+        got = np.empty((rows, nb)), np.empty(rows)
+        ref = np.empty((rows, nb)), np.empty(rows)
+        stats = kernels.fold_reference(r, valid, c0, period, nb, n_per, min_valid, every,
+                                       slack, ratio, *got)
+        kernels.fold_rows(r, valid, c0, period, nb, n_per, min_valid, every, slack, *ref)
+        want = np.empty(3)
+        kernels.reference_median(ref[1], every, ratio, want)
+        assert np.array_equal(got[0], ref[0], equal_nan=True)
+        assert np.array_equal(got[1], ref[1], equal_nan=True)
+        assert stats == (int(want[0]), float(want[1]), int(want[2]))
+        assert isinstance(stats[0], int) and isinstance(stats[2], int)
+        hot += stats[2] > 0
+    assert hot > 0
+
+
 @pytest.mark.parametrize("cell", [1, 2, 3, 4, 5])
 def test_cell_means_are_their_earlier_form(cell):
     rng = np.random.default_rng(cell)
