@@ -32,7 +32,9 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
 * :func:`power_spectrum` -- ``|X|^2`` of a complex spectrum (real and imaginary squared);
 * :func:`any_nonpositive` -- whether two profiles hold a sample ``<= 0``;
 * :func:`knife_sums` -- a per-mark quantity summed per knife, in the marks' order;
-* :func:`arc_depths` -- the marks' kinematic depths from their cusps and lowest points.
+* :func:`arc_depths` -- the marks' kinematic depths from their cusps and lowest points;
+* :func:`cubic_shift` -- a profile resampled by Keys' cubic at a fractional offset;
+* :func:`feed_positions` -- the registered profile's positions along the feed, mm.
 
 All are compiled with ``cache=True`` (the machine code is kept in ``__pycache__`` beside this
 file, reused by later processes) and on first use; :func:`warm_up` compiles every one with the
@@ -904,6 +906,33 @@ def arc_depths(cusps: np.ndarray, bottoms: np.ndarray,
     return out
 
 
+@njit(**_JIT)
+def cubic_shift(p: np.ndarray, i0: int, count: int, w_m1: float, w_0: float, w_p1: float,
+                w_p2: float) -> np.ndarray:  # pragma: no cover - compiled
+    """``w_m1 p[i0 - 1 + i] + w_0 p[i0 + i] + w_p1 p[i0 + 1 + i] + w_p2 p[i0 + 2 + i]``.
+
+    :func:`vision.profile.shift_profile`'s sum of four weighted slices, summed left to right
+    as numpy does; the caller checks that the slices lie inside ``p``.
+    """
+    out = np.empty(count)
+    for i in range(count):
+        j = i0 + i
+        out[i] = w_m1 * p[j - 1] + w_0 * p[j] + w_p1 * p[j + 1] + w_p2 * p[j + 2]
+    return out
+
+
+@njit(**_JIT)
+def feed_positions(first_col: int, cx: float, cos_roll: float, px_per_mm: float,
+                   out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``(cx + (cols - cx) * cos_roll) / px_per_mm`` for ``cols = first_col + arange(n)``.
+
+    Written into ``out`` (``n`` samples): an array numpy made, so that the measurement's
+    ``x_mm`` keeps numpy's own ``float64`` dtype object (and pickles as before).
+    """
+    for i in range(out.size):
+        out[i] = (cx + (float(first_col + i) - cx) * cos_roll) / px_per_mm
+
+
 _WARM = [False]
 
 
@@ -954,6 +983,8 @@ def warm_up() -> None:
     any_nonpositive(v, v)
     knife_sums(v, 3, 0, np.zeros(3), np.zeros(3, dtype=np.int64))
     arc_depths(v, v[:7], 60.0)
+    cubic_shift(v, 1, 4, 0.1, 0.2, 0.3, 0.4)
+    feed_positions(3, 1.5, 0.5, 2.0, np.empty(4))
     from vision import marks_kernels  # the cusps' choice (find_marks), compiled beside these
 
     marks_kernels.warm_up()

@@ -681,8 +681,10 @@ class Measurer:
         if not finite:
             raise MeasurementError("slope is not finite (intensity ratio out of the lights' range)")
         height = self._heights(slope, cos_roll, period)
-        cols = self._c0 + u0 + np.arange(count)
-        x_mm = (self._cx + (cols - self._cx) * cos_roll) / self.px_per_mm
+        # (cx + (cols - cx) cos_roll) / px_per_mm of the columns c0 + u0 ..., one compiled pass
+        x_mm = np.empty(count)
+        kernels.feed_positions(int(self._c0 + u0), float(self._cx), float(cos_roll),
+                               float(self.px_per_mm), x_mm)
         marks = find_marks(x_mm, height, slope=slope, min_marks=self.min_marks)
         agreement = marks_shading_agreement(log_a, log_b, x_mm, marks.cusps_mm, marks.bottoms_mm,
                                             slow_removed=slow_removed)

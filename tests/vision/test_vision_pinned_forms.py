@@ -367,3 +367,47 @@ def test_fine_shift_fit_equals_its_numpy_form(seed):
         frac, peak = se._parabolic_peak(score, j)
         old_result = (i0 + float(fit._fine_grid[j]) + frac * fit._FINE_STEP_PX, peak / total)
     assert repr(new_result) == repr(old_result)
+
+
+def _old_shift_profile(profile, *, shift_px, start=0, count=None):
+    """shift_profile's cubic as numpy slices (the form it replaces)."""
+    p = np.asarray(profile, dtype=np.float64)
+    if count is None:
+        count = p.size - start
+    base = math.floor(shift_px)
+    t = shift_px - base
+    i0 = start + base
+    if t == 0:
+        return p[i0 : i0 + count].copy()
+    a = -0.5
+    w_m1 = a * t * (t - 1) ** 2
+    w_0 = (a + 2) * t**3 - (a + 3) * t**2 + 1
+    s = 1 - t
+    w_p1 = (a + 2) * s**3 - (a + 3) * s**2 + 1
+    w_p2 = a * s * (s - 1) ** 2
+    return (w_m1 * p[i0 - 1 : i0 - 1 + count] + w_0 * p[i0 : i0 + count]
+            + w_p1 * p[i0 + 1 : i0 + 1 + count] + w_p2 * p[i0 + 2 : i0 + 2 + count])
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_shift_profile_and_feed_positions_equal_their_numpy_forms(seed):
+    from vision.profile import shift_profile
+
+    rng = np.random.default_rng(900 + seed)
+    n = int(rng.integers(16, 2000))
+    p = rng.uniform(10, 200, n)
+    d = float(rng.choice([rng.uniform(-5, 5), float(rng.integers(-3, 4))]))
+    start = int(rng.integers(6, 10))
+    count = int(rng.integers(0, n - 20))
+    new = shift_profile(p, shift_px=d, start=start, count=count)
+    assert new.tobytes() == _old_shift_profile(p, shift_px=d, start=start, count=count).tobytes()
+    with pytest.raises(ValueError, match="count"):
+        shift_profile(p, shift_px=d, start=start, count=-1)
+    c0, u0, cx = int(rng.integers(0, 40)), int(rng.integers(0, 40)), float(rng.uniform(200, 900))
+    cos_roll = math.cos(math.radians(float(rng.uniform(-5, 5))))
+    ppm = float(rng.uniform(5, 40))
+    cols = c0 + u0 + np.arange(count)
+    old = (cx + (cols - cx) * cos_roll) / ppm
+    new = np.empty(count)
+    kernels.feed_positions(c0 + u0, cx, cos_roll, ppm, new)
+    assert new.tobytes() == old.tobytes()
