@@ -34,7 +34,9 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
 * :func:`knife_sums` -- a per-mark quantity summed per knife, in the marks' order;
 * :func:`arc_depths` -- the marks' kinematic depths from their cusps and lowest points;
 * :func:`cubic_shift` -- a profile resampled by Keys' cubic at a fractional offset;
-* :func:`feed_positions` -- the registered profile's positions along the feed, mm.
+* :func:`feed_positions` -- the registered profile's positions along the feed, mm;
+* :func:`all_finite` -- whether two arrays hold only finite numbers;
+* :func:`less_running` -- a height less its running mean, held constant beyond its ends.
 
 All are compiled with ``cache=True`` (the machine code is kept in ``__pycache__`` beside this
 file, reused by later processes) and on first use; :func:`warm_up` compiles every one with the
@@ -933,6 +935,38 @@ def feed_positions(first_col: int, cx: float, cos_roll: float, px_per_mm: float,
         out[i] = (cx + (float(first_col + i) - cx) * cos_roll) / px_per_mm
 
 
+@njit(**_JIT)
+def all_finite(a: np.ndarray, b: np.ndarray) -> bool:  # pragma: no cover - compiled
+    """``np.all(np.isfinite(a)) and np.all(np.isfinite(b))`` of two 1-D float arrays."""
+    for i in range(a.size):
+        if not np.isfinite(a[i]):
+            return False
+    for i in range(b.size):
+        if not np.isfinite(b[i]):
+            return False
+    return True
+
+
+@njit(**_JIT)
+def less_running(h: np.ndarray, slow: np.ndarray, m0: int,
+                 out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``h`` less ``slow`` at ``m0 ..``, less its first value before and its last after.
+
+    :func:`vision.pipeline.remove_slow`'s three slice subtractions in one pass (``out``).
+    """
+    n = h.size
+    m1 = m0 + slow.size
+    first = slow[0]
+    last = slow[slow.size - 1]
+    for i in range(n):
+        if i < m0:
+            out[i] = h[i] - first
+        elif i < m1:
+            out[i] = h[i] - slow[i - m0]
+        else:
+            out[i] = h[i] - last
+
+
 _WARM = [False]
 
 
@@ -985,6 +1019,8 @@ def warm_up() -> None:
     arc_depths(v, v[:7], 60.0)
     cubic_shift(v, 1, 4, 0.1, 0.2, 0.3, 0.4)
     feed_positions(3, 1.5, 0.5, 2.0, np.empty(4))
+    all_finite(v, v)
+    less_running(v, v[2:6], 2, np.empty(8))
     from vision import marks_kernels  # the cusps' choice (find_marks), compiled beside these
 
     marks_kernels.warm_up()

@@ -411,3 +411,44 @@ def test_shift_profile_and_feed_positions_equal_their_numpy_forms(seed):
     new = np.empty(count)
     kernels.feed_positions(c0 + u0, cx, cos_roll, ppm, new)
     assert new.tobytes() == old.tobytes()
+
+
+def _old_remove_slow(height_um, period_px):
+    """remove_slow's subtractions as numpy slices (the form it replaces)."""
+    from vision.calibration.illumination import running_mean
+
+    h = np.asarray(height_um, dtype=np.float64)
+    n = h.size
+    if not (math.isfinite(period_px) and 4.0 <= period_px <= n / 2):
+        return h
+    slow = running_mean(h, period_px)
+    m0 = (n - slow.size) // 2
+    out = h.copy()
+    out[m0 : m0 + slow.size] -= slow
+    out[:m0] -= slow[0]
+    out[m0 + slow.size :] -= slow[-1]
+    out -= out.sum() / n
+    return out
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_remove_slow_and_finite_profiles_equal_their_numpy_forms(seed):
+    from vision.pipeline import remove_slow
+    from vision.registration.registrar import Registrar
+
+    rng = np.random.default_rng(1000 + seed)
+    n = int(rng.integers(8, 1500))
+    h = np.cumsum(rng.normal(size=n)) + np.sin(np.arange(n) / 3.0)
+    period = float(rng.choice([rng.uniform(4, max(4.0, n / 2)), 4.0, n / 2, 3.0, math.nan]))
+    assert remove_slow(h, period).tobytes() == _old_remove_slow(h, period).tobytes()
+    reg = Registrar(64, search_px=5.0, min_overlap_px=32)
+    pa, pb = rng.uniform(1, 2, 64), rng.uniform(1, 2, 64)
+    if seed % 2:
+        (pa if seed % 4 == 1 else pb)[int(rng.integers(0, 64))] = [np.nan, np.inf, -np.inf][
+            seed // 4 % 3]
+        with pytest.raises(ValueError, match="finite"):
+            reg._profiles(pa, pb)
+    else:
+        a, b = reg._profiles(pa, pb)
+        assert a is pa and b is pb
+    assert kernels.all_finite(pa, pb) == bool(np.all(np.isfinite(pa)) and np.all(np.isfinite(pb)))

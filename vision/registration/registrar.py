@@ -54,6 +54,7 @@ import numpy as np
 from core.checks import check_finite, check_int, check_positive, check_range
 from core.errors import RegistrationError
 from core.units import counter_difference
+from vision import kernels
 from vision.registration.shift_estimators import (
     FineShiftFit,
     TextureCorrelator,
@@ -268,7 +269,7 @@ class ShiftStages:
             raise ValueError(
                 f"profiles must both have shape ({self.width},), got {pa.shape} and {pb.shape}"
             )
-        if not (np.all(np.isfinite(pa)) and np.all(np.isfinite(pb))):
+        if not kernels.all_finite(np.ascontiguousarray(pa), np.ascontiguousarray(pb)):
             raise ValueError("profiles must be finite")
         return pa, pb
 
