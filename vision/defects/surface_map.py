@@ -45,6 +45,8 @@ from config.rig import Camera, Lights
 from core.checks import check_finite, check_int
 from vision.defects import kernels
 
+_U16 = np.dtype(np.uint16)
+
 _ROLL_KEY_DEG = 0.05
 """Rolls are rounded to this grid for the cached tables (a row moves < 0.3 px over 659 px)."""
 
@@ -275,6 +277,10 @@ class SurfaceMapper:
         self._kb = math.cos(math.radians(lights.azimuth_b_deg)) * tb
         if self._ka == self._kb:
             raise ValueError("the lights must stand on opposite sides along the feed")
+        # the row bins' usual case: uint16, the middle row of each block or columns alone,
+        # one compiled pass (:meth:`_coarse`)
+        self._strided = self.middle_row or (self.merge_rows == 1 and self.bin_cols > 1)
+        self._u16_pass = self._strided and self.bin_cols <= 32768
         self._cache_size = check_int("cache", cache, lo=1)
         self._tables: OrderedDict[float, tuple[_Taps, np.ndarray]] = OrderedDict()
         kernels.warm_up()  # compiled (or loaded from the cache) here, never on a frame
@@ -347,19 +353,19 @@ class SurfaceMapper:
     def _coarse(self, rows: np.ndarray) -> np.ndarray:
         """The source rows averaged over ``merge_rows x bin_cols`` blocks, float32."""
         src = r = np.asarray(rows)
+        m = self.merge_rows
+        if self._u16_pass and src.dtype == _U16 and src.flags.c_contiguous:
+            # one compiled pass straight to float32, INTER_AREA's integers (2 columns: ~4x
+            # faster than a linear resize at half the width and its float copy; 6: ~4x faster
+            # than a loop per block)
+            out = np.empty((self._n_red, self._w_red), dtype=np.float32)
+            kernels.column_means_u16(src, (m - 1) // 2, m, self.bin_cols, out)
+            return out
         if r.dtype not in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
             r = r.astype(np.float32)
-        if self.middle_row or (self.merge_rows == 1 and self.bin_cols > 1):
-            m = self.merge_rows  # the middle source row of each block: a strided view
+        if self._strided:
+            # the middle source row of each block: a strided view
             r = r[(m - 1) // 2:self._n_red * m:m, :self._w_red * self.bin_cols]
-            if (self.bin_cols <= 32768 and src.dtype == np.uint16
-                    and src.flags.c_contiguous):
-                # one compiled pass straight to float32, INTER_AREA's integers (2 columns:
-                # ~4x faster than a linear resize at half the width and its float copy; 6:
-                # ~4x faster than a loop per block)
-                out = np.empty((self._n_red, self._w_red), dtype=np.float32)
-                kernels.column_means_u16(src, (m - 1) // 2, m, self.bin_cols, out)
-                return out
             if self.bin_cols == 2 and r.dtype == np.uint16:
                 # pairs of columns: a linear resize at exactly half the width samples between
                 # them (weights 1/2, 1/2), the same integers as INTER_AREA's
