@@ -24,14 +24,16 @@ here do each step in one call, with the arithmetic of the numpy code they replac
   (:func:`vision.defects.detect.blobs`);
 * :func:`fold_rows` -- each row's residual folded at one revolution, the median over the
   revolutions per phase, and its mean square (:func:`vision.defects.detect.knife_nicks`);
-* :func:`clipped_pairs`, :func:`cross_spectrum` -- raised grain's row pairs clipped into the
-  FFT's padding, and their cross-spectrum summed
-  (:func:`vision.defects.detect.oriented_coherence`);
+* :func:`clipped_pairs`, :func:`cross_spectrum`, :func:`coherence_peak` -- raised grain's
+  row pairs clipped into the FFT's padding, their cross-spectrum summed, and the correlations'
+  peak (:func:`vision.defects.detect.oriented_coherence`);
 * :func:`reference_median` -- the knife-nick folds' reference median and the rows standing
   out from it (:func:`vision.defects.detect.knife_nicks`); :func:`fold_reference`: the fold
   and it in one call;
 * :func:`snipe_fit` -- the marks' profile smoothed over one mark and its quadratic
-  (:func:`vision.defects.detect.snipe`).
+  (:func:`vision.defects.detect.snipe`);
+* :func:`chatter_fit` -- the marks' heights at their lowest points, their differences and
+  the best sinusoid on them (:func:`vision.defects.detect.chatter`).
 
 Where a loop runs over a row it reads the row as a 1-D view, and where it can it is
 branch-free, so that it vectorises (the ratio's pass, the shorth's column sort); a loop whose
