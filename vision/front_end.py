@@ -537,13 +537,16 @@ class FrontEnd:
     def _over_row_means(self, src: np.ndarray) -> np.ndarray:
         """``src`` (``float32``) divided row by row by its mean over the columns (1 if <= 0)."""
         c0, c1 = self.columns
-        if src.dtype == np.uint16 and src.ndim == 2 and src.shape[0] and 0 < c1 - c0 < 65537:
-            # The same numbers in one compiled call instead of five passes: a row's integer
-            # sum is exact in float32 below 2**24 (numpy's float32 mean adds exact integers
-            # then), the mean and each quotient one correctly rounded float32 division either
-            # way (kernels.row_means_over; False: a sum too large for that, numpy's below)
-            out = np.empty(src.shape, dtype=np.float32)
-            if kernels.row_means_over(np.ascontiguousarray(src), int(c0), int(c1), out):
+        if src.dtype == np.uint16 and src.ndim == 2 and 0 < c1 - c0 < 65537:
+            # The same numbers in two passes instead of five: a row's integer sum is exact in
+            # float32 below 2**24 (numpy's float32 mean adds exact integers then), the mean
+            # and each quotient one correctly rounded float32 division either way.
+            sums = src[:, c0:c1].sum(axis=1, dtype=np.uint32)
+            if sums.size and int(sums.max()) < 1 << 24:
+                means = sums.astype(np.float32) / np.float32(c1 - c0)
+                means[~(means > 0)] = np.float32(1.0)
+                out = np.empty(src.shape, dtype=np.float32)
+                kernels.rows_over(src, means, out)
                 return out
         f = src.astype(np.float32)
         mean = f[:, c0:c1].mean(axis=1, keepdims=True)

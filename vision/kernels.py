@@ -11,8 +11,6 @@ the result must not move, e.g. integer sums and sequential cumulative sums):
   orientation's groups (``float32``) and the unsheared profile's bins (``uint16``), one kernel;
 * :func:`column_sums` -- the column sums of ``uint16`` rows (the profile's), exact;
 * :func:`rows_over` -- ``uint16`` rows divided by their means (the rotated texture's);
-* :func:`row_means_over` -- those means (exact integer sums over a column range) and the
-  quotients in one call;
 * :func:`scaled_less_one` -- rows times a column scale, less one (the shading-free texture);
 * :func:`inverse_column_means` -- the inverse of rows' column means (the rotated texture's);
 * :func:`running_mean_1d`, :func:`running_mean_2d` -- running means of fractional length
@@ -155,31 +153,6 @@ def rows_over(bins: np.ndarray, means: np.ndarray,
         mean = means[r]
         for c in range(w):
             o[c] = np.float32(row[c]) / mean
-
-
-@njit(**_JIT)
-def row_means_over(bins: np.ndarray, c0: int, c1: int,
-                   out: np.ndarray) -> bool:  # pragma: no cover - compiled
-    """:func:`rows_over` by each row's mean over columns ``c0 .. c1 - 1`` (1 where not > 0).
-
-    The means as :meth:`vision.front_end.FrontEnd._over_row_means` makes them: a row's
-    integer sum (exact), as ``float32`` over ``float32(c1 - c0)``.  ``False`` (``out`` not
-    written) when a row's sum reaches ``2**24``, where ``float32`` no longer holds it exactly.
-    """
-    n = bins.shape[0]
-    means = np.empty(n, dtype=np.float32)
-    count = np.float32(c1 - c0)
-    for r in range(n):
-        total = 0
-        row = bins[r]
-        for c in range(c0, c1):
-            total += row[c]
-        if total >= 1 << 24:
-            return False
-        mean = np.float32(total) / count
-        means[r] = mean if mean > 0 else np.float32(1.0)
-    rows_over(bins, means, out)
-    return True
 
 
 @njit(**_JIT)
@@ -1015,7 +988,6 @@ def warm_up() -> None:
     group_sums(bins, 0, 1, np.empty((2, 8), dtype=np.float32))
     column_sums(bins, np.empty(8, dtype=np.uint32), cols)
     rows_over(bins, np.ones(2, dtype=np.float32), np.empty((2, 8), dtype=np.float32))
-    row_means_over(bins, 1, 7, np.empty((2, 8), dtype=np.float32))
     group_sums(bins, 0, 1, np.empty((2, 8), dtype=np.uint16))
     scale, tex = np.ones(8, dtype=np.float32), np.empty((2, 8), dtype=np.float32)
     scaled_less_one(tex, scale, tex)

@@ -453,36 +453,3 @@ def test_remove_slow_and_finite_profiles_equal_their_numpy_forms(seed):
         assert a is pa and b is pb
     assert kernels.all_finite(pa, pb) == bool(np.all(np.isfinite(pa)) and np.all(np.isfinite(pb)))
 
-
-def _old_over_row_means(src, c0, c1):
-    """FrontEnd._over_row_means as numpy's row sums, means and mask, then rows_over."""
-    sums = src[:, c0:c1].sum(axis=1, dtype=np.uint32)
-    if sums.size and int(sums.max()) < 1 << 24:
-        means = sums.astype(np.float32) / np.float32(c1 - c0)
-        means[~(means > 0)] = np.float32(1.0)
-        out = np.empty(src.shape, dtype=np.float32)
-        kernels.rows_over(src, means, out)
-        return out
-    f = src.astype(np.float32)
-    mean = f[:, c0:c1].mean(axis=1, keepdims=True)
-    f /= np.where(mean > 0, mean, np.float32(1.0))
-    return f
-
-
-@pytest.mark.parametrize("seed", range(12))
-def test_over_row_means_equals_its_numpy_form(seed):
-    from types import SimpleNamespace
-
-    from vision.front_end import FrontEnd
-
-    rng = np.random.default_rng(1100 + seed)
-    rows, width = int(rng.integers(1, 120)), int(rng.integers(8, 900))
-    c0 = int(rng.integers(0, width // 4))
-    c1 = int(rng.integers(c0 + 1, width + 1))
-    top = [4096, 65535, 2**16 - 1][seed % 3]
-    src = rng.integers(0, top, (rows, width)).astype(np.uint16)
-    if seed % 4 == 1:
-        src[0] = 0  # a dark row: its mean set to 1
-    fake = SimpleNamespace(columns=(c0, c1))
-    new = FrontEnd._over_row_means(fake, src)
-    assert new.tobytes() == _old_over_row_means(src, c0, c1).tobytes()
