@@ -788,6 +788,7 @@ class DefectFinder:
                                     middle_row=merge >= 3 and merge % 2 == 1
                                     and bin_rows * bin_cols >= 3 * 10)
         self.knives = knives
+        kernels.warm_up()  # the detectors' loops compiled here, never on a frame
 
     def __call__(self, rows_a: np.ndarray, rows_b: np.ndarray, *, shift_px: float,
                  roll_deg: float, bottoms_mm: np.ndarray | None = None,

@@ -13,12 +13,12 @@ per roll (cached) from row-binned *distorted* images to a grid turned to the fee
 along the feed every ``bin_cols`` px, rows across it every ``bin_rows * merge_rows`` image rows
 -- undistorted at once.  The source rows are first averaged over ``merge_rows`` rows and
 ``bin_cols`` columns (``cv2.resize``'s area integers; for ``uint16`` row bins
-:func:`vision.defects.kernels.column_means_u16`, the same integers faster), so the remap and
+:func:`vision.defects.map_kernels.column_means_u16`, the same integers faster), so the remap and
 every step after it run on the coarse grid.  On that grid the board's motion between the
 shots is a shift along the columns alone, so B is registered with the measurement's shift
 (``Measurement.shift_px``, px along the feed) by a linear
 interpolation along the rows, in one compiled pass with the ratio and the
-albedo (:func:`vision.defects.kernels.register_ratio`; the albedo only where asked for: the
+albedo (:func:`vision.defects.map_kernels.register_ratio`; the albedo only where asked for: the
 detectors do not read it).  With ``bin_rows = 1`` and
 ``bin_cols = 1`` the map has the camera's full resolution; the
 :class:`vision.pipeline.Measurer`'s :class:`vision.defects.detect.DefectFinder` builds it from
@@ -43,7 +43,7 @@ import numpy as np
 
 from config.rig import Camera, Lights
 from core.checks import check_finite, check_int
-from vision.defects import kernels
+from vision.defects import map_kernels
 
 _U16 = np.dtype(np.uint16)
 
@@ -106,7 +106,7 @@ class SurfaceMap:
 
         The :class:`SurfaceMapper`'s maps come with them (found in the ratio's pass).
         """
-        rows, cols = kernels.valid_extent(np.ascontiguousarray(self.valid))
+        rows, cols = map_kernels.valid_extent(np.ascontiguousarray(self.valid))
         rows.flags.writeable = False
         cols.flags.writeable = False
         return rows, cols
@@ -176,7 +176,7 @@ class SurfaceMap:
 
 @dataclass(frozen=True)
 class _Taps:
-    """Where each grid point samples the coarse source (:func:`kernels.remap_pair`'s table).
+    """Where each grid point samples the coarse source (:func:`map_kernels.remap_pair`'s table).
 
     ``x0``, ``y0``: ``floor`` of the remap coordinates (int32); ``ax``, ``ay``: the fractions
     (float32, exact); ``off``: ``y0 * width + x0`` (uint32; 0 on rows not ``inside``);
@@ -283,7 +283,7 @@ class SurfaceMapper:
         self._u16_pass = self._strided and self.bin_cols <= 32768
         self._cache_size = check_int("cache", cache, lo=1)
         self._tables: OrderedDict[float, tuple[_Taps, np.ndarray]] = OrderedDict()
-        kernels.warm_up()  # compiled (or loaded from the cache) here, never on a frame
+        map_kernels.warm_up()  # compiled (or loaded from the cache) here, never on a frame
 
     @property
     def col0_px(self) -> float:
@@ -359,7 +359,7 @@ class SurfaceMapper:
             # faster than a linear resize at half the width and its float copy; 6: ~4x faster
             # than a loop per block)
             out = np.empty((self._n_red, self._w_red), dtype=np.float32)
-            kernels.column_means_u16(src, (m - 1) // 2, m, self.bin_cols, out)
+            map_kernels.column_means_u16(src, (m - 1) // 2, m, self.bin_cols, out)
             return out
         if r.dtype not in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
             r = r.astype(np.float32)
@@ -428,7 +428,7 @@ class SurfaceMapper:
         # one call: both images at once, cv2.remap's numbers (INTER_LINEAR, BORDER_REPLICATE),
         # then B registered onto A (b_reg[:, j] = b[:, j + d], linear), Eq. 4, the albedo,
         # and the map's valid rows and columns
-        extent = kernels.map_pair(
+        extent = map_kernels.map_pair(
             self._given(ca, "coarse[0]") if ca is not None
             else np.ascontiguousarray(self._coarse(rows_a)),
             self._given(cb, "coarse[1]") if cb is not None

@@ -14,7 +14,7 @@ import pytest
 from numba import njit
 
 from config.rig import Camera, Lights
-from vision.defects import kernels
+from vision.defects import kernels, map_kernels
 from vision.defects.surface_map import SurfaceMap, SurfaceMapper, _Taps
 
 
@@ -279,7 +279,7 @@ def test_remap_pair_is_opencvs_remap(where):
         mx, my = mx.astype(np.float32), my.astype(np.float32)
         t = _Taps.of(mx, my, w, h)
         got_a, got_b = np.empty(shape, np.float32), np.empty(shape, np.float32)
-        kernels.remap_pair(a, b, t.off, t.ax, t.ay, t.x0, t.y0, t.inside, got_a, got_b)
+        map_kernels.remap_pair(a, b, t.off, t.ax, t.ay, t.x0, t.y0, t.inside, got_a, got_b)
         for img, got in ((a, got_a), (b, got_b)):
             ref = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             assert np.array_equal(got, ref)
@@ -303,7 +303,7 @@ def test_the_mapper_is_its_earlier_form():
         a, b = (cv2.remap(mapper._coarse(r), mx, my, cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_REPLICATE) for r in (rows_a, rows_b))
         slope, both = np.empty_like(a), np.empty(a.shape, bool)
-        kernels.register_ratio(a, b, valid, 14.6 / 2, mapper._ka, mapper._kb, slope,
+        map_kernels.register_ratio(a, b, valid, 14.6 / 2, mapper._ka, mapper._kb, slope,
                                np.empty((0, 0), np.float32), both)
         assert np.array_equal(got.valid, both) and np.array_equal(got.slope_along_feed, slope)
 
@@ -337,10 +337,10 @@ def test_valid_any_is_numpys_any_along_both_axes(shape):
     for p in (0.0, 0.002, 0.5, 1.0):
         valid = rng.random(shape) < p
         rows, cols = np.empty(shape[0], bool), np.empty(shape[1], bool)
-        kernels.valid_any(valid, rows, cols)
+        map_kernels.valid_any(valid, rows, cols)
         assert np.array_equal(rows, valid.any(axis=1))
         assert np.array_equal(cols, valid.any(axis=0))
-        got = kernels.valid_extent(valid)  # and their indices, as the map takes them
+        got = map_kernels.valid_extent(valid)  # and their indices, as the map takes them
         want = (np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0)))
         for g, w in zip(got, want, strict=True):
             assert g.dtype == w.dtype and np.array_equal(g, w)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vision.defects import kernels
+from vision.defects import kernels, map_kernels
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 8, 35, 1000])
@@ -53,7 +53,7 @@ def test_register_ratio_as_numpy(d):
     ka = math.tan(math.radians(82))
     slope, albedo = np.empty_like(a), np.empty_like(a)
     both = np.empty(a.shape, bool)
-    n = kernels.register_ratio(a, b, valid, d, ka, -ka, slope, albedo, both)
+    n = map_kernels.register_ratio(a, b, valid, d, ka, -ka, slope, albedo, both)
     ref = _reference_map(a, b, valid, d, ka, -ka)
     assert n == int(ref[2].sum())
     assert np.array_equal(both, ref[2])
@@ -205,7 +205,7 @@ def test_column_means_are_opencvs_area_resize(k):
         rows = src[1:31:3, :100 * k]  # the middle row of blocks of three, whole blocks
         ref = cv2.resize(rows, (100, 10), interpolation=cv2.INTER_AREA).astype(np.float32)
         out = np.empty((10, 100), np.float32)
-        kernels.column_means_u16(src, 1, 3, k, out)
+        map_kernels.column_means_u16(src, 1, 3, k, out)
         assert np.array_equal(out, ref)
         if k == 2:  # a linear resize to exactly half the width: the same integers
             lin = cv2.resize(rows, (100, 10), interpolation=cv2.INTER_LINEAR)
