@@ -30,6 +30,8 @@ DEFAULT_RATES_HZ = (25.0, 50.0, 75.0, 100.0)
 ROW_KEYS = ("rate_hz_per_head", "pairs_per_s", "pairs_in", "handled", "dropped", "p50_ms",
             "p99_ms", "max_ms", "cpu_ms_per_pair", "cores_busy", "meets")
 """The keys of each rate's row (``meets``: p99 within the target and nothing dropped)."""
+TICKS_FROM_MS = 20.0
+"""The figure's latency ticks run at least to this, ms (past the target)."""
 
 
 class RatesError(ConfigError):
@@ -178,6 +180,7 @@ def text(result: dict[str, Any]) -> str:
 def figure(result: dict[str, Any]) -> Any:
     """p50 and p99 latency over the pairs/s offered, the target, the cores busy (a Figure)."""
     from matplotlib.figure import Figure
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
 
     rows = result["rows"]
     heads = result["heads"]
@@ -195,8 +198,13 @@ def figure(result: dict[str, Any]) -> Any:
     if missed:
         ax.plot(*zip(*missed, strict=True), "x", color="tab:red", ms=10, label="missed")
     ax.set_yscale("log")
+    ax.yaxis.set_major_formatter(ScalarFormatter())
+    ax.yaxis.set_minor_formatter(NullFormatter())
+    ax.set_yticks([t for t in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
+                   if t <= 2 * max([r["max_ms"] or 0 for r in rows] + [TICKS_FROM_MS])])
     ax.set_xlabel(f"pairs/s offered ({heads} heads)")
-    ax.set_ylabel("latency, ms")
+    ax.set_ylabel("frame -> setpoints latency, ms")
+    handles, labels = ax.get_legend_handles_labels()
     busy = [(xi, r["cores_busy"]) for xi, r in zip(x, rows, strict=True)
             if r["cores_busy"] is not None]
     if busy:
@@ -204,10 +212,14 @@ def figure(result: dict[str, Any]) -> Any:
         ax2.plot(*zip(*busy, strict=True), "^:", color="tab:gray", label="cores busy")
         ax2.set_ylabel("cores busy (service + workers)", color="tab:gray")
         ax2.set_ylim(0, max(float(result["machine"].get("cores") or 2), *[b for _, b in busy]))
+        more = ax2.get_legend_handles_labels()
+        handles, labels = handles + more[0], labels + more[1]
     m = result["machine"]
-    ax.set_title(f"moulder service on {m.get('cores')} cores (load {m.get('load_avg')})",
-                 fontsize=9)
-    ax.legend(fontsize=8, loc="upper left")
+    load = m.get("load_avg")
+    load_text = f"{load[0]:.1f}" if isinstance(load, list | tuple) and load else "?"
+    ax.set_title(f"moulder service on {m.get('cores')} cores, {result['workers']} workers "
+                 f"(load {load_text})", fontsize=9)
+    ax.legend(handles, labels, fontsize=8, loc="upper left")
     return fig
 
 
