@@ -883,8 +883,8 @@ def knife_sums(values: np.ndarray, knives: int, phase: int, sums: np.ndarray,
                counts: np.ndarray) -> None:  # pragma: no cover - compiled
     """Mark ``i``'s value added to knife ``(phase + i) mod knives`` (``sums``, ``counts``).
 
-    The sums run in the marks' order from 0.0, as :func:`vision.marks.knife_means`' loop on
-    Python floats; ``phase`` may be negative (Python's modulo).
+    The sums run in the marks' order from 0.0 (what :func:`vision.marks.knife_means` divides);
+    ``phase`` may be negative (Python's modulo).
     """
     for i in range(values.size):
         k = (phase + i) % knives

@@ -583,23 +583,6 @@ def _feed_positions(n: int, col0_px: float, col_step_px: float, cx: float,
     return xs
 
 
-def _chatter_fit(d: np.ndarray, knives: int) -> tuple[float, float, float, float] | None:
-    """The best sinusoid of :func:`chatter` on the differences ``d`` of the marks' heights.
-
-    Returns ``(explained, amp_d, noise, amp)``: the share of the variance the best period
-    explains, its amplitude of the differences, their noise's standard error, the heights'
-    amplitude; ``None`` without a period to fit. The basis and its determinants are set up
-    once per number of marks (:func:`_chatter_basis`); the fit is
-    :func:`vision.defects.kernels.chatter_fit`'s (what :func:`chatter` calls on the profile).
-    """
-    basis = _chatter_basis(d.size, knives)
-    if basis is None:
-        return None
-    trend, tt, waves, coef = basis
-    return kernels._sinusoid_fit(np.ascontiguousarray(d, dtype=np.float64), knives, trend, tt,
-                                 waves, coef)
-
-
 @functools.lru_cache(maxsize=32)
 def _chatter_basis(m: int, knives: int) -> tuple[Any, ...] | None:
     """The sinusoids :func:`chatter` fits to ``m`` differences (``knives`` knives), set up once.

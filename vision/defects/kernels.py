@@ -693,31 +693,84 @@ def cross_spectrum(f: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover 
 
 
 @njit(**_JIT)
-def _pairwise_sum(v: np.ndarray, start: int, step: int) -> float:  # pragma: no cover
-    """``v[start::step].sum()`` as numpy sums it (float64; up to 128 values).
+def _pairwise_block(v: np.ndarray, start: int, step: int, i0: int,
+                    n: int) -> float:  # pragma: no cover - compiled
+    """The pairwise sum numpy takes of ``n <= 128`` strided values from ``i0`` (its leaf).
 
-    Fewer than 8 values in order from 0; more in eight interleaved partial sums, then the
-    rest in order (:func:`_pairwise_mean`'s order): the same bits.
+    Fewer than 8 values in order; more in eight interleaved partial sums, then the rest in
+    order (:func:`_pairwise_mean`'s order).
     """
-    n = (v.size - start + step - 1) // step if v.size > start else 0
     if n < 8:
         s = 0.0
         for i in range(n):
-            s += v[start + i * step]
+            s += v[start + (i0 + i) * step]
         return s
     r = np.empty(8)
     for q in range(8):
-        r[q] = v[start + q * step]
+        r[q] = v[start + (i0 + q) * step]
     i = 8
     while i < n - n % 8:
         for q in range(8):
-            r[q] += v[start + (i + q) * step]
+            r[q] += v[start + (i0 + i + q) * step]
         i += 8
     s = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
     while i < n:
-        s += v[start + i * step]
+        s += v[start + (i0 + i) * step]
         i += 1
     return s
+
+
+@njit(**_JIT)
+def _pairwise_sum(v: np.ndarray, start: int, step: int) -> float:  # pragma: no cover
+    """``v[start::step].sum()`` as numpy sums it (float64): the same bits at any length.
+
+    numpy's pairwise summation: blocks of at most 128 values (:func:`_pairwise_block`); a
+    longer run split at half its length rounded down to a multiple of 8, each part summed
+    alike and the two added (:func:`_pairwise_split`).
+    """
+    n = (v.size - start + step - 1) // step if v.size > start else 0
+    if n <= 128:
+        return _pairwise_block(v, start, step, 0, n)
+    return _pairwise_split(v, start, step, 0, n)
+
+
+@njit(**_JIT)
+def _pairwise_split(v: np.ndarray, start: int, step: int, i0: int,
+                    n: int) -> float:  # pragma: no cover - compiled
+    """The pairwise sum numpy takes of ``n`` strided values from value ``i0`` (any ``n``).
+
+    numpy's recursion, walked with explicit stacks (a cached compiled recursive function
+    crashed when loaded from numba's cache): a run of ``n > 128`` values splits at
+    ``n2 = n // 2 - (n // 2) % 8``, each part summed alike, left plus right.
+    """
+    run_i = np.empty(64, dtype=np.int64)  # depth log2(n / 128): 64 covers any length
+    run_n = np.empty(64, dtype=np.int64)
+    state = np.zeros(64, dtype=np.int64)  # 0: split it, 1: its left part summed, 2: both
+    sums = np.empty(65)
+    run_i[0], run_n[0], state[0] = i0, n, 0
+    top, k = 0, 0
+    while top >= 0:
+        i, m = run_i[top], run_n[top]
+        if m <= 128:
+            sums[k] = _pairwise_block(v, start, step, i, m)
+            k += 1
+            top -= 1
+            continue
+        n2 = m // 2
+        n2 -= n2 % 8
+        if state[top] == 0:  # its left part next
+            state[top] = 1
+            top += 1
+            run_i[top], run_n[top], state[top] = i, n2, 0
+        elif state[top] == 1:  # then its right part
+            state[top] = 2
+            top += 1
+            run_i[top], run_n[top], state[top] = i + n2, m - n2, 0
+        else:  # both summed: left plus right
+            sums[k - 2] = sums[k - 2] + sums[k - 1]
+            k -= 1
+            top -= 1
+    return sums[0]
 
 
 @njit(**_JIT)
@@ -846,7 +899,7 @@ def _mark_differences(profile: np.ndarray, cols_per_mm: float, xs: np.ndarray,
 
 
 @njit(**_JIT)
-def _sinusoid_fit(d: np.ndarray, knives: int, trend: np.ndarray, tt: float,
+def sinusoid_fit(d: np.ndarray, knives: int, trend: np.ndarray, tt: float,
                   waves: np.ndarray, coef: np.ndarray) -> tuple:  # pragma: no cover - compiled
     """Chatter's best sinusoid on the differences ``d`` (``detect._chatter_basis``'s basis).
 
@@ -905,18 +958,18 @@ def chatter_fit(profile: np.ndarray, cols_per_mm: float, xs: np.ndarray, bottoms
     """Chatter's fit of one pair in one call (:func:`vision.defects.detect.chatter`).
 
     The marks' heights at their lowest points, their differences
-    (:func:`_mark_differences`) and the best sinusoid on them (:func:`_sinusoid_fit`).
+    (:func:`_mark_differences`) and the best sinusoid on them (:func:`sinusoid_fit`).
     """
     d = np.empty(bottoms.size - 1)
     _mark_differences(profile, cols_per_mm, xs, bottoms, d)
-    return _sinusoid_fit(d, knives, trend, tt, waves, coef)
+    return sinusoid_fit(d, knives, trend, tt, waves, coef)
 
 
 _WARM = [False]
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) every detector kernel for the types the map gives.
+    """Compile (or load from the cache) the kernels the detectors call, for the map's types.
 
     Called by :class:`vision.defects.detect.DefectFinder` at set-up; idempotent and cheap
     after the first call in a process.
@@ -929,7 +982,6 @@ def warm_up() -> None:
     cells = np.empty((8, 4), dtype=np.float32)
     residual_map(a, valid, 0.07, 2, 2, 3, np.empty(12), out, cells,
                  np.empty((8, 4), dtype=np.bool_), np.empty(32, dtype=np.float32))
-    fold_rows(a, valid, 0, 4.0, 4, 3, 6, 4, 0.3, np.empty((8, 4)), np.empty(8))
     row_depth(a, 0, 4, 0, 10, np.ones((4, 10), dtype=np.bool_), 160.0)
     labels = np.zeros((8, 4), dtype=np.int32)
     stats = np.ones((2, 5), dtype=np.int32)
@@ -940,7 +992,6 @@ def warm_up() -> None:
     cross_spectrum(np.ones((2, 9), dtype=np.complex64), np.empty(9, dtype=np.complex64))
     snipe_fit(np.ones(40), 2, 38, 3, 0.16)
     coherence_peak(np.ones(16, dtype=np.float32), np.ones(6), 3)
-    reference_median(np.ones(16), 8, 12.0, np.empty(3))
     fold_reference(a, valid, 0, 4.0, 4, 3, 6, 4, 0.3, 12.0, np.empty((8, 4)), np.empty(8))
     fixed = [np.arange(40.0), np.ones(14), np.ones((2, 3, 14)), np.ones((5, 3))]
     for v in fixed:  # read-only, as the caches hand them over

@@ -336,7 +336,7 @@ _WARM = [False]
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) every map kernel for the types the mapper passes.
+    """Compile (or load from the cache) the map kernels the mapper calls, for its types.
 
     Called by :class:`vision.defects.surface_map.SurfaceMapper` at set-up; idempotent and
     cheap after the first call in a process.
@@ -346,18 +346,13 @@ def warm_up() -> None:
     a = np.ones((8, 12), dtype=np.float32)
     valid = np.ones((8, 12), dtype=np.bool_)
     out = np.empty_like(a)
+    # what the mapper calls (remap_pair, the ratio's pass and valid_any are compiled inside
+    # map_pair and valid_extent; register_ratio and the others alone only where called)
     for alb in (np.empty_like(a), np.empty((0, 0), np.float32)):
-        register_ratio(a, a, valid, 1.5, 7.1, -7.1, out, alb, np.empty_like(valid))
         map_pair(a, a, np.zeros((8, 12), dtype=np.uint32), np.zeros((8, 12), np.float32),
                  np.zeros((8, 12), np.float32), np.zeros((8, 12), np.int32),
                  np.zeros((8, 12), np.int32), np.zeros(8, dtype=np.bool_), valid, 1.5, 7.1,
                  -7.1, out, alb, np.empty_like(valid))
     column_means_u16(np.ones((8, 12), dtype=np.uint16), 1, 3, 6, np.empty((2, 2), np.float32))
-    valid_any(np.ones((2, 3), dtype=bool), np.empty(2, dtype=bool), np.empty(3, dtype=bool))
     valid_extent(np.ones((2, 3), dtype=bool))
-    grid = np.zeros((2, 3), dtype=np.int32)
-    for inside in (np.ones(2, dtype=np.bool_), np.zeros(2, dtype=np.bool_)):
-        remap_pair(a, a, np.zeros((2, 3), dtype=np.uint32), np.zeros((2, 3), np.float32),
-                   np.zeros((2, 3), np.float32), grid, grid, inside,
-                   np.empty((2, 3), np.float32), np.empty((2, 3), np.float32))
     _WARM[0] = True

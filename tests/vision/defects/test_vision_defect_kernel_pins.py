@@ -369,7 +369,17 @@ def _old_peak(x: np.ndarray, r2: np.ndarray, max_lag_px: int) -> tuple[float, fl
     return float(vals[k]), float(vals[0]), int(lag)
 
 
-@pytest.mark.parametrize("pairs", [1, 3, 4, 7, 8, 9, 25, 40, 64])
+@pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 127, 128, 129, 255, 256, 257, 300, 513, 1031, 4099])
+def test_strided_pairwise_sums_are_numpys_at_any_length(n):
+    """numpy's pairwise summation, its blocks of 128 and its splits above: the same bits."""
+    rng = np.random.default_rng(n)
+    for _ in range(5):
+        v = rng.standard_normal(n) * rng.uniform(1e-3, 1e3, n)
+        for start, step in ((0, 1), (0, 2), (1, 2), (2, 3)):
+            assert kernels._pairwise_sum(v, start, step) == v[start::step].sum(), (start, step)
+
+
+@pytest.mark.parametrize("pairs", [1, 3, 4, 7, 8, 9, 25, 40, 64, 129, 200, 600])
 def test_coherence_peak_is_its_numpy_form(pairs):
     """Norm (numpy's pairwise sums), float32 correlations, the first peak: the same bits."""
     rng = np.random.default_rng(pairs)
