@@ -139,6 +139,23 @@ def test_fit_calibration_equals_its_numpy_form(seed):
     assert repr(new) == repr(old)  # every field, every bit (repr of floats round-trips)
 
 
+@pytest.mark.parametrize("finite, marks", [(0, 5), (1, 5), (15, 5), (16, 5), (17, 5), (60, 1),
+                                            (60, 2)])
+def test_fit_calibration_with_too_little_model_or_marks_equals_its_numpy_form(finite, marks):
+    """The early returns (fewer than 16 samples of the model, fewer than 2 marks) as before."""
+    rng = np.random.default_rng(finite * 10 + marks)
+    slope, model, dx, _, _ = _marks_profile(rng, 200)
+    model = model.copy()
+    model[:] = np.nan
+    start = int(rng.integers(0, 200 - finite + 1))
+    model[start:start + finite] = rng.standard_normal(finite)  # a span of `finite` samples
+    new = fit_calibration(slope, model, dx_mm=dx, marks=marks)
+    old = _old_fit(slope, model, dx_mm=dx, marks=marks)
+    assert repr(new) == repr(old)
+    if finite < 16 or marks < 2:  # nothing to calibrate on: the identity
+        assert new == Calibration()
+
+
 def test_fit_calibration_refuses_mismatched_lengths():
     with pytest.raises(ValueError, match="slope and model"):
         fit_calibration(np.zeros(40), np.zeros(41), dx_mm=0.08, marks=4)
