@@ -159,12 +159,10 @@ class RatioSlope:
     def __call__(self, ratio_ba: np.ndarray) -> np.ndarray:
         """Slope ``p`` from ``I_B / I_A`` (NaN where the denominator vanishes)."""
         r = np.asarray(ratio_ba, dtype=np.float64)
-        if r.ndim == 1:
-            return self.finite(r)[0]
-        den = r * self._ca * self._tan_a - self._b
-        with np.errstate(divide="ignore", invalid="ignore"):
-            p = (r - 1.0) / den
-        return np.where(den != 0, p, np.nan)
+        out = np.empty(r.shape)  # any shape, a scalar's too: one compiled pass over its values
+        kernels.ratio_slope(np.ascontiguousarray(r).reshape(-1), self._ca, self._tan_a, self._b,
+                            out.reshape(-1))
+        return out
 
     def finite(self, ratio_ba: np.ndarray) -> tuple[np.ndarray, bool]:
         """The slope of a 1-D ratio (as the call) and whether every sample of it is finite.

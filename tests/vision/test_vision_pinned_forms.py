@@ -232,7 +232,10 @@ def test_ratio_slope_equals_its_numpy_form(seed):
     assert rs(r).tobytes() == old.tobytes()
     assert finite == bool(np.all(np.isfinite(old)))
     r2 = r[: r.size // 2 * 2].reshape(2, -1) if r.size > 1 else r.reshape(1, 1)
-    assert rs(r2).tobytes() == _old_ratio_slope(rs, r2).tobytes()  # 2-D: numpy as before
+    assert rs(r2).tobytes() == _old_ratio_slope(rs, r2).tobytes()  # 2-D: the same numbers
+    strided = r[::2]  # a view that is not contiguous, and a scalar
+    assert rs(strided).tobytes() == _old_ratio_slope(rs, strided).tobytes()
+    assert rs(r[0]).shape == () and rs(r[0]).tobytes() == _old_ratio_slope(rs, r[0]).tobytes()
 
 
 def _old_repeat_period(signal, *, max_multiple=8, tolerance=0.02):
@@ -309,6 +312,20 @@ def test_knife_means_and_kinematic_depths_equal_their_python_forms(seed):
     r = float(rng.uniform(20, 120))
     old = 1000.0 * ((cusps[:-1] - bottoms) ** 2 + (cusps[1:] - bottoms) ** 2) / (4.0 * r)
     assert kinematic_depths_um(cusps, bottoms, radius_mm=r).tobytes() == old.tobytes()
+
+
+@pytest.mark.parametrize("cusps, bottoms", [
+    (np.zeros(3), np.zeros(3)),  # one cusp too few
+    (np.zeros(5), np.zeros(3)),  # one too many
+    (np.zeros((2, 3)), np.zeros(2)),  # not 1-D
+    (np.zeros(1), np.zeros((1, 1))),
+])
+def test_kinematic_depths_refuse_cusps_that_do_not_bracket_the_bottoms(cusps, bottoms):
+    from vision.calibration.selfcal import kinematic_depths_um
+
+    with pytest.raises(ValueError, match="cusps_mm") as exc:
+        kinematic_depths_um(cusps, bottoms, radius_mm=60.0)
+    assert str(np.shape(cusps)) in str(exc.value) and str(np.shape(bottoms)) in str(exc.value)
 
 
 class _OldCalibrator:

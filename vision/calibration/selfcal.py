@@ -107,13 +107,20 @@ def kinematic_depths_um(cusps_mm: np.ndarray, bottoms_mm: np.ndarray, *,
     -------
     ndarray, shape (m,)
         ``1000 ((c_k - b_k)^2 + (c_(k+1) - b_k)^2) / (4 R)``.
+
+    Raises
+    ------
+    ValueError
+        A radius not > 0; cusps and lowest points that are not 1-D with one more cusp.
     """
     r = check_positive("radius_mm", radius_mm)
-    c = np.asarray(cusps_mm, dtype=np.float64)
-    b = np.asarray(bottoms_mm, dtype=np.float64)
-    if c.ndim == 1 and b.ndim == 1 and c.size == b.size + 1:  # one compiled pass, same numbers
-        return kernels.arc_depths(np.ascontiguousarray(c), np.ascontiguousarray(b), float(r))
-    return 1000.0 * ((c[:-1] - b) ** 2 + (c[1:] - b) ** 2) / (4.0 * r)
+    c = np.ascontiguousarray(cusps_mm, dtype=np.float64)
+    b = np.ascontiguousarray(bottoms_mm, dtype=np.float64)
+    if c.ndim != 1 or b.ndim != 1 or c.size != b.size + 1:
+        raise ValueError(f"cusps_mm must be 1-D with one more value than bottoms_mm, got "
+                         f"shapes {c.shape} and {b.shape}")
+    # 1000 ((c[:-1] - b)^2 + (c[1:] - b)^2) / (4 r), numpy's operations, one compiled pass
+    return kernels.arc_depths(c, b, float(r))
 
 
 @functools.lru_cache(maxsize=64)

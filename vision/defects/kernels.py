@@ -313,30 +313,8 @@ def marked_cells(e: np.ndarray, valid_cells: np.ndarray, inv_base: float, limit:
 
 @njit(**_JIT)
 def _pairwise_mean(v: np.ndarray, lo: int, hi: int) -> float:  # pragma: no cover - compiled
-    """The mean of ``v[lo:hi]`` as numpy's ``mean`` sums it (eight partial sums from 8 values).
-
-    numpy adds a contiguous run of fewer than 8 values in order and a longer one (up to 128)
-    in eight interleaved partial sums; the same order here gives the same bits.
-    """
-    n = hi - lo
-    if n < 8:
-        s = 0.0 + v[lo]
-        for i in range(lo + 1, hi):
-            s += v[i]
-        return s / n
-    r = np.empty(8)
-    for q in range(8):
-        r[q] = v[lo + q]
-    i = 8
-    while i < n - n % 8:
-        for q in range(8):
-            r[q] += v[lo + i + q]
-        i += 8
-    s = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
-    while i < n:
-        s += v[lo + i]
-        i += 1
-    return s / n
+    """The mean of ``v[lo:hi]`` as numpy's ``mean`` sums it (:func:`_pairwise_split`)."""
+    return _pairwise_split(v, lo, 1, 0, hi - lo) / (hi - lo)
 
 
 @njit(**_JIT)
@@ -729,8 +707,6 @@ def _pairwise_sum(v: np.ndarray, start: int, step: int) -> float:  # pragma: no 
     alike and the two added (:func:`_pairwise_split`).
     """
     n = (v.size - start + step - 1) // step if v.size > start else 0
-    if n <= 128:
-        return _pairwise_block(v, start, step, 0, n)
     return _pairwise_split(v, start, step, 0, n)
 
 
@@ -743,6 +719,8 @@ def _pairwise_split(v: np.ndarray, start: int, step: int, i0: int,
     crashed when loaded from numba's cache): a run of ``n > 128`` values splits at
     ``n2 = n // 2 - (n // 2) % 8``, each part summed alike, left plus right.
     """
+    if n <= 128:  # one block: numpy's leaf
+        return _pairwise_block(v, start, step, i0, n)
     run_i = np.empty(64, dtype=np.int64)  # depth log2(n / 128): 64 covers any length
     run_n = np.empty(64, dtype=np.int64)
     state = np.zeros(64, dtype=np.int64)  # 0: split it, 1: its left part summed, 2: both
